@@ -1,0 +1,60 @@
+// worker/core/geometry.h — the data types every engine and codec shares.
+//
+// Positions and normals are stored as single-precision floats (12 bytes each): a 16M-point
+// scan stays under 400 MB of positions. Engines compute in double where accuracy needs it.
+#pragma once
+
+#include <array>
+#include <cstdint>
+#include <span>
+#include <string>
+#include <vector>
+
+#include <Eigen/Core>
+#include <Eigen/Geometry>
+
+namespace lsqsurf::core {
+
+using Vec3f = Eigen::Vector3f;
+using Vec3d = Eigen::Vector3d;
+using Box3 = Eigen::AlignedBox3d;
+
+// A named per-element scalar (e.g. "intensity", "degree"); `values` has one entry per element.
+struct ScalarAttribute {
+  std::string name;
+  std::vector<float> values;
+};
+
+// An unorganized point set with optional unit normals and optional named scalars.
+struct PointCloud {
+  std::vector<Vec3f> positions;       // Model units.
+  std::vector<Vec3f> normals;         // Empty, or one unit vector per point (outward).
+  std::vector<ScalarAttribute> attributes;
+
+  size_t size() const { return positions.size(); }
+  bool empty() const { return positions.empty(); }
+  bool has_normals() const { return !normals.empty() && normals.size() == positions.size(); }
+};
+
+using Triangle = std::array<uint32_t, 3>;
+
+// An indexed triangle mesh; faces are counter-clockwise seen from outside.
+struct TriangleMesh {
+  std::vector<Vec3f> vertices;        // Model units.
+  std::vector<Triangle> faces;        // Indices into `vertices`.
+  std::vector<Vec3f> normals;         // Empty, or one per vertex.
+  std::vector<ScalarAttribute> vertex_attributes;  // Each with one value per vertex.
+
+  bool empty() const { return faces.empty(); }
+};
+
+// Smallest axis-aligned box that holds every point; empty box for no points.
+Box3 BoundingBox(std::span<const Vec3f> points);
+
+// Length of the box diagonal, 0 for an empty box.
+double Diagonal(const Box3& box);
+
+// Finds a non-finite coordinate; returns the index of the first bad point or -1.
+int64_t FindNonFinite(std::span<const Vec3f> points);
+
+}  // namespace lsqsurf::core

@@ -1,0 +1,44 @@
+// worker/core/implicit_function.h — the one interface every surface method implements.
+//
+// A surface is the zero set of F. Sign convention, product-wide: F < 0 inside, F > 0 outside
+// (the side the input normals point to). F may be *undefined* where the method has no support
+// (too far from the data, or where its weights vanish): extractors never place surface there.
+#pragma once
+
+#include <span>
+
+#include "absl/status/status.h"
+#include "worker/core/geometry.h"
+#include "worker/core/job_context.h"
+
+namespace lsqsurf::core {
+
+// `defined`: F is trustworthy here and surface may be placed here. Where it is false, `value`
+// may still be finite: then only its sign is meaningful (it classifies grid corners as inside
+// or outside); it is NaN where nothing at all is known.
+struct FieldValue {
+  double value = 0.0;
+  bool defined = false;
+};
+
+struct FieldGradient {
+  double value = 0.0;
+  Vec3d gradient = Vec3d::Zero();
+  bool defined = false;
+};
+
+// Implementations must be safe to evaluate concurrently from many threads.
+class ImplicitFunction {
+ public:
+  virtual ~ImplicitFunction() = default;
+
+  virtual FieldValue Value(const Vec3d& x) const = 0;
+  virtual FieldGradient ValueAndGradient(const Vec3d& x) const = 0;
+
+  // Evaluates many points (in parallel by default). `out.size()` must equal `xs.size()`.
+  // Errors: kCancelled when `ctx` is cancelled.
+  virtual absl::Status ValueBatch(std::span<const Vec3d> xs, std::span<FieldValue> out,
+                                  const JobContext* ctx = nullptr) const;
+};
+
+}  // namespace lsqsurf::core

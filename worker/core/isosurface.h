@@ -1,0 +1,55 @@
+// worker/core/isosurface.h — zero-set extraction on a sparse uniform grid of tetrahedra.
+//
+// The grid is never dense: extraction starts from the cubes that hold input points and follows
+// the surface from cube to cube across the faces it crosses, so memory and time scale with the
+// surface area, and the result is closed wherever F is defined (no cut at an arbitrary band).
+// Each cube is split into the 6 tetrahedra of its Kuhn (Freudenthal) triangulation along the
+// main diagonal; every cube uses the same diagonal direction, so neighbouring cubes share their
+// face triangulations and marching tetrahedra yields a crack-free, edge-manifold, consistently
+// oriented surface with no ambiguous cases. Crossings are keyed by the grid edge, so triangles
+// share vertices; their positions are refined on F along the edge (Illinois regula falsi).
+// Tetrahedra with a corner where F is unknown (NaN) produce nothing, and polygons whose root
+// lies where F is not `defined` are dropped (the ghost-sheet and hole guard).
+#pragma once
+
+#include <cstdint>
+#include <span>
+
+#include "absl/status/statusor.h"
+#include "worker/core/geometry.h"
+#include "worker/core/implicit_function.h"
+#include "worker/core/job_context.h"
+
+namespace lsqsurf::core {
+
+struct IsosurfaceParams {
+  double cell_size = 0.0;        // Cube edge length in model units; must be > 0.
+  int refine_steps = 3;          // Root-refinement steps per crossing edge (0 = linear only).
+  int64_t max_cells = 60'000'000;  // Visited cubes before failing with kResourceExhausted.
+  bool vertex_normals = true;    // Store normalize(∇F) at each output vertex.
+};
+
+absl::Status Validate(const IsosurfaceParams& params);
+
+struct IsosurfaceStats {
+  int64_t cells_visited = 0;     // Cubes whose corners were evaluated.
+  int64_t surface_cells = 0;     // Cubes the surface passes through.
+  int64_t field_evaluations = 0; // Corner evaluations (refinement not included).
+  int64_t crossings = 0;         // Output vertices.
+  int64_t rejected_polygons = 0; // Polygons dropped because a root lay where F is undefined.
+};
+
+struct IsosurfaceResult {
+  TriangleMesh mesh;
+  IsosurfaceStats stats;
+};
+
+// Extracts {F = 0} near `seeds` (normally the input points: extraction starts in their cubes).
+// Errors: kInvalidArgument (bad params, no seeds, grid too large for 21-bit coordinates),
+// kResourceExhausted (more than `max_cells` cubes), kCancelled.
+absl::StatusOr<IsosurfaceResult> ExtractIsosurface(const ImplicitFunction& field,
+                                                   std::span<const Vec3f> seeds,
+                                                   const IsosurfaceParams& params,
+                                                   JobContext& ctx);
+
+}  // namespace lsqsurf::core

@@ -1,0 +1,86 @@
+#include "worker/core/mesh_metrics.h"
+
+#include <algorithm>
+#include <cassert>
+#include <numeric>
+#include <tuple>
+
+namespace lsqsurf::core {
+namespace {
+
+uint32_t FindRoot(std::vector<uint32_t>& parent, uint32_t x) {
+  while (parent[x] != x) x = parent[x] = parent[parent[x]];
+  return x;
+}
+
+}  // namespace
+
+MeshTopology AnalyzeTopology(const TriangleMesh& mesh) {
+  MeshTopology t;
+  t.faces = static_cast<int64_t>(mesh.faces.size());
+  // (min vertex, max vertex, face, forward?) per face side.
+  struct HalfEdge {
+    uint32_t lo, hi, face;
+    bool forward;
+  };
+  std::vector<HalfEdge> half;
+  half.reserve(mesh.faces.size() * 3);
+  std::vector<char> used(mesh.vertices.size(), 0);
+  for (uint32_t f = 0; f < mesh.faces.size(); ++f) {
+    const Triangle& tri = mesh.faces[f];
+    if (tri[0] == tri[1] || tri[1] == tri[2] || tri[0] == tri[2]) ++t.degenerate_faces;
+    for (int i = 0; i < 3; ++i) {
+      const uint32_t a = tri[static_cast<size_t>(i)], b = tri[static_cast<size_t>((i + 1) % 3)];
+      assert(a < mesh.vertices.size() && b < mesh.vertices.size());
+      used[a] = 1;
+      half.push_back({std::min(a, b), std::max(a, b), f, a < b});
+    }
+  }
+  t.vertices = std::count(used.begin(), used.end(), 1);
+  std::sort(half.begin(), half.end(), [](const HalfEdge& x, const HalfEdge& y) {
+    return std::tie(x.lo, x.hi) < std::tie(y.lo, y.hi);
+  });
+  std::vector<uint32_t> parent(mesh.faces.size());
+  std::iota(parent.begin(), parent.end(), 0u);
+  for (size_t i = 0; i < half.size();) {
+    size_t j = i;
+    while (j < half.size() && half[j].lo == half[i].lo && half[j].hi == half[i].hi) ++j;
+    const size_t count = j - i;
+    ++t.edges;
+    if (count == 1) ++t.boundary_edges;
+    if (count >= 3) ++t.non_manifold_edges;
+    if (count == 2 && half[i].forward == half[i + 1].forward) ++t.misoriented_edges;
+    const uint32_t first_face = half[i].face;
+    for (auto it = half.begin() + static_cast<std::ptrdiff_t>(i) + 1;
+         it != half.begin() + static_cast<std::ptrdiff_t>(j); ++it) {
+      parent[FindRoot(parent, it->face)] = FindRoot(parent, first_face);
+    }
+    i = j;
+  }
+  for (uint32_t f = 0; f < parent.size(); ++f) t.components += FindRoot(parent, f) == f;
+  return t;
+}
+
+double EnclosedVolume(const TriangleMesh& mesh) {
+  double six_v = 0;
+  for (const Triangle& f : mesh.faces) {
+    const Vec3d a = mesh.vertices[f[0]].cast<double>();
+    const Vec3d b = mesh.vertices[f[1]].cast<double>();
+    const Vec3d c = mesh.vertices[f[2]].cast<double>();
+    six_v += a.dot(b.cross(c));
+  }
+  return six_v / 6.0;
+}
+
+double SurfaceArea(const TriangleMesh& mesh) {
+  double area = 0;
+  for (const Triangle& f : mesh.faces) {
+    const Vec3d a = mesh.vertices[f[0]].cast<double>();
+    area += 0.5 * (mesh.vertices[f[1]].cast<double>() - a)
+                      .cross(mesh.vertices[f[2]].cast<double>() - a)
+                      .norm();
+  }
+  return area;
+}
+
+}  // namespace lsqsurf::core

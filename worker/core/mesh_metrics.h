@@ -1,0 +1,36 @@
+// worker/core/mesh_metrics.h — topology and volume checks of triangle meshes.
+#pragma once
+
+#include <cstdint>
+
+#include "worker/core/geometry.h"
+
+namespace lsqsurf::core {
+
+struct MeshTopology {
+  int64_t vertices = 0;            // Vertices referenced by at least one face.
+  int64_t edges = 0;               // Distinct undirected edges.
+  int64_t faces = 0;
+  int64_t boundary_edges = 0;      // Edges with exactly one incident face.
+  int64_t non_manifold_edges = 0;  // Edges with three or more incident faces.
+  int64_t misoriented_edges = 0;   // Two-face edges traversed in the same direction by both.
+  int64_t degenerate_faces = 0;    // Faces that repeat a vertex index.
+  int64_t components = 0;          // Face-connected components.
+
+  int64_t euler_characteristic() const { return vertices - edges + faces; }
+  // Closed and edge-manifold: every edge has exactly two faces.
+  bool watertight() const { return boundary_edges == 0 && non_manifold_edges == 0 && faces > 0; }
+  bool consistently_oriented() const { return misoriented_edges == 0; }
+};
+
+// O(F log F). Works on any index soup; out-of-range indices are a broken invariant (asserted).
+MeshTopology AnalyzeTopology(const TriangleMesh& mesh);
+
+// Signed volume enclosed by a closed mesh (divergence theorem); positive when faces are
+// oriented outward. Meaningless for open meshes.
+double EnclosedVolume(const TriangleMesh& mesh);
+
+// Total surface area.
+double SurfaceArea(const TriangleMesh& mesh);
+
+}  // namespace lsqsurf::core

@@ -1,0 +1,190 @@
+#include "worker/io/draco_codec.h"
+
+#include <draco/compression/decode.h>
+#include <draco/compression/encode.h>
+#include <draco/mesh/mesh.h>
+#include <draco/metadata/geometry_metadata.h>
+#include <draco/point_cloud/point_cloud.h>
+
+#include "worker/core/strings.h"
+
+namespace lsqsurf::io {
+namespace {
+
+constexpr char kNameEntry[] = "name";
+
+int AddFloatAttribute(draco::PointCloud& pc, draco::GeometryAttribute::Type type, int components,
+                      const float* data, size_t count) {
+  draco::GeometryAttribute ga;
+  ga.Init(type, nullptr, static_cast<uint8_t>(components), draco::DT_FLOAT32, false,
+          sizeof(float) * static_cast<size_t>(components), 0);
+  const int id = pc.AddAttribute(ga, /*identity_mapping=*/true, static_cast<uint32_t>(count));
+  draco::PointAttribute* att = pc.attribute(id);
+  for (size_t i = 0; i < count; ++i) {
+    att->SetAttributeValue(draco::AttributeValueIndex(static_cast<uint32_t>(i)),
+                           data + i * static_cast<size_t>(components));
+  }
+  return id;
+}
+
+// Adds positions, normals and named scalars; `normals`/`attributes` may be empty.
+void FillPointCloud(draco::PointCloud& pc, const std::vector<core::Vec3f>& positions,
+                    const std::vector<core::Vec3f>& normals,
+                    const std::vector<core::ScalarAttribute>& attributes) {
+  const size_t n = positions.size();
+  pc.set_num_points(static_cast<uint32_t>(n));
+  AddFloatAttribute(pc, draco::GeometryAttribute::POSITION, 3, positions.front().data(), n);
+  if (normals.size() == n) AddFloatAttribute(pc, draco::GeometryAttribute::NORMAL, 3, normals.front().data(), n);
+  for (const auto& a : attributes) {
+    if (a.values.size() != n) continue;
+    const int id = AddFloatAttribute(pc, draco::GeometryAttribute::GENERIC, 1, a.values.data(), n);
+    auto md = std::make_unique<draco::AttributeMetadata>();
+    md->AddEntryString(kNameEntry, a.name);
+    pc.AddAttributeMetadata(id, std::move(md));
+  }
+}
+
+draco::Encoder MakeEncoder(const DracoOptions& o) {
+  draco::Encoder enc;
+  enc.SetAttributeQuantization(draco::GeometryAttribute::POSITION, o.position_bits);
+  enc.SetAttributeQuantization(draco::GeometryAttribute::NORMAL, o.normal_bits);
+  enc.SetAttributeQuantization(draco::GeometryAttribute::GENERIC, o.attribute_bits);
+  enc.SetSpeedOptions(o.speed, o.speed);
+  return enc;
+}
+
+absl::Status DracoError(std::string_view what, const draco::Status& s) {
+  return absl::InvalidArgumentError(
+      core::StrCat(what, ": ", s.error_msg_string(), " (is the data truncated or corrupt?)"));
+}
+
+// Reads positions, normals and named scalars of the points (vertices) of a decoded geometry.
+absl::Status ExtractPoints(const draco::PointCloud& pc, std::vector<core::Vec3f>& positions,
+                           std::vector<core::Vec3f>& normals,
+                           std::vector<core::ScalarAttribute>& attributes) {
+  const draco::PointAttribute* pos = pc.GetNamedAttribute(draco::GeometryAttribute::POSITION);
+  if (pos == nullptr) return absl::InvalidArgumentError("Draco data has no position attribute");
+  if (pos->num_components() != 3) {
+    return absl::InvalidArgumentError(
+        core::StrCat("Draco positions have ", pos->num_components(), " components; 3 are required"));
+  }
+  const uint32_t n = pc.num_points();
+  positions.resize(n);
+  for (uint32_t i = 0; i < n; ++i) {
+    pos->ConvertValue<float>(pos->mapped_index(draco::PointIndex(i)), 3, positions[i].data());
+  }
+  const draco::PointAttribute* nrm = pc.GetNamedAttribute(draco::GeometryAttribute::NORMAL);
+  if (nrm != nullptr) {
+    if (nrm->num_components() != 3) {
+      return absl::InvalidArgumentError(
+          core::StrCat("Draco normals have ", nrm->num_components(), " components; 3 are required"));
+    }
+    normals.resize(n);
+    for (uint32_t i = 0; i < n; ++i) {
+      nrm->ConvertValue<float>(nrm->mapped_index(draco::PointIndex(i)), 3, normals[i].data());
+    }
+  }
+  const int generic_count = pc.NumNamedAttributes(draco::GeometryAttribute::GENERIC);
+  for (int g = 0; g < generic_count; ++g) {
+    const draco::PointAttribute* att = pc.GetNamedAttribute(draco::GeometryAttribute::GENERIC, g);
+    if (att->num_components() != 1) continue;  // Only scalar attributes are product data.
+    core::ScalarAttribute out;
+    out.name = core::StrCat("generic_", g);
+    if (const draco::AttributeMetadata* md = pc.GetAttributeMetadataByAttributeId(
+            pc.GetAttributeIdByUniqueId(att->unique_id()))) {
+      md->GetEntryString(kNameEntry, &out.name);
+    }
+    out.values.resize(n);
+    for (uint32_t i = 0; i < n; ++i) {
+      att->ConvertValue<float>(att->mapped_index(draco::PointIndex(i)), 1, &out.values[i]);
+    }
+    attributes.push_back(std::move(out));
+  }
+  return absl::OkStatus();
+}
+
+}  // namespace
+
+absl::Status Validate(const DracoOptions& o) {
+  for (int bits : {o.position_bits, o.normal_bits, o.attribute_bits}) {
+    if (bits < 1 || bits > 30) return absl::InvalidArgumentError("Draco quantization bits must be 1..30");
+  }
+  if (o.speed < 0 || o.speed > 10) return absl::InvalidArgumentError("Draco speed must be 0..10");
+  return absl::OkStatus();
+}
+
+absl::StatusOr<std::string> EncodeDracoPointCloud(const core::PointCloud& cloud,
+                                                  const DracoOptions& options) {
+  if (absl::Status s = Validate(options); !s.ok()) return s;
+  if (cloud.empty()) return absl::InvalidArgumentError("cannot encode an empty point cloud");
+  draco::PointCloud pc;
+  FillPointCloud(pc, cloud.positions, cloud.normals, cloud.attributes);
+  draco::Encoder enc = MakeEncoder(options);
+  draco::EncoderBuffer buffer;
+  const draco::Status s = enc.EncodePointCloudToBuffer(pc, &buffer);
+  if (!s.ok()) return absl::InternalError(core::StrCat("Draco encoding failed: ", s.error_msg_string()));
+  return std::string(buffer.data(), buffer.size());
+}
+
+absl::StatusOr<std::string> EncodeDracoMesh(const core::TriangleMesh& mesh,
+                                            const DracoOptions& options) {
+  if (absl::Status s = Validate(options); !s.ok()) return s;
+  if (mesh.vertices.empty() || mesh.faces.empty()) {
+    return absl::InvalidArgumentError("cannot encode a mesh without faces");
+  }
+  draco::Mesh dm;
+  FillPointCloud(dm, mesh.vertices, mesh.normals, mesh.vertex_attributes);
+  dm.SetNumFaces(mesh.faces.size());
+  for (size_t f = 0; f < mesh.faces.size(); ++f) {
+    const auto& t = mesh.faces[f];
+    dm.SetFace(draco::FaceIndex(static_cast<uint32_t>(f)),
+               {draco::PointIndex(t[0]), draco::PointIndex(t[1]), draco::PointIndex(t[2])});
+  }
+  draco::Encoder enc = MakeEncoder(options);
+  draco::EncoderBuffer buffer;
+  const draco::Status s = enc.EncodeMeshToBuffer(dm, &buffer);
+  if (!s.ok()) return absl::InternalError(core::StrCat("Draco encoding failed: ", s.error_msg_string()));
+  return std::string(buffer.data(), buffer.size());
+}
+
+absl::StatusOr<core::PointCloud> DecodeDracoPointCloud(std::string_view bytes) {
+  if (bytes.empty()) return absl::InvalidArgumentError("the Draco data is empty");
+  draco::DecoderBuffer buffer;
+  buffer.Init(bytes.data(), bytes.size());
+  draco::Decoder decoder;
+  auto decoded = decoder.DecodePointCloudFromBuffer(&buffer);
+  if (!decoded.ok()) return DracoError("cannot decode the Draco point cloud", decoded.status());
+  std::unique_ptr<draco::PointCloud> pc = std::move(decoded).value();
+  core::PointCloud cloud;
+  if (absl::Status s = ExtractPoints(*pc, cloud.positions, cloud.normals, cloud.attributes); !s.ok()) return s;
+  return cloud;
+}
+
+absl::StatusOr<core::TriangleMesh> DecodeDracoMesh(std::string_view bytes) {
+  if (bytes.empty()) return absl::InvalidArgumentError("the Draco data is empty");
+  draco::DecoderBuffer buffer;
+  buffer.Init(bytes.data(), bytes.size());
+  auto type = draco::Decoder::GetEncodedGeometryType(&buffer);
+  if (!type.ok()) return DracoError("cannot read the Draco header", type.status());
+  if (type.value() != draco::TRIANGULAR_MESH) {
+    return absl::InvalidArgumentError("the Draco data holds a point cloud, not a triangle mesh");
+  }
+  draco::Decoder decoder;
+  auto decoded = decoder.DecodeMeshFromBuffer(&buffer);
+  if (!decoded.ok()) return DracoError("cannot decode the Draco mesh", decoded.status());
+  std::unique_ptr<draco::Mesh> dm = std::move(decoded).value();
+  core::TriangleMesh mesh;
+  if (absl::Status s = ExtractPoints(*dm, mesh.vertices, mesh.normals, mesh.vertex_attributes); !s.ok()) return s;
+  mesh.faces.resize(dm->num_faces());
+  for (uint32_t f = 0; f < dm->num_faces(); ++f) {
+    const auto& face = dm->face(draco::FaceIndex(f));
+    for (int k = 0; k < 3; ++k) {
+      const uint32_t v = face[static_cast<size_t>(k)].value();
+      if (v >= mesh.vertices.size()) return absl::InvalidArgumentError("Draco mesh face refers to a missing vertex");
+      mesh.faces[f][static_cast<size_t>(k)] = v;
+    }
+  }
+  return mesh;
+}
+
+}  // namespace lsqsurf::io

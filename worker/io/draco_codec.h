@@ -1,0 +1,39 @@
+// worker/io/draco_codec.h — Draco compression of point clouds and triangle meshes.
+//
+// The only place in the product that includes Draco. Every float attribute is quantized:
+// Draco silently falls back to its much larger sequential coder when one is left raw. Named
+// scalar attributes travel as 1-component GENERIC attributes whose metadata entry "name" holds
+// the attribute name. Point-cloud coding (kd-tree, speeds 0–9) reorders points and mesh coding
+// (Edgebreaker) reorders vertices; attributes stay attached to their points.
+#pragma once
+
+#include <string>
+#include <string_view>
+
+#include "absl/status/statusor.h"
+#include "worker/core/geometry.h"
+
+namespace lsqsurf::io {
+
+struct DracoOptions {
+  int position_bits = 16;   // Quantization of positions over the bounding box (1..30 bits).
+  int normal_bits = 12;     // Quantization of normals (octahedral; 1..30 bits).
+  int attribute_bits = 14;  // Quantization of scalar attributes over their range (1..30 bits).
+  int speed = 5;            // 0 = smallest output, slowest … 10 = fastest, keeps point order.
+};
+
+absl::Status Validate(const DracoOptions& options);
+
+// Errors: kInvalidArgument (empty input, bad options), kInternal (Draco refused to encode).
+absl::StatusOr<std::string> EncodeDracoPointCloud(const core::PointCloud& cloud,
+                                                  const DracoOptions& options);
+absl::StatusOr<std::string> EncodeDracoMesh(const core::TriangleMesh& mesh,
+                                            const DracoOptions& options);
+
+// Decodes a Draco point cloud, or the vertices of a Draco mesh. Errors: kInvalidArgument with
+// Draco's reason for truncated or corrupt data, or a position attribute that is not 3-D.
+absl::StatusOr<core::PointCloud> DecodeDracoPointCloud(std::string_view bytes);
+// Decodes a Draco mesh. Errors as above, plus kInvalidArgument when the data is a point cloud.
+absl::StatusOr<core::TriangleMesh> DecodeDracoMesh(std::string_view bytes);
+
+}  // namespace lsqsurf::io

@@ -1,0 +1,155 @@
+#include "worker/io/files.h"
+
+#include <fcntl.h>
+#include <unistd.h>
+
+#include <algorithm>
+#include <cerrno>
+#include <cstdio>
+#include <cstring>
+#include <filesystem>
+#include <fstream>
+
+#include "worker/core/strings.h"
+#include "worker/io/obj_xyz.h"
+
+namespace lsqsurf::io {
+
+absl::StatusOr<FileFormat> FormatFromPath(std::string_view path) {
+  std::string ext = std::filesystem::path(path).extension().string();
+  std::transform(ext.begin(), ext.end(), ext.begin(), [](unsigned char c) { return std::tolower(c); });
+  if (ext == ".ply") return FileFormat::kPly;
+  if (ext == ".obj") return FileFormat::kObj;
+  if (ext == ".xyz" || ext == ".xyzn" || ext == ".txt") return FileFormat::kXyz;
+  if (ext == ".drc") return FileFormat::kDraco;
+  return absl::InvalidArgumentError(core::StrCat(
+      path, ": unsupported file type '", ext, "' (use .ply, .obj, .xyz, .xyzn or .drc)"));
+}
+
+absl::StatusOr<std::string> ReadFileBytes(const std::string& path, uint64_t max_bytes) {
+  std::error_code ec;
+  const auto size = std::filesystem::file_size(path, ec);
+  if (ec) {
+    if (ec == std::errc::no_such_file_or_directory) return absl::NotFoundError(core::StrCat(path, ": no such file"));
+    return absl::PermissionDeniedError(core::StrCat(path, ": ", ec.message()));
+  }
+  if (size > max_bytes) {
+    return absl::ResourceExhaustedError(
+        core::StrCat(path, ": file is ", size, " bytes, over the limit of ", max_bytes));
+  }
+  std::ifstream in(path, std::ios::binary);
+  if (!in) return absl::PermissionDeniedError(core::StrCat(path, ": cannot open: ", std::strerror(errno)));
+  std::string bytes(size, '\0');
+  in.read(bytes.data(), static_cast<std::streamsize>(size));
+  if (static_cast<uint64_t>(in.gcount()) != size) {
+    return absl::DataLossError(core::StrCat(path, ": short read"));
+  }
+  return bytes;
+}
+
+absl::Status WriteFileAtomically(const std::string& path, std::string_view bytes) {
+  const std::string tmp = core::StrCat(path, ".tmp.", ::getpid());
+  const int fd = ::open(tmp.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC, 0644);
+  if (fd < 0) return absl::PermissionDeniedError(core::StrCat(tmp, ": cannot create: ", std::strerror(errno)));
+  size_t written = 0;
+  while (written < bytes.size()) {
+    const ssize_t n = ::write(fd, bytes.data() + written, bytes.size() - written);
+    if (n < 0) {
+      if (errno == EINTR) continue;
+      const std::string err = std::strerror(errno);
+      ::close(fd);
+      ::unlink(tmp.c_str());
+      return absl::ResourceExhaustedError(core::StrCat(path, ": write failed: ", err));
+    }
+    written += static_cast<size_t>(n);
+  }
+  if (::fsync(fd) != 0 || ::close(fd) != 0) {
+    ::unlink(tmp.c_str());
+    return absl::DataLossError(core::StrCat(path, ": cannot flush to disk"));
+  }
+  if (::rename(tmp.c_str(), path.c_str()) != 0) {
+    const std::string err = std::strerror(errno);
+    ::unlink(tmp.c_str());
+    return absl::PermissionDeniedError(core::StrCat(path, ": cannot rename into place: ", err));
+  }
+  return absl::OkStatus();
+}
+
+core::PointCloud CloudFromMesh(core::TriangleMesh mesh) {
+  core::PointCloud cloud;
+  cloud.positions = std::move(mesh.vertices);
+  cloud.normals = std::move(mesh.normals);
+  cloud.attributes = std::move(mesh.vertex_attributes);
+  return cloud;
+}
+
+core::TriangleMesh MeshFromCloud(core::PointCloud cloud) {
+  core::TriangleMesh mesh;
+  mesh.vertices = std::move(cloud.positions);
+  mesh.normals = std::move(cloud.normals);
+  mesh.vertex_attributes = std::move(cloud.attributes);
+  return mesh;
+}
+
+absl::StatusOr<core::TriangleMesh> ReadMeshFile(const std::string& path) {
+  auto format = FormatFromPath(path);
+  if (!format.ok()) return format.status();
+  auto bytes = ReadFileBytes(path);
+  if (!bytes.ok()) return bytes.status();
+  switch (*format) {
+    case FileFormat::kPly: return ParsePly(*bytes, path);
+    case FileFormat::kObj: return ParseObj(*bytes, path);
+    case FileFormat::kDraco: {
+      auto mesh = DecodeDracoMesh(*bytes);
+      if (!mesh.ok()) return absl::InvalidArgumentError(core::StrCat(path, ": ", mesh.status().message()));
+      return mesh;
+    }
+    case FileFormat::kXyz: {
+      auto cloud = ParseXyz(*bytes, path);
+      if (!cloud.ok()) return cloud.status();
+      return MeshFromCloud(*std::move(cloud));
+    }
+  }
+  return absl::InternalError("unreachable");
+}
+
+absl::StatusOr<core::PointCloud> ReadPointCloudFile(const std::string& path) {
+  auto format = FormatFromPath(path);
+  if (!format.ok()) return format.status();
+  if (*format == FileFormat::kXyz || *format == FileFormat::kDraco) {
+    auto bytes = ReadFileBytes(path);
+    if (!bytes.ok()) return bytes.status();
+    if (*format == FileFormat::kXyz) return ParseXyz(*bytes, path);
+    auto cloud = DecodeDracoPointCloud(*bytes);
+    if (!cloud.ok()) return absl::InvalidArgumentError(core::StrCat(path, ": ", cloud.status().message()));
+    return cloud;
+  }
+  auto mesh = ReadMeshFile(path);
+  if (!mesh.ok()) return mesh.status();
+  return CloudFromMesh(*std::move(mesh));
+}
+
+absl::Status WriteMeshFile(const std::string& path, const core::TriangleMesh& mesh,
+                           const WriteOptions& options) {
+  auto format = FormatFromPath(path);
+  if (!format.ok()) return format.status();
+  switch (*format) {
+    case FileFormat::kPly: return WriteFileAtomically(path, EncodePly(mesh, options.ply_format));
+    case FileFormat::kObj: return WriteFileAtomically(path, EncodeObj(mesh));
+    case FileFormat::kDraco: {
+      auto bytes = mesh.faces.empty() ? EncodeDracoPointCloud(CloudFromMesh(mesh), options.draco)
+                                      : EncodeDracoMesh(mesh, options.draco);
+      if (!bytes.ok()) return bytes.status();
+      return WriteFileAtomically(path, *bytes);
+    }
+    case FileFormat::kXyz: return WriteFileAtomically(path, EncodeXyz(CloudFromMesh(mesh)));
+  }
+  return absl::InternalError("unreachable");
+}
+
+absl::Status WritePointCloudFile(const std::string& path, const core::PointCloud& cloud,
+                                 const WriteOptions& options) {
+  return WriteMeshFile(path, MeshFromCloud(cloud), options);
+}
+
+}  // namespace lsqsurf::io

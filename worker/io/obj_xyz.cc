@@ -1,0 +1,141 @@
+#include "worker/io/obj_xyz.h"
+
+#include "worker/core/strings.h"
+#include "worker/io/text_scan.h"
+
+namespace lsqsurf::io {
+namespace {
+
+using internal::LineReader;
+using internal::NextToken;
+using internal::ParseNumber;
+
+absl::Status LineError(std::string_view name, size_t line, std::string_view what) {
+  return absl::InvalidArgumentError(core::StrCat(name, ": line ", line, ": ", what));
+}
+
+bool ReadVec3(std::string_view& rest, core::Vec3f& out) {
+  for (int k = 0; k < 3; ++k) {
+    float v = 0;
+    if (!ParseNumber(NextToken(rest), v)) return false;
+    out[k] = v;
+  }
+  return true;
+}
+
+}  // namespace
+
+absl::StatusOr<core::TriangleMesh> ParseObj(std::string_view text, std::string_view name) {
+  core::TriangleMesh mesh;
+  std::vector<core::Vec3f> normals;
+  LineReader lines(text);
+  std::string_view line;
+  std::vector<uint32_t> polygon;
+  while (lines.Next(line)) {
+    std::string_view rest = line;
+    const std::string_view key = NextToken(rest);
+    if (key == "v") {
+      core::Vec3f p;
+      if (!ReadVec3(rest, p)) return LineError(name, lines.line_number(), "expected 'v x y z'");
+      mesh.vertices.push_back(p);
+    } else if (key == "vn") {
+      core::Vec3f n;
+      if (!ReadVec3(rest, n)) return LineError(name, lines.line_number(), "expected 'vn x y z'");
+      normals.push_back(n);
+    } else if (key == "f") {
+      polygon.clear();
+      for (std::string_view tok = NextToken(rest); !tok.empty(); tok = NextToken(rest)) {
+        const std::string_view first = tok.substr(0, tok.find('/'));
+        int64_t idx = 0;
+        if (!ParseNumber(first, idx) || idx == 0) {
+          return LineError(name, lines.line_number(), core::StrCat("bad face index '", tok, "'"));
+        }
+        const auto n = static_cast<int64_t>(mesh.vertices.size());
+        const int64_t resolved = idx > 0 ? idx - 1 : n + idx;
+        if (resolved < 0 || resolved >= n) {
+          return LineError(name, lines.line_number(),
+                           core::StrCat("face index ", idx, " is outside the ", n, " vertices defined so far"));
+        }
+        polygon.push_back(static_cast<uint32_t>(resolved));
+      }
+      if (polygon.size() < 3) return LineError(name, lines.line_number(), "face with fewer than 3 vertices");
+      for (size_t j = 1; j + 1 < polygon.size(); ++j) mesh.faces.push_back({polygon[0], polygon[j], polygon[j + 1]});
+    }
+  }
+  if (mesh.vertices.empty()) return absl::InvalidArgumentError(core::StrCat(name, ": OBJ file has no vertices"));
+  if (normals.size() == mesh.vertices.size()) mesh.normals = std::move(normals);
+  return mesh;
+}
+
+std::string EncodeObj(const core::TriangleMesh& mesh) {
+  std::string out = "# written by lsqsurf\n";
+  const bool normals = mesh.normals.size() == mesh.vertices.size() && !mesh.vertices.empty();
+  for (const auto& v : mesh.vertices) {
+    out += "v ";
+    internal::AppendFloats(out, {v.x(), v.y(), v.z()});
+  }
+  if (normals) {
+    for (const auto& n : mesh.normals) {
+      out += "vn ";
+      internal::AppendFloats(out, {n.x(), n.y(), n.z()});
+    }
+  }
+  for (const auto& f : mesh.faces) {
+    if (normals) {
+      core::StrAppend(&out, "f ", f[0] + 1, "//", f[0] + 1, " ", f[1] + 1, "//", f[1] + 1, " ", f[2] + 1,
+                      "//", f[2] + 1, "\n");
+    } else {
+      core::StrAppend(&out, "f ", f[0] + 1, " ", f[1] + 1, " ", f[2] + 1, "\n");
+    }
+  }
+  return out;
+}
+
+absl::StatusOr<core::PointCloud> ParseXyz(std::string_view text, std::string_view name) {
+  core::PointCloud cloud;
+  LineReader lines(text);
+  std::string_view line;
+  int columns = 0;
+  while (lines.Next(line)) {
+    line = line.substr(0, line.find('#'));
+    std::string_view rest = line;
+    double v[7];
+    int n = 0;
+    for (std::string_view tok = NextToken(rest); !tok.empty(); tok = NextToken(rest)) {
+      if (n == 6) return LineError(name, lines.line_number(), "more than 6 values on a line");
+      if (!ParseNumber(tok, v[n])) {
+        return LineError(name, lines.line_number(), core::StrCat("'", tok, "' is not a number"));
+      }
+      ++n;
+    }
+    if (n == 0) continue;
+    if (n != 3 && n != 6) {
+      return LineError(name, lines.line_number(), core::StrCat("expected 3 or 6 values, found ", n));
+    }
+    if (columns == 0) columns = n;
+    if (n != columns) {
+      return LineError(name, lines.line_number(),
+                       core::StrCat("expected ", columns, " values like the lines before, found ", n));
+    }
+    cloud.positions.emplace_back(static_cast<float>(v[0]), static_cast<float>(v[1]), static_cast<float>(v[2]));
+    if (n == 6) cloud.normals.emplace_back(static_cast<float>(v[3]), static_cast<float>(v[4]), static_cast<float>(v[5]));
+  }
+  if (cloud.empty()) return absl::InvalidArgumentError(core::StrCat(name, ": no points in XYZ file"));
+  return cloud;
+}
+
+std::string EncodeXyz(const core::PointCloud& cloud) {
+  std::string out;
+  for (size_t i = 0; i < cloud.size(); ++i) {
+    const auto& p = cloud.positions[i];
+    if (cloud.has_normals()) {
+      const auto& n = cloud.normals[i];
+      internal::AppendFloats(out, {p.x(), p.y(), p.z(), n.x(), n.y(), n.z()});
+    } else {
+      internal::AppendFloats(out, {p.x(), p.y(), p.z()});
+    }
+  }
+  return out;
+}
+
+}  // namespace lsqsurf::io

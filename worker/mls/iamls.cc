@@ -1,0 +1,269 @@
+// iaMLS surfaces: Fasshauer & Zhang 2007; seed §4. See iamls.h for the formulas.
+#include "worker/mls/iamls.h"
+
+#include <algorithm>
+#include <cmath>
+#include <numbers>
+
+#include "worker/core/strings.h"
+#include <fmt/format.h>
+#include "worker/core/kd_tree.h"
+#include "worker/core/parallel.h"
+
+namespace lsqsurf::mls {
+namespace {
+
+using core::Vec3d;
+using core::Vec3f;
+
+// Sparse symmetric kernel matrix A_ki = Ψ_i(x_k) in CSR form (float values: the iteration
+// needs ~1e-6 relative accuracy at most, and this halves the largest buffer).
+struct KernelMatrix {
+  std::vector<uint64_t> row_start;
+  std::vector<uint32_t> column;
+  std::vector<float> value;
+
+  void Multiply(const std::vector<double>& in, std::vector<double>& out) const {
+    const size_t n = row_start.size() - 1;
+    out.assign(n, 0.0);
+    (void)core::ParallelFor(n, 4096, [&](size_t begin, size_t end) {
+      for (size_t k = begin; k < end; ++k) {
+        double sum = 0;
+        for (uint64_t e = row_start[k]; e < row_start[k + 1]; ++e) sum += value[e] * in[column[e]];
+        out[k] = sum;
+      }
+    });
+  }
+};
+
+}  // namespace
+
+struct IamlsFunction::Impl {
+  std::vector<Vec3f> positions;
+  std::vector<Vec3f> normals;
+  std::vector<float> coefficient;  // c_i
+  std::unique_ptr<core::KdTree> tree;
+  double inv_h2 = 0;     // 1 / h²
+  double eps2 = 0;       // ε²
+  double scale = 0;      // ε³ / π^{3/2}
+  float radius = 0;      // Truncation radius, cutoff · h / ε.
+  double min_weight = 0; // Absolute ΣΨ threshold of definedness.
+};
+
+absl::Status Validate(const IamlsParams& p) {
+  if (!(p.epsilon >= 0.05 && p.epsilon <= 3.0)) {
+    return absl::InvalidArgumentError(core::StrCat("epsilon must be in [0.05, 3], got ", p.epsilon));
+  }
+  if (p.iterations < 0 || p.iterations > 20) {
+    return absl::InvalidArgumentError(core::StrCat("iterations must be in [0, 20], got ", p.iterations));
+  }
+  if (!(p.spacing >= 0.0) || !std::isfinite(p.spacing)) {
+    return absl::InvalidArgumentError("spacing must be 0 (automatic) or a positive length");
+  }
+  if (!(p.spacing_scale >= 0.25 && p.spacing_scale <= 8.0)) {
+    return absl::InvalidArgumentError(core::StrCat("spacing_scale must be in [0.25, 8], got ", p.spacing_scale));
+  }
+  if (!(p.cutoff >= 2.0 && p.cutoff <= 8.0)) {
+    return absl::InvalidArgumentError(core::StrCat("cutoff must be in [2, 8], got ", p.cutoff));
+  }
+  if (!(p.min_weight >= 0.0 && p.min_weight < 1.0)) {
+    return absl::InvalidArgumentError("min_weight must be in [0, 1)");
+  }
+  return absl::OkStatus();
+}
+
+namespace {
+
+// Where ΣΨ is too small to trust F (the kernel's negative lobe takes over at ~1.22 h/ε),
+// the value falls back to a Gaussian-weighted mean of the samples' tangent-plane distances
+// (an IMLS with a positive kernel: no negative lobe, so its sign is right on both sides of the
+// data), scaled like F near the threshold. Only its sign is used there (to classify grid
+// corners); the function reports it as undefined so that no surface is placed on it.
+template <bool kGradient>
+core::FieldGradient Evaluate(const IamlsFunction::Impl& m, const Vec3d& x) {
+  thread_local std::vector<core::Neighbor> nn;
+  m.tree->Radius(x.cast<float>(), m.radius, nn);
+  core::FieldGradient out;
+  if (nn.empty()) {
+    out.value = std::numeric_limits<double>::quiet_NaN();
+    return out;
+  }
+  double f = 0, w = 0, gauss = 0, gauss_distance = 0;
+  Vec3d g = Vec3d::Zero(), gauss_normal = Vec3d::Zero();
+  for (const core::Neighbor& q : nn) {
+    const Vec3d d = x - m.positions[q.index].cast<double>();
+    const Vec3d n = m.normals[q.index].cast<double>();
+    const double s = m.eps2 * d.squaredNorm() * m.inv_h2;
+    const double e = std::exp(-s);
+    const double psi = (2.5 - s) * e;
+    const double l = n.dot(d) - m.coefficient[q.index];
+    w += psi;
+    f += l * psi;
+    gauss += e;
+    gauss_distance += n.dot(d) * e;
+    gauss_normal += n * e;
+    if constexpr (kGradient) {
+      // dΨ/dx = (s − 7/2) e^{−s} · 2 ε² d / h²
+      g += n * psi + l * ((s - 3.5) * e * 2.0 * m.eps2 * m.inv_h2) * d;
+    }
+  }
+  out.defined = w * m.scale > m.min_weight;
+  if (out.defined) {
+    out.value = f * m.scale;
+    out.gradient = g * m.scale;
+  } else if (gauss > 0) {
+    out.value = m.min_weight * gauss_distance / gauss;
+    out.gradient = m.min_weight * gauss_normal / gauss;
+  } else {
+    out.value = std::numeric_limits<double>::quiet_NaN();  // Underflow: nothing is known.
+  }
+  return out;
+}
+
+}  // namespace
+
+core::FieldValue IamlsFunction::Value(const Vec3d& x) const {
+  const core::FieldGradient g = Evaluate<false>(*impl_, x);
+  return {g.value, g.defined};
+}
+
+core::FieldGradient IamlsFunction::ValueAndGradient(const Vec3d& x) const {
+  return Evaluate<true>(*impl_, x);
+}
+
+absl::StatusOr<std::unique_ptr<IamlsFunction>> BuildIamls(const core::PointCloud& cloud,
+                                                         const IamlsParams& params,
+                                                         core::JobContext& ctx) {
+  if (absl::Status s = Validate(params); !s.ok()) return s;
+  if (cloud.size() < 4) return absl::InvalidArgumentError("iaMLS needs at least 4 points");
+  if (!cloud.has_normals()) {
+    return absl::InvalidArgumentError("iaMLS needs oriented normals (estimate them first)");
+  }
+  core::SubContext setup_ctx(ctx, "building iaMLS", 0.0, 0.4);
+  auto impl = std::make_shared<IamlsFunction::Impl>();
+  impl->positions = cloud.positions;
+  impl->normals.resize(cloud.size());
+  for (size_t i = 0; i < cloud.size(); ++i) {
+    const float len = cloud.normals[i].norm();
+    if (!(len > 0) || !std::isfinite(len)) {
+      return absl::InvalidArgumentError(core::StrCat("normal ", i, " is zero or not finite"));
+    }
+    impl->normals[i] = cloud.normals[i] / len;
+  }
+  impl->tree = std::make_unique<core::KdTree>(impl->positions);
+  double h = params.spacing;
+  if (h == 0) h = params.spacing_scale * core::MeanNearestNeighborDistance(*impl->tree);
+  if (!(h > 0)) return absl::InvalidArgumentError("the points have zero spacing (all coincide?)");
+  const double eps = params.epsilon;
+  impl->inv_h2 = 1.0 / (h * h);
+  impl->eps2 = eps * eps;
+  impl->scale = eps * eps * eps / std::pow(std::numbers::pi, 1.5);
+  impl->radius = static_cast<float>(params.cutoff * h / eps);
+  setup_ctx.Report(0.2);
+
+  auto fn = std::unique_ptr<IamlsFunction>(new IamlsFunction());
+  fn->h_ = h;
+  fn->stats_.spacing = h;
+  const size_t n = cloud.size();
+  impl->coefficient.assign(n, 0.0f);
+  {
+    // Kernel matrix rows and the right-hand side s_k = Σ_i ℓ_i(x_k) Ψ_i(x_k).
+    std::vector<std::vector<std::pair<uint32_t, float>>> rows(n);
+    std::vector<double> s(n);
+    absl::Status st = core::ParallelFor(
+        n, 1024,
+        [&](size_t begin, size_t end) {
+          std::vector<core::Neighbor> nn;
+          for (size_t k = begin; k < end; ++k) {
+            impl->tree->Radius(impl->positions[k], impl->radius, nn);
+            const Vec3d xk = impl->positions[k].cast<double>();
+            double sk = 0;
+            rows[k].reserve(nn.size());
+            for (const core::Neighbor& q : nn) {
+              const Vec3d d = xk - impl->positions[q.index].cast<double>();
+              const double si = impl->eps2 * d.squaredNorm() * impl->inv_h2;
+              const double psi = impl->scale * (2.5 - si) * std::exp(-si);
+              rows[k].emplace_back(q.index, static_cast<float>(psi));
+              sk += impl->normals[q.index].cast<double>().dot(d) * psi;
+            }
+            s[k] = sk;
+          }
+        },
+        &ctx, [&](double f) { setup_ctx.Report(0.2 + 0.8 * f); });
+    if (!st.ok()) return st;
+    KernelMatrix a;
+    a.row_start.resize(n + 1, 0);
+    for (size_t k = 0; k < n; ++k) a.row_start[k + 1] = a.row_start[k] + rows[k].size();
+    a.column.resize(a.row_start[n]);
+    a.value.resize(a.row_start[n]);
+    for (size_t k = 0; k < n; ++k) {
+      std::vector<std::pair<uint32_t, float>> row = std::move(rows[k]);
+      for (size_t e = 0; e < row.size(); ++e) {
+        a.column[a.row_start[k] + e] = row[e].first;
+        a.value[a.row_start[k] + e] = row[e].second;
+      }
+    }
+    rows.clear();
+    rows.shrink_to_fit();
+    fn->stats_.mean_neighbors = static_cast<double>(a.row_start[n]) / static_cast<double>(n);
+    // ΣΨ at the samples sets the scale of "clearly positive" for the ghost-sheet guard.
+    double weight_sum = 0;
+    for (float v : a.value) weight_sum += v;
+    fn->stats_.mean_sample_weight = weight_sum / static_cast<double>(n);
+    impl->min_weight = params.min_weight * fn->stats_.mean_sample_weight;
+    if (params.iterations == 0) {
+      fn->impl_ = std::move(impl);
+      return fn;
+    }
+
+    // Richardson iteration c ← c + (s − A c) converges iff the spectrum of the symmetric A lies
+    // in (0, 2). Estimate its largest eigenvalue with a few power steps before iterating.
+    core::SubContext iter_ctx(ctx, "iterating iaMLS", 0.4, 1.0);
+    std::vector<double> v(n), av;
+    for (size_t k = 0; k < n; ++k) v[k] = 1.0 + 0.5 * std::sin(static_cast<double>(k));
+    double lambda = 0;
+    for (int step = 0; step < 25; ++step) {
+      double norm = 0;
+      for (double x : v) norm += x * x;
+      norm = std::sqrt(norm);
+      for (double& x : v) x /= norm;
+      a.Multiply(v, av);
+      lambda = 0;
+      for (size_t k = 0; k < n; ++k) lambda += v[k] * av[k];
+      v.swap(av);
+      if (ctx.IsCancelled()) return absl::CancelledError("cancelled by request");
+    }
+    fn->stats_.largest_eigenvalue = lambda;
+    if (lambda >= 1.98) {
+      // λ_max grows roughly like ε³ (the self term 2.5 ε³/π^{3/2} dominates); suggest an ε that
+      // brings it to about 1.5.
+      const double suggested = eps * std::cbrt(1.5 / lambda);
+      return absl::InvalidArgumentError(fmt::format(
+          "epsilon={:.3g} makes the iaMLS iteration diverge on this cloud (largest eigenvalue of "
+          "the kernel matrix {:.3g}, must be below 2); use epsilon <= {:.2f} or iterations=0",
+          eps, lambda, suggested));
+    }
+    std::vector<double> c(n, 0.0), ac;
+    for (int it = 0; it < params.iterations; ++it) {
+      a.Multiply(c, ac);
+      double max_residual = 0;
+      for (size_t k = 0; k < n; ++k) {
+        const double residual = s[k] - ac[k];  // F⁽ⁱᵗ⁾(x_k); the data value there is 0.
+        max_residual = std::max(max_residual, std::abs(residual));
+        c[k] += residual;
+      }
+      fn->stats_.residuals.push_back(max_residual / h);
+      iter_ctx.Report(static_cast<double>(it + 1) / params.iterations);
+      if (ctx.IsCancelled()) return absl::CancelledError("cancelled by request");
+    }
+    a.Multiply(c, ac);
+    double max_residual = 0;
+    for (size_t k = 0; k < n; ++k) max_residual = std::max(max_residual, std::abs(s[k] - ac[k]));
+    fn->stats_.residuals.push_back(max_residual / h);
+    for (size_t k = 0; k < n; ++k) impl->coefficient[k] = static_cast<float>(c[k]);
+  }
+  fn->impl_ = std::move(impl);
+  return fn;
+}
+
+}  // namespace lsqsurf::mls

@@ -1,0 +1,83 @@
+// lsqsurfd — the reconstruction server. Parses flags, wires the job service to gRPC, waits.
+#include <grpcpp/ext/proto_server_reflection_plugin.h>
+#include <grpcpp/grpcpp.h>
+#include <grpcpp/health_check_service_interface.h>
+#include <spdlog/sinks/stdout_color_sinks.h>
+#include <spdlog/spdlog.h>
+
+#include <csignal>
+#include <cstdio>
+#include <thread>
+
+#include <CLI/CLI.hpp>
+
+#include "server/reconstruction_service.h"
+#include "worker/jobs/job_service.h"
+
+int main(int argc, char** argv) {
+  CLI::App app{"lsqsurfd: surface reconstruction server"};
+  std::string listen = "127.0.0.1:50051";
+  lsqsurf::jobs::JobServiceOptions options;
+  options.data_dir = "lsqsurf-data";
+  int64_t max_upload_mib = 1024;
+  app.add_option("--listen", listen, "HOST:PORT to listen on; port 0 picks a free port")->capture_default_str();
+  app.add_option("--data-dir", options.data_dir, "where jobs, inputs and results are kept")->capture_default_str();
+  app.add_option("--workers", options.workers, "jobs that run at once")->capture_default_str()->check(CLI::Range(1, 64));
+  app.add_option("--max-queue", options.max_queue, "queued jobs before submissions are refused")
+      ->capture_default_str()->check(CLI::Range(1, 100000));
+  app.add_option("--max-points", options.max_points, "largest accepted cloud")->capture_default_str()
+      ->check(CLI::Range(int64_t{16}, int64_t{2'000'000'000}));
+  app.add_option("--max-upload-mib", max_upload_mib, "largest accepted upload, MiB")->capture_default_str()
+      ->check(CLI::Range(int64_t{1}, int64_t{1} << 20));
+  app.set_config("--config", "", "read options from this TOML/INI file");
+  CLI11_PARSE(app, argc, argv);
+  options.max_input_bytes = max_upload_mib << 20;
+
+  // Logs go to stderr; stdout carries only the "listening on" line that scripts wait for.
+  spdlog::set_default_logger(spdlog::stderr_color_mt("lsqsurfd"));
+  spdlog::set_pattern("%Y-%m-%d %H:%M:%S.%e %^%l%$ %v");
+
+  // Block the shutdown signals in every thread; one thread waits for them below.
+  sigset_t signals;
+  sigemptyset(&signals);
+  sigaddset(&signals, SIGTERM);
+  sigaddset(&signals, SIGINT);
+  pthread_sigmask(SIG_BLOCK, &signals, nullptr);
+
+  auto jobs = lsqsurf::jobs::JobService::Open(options);
+  if (!jobs.ok()) {
+    spdlog::critical("cannot start: {}", jobs.status().ToString());
+    return 1;
+  }
+  lsqsurf::server::ReconstructionService service(**jobs);
+  grpc::EnableDefaultHealthCheckService(true);
+  grpc::reflection::InitProtoReflectionServerBuilderPlugin();
+  grpc::ServerBuilder builder;
+  int port = 0;
+  builder.AddListeningPort(listen, grpc::InsecureServerCredentials(), &port);
+  builder.RegisterService(&service);
+  builder.SetMaxReceiveMessageSize(16 << 20);
+  builder.SetMaxSendMessageSize(16 << 20);
+  std::unique_ptr<grpc::Server> server = builder.BuildAndStart();
+  if (!server || port == 0) {
+    spdlog::critical("cannot listen on {}", listen);
+    return 1;
+  }
+  const std::string host = listen.substr(0, listen.rfind(':'));
+  std::printf("listening on %s:%d\n", host.c_str(), port);
+  std::fflush(stdout);
+  spdlog::info("serving on {}:{}", host, port);
+
+  std::thread waiter([&] {
+    int signal = 0;
+    sigwait(&signals, &signal);
+    spdlog::info("signal {} received: shutting down", signal);
+    // Interrupted jobs go back to the queue on disk first, then open streams are closed.
+    (*jobs)->Shutdown();
+    server->Shutdown(std::chrono::system_clock::now() + std::chrono::seconds(3));
+  });
+  server->Wait();
+  waiter.join();
+  spdlog::info("stopped");
+  return 0;
+}

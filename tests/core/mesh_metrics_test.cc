@@ -1,0 +1,87 @@
+#include "worker/core/mesh_metrics.h"
+
+#include <gtest/gtest.h>
+
+#include "worker/core/sampling.h"
+#include "worker/core/surface_distance.h"
+
+namespace lsqsurf::core {
+namespace {
+
+// Unit cube [0,1]^3 with outward faces.
+TriangleMesh Cube(const Vec3f& offset = Vec3f::Zero(), float scale = 1.0f) {
+  TriangleMesh m;
+  for (int i = 0; i < 8; ++i) {
+    m.vertices.push_back(offset + scale * Vec3f(static_cast<float>(i & 1), static_cast<float>((i >> 1) & 1),
+                                                static_cast<float>((i >> 2) & 1)));
+  }
+  m.faces = {{0, 2, 1}, {1, 2, 3}, {4, 5, 6}, {5, 7, 6}, {0, 1, 4}, {1, 5, 4},
+             {2, 6, 3}, {3, 6, 7}, {0, 4, 2}, {2, 4, 6}, {1, 3, 5}, {3, 7, 5}};
+  return m;
+}
+
+TEST(MeshMetrics, CubeIsAClosedOrientedSphereTopology) {
+  const TriangleMesh cube = Cube();
+  const MeshTopology t = AnalyzeTopology(cube);
+  EXPECT_TRUE(t.watertight());
+  EXPECT_TRUE(t.consistently_oriented());
+  EXPECT_EQ(t.euler_characteristic(), 2);
+  EXPECT_EQ(t.components, 1);
+  EXPECT_NEAR(EnclosedVolume(cube), 1.0, 1e-9);
+  EXPECT_NEAR(SurfaceArea(cube), 6.0, 1e-9);
+}
+
+TEST(MeshMetrics, DetectsBoundaryFlipsAndNonManifoldEdges) {
+  TriangleMesh open = Cube();
+  open.faces.pop_back();
+  EXPECT_EQ(AnalyzeTopology(open).boundary_edges, 3);
+  TriangleMesh flipped = Cube();
+  std::swap(flipped.faces[0][0], flipped.faces[0][1]);
+  EXPECT_EQ(AnalyzeTopology(flipped).misoriented_edges, 3);
+  TriangleMesh fin = Cube();
+  fin.vertices.emplace_back(-1, -1, 0);
+  fin.faces.push_back({0, 1, 8});
+  EXPECT_EQ(AnalyzeTopology(fin).non_manifold_edges, 1);
+}
+
+TEST(SurfaceDistance, MeasuresAKnownOffset) {
+  const TriangleMesh a = Cube();
+  LocalJobContext ctx;
+  CompareParams p;
+  p.samples = 20000;
+  auto same = CompareMeshes(a, a, p, ctx);
+  ASSERT_TRUE(same.ok());
+  EXPECT_LT(same->chamfer, 1e-7);
+  EXPECT_NEAR(same->normal_consistency, 1.0, 1e-6);
+  // A cube grown by 0.1 on every side (centred): every point is 0.1 or more from the other.
+  const TriangleMesh b = Cube(Vec3f::Constant(-0.1f), 1.2f);
+  auto moved = CompareMeshes(a, b, p, ctx);
+  ASSERT_TRUE(moved.ok());
+  const double diag = std::sqrt(3.0);
+  EXPECT_NEAR(moved->mean_ref_to_cand * diag, 0.1, 1e-3);  // Faces are parallel at distance 0.1.
+  EXPECT_GE(moved->hausdorff * diag, 0.1 * std::sqrt(3.0) - 1e-3);  // Corner to corner.
+  EXPECT_NEAR(moved->far_fraction, 1.0, 1e-9);
+}
+
+TEST(SurfaceDistance, ClosestPointIsExact) {
+  const TriangleMesh cube = Cube();
+  TriangleTree tree(cube);
+  const auto hit = tree.Closest(Vec3d(0.5, 0.5, 3.0));
+  EXPECT_NEAR(std::sqrt(hit.distance2), 2.0, 1e-12);
+  EXPECT_NEAR(hit.point.z(), 1.0, 1e-12);
+  const auto corner = tree.Closest(Vec3d(2, 2, 2));
+  EXPECT_NEAR(corner.distance2, 3.0, 1e-12);
+}
+
+TEST(Sampling, IsUniformByArea) {
+  TriangleMesh two;  // Two triangles, one with 3 times the area of the other.
+  two.vertices = {{0, 0, 0}, {1, 0, 0}, {0, 1, 0}, {5, 0, 0}, {8, 0, 0}, {5, 1, 0}};
+  two.faces = {{0, 1, 2}, {3, 4, 5}};
+  const auto samples = SampleSurface(two, 40000, 3);
+  double big = 0;
+  for (const auto& s : samples) big += s.face == 1;
+  EXPECT_NEAR(big / 40000.0, 0.75, 0.01);
+}
+
+}  // namespace
+}  // namespace lsqsurf::core

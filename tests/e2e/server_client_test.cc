@@ -1,0 +1,231 @@
+// End-to-end: the real lsqsurfd on a free loopback port, driven by the real lsqsurf client.
+#include <fcntl.h>
+#include <signal.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <gtest/gtest.h>
+#include <grpcpp/grpcpp.h>
+
+#include <array>
+#include <chrono>
+#include <cstdio>
+#include <filesystem>
+#include <thread>
+
+#include "grpc/health/v1/health.grpc.pb.h"
+#include "tests/test_shapes.h"
+#include "worker/core/mesh_metrics.h"
+#include "worker/io/files.h"
+
+namespace lsqsurf {
+namespace {
+
+namespace fs = std::filesystem;
+
+class Server {
+ public:
+  // Starts lsqsurfd on 127.0.0.1:0 and reads the bound address from its first stdout line.
+  void Start(const fs::path& data_dir, std::vector<std::string> extra = {}) {
+    int out[2];
+    ASSERT_EQ(::pipe(out), 0);
+    pid_ = ::fork();
+    ASSERT_GE(pid_, 0);
+    if (pid_ == 0) {
+      ::dup2(out[1], STDOUT_FILENO);
+      const int null = ::open("/dev/null", O_WRONLY);
+      ::dup2(null, STDERR_FILENO);
+      ::close(out[0]);
+      std::vector<std::string> args = {LSQSURFD_PATH, "--listen", "127.0.0.1:0", "--data-dir", data_dir.string()};
+      args.insert(args.end(), extra.begin(), extra.end());
+      std::vector<char*> argv;
+      for (auto& a : args) argv.push_back(a.data());
+      argv.push_back(nullptr);
+      ::execv(argv[0], argv.data());
+      ::_exit(127);
+    }
+    ::close(out[1]);
+    FILE* f = ::fdopen(out[0], "r");
+    char line[256] = {0};
+    ASSERT_NE(std::fgets(line, sizeof(line), f), nullptr) << "server printed nothing";
+    std::fclose(f);
+    std::string s(line);
+    const std::string prefix = "listening on ";
+    ASSERT_EQ(s.rfind(prefix, 0), 0u) << s;
+    address_ = s.substr(prefix.size());
+    while (!address_.empty() && (address_.back() == '\n' || address_.back() == '\r')) address_.pop_back();
+  }
+  void Kill(int signal) {
+    if (pid_ <= 0) return;
+    ::kill(pid_, signal);
+    int status = 0;
+    ::waitpid(pid_, &status, 0);
+    pid_ = -1;
+  }
+  ~Server() { Kill(SIGKILL); }
+  const std::string& address() const { return address_; }
+
+ private:
+  pid_t pid_ = -1;
+  std::string address_;
+};
+
+struct ClientRun {
+  int code = -1;
+  std::string output;  // stdout and stderr together.
+};
+
+ClientRun Client(const std::string& address, const std::string& args) {
+  const std::string cmd = std::string(LSQSURF_PATH) + " --server " + address + " " + args + " 2>&1";
+  ClientRun r;
+  FILE* p = ::popen(cmd.c_str(), "r");
+  std::array<char, 4096> buf;
+  size_t n;
+  while ((n = std::fread(buf.data(), 1, buf.size(), p)) > 0) r.output.append(buf.data(), n);
+  const int status = ::pclose(p);
+  r.code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
+  return r;
+}
+
+std::string Trim(std::string s) {
+  while (!s.empty() && (s.back() == '\n' || s.back() == ' ')) s.pop_back();
+  return s;
+}
+
+class EndToEnd : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    dir_ = fs::temp_directory_path() / ("lsqsurf-e2e-" + std::to_string(::getpid()) + "-" +
+                                        ::testing::UnitTest::GetInstance()->current_test_info()->name());
+    fs::remove_all(dir_);
+    fs::create_directories(dir_);
+  }
+  void TearDown() override { fs::remove_all(dir_); }
+  std::string WriteCloud(const std::string& name, const core::PointCloud& cloud) {
+    const std::string path = (dir_ / name).string();
+    EXPECT_TRUE(io::WritePointCloudFile(path, cloud).ok());
+    return path;
+  }
+  // Polls `status` until the job's state line shows `state`.
+  bool WaitForState(const std::string& address, const std::string& id, const std::string& state) {
+    for (int i = 0; i < 300; ++i) {
+      if (Client(address, "status " + id).output.find("state      " + state) != std::string::npos) return true;
+      std::this_thread::sleep_for(std::chrono::milliseconds(100));
+    }
+    return false;
+  }
+  fs::path dir_;
+};
+
+TEST_F(EndToEnd, ReconstructsASphereAndAnswersHealthChecks) {
+  Server server;
+  ASSERT_NO_FATAL_FAILURE(server.Start(dir_ / "data"));
+  const std::string in = WriteCloud("sphere.ply", testing::SphereCloud(8000));
+  const std::string out = (dir_ / "sphere-mesh.ply").string();
+  const ClientRun r = Client(server.address(), "reconstruct " + in + " -o " + out);
+  ASSERT_EQ(r.code, 0) << r.output;
+  auto mesh = io::ReadMeshFile(out);
+  ASSERT_TRUE(mesh.ok()) << mesh.status();
+  const core::MeshTopology t = core::AnalyzeTopology(*mesh);
+  EXPECT_TRUE(t.watertight());
+  EXPECT_EQ(t.euler_characteristic(), 2);
+  for (const auto& v : mesh->vertices) EXPECT_NEAR(v.norm(), 1.0f, 0.01f);
+
+  const ClientRun drc = Client(server.address(), "reconstruct " + in + " -o " + (dir_ / "m.drc").string());
+  ASSERT_EQ(drc.code, 0) << drc.output;
+  EXPECT_TRUE(io::ReadMeshFile((dir_ / "m.drc").string()).ok());
+
+  auto channel = grpc::CreateChannel(server.address(), grpc::InsecureChannelCredentials());
+  auto health = grpc::health::v1::Health::NewStub(channel);
+  grpc::ClientContext ctx;
+  grpc::health::v1::HealthCheckRequest request;
+  grpc::health::v1::HealthCheckResponse response;
+  ASSERT_TRUE(health->Check(&ctx, request, &response).ok());
+  EXPECT_EQ(response.status(), grpc::health::v1::HealthCheckResponse::SERVING);
+}
+
+TEST_F(EndToEnd, BadInputsGetClearErrorsAndTheServerKeepsServing) {
+  Server server;
+  ASSERT_NO_FATAL_FAILURE(server.Start(dir_ / "data"));
+  core::PointCloud nan_cloud = testing::SphereCloud(500);
+  nan_cloud.positions[3].x() = std::numeric_limits<float>::infinity();
+  core::PointCloud bare = testing::SphereCloud(500);
+  bare.normals.clear();
+  const std::string good = WriteCloud("good.ply", testing::SphereCloud(3000));
+  // A truncated Draco upload: the client sends .drc files as they are.
+  ASSERT_TRUE(io::WritePointCloudFile((dir_ / "full.drc").string(), testing::SphereCloud(3000)).ok());
+  const std::string full = *io::ReadFileBytes((dir_ / "full.drc").string());
+  ASSERT_TRUE(io::WriteFileAtomically((dir_ / "cut.drc").string(), full.substr(0, full.size() / 2)).ok());
+  struct Case {
+    std::string args;
+    int code;
+    std::string fragment;
+  } cases[] = {
+      {"reconstruct " + WriteCloud("nan.ply", nan_cloud) + " -o x.ply", 1, "NaN or infinite"},
+      {"reconstruct " + (dir_ / "cut.drc").string() + " -o x.ply", 1, "Draco"},
+      {"reconstruct " + good + " -o x.ply --method nosuch", 1, "unknown method"},
+      {"reconstruct " + good + " -o x.ply --param epsilon=7", 1, "out of range"},
+      {"reconstruct " + good + " -o x.ply --param colour=1", 1, "unknown parameter"},
+      {"reconstruct " + WriteCloud("bare.ply", bare) + " -o x.ply --param estimate_normals=0", 1, "no normals"},
+      {"reconstruct " + (dir_ / "missing.ply").string() + " -o x.ply", 3, "no such file"},
+      {"status 0123456789abcdef", 1, "no job"},
+  };
+  for (const auto& c : cases) {
+    const ClientRun r = Client(server.address(), c.args);
+    EXPECT_EQ(r.code, c.code) << c.args << "\n" << r.output;
+    EXPECT_NE(r.output.find(c.fragment), std::string::npos) << c.args << "\n" << r.output;
+  }
+  const ClientRun ok = Client(server.address(), "reconstruct " + good + " -o " + (dir_ / "ok.ply").string());
+  EXPECT_EQ(ok.code, 0) << ok.output;
+}
+
+TEST_F(EndToEnd, CancelAndFullQueue) {
+  Server server;
+  ASSERT_NO_FATAL_FAILURE(server.Start(dir_ / "data", {"--workers", "1", "--max-queue", "1"}));
+  const std::string big = WriteCloud("big.ply", testing::TorusCloud(400000, 1.0, 0.3));
+  const ClientRun first = Client(server.address(), "submit " + big);
+  ASSERT_EQ(first.code, 0) << first.output;
+  const std::string id = Trim(first.output);
+  ASSERT_TRUE(WaitForState(server.address(), id, "running"));
+  const ClientRun second = Client(server.address(), "submit " + big);
+  ASSERT_EQ(second.code, 0) << second.output;
+  const ClientRun third = Client(server.address(), "submit " + big);
+  EXPECT_EQ(third.code, 1);
+  EXPECT_NE(third.output.find("queue is full"), std::string::npos) << third.output;
+
+  EXPECT_EQ(Client(server.address(), "cancel " + id).code, 0);
+  const ClientRun watched = Client(server.address(), "watch " + id);
+  EXPECT_EQ(watched.code, 2) << watched.output;
+  EXPECT_NE(watched.output.find("cancelled"), std::string::npos);
+  EXPECT_EQ(Client(server.address(), "cancel " + Trim(second.output)).code, 0);
+  const ClientRun list = Client(server.address(), "list");
+  EXPECT_NE(list.output.find("cancelled"), std::string::npos) << list.output;
+}
+
+TEST_F(EndToEnd, AJobSurvivesKillMinusNine) {
+  const std::string big = WriteCloud("big.ply", testing::TorusCloud(300000, 1.0, 0.3));
+  std::string id;
+  {
+    Server server;
+    ASSERT_NO_FATAL_FAILURE(server.Start(dir_ / "data"));
+    const ClientRun sub = Client(server.address(), "submit " + big);
+    ASSERT_EQ(sub.code, 0) << sub.output;
+    id = Trim(sub.output);
+    ASSERT_TRUE(WaitForState(server.address(), id, "running"));
+    server.Kill(SIGKILL);
+  }
+  Server restarted;
+  ASSERT_NO_FATAL_FAILURE(restarted.Start(dir_ / "data"));
+  const ClientRun watched = Client(restarted.address(), "watch " + id);
+  EXPECT_EQ(watched.code, 0) << watched.output;
+  const ClientRun status = Client(restarted.address(), "status " + id);
+  EXPECT_NE(status.output.find("attempts   2"), std::string::npos) << status.output;
+  const ClientRun fetched = Client(restarted.address(), "fetch " + id + " -o " + (dir_ / "t.obj").string());
+  EXPECT_EQ(fetched.code, 0) << fetched.output;
+  auto mesh = io::ReadMeshFile((dir_ / "t.obj").string());
+  ASSERT_TRUE(mesh.ok());
+  EXPECT_EQ(core::AnalyzeTopology(*mesh).euler_characteristic(), 0);  // A torus.
+}
+
+}  // namespace
+}  // namespace lsqsurf

@@ -1,0 +1,201 @@
+#include "worker/jobs/job_service.h"
+
+#include <gtest/gtest.h>
+
+#include <filesystem>
+#include <limits>
+
+#include "tests/test_shapes.h"
+#include "worker/core/mesh_metrics.h"
+#include "worker/io/draco_codec.h"
+#include "worker/io/files.h"
+
+namespace lsqsurf::jobs {
+namespace {
+
+std::string Encode(const core::PointCloud& cloud) {
+  auto bytes = io::EncodeDracoPointCloud(cloud, {});
+  EXPECT_TRUE(bytes.ok());
+  return bytes.ok() ? *bytes : std::string();
+}
+
+class JobServiceTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    dir_ = std::filesystem::temp_directory_path() /
+           ("lsqsurf-jobs-" + std::to_string(::getpid()) + "-" +
+            ::testing::UnitTest::GetInstance()->current_test_info()->name());
+    std::filesystem::remove_all(dir_);
+    options_.data_dir = dir_.string();
+  }
+  void TearDown() override {
+    service_.reset();
+    std::filesystem::remove_all(dir_);
+  }
+  JobService& Open() {
+    service_.reset();
+    auto s = JobService::Open(options_);
+    EXPECT_TRUE(s.ok()) << s.status();
+    service_ = *std::move(s);
+    return *service_;
+  }
+  // Waits (at most ~60 s) until the job satisfies `done`.
+  JobRecord WaitUntil(const std::string& id, const std::function<bool(const JobRecord&)>& done) {
+    auto r = service_->Get(id);
+    for (int i = 0; i < 600 && r.ok() && !done(*r); ++i) {
+      r = service_->WaitForChange(id, r->version, std::chrono::milliseconds(100));
+    }
+    EXPECT_TRUE(r.ok());
+    return r.ok() ? *r : JobRecord{};
+  }
+  JobRecord WaitTerminal(const std::string& id) {
+    return WaitUntil(id, [](const JobRecord& r) { return IsTerminal(r.state); });
+  }
+
+  std::filesystem::path dir_;
+  JobServiceOptions options_;
+  std::unique_ptr<JobService> service_;
+};
+
+TEST_F(JobServiceTest, ReconstructsASphere) {
+  JobService& s = Open();
+  auto job = s.Submit({"iamls", {}}, Encode(testing::SphereCloud(5000)));
+  ASSERT_TRUE(job.ok()) << job.status();
+  EXPECT_EQ(job->state, JobState::kQueued);
+  const JobRecord done = WaitTerminal(job->id);
+  ASSERT_EQ(done.state, JobState::kSucceeded) << done.error;
+  auto path = s.ResultPath(job->id, "mesh.drc");
+  ASSERT_TRUE(path.ok());
+  auto mesh = io::ReadMeshFile(*path);
+  ASSERT_TRUE(mesh.ok()) << mesh.status();
+  EXPECT_TRUE(core::AnalyzeTopology(*mesh).watertight());
+  EXPECT_FALSE(done.statistics.empty());
+}
+
+TEST_F(JobServiceTest, EstimatesMissingNormalsByDefault) {
+  JobService& s = Open();
+  core::PointCloud cloud = testing::SphereCloud(4000);
+  cloud.normals.clear();
+  auto job = s.Submit({"iamls", {}}, Encode(cloud));
+  ASSERT_TRUE(job.ok()) << job.status();
+  EXPECT_EQ(WaitTerminal(job->id).state, JobState::kSucceeded);
+}
+
+TEST_F(JobServiceTest, RejectsBadInputWithTheRightCode) {
+  options_.max_points = 5000;
+  JobService& s = Open();
+  const std::string good = Encode(testing::SphereCloud(1000));
+  core::PointCloud nan_cloud = testing::SphereCloud(1000);
+  nan_cloud.positions[17].y() = std::numeric_limits<float>::quiet_NaN();
+  core::PointCloud no_normals = testing::SphereCloud(1000);
+  no_normals.normals.clear();
+  struct Case {
+    const char* what;
+    JobSpec spec;
+    std::string input;
+    absl::StatusCode code;
+    const char* fragment;
+  } cases[] = {
+      {"empty upload", {"iamls", {}}, "", absl::StatusCode::kInvalidArgument, "no input"},
+      {"truncated Draco", {"iamls", {}}, good.substr(0, good.size() / 2), absl::StatusCode::kInvalidArgument, "Draco"},
+      {"not Draco", {"iamls", {}}, "hello", absl::StatusCode::kInvalidArgument, "Draco"},
+      {"NaN", {"iamls", {}}, Encode(nan_cloud), absl::StatusCode::kInvalidArgument, "NaN"},
+      {"unknown method", {"poisson", {}}, good, absl::StatusCode::kInvalidArgument, "available: iamls"},
+      {"unknown parameter", {"iamls", {{"epsilonn", 1}}}, good, absl::StatusCode::kInvalidArgument, "valid parameters"},
+      {"out of range", {"iamls", {{"epsilon", 9}}}, good, absl::StatusCode::kInvalidArgument, "out of range"},
+      {"not whole", {"iamls", {{"iterations", 2.5}}}, good, absl::StatusCode::kInvalidArgument, "whole number"},
+      {"no normals, no estimation", {"iamls", {{"estimate_normals", 0}}}, Encode(no_normals),
+       absl::StatusCode::kInvalidArgument, "no normals"},
+      {"too many points", {"iamls", {}}, Encode(testing::SphereCloud(6000)), absl::StatusCode::kResourceExhausted,
+       "at most 5000"},
+  };
+  for (const Case& c : cases) {
+    auto r = s.Submit(c.spec, c.input);
+    ASSERT_FALSE(r.ok()) << c.what;
+    EXPECT_EQ(r.status().code(), c.code) << c.what << ": " << r.status();
+    EXPECT_NE(std::string(r.status().message()).find(c.fragment), std::string::npos) << c.what << ": " << r.status();
+  }
+  EXPECT_TRUE(s.List().empty());  // Nothing half-accepted.
+}
+
+TEST_F(JobServiceTest, FullQueueIsRefusedAndCancelStopsARunningJob) {
+  options_.max_queue = 1;
+  JobService& s = Open();
+  const std::string big = Encode(testing::TorusCloud(300000, 1.0, 0.3));
+  auto first = s.Submit({"iamls", {}}, big);
+  ASSERT_TRUE(first.ok());
+  WaitUntil(first->id, [](const JobRecord& r) { return r.state != JobState::kQueued; });
+  auto second = s.Submit({"iamls", {}}, big);
+  ASSERT_TRUE(second.ok()) << second.status();
+  auto third = s.Submit({"iamls", {}}, big);
+  EXPECT_EQ(third.status().code(), absl::StatusCode::kResourceExhausted);
+
+  ASSERT_TRUE(s.Cancel(second->id).ok());
+  EXPECT_EQ(s.Get(second->id)->state, JobState::kCancelled);  // Queued: cancelled at once.
+  ASSERT_TRUE(s.Cancel(first->id).ok());
+  const JobRecord stopped = WaitTerminal(first->id);
+  EXPECT_EQ(stopped.state, JobState::kCancelled);
+  EXPECT_EQ(s.Cancel(first->id).status().code(), absl::StatusCode::kFailedPrecondition);
+  ASSERT_TRUE(s.Delete(first->id).ok());
+  EXPECT_EQ(s.Get(first->id).status().code(), absl::StatusCode::kNotFound);
+}
+
+TEST_F(JobServiceTest, JobsSurviveARestart) {
+  JobService& s = Open();
+  auto job = s.Submit({"iamls", {{"iterations", 2}}}, Encode(testing::SphereCloud(3000)));
+  ASSERT_TRUE(job.ok());
+  const std::string id = job->id;
+  ASSERT_EQ(WaitTerminal(id).state, JobState::kSucceeded);
+  JobService& reopened = Open();
+  auto again = reopened.Get(id);
+  ASSERT_TRUE(again.ok());
+  EXPECT_EQ(again->state, JobState::kSucceeded);
+  EXPECT_EQ(again->spec.parameters.at("iterations"), 2);
+  EXPECT_FALSE(again->statistics.empty());
+  EXPECT_TRUE(reopened.ResultPath(id, "mesh.drc").ok());
+}
+
+TEST_F(JobServiceTest, InterruptedJobsRunAgainOnceThenFail) {
+  // Simulate the records a killed server leaves behind: jobs marked running.
+  std::filesystem::create_directories(dir_ / "jobs" / "aaaa");
+  std::filesystem::create_directories(dir_ / "jobs" / "bbbb");
+  const std::string input = Encode(testing::SphereCloud(3000));
+  ASSERT_TRUE(io::WriteFileAtomically((dir_ / "jobs" / "aaaa" / "input.drc").string(), input).ok());
+  ASSERT_TRUE(io::WriteFileAtomically((dir_ / "jobs" / "bbbb" / "input.drc").string(), input).ok());
+  {
+    auto store = JobStore::Open((dir_ / "jobs.db").string());
+    ASSERT_TRUE(store.ok());
+    JobRecord once;
+    once.id = "aaaa";
+    once.spec.method = "iamls";
+    once.state = JobState::kRunning;
+    once.attempts = 1;
+    JobRecord twice = once;
+    twice.id = "bbbb";
+    twice.attempts = 2;
+    ASSERT_TRUE((*store)->Put(once).ok());
+    ASSERT_TRUE((*store)->Put(twice).ok());
+  }
+  JobService& s = Open();
+  EXPECT_EQ(s.Get("bbbb")->state, JobState::kFailed);
+  EXPECT_NE(s.Get("bbbb")->error.find("giving up"), std::string::npos);
+  const JobRecord resumed = WaitTerminal("aaaa");
+  EXPECT_EQ(resumed.state, JobState::kSucceeded) << resumed.error;
+  EXPECT_EQ(resumed.attempts, 2);
+}
+
+TEST_F(JobServiceTest, ShutdownRequeuesTheRunningJob) {
+  JobService& s = Open();
+  auto job = s.Submit({"iamls", {}}, Encode(testing::TorusCloud(300000, 1.0, 0.3)));
+  ASSERT_TRUE(job.ok());
+  WaitUntil(job->id, [](const JobRecord& r) { return r.state == JobState::kRunning; });
+  s.Shutdown();
+  EXPECT_EQ(s.Get(job->id)->state, JobState::kQueued);
+  EXPECT_EQ(s.Get(job->id)->attempts, 0);
+  JobService& reopened = Open();
+  EXPECT_EQ(WaitTerminal(job->id).state, JobState::kSucceeded);
+  (void)reopened;
+}
+
+}  // namespace
+}  // namespace lsqsurf::jobs

@@ -241,7 +241,9 @@ int main(int argc, char** argv) {
 
   auto* reconstruct = app.add_subcommand("reconstruct", "upload a cloud, wait, and write the mesh");
   reconstruct->add_option("input", input, "point cloud (.ply .obj .xyz .xyzn .drc)")->required();
-  reconstruct->add_option("-o,--output", output, "mesh to write (.ply .obj .drc)")->required();
+  std::vector<std::string> outputs;
+  reconstruct->add_option("-o,--output", outputs, "mesh to write (.ply .obj .drc); repeat for several")
+      ->required();
   add_job_options(reconstruct);
   auto* submit = app.add_subcommand("submit", "upload a cloud and print the job id");
   submit->add_option("input", input, "point cloud")->required();
@@ -279,10 +281,12 @@ int main(int argc, char** argv) {
     if (int rc = Watch(o, job.id(), &job); rc != 0) return rc;
     std::string bytes;
     if (int rc = FetchBytes(o, job.id(), "", &bytes); rc != 0) return rc;
-    if (int rc = WriteResult(bytes, output); rc != 0) return rc;
+    for (const auto& path : outputs) {
+      if (int rc = WriteResult(bytes, path); rc != 0) return rc;
+    }
     if (!o.quiet) {
       for (const auto& s : job.statistics()) std::fprintf(stderr, "  %s = %g\n", s.name().c_str(), s.value());
-      std::fprintf(stderr, "wrote %s\n", output.c_str());
+      for (const auto& path : outputs) std::fprintf(stderr, "wrote %s\n", path.c_str());
     }
     return 0;
   }

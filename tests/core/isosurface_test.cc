@@ -29,7 +29,7 @@ TEST(Isosurface, SphereIsClosedWithExactTopologyAndVolume) {
   EXPECT_EQ(t.components, 1);
   const double exact = 4.0 / 3.0 * std::numbers::pi;
   EXPECT_NEAR(EnclosedVolume(r.mesh) / exact, 1.0, 0.01);  // Positive: outward orientation.
-  for (const auto& v : r.mesh.vertices) EXPECT_NEAR(v.cast<double>().norm(), 1.0, 1e-6);
+  for (const auto& v : r.mesh.vertices) EXPECT_NEAR(v.cast<double>().norm(), 1.0, 1e-5);  // Linear interpolation alone: ~1e-4.
 }
 
 TEST(Isosurface, TorusHasGenusOne) {

@@ -152,6 +152,11 @@ TEST_F(EndToEnd, BadInputsGetClearErrorsAndTheServerKeepsServing) {
   core::PointCloud bare = testing::SphereCloud(500);
   bare.normals.clear();
   const std::string good = WriteCloud("good.ply", testing::SphereCloud(3000));
+  // Quantized Draco cannot carry NaN, but a lossless upload can: the server must catch it.
+  io::WriteOptions lossless;
+  lossless.draco.position_bits = 0;
+  const std::string lossless_nan = (dir_ / "nan.drc").string();
+  ASSERT_TRUE(io::WritePointCloudFile(lossless_nan, nan_cloud, lossless).ok());
   // A truncated Draco upload: the client sends .drc files as they are.
   ASSERT_TRUE(io::WritePointCloudFile((dir_ / "full.drc").string(), testing::SphereCloud(3000)).ok());
   const std::string full = *io::ReadFileBytes((dir_ / "full.drc").string());
@@ -161,7 +166,8 @@ TEST_F(EndToEnd, BadInputsGetClearErrorsAndTheServerKeepsServing) {
     int code;
     std::string fragment;
   } cases[] = {
-      {"reconstruct " + WriteCloud("nan.ply", nan_cloud) + " -o x.ply", 1, "NaN or infinite"},
+      {"reconstruct " + lossless_nan + " -o x.ply", 1, "NaN or infinite"},  // Server-side check.
+      {"reconstruct " + WriteCloud("nan.ply", nan_cloud) + " -o x.ply", 3, "NaN or infinite"},  // Client-side.
       {"reconstruct " + (dir_ / "cut.drc").string() + " -o x.ply", 1, "Draco"},
       {"reconstruct " + good + " -o x.ply --method nosuch", 1, "unknown method"},
       {"reconstruct " + good + " -o x.ply --param epsilon=7", 1, "out of range"},
@@ -224,7 +230,9 @@ TEST_F(EndToEnd, AJobSurvivesKillMinusNine) {
   EXPECT_EQ(fetched.code, 0) << fetched.output;
   auto mesh = io::ReadMeshFile((dir_ / "t.obj").string());
   ASSERT_TRUE(mesh.ok());
-  EXPECT_EQ(core::AnalyzeTopology(*mesh).euler_characteristic(), 0);  // A torus.
+  const core::MeshTopology t = core::AnalyzeTopology(*mesh);
+  EXPECT_TRUE(t.watertight());
+  EXPECT_EQ(t.euler_characteristic(), 0);  // A torus.
 }
 
 }  // namespace

@@ -75,7 +75,7 @@ TEST(Ply, ErrorsNameTheProblemAndPlace) {
               "lacks x, y or z");
   ExpectError("ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\n"
               "property float z\nend_header\n1 2 3\n1 2 oops\n",
-              "line 8");
+              "line 9");
   ExpectError("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
               "property float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n"
               "0 0 0\n1 0 0\n0 1 0\n3 0 1 7\n",

@@ -70,6 +70,50 @@ struct Crossing {
   double outside_value;
 };
 
+// Marks as trusted again every edge-connected cluster of untrusted triangles with at most
+// `max_size` members: such pinholes lie on the real surface where the field's confidence dips
+// for a moment (a gap in random sampling), and dropping them would open the surface. Large
+// clusters (holes in the data, ghost sheets) stay untrusted. Returns the triangles restored.
+int64_t RestoreSmallPatches(const std::vector<Triangle>& faces, std::vector<char>& trusted,
+                            int max_size) {
+  if (max_size <= 0) return 0;
+  struct Side {
+    uint32_t lo, hi, face;
+  };
+  std::vector<Side> sides;
+  for (uint32_t f = 0; f < faces.size(); ++f) {
+    if (trusted[f]) continue;
+    for (int i = 0; i < 3; ++i) {
+      const uint32_t a = faces[f][static_cast<size_t>(i)], b = faces[f][static_cast<size_t>((i + 1) % 3)];
+      sides.push_back({std::min(a, b), std::max(a, b), f});
+    }
+  }
+  std::sort(sides.begin(), sides.end(), [](const Side& x, const Side& y) {
+    return x.lo != y.lo ? x.lo < y.lo : x.hi < y.hi;
+  });
+  absl::flat_hash_map<uint32_t, uint32_t> parent;
+  auto find = [&](uint32_t x) {
+    while (parent[x] != x) x = parent[x] = parent[parent[x]];
+    return x;
+  };
+  for (const Side& s : sides) parent.try_emplace(s.face, s.face);
+  for (size_t i = 1; i < sides.size(); ++i) {
+    if (sides[i].lo == sides[i - 1].lo && sides[i].hi == sides[i - 1].hi) {
+      parent[find(sides[i].face)] = find(sides[i - 1].face);
+    }
+  }
+  absl::flat_hash_map<uint32_t, int> size;
+  for (auto& [face, p] : parent) ++size[find(face)];
+  int64_t restored = 0;
+  for (auto& [face, p] : parent) {
+    if (size[find(face)] <= max_size) {
+      trusted[face] = 1;
+      ++restored;
+    }
+  }
+  return restored;
+}
+
 }  // namespace
 
 absl::Status Validate(const IsosurfaceParams& params) {
@@ -283,28 +327,39 @@ absl::StatusOr<IsosurfaceResult> ExtractIsosurface(const ImplicitFunction& field
       &ctx, [&](double f) { emit_ctx.Report(0.9 * f); }));
 
   mesh.faces.reserve(polygons.size() * 3 / 2);
+  std::vector<char> face_trusted;
+  face_trusted.reserve(polygons.size() * 3 / 2);
   for (const auto& p : polygons) {
-    const bool usable = valid[p[0]] && valid[p[1]] && valid[p[2]] &&
-                        (p[3] == UINT32_MAX || valid[p[3]]);
-    if (!usable) {
-      ++stats.rejected_polygons;
-      continue;
-    }
+    const bool trusted = valid[p[0]] && valid[p[1]] && valid[p[2]] &&
+                         (p[3] == UINT32_MAX || valid[p[3]]);
+    const size_t before = mesh.faces.size();
     if (p[3] == UINT32_MAX) {
       mesh.faces.push_back({p[0], p[1], p[2]});
-      continue;
-    }
-    // Split the quad along its shorter diagonal for better-shaped triangles.
-    const float d02 = (mesh.vertices[p[0]] - mesh.vertices[p[2]]).squaredNorm();
-    const float d13 = (mesh.vertices[p[1]] - mesh.vertices[p[3]]).squaredNorm();
-    if (d02 <= d13) {
-      mesh.faces.push_back({p[0], p[1], p[2]});
-      mesh.faces.push_back({p[0], p[2], p[3]});
     } else {
-      mesh.faces.push_back({p[0], p[1], p[3]});
-      mesh.faces.push_back({p[1], p[2], p[3]});
+      // Split the quad along its shorter diagonal for better-shaped triangles.
+      const float d02 = (mesh.vertices[p[0]] - mesh.vertices[p[2]]).squaredNorm();
+      const float d13 = (mesh.vertices[p[1]] - mesh.vertices[p[3]]).squaredNorm();
+      if (d02 <= d13) {
+        mesh.faces.push_back({p[0], p[1], p[2]});
+        mesh.faces.push_back({p[0], p[2], p[3]});
+      } else {
+        mesh.faces.push_back({p[0], p[1], p[3]});
+        mesh.faces.push_back({p[1], p[2], p[3]});
+      }
     }
+    face_trusted.resize(mesh.faces.size(), trusted);
+    if (!trusted) stats.rejected_polygons += static_cast<int64_t>(mesh.faces.size() - before);
   }
+  stats.restored_triangles = RestoreSmallPatches(mesh.faces, face_trusted, params.max_patch_triangles);
+  stats.rejected_polygons -= stats.restored_triangles;
+  {
+    size_t kept_faces = 0;
+    for (size_t f = 0; f < mesh.faces.size(); ++f) {
+      if (face_trusted[f]) mesh.faces[kept_faces++] = mesh.faces[f];
+    }
+    mesh.faces.resize(kept_faces);
+  }
+
   // Drop the vertices that only rejected polygons used.
   std::vector<uint32_t> remap(mesh.vertices.size(), UINT32_MAX);
   std::vector<Vec3f> kept_vertices, kept_normals;

@@ -8,8 +8,9 @@
 // face triangulations and marching tetrahedra yields a crack-free, edge-manifold, consistently
 // oriented surface with no ambiguous cases. Crossings are keyed by the grid edge, so triangles
 // share vertices; their positions are refined on F along the edge (Illinois regula falsi).
-// Tetrahedra with a corner where F is unknown (NaN) produce nothing, and polygons whose root
-// lies where F is not `defined` are dropped (the ghost-sheet and hole guard).
+// Tetrahedra with a corner where F is unknown (NaN) produce nothing, and triangles with a root
+// where F is not `defined` are dropped (the ghost-sheet and hole guard), unless they form a
+// small patch inside trusted surface (see `max_patch_triangles`).
 #pragma once
 
 #include <cstdint>
@@ -27,6 +28,7 @@ struct IsosurfaceParams {
   int refine_steps = 3;          // Root-refinement steps per crossing edge (0 = linear only).
   int64_t max_cells = 60'000'000;  // Visited cubes before failing with kResourceExhausted.
   bool vertex_normals = true;    // Store normalize(∇F) at each output vertex.
+  int max_patch_triangles = 64;  // Untrusted clusters up to this size are kept (pinholes), 0 = none.
 };
 
 absl::Status Validate(const IsosurfaceParams& params);
@@ -36,7 +38,8 @@ struct IsosurfaceStats {
   int64_t surface_cells = 0;     // Cubes the surface passes through.
   int64_t field_evaluations = 0; // Corner evaluations (refinement not included).
   int64_t crossings = 0;         // Output vertices.
-  int64_t rejected_polygons = 0; // Polygons dropped because a root lay where F is undefined.
+  int64_t rejected_polygons = 0; // Triangles dropped because a root lay where F is undefined.
+  int64_t restored_triangles = 0; // Untrusted triangles kept as parts of small pinhole patches.
 };
 
 struct IsosurfaceResult {

@@ -46,7 +46,7 @@ void FillPointCloud(draco::PointCloud& pc, const std::vector<core::Vec3f>& posit
 
 draco::Encoder MakeEncoder(const DracoOptions& o) {
   draco::Encoder enc;
-  enc.SetAttributeQuantization(draco::GeometryAttribute::POSITION, o.position_bits);
+  if (o.position_bits > 0) enc.SetAttributeQuantization(draco::GeometryAttribute::POSITION, o.position_bits);
   enc.SetAttributeQuantization(draco::GeometryAttribute::NORMAL, o.normal_bits);
   enc.SetAttributeQuantization(draco::GeometryAttribute::GENERIC, o.attribute_bits);
   enc.SetSpeedOptions(o.speed, o.speed);
@@ -106,7 +106,10 @@ absl::Status ExtractPoints(const draco::PointCloud& pc, std::vector<core::Vec3f>
 }  // namespace
 
 absl::Status Validate(const DracoOptions& o) {
-  for (int bits : {o.position_bits, o.normal_bits, o.attribute_bits}) {
+  if (o.position_bits < 0 || o.position_bits > 30) {
+    return absl::InvalidArgumentError("Draco position bits must be 0 (lossless) or 1..30");
+  }
+  for (int bits : {o.normal_bits, o.attribute_bits}) {
     if (bits < 1 || bits > 30) return absl::InvalidArgumentError("Draco quantization bits must be 1..30");
   }
   if (o.speed < 0 || o.speed > 10) return absl::InvalidArgumentError("Draco speed must be 0..10");
@@ -117,6 +120,9 @@ absl::StatusOr<std::string> EncodeDracoPointCloud(const core::PointCloud& cloud,
                                                   const DracoOptions& options) {
   if (absl::Status s = Validate(options); !s.ok()) return s;
   if (cloud.empty()) return absl::InvalidArgumentError("cannot encode an empty point cloud");
+  if (const int64_t bad = core::FindNonFinite(cloud.positions); bad >= 0 && options.position_bits > 0) {
+    return absl::InvalidArgumentError(core::StrCat("point ", bad, " has a NaN or infinite coordinate"));
+  }
   draco::PointCloud pc;
   FillPointCloud(pc, cloud.positions, cloud.normals, cloud.attributes);
   draco::Encoder enc = MakeEncoder(options);

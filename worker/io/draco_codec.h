@@ -16,7 +16,8 @@
 namespace lsqsurf::io {
 
 struct DracoOptions {
-  int position_bits = 16;   // Quantization of positions over the bounding box (1..30 bits).
+  int position_bits = 16;   // Quantization of positions over the bounding box (1..30 bits);
+                            // 0 = lossless float positions (larger: sequential coding).
   int normal_bits = 12;     // Quantization of normals (octahedral; 1..30 bits).
   int attribute_bits = 14;  // Quantization of scalar attributes over their range (1..30 bits).
   int speed = 5;            // 0 = smallest output, slowest … 10 = fastest, keeps point order.
@@ -24,7 +25,8 @@ struct DracoOptions {
 
 absl::Status Validate(const DracoOptions& options);
 
-// Errors: kInvalidArgument (empty input, bad options), kInternal (Draco refused to encode).
+// Errors: kInvalidArgument (empty input, bad options, a NaN or infinite coordinate when positions
+// are quantized — quantization would silently corrupt it), kInternal (Draco refused to encode).
 absl::StatusOr<std::string> EncodeDracoPointCloud(const core::PointCloud& cloud,
                                                   const DracoOptions& options);
 absl::StatusOr<std::string> EncodeDracoMesh(const core::TriangleMesh& mesh,

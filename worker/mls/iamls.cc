@@ -47,7 +47,8 @@ struct IamlsFunction::Impl {
   double eps2 = 0;       // ε²
   double scale = 0;      // ε³ / π^{3/2}
   float radius = 0;      // Truncation radius, cutoff · h / ε.
-  double min_weight = 0; // Absolute ΣΨ threshold of definedness.
+  double min_kernel_sum = 0;  // ΣΨ below which F is not trusted.
+  double fallback_scale = 0;  // Scale of the sign-only extension (a typical ΣΨ).
 };
 
 absl::Status Validate(const IamlsParams& p) {
@@ -107,13 +108,15 @@ core::FieldGradient Evaluate(const IamlsFunction::Impl& m, const Vec3d& x) {
       g += n * psi + l * ((s - 3.5) * e * 2.0 * m.eps2 * m.inv_h2) * d;
     }
   }
-  out.defined = w * m.scale > m.min_weight;
+  // Trust F only where the kernel sum is clearly positive: it changes sign ~1.22 h/ε off the
+  // data, and F has spurious zeros (ghost sheets) where it does.
+  out.defined = w * m.scale > m.min_kernel_sum;
   if (out.defined) {
     out.value = f * m.scale;
     out.gradient = g * m.scale;
   } else if (gauss > 0) {
-    out.value = m.min_weight * gauss_distance / gauss;
-    out.gradient = m.min_weight * gauss_normal / gauss;
+    out.value = m.fallback_scale * gauss_distance / gauss;
+    out.gradient = m.fallback_scale * gauss_normal / gauss;
   } else {
     out.value = std::numeric_limits<double>::quiet_NaN();  // Underflow: nothing is known.
   }
@@ -210,7 +213,8 @@ absl::StatusOr<std::unique_ptr<IamlsFunction>> BuildIamls(const core::PointCloud
     double weight_sum = 0;
     for (float v : a.value) weight_sum += v;
     fn->stats_.mean_sample_weight = weight_sum / static_cast<double>(n);
-    impl->min_weight = params.min_weight * fn->stats_.mean_sample_weight;
+    impl->fallback_scale = fn->stats_.mean_sample_weight;
+    impl->min_kernel_sum = params.min_weight * fn->stats_.mean_sample_weight;
     if (params.iterations == 0) {
       fn->impl_ = std::move(impl);
       return fn;

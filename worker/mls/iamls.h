@@ -12,8 +12,8 @@
 // Truncation: Ψ is cut at ε r = `cutoff` (default 4, radius 4h/ε); there |Ψ| < 2.7e-7 ε³ and the
 // neglected tail of a sum over a uniformly sampled surface is about 1e-6 of the kernel's mass.
 // Ghost sheets: ΣΨ changes sign at about 1.22 h/ε from the data (the kernel's negative lobe),
-// where F has spurious zeros; F is reported undefined wherever ΣΨ is not clearly positive, so
-// no extractor places surface there.
+// where F has spurious zeros; F is reported undefined wherever ΣΨ is not clearly positive
+// (see `min_weight`), so no extractor places surface there.
 #pragma once
 
 #include <memory>

@@ -1,0 +1,16 @@
+#!/usr/bin/env bash
+# The whole test suite: an optimised build and an AddressSanitizer + UndefinedBehaviorSanitizer
+# build, each followed by ctest. Installs missing packages first. CI runs exactly this.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+bash scripts/install-deps.sh
+
+cmake --preset release
+cmake --build --preset release
+ctest --preset release
+
+# The sanitizer build skips the benchmarks and the tests labelled `slow`.
+cmake --preset asan
+cmake --build --preset asan
+ctest --preset asan

@@ -1,0 +1,252 @@
+// lsqsurf-bench — accuracy, time and memory of the engines on the shared benchmark meshes.
+//
+// For every model × size × noise case it samples a cloud from the ground-truth mesh (area-uniform,
+// normals interpolated from the vertex normals, optional Gaussian noise along the normal as a
+// fraction of the bounding-box diagonal), reconstructs it, and compares the result with the
+// ground truth (see worker/core/surface_distance.h). Each case runs in a child process so that
+// its peak RSS is its own. With --server, the same clouds also go through a real lsqsurfd
+// started on a free loopback port, driven by the real client (upload, reconstruct, download).
+#include <sys/resource.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <chrono>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <sstream>
+#include <thread>
+#include <csignal>
+#include <string>
+#include <vector>
+
+#include <CLI/CLI.hpp>
+
+#include "worker/core/mesh_metrics.h"
+#include "worker/core/sampling.h"
+#include "worker/core/strings.h"
+#include "worker/core/surface_distance.h"
+#include "worker/io/draco_codec.h"
+#include "worker/io/files.h"
+#include "worker/jobs/engines.h"
+
+namespace {
+
+using namespace lsqsurf;
+namespace fs = std::filesystem;
+using Clock = std::chrono::steady_clock;
+
+double Since(Clock::time_point t) { return std::chrono::duration<double>(Clock::now() - t).count(); }
+
+struct CaseResult {
+  double seconds = 0;
+  double peak_mib = 0;
+  int64_t triangles = 0;
+  double chamfer = 0, hausdorff = 0, normal_consistency = 0, far_fraction = 0;
+  bool watertight = false;
+  int64_t components = 0, boundary_edges = 0;
+  std::string error;
+};
+
+std::string Serialize(const CaseResult& r) {
+  return core::StrCat(r.seconds, " ", r.triangles, " ", r.chamfer, " ", r.hausdorff, " ", r.normal_consistency, " ",
+                      r.far_fraction, " ", r.watertight ? 1 : 0, " ", r.components, " ", r.boundary_edges, "\n",
+                      r.error);
+}
+
+CaseResult Deserialize(const std::string& s) {
+  CaseResult r;
+  std::istringstream in(s);
+  int wt = 0;
+  in >> r.seconds >> r.triangles >> r.chamfer >> r.hausdorff >> r.normal_consistency >> r.far_fraction >> wt >>
+      r.components >> r.boundary_edges;
+  r.watertight = wt != 0;
+  std::getline(in, r.error);
+  std::getline(in, r.error);
+  return r;
+}
+
+// Runs `body` in a child process; its result comes back through a pipe, its peak RSS from wait4.
+CaseResult InChild(const std::function<CaseResult()>& body) {
+  int fds[2];
+  if (::pipe(fds) != 0) return {.error = "pipe failed"};
+  const pid_t pid = ::fork();
+  if (pid == 0) {
+    ::close(fds[0]);
+    const std::string out = Serialize(body());
+    (void)!::write(fds[1], out.data(), out.size());
+    ::_exit(0);
+  }
+  ::close(fds[1]);
+  std::string text;
+  char buf[4096];
+  ssize_t n;
+  while ((n = ::read(fds[0], buf, sizeof(buf))) > 0) text.append(buf, static_cast<size_t>(n));
+  ::close(fds[0]);
+  int status = 0;
+  struct rusage usage {};
+  ::wait4(pid, &status, 0, &usage);
+  CaseResult r = text.empty() ? CaseResult{.error = "the case crashed"} : Deserialize(text);
+  r.peak_mib = static_cast<double>(usage.ru_maxrss) / 1024.0;
+  return r;
+}
+
+void Measure(const core::TriangleMesh& truth, const core::TriangleMesh& mesh, size_t samples, CaseResult& r) {
+  const core::MeshTopology t = core::AnalyzeTopology(mesh);
+  r.triangles = t.faces;
+  r.watertight = t.watertight();
+  r.components = t.components;
+  r.boundary_edges = t.boundary_edges;
+  core::LocalJobContext ctx;
+  core::CompareParams p;
+  p.samples = samples;
+  auto cmp = core::CompareMeshes(truth, mesh, p, ctx);
+  if (!cmp.ok()) {
+    r.error = std::string(cmp.status().message());
+    return;
+  }
+  r.chamfer = cmp->chamfer;
+  r.hausdorff = cmp->hausdorff;
+  r.normal_consistency = cmp->normal_consistency;
+  r.far_fraction = cmp->far_fraction;
+}
+
+int RunTool(const std::string& cmd) { return std::system((cmd + " > /dev/null 2>&1").c_str()); }
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  CLI::App app{"lsqsurf-bench: engines vs ground-truth meshes"};
+  std::string data_dir = "../shared/data/meshes";
+  std::vector<std::string> models = {"stanford-bunny", "spot", "fandisk"};
+  std::vector<size_t> sizes = {100000};
+  std::vector<double> noises = {0.0};
+  std::string method = "iamls";
+  std::vector<std::string> params;
+  size_t samples = 1'000'000;
+  bool server = false;
+  std::string bin_dir;
+  app.add_option("--data", data_dir, "folder with <model>.obj ground-truth meshes")->capture_default_str();
+  app.add_option("--models", models, "model names")->capture_default_str();
+  app.add_option("--sizes", sizes, "cloud sizes")->capture_default_str();
+  app.add_option("--noise", noises, "noise sigma as a fraction of the diagonal (0 = clean)")->capture_default_str();
+  app.add_option("--method", method, "surface method")->capture_default_str();
+  app.add_option("--param", params, "method parameter name=value (repeatable)");
+  app.add_option("--samples", samples, "samples per surface for the distances")->capture_default_str();
+  app.add_flag("--server", server, "also run every case through lsqsurfd and the lsqsurf client");
+  app.add_option("--bin", bin_dir, "folder with lsqsurfd and lsqsurf (default: beside this program)");
+  CLI11_PARSE(app, argc, argv);
+  if (bin_dir.empty()) bin_dir = fs::canonical("/proc/self/exe").parent_path().string();
+
+  jobs::ParameterMap parameters;
+  for (const auto& p : params) {
+    const size_t eq = p.find('=');
+    if (eq == std::string::npos) return std::fprintf(stderr, "bad --param %s\n", p.c_str()), 2;
+    parameters[p.substr(0, eq)] = std::stod(p.substr(eq + 1));
+  }
+  if (absl::Status s = jobs::ValidateRequest(method, parameters); !s.ok()) {
+    std::fprintf(stderr, "%s\n", s.ToString().c_str());
+    return 2;
+  }
+
+  const fs::path work = fs::temp_directory_path() / ("lsqsurf-bench-" + std::to_string(::getpid()));
+  fs::create_directories(work);
+  std::printf("%-15s %8s %6s %-7s %8s %9s %10s %10s %10s %7s %6s %6s %10s\n", "model", "points", "noise", "mode",
+              "wall_s", "peak_MiB", "triangles", "chamfer", "hausdorff", "normals", "closed", "comps", "far>1e-3");
+  for (const auto& model : models) {
+    auto truth = io::ReadMeshFile((fs::path(data_dir) / (model + ".obj")).string());
+    if (!truth.ok()) {
+      std::fprintf(stderr, "%s\n", truth.status().ToString().c_str());
+      return 1;
+    }
+    const double diag = core::Diagonal(core::BoundingBox(truth->vertices));
+    for (size_t n : sizes) {
+      for (double noise : noises) {
+        const core::PointCloud cloud = core::SampleCloud(*truth, n, 1234, noise * diag);
+        auto print = [&](const char* mode, const CaseResult& r) {
+          if (!r.error.empty()) {
+            std::printf("%-15s %8zu %6.4f %-7s failed: %s\n", model.c_str(), n, noise, mode, r.error.c_str());
+          } else {
+            std::printf("%-15s %8zu %6.4f %-7s %8.2f %9.0f %10lld %10.3e %10.3e %7.4f %6s %6lld %10.3e\n",
+                        model.c_str(), n, noise, mode, r.seconds, r.peak_mib, static_cast<long long>(r.triangles),
+                        r.chamfer, r.hausdorff, r.normal_consistency, r.watertight ? "yes" : "no",
+                        static_cast<long long>(r.components), r.far_fraction);
+          }
+          std::fflush(stdout);
+        };
+        print("direct", InChild([&] {
+                CaseResult r;
+                core::LocalJobContext ctx;
+                const auto start = Clock::now();
+                auto result = jobs::RunSurfaceMethod(method, parameters, cloud, ctx);
+                r.seconds = Since(start);
+                if (!result.ok()) {
+                  r.error = std::string(result.status().message());
+                  return r;
+                }
+                Measure(*truth, result->mesh, samples, r);
+                return r;
+              }));
+        if (!server) continue;
+        // Through the service: a real server and the real client, end to end.
+        const std::string cloud_path = (work / "cloud.drc").string(), mesh_path = (work / "mesh.drc").string();
+        const auto t_encode = Clock::now();
+        auto encoded = io::EncodeDracoPointCloud(cloud, {});
+        const double encode_s = Since(t_encode);
+        const auto t_decode = Clock::now();
+        (void)io::DecodeDracoPointCloud(*encoded);
+        const double decode_s = Since(t_decode);
+        (void)io::WriteFileAtomically(cloud_path, *encoded);
+        const std::string data = (work / "server-data").string();
+        fs::remove_all(data);
+        const std::string addr_file = (work / "address").string();
+        const std::string start_server = core::StrCat(
+            "(", bin_dir, "/lsqsurfd --listen 127.0.0.1:0 --data-dir ", data, " 2>/dev/null & echo $! > ", work.string(),
+            "/pid; wait) | head -1 > ", addr_file, " &");
+        (void)std::system(start_server.c_str());
+        std::string address;
+        for (int i = 0; i < 100 && address.empty(); ++i) {
+          std::this_thread::sleep_for(std::chrono::milliseconds(50));
+          std::ifstream in(addr_file);
+          std::string word;
+          in >> word >> word >> address;
+        }
+        std::ifstream pid_in(work / "pid");
+        long server_pid = 0;
+        pid_in >> server_pid;
+        const std::string client = core::StrCat(bin_dir, "/lsqsurf -q --server ", address, " ");
+        std::string param_args;
+        for (const auto& p : params) param_args += " --param " + p;
+        const auto t_upload = Clock::now();
+        const int submit_rc = RunTool(client + "submit " + cloud_path + " --method " + method + param_args);
+        const double upload_s = Since(t_upload);
+        const auto t_e2e = Clock::now();
+        const int rc = RunTool(client + "reconstruct " + cloud_path + " -o " + mesh_path + " --method " + method +
+                               param_args);
+        CaseResult r;
+        r.seconds = Since(t_e2e);
+        std::ifstream status(core::StrCat("/proc/", server_pid, "/status"));
+        for (std::string line; std::getline(status, line);) {
+          if (line.rfind("VmHWM:", 0) == 0) r.peak_mib = std::stod(line.substr(6)) / 1024.0;
+        }
+        ::kill(static_cast<pid_t>(server_pid), SIGTERM);
+        if (rc != 0 || submit_rc != 0) {
+          r.error = "the client failed";
+        } else if (auto mesh = io::ReadMeshFile(mesh_path); mesh.ok()) {
+          const double peak = r.peak_mib;
+          Measure(*truth, *mesh, samples, r);
+          r.peak_mib = peak;
+        } else {
+          r.error = std::string(mesh.status().message());
+        }
+        print("service", r);
+        std::printf("    draco: %.2f MB, encode %.0f ms, decode %.0f ms; upload+validate %.2f s (%.1f MB/s)\n",
+                    static_cast<double>(encoded->size()) / 1e6, encode_s * 1e3, decode_s * 1e3, upload_s,
+                    static_cast<double>(encoded->size()) / 1e6 / upload_s);
+        std::this_thread::sleep_for(std::chrono::milliseconds(300));
+      }
+    }
+  }
+  fs::remove_all(work);
+  return 0;
+}

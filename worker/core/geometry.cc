@@ -1,6 +1,10 @@
 #include "worker/core/geometry.h"
 
+#include <algorithm>
 #include <cmath>
+#include <numeric>
+
+#include <tbb/parallel_sort.h>
 
 namespace lsqsurf::core {
 
@@ -11,6 +15,38 @@ Box3 BoundingBox(std::span<const Vec3f> points) {
 }
 
 double Diagonal(const Box3& box) { return box.isEmpty() ? 0.0 : box.diagonal().norm(); }
+
+namespace {
+
+// Spreads the low 21 bits of `v` so that two zero bits follow each one.
+uint64_t SpreadBits(uint64_t v) {
+  v &= 0x1fffff;
+  v = (v | v << 32) & 0x1f00000000ffffull;
+  v = (v | v << 16) & 0x1f0000ff0000ffull;
+  v = (v | v << 8) & 0x100f00f00f00f00full;
+  v = (v | v << 4) & 0x10c30c30c30c30c3ull;
+  v = (v | v << 2) & 0x1249249249249249ull;
+  return v;
+}
+
+}  // namespace
+
+std::vector<uint32_t> MortonOrder(std::span<const Vec3f> points) {
+  const Box3 box = BoundingBox(points);
+  const double extent = box.isEmpty() ? 1.0 : std::max(box.sizes().maxCoeff(), 1e-30);
+  const double scale = static_cast<double>((1 << 21) - 1) / extent;
+  std::vector<std::pair<uint64_t, uint32_t>> keyed(points.size());
+  for (size_t i = 0; i < points.size(); ++i) {
+    const Vec3d g = (points[i].cast<double>() - box.min()) * scale;
+    keyed[i] = {SpreadBits(static_cast<uint64_t>(g.x())) | SpreadBits(static_cast<uint64_t>(g.y())) << 1 |
+                    SpreadBits(static_cast<uint64_t>(g.z())) << 2,
+                static_cast<uint32_t>(i)};
+  }
+  tbb::parallel_sort(keyed.begin(), keyed.end());
+  std::vector<uint32_t> order(points.size());
+  for (size_t i = 0; i < keyed.size(); ++i) order[i] = keyed[i].second;
+  return order;
+}
 
 int64_t FindNonFinite(std::span<const Vec3f> points) {
   for (size_t i = 0; i < points.size(); ++i) {

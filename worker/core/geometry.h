@@ -54,6 +54,10 @@ Box3 BoundingBox(std::span<const Vec3f> points);
 // Length of the box diagonal, 0 for an empty box.
 double Diagonal(const Box3& box);
 
+// Indices of `points` sorted along a Morton (Z-order) curve over their bounding box, so that
+// points close in space end up close in the order (cache locality for neighbour sums).
+std::vector<uint32_t> MortonOrder(std::span<const Vec3f> points);
+
 // Finds a non-finite coordinate; returns the index of the first bad point or -1.
 int64_t FindNonFinite(std::span<const Vec3f> points);
 

@@ -208,6 +208,17 @@ TEST_F(EndToEnd, CancelAndFullQueue) {
   EXPECT_NE(list.output.find("cancelled"), std::string::npos) << list.output;
 }
 
+TEST_F(EndToEnd, SizeLimitsAreEnforced) {
+  Server server;
+  ASSERT_NO_FATAL_FAILURE(server.Start(dir_ / "data", {"--max-upload-mib", "1", "--max-points", "50000"}));
+  const ClientRun too_big = Client(server.address(), "submit " + WriteCloud("big.ply", testing::SphereCloud(300000)));
+  EXPECT_EQ(too_big.code, 1);
+  EXPECT_NE(too_big.output.find("limit of 1048576 bytes"), std::string::npos) << too_big.output;
+  const ClientRun too_many = Client(server.address(), "submit " + WriteCloud("many.ply", testing::SphereCloud(60000)));
+  EXPECT_EQ(too_many.code, 1);
+  EXPECT_NE(too_many.output.find("at most 50000"), std::string::npos) << too_many.output;
+}
+
 TEST_F(EndToEnd, AJobSurvivesKillMinusNine) {
   const std::string big = WriteCloud("big.ply", testing::TorusCloud(300000, 1.0, 0.3));
   std::string id;

@@ -220,7 +220,7 @@ TEST_F(EndToEnd, SizeLimitsAreEnforced) {
 }
 
 TEST_F(EndToEnd, AJobSurvivesKillMinusNine) {
-  const std::string big = WriteCloud("big.ply", testing::TorusCloud(300000, 1.0, 0.3));
+  const std::string big = WriteCloud("big.ply", testing::TorusCloud(150000, 1.0, 0.3));
   std::string id;
   {
     Server server;

@@ -164,9 +164,7 @@ absl::StatusOr<std::vector<JobRecord>> JobStore::LoadAll() {
     r.input_points = sqlite3_column_int64(st, 10);
     r.input_bytes = sqlite3_column_int64(st, 11);
     r.statistics = DecodePairs(Column(st, 12));
-    std::string_view results = Column(st, 13);
-    std::string results_text(results);
-    std::stringstream ss(results_text);
+    std::stringstream ss(Column(st, 13));
     for (std::string name; std::getline(ss, name, ';');) {
       if (!name.empty()) r.results.push_back(name);
     }

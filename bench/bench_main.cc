@@ -67,6 +67,8 @@ CaseResult Deserialize(const std::string& s) {
 }
 
 // Runs `body` in a child process; its result comes back through a pipe, its peak RSS from wait4.
+// The parent must never run parallel work itself: a child forked after oneTBB started its
+// worker threads runs everything on one thread (measured: 2× slower on 2 cores).
 CaseResult InChild(const std::function<CaseResult()>& body) {
   int fds[2];
   if (::pipe(fds) != 0) return {.error = "pipe failed"};
@@ -113,6 +115,18 @@ void Measure(const core::TriangleMesh& truth, const core::TriangleMesh& mesh, si
 
 int RunTool(const std::string& cmd) { return std::system((cmd + " > /dev/null 2>&1").c_str()); }
 
+// Runs a command and returns its first output line (empty on failure).
+std::string FirstLine(const std::string& cmd) {
+  FILE* p = ::popen((cmd + " 2>/dev/null").c_str(), "r");
+  if (p == nullptr) return "";
+  char buf[256] = {0};
+  const bool got = std::fgets(buf, sizeof(buf), p) != nullptr;
+  const int status = ::pclose(p);
+  std::string line = got && status == 0 ? buf : "";
+  while (!line.empty() && (line.back() == '\n' || line.back() == '\r')) line.pop_back();
+  return line;
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -125,6 +139,7 @@ int main(int argc, char** argv) {
   std::vector<std::string> params;
   size_t samples = 1'000'000;
   bool server = false;
+  bool drop_normals = false;
   std::string bin_dir;
   app.add_option("--data", data_dir, "folder with <model>.obj ground-truth meshes")->capture_default_str();
   app.add_option("--models", models, "model names")->capture_default_str();
@@ -134,6 +149,7 @@ int main(int argc, char** argv) {
   app.add_option("--param", params, "method parameter name=value (repeatable)");
   app.add_option("--samples", samples, "samples per surface for the distances")->capture_default_str();
   app.add_flag("--server", server, "also run every case through lsqsurfd and the lsqsurf client");
+  app.add_flag("--no-normals", drop_normals, "drop the sampled normals (the engines estimate them)");
   app.add_option("--bin", bin_dir, "folder with lsqsurfd and lsqsurf (default: beside this program)");
   CLI11_PARSE(app, argc, argv);
   if (bin_dir.empty()) bin_dir = fs::canonical("/proc/self/exe").parent_path().string();
@@ -162,7 +178,8 @@ int main(int argc, char** argv) {
     const double diag = core::Diagonal(core::BoundingBox(truth->vertices));
     for (size_t n : sizes) {
       for (double noise : noises) {
-        const core::PointCloud cloud = core::SampleCloud(*truth, n, 1234, noise * diag);
+        core::PointCloud cloud = core::SampleCloud(*truth, n, 1234, noise * diag);
+        if (drop_normals) cloud.normals.clear();
         auto print = [&](const char* mode, const CaseResult& r) {
           if (!r.error.empty()) {
             std::printf("%-15s %8zu %6.4f %-7s failed: %s\n", model.c_str(), n, noise, mode, r.error.c_str());
@@ -218,8 +235,11 @@ int main(int argc, char** argv) {
         std::string param_args;
         for (const auto& p : params) param_args += " --param " + p;
         const auto t_upload = Clock::now();
-        const int submit_rc = RunTool(client + "submit " + cloud_path + " --method " + method + param_args);
+        const std::string submitted = FirstLine(client + "submit " + cloud_path + " --method " + method + param_args);
         const double upload_s = Since(t_upload);
+        const int submit_rc = submitted.empty() ? 1 : 0;
+        // That job only measured the upload: cancel it so it does not delay the timed one.
+        if (!submitted.empty()) RunTool(client + "cancel " + submitted);
         const auto t_e2e = Clock::now();
         const int rc = RunTool(client + "reconstruct " + cloud_path + " -o " + mesh_path + " --method " + method +
                                param_args);
@@ -232,12 +252,19 @@ int main(int argc, char** argv) {
         ::kill(static_cast<pid_t>(server_pid), SIGTERM);
         if (rc != 0 || submit_rc != 0) {
           r.error = "the client failed";
-        } else if (auto mesh = io::ReadMeshFile(mesh_path); mesh.ok()) {
-          const double peak = r.peak_mib;
-          Measure(*truth, *mesh, samples, r);
-          r.peak_mib = peak;
         } else {
-          r.error = std::string(mesh.status().message());
+          // Measured in a child too: this process must never start oneTBB's workers (see InChild).
+          const CaseResult m = InChild([&] {
+            CaseResult c;
+            auto mesh = io::ReadMeshFile(mesh_path);
+            if (!mesh.ok()) c.error = std::string(mesh.status().message());
+            else Measure(*truth, *mesh, samples, c);
+            return c;
+          });
+          const double seconds = r.seconds, peak = r.peak_mib;
+          r = m;
+          r.seconds = seconds;
+          r.peak_mib = peak;
         }
         print("service", r);
         std::printf("    draco: %.2f MB, encode %.0f ms, decode %.0f ms; upload+validate %.2f s (%.1f MB/s)\n",

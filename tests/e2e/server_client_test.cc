@@ -14,6 +14,7 @@
 #include <thread>
 
 #include "grpc/health/v1/health.grpc.pb.h"
+#include "lsqsurf/v1/reconstruction.grpc.pb.h"
 #include "tests/test_shapes.h"
 #include "worker/core/mesh_metrics.h"
 #include "worker/io/files.h"
@@ -22,6 +23,7 @@ namespace lsqsurf {
 namespace {
 
 namespace fs = std::filesystem;
+namespace v1 = lsqsurf::v1;
 
 class Server {
  public:
@@ -206,6 +208,76 @@ TEST_F(EndToEnd, CancelAndFullQueue) {
   EXPECT_EQ(Client(server.address(), "cancel " + Trim(second.output)).code, 0);
   const ClientRun list = Client(server.address(), "list");
   EXPECT_NE(list.output.find("cancelled"), std::string::npos) << list.output;
+}
+
+// The API itself, without the client: malformed streams and unknown ids get the documented codes.
+TEST_F(EndToEnd, RawApiStatusCodes) {
+  Server server;
+  ASSERT_NO_FATAL_FAILURE(server.Start(dir_ / "data"));
+  auto stub = v1::Reconstruction::NewStub(grpc::CreateChannel(server.address(), grpc::InsecureChannelCredentials()));
+  auto submit = [&](const std::vector<v1::SubmitJobRequest>& messages) {
+    grpc::ClientContext ctx;
+    v1::Job job;
+    auto writer = stub->SubmitJob(&ctx, &job);
+    for (const auto& m : messages) writer->Write(m);
+    writer->WritesDone();
+    return writer->Finish();
+  };
+  v1::SubmitJobRequest spec, chunk, huge;
+  spec.mutable_spec()->set_method("iamls");
+  chunk.set_input_chunk("abc");
+  huge.set_input_chunk(std::string((1 << 20) + 1, 'x'));
+  EXPECT_EQ(submit({chunk}).error_code(), grpc::StatusCode::INVALID_ARGUMENT);        // No spec first.
+  EXPECT_EQ(submit({spec, spec}).error_code(), grpc::StatusCode::INVALID_ARGUMENT);   // Two specs.
+  EXPECT_EQ(submit({spec, huge}).error_code(), grpc::StatusCode::INVALID_ARGUMENT);   // Chunk > 1 MiB.
+  EXPECT_EQ(submit({spec}).error_code(), grpc::StatusCode::INVALID_ARGUMENT);         // No input.
+  EXPECT_EQ(submit({spec, chunk}).error_code(), grpc::StatusCode::INVALID_ARGUMENT);  // Not Draco.
+  {
+    grpc::ClientContext ctx;
+    v1::GetJobRequest request;
+    request.set_job_id("nope");
+    v1::Job job;
+    EXPECT_EQ(stub->GetJob(&ctx, request, &job).error_code(), grpc::StatusCode::NOT_FOUND);
+  }
+  {
+    grpc::ClientContext ctx;
+    v1::FetchResultRequest request;
+    request.set_job_id("nope");
+    auto reader = stub->FetchResult(&ctx, request);
+    v1::ResultChunk c;
+    while (reader->Read(&c)) {
+    }
+    EXPECT_EQ(reader->Finish().error_code(), grpc::StatusCode::NOT_FOUND);
+  }
+  {
+    grpc::ClientContext ctx;
+    v1::WatchJobRequest request;
+    request.set_job_id("nope");
+    auto reader = stub->WatchJob(&ctx, request);
+    v1::JobEvent e;
+    while (reader->Read(&e)) {
+    }
+    EXPECT_EQ(reader->Finish().error_code(), grpc::StatusCode::NOT_FOUND);
+  }
+  // A running job cannot be deleted, and its result cannot be fetched yet.
+  const ClientRun sub = Client(server.address(), "submit " + WriteCloud("t.ply", testing::TorusCloud(200000, 1.0, 0.3)));
+  ASSERT_EQ(sub.code, 0) << sub.output;
+  const std::string id = Trim(sub.output);
+  {
+    grpc::ClientContext ctx;
+    v1::DeleteJobRequest request;
+    request.set_job_id(id);
+    v1::DeleteJobResponse response;
+    EXPECT_EQ(stub->DeleteJob(&ctx, request, &response).error_code(), grpc::StatusCode::FAILED_PRECONDITION);
+  }
+  {
+    grpc::ClientContext ctx;
+    v1::ListMethodsResponse response;
+    ASSERT_TRUE(stub->ListMethods(&ctx, {}, &response).ok());
+    ASSERT_EQ(response.methods_size(), 1);
+    EXPECT_EQ(response.methods(0).name(), "iamls");
+  }
+  EXPECT_EQ(Client(server.address(), "cancel " + id).code, 0);
 }
 
 TEST_F(EndToEnd, SizeLimitsAreEnforced) {

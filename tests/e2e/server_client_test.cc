@@ -239,25 +239,23 @@ TEST_F(EndToEnd, RawApiStatusCodes) {
     v1::Job job;
     EXPECT_EQ(stub->GetJob(&ctx, request, &job).error_code(), grpc::StatusCode::NOT_FOUND);
   }
+  // Reads a server stream to its end and returns its status.
+  auto drain = [](auto reader, auto message) {
+    while (reader->Read(&message)) {
+    }
+    return reader->Finish().error_code();
+  };
   {
     grpc::ClientContext ctx;
     v1::FetchResultRequest request;
     request.set_job_id("nope");
-    auto reader = stub->FetchResult(&ctx, request);
-    v1::ResultChunk c;
-    while (reader->Read(&c)) {
-    }
-    EXPECT_EQ(reader->Finish().error_code(), grpc::StatusCode::NOT_FOUND);
+    EXPECT_EQ(drain(stub->FetchResult(&ctx, request), v1::ResultChunk()), grpc::StatusCode::NOT_FOUND);
   }
   {
     grpc::ClientContext ctx;
     v1::WatchJobRequest request;
     request.set_job_id("nope");
-    auto reader = stub->WatchJob(&ctx, request);
-    v1::JobEvent e;
-    while (reader->Read(&e)) {
-    }
-    EXPECT_EQ(reader->Finish().error_code(), grpc::StatusCode::NOT_FOUND);
+    EXPECT_EQ(drain(stub->WatchJob(&ctx, request), v1::JobEvent()), grpc::StatusCode::NOT_FOUND);
   }
   // A running job cannot be deleted, and its result cannot be fetched yet.
   const ClientRun sub = Client(server.address(), "submit " + WriteCloud("t.ply", testing::TorusCloud(200000, 1.0, 0.3)));

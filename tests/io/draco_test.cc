@@ -84,6 +84,22 @@ TEST(Draco, TruncatedAndCorruptDataGiveErrors) {
   EXPECT_FALSE(DecodeDracoPointCloud("definitely not draco").ok());
 }
 
+// Random corruption of an upload must give an error or a well-formed cloud, never a crash.
+TEST(Draco, SurvivesRandomCorruption) {
+  auto bytes = EncodeDracoPointCloud(RandomCloud(3000), {});
+  ASSERT_TRUE(bytes.ok());
+  std::mt19937 rng(5);
+  for (int trial = 0; trial < 300; ++trial) {
+    std::string mutated = *bytes;
+    const int flips = 1 + static_cast<int>(rng() % 4);
+    for (int f = 0; f < flips; ++f) mutated[rng() % mutated.size()] = static_cast<char>(rng() & 0xff);
+    auto r = DecodeDracoPointCloud(mutated);
+    if (r.ok()) {
+      EXPECT_TRUE(r->normals.empty() || r->normals.size() == r->positions.size());
+    }
+  }
+}
+
 // The Debian `draco_decoder` tool, an independent decoder, reads what we write.
 TEST(Draco, ReferenceDecoderReadsOurFiles) {
   const auto dir = std::filesystem::temp_directory_path() / ("lsqsurf-draco-" + std::to_string(::getpid()));

@@ -94,5 +94,26 @@ TEST(Ply, EveryTruncationOfABinaryFileFailsCleanly) {
   }
 }
 
+// Random byte corruption of every format variant: the parser may accept or refuse, but must
+// never read out of bounds (the sanitizer build checks) or return an inconsistent mesh.
+TEST(Ply, SurvivesRandomCorruption) {
+  std::mt19937 rng(21);
+  for (PlyFormat format : {PlyFormat::kAscii, PlyFormat::kBinaryLittleEndian, PlyFormat::kBinaryBigEndian}) {
+    const std::string original = EncodePly(SampleMesh(), format);
+    for (int trial = 0; trial < 300; ++trial) {
+      std::string bytes = original;
+      const int flips = 1 + static_cast<int>(rng() % 4);
+      for (int f = 0; f < flips; ++f) {
+        bytes[rng() % bytes.size()] = static_cast<char>(rng() & 0xff);
+      }
+      auto m = ParsePly(bytes, "fuzz.ply");
+      if (!m.ok()) continue;
+      for (const auto& face : m->faces) {
+        for (uint32_t v : face) ASSERT_LT(v, m->vertices.size());
+      }
+    }
+  }
+}
+
 }  // namespace
 }  // namespace lsqsurf::io

@@ -1,0 +1,230 @@
+#include "worker/core/marching_tets.h"
+
+#include <algorithm>
+#include <cmath>
+
+#include "worker/core/parallel.h"
+#include "worker/core/status.h"
+
+namespace lsqsurf::core::internal {
+namespace {
+
+struct Crossing {
+  CornerKey inside_vertex;   // Corner with F < 0.
+  CornerKey outside_vertex;  // Corner with F >= 0.
+  double inside_value;
+  double outside_value;
+};
+
+// Marks as trusted again every edge-connected cluster of untrusted triangles with at most
+// `max_size` members: such pinholes lie on the real surface where the field's confidence dips
+// for a moment (a gap in random sampling), and dropping them would open the surface. Large
+// clusters (holes in the data, ghost sheets) stay untrusted. Returns the triangles restored.
+int64_t RestoreSmallPatches(const std::vector<Triangle>& faces, std::vector<char>& trusted,
+                            int max_size) {
+  if (max_size <= 0) return 0;
+  struct Side {
+    uint32_t lo, hi, face;
+  };
+  std::vector<Side> sides;
+  for (uint32_t f = 0; f < faces.size(); ++f) {
+    if (trusted[f]) continue;
+    for (int i = 0; i < 3; ++i) {
+      const uint32_t a = faces[f][static_cast<size_t>(i)], b = faces[f][static_cast<size_t>((i + 1) % 3)];
+      sides.push_back({std::min(a, b), std::max(a, b), f});
+    }
+  }
+  std::sort(sides.begin(), sides.end(), [](const Side& x, const Side& y) {
+    return x.lo != y.lo ? x.lo < y.lo : x.hi < y.hi;
+  });
+  absl::flat_hash_map<uint32_t, uint32_t> parent;
+  auto find = [&](uint32_t x) {
+    while (parent[x] != x) x = parent[x] = parent[parent[x]];
+    return x;
+  };
+  for (const Side& s : sides) parent.try_emplace(s.face, s.face);
+  for (size_t i = 1; i < sides.size(); ++i) {
+    if (sides[i].lo == sides[i - 1].lo && sides[i].hi == sides[i - 1].hi) {
+      parent[find(sides[i].face)] = find(sides[i - 1].face);
+    }
+  }
+  absl::flat_hash_map<uint32_t, int> size;
+  for (auto& [face, p] : parent) ++size[find(face)];
+  int64_t restored = 0;
+  for (auto& [face, p] : parent) {
+    if (size[find(face)] <= max_size) {
+      trusted[face] = 1;
+      ++restored;
+    }
+  }
+  return restored;
+}
+
+}  // namespace
+
+absl::StatusOr<IsosurfaceResult> MarchTetrahedra(
+    const ImplicitFunction& field,
+    const std::function<void(const std::function<void(const TetCorners&)>&)>& for_each_tet,
+    const absl::flat_hash_map<CornerKey, FieldValue>& values,
+    const std::function<Vec3d(CornerKey)>& position, const MarchParams& params, JobContext& ctx) {
+  IsosurfaceResult result;
+  IsosurfaceStats& stats = result.stats;
+  // Each polygon is a list of crossing indices, oriented so that its normal points from F < 0
+  // to F >= 0 (decided on the corner positions; the tetrahedra are never flat).
+  absl::flat_hash_map<std::pair<CornerKey, CornerKey>, uint32_t> edge_index;
+  std::vector<Crossing> crossings;
+  std::vector<std::array<uint32_t, 4>> polygons;  // [3] == UINT32_MAX for a triangle.
+  for_each_tet([&](const TetCorners& tet) {
+    std::array<FieldValue, 4> corner;
+    std::array<int, 4> inside{}, outside{};
+    int n_in = 0, n_out = 0;
+    for (int i = 0; i < 4; ++i) {
+      corner[static_cast<size_t>(i)] = values.at(tet[static_cast<size_t>(i)]);
+      const double v = corner[static_cast<size_t>(i)].value;
+      if (std::isnan(v)) return;
+      if (v < 0) inside[static_cast<size_t>(n_in++)] = i;
+      else outside[static_cast<size_t>(n_out++)] = i;
+    }
+    if (n_in == 0 || n_out == 0) return;
+    std::array<Vec3d, 4> p;
+    for (int i = 0; i < 4; ++i) p[static_cast<size_t>(i)] = position(tet[static_cast<size_t>(i)]);
+    auto edge = [&](int a, int b) {  // a inside, b outside
+      const CornerKey ka = tet[static_cast<size_t>(a)], kb = tet[static_cast<size_t>(b)];
+      auto [it, inserted] = edge_index.try_emplace(std::minmax(ka, kb), static_cast<uint32_t>(crossings.size()));
+      if (inserted) {
+        crossings.push_back({ka, kb, corner[static_cast<size_t>(a)].value, corner[static_cast<size_t>(b)].value});
+      }
+      return it->second;
+    };
+    auto mid = [&](int a, int b) { return Vec3d(0.5 * (p[static_cast<size_t>(a)] + p[static_cast<size_t>(b)])); };
+    Vec3d in_c = Vec3d::Zero(), out_c = Vec3d::Zero();
+    for (int i = 0; i < n_in; ++i) in_c += p[static_cast<size_t>(inside[static_cast<size_t>(i)])] / n_in;
+    for (int i = 0; i < n_out; ++i) out_c += p[static_cast<size_t>(outside[static_cast<size_t>(i)])] / n_out;
+    const Vec3d outward = out_c - in_c;
+    std::array<std::pair<int, int>, 4> ring{};
+    int ring_size = 0;
+    if (n_in == 1) {
+      for (int i = 0; i < 3; ++i) ring[static_cast<size_t>(ring_size++)] = {inside[0], outside[static_cast<size_t>(i)]};
+    } else if (n_out == 1) {
+      for (int i = 0; i < 3; ++i) ring[static_cast<size_t>(ring_size++)] = {inside[static_cast<size_t>(i)], outside[0]};
+    } else {  // Two and two: the crossings form the cycle ac, ad, bd, bc.
+      const int a = inside[0], b = inside[1], c = outside[0], d = outside[1];
+      ring = {{{a, c}, {a, d}, {b, d}, {b, c}}};
+      ring_size = 4;
+    }
+    const Vec3d p0 = mid(ring[0].first, ring[0].second);
+    const Vec3d p1 = mid(ring[1].first, ring[1].second);
+    const Vec3d p2 = mid(ring[2].first, ring[2].second);
+    const bool flip = (p1 - p0).cross(p2 - p0).dot(outward) < 0;
+    std::array<uint32_t, 4> poly{UINT32_MAX, UINT32_MAX, UINT32_MAX, UINT32_MAX};
+    for (int i = 0; i < ring_size; ++i) {
+      const int j = flip ? ring_size - 1 - i : i;
+      poly[static_cast<size_t>(i)] = edge(ring[static_cast<size_t>(j)].first, ring[static_cast<size_t>(j)].second);
+    }
+    polygons.push_back(poly);
+  });
+  LSQSURF_RETURN_IF_ERROR(ctx.CheckCancelled());
+  // Root refinement on the true F along each crossing edge (Illinois variant of regula falsi:
+  // superlinear, and it never leaves the bracket).
+  TriangleMesh& mesh = result.mesh;
+  mesh.vertices.resize(crossings.size());
+  if (params.vertex_normals) mesh.normals.resize(crossings.size());
+  std::vector<char> valid(crossings.size(), 0);
+  LSQSURF_RETURN_IF_ERROR(ParallelFor(
+      crossings.size(), 256,
+      [&](size_t begin, size_t end) {
+        for (size_t i = begin; i < end; ++i) {
+          const Crossing& c = crossings[i];
+          const Vec3d a = position(c.inside_vertex), b = position(c.outside_vertex);
+          double ta = 0.0, tb = 1.0, fa = c.inside_value, fb = c.outside_value;
+          double t = fa / (fa - fb);
+          int side = 0;
+          for (int step = 0; step < params.refine_steps; ++step) {
+            const FieldValue fv = field.Value(a + t * (b - a));
+            if (std::isnan(fv.value) || fv.value == 0.0) break;
+            if (fv.value < 0) {
+              ta = t, fa = fv.value;
+              if (side == -1) fb *= 0.5;
+              side = -1;
+            } else {
+              tb = t, fb = fv.value;
+              if (side == 1) fa *= 0.5;
+              side = 1;
+            }
+            t = ta - fa * (tb - ta) / (fb - fa);
+          }
+          // Keep vertices strictly inside their edge: coincident vertices would make
+          // zero-area triangles that some decoders drop.
+          t = std::clamp(t, 1e-4, 1.0 - 1e-4);
+          const Vec3d x = a + t * (b - a);
+          mesh.vertices[i] = x.cast<float>();
+          // A root where F is not trustworthy (e.g. an iaMLS ghost sheet, or a sign-only
+          // extension of F across a hole in the data) is no surface: drop what uses it.
+          const FieldGradient g = field.ValueAndGradient(x);
+          valid[i] = g.defined;
+          if (params.vertex_normals) {
+            const double len = g.gradient.norm();
+            mesh.normals[i] = len > 0 ? Vec3f((g.gradient / len).cast<float>())
+                                      : Vec3f((b - a).normalized().cast<float>());
+          }
+        }
+      },
+      &ctx, [&](double f) { ctx.ReportProgress("", 0.9 * f); }));
+
+  mesh.faces.reserve(polygons.size() * 3 / 2);
+  std::vector<char> face_trusted;
+  face_trusted.reserve(polygons.size() * 3 / 2);
+  for (const auto& p : polygons) {
+    const bool trusted = valid[p[0]] && valid[p[1]] && valid[p[2]] &&
+                         (p[3] == UINT32_MAX || valid[p[3]]);
+    const size_t before = mesh.faces.size();
+    if (p[3] == UINT32_MAX) {
+      mesh.faces.push_back({p[0], p[1], p[2]});
+    } else {
+      // Split the quad along its shorter diagonal for better-shaped triangles.
+      const float d02 = (mesh.vertices[p[0]] - mesh.vertices[p[2]]).squaredNorm();
+      const float d13 = (mesh.vertices[p[1]] - mesh.vertices[p[3]]).squaredNorm();
+      if (d02 <= d13) {
+        mesh.faces.push_back({p[0], p[1], p[2]});
+        mesh.faces.push_back({p[0], p[2], p[3]});
+      } else {
+        mesh.faces.push_back({p[0], p[1], p[3]});
+        mesh.faces.push_back({p[1], p[2], p[3]});
+      }
+    }
+    face_trusted.resize(mesh.faces.size(), trusted);
+    if (!trusted) stats.rejected_polygons += static_cast<int64_t>(mesh.faces.size() - before);
+  }
+  stats.restored_triangles = RestoreSmallPatches(mesh.faces, face_trusted, params.max_patch_triangles);
+  stats.rejected_polygons -= stats.restored_triangles;
+  {
+    size_t kept_faces = 0;
+    for (size_t f = 0; f < mesh.faces.size(); ++f) {
+      if (face_trusted[f]) mesh.faces[kept_faces++] = mesh.faces[f];
+    }
+    mesh.faces.resize(kept_faces);
+  }
+
+  // Drop the vertices that only rejected polygons used.
+  std::vector<uint32_t> remap(mesh.vertices.size(), UINT32_MAX);
+  std::vector<Vec3f> kept_vertices, kept_normals;
+  kept_vertices.reserve(mesh.vertices.size());
+  for (auto& f : mesh.faces) {
+    for (uint32_t& v : f) {
+      if (remap[v] == UINT32_MAX) {
+        remap[v] = static_cast<uint32_t>(kept_vertices.size());
+        kept_vertices.push_back(mesh.vertices[v]);
+        if (params.vertex_normals) kept_normals.push_back(mesh.normals[v]);
+      }
+      v = remap[v];
+    }
+  }
+  mesh.vertices = std::move(kept_vertices);
+  mesh.normals = std::move(kept_normals);
+  const auto kept = mesh.vertices.size();
+  stats.crossings = static_cast<int64_t>(kept);
+  ctx.ReportProgress("", 1.0);
+  return result;
+}
+
+}  // namespace lsqsurf::core::internal

@@ -1,0 +1,41 @@
+// worker/core/marching_tets.h — marching tetrahedra shared by the extractors (internal).
+//
+// Input: tetrahedra named by the keys of their corners, the field value at every corner, and
+// the position of a key. Crossings are keyed by the unordered corner pair, so neighbouring
+// tetrahedra share output vertices; each root is refined on F along its edge (Illinois regula
+// falsi); triangles are oriented from F < 0 to F >= 0 using the corner positions. Roots where F
+// is not `defined` make their triangles untrusted: those are dropped unless they form a small
+// edge-connected patch (a pinhole) inside trusted surface.
+#pragma once
+
+#include <array>
+#include <cstdint>
+#include <functional>
+
+#include "absl/container/flat_hash_map.h"
+#include "absl/status/statusor.h"
+#include "worker/core/implicit_function.h"
+#include "worker/core/isosurface.h"
+#include "worker/core/job_context.h"
+
+namespace lsqsurf::core::internal {
+
+using CornerKey = uint64_t;
+using TetCorners = std::array<CornerKey, 4>;
+
+struct MarchParams {
+  int refine_steps = 3;
+  bool vertex_normals = true;
+  int max_patch_triangles = 64;
+};
+
+// `for_each_tet(visit)` must call `visit` for every tetrahedron to examine; every corner must be
+// in `values`. Tetrahedra with a NaN corner or no sign change produce nothing. Fills the
+// `crossings`, `rejected_polygons` and `restored_triangles` statistics. Errors: kCancelled.
+absl::StatusOr<IsosurfaceResult> MarchTetrahedra(
+    const ImplicitFunction& field,
+    const std::function<void(const std::function<void(const TetCorners&)>&)>& for_each_tet,
+    const absl::flat_hash_map<CornerKey, FieldValue>& values,
+    const std::function<Vec3d(CornerKey)>& position, const MarchParams& params, JobContext& ctx);
+
+}  // namespace lsqsurf::core::internal

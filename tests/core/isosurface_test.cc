@@ -5,6 +5,7 @@
 #include <numbers>
 
 #include "tests/test_shapes.h"
+#include "worker/core/j1a_isosurface.h"
 #include "worker/core/mesh_metrics.h"
 
 namespace lsqsurf::core {
@@ -79,6 +80,66 @@ TEST(Isosurface, RejectsBadParametersAndHonoursCancellation) {
   ctx.Cancel();
   EXPECT_EQ(ExtractIsosurface(sphere, seeds.positions, p, ctx).status().code(),
             absl::StatusCode::kCancelled);
+}
+
+IsosurfaceResult ExtractJ1a(const ImplicitFunction& f, const PointCloud& seeds, double cell) {
+  LocalJobContext ctx;
+  J1aIsosurfaceParams p;
+  p.cell_size = cell;
+  auto r = ExtractIsosurfaceJ1a(f, seeds.positions, p, ctx);
+  EXPECT_TRUE(r.ok()) << r.status();
+  return r.ok() ? *std::move(r) : IsosurfaceResult{};
+}
+
+TEST(J1aIsosurface, SphereIsClosedWithExactTopologyAndVolume) {
+  const testing::SphereField sphere(1.0);
+  const auto r = ExtractJ1a(sphere, testing::SphereCloud(2000), 0.05);
+  const MeshTopology t = AnalyzeTopology(r.mesh);
+  EXPECT_TRUE(t.watertight());
+  EXPECT_TRUE(t.consistently_oriented());
+  EXPECT_EQ(t.euler_characteristic(), 2);
+  EXPECT_EQ(t.components, 1);
+  EXPECT_NEAR(EnclosedVolume(r.mesh) / (4.0 / 3.0 * std::numbers::pi), 1.0, 0.01);
+  for (const auto& v : r.mesh.vertices) EXPECT_NEAR(v.cast<double>().norm(), 1.0, 1e-5);
+}
+
+TEST(J1aIsosurface, TorusHasGenusOne) {
+  const testing::TorusField torus(1.0, 0.35);
+  const auto r = ExtractJ1a(torus, testing::TorusCloud(4000, 1.0, 0.35), 0.04);
+  const MeshTopology t = AnalyzeTopology(r.mesh);
+  EXPECT_TRUE(t.watertight());
+  EXPECT_TRUE(t.consistently_oriented());
+  EXPECT_EQ(t.euler_characteristic(), 0);
+  const double exact = 2 * std::numbers::pi * std::numbers::pi * 1.0 * 0.35 * 0.35;
+  EXPECT_NEAR(EnclosedVolume(r.mesh) / exact, 1.0, 0.01);
+}
+
+// Seeds cover only part of the surface: tracking leaves the refined band and carries on through
+// coarser leaves, and the result is still closed. (Two far seeds make the tree span the sphere.)
+TEST(J1aIsosurface, FollowsTheSurfaceIntoCoarseLeaves) {
+  const testing::SphereField sphere(1.0);
+  PointCloud cap;
+  for (const auto& p : testing::SphereCloud(4000).positions) {
+    if (p.z() > 0.8f) cap.positions.push_back(p);
+  }
+  cap.positions.emplace_back(-1.3f, -1.3f, -1.3f);
+  cap.positions.emplace_back(1.3f, 1.3f, 1.3f);
+  const auto r = ExtractJ1a(sphere, cap, 0.05);
+  const MeshTopology t = AnalyzeTopology(r.mesh);
+  EXPECT_TRUE(t.watertight());
+  EXPECT_EQ(t.euler_characteristic(), 2);
+  EXPECT_NEAR(EnclosedVolume(r.mesh) / (4.0 / 3.0 * std::numbers::pi), 1.0, 0.1);
+  // Coarse leaves away from the cap: far fewer triangles below than above.
+  size_t below = 0, above = 0;
+  for (const auto& v : r.mesh.vertices) (v.z() < 0 ? below : above)++;
+  EXPECT_LT(below * 4, above);
+}
+
+TEST(J1aIsosurface, NothingWhereTheFieldIsUnknown) {
+  const HalfKnownSphere field;
+  const auto r = ExtractJ1a(field, testing::SphereCloud(2000), 0.05);
+  ASSERT_FALSE(r.mesh.faces.empty());
+  for (const auto& v : r.mesh.vertices) EXPECT_LE(v.z(), 0.3f + 1e-5f);
 }
 
 }  // namespace

@@ -4,6 +4,7 @@
 #include <cmath>
 
 #include "worker/core/isosurface.h"
+#include "worker/core/j1a_isosurface.h"
 #include "worker/core/mesh_metrics.h"
 #include "worker/core/normals.h"
 #include "worker/core/strings.h"
@@ -37,6 +38,8 @@ MethodSpec IamlsMethod() {
        "ghost-sheet guard: no surface where the kernel sum is below this share of its mean at the samples"},
       {"cell_size", 1.5, 0.1, 16, false, "extraction grid cell edge, in units of h"},
       {"refine_steps", 3, 0, 20, true, "root-refinement steps per crossing edge"},
+      {"extractor", 0, 0, 1, true,
+       "0: surface-following uniform tetrahedral grid; 1: adaptive J1a tetrahedra (finest leaf = cell_size)"},
   };
   for (auto& c : CommonParameters()) m.parameters.push_back(std::move(c));
   return m;
@@ -143,11 +146,19 @@ absl::StatusOr<SurfaceResult> RunSurfaceMethod(const std::string& method,
   if (!(*field)->stats().residuals.empty()) stat("final_residual_over_h", (*field)->stats().residuals.back());
 
   start = std::chrono::steady_clock::now();
-  core::IsosurfaceParams xp;
-  xp.cell_size = param("cell_size") * (*field)->spacing();
-  xp.refine_steps = static_cast<int>(param("refine_steps"));
   core::SubContext extract_ctx(ctx, "extracting surface", normals_share + 0.3 * (1 - normals_share), 1.0);
-  auto extracted = core::ExtractIsosurface(**field, cloud.positions, xp, extract_ctx);
+  absl::StatusOr<core::IsosurfaceResult> extracted;
+  if (param("extractor") == 1) {
+    core::J1aIsosurfaceParams jp;
+    jp.cell_size = param("cell_size") * (*field)->spacing();
+    jp.refine_steps = static_cast<int>(param("refine_steps"));
+    extracted = core::ExtractIsosurfaceJ1a(**field, cloud.positions, jp, extract_ctx);
+  } else {
+    core::IsosurfaceParams xp;
+    xp.cell_size = param("cell_size") * (*field)->spacing();
+    xp.refine_steps = static_cast<int>(param("refine_steps"));
+    extracted = core::ExtractIsosurface(**field, cloud.positions, xp, extract_ctx);
+  }
   if (!extracted.ok()) return extracted.status();
   stat("extract_seconds", Seconds(start));
   result.mesh = std::move(extracted->mesh);

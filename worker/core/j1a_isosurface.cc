@@ -1,0 +1,183 @@
+#include "worker/core/j1a_isosurface.h"
+
+#include <cmath>
+
+#include "absl/container/flat_hash_set.h"
+#include "worker/core/j1a.h"
+#include "worker/core/marching_tets.h"
+#include "worker/core/status.h"
+
+namespace lsqsurf::core {
+namespace {
+
+uint64_t LeafKey(const OctreeCell& c) {
+  return (static_cast<uint64_t>(c.level) << 60) | (static_cast<uint64_t>(c.x) << 40) |
+         (static_cast<uint64_t>(c.y) << 20) | c.z;
+}
+
+}  // namespace
+
+absl::StatusOr<IsosurfaceResult> ExtractIsosurfaceJ1a(const ImplicitFunction& field,
+                                                      std::span<const Vec3f> seeds,
+                                                      const J1aIsosurfaceParams& params,
+                                                      JobContext& ctx) {
+  if (!(params.cell_size > 0) || !std::isfinite(params.cell_size)) {
+    return absl::InvalidArgumentError("cell_size must be a positive number");
+  }
+  if (seeds.empty()) return absl::InvalidArgumentError("isosurface extraction needs seed points");
+  SubContext build_ctx(ctx, "building the J1a tree", 0.0, 0.1);
+  const Box3 box = BoundingBox(seeds);
+  // Two finest cells of margin on every side, then the smallest power-of-two cube around it.
+  const double extent = box.sizes().maxCoeff() + 4 * params.cell_size;
+  const int depth = std::max(1, static_cast<int>(std::ceil(std::log2(extent / params.cell_size))));
+  if (depth > AdaptiveOctree::kMaxDepth) {
+    return absl::InvalidArgumentError("cell_size is too small for the extent of the data");
+  }
+  const double side = params.cell_size * std::ldexp(1.0, depth);
+  const Vec3d centre = box.center();
+  AdaptiveOctree tree(Box3(centre - Vec3d::Constant(side / 2), centre + Vec3d::Constant(side / 2)), depth);
+
+  // Cells to split: every ancestor of a finest cell that holds a seed or touches one that does.
+  const auto n = static_cast<int64_t>(1) << depth;
+  auto finest = [&](const Vec3f& p) {
+    const Vec3d g = (p.cast<double>() - tree.origin()) / params.cell_size;
+    return std::array<int64_t, 3>{static_cast<int64_t>(std::floor(g.x())), static_cast<int64_t>(std::floor(g.y())),
+                                  static_cast<int64_t>(std::floor(g.z()))};
+  };
+  absl::flat_hash_set<uint64_t> occupied, split;
+  for (const Vec3f& p : seeds) {
+    const auto c = finest(p);
+    occupied.insert(LeafKey({depth, static_cast<uint32_t>(c[0]), static_cast<uint32_t>(c[1]),
+                             static_cast<uint32_t>(c[2])}));
+  }
+  for (uint64_t key : occupied) {
+    const auto x = static_cast<int64_t>((key >> 40) & 0xfffff), y = static_cast<int64_t>((key >> 20) & 0xfffff),
+               z = static_cast<int64_t>(key & 0xfffff);
+    for (int d = 0; d < 27; ++d) {
+      const int64_t nx = x + d % 3 - 1, ny = y + (d / 3) % 3 - 1, nz = z + d / 9 - 1;
+      if (nx < 0 || ny < 0 || nz < 0 || nx >= n || ny >= n || nz >= n) continue;
+      for (int l = depth - 1; l >= 0; --l) {
+        const int shift = depth - l;
+        if (!split.insert(LeafKey({l, static_cast<uint32_t>(nx >> shift), static_cast<uint32_t>(ny >> shift),
+                                   static_cast<uint32_t>(nz >> shift)})).second) {
+          break;  // Its ancestors are in already.
+        }
+      }
+    }
+  }
+  tree.Refine([&](const OctreeCell& c) { return split.contains(LeafKey(c)); });
+  split.clear();
+  tree.Balance();
+  LSQSURF_RETURN_IF_ERROR(ctx.CheckCancelled());
+  build_ctx.Report(1.0);
+
+  // Follow the surface from leaf to leaf.
+  SubContext track_ctx(ctx, "tracking surface", 0.1, 0.75);
+  IsosurfaceStats stats;
+  absl::flat_hash_set<uint64_t> visited;
+  std::vector<OctreeCell> frontier, surface_leaves;
+  for (uint64_t key : occupied) {
+    const OctreeCell cell{depth, static_cast<uint32_t>((key >> 40) & 0xfffff),
+                          static_cast<uint32_t>((key >> 20) & 0xfffff), static_cast<uint32_t>(key & 0xfffff)};
+    if (const OctreeCell* leaf = tree.LeafContaining(cell); leaf && visited.insert(LeafKey(*leaf)).second) {
+      frontier.push_back(*leaf);
+    }
+  }
+  occupied.clear();
+  absl::flat_hash_map<VertexKey, FieldValue> values;
+  std::vector<TetKeys> tets;
+  std::vector<VertexKey> pending;
+  std::vector<Vec3d> pending_positions;
+  std::vector<FieldValue> pending_values;
+  while (!frontier.empty()) {
+    stats.cells_visited += static_cast<int64_t>(frontier.size());
+    if (stats.cells_visited > params.max_leaves) {
+      return absl::ResourceExhaustedError("the surface needs more than " + std::to_string(params.max_leaves) +
+                                          " leaves; raise cell_size");
+    }
+    pending.clear();
+    for (const OctreeCell& leaf : frontier) {
+      tets.clear();
+      AppendJ1aTetrahedra(tree, leaf, tets);
+      for (const TetKeys& t : tets) {
+        for (VertexKey k : t) {
+          if (values.try_emplace(k).second) pending.push_back(k);
+        }
+      }
+    }
+    pending_positions.resize(pending.size());
+    pending_values.resize(pending.size());
+    for (size_t i = 0; i < pending.size(); ++i) pending_positions[i] = tree.Position(pending[i]);
+    LSQSURF_RETURN_IF_ERROR(field.ValueBatch(pending_positions, pending_values, &ctx));
+    for (size_t i = 0; i < pending.size(); ++i) values[pending[i]] = pending_values[i];
+    stats.field_evaluations += static_cast<int64_t>(pending.size());
+
+    std::vector<OctreeCell> next;
+    for (const OctreeCell& leaf : frontier) {
+      tets.clear();
+      AppendJ1aTetrahedra(tree, leaf, tets);
+      bool crossed = false;
+      for (const TetKeys& t : tets) {
+        bool neg = false, pos = false;
+        for (VertexKey k : t) {
+          const double v = values.at(k).value;
+          if (std::isnan(v)) continue;
+          (v < 0 ? neg : pos) = true;
+        }
+        crossed |= neg && pos;
+        if (crossed) break;
+      }
+      if (!crossed) continue;
+      surface_leaves.push_back(leaf);
+      // The surface may continue into any leaf that touches this one.
+      const int64_t cells = int64_t{1} << leaf.level;
+      for (int d = 0; d < 27; ++d) {
+        const int64_t x = int64_t{leaf.x} + d % 3 - 1, y = int64_t{leaf.y} + (d / 3) % 3 - 1,
+                      z = int64_t{leaf.z} + d / 9 - 1;
+        if (d == 13 || x < 0 || y < 0 || z < 0 || x >= cells || y >= cells || z >= cells) continue;
+        const OctreeCell probe{leaf.level, static_cast<uint32_t>(x), static_cast<uint32_t>(y), static_cast<uint32_t>(z)};
+        auto add = [&](const OctreeCell& c) {
+          if (visited.insert(LeafKey(c)).second) next.push_back(c);
+        };
+        if (const OctreeCell* other = tree.LeafContaining(probe)) {
+          add(*other);
+        } else {  // Finer: in a balanced tree its children are leaves.
+          for (uint32_t i = 0; i < 8; ++i) {
+            const OctreeCell child{leaf.level + 1, 2 * probe.x + (i & 1), 2 * probe.y + ((i >> 1) & 1),
+                                   2 * probe.z + ((i >> 2) & 1)};
+            if (tree.IsLeaf(child)) add(child);
+          }
+        }
+      }
+    }
+    frontier = std::move(next);
+    track_ctx.Report(std::min(0.95, static_cast<double>(surface_leaves.size()) /
+                                        static_cast<double>(surface_leaves.size() + frontier.size() + 1)));
+  }
+  stats.surface_cells = static_cast<int64_t>(surface_leaves.size());
+  LSQSURF_RETURN_IF_ERROR(ctx.CheckCancelled());
+
+  SubContext emit_ctx(ctx, "extracting triangles", 0.75, 1.0);
+  internal::MarchParams march;
+  march.refine_steps = params.refine_steps;
+  march.vertex_normals = params.vertex_normals;
+  march.max_patch_triangles = params.max_patch_triangles;
+  auto result = internal::MarchTetrahedra(
+      field,
+      [&](const std::function<void(const internal::TetCorners&)>& visit) {
+        std::vector<TetKeys> leaf_tets;
+        for (const OctreeCell& leaf : surface_leaves) {
+          leaf_tets.clear();
+          AppendJ1aTetrahedra(tree, leaf, leaf_tets);
+          for (const TetKeys& t : leaf_tets) visit(t);
+        }
+      },
+      values, [&](internal::CornerKey k) { return tree.Position(k); }, march, emit_ctx);
+  if (!result.ok()) return result.status();
+  result->stats.cells_visited = stats.cells_visited;
+  result->stats.surface_cells = stats.surface_cells;
+  result->stats.field_evaluations = stats.field_evaluations;
+  return result;
+}
+
+}  // namespace lsqsurf::core

@@ -11,18 +11,27 @@
 namespace lsqsurf::core {
 namespace {
 
-IsosurfaceResult Extract(const ImplicitFunction& f, const PointCloud& seeds, double cell) {
+// Both extractors, behind one signature, so that the shared properties are tested once.
+using Extractor = IsosurfaceResult (*)(const ImplicitFunction&, const PointCloud&, double cell);
+
+template <class Params, absl::StatusOr<IsosurfaceResult> (*kExtract)(
+                           const ImplicitFunction&, std::span<const Vec3f>, const Params&, JobContext&)>
+IsosurfaceResult Run(const ImplicitFunction& f, const PointCloud& seeds, double cell) {
   LocalJobContext ctx;
-  IsosurfaceParams p;
+  Params p;
   p.cell_size = cell;
-  auto r = ExtractIsosurface(f, seeds.positions, p, ctx);
+  auto r = kExtract(f, seeds.positions, p, ctx);
   EXPECT_TRUE(r.ok()) << r.status();
   return r.ok() ? *std::move(r) : IsosurfaceResult{};
 }
+constexpr Extractor Uniform = &Run<IsosurfaceParams, &ExtractIsosurface>;
+constexpr Extractor J1a = &Run<J1aIsosurfaceParams, &ExtractIsosurfaceJ1a>;
 
-TEST(Isosurface, SphereIsClosedWithExactTopologyAndVolume) {
+class EveryExtractor : public ::testing::TestWithParam<Extractor> {};
+
+TEST_P(EveryExtractor, SphereIsClosedWithExactTopologyAndVolume) {
   const testing::SphereField sphere(1.0);
-  const auto r = Extract(sphere, testing::SphereCloud(2000), 0.05);
+  const auto r = GetParam()(sphere, testing::SphereCloud(2000), 0.05);
   const MeshTopology t = AnalyzeTopology(r.mesh);
   EXPECT_TRUE(t.watertight());
   EXPECT_TRUE(t.consistently_oriented());
@@ -30,12 +39,13 @@ TEST(Isosurface, SphereIsClosedWithExactTopologyAndVolume) {
   EXPECT_EQ(t.components, 1);
   const double exact = 4.0 / 3.0 * std::numbers::pi;
   EXPECT_NEAR(EnclosedVolume(r.mesh) / exact, 1.0, 0.01);  // Positive: outward orientation.
-  for (const auto& v : r.mesh.vertices) EXPECT_NEAR(v.cast<double>().norm(), 1.0, 1e-5);  // Linear interpolation alone: ~1e-4.
+  // Refined roots; linear interpolation alone would be off by ~1e-4.
+  for (const auto& v : r.mesh.vertices) EXPECT_NEAR(v.cast<double>().norm(), 1.0, 1e-5);
 }
 
-TEST(Isosurface, TorusHasGenusOne) {
+TEST_P(EveryExtractor, TorusHasGenusOne) {
   const testing::TorusField torus(1.0, 0.35);
-  const auto r = Extract(torus, testing::TorusCloud(4000, 1.0, 0.35), 0.04);
+  const auto r = GetParam()(torus, testing::TorusCloud(4000, 1.0, 0.35), 0.04);
   const MeshTopology t = AnalyzeTopology(r.mesh);
   EXPECT_TRUE(t.watertight());
   EXPECT_TRUE(t.consistently_oriented());
@@ -57,13 +67,15 @@ class HalfKnownSphere : public ImplicitFunction {
   }
 };
 
-TEST(Isosurface, NothingWhereTheFieldIsUnknown) {
+TEST_P(EveryExtractor, NothingWhereTheFieldIsUnknown) {
   const HalfKnownSphere field;
-  const auto r = Extract(field, testing::SphereCloud(2000), 0.05);
+  const auto r = GetParam()(field, testing::SphereCloud(2000), 0.05);
   ASSERT_FALSE(r.mesh.faces.empty());
   for (const auto& v : r.mesh.vertices) EXPECT_LE(v.z(), 0.3f + 1e-5f);
   EXPECT_GT(AnalyzeTopology(r.mesh).boundary_edges, 0);  // Open where the field stops.
 }
+
+INSTANTIATE_TEST_SUITE_P(UniformAndJ1a, EveryExtractor, ::testing::Values(Uniform, J1a));
 
 TEST(Isosurface, RejectsBadParametersAndHonoursCancellation) {
   const testing::SphereField sphere(1.0);
@@ -82,38 +94,6 @@ TEST(Isosurface, RejectsBadParametersAndHonoursCancellation) {
             absl::StatusCode::kCancelled);
 }
 
-IsosurfaceResult ExtractJ1a(const ImplicitFunction& f, const PointCloud& seeds, double cell) {
-  LocalJobContext ctx;
-  J1aIsosurfaceParams p;
-  p.cell_size = cell;
-  auto r = ExtractIsosurfaceJ1a(f, seeds.positions, p, ctx);
-  EXPECT_TRUE(r.ok()) << r.status();
-  return r.ok() ? *std::move(r) : IsosurfaceResult{};
-}
-
-TEST(J1aIsosurface, SphereIsClosedWithExactTopologyAndVolume) {
-  const testing::SphereField sphere(1.0);
-  const auto r = ExtractJ1a(sphere, testing::SphereCloud(2000), 0.05);
-  const MeshTopology t = AnalyzeTopology(r.mesh);
-  EXPECT_TRUE(t.watertight());
-  EXPECT_TRUE(t.consistently_oriented());
-  EXPECT_EQ(t.euler_characteristic(), 2);
-  EXPECT_EQ(t.components, 1);
-  EXPECT_NEAR(EnclosedVolume(r.mesh) / (4.0 / 3.0 * std::numbers::pi), 1.0, 0.01);
-  for (const auto& v : r.mesh.vertices) EXPECT_NEAR(v.cast<double>().norm(), 1.0, 1e-5);
-}
-
-TEST(J1aIsosurface, TorusHasGenusOne) {
-  const testing::TorusField torus(1.0, 0.35);
-  const auto r = ExtractJ1a(torus, testing::TorusCloud(4000, 1.0, 0.35), 0.04);
-  const MeshTopology t = AnalyzeTopology(r.mesh);
-  EXPECT_TRUE(t.watertight());
-  EXPECT_TRUE(t.consistently_oriented());
-  EXPECT_EQ(t.euler_characteristic(), 0);
-  const double exact = 2 * std::numbers::pi * std::numbers::pi * 1.0 * 0.35 * 0.35;
-  EXPECT_NEAR(EnclosedVolume(r.mesh) / exact, 1.0, 0.01);
-}
-
 // Seeds cover only part of the surface: tracking leaves the refined band and carries on through
 // coarser leaves, and the result is still closed. (Two far seeds make the tree span the sphere.)
 TEST(J1aIsosurface, FollowsTheSurfaceIntoCoarseLeaves) {
@@ -124,7 +104,7 @@ TEST(J1aIsosurface, FollowsTheSurfaceIntoCoarseLeaves) {
   }
   cap.positions.emplace_back(-1.3f, -1.3f, -1.3f);
   cap.positions.emplace_back(1.3f, 1.3f, 1.3f);
-  const auto r = ExtractJ1a(sphere, cap, 0.05);
+  const auto r = J1a(sphere, cap, 0.05);
   const MeshTopology t = AnalyzeTopology(r.mesh);
   EXPECT_TRUE(t.watertight());
   EXPECT_EQ(t.euler_characteristic(), 2);
@@ -133,13 +113,6 @@ TEST(J1aIsosurface, FollowsTheSurfaceIntoCoarseLeaves) {
   size_t below = 0, above = 0;
   for (const auto& v : r.mesh.vertices) (v.z() < 0 ? below : above)++;
   EXPECT_LT(below * 4, above);
-}
-
-TEST(J1aIsosurface, NothingWhereTheFieldIsUnknown) {
-  const HalfKnownSphere field;
-  const auto r = ExtractJ1a(field, testing::SphereCloud(2000), 0.05);
-  ASSERT_FALSE(r.mesh.faces.empty());
-  for (const auto& v : r.mesh.vertices) EXPECT_LE(v.z(), 0.3f + 1e-5f);
 }
 
 }  // namespace

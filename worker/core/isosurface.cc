@@ -58,15 +58,19 @@ std::array<int, 4> FaceCorners(int face) {
 
 }  // namespace
 
+absl::Status Validate(const MarchingOptions& options) {
+  if (options.refine_steps < 0 || options.refine_steps > 20) {
+    return absl::InvalidArgumentError("refine_steps must be between 0 and 20");
+  }
+  return absl::OkStatus();
+}
+
 absl::Status Validate(const IsosurfaceParams& params) {
   if (!(params.cell_size > 0.0) || !std::isfinite(params.cell_size)) {
     return absl::InvalidArgumentError("cell_size must be a positive number");
   }
-  if (params.refine_steps < 0 || params.refine_steps > 20) {
-    return absl::InvalidArgumentError("refine_steps must be between 0 and 20");
-  }
   if (params.max_cells <= 0) return absl::InvalidArgumentError("max_cells must be positive");
-  return absl::OkStatus();
+  return Validate(params.marching);
 }
 
 absl::StatusOr<IsosurfaceResult> ExtractIsosurface(const ImplicitFunction& field,
@@ -160,11 +164,7 @@ absl::StatusOr<IsosurfaceResult> ExtractIsosurface(const ImplicitFunction& field
   LSQSURF_RETURN_IF_ERROR(ctx.CheckCancelled());
 
   SubContext emit_ctx(ctx, "extracting triangles", 0.75, 1.0);
-  internal::MarchParams march;
-  march.refine_steps = params.refine_steps;
-  march.vertex_normals = params.vertex_normals;
-  march.max_patch_triangles = params.max_patch_triangles;
-  auto result_or = internal::MarchTetrahedra(
+  return internal::MarchTetrahedra(
       field,
       [&](const std::function<void(const internal::TetCorners&)>& visit) {
         for (Key cell : surface_cells) {
@@ -174,14 +174,7 @@ absl::StatusOr<IsosurfaceResult> ExtractIsosurface(const ImplicitFunction& field
           }
         }
       },
-      values, vertex_position, march, emit_ctx);
-  if (!result_or.ok()) return result_or.status();
-  const IsosurfaceStats tracked = stats;
-  result = *std::move(result_or);
-  result.stats.cells_visited = tracked.cells_visited;
-  result.stats.surface_cells = tracked.surface_cells;
-  result.stats.field_evaluations = tracked.field_evaluations;
-  return result;
+      values, vertex_position, params.marching, stats, emit_ctx);
 }
 
 }  // namespace lsqsurf::core

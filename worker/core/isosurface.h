@@ -10,7 +10,7 @@
 // share vertices; their positions are refined on F along the edge (Illinois regula falsi).
 // Tetrahedra with a corner where F is unknown (NaN) produce nothing, and triangles with a root
 // where F is not `defined` are dropped (the ghost-sheet and hole guard), unless they form a
-// small patch inside trusted surface (see `max_patch_triangles`).
+// small patch inside trusted surface (see `MarchingOptions::max_patch_triangles`).
 #pragma once
 
 #include <cstdint>
@@ -23,12 +23,19 @@
 
 namespace lsqsurf::core {
 
-struct IsosurfaceParams {
-  double cell_size = 0.0;        // Cube edge length in model units; must be > 0.
-  int refine_steps = 3;          // Root-refinement steps per crossing edge (0 = linear only).
-  int64_t max_cells = 60'000'000;  // Visited cubes before failing with kResourceExhausted.
+// How crossings become triangles; shared by every extractor.
+struct MarchingOptions {
+  int refine_steps = 3;          // Root-refinement steps per crossing edge (0 = linear only), 0..20.
   bool vertex_normals = true;    // Store normalize(∇F) at each output vertex.
   int max_patch_triangles = 64;  // Untrusted clusters up to this size are kept (pinholes), 0 = none.
+};
+
+absl::Status Validate(const MarchingOptions& options);
+
+struct IsosurfaceParams {
+  double cell_size = 0.0;        // Cube edge length in model units; must be > 0.
+  int64_t max_cells = 60'000'000;  // Visited cubes before failing with kResourceExhausted.
+  MarchingOptions marching;
 };
 
 absl::Status Validate(const IsosurfaceParams& params);

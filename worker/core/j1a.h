@@ -59,7 +59,6 @@ class AdaptiveOctree {
   uint32_t CellUnits(int level) const { return 2u << (max_depth_ - level); }
   // The model-space position of a vertex key.
   Vec3d Position(VertexKey key) const;
-  double unit() const { return unit_; }  // Model length of one vertex unit.
   const Vec3d& origin() const { return origin_; }
 
  private:

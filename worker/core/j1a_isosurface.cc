@@ -24,6 +24,7 @@ absl::StatusOr<IsosurfaceResult> ExtractIsosurfaceJ1a(const ImplicitFunction& fi
   if (!(params.cell_size > 0) || !std::isfinite(params.cell_size)) {
     return absl::InvalidArgumentError("cell_size must be a positive number");
   }
+  LSQSURF_RETURN_IF_ERROR(Validate(params.marching));
   if (seeds.empty()) return absl::InvalidArgumentError("isosurface extraction needs seed points");
   SubContext build_ctx(ctx, "building the J1a tree", 0.0, 0.1);
   const Box3 box = BoundingBox(seeds);
@@ -158,11 +159,7 @@ absl::StatusOr<IsosurfaceResult> ExtractIsosurfaceJ1a(const ImplicitFunction& fi
   LSQSURF_RETURN_IF_ERROR(ctx.CheckCancelled());
 
   SubContext emit_ctx(ctx, "extracting triangles", 0.75, 1.0);
-  internal::MarchParams march;
-  march.refine_steps = params.refine_steps;
-  march.vertex_normals = params.vertex_normals;
-  march.max_patch_triangles = params.max_patch_triangles;
-  auto result = internal::MarchTetrahedra(
+  return internal::MarchTetrahedra(
       field,
       [&](const std::function<void(const internal::TetCorners&)>& visit) {
         std::vector<TetKeys> leaf_tets;
@@ -172,12 +169,8 @@ absl::StatusOr<IsosurfaceResult> ExtractIsosurfaceJ1a(const ImplicitFunction& fi
           for (const TetKeys& t : leaf_tets) visit(t);
         }
       },
-      values, [&](internal::CornerKey k) { return tree.Position(k); }, march, emit_ctx);
-  if (!result.ok()) return result.status();
-  result->stats.cells_visited = stats.cells_visited;
-  result->stats.surface_cells = stats.surface_cells;
-  result->stats.field_evaluations = stats.field_evaluations;
-  return result;
+      values, [&](internal::CornerKey k) { return tree.Position(k); }, params.marching, stats,
+      emit_ctx);
 }
 
 }  // namespace lsqsurf::core

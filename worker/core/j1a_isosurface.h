@@ -21,10 +21,8 @@ namespace lsqsurf::core {
 
 struct J1aIsosurfaceParams {
   double cell_size = 0.0;          // Edge of the finest leaves, model units; must be > 0.
-  int refine_steps = 3;            // Root-refinement steps per crossing edge.
-  bool vertex_normals = true;      // Store normalize(∇F) at each output vertex.
-  int max_patch_triangles = 64;    // Untrusted clusters up to this size are kept (pinholes).
   int64_t max_leaves = 20'000'000; // Visited leaves before failing with kResourceExhausted.
+  MarchingOptions marching;
 };
 
 // Errors: kInvalidArgument (bad params, no seeds, more than 2^19 finest cells per axis),

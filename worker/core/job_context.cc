@@ -9,22 +9,6 @@ absl::Status JobContext::CheckCancelled() const {
   return absl::OkStatus();
 }
 
-void LocalJobContext::ReportProgress(std::string_view stage, double fraction) {
-  std::lock_guard lock(mutex_);
-  stage_.assign(stage);
-  fraction_ = std::clamp(fraction, 0.0, 1.0);
-}
-
-std::string LocalJobContext::stage() const {
-  std::lock_guard lock(mutex_);
-  return stage_;
-}
-
-double LocalJobContext::fraction() const {
-  std::lock_guard lock(mutex_);
-  return fraction_;
-}
-
 void SubContext::ReportProgress(std::string_view stage, double fraction) {
   // A nested sub-step keeps its own, more specific stage name.
   parent_.ReportProgress(stage.empty() ? std::string_view(stage_) : stage,

@@ -6,7 +6,6 @@
 #pragma once
 
 #include <atomic>
-#include <mutex>
 #include <string>
 #include <string_view>
 
@@ -26,22 +25,16 @@ class JobContext {
   absl::Status CheckCancelled() const;
 };
 
-// A context that records the latest progress and can be cancelled from another thread.
-// Used by the job runner, tests and benchmarks.
+// A context that ignores progress and can be cancelled from another thread. Used where nobody
+// watches: tests, benchmarks, the client's `compare`.
 class LocalJobContext : public JobContext {
  public:
-  void ReportProgress(std::string_view stage, double fraction) override;
+  void ReportProgress(std::string_view, double) override {}
   bool IsCancelled() const override { return cancelled_.load(std::memory_order_relaxed); }
   void Cancel() { cancelled_.store(true, std::memory_order_relaxed); }
 
-  std::string stage() const;
-  double fraction() const;
-
  private:
   std::atomic<bool> cancelled_{false};
-  mutable std::mutex mutex_;
-  std::string stage_;
-  double fraction_ = 0.0;
 };
 
 // Maps the [0, 1] progress of a sub-step onto [begin, end] of the parent's progress, under a

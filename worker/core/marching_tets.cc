@@ -66,8 +66,10 @@ absl::StatusOr<IsosurfaceResult> MarchTetrahedra(
     const ImplicitFunction& field,
     const std::function<void(const std::function<void(const TetCorners&)>&)>& for_each_tet,
     const absl::flat_hash_map<CornerKey, FieldValue>& values,
-    const std::function<Vec3d(CornerKey)>& position, const MarchParams& params, JobContext& ctx) {
+    const std::function<Vec3d(CornerKey)>& position, const MarchingOptions& params,
+    const IsosurfaceStats& tracking, JobContext& ctx) {
   IsosurfaceResult result;
+  result.stats = tracking;
   IsosurfaceStats& stats = result.stats;
   // Each polygon is a list of crossing indices, oriented so that its normal points from F < 0
   // to F >= 0 (decided on the corner positions; the tetrahedra are never flat).

@@ -23,19 +23,15 @@ namespace lsqsurf::core::internal {
 using CornerKey = uint64_t;
 using TetCorners = std::array<CornerKey, 4>;
 
-struct MarchParams {
-  int refine_steps = 3;
-  bool vertex_normals = true;
-  int max_patch_triangles = 64;
-};
-
 // `for_each_tet(visit)` must call `visit` for every tetrahedron to examine; every corner must be
-// in `values`. Tetrahedra with a NaN corner or no sign change produce nothing. Fills the
-// `crossings`, `rejected_polygons` and `restored_triangles` statistics. Errors: kCancelled.
+// in `values`. Tetrahedra with a NaN corner or no sign change produce nothing. The result's
+// statistics are `tracking` (what the caller's surface search counted) plus `crossings`,
+// `rejected_polygons` and `restored_triangles`. Errors: kCancelled.
 absl::StatusOr<IsosurfaceResult> MarchTetrahedra(
     const ImplicitFunction& field,
     const std::function<void(const std::function<void(const TetCorners&)>&)>& for_each_tet,
     const absl::flat_hash_map<CornerKey, FieldValue>& values,
-    const std::function<Vec3d(CornerKey)>& position, const MarchParams& params, JobContext& ctx);
+    const std::function<Vec3d(CornerKey)>& position, const MarchingOptions& params,
+    const IsosurfaceStats& tracking, JobContext& ctx);
 
 }  // namespace lsqsurf::core::internal

@@ -147,17 +147,16 @@ absl::StatusOr<SurfaceResult> RunSurfaceMethod(const std::string& method,
 
   start = std::chrono::steady_clock::now();
   core::SubContext extract_ctx(ctx, "extracting surface", normals_share + 0.3 * (1 - normals_share), 1.0);
+  const double cell_size = param("cell_size") * (*field)->spacing();
+  core::MarchingOptions marching;
+  marching.refine_steps = static_cast<int>(param("refine_steps"));
   absl::StatusOr<core::IsosurfaceResult> extracted;
   if (param("extractor") == 1) {
-    core::J1aIsosurfaceParams jp;
-    jp.cell_size = param("cell_size") * (*field)->spacing();
-    jp.refine_steps = static_cast<int>(param("refine_steps"));
-    extracted = core::ExtractIsosurfaceJ1a(**field, cloud.positions, jp, extract_ctx);
+    extracted = core::ExtractIsosurfaceJ1a(**field, cloud.positions, {cell_size, 20'000'000, marching},
+                                           extract_ctx);
   } else {
-    core::IsosurfaceParams xp;
-    xp.cell_size = param("cell_size") * (*field)->spacing();
-    xp.refine_steps = static_cast<int>(param("refine_steps"));
-    extracted = core::ExtractIsosurface(**field, cloud.positions, xp, extract_ctx);
+    extracted = core::ExtractIsosurface(**field, cloud.positions, {cell_size, 60'000'000, marching},
+                                        extract_ctx);
   }
   if (!extracted.ok()) return extracted.status();
   stat("extract_seconds", Seconds(start));

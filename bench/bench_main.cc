@@ -140,6 +140,8 @@ int main(int argc, char** argv) {
   size_t samples = 1'000'000;
   bool server = false;
   bool drop_normals = false;
+  bool show_statistics = false;
+  std::string save_dir;
   std::string bin_dir;
   app.add_option("--data", data_dir, "folder with <model>.obj ground-truth meshes")->capture_default_str();
   app.add_option("--models", models, "model names")->capture_default_str();
@@ -149,6 +151,8 @@ int main(int argc, char** argv) {
   app.add_option("--param", params, "method parameter name=value (repeatable)");
   app.add_option("--samples", samples, "samples per surface for the distances")->capture_default_str();
   app.add_flag("--server", server, "also run every case through lsqsurfd and the lsqsurf client");
+  app.add_option("--save", save_dir, "write every direct result to DIR/<model>-<points>-<noise>.ply");
+  app.add_flag("--stats", show_statistics, "print the engine's statistics of every direct run");
   app.add_flag("--no-normals", drop_normals, "drop the sampled normals (the engines estimate them)");
   app.add_option("--bin", bin_dir, "folder with lsqsurfd and lsqsurf (default: beside this program)");
   CLI11_PARSE(app, argc, argv);
@@ -200,6 +204,16 @@ int main(int argc, char** argv) {
                 if (!result.ok()) {
                   r.error = std::string(result.status().message());
                   return r;
+                }
+                if (!save_dir.empty()) {
+                  const auto path = fs::path(save_dir) / core::StrCat(model, "-", n, "-", noise, ".ply");
+                  if (absl::Status s = io::WriteMeshFile(path.string(), result->mesh); !s.ok()) {
+                    std::fprintf(stderr, "%s\n", s.ToString().c_str());
+                  }
+                }
+                if (show_statistics) {
+                  for (const auto& [name, value] : result->statistics) std::printf("  %s=%g\n", name.c_str(), value);
+                  std::fflush(stdout);
                 }
                 Measure(*truth, result->mesh, samples, r);
                 return r;

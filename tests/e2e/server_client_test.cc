@@ -5,6 +5,9 @@
 #include <unistd.h>
 
 #include <gtest/gtest.h>
+
+#include <algorithm>
+#include <map>
 #include <grpcpp/grpcpp.h>
 
 #include <array>
@@ -146,6 +149,31 @@ TEST_F(EndToEnd, ReconstructsASphereAndAnswersHealthChecks) {
   EXPECT_EQ(response.status(), grpc::health::v1::HealthCheckResponse::SERVING);
 }
 
+// The PU result carries the depth and degree of the fit that made each region, through Draco
+// (the transfer format) into the PLY the client writes.
+TEST_F(EndToEnd, PuMeshCarriesDepthAndDegreeToThePly) {
+  Server server;
+  ASSERT_NO_FATAL_FAILURE(server.Start(dir_ / "data"));
+  const std::string in = WriteCloud("sphere.ply", testing::SphereCloud(8000));
+  const std::string out = (dir_ / "pu.ply").string();
+  const ClientRun r = Client(server.address(), "reconstruct " + in + " -o " + out + " --method pu");
+  ASSERT_EQ(r.code, 0) << r.output;
+  auto mesh = io::ReadMeshFile(out);
+  ASSERT_TRUE(mesh.ok()) << mesh.status();
+  EXPECT_TRUE(core::AnalyzeTopology(*mesh).watertight());
+  for (const auto& v : mesh->vertices) EXPECT_NEAR(v.norm(), 1.0f, 0.002f);
+  std::map<std::string, std::pair<float, float>> ranges;
+  for (const auto& a : mesh->vertex_attributes) {
+    ASSERT_EQ(a.values.size(), mesh->vertices.size()) << a.name;
+    ranges[a.name] = {*std::min_element(a.values.begin(), a.values.end()), *std::max_element(a.values.begin(), a.values.end())};
+  }
+  ASSERT_TRUE(ranges.contains("depth") && ranges.contains("degree"));
+  EXPECT_GE(ranges["depth"].first, 1.0f);
+  EXPECT_LE(ranges["depth"].second, 18.0f);
+  EXPECT_GE(ranges["degree"].first, 0.0f);
+  EXPECT_LE(ranges["degree"].second, 5.0f);
+}
+
 TEST_F(EndToEnd, BadInputsGetClearErrorsAndTheServerKeepsServing) {
   Server server;
   ASSERT_NO_FATAL_FAILURE(server.Start(dir_ / "data"));
@@ -272,8 +300,9 @@ TEST_F(EndToEnd, RawApiStatusCodes) {
     grpc::ClientContext ctx;
     v1::ListMethodsResponse response;
     ASSERT_TRUE(stub->ListMethods(&ctx, {}, &response).ok());
-    ASSERT_EQ(response.methods_size(), 1);
+    ASSERT_EQ(response.methods_size(), 2);
     EXPECT_EQ(response.methods(0).name(), "iamls");
+    EXPECT_EQ(response.methods(1).name(), "pu");
   }
   EXPECT_EQ(Client(server.address(), "cancel " + id).code, 0);
 }

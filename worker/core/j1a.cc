@@ -25,9 +25,15 @@ AdaptiveOctree::AdaptiveOctree(const Box3& root, int max_depth)
   leaves_[CellKey({})] = OctreeCell{};
 }
 
-uint64_t AdaptiveOctree::CellKey(const OctreeCell& c) {
+uint64_t CellKey(const OctreeCell& c) {
   return (static_cast<uint64_t>(c.level) << 60) | (static_cast<uint64_t>(c.x) << 40) |
          (static_cast<uint64_t>(c.y) << 20) | c.z;
+}
+
+OctreeCell CellFromKey(uint64_t key) {
+  constexpr uint64_t mask = 0xfffff;
+  return {static_cast<int>(key >> 60), static_cast<uint32_t>((key >> 40) & mask),
+          static_cast<uint32_t>((key >> 20) & mask), static_cast<uint32_t>(key & mask)};
 }
 
 bool AdaptiveOctree::InRange(int level, int64_t x, int64_t y, int64_t z) const {

@@ -32,6 +32,10 @@ struct OctreeCell {
 
 using VertexKey = uint64_t;
 
+// A unique 64-bit name of a cell (level and coordinates), for hash sets and maps.
+uint64_t CellKey(const OctreeCell& c);
+OctreeCell CellFromKey(uint64_t key);
+
 class AdaptiveOctree {
  public:
   static constexpr int kMaxDepth = 19;  // Keeps doubled finest coordinates within 21 bits.
@@ -57,12 +61,13 @@ class AdaptiveOctree {
 
   // Edge length of a cell of `level`, in vertex units (twice the finest resolution).
   uint32_t CellUnits(int level) const { return 2u << (max_depth_ - level); }
+  // Edge length of a cell of `level`, in model units.
+  double CellEdge(int level) const { return unit_ * CellUnits(level); }
   // The model-space position of a vertex key.
   Vec3d Position(VertexKey key) const;
   const Vec3d& origin() const { return origin_; }
 
  private:
-  static uint64_t CellKey(const OctreeCell& c);
   bool InRange(int level, int64_t x, int64_t y, int64_t z) const;
 
   Vec3d origin_;

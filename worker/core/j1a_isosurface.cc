@@ -2,20 +2,36 @@
 
 #include <cmath>
 
-#include "absl/container/flat_hash_set.h"
-#include "worker/core/j1a.h"
 #include "worker/core/marching_tets.h"
 #include "worker/core/status.h"
 
 namespace lsqsurf::core {
-namespace {
 
-uint64_t LeafKey(const OctreeCell& c) {
-  return (static_cast<uint64_t>(c.level) << 60) | (static_cast<uint64_t>(c.x) << 40) |
-         (static_cast<uint64_t>(c.y) << 20) | c.z;
+SurfaceBand MarkSurfaceBand(const AdaptiveOctree& tree, std::span<const Vec3f> points, int level) {
+  SurfaceBand band;
+  const double edge = tree.CellEdge(level);
+  const int64_t n = int64_t{1} << level;
+  for (const Vec3f& p : points) {
+    const Vec3d g = (p.cast<double>() - tree.origin()) / edge;
+    const auto clamp = [&](double v) { return static_cast<uint32_t>(std::clamp<int64_t>(static_cast<int64_t>(std::floor(v)), 0, n - 1)); };
+    band.occupied.insert(CellKey({level, clamp(g.x()), clamp(g.y()), clamp(g.z())}));
+  }
+  for (uint64_t key : band.occupied) {
+    const OctreeCell c = CellFromKey(key);
+    for (int d = 0; d < 27; ++d) {
+      const int64_t x = int64_t{c.x} + d % 3 - 1, y = int64_t{c.y} + (d / 3) % 3 - 1, z = int64_t{c.z} + d / 9 - 1;
+      if (x < 0 || y < 0 || z < 0 || x >= n || y >= n || z >= n) continue;
+      for (int l = level - 1; l >= 0; --l) {
+        const int shift = level - l;
+        if (!band.ancestors.insert(CellKey({l, static_cast<uint32_t>(x >> shift), static_cast<uint32_t>(y >> shift),
+                                            static_cast<uint32_t>(z >> shift)})).second) {
+          break;  // Its ancestors are in already.
+        }
+      }
+    }
+  }
+  return band;
 }
-
-}  // namespace
 
 absl::StatusOr<IsosurfaceResult> ExtractIsosurfaceJ1a(const ImplicitFunction& field,
                                                       std::span<const Vec3f> seeds,
@@ -37,54 +53,37 @@ absl::StatusOr<IsosurfaceResult> ExtractIsosurfaceJ1a(const ImplicitFunction& fi
   const double side = params.cell_size * std::ldexp(1.0, depth);
   const Vec3d centre = box.center();
   AdaptiveOctree tree(Box3(centre - Vec3d::Constant(side / 2), centre + Vec3d::Constant(side / 2)), depth);
-
-  // Cells to split: every ancestor of a finest cell that holds a seed or touches one that does.
-  const auto n = static_cast<int64_t>(1) << depth;
-  auto finest = [&](const Vec3f& p) {
-    const Vec3d g = (p.cast<double>() - tree.origin()) / params.cell_size;
-    return std::array<int64_t, 3>{static_cast<int64_t>(std::floor(g.x())), static_cast<int64_t>(std::floor(g.y())),
-                                  static_cast<int64_t>(std::floor(g.z()))};
-  };
-  absl::flat_hash_set<uint64_t> occupied, split;
-  for (const Vec3f& p : seeds) {
-    const auto c = finest(p);
-    occupied.insert(LeafKey({depth, static_cast<uint32_t>(c[0]), static_cast<uint32_t>(c[1]),
-                             static_cast<uint32_t>(c[2])}));
-  }
-  for (uint64_t key : occupied) {
-    const auto x = static_cast<int64_t>((key >> 40) & 0xfffff), y = static_cast<int64_t>((key >> 20) & 0xfffff),
-               z = static_cast<int64_t>(key & 0xfffff);
-    for (int d = 0; d < 27; ++d) {
-      const int64_t nx = x + d % 3 - 1, ny = y + (d / 3) % 3 - 1, nz = z + d / 9 - 1;
-      if (nx < 0 || ny < 0 || nz < 0 || nx >= n || ny >= n || nz >= n) continue;
-      for (int l = depth - 1; l >= 0; --l) {
-        const int shift = depth - l;
-        if (!split.insert(LeafKey({l, static_cast<uint32_t>(nx >> shift), static_cast<uint32_t>(ny >> shift),
-                                   static_cast<uint32_t>(nz >> shift)})).second) {
-          break;  // Its ancestors are in already.
-        }
-      }
-    }
-  }
-  tree.Refine([&](const OctreeCell& c) { return split.contains(LeafKey(c)); });
-  split.clear();
+  SurfaceBand band = MarkSurfaceBand(tree, seeds, depth);
+  tree.Refine([&](const OctreeCell& c) { return band.ancestors.contains(CellKey(c)); });
+  band.ancestors.clear();
   tree.Balance();
   LSQSURF_RETURN_IF_ERROR(ctx.CheckCancelled());
   build_ctx.Report(1.0);
+  std::vector<OctreeCell> start;
+  start.reserve(band.occupied.size());
+  for (uint64_t key : band.occupied) start.push_back(CellFromKey(key));
+  SubContext extract_ctx(ctx, "tracking surface", 0.1, 1.0);
+  return ExtractIsosurfaceOnTree(field, tree, start, params.max_leaves, params.marching, extract_ctx);
+}
 
+absl::StatusOr<IsosurfaceResult> ExtractIsosurfaceOnTree(const ImplicitFunction& field,
+                                                         const AdaptiveOctree& tree,
+                                                         std::span<const OctreeCell> start,
+                                                         int64_t max_leaves,
+                                                         const MarchingOptions& marching,
+                                                         JobContext& ctx) {
+  LSQSURF_RETURN_IF_ERROR(Validate(marching));
+  if (start.empty()) return absl::InvalidArgumentError("isosurface extraction needs start cells");
   // Follow the surface from leaf to leaf.
-  SubContext track_ctx(ctx, "tracking surface", 0.1, 0.75);
+  SubContext track_ctx(ctx, "tracking surface", 0.0, 0.75);
   IsosurfaceStats stats;
   absl::flat_hash_set<uint64_t> visited;
   std::vector<OctreeCell> frontier, surface_leaves;
-  for (uint64_t key : occupied) {
-    const OctreeCell cell{depth, static_cast<uint32_t>((key >> 40) & 0xfffff),
-                          static_cast<uint32_t>((key >> 20) & 0xfffff), static_cast<uint32_t>(key & 0xfffff)};
-    if (const OctreeCell* leaf = tree.LeafContaining(cell); leaf && visited.insert(LeafKey(*leaf)).second) {
+  for (const OctreeCell& cell : start) {
+    if (const OctreeCell* leaf = tree.LeafContaining(cell); leaf && visited.insert(CellKey(*leaf)).second) {
       frontier.push_back(*leaf);
     }
   }
-  occupied.clear();
   absl::flat_hash_map<VertexKey, FieldValue> values;
   std::vector<TetKeys> tets;
   std::vector<VertexKey> pending;
@@ -92,8 +91,8 @@ absl::StatusOr<IsosurfaceResult> ExtractIsosurfaceJ1a(const ImplicitFunction& fi
   std::vector<FieldValue> pending_values;
   while (!frontier.empty()) {
     stats.cells_visited += static_cast<int64_t>(frontier.size());
-    if (stats.cells_visited > params.max_leaves) {
-      return absl::ResourceExhaustedError("the surface needs more than " + std::to_string(params.max_leaves) +
+    if (stats.cells_visited > max_leaves) {
+      return absl::ResourceExhaustedError("the surface needs more than " + std::to_string(max_leaves) +
                                           " leaves; raise cell_size");
     }
     pending.clear();
@@ -138,7 +137,7 @@ absl::StatusOr<IsosurfaceResult> ExtractIsosurfaceJ1a(const ImplicitFunction& fi
         if (d == 13 || x < 0 || y < 0 || z < 0 || x >= cells || y >= cells || z >= cells) continue;
         const OctreeCell probe{leaf.level, static_cast<uint32_t>(x), static_cast<uint32_t>(y), static_cast<uint32_t>(z)};
         auto add = [&](const OctreeCell& c) {
-          if (visited.insert(LeafKey(c)).second) next.push_back(c);
+          if (visited.insert(CellKey(c)).second) next.push_back(c);
         };
         if (const OctreeCell* other = tree.LeafContaining(probe)) {
           add(*other);
@@ -169,8 +168,7 @@ absl::StatusOr<IsosurfaceResult> ExtractIsosurfaceJ1a(const ImplicitFunction& fi
           for (const TetKeys& t : leaf_tets) visit(t);
         }
       },
-      values, [&](internal::CornerKey k) { return tree.Position(k); }, params.marching, stats,
-      emit_ctx);
+      values, [&](internal::CornerKey k) { return tree.Position(k); }, marching, stats, emit_ctx);
 }
 
 }  // namespace lsqsurf::core

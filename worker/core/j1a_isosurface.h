@@ -11,10 +11,13 @@
 #include <cstdint>
 #include <span>
 
+#include "absl/container/flat_hash_set.h"
+
 #include "absl/status/statusor.h"
 #include "worker/core/geometry.h"
 #include "worker/core/implicit_function.h"
 #include "worker/core/isosurface.h"
+#include "worker/core/j1a.h"
 #include "worker/core/job_context.h"
 
 namespace lsqsurf::core {
@@ -31,5 +34,24 @@ absl::StatusOr<IsosurfaceResult> ExtractIsosurfaceJ1a(const ImplicitFunction& fi
                                                       std::span<const Vec3f> seeds,
                                                       const J1aIsosurfaceParams& params,
                                                       JobContext& ctx);
+
+// The band of `level` cells that hold a point or touch one that does: `occupied` holds the keys
+// of the cells with points, `ancestors` every proper ancestor of a band cell (the cells to split
+// so that the band exists as leaves).
+struct SurfaceBand {
+  absl::flat_hash_set<uint64_t> occupied;
+  absl::flat_hash_set<uint64_t> ancestors;
+};
+SurfaceBand MarkSurfaceBand(const AdaptiveOctree& tree, std::span<const Vec3f> points, int level);
+
+// Extraction on a caller-built, 2:1-balanced tree: follows the surface from the `start` leaves
+// across every leaf that touches a crossed one. Errors: kInvalidArgument (no start leaves),
+// kResourceExhausted (more than `max_leaves` visited), kCancelled.
+absl::StatusOr<IsosurfaceResult> ExtractIsosurfaceOnTree(const ImplicitFunction& field,
+                                                         const AdaptiveOctree& tree,
+                                                         std::span<const OctreeCell> start,
+                                                         int64_t max_leaves,
+                                                         const MarchingOptions& marching,
+                                                         JobContext& ctx);
 
 }  // namespace lsqsurf::core

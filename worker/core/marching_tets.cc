@@ -77,6 +77,7 @@ absl::StatusOr<IsosurfaceResult> MarchTetrahedra(
   std::vector<Crossing> crossings;
   std::vector<std::array<uint32_t, 4>> polygons;  // [3] == UINT32_MAX for a triangle.
   for_each_tet([&](const TetCorners& tet) {
+    ++stats.tetrahedra;
     std::array<FieldValue, 4> corner;
     std::array<int, 4> inside{}, outside{};
     int n_in = 0, n_out = 0;

@@ -2,6 +2,7 @@
 
 #include <chrono>
 #include <cmath>
+#include <functional>
 
 #include "worker/core/isosurface.h"
 #include "worker/core/j1a_isosurface.h"
@@ -9,6 +10,7 @@
 #include "worker/core/normals.h"
 #include "worker/core/strings.h"
 #include "worker/mls/iamls.h"
+#include "worker/pu/pu.h"
 
 namespace lsqsurf::jobs {
 namespace {
@@ -45,6 +47,39 @@ MethodSpec IamlsMethod() {
   return m;
 }
 
+MethodSpec PuMethod() {
+  const pu::PuParams p;
+  const pu::PuExtractParams e;
+  MethodSpec m{"pu",
+               "twofold adaptive partition-of-unity implicit (seed §2): orthogonal-polynomial fits of "
+               "adaptive degree on an adaptive octree, extracted on its J1a tetrahedra",
+               {}};
+  m.parameters = {
+      {"error_threshold", p.error_threshold, 1e-6, 0.1, false,
+       "largest fitting error accepted in a cell, as a share of the bounding-box diagonal; "
+       "set it near the noise amplitude for noisy scans"},
+      {"max_depth", static_cast<double>(p.max_depth), 1, 18, true, "octree levels below the root cube"},
+      {"max_degree", static_cast<double>(p.max_degree), 0, 4, true, "highest polynomial degree of a local fit"},
+      {"support_factor", p.support_factor, 0.55, 2, false, "support radius of a cell, in cell diagonals"},
+      {"min_points", static_cast<double>(p.min_points), 4, 200, true,
+       "the fitting ball of a sparse cell grows until it holds this many points"},
+      {"max_normal_angle", p.max_normal_angle, 10, 180, false,
+       "normal-cone criterion in degrees: wider cells are split (180 disables)"},
+      {"coverage", p.coverage_check ? 1.0 : 0.0, 0, 1, true,
+       "1: coverage criteria on (no sheets away from the data, holes stay open); 0: off"},
+      {"coverage_factor", p.coverage_factor, 0.1, 4, false,
+       "surface only within this many fitting radii of a data point"},
+      {"orientation_check", p.orientation_check ? 1.0 : 0.0, 0, 1, true,
+       "1: reject fits whose gradient opposes their points' normals"},
+      {"cell_size", e.cell_size, 0.25, 64, false,
+       "largest extraction cell at the surface, in units of the mean point spacing"},
+      {"refine_steps", static_cast<double>(e.marching.refine_steps), 0, 20, true,
+       "root-refinement steps per crossing edge"},
+  };
+  for (auto& c : CommonParameters()) m.parameters.push_back(std::move(c));
+  return m;
+}
+
 const MethodSpec* FindMethod(const std::string& name) {
   for (const auto& m : SurfaceMethods()) {
     if (m.name == name) return &m;
@@ -56,10 +91,88 @@ double Seconds(std::chrono::steady_clock::time_point since) {
   return std::chrono::duration<double>(std::chrono::steady_clock::now() - since).count();
 }
 
+using ParamFn = std::function<double(const char*)>;
+using StatFn = std::function<void(std::string, double)>;
+
+absl::StatusOr<core::IsosurfaceResult> RunIamls(const ParamFn& param, const core::PointCloud& cloud,
+                                                core::JobContext& ctx, const StatFn& stat) {
+  mls::IamlsParams ip;
+  ip.epsilon = param("epsilon");
+  ip.iterations = static_cast<int>(param("iterations"));
+  ip.spacing = param("spacing");
+  ip.spacing_scale = param("spacing_scale");
+  ip.cutoff = param("cutoff");
+  ip.min_weight = param("min_weight");
+  auto start = std::chrono::steady_clock::now();
+  core::SubContext build_ctx(ctx, "building iaMLS", 0.0, 0.3);
+  auto field = mls::BuildIamls(cloud, ip, build_ctx);
+  if (!field.ok()) return field.status();
+  stat("fit_seconds", Seconds(start));
+  stat("spacing", (*field)->spacing());
+  stat("largest_eigenvalue", (*field)->stats().largest_eigenvalue);
+  if (!(*field)->stats().residuals.empty()) stat("final_residual_over_h", (*field)->stats().residuals.back());
+
+  start = std::chrono::steady_clock::now();
+  core::SubContext extract_ctx(ctx, "extracting surface", 0.3, 1.0);
+  const double cell_size = param("cell_size") * (*field)->spacing();
+  core::MarchingOptions marching;
+  marching.refine_steps = static_cast<int>(param("refine_steps"));
+  absl::StatusOr<core::IsosurfaceResult> extracted;
+  if (param("extractor") == 1) {
+    extracted = core::ExtractIsosurfaceJ1a(**field, cloud.positions, {cell_size, 20'000'000, marching},
+                                           extract_ctx);
+  } else {
+    extracted = core::ExtractIsosurface(**field, cloud.positions, {cell_size, 60'000'000, marching},
+                                        extract_ctx);
+  }
+  if (extracted.ok()) stat("extract_seconds", Seconds(start));
+  return extracted;
+}
+
+absl::StatusOr<core::IsosurfaceResult> RunPu(const ParamFn& param, const core::PointCloud& cloud,
+                                             core::JobContext& ctx, const StatFn& stat) {
+  pu::PuParams pp;
+  pp.error_threshold = param("error_threshold");
+  pp.max_depth = static_cast<int>(param("max_depth"));
+  pp.max_degree = static_cast<int>(param("max_degree"));
+  pp.support_factor = param("support_factor");
+  pp.min_points = static_cast<int>(param("min_points"));
+  pp.max_normal_angle = param("max_normal_angle");
+  pp.coverage_check = param("coverage") != 0;
+  pp.coverage_factor = param("coverage_factor");
+  pp.orientation_check = param("orientation_check") != 0;
+  core::SubContext build_ctx(ctx, "fitting", 0.0, 0.4);
+  auto field = pu::BuildPu(cloud, pp, build_ctx);
+  if (!field.ok()) return field.status();
+  const pu::PuStats& s = (*field)->stats();
+  stat("fit_seconds", s.fit_seconds);
+  stat("index_seconds", s.index_seconds);
+  stat("mean_spacing", s.mean_spacing);
+  for (size_t d = 0; d < s.fits_per_degree.size(); ++d) {
+    stat(core::StrCat("fits_degree_", d), static_cast<double>(s.fits_per_degree[d]));
+  }
+  stat("fits_quadric", static_cast<double>(s.quadric_fits));
+  stat("fits_above_threshold", static_cast<double>(s.unmet_threshold));
+  for (size_t d = 0; d < s.leaves_per_depth.size(); ++d) {
+    if (s.leaves_per_depth[d] > 0) stat(core::StrCat("leaves_depth_", d), static_cast<double>(s.leaves_per_depth[d]));
+  }
+  const auto start = std::chrono::steady_clock::now();
+  pu::PuExtractParams ep;
+  ep.cell_size = param("cell_size");
+  ep.marching.refine_steps = static_cast<int>(param("refine_steps"));
+  core::SubContext extract_ctx(ctx, "extracting surface", 0.4, 1.0);
+  auto extracted = pu::Extract(**field, ep, extract_ctx);
+  if (extracted.ok()) {
+    stat("extract_seconds", Seconds(start));
+    stat("tetrahedra", static_cast<double>(extracted->stats.tetrahedra));
+  }
+  return extracted;
+}
+
 }  // namespace
 
 const std::vector<MethodSpec>& SurfaceMethods() {
-  static const std::vector<MethodSpec> methods = {IamlsMethod()};
+  static const std::vector<MethodSpec> methods = {IamlsMethod(), PuMethod()};
   return methods;
 }
 
@@ -128,38 +241,10 @@ absl::StatusOr<SurfaceResult> RunSurfaceMethod(const std::string& method,
     stat("normals_seconds", Seconds(start));
   }
 
-  // Only iaMLS exists so far; the registry grows with the engines.
-  mls::IamlsParams ip;
-  ip.epsilon = param("epsilon");
-  ip.iterations = static_cast<int>(param("iterations"));
-  ip.spacing = param("spacing");
-  ip.spacing_scale = param("spacing_scale");
-  ip.cutoff = param("cutoff");
-  ip.min_weight = param("min_weight");
-  auto start = std::chrono::steady_clock::now();
-  core::SubContext build_ctx(ctx, "building iaMLS", normals_share, normals_share + 0.3 * (1 - normals_share));
-  auto field = mls::BuildIamls(cloud, ip, build_ctx);
-  if (!field.ok()) return field.status();
-  stat("fit_seconds", Seconds(start));
-  stat("spacing", (*field)->spacing());
-  stat("largest_eigenvalue", (*field)->stats().largest_eigenvalue);
-  if (!(*field)->stats().residuals.empty()) stat("final_residual_over_h", (*field)->stats().residuals.back());
-
-  start = std::chrono::steady_clock::now();
-  core::SubContext extract_ctx(ctx, "extracting surface", normals_share + 0.3 * (1 - normals_share), 1.0);
-  const double cell_size = param("cell_size") * (*field)->spacing();
-  core::MarchingOptions marching;
-  marching.refine_steps = static_cast<int>(param("refine_steps"));
-  absl::StatusOr<core::IsosurfaceResult> extracted;
-  if (param("extractor") == 1) {
-    extracted = core::ExtractIsosurfaceJ1a(**field, cloud.positions, {cell_size, 20'000'000, marching},
-                                           extract_ctx);
-  } else {
-    extracted = core::ExtractIsosurface(**field, cloud.positions, {cell_size, 60'000'000, marching},
-                                        extract_ctx);
-  }
+  core::SubContext engine_ctx(ctx, method, normals_share, 1.0);
+  absl::StatusOr<core::IsosurfaceResult> extracted =
+      method == "pu" ? RunPu(param, cloud, engine_ctx, stat) : RunIamls(param, cloud, engine_ctx, stat);
   if (!extracted.ok()) return extracted.status();
-  stat("extract_seconds", Seconds(start));
   result.mesh = std::move(extracted->mesh);
   if (result.mesh.faces.empty()) {
     return absl::FailedPreconditionError(

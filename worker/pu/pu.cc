@@ -1,0 +1,621 @@
+#include "worker/pu/pu.h"
+
+#include <algorithm>
+#include <atomic>
+#include <bit>
+#include <chrono>
+#include <cmath>
+#include <limits>
+#include <mutex>
+
+#include <Eigen/Cholesky>
+
+#include "worker/core/j1a.h"
+#include "worker/core/j1a_isosurface.h"
+#include "worker/core/kd_tree.h"
+#include "worker/core/parallel.h"
+#include "worker/core/status.h"
+#include "worker/core/strings.h"
+#include "worker/pu/orthogonal_fit.h"
+
+namespace lsqsurf::pu {
+namespace {
+
+using core::Vec3d;
+using core::Vec3f;
+
+constexpr double kSqrt3 = 1.7320508075688772;
+// Cells holding more points are split without trying a fit: at any useful threshold a fit over
+// thousands of points fails, and gathering them is the expensive part at coarse levels.
+constexpr uint32_t kMaxPointsToFit = 4096;
+// The fitting ball of a sparse cell grows to at most this multiple of its support radius.
+constexpr double kMaxRadiusGrowth = 4.0;
+// Share of support points whose normal may oppose the fitted gradient.
+constexpr double kMaxInvertedShare = 0.1;
+// A quadric label in FitLabel::degree.
+constexpr int kQuadricLabel = 5;
+
+struct LocalFit {
+  Vec3d centre = Vec3d::Zero();   // Of the leaf.
+  double support_radius = 0;      // R_i of the PU weight.
+  double fit_radius = 0;          // The fitting ball (larger in sparse leaves).
+  Vec3d origin = Vec3d::Zero();   // Local frame: weighted centroid, tangents, mean normal.
+  Vec3d tangent_u = Vec3d::UnitX(), tangent_v = Vec3d::UnitY(), normal = Vec3d::UnitZ();
+  double scale = 1;               // Tangent coordinates are divided by this (the fit radius).
+  std::array<double, kMaxTerms> coefficients{};  // Height polynomial, or quadric in y = (x − origin)/scale.
+  int8_t degree = 0;
+  int8_t depth = 0;
+  bool quadric = false;
+
+  // f(x) and ∇f(x); f > 0 on the side the normals point to.
+  double Evaluate(const Vec3d& x, Vec3d* gradient) const {
+    const Vec3d d = x - origin;
+    if (quadric) {
+      const Vec3d y = d / scale;
+      const auto& q = coefficients;
+      const double value = q[0] + q[1] * y.x() + q[2] * y.y() + q[3] * y.z() + q[4] * y.x() * y.x() +
+                           q[5] * y.y() * y.y() + q[6] * y.z() * y.z() + q[7] * y.x() * y.y() +
+                           q[8] * y.x() * y.z() + q[9] * y.y() * y.z();
+      if (gradient) {
+        *gradient = Vec3d(q[1] + 2 * q[4] * y.x() + q[7] * y.y() + q[8] * y.z(),
+                          q[2] + 2 * q[5] * y.y() + q[7] * y.x() + q[9] * y.z(),
+                          q[3] + 2 * q[6] * y.z() + q[8] * y.x() + q[9] * y.y()) / scale;
+      }
+      return value;
+    }
+    BivariatePolynomial p;
+    p.coefficients = coefficients;
+    p.degree = degree;
+    double h, hu, hv;
+    p.Evaluate(tangent_u.dot(d) / scale, tangent_v.dot(d) / scale, h, hu, hv);
+    if (gradient) *gradient = normal - (hu * tangent_u + hv * tangent_v) / scale;
+    return normal.dot(d) - h;
+  }
+};
+
+struct Node {
+  uint32_t x = 0, y = 0, z = 0;
+  int level = 0;
+  int32_t first_child = -1;  // Children are contiguous; child i has offsets (i&1, i>>1&1, i>>2&1).
+  int32_t fit = -1;
+};
+
+double Theta(double s2) {
+  const double t = 1 - s2;
+  return t * t * t * t;
+}
+
+}  // namespace
+
+struct PuFunction::Impl {
+  std::vector<Vec3f> positions;
+  std::unique_ptr<core::KdTree> kd_tree;
+  Vec3d origin = Vec3d::Zero();
+  double root_edge = 1;
+  int deepest_level = 0;
+  std::vector<Node> nodes;
+  std::vector<LocalFit> fits;
+  // For every node (leaves only are filled): the fits whose support meets the node's cube.
+  std::vector<uint32_t> influence_offsets;
+  std::vector<uint32_t> influence;
+  bool coverage_check = true;
+  double coverage_factor = 0.75;
+
+  double Edge(int level) const { return std::ldexp(root_edge, -level); }
+  Vec3d Centre(const Node& n) const {
+    return origin + (Vec3d(n.x, n.y, n.z) + Vec3d::Constant(0.5)) * Edge(n.level);
+  }
+
+  int32_t LeafAt(const Vec3d& x) const {
+    const Vec3d g = (x - origin) / root_edge;
+    if (!(g.minCoeff() >= 0 && g.maxCoeff() <= 1)) return -1;
+    int32_t index = 0;
+    while (nodes[static_cast<size_t>(index)].first_child >= 0) {
+      const Node& n = nodes[static_cast<size_t>(index)];
+      const Vec3d c = Centre(n);
+      const int octant = (x.x() >= c.x() ? 1 : 0) | (x.y() >= c.y() ? 2 : 0) | (x.z() >= c.z() ? 4 : 0);
+      index = n.first_child + octant;
+    }
+    return index;
+  }
+
+  // The node at `cell`, or -1 where the tree stops above it.
+  int32_t NodeAt(const core::OctreeCell& cell) const {
+    int32_t index = 0;
+    for (int l = 1; l <= cell.level; ++l) {
+      const Node& n = nodes[static_cast<size_t>(index)];
+      if (n.first_child < 0) return -1;
+      const int shift = cell.level - l;
+      const int octant = static_cast<int>(((cell.x >> shift) & 1) | (((cell.y >> shift) & 1) << 1) |
+                                          (((cell.z >> shift) & 1) << 2));
+      index = n.first_child + octant;
+    }
+    return index;
+  }
+
+  // Calls visit(fit, s²) for every fit whose support holds x. Returns the fit whose support
+  // comes closest when none holds it (nullptr when none is near at all).
+  template <typename Visit>
+  const LocalFit* ForEachSupport(const Vec3d& x, Visit&& visit) const {
+    const int32_t leaf = LeafAt(x);
+    if (leaf < 0) return nullptr;
+    const LocalFit* closest = nullptr;
+    double closest_s2 = std::numeric_limits<double>::infinity();
+    for (uint32_t k = influence_offsets[static_cast<size_t>(leaf)]; k < influence_offsets[static_cast<size_t>(leaf) + 1]; ++k) {
+      const LocalFit& fit = fits[influence[k]];
+      const double s2 = (x - fit.centre).squaredNorm() / (fit.support_radius * fit.support_radius);
+      if (s2 < 1) visit(fit, s2);
+      if (s2 < closest_s2) closest_s2 = s2, closest = &fit;
+    }
+    return closest;
+  }
+
+  core::FieldGradient Evaluate(const Vec3d& x, bool with_gradient) const {
+    double sum_theta = 0, sum_value = 0, sum_radius = 0;
+    Vec3d sum_grad_theta = Vec3d::Zero(), sum_grad_value = Vec3d::Zero();
+    const LocalFit* closest = ForEachSupport(x, [&](const LocalFit& fit, double s2) {
+      const double theta = Theta(s2);
+      Vec3d grad_f;
+      const double f = fit.Evaluate(x, with_gradient ? &grad_f : nullptr);
+      sum_theta += theta;
+      sum_value += theta * f;
+      sum_radius += theta * fit.fit_radius;
+      if (with_gradient) {
+        const double t = 1 - s2;
+        const Vec3d grad_theta = (-8 * t * t * t / (fit.support_radius * fit.support_radius)) * (x - fit.centre);
+        sum_grad_theta += grad_theta;
+        sum_grad_value += grad_theta * f + theta * grad_f;
+      }
+    });
+    core::FieldGradient out;
+    if (!(sum_theta > 0)) {
+      // Between supports (possible next to leaves without points): the closest fit gives the
+      // sign, so that tetrahedra there still classify their corners; no surface is placed here.
+      out.value = closest ? closest->Evaluate(x, with_gradient ? &out.gradient : nullptr)
+                          : std::numeric_limits<double>::quiet_NaN();
+      return out;
+    }
+    out.value = sum_value / sum_theta;
+    if (with_gradient) out.gradient = (sum_grad_value * sum_theta - sum_value * sum_grad_theta) / (sum_theta * sum_theta);
+    out.defined = true;
+    if (coverage_check) {
+      const double reach = coverage_factor * sum_radius / sum_theta;
+      out.defined = kd_tree->Nearest(x.cast<float>()).distance2 <= reach * reach;
+    }
+    return out;
+  }
+};
+
+namespace {
+
+struct BuildContext {
+  const PuParams& params;
+  const PuFunction::Impl& impl;
+  std::span<const Vec3f> normals;
+  double error_bound;  // ε0 in model units.
+  double cos_max_angle;
+};
+
+struct CellOutcome {
+  bool split = false;
+  bool has_fit = false;
+  bool unmet = false;
+  LocalFit fit{};
+  std::array<uint32_t, 9> child_ranges{};  // Boundaries of the children's point ranges.
+};
+
+struct Scratch {
+  std::vector<core::Neighbor> neighbors;
+  std::vector<double> u, v, w, weight;
+  std::vector<char> in_support;
+  OrthogonalFitter fitter;
+};
+
+// General quadric through the points, with value ±δ at p ± δn (so that it behaves like a signed
+// distance and carries the orientation): weighted least squares, slightly regularized.
+void FitQuadric(const BuildContext& bc, std::span<const core::Neighbor> points, std::span<const double> weights,
+                LocalFit& fit) {
+  const double delta = 0.25 * fit.scale;
+  Eigen::Matrix<double, 10, 10> normal_matrix = Eigen::Matrix<double, 10, 10>::Zero();
+  Eigen::Matrix<double, 10, 1> rhs = Eigen::Matrix<double, 10, 1>::Zero();
+  auto add_row = [&](const Vec3d& y, double value, double weight) {
+    Eigen::Matrix<double, 10, 1> row;
+    row << 1, y.x(), y.y(), y.z(), y.x() * y.x(), y.y() * y.y(), y.z() * y.z(), y.x() * y.y(), y.x() * y.z(),
+        y.y() * y.z();
+    normal_matrix.selfadjointView<Eigen::Lower>().rankUpdate(row, weight);
+    rhs += weight * value * row;
+  };
+  for (size_t j = 0; j < points.size(); ++j) {
+    if (weights[j] <= 0) continue;
+    const Vec3d p = bc.impl.positions[points[j].index].cast<double>();
+    const Vec3d n = bc.normals[points[j].index].cast<double>();
+    const Vec3d y = (p - fit.origin) / fit.scale;
+    add_row(y, 0, weights[j]);
+    add_row(y + delta / fit.scale * n, delta, weights[j]);
+    add_row(y - delta / fit.scale * n, -delta, weights[j]);
+  }
+  Eigen::Matrix<double, 10, 10> full = normal_matrix.selfadjointView<Eigen::Lower>();
+  full.diagonal().array() += 1e-9 * full.trace() + 1e-300;
+  const Eigen::Matrix<double, 10, 1> c = full.ldlt().solve(rhs);
+  fit.coefficients = {};
+  for (int k = 0; k < 10; ++k) fit.coefficients[static_cast<size_t>(k)] = c[k];
+  fit.quadric = true;
+  fit.degree = kQuadricLabel;
+}
+
+// Splits the point range of a cell into its 8 octants (in place) and records the boundaries.
+void PartitionOctants(std::span<uint32_t> order, std::span<const Vec3f> positions, const Vec3d& centre,
+                      std::array<uint32_t, 9>& bounds, uint32_t begin) {
+  auto octant = [&](uint32_t i) {
+    const Vec3f& p = positions[i];
+    return (p.x() >= centre.x() ? 1 : 0) | (p.y() >= centre.y() ? 2 : 0) | (p.z() >= centre.z() ? 4 : 0);
+  };
+  std::array<uint32_t, 8> counts{};
+  for (uint32_t i : order) ++counts[static_cast<size_t>(octant(i))];
+  bounds[0] = begin;
+  for (size_t k = 0; k < 8; ++k) bounds[k + 1] = bounds[k] + counts[k];
+  std::vector<uint32_t> sorted(order.size());
+  std::array<uint32_t, 8> next{};
+  for (size_t k = 0; k < 8; ++k) next[k] = bounds[k] - begin;
+  for (uint32_t i : order) sorted[next[static_cast<size_t>(octant(i))]++] = i;
+  std::copy(sorted.begin(), sorted.end(), order.begin());
+}
+
+// The twofold adaptive decision for one cell (seed §2; METHODS §1.5): fit, raise the degree
+// while the error is above the bound, split when the highest degree fails.
+CellOutcome ProcessCell(const BuildContext& bc, const Node& node, std::span<uint32_t> inside, uint32_t begin,
+                        Scratch& s) {
+  const PuParams& params = bc.params;
+  const PuFunction::Impl& impl = bc.impl;
+  CellOutcome out;
+  const Vec3d centre = impl.Centre(node);
+  const double support = params.support_factor * kSqrt3 * impl.Edge(node.level);
+  auto split = [&] {
+    out.split = true;
+    PartitionOctants(inside, impl.positions, centre, out.child_ranges, begin);
+    return out;
+  };
+  // A leaf without points of its own gets no function: its neighbours' supports reach over it,
+  // and a fit centred away from the data would only extrapolate.
+  if (inside.empty()) return out;
+  if (inside.size() > kMaxPointsToFit && node.level < params.max_depth) return split();
+
+  const Vec3f query = centre.cast<float>();
+  impl.kd_tree->Radius(query, static_cast<float>(support), s.neighbors);
+  // Splitting helps only while the support holds enough points; past that the fitting ball
+  // has to grow, and smaller cells would see the same points.
+  const bool can_split = node.level < params.max_depth && s.neighbors.size() >= static_cast<size_t>(params.min_points);
+  double fit_radius = support;
+  if (s.neighbors.size() < static_cast<size_t>(params.min_points)) {
+    impl.kd_tree->Knn(query, static_cast<size_t>(params.min_points), s.neighbors);
+    fit_radius = std::min(kMaxRadiusGrowth * support, 1.05 * std::sqrt(static_cast<double>(s.neighbors.back().distance2)));
+    impl.kd_tree->Radius(query, static_cast<float>(fit_radius), s.neighbors);
+  }
+  const size_t n = s.neighbors.size();
+  s.weight.resize(n);
+  s.in_support.resize(n);
+  Vec3d centroid = Vec3d::Zero(), normal_sum = Vec3d::Zero();
+  double weight_sum = 0;
+  size_t weighted = 0;
+  for (size_t j = 0; j < n; ++j) {
+    const double d2 = s.neighbors[j].distance2;
+    s.weight[j] = d2 < fit_radius * fit_radius ? Theta(d2 / (fit_radius * fit_radius)) : 0.0;
+    s.in_support[j] = d2 <= support * support;
+    weighted += s.weight[j] > 0;
+    weight_sum += s.weight[j];
+    centroid += s.weight[j] * impl.positions[s.neighbors[j].index].cast<double>();
+    normal_sum += s.weight[j] * bc.normals[s.neighbors[j].index].cast<double>();
+  }
+  if (!(weight_sum > 0)) return out;
+  LocalFit& fit = out.fit;
+  out.has_fit = true;
+  fit.centre = centre;
+  fit.support_radius = support;
+  fit.fit_radius = fit_radius;
+  fit.origin = centroid / weight_sum;
+  fit.scale = fit_radius;
+  fit.depth = static_cast<int8_t>(node.level);
+  fit.quadric = false;
+  const double normal_length = normal_sum.norm();
+  fit.normal = normal_length > 0 ? Vec3d(normal_sum / normal_length) : Vec3d::UnitZ();
+  double min_cos = normal_length > 0 ? 1.0 : -1.0;
+  for (size_t j = 0; j < n; ++j) {
+    min_cos = std::min(min_cos, bc.normals[s.neighbors[j].index].cast<double>().dot(fit.normal));
+  }
+  // Criterion 1, the normal cone: no height field over the mean tangent plane otherwise.
+  if (min_cos < bc.cos_max_angle) {
+    if (can_split) return split();
+    FitQuadric(bc, s.neighbors, s.weight, fit);
+    return out;
+  }
+  fit.tangent_u = fit.normal.unitOrthogonal();
+  fit.tangent_v = fit.normal.cross(fit.tangent_u);
+  s.u.resize(n), s.v.resize(n), s.w.resize(n);
+  // Criterion 3a, coverage of the tangent disk around the projected cell centre.
+  const Vec3d centre_offset = centre - fit.origin;
+  const double uc = fit.tangent_u.dot(centre_offset) / fit.scale, vc = fit.tangent_v.dot(centre_offset) / fit.scale;
+  unsigned sectors = 0;
+  for (size_t j = 0; j < n; ++j) {
+    const Vec3d d = impl.positions[s.neighbors[j].index].cast<double>() - fit.origin;
+    s.u[j] = fit.tangent_u.dot(d) / fit.scale;
+    s.v[j] = fit.tangent_v.dot(d) / fit.scale;
+    s.w[j] = fit.normal.dot(d);
+    const double du = s.u[j] - uc, dv = s.v[j] - vc;
+    if (du * du + dv * dv <= 1) {
+      sectors |= 1u << ((dv < 0 ? 4 : 0) | (du < 0 ? 2 : 0) | (std::abs(du) < std::abs(dv) ? 1 : 0));
+    }
+  }
+  int degree_cap = params.max_degree;
+  if (params.coverage_check && std::popcount(sectors) < 7) degree_cap = std::min(degree_cap, 1);
+  // Criterion 2: twice as many points as coefficients.
+  while (degree_cap > 0 && weighted < static_cast<size_t>(2 * TermCount(degree_cap))) --degree_cap;
+
+  bool any_in_support = false;
+  for (char c : s.in_support) any_in_support |= c != 0;
+  s.fitter.Reset(s.u, s.v, s.w, s.weight);
+  double best_error = std::numeric_limits<double>::infinity();
+  BivariatePolynomial best;
+  bool accepted = false;
+  for (int degree = 0; degree <= degree_cap; ++degree) {
+    if (degree > 0 && !s.fitter.RaiseDegree()) break;  // Rank deficient: the data cannot say more.
+    if (degree == 0 && degree_cap > 0) continue;       // A tilted plane is never worse.
+    const BivariatePolynomial& p = s.fitter.polynomial();
+    // Taubin distance |f|/|∇f|, measured where the leaf's weight is (MPU's rule).
+    double error = 0;
+    size_t inverted = 0, counted = 0;
+    for (size_t j = 0; j < n; ++j) {
+      if (any_in_support && !s.in_support[j]) continue;
+      double h, hu, hv;
+      p.Evaluate(s.u[j], s.v[j], h, hu, hv);
+      const Vec3d gradient = fit.normal - (hu * fit.tangent_u + hv * fit.tangent_v) / fit.scale;
+      error = std::max(error, std::abs(s.w[j] - h) / gradient.norm());
+      ++counted;
+      inverted += gradient.dot(bc.normals[s.neighbors[j].index].cast<double>()) <= 0;
+    }
+    // Criterion 4, orientation: the fit must agree with its points' normals.
+    if (params.orientation_check && static_cast<double>(inverted) > kMaxInvertedShare * static_cast<double>(counted)) {
+      continue;
+    }
+    if (error < best_error) {
+      best_error = error;
+      best = p;
+    }
+    if (error <= bc.error_bound) {
+      accepted = true;
+      break;
+    }
+  }
+  if (!accepted && can_split) return split();
+  if (!std::isfinite(best_error)) {
+    FitQuadric(bc, s.neighbors, s.weight, fit);
+    return out;
+  }
+  out.unmet = !accepted;
+  fit.coefficients = best.coefficients;
+  fit.degree = static_cast<int8_t>(best.degree);
+  return out;
+}
+
+double Seconds(std::chrono::steady_clock::time_point since) {
+  return std::chrono::duration<double>(std::chrono::steady_clock::now() - since).count();
+}
+
+}  // namespace
+
+absl::Status Validate(const PuParams& p) {
+  auto in = [](double v, double lo, double hi) { return std::isfinite(v) && v >= lo && v <= hi; };
+  if (!in(p.error_threshold, 1e-6, 0.1)) return absl::InvalidArgumentError("error_threshold must be in [1e-6, 0.1]");
+  if (p.max_depth < 1 || p.max_depth > 18) return absl::InvalidArgumentError("max_depth must be in [1, 18]");
+  if (p.max_degree < 0 || p.max_degree > kMaxDegree) return absl::InvalidArgumentError("max_degree must be in [0, 4]");
+  if (!in(p.support_factor, 0.55, 2)) return absl::InvalidArgumentError("support_factor must be in [0.55, 2]");
+  if (p.min_points < 4 || p.min_points > 200) return absl::InvalidArgumentError("min_points must be in [4, 200]");
+  if (!in(p.max_normal_angle, 10, 180)) return absl::InvalidArgumentError("max_normal_angle must be in [10, 180] degrees");
+  if (!in(p.coverage_factor, 0.1, 4)) return absl::InvalidArgumentError("coverage_factor must be in [0.1, 4]");
+  return absl::OkStatus();
+}
+
+PuFunction::PuFunction() : impl_(std::make_unique<Impl>()) {}
+PuFunction::~PuFunction() = default;
+
+core::FieldValue PuFunction::Value(const Vec3d& x) const {
+  const core::FieldGradient g = impl_->Evaluate(x, false);
+  return {g.value, g.defined};
+}
+
+core::FieldGradient PuFunction::ValueAndGradient(const Vec3d& x) const { return impl_->Evaluate(x, true); }
+
+FitLabel PuFunction::DominantFit(const Vec3d& x) const {
+  FitLabel label;
+  double best = 0;
+  impl_->ForEachSupport(x, [&](const LocalFit& fit, double s2) {
+    if (const double theta = Theta(s2); theta > best) {
+      best = theta;
+      label = {fit.depth, fit.degree};
+    }
+  });
+  return label;
+}
+
+absl::StatusOr<std::unique_ptr<PuFunction>> BuildPu(const core::PointCloud& cloud, const PuParams& params,
+                                                    core::JobContext& ctx) {
+  LSQSURF_RETURN_IF_ERROR(Validate(params));
+  if (!cloud.has_normals()) return absl::InvalidArgumentError("PU surfaces need oriented normals");
+  if (cloud.size() < 4) return absl::InvalidArgumentError("PU surfaces need at least 4 points");
+  if (cloud.size() >= std::numeric_limits<uint32_t>::max()) return absl::InvalidArgumentError("too many points");
+  const auto start = std::chrono::steady_clock::now();
+  std::unique_ptr<PuFunction> function(new PuFunction());
+  PuFunction::Impl& impl = *function->impl_;
+  PuStats& stats = function->stats_;
+  impl.positions = cloud.positions;
+  impl.kd_tree = std::make_unique<core::KdTree>(impl.positions);
+  impl.coverage_check = params.coverage_check;
+  impl.coverage_factor = params.coverage_factor;
+  stats.mean_spacing = core::MeanNearestNeighborDistance(*impl.kd_tree);
+  const core::Box3 box = core::BoundingBox(impl.positions);
+  const double diagonal = core::Diagonal(box);
+  if (!(diagonal > 0)) return absl::InvalidArgumentError("all points coincide");
+  // The root cube: 1.2 × the largest side, as in MPU, so that boundary cells have margin.
+  impl.root_edge = 1.2 * box.sizes().maxCoeff();
+  impl.origin = box.center() - Vec3d::Constant(impl.root_edge / 2);
+  stats.root_edge = impl.root_edge;
+  const BuildContext bc{params, impl, cloud.normals, params.error_threshold * diagonal,
+                        std::cos(params.max_normal_angle * M_PI / 180.0)};
+
+  std::vector<uint32_t> order(cloud.size());
+  for (uint32_t i = 0; i < order.size(); ++i) order[i] = i;
+  std::vector<std::array<uint32_t, 2>> ranges{{0, static_cast<uint32_t>(order.size())}};
+  impl.nodes.push_back(Node{});
+  std::vector<int32_t> current{0};
+  stats.leaves_per_depth.assign(static_cast<size_t>(params.max_depth) + 1, 0);
+  stats.fits_per_depth.assign(static_cast<size_t>(params.max_depth) + 1, 0);
+  for (int level = 0; !current.empty(); ++level) {
+    core::SubContext level_ctx(ctx, core::StrCat("fitting level ", level), static_cast<double>(level) / (params.max_depth + 1),
+                               static_cast<double>(level + 1) / (params.max_depth + 1));
+    std::vector<CellOutcome> outcomes(current.size());
+    LSQSURF_RETURN_IF_ERROR(core::ParallelFor(
+        current.size(), 8,
+        [&](size_t b, size_t e) {
+          thread_local Scratch scratch;
+          for (size_t i = b; i < e; ++i) {
+            const auto index = static_cast<size_t>(current[i]);
+            const auto [lo, hi] = ranges[index];
+            outcomes[i] = ProcessCell(bc, impl.nodes[index], std::span(order).subspan(lo, hi - lo), lo, scratch);
+          }
+        },
+        &ctx, [&](double f) { level_ctx.Report(f); }));
+    stats.cells_examined += static_cast<int64_t>(current.size());
+    std::vector<int32_t> next;
+    for (size_t i = 0; i < current.size(); ++i) {
+      CellOutcome& o = outcomes[i];
+      const auto index = static_cast<size_t>(current[i]);
+      if (o.split) {
+        if (impl.nodes.size() + 8 > static_cast<size_t>(std::numeric_limits<int32_t>::max())) {
+          return absl::ResourceExhaustedError("the PU tree needs more than 2^31 cells; raise error_threshold");
+        }
+        const Node parent = impl.nodes[index];
+        impl.nodes[index].first_child = static_cast<int32_t>(impl.nodes.size());
+        for (uint32_t k = 0; k < 8; ++k) {
+          next.push_back(static_cast<int32_t>(impl.nodes.size()));
+          impl.nodes.push_back(Node{2 * parent.x + (k & 1), 2 * parent.y + ((k >> 1) & 1), 2 * parent.z + ((k >> 2) & 1),
+                                    level + 1, -1, -1});
+          ranges.push_back({o.child_ranges[k], o.child_ranges[k + 1]});
+        }
+        continue;
+      }
+      ++stats.leaves_per_depth[static_cast<size_t>(level)];
+      impl.deepest_level = std::max(impl.deepest_level, level);
+      if (!o.has_fit) continue;
+      impl.nodes[index].fit = static_cast<int32_t>(impl.fits.size());
+      ++stats.fits_per_depth[static_cast<size_t>(level)];
+      if (o.fit.quadric) {
+        ++stats.quadric_fits;
+      } else {
+        ++stats.fits_per_degree[static_cast<size_t>(o.fit.degree)];
+      }
+      stats.unmet_threshold += o.unmet;
+      impl.fits.push_back(o.fit);
+    }
+    current = std::move(next);
+  }
+  order = {};
+  ranges = {};
+  stats.fit_seconds = Seconds(start);
+
+  // Leaf → fits whose support meets it, so that an evaluation visits one short list.
+  const auto index_start = std::chrono::steady_clock::now();
+  std::vector<uint32_t> counts(impl.fits.size() + 1, 0);
+  auto for_each_leaf_in_ball = [&](const LocalFit& fit, auto&& emit) {
+    std::vector<int32_t> stack{0};
+    const double r2 = fit.support_radius * fit.support_radius;
+    while (!stack.empty()) {
+      const Node& n = impl.nodes[static_cast<size_t>(stack.back())];
+      const int32_t id = stack.back();
+      stack.pop_back();
+      const Vec3d lo = impl.origin + Vec3d(n.x, n.y, n.z) * impl.Edge(n.level);
+      const Vec3d hi = lo + Vec3d::Constant(impl.Edge(n.level));
+      const Vec3d nearest = fit.centre.cwiseMax(lo).cwiseMin(hi);
+      if ((nearest - fit.centre).squaredNorm() >= r2) continue;
+      if (n.first_child < 0) {
+        emit(id);
+      } else {
+        for (int k = 0; k < 8; ++k) stack.push_back(n.first_child + k);
+      }
+    }
+  };
+  std::vector<uint32_t> leaf_counts(impl.nodes.size() + 1, 0);
+  std::vector<std::vector<std::pair<uint32_t, uint32_t>>> pairs_per_chunk;
+  std::mutex chunks_mutex;
+  LSQSURF_RETURN_IF_ERROR(core::ParallelFor(
+      impl.fits.size(), 256,
+      [&](size_t b, size_t e) {
+        std::vector<std::pair<uint32_t, uint32_t>> pairs;
+        for (size_t f = b; f < e; ++f) {
+          for_each_leaf_in_ball(impl.fits[f], [&](int32_t leaf) { pairs.emplace_back(static_cast<uint32_t>(leaf), static_cast<uint32_t>(f)); });
+        }
+        std::lock_guard lock(chunks_mutex);
+        pairs_per_chunk.push_back(std::move(pairs));
+      },
+      &ctx));
+  for (const auto& chunk : pairs_per_chunk) {
+    for (const auto& [leaf, fit] : chunk) ++leaf_counts[leaf + 1];
+  }
+  for (size_t i = 1; i < leaf_counts.size(); ++i) leaf_counts[i] += leaf_counts[i - 1];
+  impl.influence_offsets = leaf_counts;
+  impl.influence.resize(leaf_counts.back());
+  for (const auto& chunk : pairs_per_chunk) {
+    for (const auto& [leaf, fit] : chunk) impl.influence[leaf_counts[leaf]++] = fit;
+  }
+  stats.index_seconds = Seconds(index_start);
+  LSQSURF_RETURN_IF_ERROR(ctx.CheckCancelled());
+  if (impl.fits.empty()) return absl::FailedPreconditionError("no local fit could be made");
+  return function;
+}
+
+absl::StatusOr<core::IsosurfaceResult> Extract(const PuFunction& function, const PuExtractParams& params,
+                                               core::JobContext& ctx) {
+  if (!(params.cell_size > 0) || !std::isfinite(params.cell_size)) {
+    return absl::InvalidArgumentError("cell_size must be a positive number");
+  }
+  const PuFunction::Impl& impl = *function.impl_;
+  const double target = params.cell_size * function.stats().mean_spacing;
+  if (!(target > 0)) return absl::InvalidArgumentError("the points have no spacing to size cells by");
+  const int band_level = std::clamp(static_cast<int>(std::ceil(std::log2(impl.root_edge / target))), 1,
+                                    core::AdaptiveOctree::kMaxDepth);
+  const int depth = band_level;
+  core::SubContext build_ctx(ctx, "building the J1a tree", 0.0, 0.1);
+  core::AdaptiveOctree tree(core::Box3(impl.origin, impl.origin + Vec3d::Constant(impl.root_edge)), depth);
+  core::SurfaceBand band = core::MarkSurfaceBand(tree, impl.positions, band_level);
+  tree.Refine([&](const core::OctreeCell& c) {
+    if (band.ancestors.contains(core::CellKey(c))) return true;
+    const int32_t node = impl.NodeAt(c);
+    return node >= 0 && impl.nodes[static_cast<size_t>(node)].first_child >= 0;
+  });
+  band.ancestors.clear();
+  tree.Balance();
+  LSQSURF_RETURN_IF_ERROR(ctx.CheckCancelled());
+  std::vector<core::OctreeCell> start;
+  start.reserve(band.occupied.size());
+  for (uint64_t key : band.occupied) start.push_back(core::CellFromKey(key));
+  band.occupied.clear();
+  core::SubContext extract_ctx(ctx, "extracting surface", 0.1, 0.95);
+  auto result = core::ExtractIsosurfaceOnTree(function, tree, start, params.max_leaves, params.marching, extract_ctx);
+  if (!result.ok() || !params.label_vertices) return result;
+  core::TriangleMesh& mesh = result->mesh;
+  core::ScalarAttribute depth_attribute{"depth", std::vector<float>(mesh.vertices.size())};
+  core::ScalarAttribute degree_attribute{"degree", std::vector<float>(mesh.vertices.size())};
+  LSQSURF_RETURN_IF_ERROR(core::ParallelFor(
+      mesh.vertices.size(), 1024,
+      [&](size_t b, size_t e) {
+        for (size_t i = b; i < e; ++i) {
+          const FitLabel label = function.DominantFit(mesh.vertices[i].cast<double>());
+          depth_attribute.values[i] = static_cast<float>(label.depth);
+          degree_attribute.values[i] = static_cast<float>(label.degree);
+        }
+      },
+      &ctx));
+  mesh.vertex_attributes.push_back(std::move(depth_attribute));
+  mesh.vertex_attributes.push_back(std::move(degree_attribute));
+  return result;
+}
+
+}  // namespace lsqsurf::pu

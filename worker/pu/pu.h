@@ -1,0 +1,119 @@
+// worker/pu/pu.h — twofold adaptive partition-of-unity implicits (seed §2).
+//
+// F(x) = Σ θ_i(x) f_i(x) / Σ θ_i(x), θ_i(x) = (1 − s²)⁴ with s = ‖x − c_i‖ / R_i, over the
+// leaves of an octree. R_i = `support_factor` × the leaf's diagonal. Each f_i is a local fit:
+// a height function over the leaf's weighted tangent plane, in orthogonal polynomials of
+// degree 0–4 (see orthogonal_fit.h), or a general quadric where no height field exists.
+// Adaptivity is twofold: a leaf first raises its degree until the largest Taubin distance
+// |f|/|∇f| at its points is below the threshold, and is split only when degree `max_degree`
+// still fails. The leaves are the cubes of a J1a triangulation, on which the zero set is
+// extracted (see Extract below).
+//
+// Robustness criteria, all on by default (each one can be switched off to see what it does):
+//  * normal cone: every normal in the support within `max_normal_angle` of the mean normal,
+//    otherwise no height field exists there: the leaf is split, or at the depth limit gets the
+//    quadric fit;
+//  * points per degree: degree d needs 2× its term count of points and a full-rank basis;
+//  * coverage at fit time: around the leaf centre projected onto the tangent plane, at least 7
+//    of 8 angular sectors must hold points; otherwise the leaf stops at degree 1, because
+//    higher degrees extrapolate wildly into the empty sectors (data boundaries, holes);
+//  * coverage at evaluation time: F is defined at x only if a data point lies within
+//    `coverage_factor` × the weighted fit radius; beyond that F keeps its sign but no surface
+//    is placed there, so holes stay holes and no sheets appear away from the data;
+//  * orientation: a fit whose gradient opposes more than 10% of its points' normals is
+//    rejected (split, or the depth limit's fallback).
+#pragma once
+
+#include <array>
+#include <cstdint>
+#include <memory>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "worker/core/geometry.h"
+#include "worker/core/implicit_function.h"
+#include "worker/core/isosurface.h"
+#include "worker/core/job_context.h"
+
+namespace lsqsurf::pu {
+
+struct PuParams {
+  double error_threshold = 1e-4;  // ε0: largest Taubin distance accepted in a leaf, as a share of
+                                  // the bounding-box diagonal, 1e-6..0.1. Noisy scans need about
+                                  // the noise amplitude.
+  int max_depth = 12;             // Octree levels below the root cube, 1..18.
+  int max_degree = 4;             // Highest polynomial degree, 0..4.
+  double support_factor = 0.75;   // α: support radius = α × leaf diagonal, 0.55..2.
+  int min_points = 15;            // N_min: the fitting radius grows until it holds this many, 4..200.
+  double max_normal_angle = 75;   // Degrees, 10..180: the normal-cone criterion (180 disables it).
+  bool coverage_check = true;     // The two coverage criteria.
+  double coverage_factor = 0.75;  // κ of the evaluation-time coverage test, 0.1..4.
+  bool orientation_check = true;
+};
+
+absl::Status Validate(const PuParams& params);
+
+struct PuStats {
+  std::array<int64_t, 5> fits_per_degree{};  // Height fits of degree 0..4.
+  int64_t quadric_fits = 0;                 // General-quadric fallbacks.
+  std::vector<int64_t> leaves_per_depth;    // All leaves, with or without a fit.
+  std::vector<int64_t> fits_per_depth;
+  int64_t cells_examined = 0;               // Every cell the adaptive loop looked at.
+  int64_t unmet_threshold = 0;              // Fits kept at the depth limit above the threshold.
+  double fit_seconds = 0;
+  double index_seconds = 0;                 // Building the leaf → support lists.
+  double root_edge = 0;                     // Model units.
+  double mean_spacing = 0;                  // Mean nearest-neighbour distance of the input.
+};
+
+// Which local fit dominates at a point: the J1a depth and polynomial degree shown as colours
+// in the seed's Figure 2 (degree 5 marks a quadric fallback; −1 where no fit reaches).
+struct FitLabel {
+  int depth = -1;
+  int degree = -1;
+};
+
+struct PuExtractParams;
+
+class PuFunction final : public core::ImplicitFunction {
+ public:
+  ~PuFunction() override;
+  core::FieldValue Value(const core::Vec3d& x) const override;
+  core::FieldGradient ValueAndGradient(const core::Vec3d& x) const override;
+  FitLabel DominantFit(const core::Vec3d& x) const;
+
+  const PuStats& stats() const { return stats_; }
+
+  struct Impl;  // Defined in pu.cc.
+
+ private:
+  friend absl::StatusOr<std::unique_ptr<PuFunction>> BuildPu(const core::PointCloud&, const PuParams&,
+                                                             core::JobContext&);
+  friend absl::StatusOr<core::IsosurfaceResult> Extract(const PuFunction&, const PuExtractParams&,
+                                                        core::JobContext&);
+  PuFunction();
+  std::unique_ptr<Impl> impl_;
+  PuStats stats_;
+};
+
+// Builds F for an oriented cloud (copied). Errors: kInvalidArgument (no normals, fewer than 4
+// points, bad parameters), kResourceExhausted (more than 2^31 cells), kCancelled.
+absl::StatusOr<std::unique_ptr<PuFunction>> BuildPu(const core::PointCloud& cloud, const PuParams& params,
+                                                    core::JobContext& ctx);
+
+struct PuExtractParams {
+  // Largest edge of a J1a leaf the surface crosses, in units of the mean point spacing; leaves
+  // of the fitting tree that are smaller stay as they are (the extraction follows the fits'
+  // adaptivity below this size).
+  double cell_size = 3.0;
+  int64_t max_leaves = 20'000'000;
+  core::MarchingOptions marching;
+  bool label_vertices = true;  // Adds the vertex attributes "depth" and "degree".
+};
+
+// The zero set of F on the J1a tetrahedra of the fitting tree, refined near the data to
+// `cell_size`. Errors: kInvalidArgument, kResourceExhausted, kCancelled.
+absl::StatusOr<core::IsosurfaceResult> Extract(const PuFunction& function, const PuExtractParams& params,
+                                               core::JobContext& ctx);
+
+}  // namespace lsqsurf::pu

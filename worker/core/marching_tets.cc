@@ -3,6 +3,8 @@
 #include <algorithm>
 #include <cmath>
 
+#include "absl/container/flat_hash_set.h"
+
 #include "worker/core/parallel.h"
 #include "worker/core/status.h"
 
@@ -17,9 +19,11 @@ struct Crossing {
 };
 
 // Marks as trusted again every edge-connected cluster of untrusted triangles with at most
-// `max_size` members: such pinholes lie on the real surface where the field's confidence dips
-// for a moment (a gap in random sampling), and dropping them would open the surface. Large
-// clusters (holes in the data, ghost sheets) stay untrusted. Returns the triangles restored.
+// `max_size` members whose whole border is shared with trusted triangles: such pinholes lie on
+// the real surface where the field's confidence dips for a moment (a gap in random sampling),
+// and dropping them would open the surface. Large clusters (holes in the data, ghost sheets) and
+// clusters that trusted surface does not surround (isolated bubbles and fragments) stay
+// untrusted. Returns the triangles restored.
 int64_t RestoreSmallPatches(const std::vector<Triangle>& faces, std::vector<char>& trusted,
                             int max_size) {
   if (max_size <= 0) return 0;
@@ -34,6 +38,7 @@ int64_t RestoreSmallPatches(const std::vector<Triangle>& faces, std::vector<char
       sides.push_back({std::min(a, b), std::max(a, b), f});
     }
   }
+  if (sides.empty()) return 0;
   std::sort(sides.begin(), sides.end(), [](const Side& x, const Side& y) {
     return x.lo != y.lo ? x.lo < y.lo : x.hi < y.hi;
   });
@@ -43,16 +48,38 @@ int64_t RestoreSmallPatches(const std::vector<Triangle>& faces, std::vector<char
     return x;
   };
   for (const Side& s : sides) parent.try_emplace(s.face, s.face);
-  for (size_t i = 1; i < sides.size(); ++i) {
-    if (sides[i].lo == sides[i - 1].lo && sides[i].hi == sides[i - 1].hi) {
-      parent[find(sides[i].face)] = find(sides[i - 1].face);
+  // Border sides: used once among the untrusted triangles.
+  absl::flat_hash_map<uint64_t, uint32_t> border;  // Edge → its face.
+  for (size_t i = 0; i < sides.size(); ++i) {
+    const bool same_as_previous = i > 0 && sides[i].lo == sides[i - 1].lo && sides[i].hi == sides[i - 1].hi;
+    const bool same_as_next =
+        i + 1 < sides.size() && sides[i].lo == sides[i + 1].lo && sides[i].hi == sides[i + 1].hi;
+    if (same_as_previous) parent[find(sides[i].face)] = find(sides[i - 1].face);
+    if (!same_as_previous && !same_as_next) {
+      border.emplace((uint64_t{sides[i].lo} << 32) | sides[i].hi, sides[i].face);
     }
   }
-  absl::flat_hash_map<uint32_t, int> size;
+  absl::flat_hash_map<uint32_t, int> size, open_border;
   for (auto& [face, p] : parent) ++size[find(face)];
+  absl::flat_hash_set<uint32_t> has_border;
+  for (auto& [edge, face] : border) {
+    ++open_border[find(face)];
+    has_border.insert(find(face));
+  }
+  for (uint32_t f = 0; f < faces.size(); ++f) {
+    if (!trusted[f]) continue;
+    for (int i = 0; i < 3; ++i) {
+      const uint32_t a = faces[f][static_cast<size_t>(i)], b = faces[f][static_cast<size_t>((i + 1) % 3)];
+      if (auto it = border.find((uint64_t{std::min(a, b)} << 32) | std::max(a, b)); it != border.end()) {
+        --open_border[find(it->second)];
+      }
+    }
+  }
   int64_t restored = 0;
   for (auto& [face, p] : parent) {
-    if (size[find(face)] <= max_size) {
+    const uint32_t root = find(face);
+    // A pinhole has a border, and trusted triangles close every side of it.
+    if (size[root] <= max_size && has_border.contains(root) && open_border[root] == 0) {
       trusted[face] = 1;
       ++restored;
     }

@@ -27,21 +27,24 @@ using core::Vec3f;
 constexpr double kSqrt3 = 1.7320508075688772;
 // Cells holding more points are split without trying a fit: at any useful threshold a fit over
 // thousands of points fails, and gathering them is the expensive part at coarse levels.
-constexpr uint32_t kMaxPointsToFit = 4096;
+constexpr uint32_t kMaxPointsToFit = 1024;
 // The fitting ball of a sparse cell grows to at most this multiple of its support radius.
 constexpr double kMaxRadiusGrowth = 4.0;
 // Share of support points whose normal may oppose the fitted gradient.
 constexpr double kMaxInvertedShare = 0.1;
+// The local spacing of a point, for the coverage test: the distance to its 8th neighbour (about
+// two sample spacings on a surface, robust to pairs of nearly coincident points).
+constexpr size_t kSpacingNeighbors = 8;
 // A quadric label in FitLabel::degree.
 constexpr int kQuadricLabel = 5;
 
 struct LocalFit {
   Vec3d centre = Vec3d::Zero();   // Of the leaf.
   double support_radius = 0;      // R_i of the PU weight.
-  double fit_radius = 0;          // The fitting ball (larger in sparse leaves).
   Vec3d origin = Vec3d::Zero();   // Local frame: weighted centroid, tangents, mean normal.
   Vec3d tangent_u = Vec3d::UnitX(), tangent_v = Vec3d::UnitY(), normal = Vec3d::UnitZ();
-  double scale = 1;               // Tangent coordinates are divided by this (the fit radius).
+  double scale = 1;               // The fitting radius (larger than the support in sparse leaves);
+                                  // tangent coordinates are divided by it.
   std::array<double, kMaxTerms> coefficients{};  // Height polynomial, or quadric in y = (x − origin)/scale.
   int8_t degree = 0;
   int8_t depth = 0;
@@ -89,6 +92,7 @@ double Theta(double s2) {
 
 struct PuFunction::Impl {
   std::vector<Vec3f> positions;
+  std::vector<float> local_spacing;  // Per point: distance to its kSpacingNeighbors-th neighbour.
   std::unique_ptr<core::KdTree> kd_tree;
   Vec3d origin = Vec3d::Zero();
   double root_edge = 1;
@@ -99,7 +103,7 @@ struct PuFunction::Impl {
   std::vector<uint32_t> influence_offsets;
   std::vector<uint32_t> influence;
   bool coverage_check = true;
-  double coverage_factor = 0.75;
+  double coverage_factor = 1.25;
 
   double Edge(int level) const { return std::ldexp(root_edge, -level); }
   Vec3d Centre(const Node& n) const {
@@ -119,12 +123,12 @@ struct PuFunction::Impl {
     return index;
   }
 
-  // The node at `cell`, or -1 where the tree stops above it.
-  int32_t NodeAt(const core::OctreeCell& cell) const {
+  // The node at `cell`, or the leaf above it where the tree stops sooner.
+  int32_t DeepestNodeAt(const core::OctreeCell& cell) const {
     int32_t index = 0;
     for (int l = 1; l <= cell.level; ++l) {
       const Node& n = nodes[static_cast<size_t>(index)];
-      if (n.first_child < 0) return -1;
+      if (n.first_child < 0) return index;
       const int shift = cell.level - l;
       const int octant = static_cast<int>(((cell.x >> shift) & 1) | (((cell.y >> shift) & 1) << 1) |
                                           (((cell.z >> shift) & 1) << 2));
@@ -151,7 +155,7 @@ struct PuFunction::Impl {
   }
 
   core::FieldGradient Evaluate(const Vec3d& x, bool with_gradient) const {
-    double sum_theta = 0, sum_value = 0, sum_radius = 0;
+    double sum_theta = 0, sum_value = 0;
     Vec3d sum_grad_theta = Vec3d::Zero(), sum_grad_value = Vec3d::Zero();
     const LocalFit* closest = ForEachSupport(x, [&](const LocalFit& fit, double s2) {
       const double theta = Theta(s2);
@@ -159,7 +163,6 @@ struct PuFunction::Impl {
       const double f = fit.Evaluate(x, with_gradient ? &grad_f : nullptr);
       sum_theta += theta;
       sum_value += theta * f;
-      sum_radius += theta * fit.fit_radius;
       if (with_gradient) {
         const double t = 1 - s2;
         const Vec3d grad_theta = (-8 * t * t * t / (fit.support_radius * fit.support_radius)) * (x - fit.centre);
@@ -179,8 +182,9 @@ struct PuFunction::Impl {
     if (with_gradient) out.gradient = (sum_grad_value * sum_theta - sum_value * sum_grad_theta) / (sum_theta * sum_theta);
     out.defined = true;
     if (coverage_check) {
-      const double reach = coverage_factor * sum_radius / sum_theta;
-      out.defined = kd_tree->Nearest(x.cast<float>()).distance2 <= reach * reach;
+      const core::Neighbor nearest = kd_tree->Nearest(x.cast<float>());
+      const double reach = coverage_factor * local_spacing[nearest.index];
+      out.defined = nearest.distance2 <= reach * reach;
     }
     return out;
   }
@@ -275,9 +279,6 @@ CellOutcome ProcessCell(const BuildContext& bc, const Node& node, std::span<uint
     PartitionOctants(inside, impl.positions, centre, out.child_ranges, begin);
     return out;
   };
-  // A leaf without points of its own gets no function: its neighbours' supports reach over it,
-  // and a fit centred away from the data would only extrapolate.
-  if (inside.empty()) return out;
   if (inside.size() > kMaxPointsToFit && node.level < params.max_depth) return split();
 
   const Vec3f query = centre.cast<float>();
@@ -311,7 +312,6 @@ CellOutcome ProcessCell(const BuildContext& bc, const Node& node, std::span<uint
   out.has_fit = true;
   fit.centre = centre;
   fit.support_radius = support;
-  fit.fit_radius = fit_radius;
   fit.origin = centroid / weight_sum;
   fit.scale = fit_radius;
   fit.depth = static_cast<int8_t>(node.level);
@@ -410,7 +410,7 @@ absl::Status Validate(const PuParams& p) {
   if (!in(p.support_factor, 0.55, 2)) return absl::InvalidArgumentError("support_factor must be in [0.55, 2]");
   if (p.min_points < 4 || p.min_points > 200) return absl::InvalidArgumentError("min_points must be in [4, 200]");
   if (!in(p.max_normal_angle, 10, 180)) return absl::InvalidArgumentError("max_normal_angle must be in [10, 180] degrees");
-  if (!in(p.coverage_factor, 0.1, 4)) return absl::InvalidArgumentError("coverage_factor must be in [0.1, 4]");
+  if (!in(p.coverage_factor, 0.5, 20)) return absl::InvalidArgumentError("coverage_factor must be in [0.5, 20]");
   return absl::OkStatus();
 }
 
@@ -451,6 +451,19 @@ absl::StatusOr<std::unique_ptr<PuFunction>> BuildPu(const core::PointCloud& clou
   impl.coverage_check = params.coverage_check;
   impl.coverage_factor = params.coverage_factor;
   stats.mean_spacing = core::MeanNearestNeighborDistance(*impl.kd_tree);
+  if (params.coverage_check) {
+    impl.local_spacing.resize(impl.positions.size());
+    LSQSURF_RETURN_IF_ERROR(core::ParallelFor(
+        impl.positions.size(), 2048,
+        [&](size_t b, size_t e) {
+          std::vector<core::Neighbor> knn;
+          for (size_t i = b; i < e; ++i) {
+            impl.kd_tree->Knn(impl.positions[i], kSpacingNeighbors + 1, knn);
+            impl.local_spacing[i] = std::sqrt(knn.back().distance2);
+          }
+        },
+        &ctx));
+  }
   const core::Box3 box = core::BoundingBox(impl.positions);
   const double diagonal = core::Diagonal(box);
   if (!(diagonal > 0)) return absl::InvalidArgumentError("all points coincide");
@@ -579,24 +592,42 @@ absl::StatusOr<core::IsosurfaceResult> Extract(const PuFunction& function, const
   const PuFunction::Impl& impl = *function.impl_;
   const double target = params.cell_size * function.stats().mean_spacing;
   if (!(target > 0)) return absl::InvalidArgumentError("the points have no spacing to size cells by");
-  const int band_level = std::clamp(static_cast<int>(std::ceil(std::log2(impl.root_edge / target))), 1,
-                                    core::AdaptiveOctree::kMaxDepth);
-  const int depth = band_level;
+  // The finest extraction level comes from `cell_size`; around the data the tree is refined to
+  // at least two levels above it, and in between it follows the fitting tree: where the fits
+  // needed small cells the surface gets small tetrahedra too.
+  const int depth = std::clamp(static_cast<int>(std::lround(std::log2(impl.root_edge / target))), 2,
+                               core::AdaptiveOctree::kMaxDepth);
+  const int band_level = depth - 2;
   core::SubContext build_ctx(ctx, "building the J1a tree", 0.0, 0.1);
   core::AdaptiveOctree tree(core::Box3(impl.origin, impl.origin + Vec3d::Constant(impl.root_edge)), depth);
   core::SurfaceBand band = core::MarkSurfaceBand(tree, impl.positions, band_level);
+  band.occupied.clear();
   tree.Refine([&](const core::OctreeCell& c) {
-    if (band.ancestors.contains(core::CellKey(c))) return true;
-    const int32_t node = impl.NodeAt(c);
-    return node >= 0 && impl.nodes[static_cast<size_t>(node)].first_child >= 0;
+    if (c.level <= band_level && band.ancestors.contains(core::CellKey(c))) return true;
+    const Node& node = impl.nodes[static_cast<size_t>(impl.DeepestNodeAt(c))];
+    if (node.first_child >= 0) return true;  // The fitting tree is finer here.
+    // A leaf with a curved fit: linear interpolation on its tetrahedra would cut chords, so
+    // such regions go to the finest level; planes are represented exactly by coarse cells.
+    return node.fit >= 0 && impl.fits[static_cast<size_t>(node.fit)].degree >= 2;
   });
   band.ancestors.clear();
   tree.Balance();
   LSQSURF_RETURN_IF_ERROR(ctx.CheckCancelled());
+  // Start at the leaves that hold points.
+  absl::flat_hash_set<uint64_t> start_keys;
+  const double finest = tree.CellEdge(depth);
+  const auto cells = static_cast<int64_t>(1) << depth;
+  for (const Vec3f& p : impl.positions) {
+    const Vec3d g = (p.cast<double>() - impl.origin) / finest;
+    auto index = [&](double v) { return static_cast<uint32_t>(std::clamp<int64_t>(static_cast<int64_t>(std::floor(v)), 0, cells - 1)); };
+    if (const core::OctreeCell* leaf = tree.LeafContaining({depth, index(g.x()), index(g.y()), index(g.z())})) {
+      start_keys.insert(core::CellKey(*leaf));
+    }
+  }
   std::vector<core::OctreeCell> start;
-  start.reserve(band.occupied.size());
-  for (uint64_t key : band.occupied) start.push_back(core::CellFromKey(key));
-  band.occupied.clear();
+  start.reserve(start_keys.size());
+  for (uint64_t key : start_keys) start.push_back(core::CellFromKey(key));
+  start_keys.clear();
   core::SubContext extract_ctx(ctx, "extracting surface", 0.1, 0.95);
   auto result = core::ExtractIsosurfaceOnTree(function, tree, start, params.max_leaves, params.marching, extract_ctx);
   if (!result.ok() || !params.label_vertices) return result;

@@ -17,9 +17,10 @@
 //  * coverage at fit time: around the leaf centre projected onto the tangent plane, at least 7
 //    of 8 angular sectors must hold points; otherwise the leaf stops at degree 1, because
 //    higher degrees extrapolate wildly into the empty sectors (data boundaries, holes);
-//  * coverage at evaluation time: F is defined at x only if a data point lies within
-//    `coverage_factor` × the weighted fit radius; beyond that F keeps its sign but no surface
-//    is placed there, so holes stay holes and no sheets appear away from the data;
+//  * coverage at evaluation time: F is defined at x only if the nearest data point p lies
+//    within `coverage_factor` × h(p), h(p) the distance from p to its 8th neighbour; beyond
+//    that F keeps its sign but no surface is placed there, so holes stay holes and no sheets
+//    appear away from the data;
 //  * orientation: a fit whose gradient opposes more than 10% of its points' normals is
 //    rejected (split, or the depth limit's fallback).
 #pragma once
@@ -38,7 +39,7 @@
 namespace lsqsurf::pu {
 
 struct PuParams {
-  double error_threshold = 1e-4;  // ε0: largest Taubin distance accepted in a leaf, as a share of
+  double error_threshold = 3e-4;  // ε0: largest Taubin distance accepted in a leaf, as a share of
                                   // the bounding-box diagonal, 1e-6..0.1. Noisy scans need about
                                   // the noise amplitude.
   int max_depth = 12;             // Octree levels below the root cube, 1..18.
@@ -47,7 +48,7 @@ struct PuParams {
   int min_points = 15;            // N_min: the fitting radius grows until it holds this many, 4..200.
   double max_normal_angle = 75;   // Degrees, 10..180: the normal-cone criterion (180 disables it).
   bool coverage_check = true;     // The two coverage criteria.
-  double coverage_factor = 0.75;  // κ of the evaluation-time coverage test, 0.1..4.
+  double coverage_factor = 1.25;  // Evaluation-time coverage reach in units of h(p), 0.5..20.
   bool orientation_check = true;
 };
 
@@ -102,17 +103,18 @@ absl::StatusOr<std::unique_ptr<PuFunction>> BuildPu(const core::PointCloud& clou
                                                     core::JobContext& ctx);
 
 struct PuExtractParams {
-  // Largest edge of a J1a leaf the surface crosses, in units of the mean point spacing; leaves
-  // of the fitting tree that are smaller stay as they are (the extraction follows the fits'
-  // adaptivity below this size).
-  double cell_size = 3.0;
+  // Smallest edge of the J1a leaves the surface crosses, in units of the mean point spacing,
+  // rounded to the nearest octree level (so within 0.71–1.41 × this). Leaves near the data are
+  // at most 4× larger; in between they follow the fitting tree. J1a cuts a cube into 48
+  // tetrahedra, so its leaves can be several times larger than the cubes of a Kuhn grid.
+  double cell_size = 5.0;
   int64_t max_leaves = 20'000'000;
   core::MarchingOptions marching;
   bool label_vertices = true;  // Adds the vertex attributes "depth" and "degree".
 };
 
-// The zero set of F on the J1a tetrahedra of the fitting tree, refined near the data to
-// `cell_size`. Errors: kInvalidArgument, kResourceExhausted, kCancelled.
+// The zero set of F on J1a tetrahedra: the fitting tree down to `cell_size`, refined to at least
+// 4 × `cell_size` around the data and 2:1 balanced, so cells grow away from the surface. Errors: kInvalidArgument, kResourceExhausted, kCancelled.
 absl::StatusOr<core::IsosurfaceResult> Extract(const PuFunction& function, const PuExtractParams& params,
                                                core::JobContext& ctx);
 

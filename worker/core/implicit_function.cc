@@ -4,12 +4,12 @@
 
 namespace lsqsurf::core {
 
-absl::Status ImplicitFunction::ValueBatch(std::span<const Vec3d> xs, std::span<FieldValue> out,
-                                          const JobContext* ctx) const {
+absl::Status ImplicitFunction::ValueOnlyBatch(std::span<const Vec3d> xs, std::span<double> out,
+                                              const JobContext* ctx) const {
   return ParallelFor(
       xs.size(), 256,
       [&](size_t begin, size_t end) {
-        for (size_t i = begin; i < end; ++i) out[i] = Value(xs[i]);
+        for (size_t i = begin; i < end; ++i) out[i] = ValueOnly(xs[i]);
       },
       ctx);
 }

@@ -35,10 +35,14 @@ class ImplicitFunction {
   virtual FieldValue Value(const Vec3d& x) const = 0;
   virtual FieldGradient ValueAndGradient(const Vec3d& x) const = 0;
 
-  // Evaluates many points (in parallel by default). `out.size()` must equal `xs.size()`.
+  // F's value alone, skipping the `defined` decision where that costs extra (what extractors
+  // need for corner signs and root refinement). Default: Value(x).value.
+  virtual double ValueOnly(const Vec3d& x) const { return Value(x).value; }
+
+  // ValueOnly at many points, in parallel. `out.size()` must equal `xs.size()`.
   // Errors: kCancelled when `ctx` is cancelled.
-  virtual absl::Status ValueBatch(std::span<const Vec3d> xs, std::span<FieldValue> out,
-                                  const JobContext* ctx = nullptr) const;
+  absl::Status ValueOnlyBatch(std::span<const Vec3d> xs, std::span<double> out,
+                              const JobContext* ctx = nullptr) const;
 };
 
 }  // namespace lsqsurf::core

@@ -111,7 +111,7 @@ absl::StatusOr<IsosurfaceResult> ExtractIsosurface(const ImplicitFunction& field
   std::vector<Key> surface_cells;
   std::vector<Key> pending;
   std::vector<Vec3d> pending_positions;
-  std::vector<FieldValue> pending_values;
+  std::vector<double> pending_values;
   while (!frontier.empty()) {
     stats.cells_visited += static_cast<int64_t>(frontier.size());
     if (stats.cells_visited > params.max_cells) {
@@ -129,8 +129,8 @@ absl::StatusOr<IsosurfaceResult> ExtractIsosurface(const ImplicitFunction& field
     pending_positions.resize(pending.size());
     pending_values.resize(pending.size());
     for (size_t i = 0; i < pending.size(); ++i) pending_positions[i] = vertex_position(pending[i]);
-    LSQSURF_RETURN_IF_ERROR(field.ValueBatch(pending_positions, pending_values, &ctx));
-    for (size_t i = 0; i < pending.size(); ++i) values[pending[i]] = pending_values[i];
+    LSQSURF_RETURN_IF_ERROR(field.ValueOnlyBatch(pending_positions, pending_values, &ctx));
+    for (size_t i = 0; i < pending.size(); ++i) values[pending[i]] = FieldValue{pending_values[i], false};
     stats.field_evaluations += static_cast<int64_t>(pending.size());
 
     std::vector<Key> next;

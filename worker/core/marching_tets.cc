@@ -170,14 +170,14 @@ absl::StatusOr<IsosurfaceResult> MarchTetrahedra(
           double t = fa / (fa - fb);
           int side = 0;
           for (int step = 0; step < params.refine_steps; ++step) {
-            const FieldValue fv = field.Value(a + t * (b - a));
-            if (std::isnan(fv.value) || fv.value == 0.0) break;
-            if (fv.value < 0) {
-              ta = t, fa = fv.value;
+            const double fv = field.ValueOnly(a + t * (b - a));
+            if (std::isnan(fv) || fv == 0.0) break;
+            if (fv < 0) {
+              ta = t, fa = fv;
               if (side == -1) fb *= 0.5;
               side = -1;
             } else {
-              tb = t, fb = fv.value;
+              tb = t, fb = fv;
               if (side == 1) fa *= 0.5;
               side = 1;
             }

@@ -154,7 +154,7 @@ struct PuFunction::Impl {
     return closest;
   }
 
-  core::FieldGradient Evaluate(const Vec3d& x, bool with_gradient) const {
+  core::FieldGradient Evaluate(const Vec3d& x, bool with_gradient, bool decide_defined = true) const {
     double sum_theta = 0, sum_value = 0;
     Vec3d sum_grad_theta = Vec3d::Zero(), sum_grad_value = Vec3d::Zero();
     const LocalFit* closest = ForEachSupport(x, [&](const LocalFit& fit, double s2) {
@@ -181,7 +181,7 @@ struct PuFunction::Impl {
     out.value = sum_value / sum_theta;
     if (with_gradient) out.gradient = (sum_grad_value * sum_theta - sum_value * sum_grad_theta) / (sum_theta * sum_theta);
     out.defined = true;
-    if (coverage_check) {
+    if (coverage_check && decide_defined) {
       const core::Neighbor nearest = kd_tree->Nearest(x.cast<float>());
       const double reach = coverage_factor * local_spacing[nearest.index];
       out.defined = nearest.distance2 <= reach * reach;
@@ -422,6 +422,8 @@ core::FieldValue PuFunction::Value(const Vec3d& x) const {
   return {g.value, g.defined};
 }
 
+double PuFunction::ValueOnly(const Vec3d& x) const { return impl_->Evaluate(x, false, false).value; }
+
 core::FieldGradient PuFunction::ValueAndGradient(const Vec3d& x) const { return impl_->Evaluate(x, true); }
 
 FitLabel PuFunction::DominantFit(const Vec3d& x) const {
@@ -601,9 +603,13 @@ absl::StatusOr<core::IsosurfaceResult> Extract(const PuFunction& function, const
   core::SubContext build_ctx(ctx, "building the J1a tree", 0.0, 0.1);
   core::AdaptiveOctree tree(core::Box3(impl.origin, impl.origin + Vec3d::Constant(impl.root_edge)), depth);
   core::SurfaceBand band = core::MarkSurfaceBand(tree, impl.positions, band_level);
+  core::SurfaceBand fine_band = core::MarkSurfaceBand(tree, impl.positions, depth);
   band.occupied.clear();
+  fine_band.occupied.clear();
   tree.Refine([&](const core::OctreeCell& c) {
-    if (c.level <= band_level && band.ancestors.contains(core::CellKey(c))) return true;
+    const uint64_t key = core::CellKey(c);
+    if (c.level <= band_level && band.ancestors.contains(key)) return true;
+    if (!fine_band.ancestors.contains(key)) return false;  // Away from the data.
     const Node& node = impl.nodes[static_cast<size_t>(impl.DeepestNodeAt(c))];
     if (node.first_child >= 0) return true;  // The fitting tree is finer here.
     // A leaf with a curved fit: linear interpolation on its tetrahedra would cut chords, so
@@ -611,6 +617,7 @@ absl::StatusOr<core::IsosurfaceResult> Extract(const PuFunction& function, const
     return node.fit >= 0 && impl.fits[static_cast<size_t>(node.fit)].degree >= 2;
   });
   band.ancestors.clear();
+  fine_band.ancestors.clear();
   tree.Balance();
   LSQSURF_RETURN_IF_ERROR(ctx.CheckCancelled());
   // Start at the leaves that hold points.

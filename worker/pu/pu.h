@@ -81,6 +81,7 @@ class PuFunction final : public core::ImplicitFunction {
   ~PuFunction() override;
   core::FieldValue Value(const core::Vec3d& x) const override;
   core::FieldGradient ValueAndGradient(const core::Vec3d& x) const override;
+  double ValueOnly(const core::Vec3d& x) const override;  // Skips the coverage query.
   FitLabel DominantFit(const core::Vec3d& x) const;
 
   const PuStats& stats() const { return stats_; }

@@ -5,6 +5,8 @@
 #include <numbers>
 #include <random>
 
+#include <gtest/gtest.h>
+
 #include "worker/core/geometry.h"
 #include "worker/core/implicit_function.h"
 
@@ -71,5 +73,22 @@ class TorusField : public core::ImplicitFunction {
  private:
   double R_, r_;
 };
+
+// Largest |F| / |∇F| (a first-order distance to the zero set) at `samples` random points of the
+// true surface, given by `project` (maps a unit direction to a surface point). Every such point
+// must be where F is defined.
+template <class Project>
+double MaxSurfaceError(const core::ImplicitFunction& f, Project project, int samples) {
+  std::mt19937_64 rng(17);
+  std::normal_distribution<double> g(0, 1);
+  double worst = 0;
+  for (int i = 0; i < samples; ++i) {
+    const core::Vec3d x = project(core::Vec3d(g(rng), g(rng), g(rng)).normalized());
+    const core::FieldGradient v = f.ValueAndGradient(x);
+    EXPECT_TRUE(v.defined) << x.transpose();
+    worst = std::max(worst, std::abs(v.value) / v.gradient.norm());
+  }
+  return worst;
+}
 
 }  // namespace lsqsurf::testing

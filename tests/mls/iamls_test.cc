@@ -14,22 +14,6 @@ namespace {
 
 using core::Vec3d;
 
-// Largest |F| / |∇F| (a first-order distance to the zero set) at random points of the true
-// surface, given by `project` (maps a direction to a surface point).
-template <class Project>
-double MaxSurfaceError(const IamlsFunction& f, Project project) {
-  std::mt19937_64 rng(17);
-  std::normal_distribution<double> g(0, 1);
-  double worst = 0;
-  for (int i = 0; i < 300; ++i) {
-    const Vec3d x = project(Vec3d(g(rng), g(rng), g(rng)).normalized());
-    const core::FieldGradient v = f.ValueAndGradient(x);
-    EXPECT_TRUE(v.defined);
-    worst = std::max(worst, std::abs(v.value) / v.gradient.norm());
-  }
-  return worst;
-}
-
 std::unique_ptr<IamlsFunction> Build(const core::PointCloud& cloud, IamlsParams p = {}) {
   core::LocalJobContext ctx;
   auto f = BuildIamls(cloud, p, ctx);
@@ -42,7 +26,7 @@ TEST(Iamls, SphereErrorIsSmallAndShrinksWithDensity) {
   for (size_t n : {2000, 8000, 32000}) {
     auto f = Build(testing::SphereCloud(n));
     ASSERT_TRUE(f);
-    const double err = MaxSurfaceError(*f, [](const Vec3d& d) { return d; });
+    const double err = testing::MaxSurfaceError(*f, [](const Vec3d& d) { return d; }, 300);
     EXPECT_LT(err, 0.01) << n;  // Radius 1.
     EXPECT_LT(err, previous) << n;
     previous = err;
@@ -59,7 +43,8 @@ TEST(Iamls, TorusErrorShrinksWithDensity) {
   auto coarse = Build(testing::TorusCloud(10000, R, r));
   auto fine = Build(testing::TorusCloud(40000, R, r));
   ASSERT_TRUE(coarse && fine);
-  const double e_coarse = MaxSurfaceError(*coarse, on_torus), e_fine = MaxSurfaceError(*fine, on_torus);
+  const double e_coarse = testing::MaxSurfaceError(*coarse, on_torus, 300);
+  const double e_fine = testing::MaxSurfaceError(*fine, on_torus, 300);
   EXPECT_LT(e_fine, e_coarse);
   EXPECT_LT(e_fine, 0.01 * r);
 }

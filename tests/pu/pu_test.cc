@@ -5,6 +5,7 @@
 #include <random>
 
 #include "tests/test_shapes.h"
+#include "worker/core/kd_tree.h"
 #include "worker/core/mesh_metrics.h"
 
 namespace lsqsurf::pu {
@@ -26,21 +27,6 @@ core::TriangleMesh ExtractMesh(const PuFunction& f, PuExtractParams p = {}) {
   return r.ok() ? std::move(r->mesh) : core::TriangleMesh{};
 }
 
-// Largest |F| / |∇F| at random points of the true surface given by `project`.
-template <class Project>
-double MaxSurfaceError(const PuFunction& f, Project project) {
-  std::mt19937_64 rng(17);
-  std::normal_distribution<double> g(0, 1);
-  double worst = 0;
-  for (int i = 0; i < 500; ++i) {
-    const Vec3d x = project(Vec3d(g(rng), g(rng), g(rng)).normalized());
-    const core::FieldGradient v = f.ValueAndGradient(x);
-    EXPECT_TRUE(v.defined) << x.transpose();
-    worst = std::max(worst, std::abs(v.value) / v.gradient.norm());
-  }
-  return worst;
-}
-
 // Largest distance of a mesh vertex from the unit sphere.
 double MaxSphereDeviation(const core::TriangleMesh& mesh) {
   double worst = 0;
@@ -51,7 +37,7 @@ double MaxSphereDeviation(const core::TriangleMesh& mesh) {
 TEST(Pu, SphereFieldIsSignedAndAccurate) {
   auto f = Build(testing::SphereCloud(20000));
   ASSERT_TRUE(f);
-  EXPECT_LT(MaxSurfaceError(*f, [](const Vec3d& d) { return d; }), 2e-4);
+  EXPECT_LT(testing::MaxSurfaceError(*f, [](const Vec3d& d) { return d; }, 500), 2e-4);
   // Signs inside and outside, near the surface and across the volume.
   EXPECT_LT(f->Value(Vec3d(0, 0, 0.9)).value, 0);
   EXPECT_GT(f->Value(Vec3d(0, 0, 1.1)).value, 0);
@@ -142,14 +128,10 @@ TEST(Pu, HolesInTheDataStayOpenAndNoSurfaceAppearsFarFromTheData) {
   const core::TriangleMesh mesh = ExtractMesh(*f, extract);
   ASSERT_FALSE(mesh.faces.empty());
   const double cell = extract.cell_size * f->stats().mean_spacing * std::sqrt(2.0);  // Largest rounding.
-  // Distance from every vertex to the nearest data point, by brute force over a subsample-free
-  // grid hash would be overkill here: the cloud is small.
+  // Distance from every vertex to the nearest data point.
+  const core::KdTree data(cloud.positions);
   double worst = 0;
-  for (size_t v = 0; v < mesh.vertices.size(); v += 7) {
-    double best = 1e30;
-    for (const auto& p : cloud.positions) best = std::min(best, (p - mesh.vertices[v]).squaredNorm() * 1.0);
-    worst = std::max(worst, std::sqrt(best));
-  }
+  for (const auto& v : mesh.vertices) worst = std::max(worst, std::sqrt(double{data.Nearest(v).distance2}));
   EXPECT_LT(worst, 2 * cell);
   const core::MeshTopology topo = core::AnalyzeTopology(mesh);
   EXPECT_GT(topo.boundary_edges, 0);  // Both holes open.

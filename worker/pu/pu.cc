@@ -1,7 +1,6 @@
 #include "worker/pu/pu.h"
 
 #include <algorithm>
-#include <atomic>
 #include <bit>
 #include <chrono>
 #include <cmath>
@@ -538,7 +537,6 @@ absl::StatusOr<std::unique_ptr<PuFunction>> BuildPu(const core::PointCloud& clou
 
   // Leaf → fits whose support meets it, so that an evaluation visits one short list.
   const auto index_start = std::chrono::steady_clock::now();
-  std::vector<uint32_t> counts(impl.fits.size() + 1, 0);
   auto for_each_leaf_in_ball = [&](const LocalFit& fit, auto&& emit) {
     std::vector<int32_t> stack{0};
     const double r2 = fit.support_radius * fit.support_radius;
@@ -605,7 +603,6 @@ absl::StatusOr<core::IsosurfaceResult> Extract(const PuFunction& function, const
   core::SurfaceBand band = core::MarkSurfaceBand(tree, impl.positions, band_level);
   core::SurfaceBand fine_band = core::MarkSurfaceBand(tree, impl.positions, depth);
   band.occupied.clear();
-  fine_band.occupied.clear();
   tree.Refine([&](const core::OctreeCell& c) {
     const uint64_t key = core::CellKey(c);
     if (c.level <= band_level && band.ancestors.contains(key)) return true;
@@ -620,21 +617,11 @@ absl::StatusOr<core::IsosurfaceResult> Extract(const PuFunction& function, const
   fine_band.ancestors.clear();
   tree.Balance();
   LSQSURF_RETURN_IF_ERROR(ctx.CheckCancelled());
-  // Start at the leaves that hold points.
-  absl::flat_hash_set<uint64_t> start_keys;
-  const double finest = tree.CellEdge(depth);
-  const auto cells = static_cast<int64_t>(1) << depth;
-  for (const Vec3f& p : impl.positions) {
-    const Vec3d g = (p.cast<double>() - impl.origin) / finest;
-    auto index = [&](double v) { return static_cast<uint32_t>(std::clamp<int64_t>(static_cast<int64_t>(std::floor(v)), 0, cells - 1)); };
-    if (const core::OctreeCell* leaf = tree.LeafContaining({depth, index(g.x()), index(g.y()), index(g.z())})) {
-      start_keys.insert(core::CellKey(*leaf));
-    }
-  }
+  // Start at the finest cells that hold points (the extractor maps them to their leaves).
   std::vector<core::OctreeCell> start;
-  start.reserve(start_keys.size());
-  for (uint64_t key : start_keys) start.push_back(core::CellFromKey(key));
-  start_keys.clear();
+  start.reserve(fine_band.occupied.size());
+  for (uint64_t key : fine_band.occupied) start.push_back(core::CellFromKey(key));
+  fine_band.occupied.clear();
   core::SubContext extract_ctx(ctx, "extracting surface", 0.1, 0.95);
   auto result = core::ExtractIsosurfaceOnTree(function, tree, start, params.max_leaves, params.marching, extract_ctx);
   if (!result.ok() || !params.label_vertices) return result;

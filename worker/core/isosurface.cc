@@ -161,6 +161,7 @@ absl::StatusOr<IsosurfaceResult> ExtractIsosurface(const ImplicitFunction& field
                                              std::max(1.0, seed_cells)));
   }
   stats.surface_cells = static_cast<int64_t>(surface_cells.size());
+  stats.tetrahedra = static_cast<int64_t>(surface_cells.size() * kTets.size());
   LSQSURF_RETURN_IF_ERROR(ctx.CheckCancelled());
 
   SubContext emit_ctx(ctx, "extracting triangles", 0.75, 1.0);

@@ -44,7 +44,7 @@ struct IsosurfaceStats {
   int64_t cells_visited = 0;     // Cubes whose corners were evaluated.
   int64_t surface_cells = 0;     // Cubes the surface passes through.
   int64_t field_evaluations = 0; // Corner evaluations (refinement not included).
-  int64_t tetrahedra = 0;        // Tetrahedra of the surface cells run through marching tetrahedra.
+  int64_t tetrahedra = 0;        // Tetrahedra sign-tested (J1a: of every visited leaf; grid: of the surface cubes).
   int64_t crossings = 0;         // Output vertices.
   int64_t rejected_polygons = 0; // Triangles dropped because a root lay where F is undefined.
   int64_t restored_triangles = 0; // Untrusted triangles kept as parts of small pinhole patches.

@@ -1,8 +1,11 @@
 #include "worker/core/j1a_isosurface.h"
 
+#include <algorithm>
 #include <cmath>
 
+#include "absl/container/flat_hash_set.h"
 #include "worker/core/marching_tets.h"
+#include "worker/core/parallel.h"
 #include "worker/core/status.h"
 
 namespace lsqsurf::core {
@@ -74,99 +77,127 @@ absl::StatusOr<IsosurfaceResult> ExtractIsosurfaceOnTree(const ImplicitFunction&
                                                          JobContext& ctx) {
   LSQSURF_RETURN_IF_ERROR(Validate(marching));
   if (start.empty()) return absl::InvalidArgumentError("isosurface extraction needs start cells");
-  // Follow the surface from leaf to leaf.
+  // Follow the surface from leaf to leaf, a batch of leaves at a time: the tetrahedra and
+  // neighbours of a leaf are found in parallel, only the shared vertex cache is filled serially.
   SubContext track_ctx(ctx, "tracking surface", 0.0, 0.75);
   IsosurfaceStats stats;
   absl::flat_hash_set<uint64_t> visited;
-  std::vector<OctreeCell> frontier, surface_leaves;
+  std::vector<OctreeCell> frontier;
   for (const OctreeCell& cell : start) {
     if (const OctreeCell* leaf = tree.LeafContaining(cell); leaf && visited.insert(CellKey(*leaf)).second) {
       frontier.push_back(*leaf);
     }
   }
+  // Bounds the memory of a batch (the tetrahedra of every leaf in it) on large first frontiers.
+  constexpr size_t kLeavesPerBatch = 16384;
+  struct LeafWork {
+    std::vector<TetKeys> tets;          // All tetrahedra; after the sign test, the crossed ones.
+    std::vector<VertexKey> corners;     // Distinct corners.
+    std::vector<OctreeCell> neighbors;  // Leaves touching a crossed leaf.
+  };
+  std::vector<LeafWork> work(std::min(kLeavesPerBatch, frontier.size()));
   absl::flat_hash_map<VertexKey, FieldValue> values;
-  std::vector<TetKeys> tets;
+  std::vector<TetKeys> crossed_tets;
   std::vector<VertexKey> pending;
   std::vector<Vec3d> pending_positions;
   std::vector<double> pending_values;
+  std::vector<OctreeCell> next;
   while (!frontier.empty()) {
     stats.cells_visited += static_cast<int64_t>(frontier.size());
     if (stats.cells_visited > max_leaves) {
       return absl::ResourceExhaustedError("the surface needs more than " + std::to_string(max_leaves) +
                                           " leaves; raise cell_size");
     }
-    pending.clear();
-    for (const OctreeCell& leaf : frontier) {
-      tets.clear();
-      AppendJ1aTetrahedra(tree, leaf, tets);
-      for (const TetKeys& t : tets) {
-        for (VertexKey k : t) {
+    next.clear();
+    for (size_t batch = 0; batch < frontier.size(); batch += kLeavesPerBatch) {
+      const std::span<const OctreeCell> leaves =
+          std::span<const OctreeCell>(frontier).subspan(batch, std::min(kLeavesPerBatch, frontier.size() - batch));
+      if (work.size() < leaves.size()) work.resize(leaves.size());
+      LSQSURF_RETURN_IF_ERROR(ParallelFor(leaves.size(), 64, [&](size_t b, size_t e) {
+        for (size_t i = b; i < e; ++i) {
+          LeafWork& w = work[i];
+          w.tets.clear();
+          AppendJ1aTetrahedra(tree, leaves[i], w.tets);
+          w.corners.clear();
+          for (const TetKeys& t : w.tets) w.corners.insert(w.corners.end(), t.begin(), t.end());
+          std::sort(w.corners.begin(), w.corners.end());
+          w.corners.erase(std::unique(w.corners.begin(), w.corners.end()), w.corners.end());
+        }
+      }, &ctx));
+      pending.clear();
+      for (size_t i = 0; i < leaves.size(); ++i) {
+        stats.tetrahedra += static_cast<int64_t>(work[i].tets.size());
+        for (VertexKey k : work[i].corners) {
           if (values.try_emplace(k).second) pending.push_back(k);
         }
       }
-    }
-    pending_positions.resize(pending.size());
-    pending_values.resize(pending.size());
-    for (size_t i = 0; i < pending.size(); ++i) pending_positions[i] = tree.Position(pending[i]);
-    LSQSURF_RETURN_IF_ERROR(field.ValueOnlyBatch(pending_positions, pending_values, &ctx));
-    for (size_t i = 0; i < pending.size(); ++i) values[pending[i]] = FieldValue{pending_values[i], false};
-    stats.field_evaluations += static_cast<int64_t>(pending.size());
-
-    std::vector<OctreeCell> next;
-    for (const OctreeCell& leaf : frontier) {
-      tets.clear();
-      AppendJ1aTetrahedra(tree, leaf, tets);
-      bool crossed = false;
-      for (const TetKeys& t : tets) {
-        bool neg = false, pos = false;
-        for (VertexKey k : t) {
-          const double v = values.at(k).value;
-          if (std::isnan(v)) continue;
-          (v < 0 ? neg : pos) = true;
-        }
-        crossed |= neg && pos;
-        if (crossed) break;
-      }
-      if (!crossed) continue;
-      surface_leaves.push_back(leaf);
-      // The surface may continue into any leaf that touches this one.
-      const int64_t cells = int64_t{1} << leaf.level;
-      for (int d = 0; d < 27; ++d) {
-        const int64_t x = int64_t{leaf.x} + d % 3 - 1, y = int64_t{leaf.y} + (d / 3) % 3 - 1,
-                      z = int64_t{leaf.z} + d / 9 - 1;
-        if (d == 13 || x < 0 || y < 0 || z < 0 || x >= cells || y >= cells || z >= cells) continue;
-        const OctreeCell probe{leaf.level, static_cast<uint32_t>(x), static_cast<uint32_t>(y), static_cast<uint32_t>(z)};
-        auto add = [&](const OctreeCell& c) {
-          if (visited.insert(CellKey(c)).second) next.push_back(c);
-        };
-        if (const OctreeCell* other = tree.LeafContaining(probe)) {
-          add(*other);
-        } else {  // Finer: in a balanced tree its children are leaves.
-          for (uint32_t i = 0; i < 8; ++i) {
-            const OctreeCell child{leaf.level + 1, 2 * probe.x + (i & 1), 2 * probe.y + ((i >> 1) & 1),
-                                   2 * probe.z + ((i >> 2) & 1)};
-            if (tree.IsLeaf(child)) add(child);
+      pending_positions.resize(pending.size());
+      pending_values.resize(pending.size());
+      for (size_t i = 0; i < pending.size(); ++i) pending_positions[i] = tree.Position(pending[i]);
+      LSQSURF_RETURN_IF_ERROR(field.ValueOnlyBatch(pending_positions, pending_values, &ctx));
+      for (size_t i = 0; i < pending.size(); ++i) values[pending[i]] = FieldValue{pending_values[i], false};
+      stats.field_evaluations += static_cast<int64_t>(pending.size());
+      // Read-only on `values` and the tree, so the leaves are independent.
+      LSQSURF_RETURN_IF_ERROR(ParallelFor(leaves.size(), 64, [&](size_t b, size_t e) {
+        for (size_t i = b; i < e; ++i) {
+          LeafWork& w = work[i];
+          w.neighbors.clear();
+          size_t kept = 0;
+          for (const TetKeys& t : w.tets) {
+            bool neg = false, pos = false;
+            for (VertexKey k : t) {
+              const double v = values.find(k)->second.value;
+              if (std::isnan(v)) continue;
+              (v < 0 ? neg : pos) = true;
+            }
+            if (neg && pos) w.tets[kept++] = t;
+          }
+          w.tets.resize(kept);
+          if (kept == 0) continue;
+          // The surface may continue into any leaf that touches this one.
+          const OctreeCell& leaf = leaves[i];
+          const int64_t cells = int64_t{1} << leaf.level;
+          for (int d = 0; d < 27; ++d) {
+            const int64_t x = int64_t{leaf.x} + d % 3 - 1, y = int64_t{leaf.y} + (d / 3) % 3 - 1,
+                          z = int64_t{leaf.z} + d / 9 - 1;
+            if (d == 13 || x < 0 || y < 0 || z < 0 || x >= cells || y >= cells || z >= cells) continue;
+            const OctreeCell probe{leaf.level, static_cast<uint32_t>(x), static_cast<uint32_t>(y),
+                                   static_cast<uint32_t>(z)};
+            if (const OctreeCell* other = tree.LeafContaining(probe)) {
+              w.neighbors.push_back(*other);
+            } else {  // Finer: in a balanced tree its children are leaves.
+              for (uint32_t c = 0; c < 8; ++c) {
+                const OctreeCell child{leaf.level + 1, 2 * probe.x + (c & 1), 2 * probe.y + ((c >> 1) & 1),
+                                       2 * probe.z + ((c >> 2) & 1)};
+                if (tree.IsLeaf(child)) w.neighbors.push_back(child);
+              }
+            }
           }
         }
+      }, &ctx));
+      for (size_t i = 0; i < leaves.size(); ++i) {
+        const LeafWork& w = work[i];
+        if (w.tets.empty()) continue;
+        ++stats.surface_cells;
+        crossed_tets.insert(crossed_tets.end(), w.tets.begin(), w.tets.end());
+        for (const OctreeCell& c : w.neighbors) {
+          if (visited.insert(CellKey(c)).second) next.push_back(c);
+        }
       }
     }
-    frontier = std::move(next);
-    track_ctx.Report(std::min(0.95, static_cast<double>(surface_leaves.size()) /
-                                        static_cast<double>(surface_leaves.size() + frontier.size() + 1)));
+    std::swap(frontier, next);
+    track_ctx.Report(std::min(0.95, static_cast<double>(stats.surface_cells) /
+                                        static_cast<double>(stats.surface_cells + static_cast<int64_t>(frontier.size()) + 1)));
   }
-  stats.surface_cells = static_cast<int64_t>(surface_leaves.size());
+  work = {};
+  visited = {};
   LSQSURF_RETURN_IF_ERROR(ctx.CheckCancelled());
 
   SubContext emit_ctx(ctx, "extracting triangles", 0.75, 1.0);
   return internal::MarchTetrahedra(
       field,
       [&](const std::function<void(const internal::TetCorners&)>& visit) {
-        std::vector<TetKeys> leaf_tets;
-        for (const OctreeCell& leaf : surface_leaves) {
-          leaf_tets.clear();
-          AppendJ1aTetrahedra(tree, leaf, leaf_tets);
-          for (const TetKeys& t : leaf_tets) visit(t);
-        }
+        for (const TetKeys& t : crossed_tets) visit(t);
       },
       values, [&](internal::CornerKey k) { return tree.Position(k); }, marching, stats, emit_ctx);
 }

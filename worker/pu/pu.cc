@@ -34,6 +34,10 @@ constexpr double kMaxInvertedShare = 0.1;
 // The local spacing of a point, for the coverage test: the distance to its 8th neighbour (about
 // two sample spacings on a surface, robust to pairs of nearly coincident points).
 constexpr size_t kSpacingNeighbors = 8;
+// Fits over larger balls (coarse cells) are made on an even subsample of this many points; the
+// error test still runs over every point, so an accepted fit meets the bound on all of them.
+// At worst a cell whose full fit would have passed is split.
+constexpr size_t kMaxFitSamples = 256;
 // A quadric label in FitLabel::degree.
 constexpr int kQuadricLabel = 5;
 
@@ -210,6 +214,7 @@ struct CellOutcome {
 struct Scratch {
   std::vector<core::Neighbor> neighbors;
   std::vector<double> u, v, w, weight;
+  std::vector<double> sample_u, sample_v, sample_w, sample_weight;
   std::vector<char> in_support;
   OrthogonalFitter fitter;
 };
@@ -351,7 +356,18 @@ CellOutcome ProcessCell(const BuildContext& bc, const Node& node, std::span<uint
 
   bool any_in_support = false;
   for (char c : s.in_support) any_in_support |= c != 0;
-  s.fitter.Reset(s.u, s.v, s.w, s.weight);
+  if (n > kMaxFitSamples) {
+    const size_t stride = (n + kMaxFitSamples - 1) / kMaxFitSamples;
+    s.sample_u.clear(), s.sample_v.clear(), s.sample_w.clear(), s.sample_weight.clear();
+    for (size_t j = 0; j < n; j += stride) {
+      if (s.weight[j] <= 0) continue;
+      s.sample_u.push_back(s.u[j]), s.sample_v.push_back(s.v[j]), s.sample_w.push_back(s.w[j]);
+      s.sample_weight.push_back(s.weight[j]);
+    }
+    s.fitter.Reset(s.sample_u, s.sample_v, s.sample_w, s.sample_weight);
+  } else {
+    s.fitter.Reset(s.u, s.v, s.w, s.weight);
+  }
   double best_error = std::numeric_limits<double>::infinity();
   BivariatePolynomial best;
   bool accepted = false;
@@ -359,22 +375,30 @@ CellOutcome ProcessCell(const BuildContext& bc, const Node& node, std::span<uint
     if (degree > 0 && !s.fitter.RaiseDegree()) break;  // Rank deficient: the data cannot say more.
     if (degree == 0 && degree_cap > 0) continue;       // A tilted plane is never worse.
     const BivariatePolynomial& p = s.fitter.polynomial();
-    // Taubin distance |f|/|∇f|, measured where the leaf's weight is (MPU's rule).
+    // Taubin distance |f|/|∇f|, measured where the leaf's weight is (MPU's rule), and criterion
+    // 4, orientation: the fit must agree with its points' normals.
+    auto measure = [&](size_t stride, double& error) {
+      error = 0;
+      size_t inverted = 0, counted = 0;
+      for (size_t j = 0; j < n; j += stride) {
+        if (any_in_support && !s.in_support[j]) continue;
+        double h, hu, hv;
+        p.Evaluate(s.u[j], s.v[j], h, hu, hv);
+        const Vec3d gradient = fit.normal - (hu * fit.tangent_u + hv * fit.tangent_v) / fit.scale;
+        error = std::max(error, std::abs(s.w[j] - h) / gradient.norm());
+        ++counted;
+        inverted += gradient.dot(bc.normals[s.neighbors[j].index].cast<double>()) <= 0;
+      }
+      return !params.orientation_check ||
+             static_cast<double>(inverted) <= kMaxInvertedShare * static_cast<double>(counted);
+    };
+    // On large balls a subsample rejects most fits cheaply (its largest error is a lower bound);
+    // only a fit that passes there is measured on every point.
     double error = 0;
-    size_t inverted = 0, counted = 0;
-    for (size_t j = 0; j < n; ++j) {
-      if (any_in_support && !s.in_support[j]) continue;
-      double h, hu, hv;
-      p.Evaluate(s.u[j], s.v[j], h, hu, hv);
-      const Vec3d gradient = fit.normal - (hu * fit.tangent_u + hv * fit.tangent_v) / fit.scale;
-      error = std::max(error, std::abs(s.w[j] - h) / gradient.norm());
-      ++counted;
-      inverted += gradient.dot(bc.normals[s.neighbors[j].index].cast<double>()) <= 0;
-    }
-    // Criterion 4, orientation: the fit must agree with its points' normals.
-    if (params.orientation_check && static_cast<double>(inverted) > kMaxInvertedShare * static_cast<double>(counted)) {
-      continue;
-    }
+    const size_t stride = std::max<size_t>(1, n / kMaxFitSamples);
+    bool oriented = measure(stride, error);
+    if (stride > 1 && oriented && error <= bc.error_bound) oriented = measure(1, error);
+    if (!oriented) continue;
     if (error < best_error) {
       best_error = error;
       best = p;
@@ -451,9 +475,10 @@ absl::StatusOr<std::unique_ptr<PuFunction>> BuildPu(const core::PointCloud& clou
   impl.kd_tree = std::make_unique<core::KdTree>(impl.positions);
   impl.coverage_check = params.coverage_check;
   impl.coverage_factor = params.coverage_factor;
-  stats.mean_spacing = core::MeanNearestNeighborDistance(*impl.kd_tree);
   if (params.coverage_check) {
+    // One neighbour query per point gives both the local spacing and the nearest distance.
     impl.local_spacing.resize(impl.positions.size());
+    std::vector<float> nearest(impl.positions.size());
     LSQSURF_RETURN_IF_ERROR(core::ParallelFor(
         impl.positions.size(), 2048,
         [&](size_t b, size_t e) {
@@ -461,9 +486,15 @@ absl::StatusOr<std::unique_ptr<PuFunction>> BuildPu(const core::PointCloud& clou
           for (size_t i = b; i < e; ++i) {
             impl.kd_tree->Knn(impl.positions[i], kSpacingNeighbors + 1, knn);
             impl.local_spacing[i] = std::sqrt(knn.back().distance2);
+            nearest[i] = std::sqrt(knn[1].distance2);
           }
         },
         &ctx));
+    double sum = 0;
+    for (float d : nearest) sum += d;
+    stats.mean_spacing = sum / static_cast<double>(nearest.size());
+  } else {
+    stats.mean_spacing = core::MeanNearestNeighborDistance(*impl.kd_tree);
   }
   const core::Box3 box = core::BoundingBox(impl.positions);
   const double diagonal = core::Diagonal(box);

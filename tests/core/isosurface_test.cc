@@ -2,7 +2,11 @@
 
 #include <gtest/gtest.h>
 
+#include <algorithm>
+#include <cmath>
+#include <map>
 #include <numbers>
+#include <utility>
 
 #include "tests/test_shapes.h"
 #include "worker/core/j1a_isosurface.h"
@@ -73,6 +77,68 @@ TEST_P(EveryExtractor, NothingWhereTheFieldIsUnknown) {
   ASSERT_FALSE(r.mesh.faces.empty());
   for (const auto& v : r.mesh.vertices) EXPECT_LE(v.z(), 0.3f + 1e-5f);
   EXPECT_GT(AnalyzeTopology(r.mesh).boundary_edges, 0);  // Open where the field stops.
+}
+
+// A unit sphere whose field is untrusted (`defined` false, value still right) in a band around
+// the north pole, 0.05 < polar angle < 0.45, and in a small spot around the south pole.
+class SphereWithUntrustedBand : public ImplicitFunction {
+ public:
+  FieldValue Value(const Vec3d& x) const override { return {x.norm() - 1.0, Trusted(x)}; }
+  FieldGradient ValueAndGradient(const Vec3d& x) const override { return {x.norm() - 1.0, x.normalized(), Trusted(x)}; }
+  static double PolarAngle(const Vec3d& x) { return std::acos(std::clamp(x.z() / x.norm(), -1.0, 1.0)); }
+
+ private:
+  static bool Trusted(const Vec3d& x) {
+    const double angle = PolarAngle(x);
+    return !(angle > 0.05 && angle < 0.45) && angle < std::numbers::pi - 0.02;
+  }
+};
+
+// Edges used by one triangle only, with both ends below height z.
+int BoundaryEdgesBelow(const TriangleMesh& mesh, float z) {
+  std::map<std::pair<uint32_t, uint32_t>, int> uses;
+  for (const Triangle& f : mesh.faces) {
+    for (int i = 0; i < 3; ++i) {
+      const uint32_t a = f[static_cast<size_t>(i)], b = f[static_cast<size_t>((i + 1) % 3)];
+      ++uses[std::minmax(a, b)];
+    }
+  }
+  int count = 0;
+  for (const auto& [edge, n] : uses) count += n == 1 && mesh.vertices[edge.first].z() < z && mesh.vertices[edge.second].z() < z;
+  return count;
+}
+
+// The band is far larger than a pinhole, so it is dropped; the trusted cap inside it is a speck
+// cut off from the surface and goes with it; the south spot is a pinhole and is filled.
+TEST_P(EveryExtractor, DropsCutOffSpecksAndFillsPinholes) {
+  const SphereWithUntrustedBand field;
+  const auto r = GetParam()(field, testing::SphereCloud(2000), 0.05);
+  ASSERT_FALSE(r.mesh.faces.empty());
+  for (const auto& v : r.mesh.vertices) {
+    EXPECT_GT(SphereWithUntrustedBand::PolarAngle(v.cast<double>()), 0.45 - 0.06);  // Within a cell of the band.
+  }
+  EXPECT_EQ(BoundaryEdgesBelow(r.mesh, -0.9f), 0);  // The pinhole at the south pole is closed.
+  const MeshTopology t = AnalyzeTopology(r.mesh);
+  EXPECT_EQ(t.components, 1);
+  EXPECT_GT(t.boundary_edges, 0);
+  EXPECT_EQ(t.non_manifold_edges, 0);
+}
+
+TEST(J1aIsosurface, KeepsSpecksAndPinholesOpenWhenAskedTo) {
+  const SphereWithUntrustedBand field;
+  LocalJobContext ctx;
+  J1aIsosurfaceParams p;
+  p.cell_size = 0.05;
+  p.marching.max_patch_triangles = 0;
+  auto r = ExtractIsosurfaceJ1a(field, testing::SphereCloud(2000).positions, p, ctx);
+  ASSERT_TRUE(r.ok()) << r.status();
+  double smallest_angle = 1;
+  for (const auto& v : r->mesh.vertices) {
+    smallest_angle = std::min(smallest_angle, SphereWithUntrustedBand::PolarAngle(v.cast<double>()));
+  }
+  EXPECT_GT(BoundaryEdgesBelow(r->mesh, -0.9f), 0);  // The pinhole stays open.
+  EXPECT_LT(smallest_angle, 0.05);  // The cap stays,
+  EXPECT_EQ(AnalyzeTopology(r->mesh).components, 2);  // as a second piece.
 }
 
 INSTANTIATE_TEST_SUITE_P(UniformAndJ1a, EveryExtractor, ::testing::Values(Uniform, J1a));

@@ -174,6 +174,46 @@ TEST(Pu, DegreeStatisticsFollowTheThreshold) {
   EXPECT_EQ(std::max_element(b.fits_per_degree.begin(), b.fits_per_degree.end()) - b.fits_per_degree.begin(), 2);
 }
 
+// Gaussian noise along the normal, σ = 0.3 % of the diagonal: the estimate finds σ, and the
+// noise-aware bounds give one closed surface that averages the noise out. Declared exact, the
+// same cloud is fitted down to its noise.
+TEST(Pu, NoisySphereIsEstimatedAndSmoothedIntoOneClosedSurface) {
+  const double diagonal = 2 * std::sqrt(3.0), sigma = 0.003 * diagonal;
+  core::PointCloud cloud = testing::SphereCloud(30000);
+  std::mt19937_64 rng(11);
+  std::normal_distribution<double> noise(0.0, sigma);
+  for (size_t i = 0; i < cloud.size(); ++i) {
+    cloud.positions[i] += (noise(rng) * cloud.normals[i].cast<double>()).cast<float>();
+  }
+  auto clean = Build(testing::SphereCloud(30000));
+  ASSERT_TRUE(clean);
+  EXPECT_LT(clean->stats().noise_estimate, 1e-5);
+  EXPECT_EQ(clean->stats().min_points, PuParams{}.min_points);  // Clean data keeps its bounds.
+
+  auto f = Build(cloud);
+  ASSERT_TRUE(f);
+  EXPECT_NEAR(f->stats().noise_estimate, 0.003, 0.0006);
+  EXPECT_NEAR(f->stats().error_threshold, 3 * f->stats().noise_estimate, 1e-12);
+  const core::TriangleMesh mesh = ExtractMesh(*f);
+  const core::MeshTopology topo = core::AnalyzeTopology(mesh);
+  EXPECT_EQ(topo.boundary_edges, 0);
+  EXPECT_EQ(topo.components, 1);
+  EXPECT_EQ(topo.euler_characteristic(), 2);
+  auto rms_deviation = [](const core::TriangleMesh& m) {
+    double sum = 0;
+    for (const auto& v : m.vertices) sum += std::pow(v.cast<double>().norm() - 1.0, 2);
+    return std::sqrt(sum / static_cast<double>(m.vertices.size()));
+  };
+  const double smoothed = rms_deviation(mesh);
+  EXPECT_LT(smoothed, 0.35 * sigma);
+
+  PuParams exact;
+  exact.noise_level = 0;
+  auto g = Build(cloud, exact);
+  ASSERT_TRUE(g);
+  EXPECT_GT(rms_deviation(ExtractMesh(*g)), 1.5 * smoothed);
+}
+
 TEST(Pu, RejectsBadInput) {
   core::LocalJobContext ctx;
   core::PointCloud bare = testing::SphereCloud(100);
@@ -184,6 +224,9 @@ TEST(Pu, RejectsBadInput) {
   EXPECT_EQ(BuildPu(testing::SphereCloud(100), p, ctx).status().code(), absl::StatusCode::kInvalidArgument);
   p = {};
   p.error_threshold = 0;
+  EXPECT_EQ(BuildPu(testing::SphereCloud(100), p, ctx).status().code(), absl::StatusCode::kInvalidArgument);
+  p = {};
+  p.noise_level = -0.5;
   EXPECT_EQ(BuildPu(testing::SphereCloud(100), p, ctx).status().code(), absl::StatusCode::kInvalidArgument);
 }
 

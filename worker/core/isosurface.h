@@ -27,7 +27,9 @@ namespace lsqsurf::core {
 struct MarchingOptions {
   int refine_steps = 3;          // Root-refinement steps per crossing edge (0 = linear only), 0..20.
   bool vertex_normals = true;    // Store normalize(∇F) at each output vertex.
-  int max_patch_triangles = 64;  // Untrusted clusters up to this size are kept (pinholes), 0 = none.
+  int max_patch_triangles = 64;  // Untrusted clusters up to this size enclosed by trusted surface are kept
+                                 // (pinholes), trusted ones cut off by untrusted surface are dropped
+                                 // (specks); 0 = neither.
 };
 
 absl::Status Validate(const MarchingOptions& options);

@@ -87,6 +87,79 @@ int64_t RestoreSmallPatches(const std::vector<Triangle>& faces, std::vector<char
   return restored;
 }
 
+// The converse of RestoreSmallPatches: marks as untrusted every edge-connected cluster of at
+// most `max_size` trusted triangles that untrusted triangles cut off from the rest of the
+// trusted surface (specks left between rejected triangles, joined to the surface by a vertex
+// at most). Only the trusted triangles within kSpeckRings vertex rings of an untrusted one are
+// examined: a cluster with an edge whose ends both lie farther out may continue into the rest
+// of the surface and is kept. Returns the triangles dropped.
+constexpr uint8_t kSpeckRings = 6;
+int64_t DropCutOffSpecks(const std::vector<Triangle>& faces, std::vector<char>& trusted, size_t num_vertices,
+                         int max_size) {
+  if (max_size <= 0) return 0;
+  constexpr uint8_t kFar = 255;
+  std::vector<uint8_t> ring(num_vertices, kFar);  // Vertex rings away from untrusted triangles.
+  bool any_untrusted = false;
+  for (uint32_t f = 0; f < faces.size(); ++f) {
+    if (trusted[f]) continue;
+    any_untrusted = true;
+    for (uint32_t v : faces[f]) ring[v] = 0;
+  }
+  if (!any_untrusted) return 0;
+  auto nearest_ring = [&](const Triangle& t) { return std::min({ring[t[0]], ring[t[1]], ring[t[2]]}); };
+  for (uint8_t k = 0; k < kSpeckRings; ++k) {
+    for (uint32_t f = 0; f < faces.size(); ++f) {
+      if (!trusted[f] || nearest_ring(faces[f]) != k) continue;
+      for (uint32_t v : faces[f]) ring[v] = std::min<uint8_t>(ring[v], static_cast<uint8_t>(k + 1));
+    }
+  }
+  struct Side {
+    uint32_t lo, hi, face;
+  };
+  std::vector<Side> sides;
+  absl::flat_hash_map<uint32_t, uint32_t> parent;
+  for (uint32_t f = 0; f < faces.size(); ++f) {
+    const Triangle& t = faces[f];
+    if (!trusted[f] || nearest_ring(t) >= kSpeckRings) continue;
+    parent.emplace(f, f);
+    for (int i = 0; i < 3; ++i) {
+      const uint32_t a = t[static_cast<size_t>(i)], b = t[static_cast<size_t>((i + 1) % 3)];
+      sides.push_back({std::min(a, b), std::max(a, b), f});
+    }
+  }
+  std::sort(sides.begin(), sides.end(), [](const Side& x, const Side& y) {
+    return x.lo != y.lo ? x.lo < y.lo : x.hi < y.hi;
+  });
+  auto find = [&](uint32_t x) {
+    while (parent[x] != x) x = parent[x] = parent[parent[x]];
+    return x;
+  };
+  std::vector<uint32_t> escaping;
+  for (size_t i = 0; i < sides.size(); ++i) {
+    const bool same_as_previous = i > 0 && sides[i].lo == sides[i - 1].lo && sides[i].hi == sides[i - 1].hi;
+    const bool same_as_next =
+        i + 1 < sides.size() && sides[i].lo == sides[i + 1].lo && sides[i].hi == sides[i + 1].hi;
+    if (same_as_previous) parent[find(sides[i].face)] = find(sides[i - 1].face);
+    // A triangle beyond the examined rings may share this edge.
+    if (!same_as_previous && !same_as_next && ring[sides[i].lo] >= kSpeckRings && ring[sides[i].hi] >= kSpeckRings) {
+      escaping.push_back(sides[i].face);
+    }
+  }
+  absl::flat_hash_map<uint32_t, int> size;
+  for (auto& [face, p] : parent) ++size[find(face)];
+  absl::flat_hash_set<uint32_t> escaping_roots;
+  for (uint32_t f : escaping) escaping_roots.insert(find(f));
+  int64_t dropped = 0;
+  for (auto& [face, p] : parent) {
+    const uint32_t root = find(face);
+    if (size[root] <= max_size && !escaping_roots.contains(root)) {
+      trusted[face] = 0;
+      ++dropped;
+    }
+  }
+  return dropped;
+}
+
 }  // namespace
 
 absl::StatusOr<IsosurfaceResult> MarchTetrahedra(
@@ -227,6 +300,8 @@ absl::StatusOr<IsosurfaceResult> MarchTetrahedra(
   }
   stats.restored_triangles = RestoreSmallPatches(mesh.faces, face_trusted, params.max_patch_triangles);
   stats.rejected_polygons -= stats.restored_triangles;
+  stats.rejected_polygons +=
+      DropCutOffSpecks(mesh.faces, face_trusted, mesh.vertices.size(), params.max_patch_triangles);
   {
     size_t kept_faces = 0;
     for (size_t f = 0; f < mesh.faces.size(); ++f) {

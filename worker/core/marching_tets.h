@@ -5,7 +5,8 @@
 // tetrahedra share output vertices; each root is refined on F along its edge (Illinois regula
 // falsi); triangles are oriented from F < 0 to F >= 0 using the corner positions. Roots where F
 // is not `defined` make their triangles untrusted: those are dropped unless they form a small
-// edge-connected patch (a pinhole) inside trusted surface.
+// edge-connected patch (a pinhole) inside trusted surface; conversely, small clusters of trusted
+// triangles that the dropped ones cut off from the rest (specks) are dropped too.
 #pragma once
 
 #include <array>

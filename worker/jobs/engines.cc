@@ -71,6 +71,9 @@ MethodSpec PuMethod() {
        "surface only within this many local spacings (distance to the 8th neighbour) of a data point"},
       {"orientation_check", p.orientation_check ? 1.0 : 0.0, 0, 1, true,
        "1: reject fits whose gradient opposes their points' normals"},
+      {"noise_level", p.noise_level, -1, 0.1, false,
+       "scan noise sigma as a share of the diagonal; -1 estimates it, 0 declares the data exact; "
+       "above error_threshold the threshold becomes 3 sigma and min_points at least 80"},
       {"cell_size", e.cell_size, 0.25, 64, false,
        "smallest extraction cell at the surface, in units of the mean point spacing (rounded to an octree level); cells near the data are up to 4x larger where the fits allowed larger cells"},
       {"refine_steps", static_cast<double>(e.marching.refine_steps), 0, 20, true,
@@ -141,6 +144,7 @@ absl::StatusOr<core::IsosurfaceResult> RunPu(const ParamFn& param, const core::P
   pp.coverage_check = param("coverage") != 0;
   pp.coverage_factor = param("coverage_factor");
   pp.orientation_check = param("orientation_check") != 0;
+  pp.noise_level = param("noise_level");
   core::SubContext build_ctx(ctx, "fitting", 0.0, 0.4);
   auto field = pu::BuildPu(cloud, pp, build_ctx);
   if (!field.ok()) return field.status();
@@ -148,6 +152,9 @@ absl::StatusOr<core::IsosurfaceResult> RunPu(const ParamFn& param, const core::P
   stat("fit_seconds", s.fit_seconds);
   stat("index_seconds", s.index_seconds);
   stat("mean_spacing", s.mean_spacing);
+  stat("noise_level", s.noise_estimate);
+  stat("error_threshold_used", s.error_threshold);
+  stat("min_points_used", s.min_points);
   for (size_t d = 0; d < s.fits_per_degree.size(); ++d) {
     stat(core::StrCat("fits_degree_", d), static_cast<double>(s.fits_per_degree[d]));
   }

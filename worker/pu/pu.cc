@@ -38,6 +38,10 @@ constexpr size_t kSpacingNeighbors = 8;
 // error test still runs over every point, so an accepted fit meets the bound on all of them.
 // At worst a cell whose full fit would have passed is split.
 constexpr size_t kMaxFitSamples = 256;
+// Noisy data (σ above the error threshold): the error bound in units of σ, and the fewest points
+// a fit may use (a fit over N points with T terms carries about σ√(T/N) of noise into F).
+constexpr double kNoiseBoundFactor = 3.0;
+constexpr int kNoisyMinPoints = 80;
 // A quadric label in FitLabel::degree.
 constexpr int kQuadricLabel = 5;
 
@@ -419,6 +423,79 @@ CellOutcome ProcessCell(const BuildContext& bc, const Node& node, std::span<uint
   return out;
 }
 
+// The scan noise σ along the normal: the median, over an even sample of points, of the residual
+// RMS of a quadratic height fit to the point's neighbourhood. A quadratic follows the shape at
+// that scale, so on clean data what remains is tiny (third-order terms) and on noisy data it is
+// the noise (the 6 fitted terms taken into account). The neighbourhood is the kNoiseNeighbors
+// nearest points, widened to a ball of kNoiseBallFactor × σ: a neighbourhood thinner than the
+// noise holds mostly points displaced alike and underestimates it, so the estimate is repeated
+// on the wider ball until it settles.
+constexpr size_t kNoiseSamples = 2048;
+constexpr size_t kNoiseNeighbors = 48;
+constexpr size_t kNoiseMaxFitPoints = 256;
+constexpr double kNoiseBallFactor = 4.0;
+struct NoiseEstimate {
+  double sigma = 0;               // Model units.
+  double points_in_ball = 0;      // Median number of points within kNoiseBallFactor × σ.
+};
+// With `known_sigma` >= 0 only the ball is counted.
+NoiseEstimate EstimateNoise(const PuFunction::Impl& impl, std::span<const Vec3f> normals, double known_sigma) {
+  NoiseEstimate estimate;
+  if (known_sigma >= 0) estimate.sigma = known_sigma;
+  const size_t n = impl.positions.size();
+  if (n < kNoiseNeighbors) return estimate;
+  const size_t stride = std::max<size_t>(1, n / kNoiseSamples);
+  const size_t samples = (n + stride - 1) / stride;
+  auto median = [](std::vector<double>& values) {
+    auto middle = values.begin() + static_cast<std::ptrdiff_t>(values.size() / 2);
+    std::nth_element(values.begin(), middle, values.end());
+    return *middle;
+  };
+  for (int pass = 0; pass < 4; ++pass) {
+    const double ball = kNoiseBallFactor * estimate.sigma;
+    std::vector<double> rms(samples, 0.0), counts(samples, 0.0);
+    (void)core::ParallelFor(samples, 32, [&](size_t b, size_t e) {
+      std::vector<core::Neighbor> near;
+      std::vector<double> u, v, w, weight;
+      OrthogonalFitter fitter;
+      for (size_t i = b; i < e; ++i) {
+        const Vec3f& p = impl.positions[i * stride];
+        impl.kd_tree->Knn(p, kNoiseNeighbors, near);
+        if (ball * ball > near.back().distance2) impl.kd_tree->Radius(p, static_cast<float>(ball), near);
+        counts[i] = static_cast<double>(near.size());
+        if (known_sigma >= 0) continue;
+        const size_t step = std::max<size_t>(1, near.size() / kNoiseMaxFitPoints);
+        Vec3d normal = Vec3d::Zero();
+        double radius = 0;
+        for (size_t j = 0; j < near.size(); j += step) {
+          normal += normals[near[j].index].cast<double>();
+          radius = std::max(radius, static_cast<double>(near[j].distance2));
+        }
+        radius = std::sqrt(radius);
+        if (!(normal.norm() > 0) || !(radius > 0)) continue;
+        normal.normalize();
+        const Vec3d tu = normal.unitOrthogonal(), tv = normal.cross(tu);
+        u.clear(), v.clear(), w.clear();
+        for (size_t j = 0; j < near.size(); j += step) {
+          const Vec3d d = (impl.positions[near[j].index] - p).cast<double>();
+          u.push_back(tu.dot(d) / radius), v.push_back(tv.dot(d) / radius), w.push_back(normal.dot(d));
+        }
+        weight.assign(u.size(), 1.0);
+        fitter.Reset(u, v, w, weight);
+        if (!fitter.RaiseDegree() || !fitter.RaiseDegree()) continue;
+        rms[i] = std::sqrt(fitter.residual_energy() / static_cast<double>(u.size() - TermCount(2)));
+      }
+    });
+    estimate.points_in_ball = median(counts);
+    if (known_sigma >= 0) break;
+    const double sigma = median(rms);
+    const bool settled = sigma <= 1.1 * estimate.sigma;
+    estimate.sigma = std::max(estimate.sigma, sigma);
+    if (settled) break;  // The ball counted was within 10% of the final one.
+  }
+  return estimate;
+}
+
 double Seconds(std::chrono::steady_clock::time_point since) {
   return std::chrono::duration<double>(std::chrono::steady_clock::now() - since).count();
 }
@@ -434,6 +511,9 @@ absl::Status Validate(const PuParams& p) {
   if (p.min_points < 4 || p.min_points > 200) return absl::InvalidArgumentError("min_points must be in [4, 200]");
   if (!in(p.max_normal_angle, 10, 180)) return absl::InvalidArgumentError("max_normal_angle must be in [10, 180] degrees");
   if (!in(p.coverage_factor, 0.5, 20)) return absl::InvalidArgumentError("coverage_factor must be in [0.5, 20]");
+  if (!(p.noise_level == -1 || in(p.noise_level, 0, 0.1))) {
+    return absl::InvalidArgumentError("noise_level must be -1 (estimate it) or in [0, 0.1]");
+  }
   return absl::OkStatus();
 }
 
@@ -503,7 +583,20 @@ absl::StatusOr<std::unique_ptr<PuFunction>> BuildPu(const core::PointCloud& clou
   impl.root_edge = 1.2 * box.sizes().maxCoeff();
   impl.origin = box.center() - Vec3d::Constant(impl.root_edge / 2);
   stats.root_edge = impl.root_edge;
-  const BuildContext bc{params, impl, cloud.normals, params.error_threshold * diagonal,
+  // Noise-aware bounds: a largest-error test cannot pass below about 3σ on noisy points, and
+  // fits over few noisy points follow the noise (blobs, bumps), so where the noise exceeds the
+  // requested accuracy both are raised.
+  const NoiseEstimate noise =
+      EstimateNoise(impl, cloud.normals, params.noise_level >= 0 ? params.noise_level * diagonal : -1.0);
+  stats.noise_estimate = noise.sigma / diagonal;
+  PuParams effective = params;
+  if (stats.noise_estimate > params.error_threshold) {
+    effective.error_threshold = kNoiseBoundFactor * stats.noise_estimate;
+    effective.min_points = std::max({params.min_points, kNoisyMinPoints, static_cast<int>(noise.points_in_ball)});
+  }
+  stats.error_threshold = effective.error_threshold;
+  stats.min_points = effective.min_points;
+  const BuildContext bc{effective, impl, cloud.normals, effective.error_threshold * diagonal,
                         std::cos(params.max_normal_angle * M_PI / 180.0)};
 
   std::vector<uint32_t> order(cloud.size());

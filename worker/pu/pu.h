@@ -50,6 +50,10 @@ struct PuParams {
   bool coverage_check = true;     // The two coverage criteria.
   double coverage_factor = 1.25;  // Evaluation-time coverage reach in units of h(p), 0.5..20.
   bool orientation_check = true;
+  // σ of the scan noise along the normal, as a share of the diagonal; −1 estimates it from the
+  // data (median residual of local quadratic fits), 0 declares the data exact. Where σ exceeds
+  // error_threshold, the threshold becomes 3σ and min_points at least 80.
+  double noise_level = -1;
 };
 
 absl::Status Validate(const PuParams& params);
@@ -65,6 +69,9 @@ struct PuStats {
   double index_seconds = 0;                 // Building the leaf → support lists.
   double root_edge = 0;                     // Model units.
   double mean_spacing = 0;                  // Mean nearest-neighbour distance of the input.
+  double noise_estimate = 0;                // Scan noise σ used (estimated or given), share of the diagonal.
+  double error_threshold = 0;               // The threshold and minimum points actually used
+  int min_points = 0;                       // (after the noise adjustment).
 };
 
 // Which local fit dominates at a point: the J1a depth and polynomial degree shown as colours

@@ -6,6 +6,8 @@
 // ground truth (see worker/core/surface_distance.h). Each case runs in a child process so that
 // its peak RSS is its own. With --server, the same clouds also go through a real lsqsurfd
 // started on a free loopback port, driven by the real client (upload, reconstruct, download).
+// With --poisson-depth (built with -DLSQSURF_BENCH_POISSON=ON), screened Poisson reconstructs the
+// same cloud in the same run, and a ratio line compares the two.
 #include <sys/resource.h>
 #include <sys/wait.h>
 #include <unistd.h>
@@ -29,6 +31,9 @@
 #include "worker/io/draco_codec.h"
 #include "worker/io/files.h"
 #include "worker/jobs/engines.h"
+#if LSQSURF_WITH_POISSON
+#include "bench/poisson_open3d.h"
+#endif
 
 namespace {
 
@@ -143,6 +148,7 @@ int main(int argc, char** argv) {
   bool show_statistics = false;
   std::string save_dir;
   std::string bin_dir;
+  int poisson_depth = 0;
   app.add_option("--data", data_dir, "folder with <model>.obj ground-truth meshes")->capture_default_str();
   app.add_option("--models", models, "model names")->capture_default_str();
   app.add_option("--sizes", sizes, "cloud sizes")->capture_default_str();
@@ -155,7 +161,15 @@ int main(int argc, char** argv) {
   app.add_flag("--stats", show_statistics, "print the engine's statistics of every direct run");
   app.add_flag("--no-normals", drop_normals, "drop the sampled normals (the engines estimate them)");
   app.add_option("--bin", bin_dir, "folder with lsqsurfd and lsqsurf (default: beside this program)");
+  app.add_option("--poisson-depth", poisson_depth,
+                 "also run screened Poisson (Open3D) at this depth on every cloud; 0 = off");
   CLI11_PARSE(app, argc, argv);
+#if !LSQSURF_WITH_POISSON
+  if (poisson_depth > 0) {
+    std::fprintf(stderr, "--poisson-depth needs a build with -DLSQSURF_BENCH_POISSON=ON (and libopen3d-dev)\n");
+    return 2;
+  }
+#endif
   if (bin_dir.empty()) bin_dir = fs::canonical("/proc/self/exe").parent_path().string();
 
   jobs::ParameterMap parameters;
@@ -195,7 +209,7 @@ int main(int argc, char** argv) {
           }
           std::fflush(stdout);
         };
-        print("direct", InChild([&] {
+        const CaseResult direct = InChild([&] {
                 CaseResult r;
                 core::LocalJobContext ctx;
                 const auto start = Clock::now();
@@ -217,7 +231,31 @@ int main(int argc, char** argv) {
                 }
                 Measure(*truth, result->mesh, samples, r);
                 return r;
-              }));
+              });
+        print("direct", direct);
+#if LSQSURF_WITH_POISSON
+        if (poisson_depth > 0) {
+          const CaseResult poisson = InChild([&] {
+            CaseResult r;
+            const auto start = Clock::now();
+            auto mesh = bench::ScreenedPoisson(cloud, {.depth = poisson_depth});
+            r.seconds = Since(start);
+            if (!mesh.ok()) {
+              r.error = std::string(mesh.status().message());
+              return r;
+            }
+            Measure(*truth, *mesh, samples, r);
+            return r;
+          });
+          print("poisson", poisson);
+          if (direct.error.empty() && poisson.error.empty()) {
+            std::printf("    %s / poisson depth %d: time %.2fx, peak memory %.2fx, Chamfer %.2fx, triangles %.2fx\n",
+                        method.c_str(), poisson_depth, direct.seconds / poisson.seconds,
+                        direct.peak_mib / poisson.peak_mib, direct.chamfer / poisson.chamfer,
+                        static_cast<double>(direct.triangles) / static_cast<double>(poisson.triangles));
+          }
+        }
+#endif
         if (!server) continue;
         // Through the service: a real server and the real client, end to end.
         const std::string cloud_path = (work / "cloud.drc").string(), mesh_path = (work / "mesh.drc").string();

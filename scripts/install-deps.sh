@@ -1,6 +1,8 @@
 #!/usr/bin/env bash
 # Installs every Debian package lsqsurf needs to build, test and benchmark.
 # Idempotent: packages already present are skipped, so a second run is quick.
+# --with-poisson also installs Open3D (libopen3d-dev, large), needed only by the benchmark
+# preset `bench-poisson` that runs screened Poisson side by side.
 set -euo pipefail
 
 packages=(
@@ -11,6 +13,7 @@ packages=(
   libgtest-dev libgmock-dev libbenchmark-dev
   libsqlite3-dev libabsl-dev libtbb-dev libcli11-dev
 )
+if [[ "${1:-}" == "--with-poisson" ]]; then packages+=(libopen3d-dev); fi
 
 missing=()
 for p in "${packages[@]}"; do

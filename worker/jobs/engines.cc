@@ -38,10 +38,12 @@ MethodSpec IamlsMethod() {
       {"cutoff", p.cutoff, 2, 8, false, "kernel truncation at epsilon*r = cutoff"},
       {"min_weight", p.min_weight, 0, 0.99, false,
        "ghost-sheet guard: no surface where the kernel sum is below this share of its mean at the samples"},
-      {"cell_size", 1.5, 0.1, 16, false, "extraction grid cell edge, in units of h"},
+      {"cell_size", 1.5, 0.1, 16, false,
+       "spacing of the extraction vertices, in units of h (grid edge; J1a leaves are twice as large, "
+       "with vertices at their centres and face and edge midpoints)"},
       {"refine_steps", 3, 0, 20, true, "root-refinement steps per crossing edge"},
-      {"extractor", 0, 0, 1, true,
-       "0: surface-following uniform tetrahedral grid; 1: adaptive J1a tetrahedra (finest leaf = cell_size)"},
+      {"extractor", 1, 0, 1, true,
+       "1: J1a tetrahedra on an adaptive octree; 0: surface-following uniform Kuhn grid (a little faster)"},
   };
   for (auto& c : CommonParameters()) m.parameters.push_back(std::move(c));
   return m;
@@ -122,7 +124,8 @@ absl::StatusOr<core::IsosurfaceResult> RunIamls(const ParamFn& param, const core
   marching.refine_steps = static_cast<int>(param("refine_steps"));
   absl::StatusOr<core::IsosurfaceResult> extracted;
   if (param("extractor") == 1) {
-    extracted = core::ExtractIsosurfaceJ1a(**field, cloud.positions, {cell_size, 20'000'000, marching},
+    // Same vertex spacing as the grid: a J1a leaf has vertices at half its edge.
+    extracted = core::ExtractIsosurfaceJ1a(**field, cloud.positions, {2 * cell_size, 20'000'000, marching},
                                            extract_ctx);
   } else {
     extracted = core::ExtractIsosurface(**field, cloud.positions, {cell_size, 60'000'000, marching},

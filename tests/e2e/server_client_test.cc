@@ -300,9 +300,11 @@ TEST_F(EndToEnd, RawApiStatusCodes) {
     grpc::ClientContext ctx;
     v1::ListMethodsResponse response;
     ASSERT_TRUE(stub->ListMethods(&ctx, {}, &response).ok());
-    ASSERT_EQ(response.methods_size(), 2);
+    ASSERT_EQ(response.methods_size(), 4);
     EXPECT_EQ(response.methods(0).name(), "iamls");
     EXPECT_EQ(response.methods(1).name(), "pu");
+    EXPECT_EQ(response.methods(2).name(), "ramls");
+    EXPECT_EQ(response.methods(3).name(), "apss");
   }
   EXPECT_EQ(Client(server.address(), "cancel " + id).code, 0);
 }

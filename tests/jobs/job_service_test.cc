@@ -2,6 +2,7 @@
 
 #include <gtest/gtest.h>
 
+#include <cmath>
 #include <filesystem>
 #include <limits>
 
@@ -9,6 +10,7 @@
 #include "worker/core/mesh_metrics.h"
 #include "worker/io/draco_codec.h"
 #include "worker/io/files.h"
+#include "worker/jobs/engines.h"
 
 namespace lsqsurf::jobs {
 namespace {
@@ -59,19 +61,24 @@ class JobServiceTest : public ::testing::Test {
   std::unique_ptr<JobService> service_;
 };
 
-TEST_F(JobServiceTest, ReconstructsASphere) {
+TEST_F(JobServiceTest, EveryMethodReconstructsASphere) {
   JobService& s = Open();
-  auto job = s.Submit({"iamls", {}}, Encode(testing::SphereCloud(5000)));
-  ASSERT_TRUE(job.ok()) << job.status();
-  EXPECT_EQ(job->state, JobState::kQueued);
-  const JobRecord done = WaitTerminal(job->id);
-  ASSERT_EQ(done.state, JobState::kSucceeded) << done.error;
-  auto path = s.ResultPath(job->id, "mesh.drc");
-  ASSERT_TRUE(path.ok());
-  auto mesh = io::ReadMeshFile(*path);
-  ASSERT_TRUE(mesh.ok()) << mesh.status();
-  EXPECT_TRUE(core::AnalyzeTopology(*mesh).watertight());
-  EXPECT_FALSE(done.statistics.empty());
+  for (const MethodSpec& method : SurfaceMethods()) {
+    auto job = s.Submit({method.name, {}}, Encode(testing::SphereCloud(5000)));
+    ASSERT_TRUE(job.ok()) << job.status();
+    EXPECT_EQ(job->state, JobState::kQueued);
+    const JobRecord done = WaitTerminal(job->id);
+    ASSERT_EQ(done.state, JobState::kSucceeded) << method.name << ": " << done.error;
+    auto path = s.ResultPath(job->id, "mesh.drc");
+    ASSERT_TRUE(path.ok());
+    auto mesh = io::ReadMeshFile(*path);
+    ASSERT_TRUE(mesh.ok()) << mesh.status();
+    const core::MeshTopology t = core::AnalyzeTopology(*mesh);
+    EXPECT_TRUE(t.watertight()) << method.name;
+    EXPECT_EQ(t.euler_characteristic(), 2) << method.name;
+    EXPECT_NEAR(core::EnclosedVolume(*mesh) / (4.0 / 3.0 * M_PI), 1.0, 0.02) << method.name;
+    EXPECT_FALSE(done.statistics.empty());
+  }
 }
 
 TEST_F(JobServiceTest, EstimatesMissingNormalsByDefault) {

@@ -9,6 +9,7 @@
 #include "worker/core/mesh_metrics.h"
 #include "worker/core/normals.h"
 #include "worker/core/strings.h"
+#include "worker/mls/algebraic_mls.h"
 #include "worker/mls/iamls.h"
 #include "worker/pu/pu.h"
 
@@ -45,6 +46,34 @@ MethodSpec IamlsMethod() {
       {"extractor", 1, 0, 1, true,
        "1: J1a tetrahedra on an adaptive octree; 0: surface-following uniform Kuhn grid (a little faster)"},
   };
+  for (auto& c : CommonParameters()) m.parameters.push_back(std::move(c));
+  return m;
+}
+
+MethodSpec AlgebraicMethod(mls::AlgebraicFit fit) {
+  mls::AlgebraicMlsParams p;
+  const bool apss = fit == mls::AlgebraicFit::kApss;
+  MethodSpec m{apss ? "apss" : "ramls",
+               apss ? "algebraic point set surface (Guennebaud & Gross): normal-constrained sphere fits weighted by "
+                      "beta, extracted on J1a tetrahedra"
+                    : "robust algebraic MLS surface (seed §3): closed-form normal-driven sphere fits, extracted on J1a "
+                      "tetrahedra",
+               {}};
+  m.parameters = {
+      {"spacing", p.spacing, 0, 1e30, false, "h in model units; 0 = spacing_scale x mean nearest-neighbour distance"},
+      {"spacing_scale", p.spacing_scale, 0.25, 8, false, "multiplier of the measured spacing"},
+      {"support_factor", p.support_factor, 1, 10, false, "support radius in units of h"},
+      {"min_neighbors", static_cast<double>(p.min_neighbors), 4, 100, true,
+       "no surface where fewer points carry weight"},
+      {"coverage", p.coverage, 0.25, 10, false, "no surface farther than this many h from the nearest point"},
+      {"cell_size", 1.0, 0.1, 16, false,
+       "spacing of the extraction vertices in units of h (J1a leaves are twice as large)"},
+      {"refine_steps", 3, 0, 20, true, "root-refinement steps per crossing edge"},
+  };
+  if (apss) {
+    m.parameters.push_back({"beta", p.apss_beta, 1e-6, 1e12, false,
+                            "weight of the normal term against the position term (dimensionless; large = RAMLS)"});
+  }
   for (auto& c : CommonParameters()) m.parameters.push_back(std::move(c));
   return m;
 }
@@ -135,6 +164,33 @@ absl::StatusOr<core::IsosurfaceResult> RunIamls(const ParamFn& param, const core
   return extracted;
 }
 
+absl::StatusOr<core::IsosurfaceResult> RunAlgebraic(mls::AlgebraicFit fit, const ParamFn& param,
+                                                    const core::PointCloud& cloud, core::JobContext& ctx,
+                                                    const StatFn& stat) {
+  mls::AlgebraicMlsParams ap;
+  ap.fit = fit;
+  ap.spacing = param("spacing");
+  ap.spacing_scale = param("spacing_scale");
+  ap.support_factor = param("support_factor");
+  ap.min_neighbors = static_cast<int>(param("min_neighbors"));
+  ap.coverage = param("coverage");
+  if (fit == mls::AlgebraicFit::kApss) ap.apss_beta = param("beta");
+  auto start = std::chrono::steady_clock::now();
+  core::SubContext build_ctx(ctx, "indexing points", 0.0, 0.05);
+  auto field = mls::BuildAlgebraicMls(cloud, ap, build_ctx);
+  if (!field.ok()) return field.status();
+  stat("spacing", (*field)->spacing());
+  start = std::chrono::steady_clock::now();
+  core::SubContext extract_ctx(ctx, "extracting surface", 0.05, 1.0);
+  core::MarchingOptions marching;
+  marching.refine_steps = static_cast<int>(param("refine_steps"));
+  // A J1a leaf has vertices at half its edge, so leaves of twice the vertex spacing.
+  const double leaf = 2 * param("cell_size") * (*field)->spacing();
+  auto extracted = core::ExtractIsosurfaceJ1a(**field, cloud.positions, {leaf, 20'000'000, marching}, extract_ctx);
+  if (extracted.ok()) stat("extract_seconds", Seconds(start));
+  return extracted;
+}
+
 absl::StatusOr<core::IsosurfaceResult> RunPu(const ParamFn& param, const core::PointCloud& cloud,
                                              core::JobContext& ctx, const StatFn& stat) {
   pu::PuParams pp;
@@ -182,7 +238,8 @@ absl::StatusOr<core::IsosurfaceResult> RunPu(const ParamFn& param, const core::P
 }  // namespace
 
 const std::vector<MethodSpec>& SurfaceMethods() {
-  static const std::vector<MethodSpec> methods = {IamlsMethod(), PuMethod()};
+  static const std::vector<MethodSpec> methods = {IamlsMethod(), PuMethod(), AlgebraicMethod(mls::AlgebraicFit::kRamls),
+                                                  AlgebraicMethod(mls::AlgebraicFit::kApss)};
   return methods;
 }
 
@@ -253,7 +310,10 @@ absl::StatusOr<SurfaceResult> RunSurfaceMethod(const std::string& method,
 
   core::SubContext engine_ctx(ctx, method, normals_share, 1.0);
   absl::StatusOr<core::IsosurfaceResult> extracted =
-      method == "pu" ? RunPu(param, cloud, engine_ctx, stat) : RunIamls(param, cloud, engine_ctx, stat);
+      method == "pu"      ? RunPu(param, cloud, engine_ctx, stat)
+      : method == "ramls" ? RunAlgebraic(mls::AlgebraicFit::kRamls, param, cloud, engine_ctx, stat)
+      : method == "apss"  ? RunAlgebraic(mls::AlgebraicFit::kApss, param, cloud, engine_ctx, stat)
+                          : RunIamls(param, cloud, engine_ctx, stat);
   if (!extracted.ok()) return extracted.status();
   result.mesh = std::move(extracted->mesh);
   if (result.mesh.faces.empty()) {

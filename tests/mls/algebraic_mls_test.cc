@@ -1,0 +1,174 @@
+#include "worker/mls/algebraic_mls.h"
+
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <numbers>
+#include <random>
+
+#include "tests/test_shapes.h"
+#include "worker/core/isosurface.h"
+#include "worker/core/j1a_isosurface.h"
+#include "worker/core/mesh_metrics.h"
+
+namespace lsqsurf::mls {
+namespace {
+
+using core::Vec3d;
+
+std::unique_ptr<AlgebraicMlsFunction> Build(const core::PointCloud& cloud, AlgebraicMlsParams p = {}) {
+  core::LocalJobContext ctx;
+  auto f = BuildAlgebraicMls(cloud, p, ctx);
+  EXPECT_TRUE(f.ok()) << f.status();
+  return f.ok() ? *std::move(f) : nullptr;
+}
+
+// A torus around z, sampled on a regular (θ, φ) grid with arc steps of about `step`, with
+// exact normals: close to the gridline samples of front tracking, and free of random gaps.
+core::PointCloud TorusGrid(double R, double r, double step) {
+  core::PointCloud cloud;
+  const int around = static_cast<int>(std::ceil(2 * std::numbers::pi * (R + r) / step));
+  const int tube = static_cast<int>(std::ceil(2 * std::numbers::pi * r / step));
+  for (int i = 0; i < around; ++i) {
+    const double theta = 2 * std::numbers::pi * i / around;
+    for (int j = 0; j < tube; ++j) {
+      const double phi = 2 * std::numbers::pi * (j + 0.5 * (i % 2)) / tube;
+      const Vec3d n(std::cos(phi) * std::cos(theta), std::cos(phi) * std::sin(theta), std::sin(phi));
+      const Vec3d c(R * std::cos(theta), R * std::sin(theta), 0);
+      cloud.positions.push_back((c + r * n).cast<float>());
+      cloud.normals.push_back(n.cast<float>());
+    }
+  }
+  return cloud;
+}
+
+// Largest distance, along the exact normal, from probe points of the true torus to the zero
+// set of F (found by bisection within ±h).
+double MaxTorusError(const core::ImplicitFunction& f, double R, double r, double h, int probes) {
+  std::mt19937_64 rng(3);
+  std::uniform_real_distribution<double> angle(0, 2 * std::numbers::pi);
+  double worst = 0;
+  for (int k = 0; k < probes; ++k) {
+    const double theta = angle(rng), phi = angle(rng);
+    const Vec3d n(std::cos(phi) * std::cos(theta), std::cos(phi) * std::sin(theta), std::sin(phi));
+    const Vec3d p = Vec3d(R * std::cos(theta), R * std::sin(theta), 0) + r * n;
+    double lo = -h, hi = h;
+    EXPECT_LT(f.Value(p + lo * n).value, 0);
+    EXPECT_GT(f.Value(p + hi * n).value, 0);
+    for (int i = 0; i < 60; ++i) {
+      const double mid = 0.5 * (lo + hi);
+      (f.Value(p + mid * n).value < 0 ? lo : hi) = mid;
+    }
+    worst = std::max(worst, std::abs(0.5 * (lo + hi)));
+  }
+  return worst;
+}
+
+TEST(AlgebraicMls, BothFitsReproduceASphereExactly) {
+  for (AlgebraicFit fit : {AlgebraicFit::kRamls, AlgebraicFit::kApss}) {
+    AlgebraicMlsParams p;
+    p.fit = fit;
+    auto f = Build(testing::SphereCloud(4000, 0.5, Vec3d(0.2, -0.1, 0.3)), p);
+    ASSERT_TRUE(f);
+    std::mt19937_64 rng(1);
+    std::normal_distribution<double> g;
+    for (int k = 0; k < 50; ++k) {
+      const Vec3d d = Vec3d(g(rng), g(rng), g(rng)).normalized();
+      for (double offset : {-0.3, 0.0, 0.5}) {
+        // Within the band where the support holds points, F is the Pratt-normalized value of
+        // the exact sphere, (ρ² − r²) / 2r at distance ρ from its centre.
+        const double rho = 0.5 + offset * f->spacing();
+        const core::FieldGradient v = f->ValueAndGradient(Vec3d(0.2, -0.1, 0.3) + rho * d);
+        ASSERT_TRUE(v.defined);
+        EXPECT_NEAR(v.value, (rho * rho - 0.25) / 1.0, 1e-6) << static_cast<int>(fit);  // Float positions.
+        // The sphere's own gradient: along d, of length ρ / r.
+        EXPECT_NEAR(v.gradient.dot(d), rho / 0.5, 1e-5);
+        EXPECT_NEAR(v.gradient.cross(d).norm(), 0.0, 1e-5);
+      }
+    }
+  }
+}
+
+// METHODS.md §2.6: the RAMLS surface of a torus converges at about second order as h halves.
+TEST(AlgebraicMls, RamlsTorusErrorFallsAtAboutSecondOrder) {
+  const double R = 0.3, r = 0.12;
+  std::vector<double> errors;
+  for (double h : {1.0 / 32, 1.0 / 64, 1.0 / 128}) {
+    AlgebraicMlsParams p;
+    p.spacing = h;
+    auto f = Build(TorusGrid(R, r, h), p);
+    ASSERT_TRUE(f);
+    errors.push_back(MaxTorusError(*f, R, r, h, 200));
+  }
+  EXPECT_LT(errors[0], 1e-3);
+  EXPECT_LT(errors[1], errors[0] / 2.5) << errors[0] << " " << errors[1];
+  EXPECT_LT(errors[2], errors[1] / 2.5) << errors[1] << " " << errors[2];
+}
+
+// RAMLS is APSS's β → ∞ limit; a small β lets positions outweigh normals, which on points with
+// wrong normals keeps the surface on the points.
+TEST(AlgebraicMls, ApssApproachesRamlsAsBetaGrows) {
+  const core::PointCloud torus = TorusGrid(0.3, 0.12, 1.0 / 64);
+  AlgebraicMlsParams ramls;
+  ramls.spacing = 1.0 / 64;
+  AlgebraicMlsParams apss = ramls;
+  apss.fit = AlgebraicFit::kApss;
+  auto fr = Build(torus, ramls);
+  double previous = std::numeric_limits<double>::infinity();
+  for (double beta : {1e-2, 1.0, 1e2, 1e6}) {
+    apss.apss_beta = beta;
+    auto fa = Build(torus, apss);
+    ASSERT_TRUE(fr && fa);
+    double gap = 0;
+    for (int k = 0; k < 100; ++k) {
+      const double t = 0.0628 * k;
+      const Vec3d x(0.42 * std::cos(t), 0.42 * std::sin(t), 0.01 * std::sin(3 * t));
+      gap = std::max(gap, std::abs(fa->Value(x).value - fr->Value(x).value));
+    }
+    EXPECT_LT(gap, previous) << beta;
+    previous = gap;
+  }
+  EXPECT_LT(previous, 1e-6);
+}
+
+TEST(AlgebraicMls, UndefinedAwayFromTheDataAndClosedMeshOnIt) {
+  auto f = Build(testing::SphereCloud(3000));
+  ASSERT_TRUE(f);
+  EXPECT_TRUE(f->Value(Vec3d(0, 0, 1)).defined);
+  EXPECT_FALSE(f->Value(Vec3d(0, 0, 1 + 2 * f->spacing())).defined);  // Beyond the coverage.
+  EXPECT_FALSE(f->Value(Vec3d(0, 0, 0)).defined);                      // No support at all.
+  core::LocalJobContext ctx;
+  core::J1aIsosurfaceParams ip;
+  ip.cell_size = 2 * f->spacing();
+  ip.marching.refine_steps = 12;  // Converged roots, so that the check below sees F itself.
+  auto mesh = core::ExtractIsosurfaceJ1a(*f, testing::SphereCloud(3000).positions, ip, ctx);
+  ASSERT_TRUE(mesh.ok()) << mesh.status();
+  const core::MeshTopology t = core::AnalyzeTopology(mesh->mesh);
+  EXPECT_TRUE(t.watertight());
+  EXPECT_EQ(t.euler_characteristic(), 2);
+  // Vertices are roots of F, which is exact here; the volume is short by the chords only.
+  for (const auto& v : mesh->mesh.vertices) EXPECT_NEAR(v.cast<double>().norm(), 1.0, 1e-5);
+  EXPECT_NEAR(core::EnclosedVolume(mesh->mesh) / (4.0 / 3.0 * std::numbers::pi), 1.0, 0.01);
+}
+
+TEST(AlgebraicMls, RejectsBadInput) {
+  core::LocalJobContext ctx;
+  core::PointCloud bare = testing::SphereCloud(100);
+  bare.normals.clear();
+  EXPECT_EQ(BuildAlgebraicMls(bare, {}, ctx).status().code(), absl::StatusCode::kInvalidArgument);
+  core::PointCloud nan = testing::SphereCloud(100);
+  nan.positions[7].x() = std::numeric_limits<float>::quiet_NaN();
+  EXPECT_EQ(BuildAlgebraicMls(nan, {}, ctx).status().code(), absl::StatusCode::kInvalidArgument);
+  AlgebraicMlsParams p;
+  p.fit = AlgebraicFit::kApss;
+  p.apss_beta = 0;
+  EXPECT_EQ(BuildAlgebraicMls(testing::SphereCloud(100), p, ctx).status().code(),
+            absl::StatusCode::kInvalidArgument);
+  p = {};
+  p.support_factor = 0.5;
+  EXPECT_EQ(BuildAlgebraicMls(testing::SphereCloud(100), p, ctx).status().code(),
+            absl::StatusCode::kInvalidArgument);
+}
+
+}  // namespace
+}  // namespace lsqsurf::mls

@@ -1,0 +1,87 @@
+// lsqsurf-front-bench — the front-tracking benchmarks of BENCHMARKS.md: Zalesak's slotted sphere
+// (one revolution) and Enright's 3D deformation (t = T), with volume change, the E1 shape error
+// against the exact initial shape, point counts, wall time and peak RSS.
+#include <sys/resource.h>
+
+#include <chrono>
+#include <cstdio>
+#include <string>
+
+#include <CLI/CLI.hpp>
+
+#include "worker/core/job_context.h"
+#include "worker/front/front_tracking.h"
+
+int main(int argc, char** argv) {
+  using namespace lsqsurf;
+  CLI::App app{"lsqsurf-front-bench: Zalesak and Enright front-tracking tests"};
+  std::string test = "zalesak";
+  int cells = 128;
+  double dt = 0;
+  int steps = 0;
+  double period = 3.0;
+  int stride = 0;
+  std::string shape_name;
+  double support = 3.0;
+  app.add_option("--test", test, "zalesak | enright")->capture_default_str();
+  app.add_option("--cells", cells, "grid cells per unit (h = 1/cells)")->capture_default_str();
+  app.add_option("--dt", dt, "time step (default: 1 for zalesak, T/(150·cells/64) for enright)");
+  app.add_option("--steps", steps, "steps (default: one revolution or t = T)");
+  app.add_option("--period", period, "Enright period T")->capture_default_str();
+  app.add_option("--stride", stride, "print every this many steps (default: steps/8)");
+  app.add_option("--support", support, "RAMLS support radius in units of h")->capture_default_str();
+  app.add_option("--shape", shape_name, "sphere | slotted (default: the test's own shape)");
+  CLI11_PARSE(app, argc, argv);
+  const bool zalesak = test == "zalesak";
+  if (!zalesak && test != "enright") return std::fprintf(stderr, "unknown --test %s\n", test.c_str()), 2;
+  front::TrackingParams p;
+  p.h = 1.0 / cells;
+  p.support_factor = support;
+  if (zalesak) {
+    p.dt = dt > 0 ? dt : 1.0;
+    p.steps = steps > 0 ? steps : static_cast<int>(std::lround(628 / p.dt));
+  } else {
+    // About a cell per step at the field's peak speed (~2 / T per unit time … ~1).
+    p.steps = steps > 0 ? steps : std::max(50, static_cast<int>(std::lround(150.0 * cells / 64)));
+    p.dt = dt > 0 ? dt : period / p.steps;
+  }
+  p.output_stride = stride > 0 ? stride : std::max(1, p.steps / 8);
+  if (shape_name.empty()) shape_name = zalesak ? "slotted" : "sphere";
+  if (shape_name != "sphere" && shape_name != "slotted") return std::fprintf(stderr, "unknown --shape\n"), 2;
+  const front::InitialShape shape = shape_name == "slotted" ? front::InitialShape::kZalesakSphere : front::InitialShape::kSphere;
+  auto initial = front::SampleInitialFront(shape, p.h);
+  if (!initial.ok()) return std::fprintf(stderr, "%s\n", initial.status().ToString().c_str()), 1;
+  auto e1_initial = front::ShapeError(*initial, shape, p.h);
+  if (!e1_initial.ok()) return std::fprintf(stderr, "%s\n", e1_initial.status().ToString().c_str()), 1;
+  const auto field = zalesak ? front::ZalesakRotation() : front::EnrightDeformation(period);
+  std::printf("%s h=1/%d dt=%g steps=%d%s\n", test.c_str(), cells, p.dt, p.steps,
+              zalesak ? "" : (" T=" + std::to_string(period)).c_str());
+  std::printf("%6s %9s %9s %12s %12s %9s\n", "step", "time", "points", "volume", "change_%", "wall_s");
+  core::LocalJobContext ctx;
+  front::Front last;
+  double wall = 0, volume0 = 0, volume_end = 0;
+  size_t peak_points = 0;
+  const auto start = std::chrono::steady_clock::now();
+  const absl::Status s = front::Track(*initial, *field, p, ctx, [&](const front::FrameStats& f, const front::Front& fr) {
+    if (f.step == 0) volume0 = f.volume;
+    volume_end = f.volume;
+    wall += f.seconds;
+    peak_points = std::max(peak_points, f.points);
+    std::printf("%6d %9.3f %9zu %12.6e %12.4f %9.2f\n", f.step, f.time, f.points, f.volume, 100 * f.volume_change, wall);
+    std::fflush(stdout);
+    last = fr;
+    return absl::OkStatus();
+  });
+  const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  if (!s.ok()) return std::fprintf(stderr, "%s\n", s.ToString().c_str()), 1;
+  auto e1 = front::ShapeError(last, shape, p.h);
+  if (!e1.ok()) return std::fprintf(stderr, "%s\n", e1.status().ToString().c_str()), 1;
+  struct rusage usage {};
+  ::getrusage(RUSAGE_SELF, &usage);
+  std::printf("summary: volume_change=%.4f%% e1_rel=%.4f%% (initial sampling: %.4f%%) points_start=%zu points_end=%zu points_peak=%zu "
+              "wall=%.1fs peak_rss=%.0fMiB\n",
+              100 * (volume_end - volume0) / volume0, 100 * *e1 / volume0, 100 * *e1_initial / volume0,
+              initial->points.size(), last.points.size(),
+              peak_points, seconds, static_cast<double>(usage.ru_maxrss) / 1024.0);
+  return 0;
+}

@@ -1,0 +1,554 @@
+#include "worker/front/front_tracking.h"
+
+#include <algorithm>
+#include <atomic>
+#include <chrono>
+#include <cmath>
+#include <limits>
+#include <numbers>
+
+#include "absl/container/flat_hash_map.h"
+#include "worker/core/implicit_function.h"
+#include "worker/core/j1a.h"
+#include "worker/core/parallel.h"
+#include "worker/core/status.h"
+#include "worker/core/strings.h"
+#include "worker/mls/algebraic_mls.h"
+
+namespace lsqsurf::front {
+namespace {
+
+using core::Vec3d;
+using core::Vec3f;
+
+constexpr double kRadius = 0.15;
+// Root refinement on a grid edge: Illinois steps (superlinear; 8 bring the bracket far below
+// 1e-6 h on smooth fronts).
+constexpr int kRootSteps = 8;
+// The grid nodes sampled around each point: its cell widened by one cell on every side, so that
+// a crossing in a cell the surface only clips is still found.
+constexpr int kNodeReach = 1;
+
+class ZalesakField final : public VelocityField {
+ public:
+  Vec3d At(const Vec3d& x, double) const override {
+    constexpr double w = std::numbers::pi / 314.0;
+    return {w * (0.5 - x.y()), w * (x.x() - 0.5), 0.0};
+  }
+};
+
+class EnrightField final : public VelocityField {
+ public:
+  explicit EnrightField(double period) : period_(period) {}
+  Vec3d At(const Vec3d& p, double t) const override {
+    const double pi = std::numbers::pi, c = std::cos(pi * t / period_);
+    const double sx = std::sin(pi * p.x()), sy = std::sin(pi * p.y()), sz = std::sin(pi * p.z());
+    const double s2x = std::sin(2 * pi * p.x()), s2y = std::sin(2 * pi * p.y()), s2z = std::sin(2 * pi * p.z());
+    return {2 * sx * sx * s2y * s2z * c, -s2x * sy * sy * s2z * c, -s2x * s2y * sz * sz * c};
+  }
+
+ private:
+  double period_;
+};
+
+class GridField final : public VelocityField {
+ public:
+  GridField(Vec3d origin, double spacing, int nx, int ny, int nz, std::vector<Vec3d> values)
+      : origin_(origin), spacing_(spacing), n_{nx, ny, nz}, values_(std::move(values)) {}
+  Vec3d At(const Vec3d& x, double) const override {
+    std::array<int, 3> i0{};
+    std::array<double, 3> f{};
+    for (int a = 0; a < 3; ++a) {
+      const double g = std::clamp((x[a] - origin_[a]) / spacing_, 0.0, static_cast<double>(n_[a] - 1));
+      i0[a] = std::min(static_cast<int>(g), std::max(0, n_[a] - 2));
+      f[a] = n_[a] > 1 ? g - i0[a] : 0.0;
+    }
+    Vec3d v = Vec3d::Zero();
+    for (int corner = 0; corner < 8; ++corner) {
+      double w = 1;
+      std::array<int, 3> i{};
+      for (int a = 0; a < 3; ++a) {
+        const int bit = (corner >> a) & 1;
+        i[a] = std::min(i0[a] + bit, n_[a] - 1);
+        w *= bit ? f[a] : 1 - f[a];
+      }
+      if (w == 0) continue;
+      v += w * values_[static_cast<size_t>(i[0]) +
+                       static_cast<size_t>(n_[0]) * (static_cast<size_t>(i[1]) + static_cast<size_t>(n_[1]) * static_cast<size_t>(i[2]))];
+    }
+    return v;
+  }
+
+ private:
+  Vec3d origin_;
+  double spacing_;
+  std::array<int, 3> n_;
+  std::vector<Vec3d> values_;
+};
+
+// The exact benchmark shapes as implicit functions (distance-like, exact gradient almost
+// everywhere), for the initial sampling.
+class ShapeField final : public core::ImplicitFunction {
+ public:
+  explicit ShapeField(InitialShape shape) : shape_(shape) {}
+  core::FieldValue Value(const Vec3d& x) const override { return {Eval(x, nullptr), true}; }
+  core::FieldGradient ValueAndGradient(const Vec3d& x) const override {
+    core::FieldGradient g;
+    g.value = Eval(x, &g.gradient);
+    g.defined = true;
+    return g;
+  }
+
+ private:
+  double Eval(const Vec3d& x, Vec3d* gradient) const {
+    const Vec3d centre = shape_ == InitialShape::kSphere ? Vec3d(0.35, 0.35, 0.35) : Vec3d(0.5, 0.75, 0.5);
+    const Vec3d d = x - centre;
+    const double sphere = d.norm() - kRadius;
+    if (gradient) *gradient = d.norm() > 0 ? Vec3d(d.normalized()) : Vec3d::UnitZ();
+    if (shape_ == InitialShape::kSphere) return sphere;
+    // The slot: |x − 0.5| ≤ 0.025, y ≤ 0.725, any z; F = max(sphere, −slot) (sphere minus slot).
+    const double half_width = 0.025, top = 0.725;
+    const double qx = std::abs(x.x() - 0.5) - half_width, qy = x.y() - top;
+    const double slot = qx > 0 && qy > 0 ? std::hypot(qx, qy) : std::max(qx, qy);  // < 0 inside the slot.
+    if (-slot > sphere) {
+      if (gradient) {
+        if (qx > 0 && qy > 0) {
+          *gradient = -Vec3d((x.x() > 0.5 ? 1 : -1) * qx, qy, 0).normalized();
+        } else if (qx > qy) {
+          *gradient = Vec3d(x.x() > 0.5 ? -1 : 1, 0, 0);
+        } else {
+          *gradient = Vec3d(0, -1, 0);
+        }
+      }
+      return -slot;
+    }
+    return sphere;
+  }
+  InitialShape shape_;
+};
+
+// Grid nodes are integer triples (i, j, k) at i·h; keys pack them like J1a vertex keys.
+using NodeKey = uint64_t;
+NodeKey Key(uint32_t i, uint32_t j, uint32_t k) { return core::PackVertex(i, j, k); }
+
+struct Crossing {
+  Vec3f point, normal;
+};
+
+struct ZCrossing {
+  uint64_t column;  // i | j << 32.
+  double z;
+  bool entering;    // F goes from + (outside) to − (inside) along +z.
+};
+
+struct GridlineResult {
+  std::vector<Crossing> crossings;  // In node order; x, y, z edges of each node.
+  std::vector<ZCrossing> z_crossings;  // Sorted by column, then z.
+};
+
+// Samples F at `nodes` (sorted) of the grid of spacing h and finds the root on every x, y and
+// z edge (or z only) between two defined nodes of opposite sign.
+absl::StatusOr<GridlineResult> SampleGridlines(const core::ImplicitFunction& field, std::span<const NodeKey> nodes,
+                                               double h, bool z_only, core::JobContext& ctx) {
+  std::vector<core::FieldValue> values(nodes.size());
+  absl::flat_hash_map<NodeKey, uint32_t> index;
+  index.reserve(nodes.size());
+  for (uint32_t n = 0; n < nodes.size(); ++n) index.emplace(nodes[n], n);
+  auto position = [&](NodeKey key) {
+    const auto [i, j, k] = core::UnpackVertex(key);
+    return Vec3d(i * h, j * h, k * h);
+  };
+  LSQSURF_RETURN_IF_ERROR(core::ParallelFor(nodes.size(), 256, [&](size_t b, size_t e) {
+    for (size_t n = b; n < e; ++n) values[n] = field.Value(position(nodes[n]));
+  }, &ctx));
+  constexpr uint32_t kNone = std::numeric_limits<uint32_t>::max();
+  std::vector<std::array<Crossing, 3>> found(nodes.size());
+  std::vector<std::array<char, 3>> has(nodes.size(), {0, 0, 0});
+  LSQSURF_RETURN_IF_ERROR(core::ParallelFor(nodes.size(), 256, [&](size_t b, size_t e) {
+    for (size_t n = b; n < e; ++n) {
+      const core::FieldValue& va = values[n];
+      if (!va.defined || std::isnan(va.value)) continue;
+      const auto [i, j, k] = core::UnpackVertex(nodes[n]);
+      for (int axis = z_only ? 2 : 0; axis < 3; ++axis) {
+        const NodeKey next = Key(i + (axis == 0), j + (axis == 1), k + (axis == 2));
+        const auto it = index.find(next);
+        const uint32_t m = it == index.end() ? kNone : it->second;
+        if (m == kNone) continue;
+        const core::FieldValue& vb = values[m];
+        if (!vb.defined || std::isnan(vb.value) || (va.value < 0) == (vb.value < 0)) continue;
+        const Vec3d a = position(nodes[n]), step = position(next) - a;
+        double ta = 0, tb = 1, fa = va.value, fb = vb.value, t = fa / (fa - fb);
+        int side = 0;
+        for (int s = 0; s < kRootSteps; ++s) {
+          const double f = field.ValueOnly(a + t * step);
+          if (std::isnan(f) || f == 0) break;
+          if ((f < 0) == (fa < 0)) {
+            ta = t, fa = f;
+            if (side == -1) fb *= 0.5;
+            side = -1;
+          } else {
+            tb = t, fb = f;
+            if (side == 1) fa *= 0.5;
+            side = 1;
+          }
+          t = ta - fa * (tb - ta) / (fb - fa);
+        }
+        const Vec3d root = a + t * step;
+        const core::FieldGradient g = field.ValueAndGradient(root);
+        const double length = g.gradient.norm();
+        if (!(length > 0)) continue;
+        found[n][static_cast<size_t>(axis)] = {root.cast<float>(), (g.gradient / length).cast<float>()};
+        has[n][static_cast<size_t>(axis)] = 1;
+      }
+    }
+  }, &ctx));
+  GridlineResult out;
+  for (size_t n = 0; n < nodes.size(); ++n) {
+    for (int axis = 0; axis < 3; ++axis) {
+      if (!has[n][static_cast<size_t>(axis)]) continue;
+      const Crossing& c = found[n][static_cast<size_t>(axis)];
+      out.crossings.push_back(c);
+      if (axis == 2) {
+        const auto [i, j, k] = core::UnpackVertex(nodes[n]);
+        out.z_crossings.push_back({uint64_t{i} | (uint64_t{j} << 32), c.point.z(), values[n].value > 0});
+      }
+    }
+  }
+  std::sort(out.z_crossings.begin(), out.z_crossings.end(), [](const ZCrossing& a, const ZCrossing& b) {
+    return a.column != b.column ? a.column < b.column : a.z < b.z;
+  });
+  return out;
+}
+
+// Inside intervals along each z gridline column: an entering crossing opens one, the next
+// leaving crossing closes it (unpaired crossings, where the front is open, add nothing).
+template <typename Visit>
+void ForEachInsideInterval(std::span<const ZCrossing> z, Visit&& visit) {
+  for (size_t a = 0; a < z.size();) {
+    size_t b = a;
+    while (b < z.size() && z[b].column == z[a].column) ++b;
+    double open = std::numeric_limits<double>::quiet_NaN();
+    for (size_t c = a; c < b; ++c) {
+      if (z[c].entering) {
+        open = z[c].z;
+      } else if (!std::isnan(open)) {
+        visit(z[a].column, open, z[c].z);
+        open = std::numeric_limits<double>::quiet_NaN();
+      }
+    }
+    a = b;
+  }
+}
+
+double VolumeOf(std::span<const ZCrossing> z, double h) {
+  double length = 0;
+  ForEachInsideInterval(z, [&](uint64_t, double lo, double hi) { length += hi - lo; });
+  return length * h * h;
+}
+
+int GridCells(double h) { return static_cast<int>(std::lround(1.0 / h)); }
+
+// The grid nodes within kNodeReach cells of any point, sorted. `marks` is a reusable dense
+// bitmap of the (n+1)³ nodes, left cleared.
+std::vector<NodeKey> NodesNear(std::span<const Vec3f> points, double h, std::vector<uint8_t>& marks) {
+  const int n = GridCells(h);
+  const auto side = static_cast<size_t>(n + 1);
+  if (marks.size() != side * side * side) marks.assign(side * side * side, 0);
+  std::vector<NodeKey> nodes;
+  std::vector<size_t> touched;
+  for (const Vec3f& p : points) {
+    std::array<int, 3> c{};
+    for (int a = 0; a < 3; ++a) c[a] = static_cast<int>(std::floor(p[a] / h));
+    for (int dz = -kNodeReach; dz <= kNodeReach + 1; ++dz) {
+      const int k = c[2] + dz;
+      if (k < 0 || k > n) continue;
+      for (int dy = -kNodeReach; dy <= kNodeReach + 1; ++dy) {
+        const int j = c[1] + dy;
+        if (j < 0 || j > n) continue;
+        for (int dx = -kNodeReach; dx <= kNodeReach + 1; ++dx) {
+          const int i = c[0] + dx;
+          if (i < 0 || i > n) continue;
+          const size_t cell = static_cast<size_t>(i) + side * (static_cast<size_t>(j) + side * static_cast<size_t>(k));
+          if (marks[cell]) continue;
+          marks[cell] = 1;
+          touched.push_back(cell);
+          nodes.push_back(Key(static_cast<uint32_t>(i), static_cast<uint32_t>(j), static_cast<uint32_t>(k)));
+        }
+      }
+    }
+  }
+  for (size_t cell : touched) marks[cell] = 0;
+  std::sort(nodes.begin(), nodes.end());
+  return nodes;
+}
+
+// Greedy thinning in the given order: a point is kept unless a kept point lies within h/2.
+Front Thin(const std::vector<Crossing>& crossings, double h) {
+  const double min_distance = 0.5 * h;
+  absl::flat_hash_map<uint64_t, std::vector<uint32_t>> buckets;
+  auto bucket_of = [&](const Vec3f& p, int dx, int dy, int dz) {
+    auto c = [&](int a, int d) { return static_cast<uint64_t>(static_cast<int64_t>(std::floor(p[a] / min_distance)) + d + (1 << 20)); };
+    return c(0, dx) | (c(1, dy) << 21) | (c(2, dz) << 42);
+  };
+  Front front;
+  for (const Crossing& c : crossings) {
+    bool near = false;
+    for (int d = 0; d < 27 && !near; ++d) {
+      const auto it = buckets.find(bucket_of(c.point, d % 3 - 1, (d / 3) % 3 - 1, d / 9 - 1));
+      if (it == buckets.end()) continue;
+      for (uint32_t k : it->second) {
+        if ((front.points[k] - c.point).squaredNorm() < min_distance * min_distance) {
+          near = true;
+          break;
+        }
+      }
+    }
+    if (near) continue;
+    buckets[bucket_of(c.point, 0, 0, 0)].push_back(static_cast<uint32_t>(front.points.size()));
+    front.points.push_back(c.point);
+    front.normals.push_back(c.normal);
+  }
+  return front;
+}
+
+absl::StatusOr<std::unique_ptr<mls::AlgebraicMlsFunction>> FrontFunction(const Front& front, double h,
+                                                                        double support_factor,
+                                                                        core::JobContext& ctx) {
+  core::PointCloud cloud;
+  cloud.positions = front.points;
+  cloud.normals = front.normals;
+  mls::AlgebraicMlsParams p;
+  p.spacing = h;
+  p.support_factor = support_factor;
+  return mls::BuildAlgebraicMls(cloud, p, ctx);
+}
+
+absl::Status ValidateSpacing(double h) {
+  if (!std::isfinite(h) || h < 1.0 / 512 - 1e-12 || h > 1.0 / 8 + 1e-12) {
+    return absl::InvalidArgumentError(core::StrCat("h must be in [1/512, 1/8] (the unit cube's grid), got ", h));
+  }
+  if (std::abs(1.0 / h - std::round(1.0 / h)) > 1e-6 * (1.0 / h)) {
+    return absl::InvalidArgumentError(core::StrCat("h must divide the unit cube: 1/h must be a whole number, got 1/h = ", 1.0 / h));
+  }
+  return absl::OkStatus();
+}
+
+// Flow Jacobian ∇v by central differences (the fields are smooth; the step only has to be far
+// below their length scale and far above rounding).
+Eigen::Matrix3d Jacobian(const VelocityField& v, const Vec3d& x, double t) {
+  constexpr double eps = 1e-6;
+  Eigen::Matrix3d j;
+  for (int a = 0; a < 3; ++a) {
+    const Vec3d e = Vec3d::Unit(a) * eps;
+    j.col(a) = (v.At(x + e, t) - v.At(x - e, t)) / (2 * eps);
+  }
+  return j;
+}
+
+}  // namespace
+
+std::unique_ptr<VelocityField> ZalesakRotation() { return std::make_unique<ZalesakField>(); }
+std::unique_ptr<VelocityField> EnrightDeformation(double period) { return std::make_unique<EnrightField>(period); }
+
+absl::StatusOr<std::unique_ptr<VelocityField>> GridVelocity(Vec3d origin, double spacing, int nx, int ny, int nz,
+                                                            std::vector<Vec3d> values) {
+  if (!origin.allFinite() || !(spacing > 0) || !std::isfinite(spacing)) {
+    return absl::InvalidArgumentError("the velocity grid needs a finite origin and a positive spacing");
+  }
+  if (nx < 1 || ny < 1 || nz < 1 || static_cast<int64_t>(nx) * ny * nz > 256LL * 256 * 256) {
+    return absl::InvalidArgumentError("the velocity grid must have 1..256³ nodes");
+  }
+  if (values.size() != static_cast<size_t>(nx) * static_cast<size_t>(ny) * static_cast<size_t>(nz)) {
+    return absl::InvalidArgumentError(core::StrCat("the velocity grid has ", values.size(), " vectors, expected nx·ny·nz = ",
+                                                   static_cast<int64_t>(nx) * ny * nz));
+  }
+  for (size_t i = 0; i < values.size(); ++i) {
+    if (!values[i].allFinite()) return absl::InvalidArgumentError(core::StrCat("velocity ", i, " is not finite"));
+  }
+  return std::make_unique<GridField>(origin, spacing, nx, ny, nz, std::move(values));
+}
+
+bool InsideShape(InitialShape shape, const Vec3d& x) {
+  return ShapeField(shape).Value(x).value < 0;
+}
+
+absl::Status Validate(const TrackingParams& p) {
+  LSQSURF_RETURN_IF_ERROR(ValidateSpacing(p.h));
+  if (!(p.dt > 0) || !std::isfinite(p.dt)) return absl::InvalidArgumentError("dt must be a positive number");
+  if (p.steps < 1 || p.steps > 100000) return absl::InvalidArgumentError("steps must be in [1, 100000]");
+  if (p.output_stride < 1) return absl::InvalidArgumentError("output_stride must be at least 1");
+  if (p.max_points < 4) return absl::InvalidArgumentError("max_points must be at least 4");
+  if (!(p.support_factor >= 1.5 && p.support_factor <= 10)) {
+    return absl::InvalidArgumentError("support_factor must be in [1.5, 10]");
+  }
+  return absl::OkStatus();
+}
+
+absl::StatusOr<Front> SampleInitialFront(InitialShape shape, double h) {
+  LSQSURF_RETURN_IF_ERROR(ValidateSpacing(h));
+  const ShapeField field(shape);
+  const Vec3d centre = shape == InitialShape::kSphere ? Vec3d(0.35, 0.35, 0.35) : Vec3d(0.5, 0.75, 0.5);
+  std::vector<NodeKey> nodes;
+  const int n = GridCells(h);
+  std::array<int, 3> lo{}, hi{};
+  for (int a = 0; a < 3; ++a) {
+    lo[a] = std::max(0, static_cast<int>(std::floor((centre[a] - kRadius) / h)) - 2);
+    hi[a] = std::min(n, static_cast<int>(std::ceil((centre[a] + kRadius) / h)) + 2);
+  }
+  for (int k = lo[2]; k <= hi[2]; ++k) {
+    for (int j = lo[1]; j <= hi[1]; ++j) {
+      for (int i = lo[0]; i <= hi[0]; ++i) {
+        nodes.push_back(Key(static_cast<uint32_t>(i), static_cast<uint32_t>(j), static_cast<uint32_t>(k)));
+      }
+    }
+  }
+  std::sort(nodes.begin(), nodes.end());
+  core::LocalJobContext ctx;
+  auto sampled = SampleGridlines(field, nodes, h, false, ctx);
+  if (!sampled.ok()) return sampled.status();
+  return Thin(sampled->crossings, h);
+}
+
+absl::StatusOr<double> FrontVolume(const Front& front, double h, double support_factor) {
+  LSQSURF_RETURN_IF_ERROR(ValidateSpacing(h));
+  core::LocalJobContext ctx;
+  auto field = FrontFunction(front, h, support_factor, ctx);
+  if (!field.ok()) return field.status();
+  std::vector<uint8_t> marks;
+  const std::vector<NodeKey> nodes = NodesNear(front.points, h, marks);
+  auto sampled = SampleGridlines(**field, nodes, h, true, ctx);
+  if (!sampled.ok()) return sampled.status();
+  return VolumeOf(sampled->z_crossings, h);
+}
+
+absl::StatusOr<double> ShapeError(const Front& front, InitialShape exact, double h, double support_factor) {
+  LSQSURF_RETURN_IF_ERROR(ValidateSpacing(h));
+  core::LocalJobContext ctx;
+  auto field = FrontFunction(front, h, support_factor, ctx);
+  if (!field.ok()) return field.status();
+  const double fine = 0.5 * h;
+  std::vector<uint8_t> marks;
+  const std::vector<NodeKey> nodes = NodesNear(front.points, fine, marks);
+  auto sampled = SampleGridlines(**field, nodes, fine, true, ctx);
+  if (!sampled.ok()) return sampled.status();
+  // Inside intervals of the front per column, then of the exact shape (a sphere's chord, or
+  // nothing across the slot), and the length of their symmetric difference.
+  absl::flat_hash_map<uint64_t, std::vector<std::pair<double, double>>> front_intervals;
+  ForEachInsideInterval(sampled->z_crossings,
+                        [&](uint64_t column, double lo, double hi) { front_intervals[column].push_back({lo, hi}); });
+  const Vec3d centre = exact == InitialShape::kSphere ? Vec3d(0.35, 0.35, 0.35) : Vec3d(0.5, 0.75, 0.5);
+  auto exact_interval = [&](double x, double y) -> std::vector<std::pair<double, double>> {
+    const double r2 = kRadius * kRadius - (x - centre.x()) * (x - centre.x()) - (y - centre.y()) * (y - centre.y());
+    if (r2 <= 0) return {};
+    if (exact == InitialShape::kZalesakSphere && std::abs(x - 0.5) <= 0.025 && y <= 0.725) return {};
+    return {{centre.z() - std::sqrt(r2), centre.z() + std::sqrt(r2)}};
+  };
+  auto symmetric_difference = [](std::vector<std::pair<double, double>> a, std::vector<std::pair<double, double>> b) {
+    // Sweep over all interval ends; the measure where exactly one side is inside.
+    std::vector<std::pair<double, int>> events;
+    for (auto [lo, hi] : a) events.push_back({lo, 1}), events.push_back({hi, -1});
+    for (auto [lo, hi] : b) events.push_back({lo, 2}), events.push_back({hi, -2});
+    std::sort(events.begin(), events.end());
+    int in_a = 0, in_b = 0;
+    double length = 0, last = 0;
+    for (auto [z, e] : events) {
+      if ((in_a > 0) != (in_b > 0)) length += z - last;
+      last = z;
+      if (std::abs(e) == 1) in_a += e; else in_b += e / 2;
+    }
+    return length;
+  };
+  const int cells = GridCells(fine);
+  double e1 = 0;
+  for (int j = 0; j <= cells; ++j) {
+    for (int i = 0; i <= cells; ++i) {
+      const uint64_t column = static_cast<uint64_t>(i) | (static_cast<uint64_t>(j) << 32);
+      const auto it = front_intervals.find(column);
+      auto ex = exact_interval(i * fine, j * fine);
+      if (it == front_intervals.end() && ex.empty()) continue;
+      e1 += symmetric_difference(it == front_intervals.end() ? std::vector<std::pair<double, double>>{} : it->second, ex);
+    }
+  }
+  return e1 * fine * fine;
+}
+
+absl::Status Track(const Front& initial, const VelocityField& velocity, const TrackingParams& params,
+                   core::JobContext& ctx,
+                   const std::function<absl::Status(const FrameStats&, const Front&)>& on_frame) {
+  LSQSURF_RETURN_IF_ERROR(Validate(params));
+  if (initial.points.size() < 4 || initial.normals.size() != initial.points.size()) {
+    return absl::InvalidArgumentError("the initial front needs at least 4 points, each with a normal");
+  }
+  const double h = params.h, dt = params.dt;
+  std::vector<uint8_t> marks;
+  Front front = initial;
+  auto volume_of = [&](const Front& f, core::JobContext& c) -> absl::StatusOr<double> {
+    auto field = FrontFunction(f, h, params.support_factor, c);
+    if (!field.ok()) return field.status();
+    auto sampled = SampleGridlines(**field, NodesNear(f.points, h, marks), h, true, c);
+    if (!sampled.ok()) return sampled.status();
+    return VolumeOf(sampled->z_crossings, h);
+  };
+  auto v0 = volume_of(front, ctx);
+  if (!v0.ok()) return v0.status();
+  if (!(*v0 > 0)) return absl::InvalidArgumentError("the initial front encloses no volume on the grid; is it closed and oriented outward?");
+  FrameStats stats;
+  stats.points = front.points.size();
+  stats.volume = *v0;
+  LSQSURF_RETURN_IF_ERROR(on_frame(stats, front));
+  auto since = std::chrono::steady_clock::now();
+  for (int step = 1; step <= params.steps; ++step) {
+    const double t = (step - 1) * dt;
+    // 1. Advection (RK4) and normal transport.
+    std::atomic<bool> finite{true};
+    LSQSURF_RETURN_IF_ERROR(core::ParallelFor(front.points.size(), 512, [&](size_t b, size_t e) {
+      for (size_t i = b; i < e; ++i) {
+        const Vec3d p = front.points[i].cast<double>();
+        const Vec3d k1 = velocity.At(p, t);
+        const Vec3d k2 = velocity.At(p + 0.5 * dt * k1, t + 0.5 * dt);
+        const Vec3d k3 = velocity.At(p + 0.5 * dt * k2, t + 0.5 * dt);
+        const Vec3d k4 = velocity.At(p + dt * k3, t + dt);
+        const Vec3d moved = p + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4);
+        const Vec3d n = front.normals[i].cast<double>();
+        const Vec3d turned = n - dt * Jacobian(velocity, 0.5 * (p + moved), t + 0.5 * dt).transpose() * n;
+        if (!moved.allFinite() || !turned.allFinite() || !(turned.norm() > 0)) {
+          finite = false;
+          continue;
+        }
+        front.points[i] = moved.cast<float>();
+        front.normals[i] = turned.normalized().cast<float>();
+      }
+    }, &ctx));
+    if (!finite) {
+      return absl::InvalidArgumentError(core::StrCat("the velocity field gave a non-finite value at step ", step));
+    }
+    // 2. Re-generation on the gridlines, 3. thinning.
+    auto field = FrontFunction(front, h, params.support_factor, ctx);
+    if (!field.ok()) return field.status();
+    auto sampled = SampleGridlines(**field, NodesNear(front.points, h, marks), h, false, ctx);
+    if (!sampled.ok()) return sampled.status();
+    front = Thin(sampled->crossings, h);
+    if (front.points.size() < 4) {
+      return absl::FailedPreconditionError(core::StrCat("the front vanished at step ", step,
+                                                        ": it became thinner than the grid spacing h"));
+    }
+    if (front.points.size() > params.max_points) {
+      return absl::ResourceExhaustedError(core::StrCat("the front grew to ", front.points.size(), " points at step ", step,
+                                                       " (limit ", params.max_points, "); a finer h resolves thin sheets"));
+    }
+    ctx.ReportProgress(core::StrCat("step ", step, " of ", params.steps), static_cast<double>(step) / params.steps);
+    if (step % params.output_stride == 0 || step == params.steps) {
+      stats.step = step;
+      stats.time = step * dt;
+      stats.points = front.points.size();
+      stats.volume = VolumeOf(sampled->z_crossings, h);
+      stats.volume_change = (stats.volume - *v0) / *v0;
+      stats.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - since).count();
+      LSQSURF_RETURN_IF_ERROR(on_frame(stats, front));
+      since = std::chrono::steady_clock::now();
+    }
+  }
+  return absl::OkStatus();
+}
+
+}  // namespace lsqsurf::front

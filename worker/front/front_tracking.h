@@ -1,0 +1,100 @@
+// worker/front/front_tracking.h — meshless front tracking with RAMLS surfaces (seed §3;
+// METHODS.md §2).
+//
+// The interface is a set of oriented points. Every step:
+//  1. each point moves with classical RK4 along the velocity field; its normal is carried by the
+//     flow's Jacobian (n ← n − Δt ∇vᵀ n, renormalized; the seed keeps the old normal, which then
+//     lags the surface by the rotation of one step);
+//  2. the RAMLS function of the moved points (support 3h) is sampled at the background-grid nodes
+//     near them (spacing h), and every grid edge along x, y or z whose ends have opposite signs
+//     gives a new point: the root of F on that edge (Illinois regula falsi), with the normal of
+//     the fitted sphere there;
+//  3. new points closer than h/2 to an already kept one are dropped (greedy, in grid order).
+// The enclosed volume comes from the z-edges: along each z gridline the crossings alternate
+// between entering (F goes from + to −) and leaving, and V = h² Σ (z_leave − z_enter).
+#pragma once
+
+#include <functional>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "worker/core/geometry.h"
+#include "worker/core/job_context.h"
+
+namespace lsqsurf::front {
+
+// v(x, t). Implementations must be safe to call from many threads.
+class VelocityField {
+ public:
+  virtual ~VelocityField() = default;
+  virtual core::Vec3d At(const core::Vec3d& x, double t) const = 0;
+};
+
+// Zalesak's rigid rotation about the axis through (0.5, 0.5) parallel to z,
+// v = (π/314)(0.5 − y, x − 0.5, 0): one revolution every 628 time units.
+std::unique_ptr<VelocityField> ZalesakRotation();
+// LeVeque's 3D deformation field modulated by cos(πt/T): the shape returns at t = T.
+std::unique_ptr<VelocityField> EnrightDeformation(double period);
+// A user field on a regular grid, interpolated trilinearly in space and constant in time.
+// `values` holds nx·ny·nz vectors, x fastest. Errors: kInvalidArgument (sizes, non-finite
+// values, spacing ≤ 0). Outside the grid the nearest boundary value is used.
+absl::StatusOr<std::unique_ptr<VelocityField>> GridVelocity(core::Vec3d origin, double spacing, int nx, int ny,
+                                                            int nz, std::vector<core::Vec3d> values);
+
+// The analytic interfaces of the benchmarks (BENCHMARKS.md), inside = F < 0.
+enum class InitialShape {
+  kSphere,         // Radius 0.15 at (0.35, 0.35, 0.35): Enright's deformation test.
+  kZalesakSphere,  // Radius 0.15 at (0.5, 0.75, 0.5), slot 0.05 wide cut from y = 0.6 to 0.725.
+};
+// Whether x is inside the exact shape (for the E1 error).
+bool InsideShape(InitialShape shape, const core::Vec3d& x);
+
+struct Front {
+  std::vector<core::Vec3f> points;
+  std::vector<core::Vec3f> normals;  // Unit, outward.
+};
+
+struct TrackingParams {
+  double h = 1.0 / 128;        // Background grid spacing in the unit cube [0, 1]³, 1/512..1/8.
+  double dt = 1.0;             // Time step, > 0.
+  int steps = 1;               // Number of steps, 1..100000.
+  int output_stride = 1;       // Report every this many steps (and the last), ≥ 1.
+  double support_factor = 3.0; // RAMLS support radius in units of h (the seed's 3).
+  size_t max_points = 4'000'000;  // A front that grows past this stops with kResourceExhausted.
+};
+
+absl::Status Validate(const TrackingParams& params);
+
+struct FrameStats {
+  int step = 0;
+  double time = 0;
+  size_t points = 0;
+  double volume = 0;        // Enclosed volume from the z gridlines.
+  double volume_change = 0; // (V − V₀) / V₀.
+  double seconds = 0;       // Wall time of the steps since the previous frame.
+};
+
+// Samples the exact shape on the gridlines of spacing `h` (the same rule as every step).
+// Errors: kInvalidArgument (h out of range).
+absl::StatusOr<Front> SampleInitialFront(InitialShape shape, double h);
+
+// Volume of the region where the front's RAMLS function is negative, from the z gridlines of
+// spacing `h` (the measure used for every frame). Errors: kInvalidArgument.
+absl::StatusOr<double> FrontVolume(const Front& front, double h, double support_factor = 3.0);
+
+// E1 = ∫ |χ_front − χ_exact| dV (BENCHMARKS.md), with χ_front from the crossings of the front's
+// RAMLS function on z gridlines of spacing `h` / 2 (exact along each line, sampled across).
+absl::StatusOr<double> ShapeError(const Front& front, InitialShape exact, double h, double support_factor = 3.0);
+
+// Advects `initial` for params.steps steps. `on_frame(stats, front)` is called for step 0 and
+// then every output_stride steps and after the last; returning a non-OK status stops tracking
+// with that status. Errors: kInvalidArgument (bad parameters, an empty front, non-finite
+// velocities), kFailedPrecondition (the front vanished), kResourceExhausted (more than
+// max_points points), kCancelled.
+absl::Status Track(const Front& initial, const VelocityField& velocity, const TrackingParams& params,
+                   core::JobContext& ctx,
+                   const std::function<absl::Status(const FrameStats&, const Front&)>& on_frame);
+
+}  // namespace lsqsurf::front

@@ -5,6 +5,7 @@
 
 #include <cmath>
 #include <cstdio>
+#include <filesystem>
 #include <cstdlib>
 #include <iostream>
 
@@ -92,7 +93,8 @@ bool ParseParams(const std::vector<std::string>& pairs, v1::JobSpec* spec, std::
   return true;
 }
 
-// Uploads `path` as a Draco cloud; returns the accepted job or an exit code.
+// Uploads `path` as a Draco cloud (nothing when `path` is empty); returns the accepted job or an
+// exit code.
 int Submit(const Options& o, const std::string& path, v1::Job* job) {
   v1::JobSpec spec;
   spec.set_method(o.method);
@@ -100,7 +102,9 @@ int Submit(const Options& o, const std::string& path, v1::Job* job) {
   std::string error;
   if (!ParseParams(o.params, &spec, &error)) return Fail(error);
   std::string bytes;
-  if (lsqsurf::io::FormatFromPath(path).value_or(lsqsurf::io::FileFormat::kPly) == lsqsurf::io::FileFormat::kDraco) {
+  if (path.empty()) {
+    // A job that needs no input (a front-tracking job of a named shape).
+  } else if (lsqsurf::io::FormatFromPath(path).value_or(lsqsurf::io::FileFormat::kPly) == lsqsurf::io::FileFormat::kDraco) {
     auto raw = lsqsurf::io::ReadFileBytes(path);
     if (!raw.ok()) return Fail(std::string(raw.status().message()));
     bytes = *std::move(raw);
@@ -263,6 +267,19 @@ int main(int argc, char** argv) {
   fetch->add_option("-o,--output", output, "file to write (.ply .obj .drc)")->required();
   fetch->add_option("--name", name, "artifact name (default: the mesh)");
   auto* methods = app.add_subcommand("methods", "list the server's methods and parameters");
+  auto* track = app.add_subcommand("track", "advect an interface through a velocity field; write frames and stats");
+  std::string interface = "sphere", field = "rotation";
+  double period = 3, h = 1.0 / 128, dt = 1;
+  int steps = 100, stride = 10;
+  track->add_option("--interface", interface, "zalesak | sphere | FILE (oriented cloud in the unit cube)")
+      ->capture_default_str();
+  track->add_option("--field", field, "rotation (Zalesak) | deformation (Enright)")->capture_default_str();
+  track->add_option("--period", period, "period T of the deformation field")->capture_default_str();
+  track->add_option("--h", h, "grid spacing; 1/h must be a whole number in 8..512")->capture_default_str();
+  track->add_option("--dt", dt, "time step")->capture_default_str();
+  track->add_option("--steps", steps, "number of steps")->capture_default_str();
+  track->add_option("--stride", stride, "write a frame every this many steps")->capture_default_str();
+  track->add_option("-o,--output", output, "folder for frame_NNNNN.drc, stats.csv and summary.txt")->required();
   auto* compare = app.add_subcommand("compare", "Chamfer/Hausdorff distance and normal consistency");
   compare->add_option("reference", reference, "reference mesh")->required();
   compare->add_option("candidate", candidate, "candidate mesh")->required();
@@ -293,6 +310,37 @@ int main(int argc, char** argv) {
   if (*watch) {
     v1::Job job;
     return Watch(o, id, &job);
+  }
+  if (*track) {
+    const double cells = 1.0 / h;
+    if (!(h > 0) || std::abs(cells - std::round(cells)) > 1e-6 * cells) {
+      return Fail(StrCat("--h ", h, ": 1/h must be a whole number (e.g. 0.0078125 = 1/128)"));
+    }
+    if (field != "rotation" && field != "deformation") return Fail("--field must be rotation or deformation");
+    const std::string upload = interface == "zalesak" || interface == "sphere" ? "" : interface;
+    o.method = "track";
+    o.params = {StrCat("interface=", interface == "sphere" ? 1 : interface == "zalesak" ? 2 : 0),
+                StrCat("field=", field == "deformation" ? 1 : 0), StrCat("period=", period),
+                StrCat("cells=", std::lround(cells)), StrCat("dt=", dt), StrCat("steps=", steps),
+                StrCat("stride=", stride)};
+    v1::Job job;
+    if (int rc = Submit(o, upload, &job); rc != 0) return rc;
+    if (!o.quiet) std::fprintf(stderr, "job %s accepted\n", job.id().c_str());
+    if (int rc = Watch(o, job.id(), &job); rc != 0) return rc;
+    std::error_code ec;
+    std::filesystem::create_directories(output, ec);
+    if (ec) return Fail(StrCat("cannot create ", output, ": ", ec.message()));
+    for (const std::string& artifact : job.results()) {
+      std::string bytes;
+      if (int rc = FetchBytes(o, job.id(), artifact, &bytes); rc != 0) return rc;
+      const std::string path = (std::filesystem::path(output) / artifact).string();
+      if (absl::Status s = lsqsurf::io::WriteFileAtomically(path, bytes); !s.ok()) return Fail(std::string(s.message()));
+    }
+    if (!o.quiet) {
+      for (const auto& s : job.statistics()) std::fprintf(stderr, "  %s = %g\n", s.name().c_str(), s.value());
+      std::fprintf(stderr, "wrote %d files to %s\n", job.results_size(), output.c_str());
+    }
+    return 0;
   }
   auto stub = Connect(o);
   grpc::ClientContext ctx;

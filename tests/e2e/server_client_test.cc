@@ -14,6 +14,7 @@
 #include <chrono>
 #include <cstdio>
 #include <filesystem>
+#include <sstream>
 #include <thread>
 
 #include "grpc/health/v1/health.grpc.pb.h"
@@ -300,13 +301,63 @@ TEST_F(EndToEnd, RawApiStatusCodes) {
     grpc::ClientContext ctx;
     v1::ListMethodsResponse response;
     ASSERT_TRUE(stub->ListMethods(&ctx, {}, &response).ok());
-    ASSERT_EQ(response.methods_size(), 4);
+    ASSERT_EQ(response.methods_size(), 5);
     EXPECT_EQ(response.methods(0).name(), "iamls");
     EXPECT_EQ(response.methods(1).name(), "pu");
     EXPECT_EQ(response.methods(2).name(), "ramls");
     EXPECT_EQ(response.methods(3).name(), "apss");
+    EXPECT_EQ(response.methods(4).name(), "track");
   }
   EXPECT_EQ(Client(server.address(), "cancel " + id).code, 0);
+}
+
+// `lsqsurf track`: a named sphere through a quarter of Zalesak's rotation, then an uploaded
+// interface. Frames decode with normals and as many points as stats.csv says; the volume holds.
+TEST_F(EndToEnd, TrackWritesFramesAndStatistics) {
+  Server server;
+  ASSERT_NO_FATAL_FAILURE(server.Start(dir_ / "data"));
+  const fs::path out = dir_ / "frames";
+  const ClientRun r = Client(server.address(), "track --interface sphere --field rotation --h 0.03125 --dt 10 "
+                                               "--steps 16 --stride 8 -o " + out.string());
+  ASSERT_EQ(r.code, 0) << r.output;
+  auto csv = io::ReadFileBytes((out / "stats.csv").string());
+  ASSERT_TRUE(csv.ok());
+  std::istringstream lines(*csv);
+  std::string line;
+  std::getline(lines, line);
+  EXPECT_EQ(line, "step,time,points,volume,volume_change");
+  int rows = 0;
+  while (std::getline(lines, line)) {
+    int step = 0;
+    double time = 0, volume = 0, change = 0;
+    size_t points = 0;
+    ASSERT_EQ(std::sscanf(line.c_str(), "%d,%lf,%zu,%lf,%lf", &step, &time, &points, &volume, &change), 5) << line;
+    EXPECT_EQ(step, 8 * rows);
+    EXPECT_NEAR(volume, 4.0 / 3.0 * M_PI * 0.15 * 0.15 * 0.15, 0.02 * volume);
+    EXPECT_LT(std::abs(change), 0.02);
+    char name[32];
+    std::snprintf(name, sizeof(name), "frame_%05d.drc", step);
+    auto frame = io::ReadPointCloudFile((out / name).string());
+    ASSERT_TRUE(frame.ok()) << name << ": " << frame.status();
+    EXPECT_EQ(frame->size(), points);
+    EXPECT_TRUE(frame->has_normals());
+    ++rows;
+  }
+  EXPECT_EQ(rows, 3);
+  EXPECT_FALSE(fs::exists(out / "summary.txt"));  // A quarter turn does not bring the shape back.
+
+  // An uploaded interface: the sampled sphere with its normals; without normals it is refused.
+  const std::string cloud = WriteCloud("interface.ply", testing::SphereCloud(2000, 0.15, {0.5, 0.3, 0.5}));
+  const ClientRun uploaded = Client(server.address(), "track --interface " + cloud +
+                                                          " --h 0.03125 --steps 2 --stride 1 -o " + (dir_ / "up").string());
+  EXPECT_EQ(uploaded.code, 0) << uploaded.output;
+  EXPECT_TRUE(fs::exists(dir_ / "up" / "frame_00002.drc"));
+  core::PointCloud bare = testing::SphereCloud(2000, 0.15, {0.5, 0.3, 0.5});
+  bare.normals.clear();
+  const ClientRun refused = Client(server.address(), "track --interface " + WriteCloud("bare.ply", bare) +
+                                                         " --h 0.03125 -o " + (dir_ / "bare").string());
+  EXPECT_NE(refused.code, 0);
+  EXPECT_NE(refused.output.find("normals"), std::string::npos) << refused.output;
 }
 
 TEST_F(EndToEnd, SizeLimitsAreEnforced) {

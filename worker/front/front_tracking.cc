@@ -536,7 +536,7 @@ absl::Status Track(const Front& initial, const VelocityField& velocity, const Tr
       return absl::ResourceExhaustedError(core::StrCat("the front grew to ", front.points.size(), " points at step ", step,
                                                        " (limit ", params.max_points, "); a finer h resolves thin sheets"));
     }
-    ctx.ReportProgress(core::StrCat("step ", step, " of ", params.steps), static_cast<double>(step) / params.steps);
+    ctx.ReportProgress("tracking the front", static_cast<double>(step) / params.steps);
     if (step % params.output_stride == 0 || step == params.steps) {
       stats.step = step;
       stats.time = step * dt;

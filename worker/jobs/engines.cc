@@ -9,6 +9,7 @@
 #include "worker/core/mesh_metrics.h"
 #include "worker/core/normals.h"
 #include "worker/core/strings.h"
+#include "worker/jobs/front_job.h"
 #include "worker/mls/algebraic_mls.h"
 #include "worker/mls/iamls.h"
 #include "worker/pu/pu.h"
@@ -239,7 +240,7 @@ absl::StatusOr<core::IsosurfaceResult> RunPu(const ParamFn& param, const core::P
 
 const std::vector<MethodSpec>& SurfaceMethods() {
   static const std::vector<MethodSpec> methods = {IamlsMethod(), PuMethod(), AlgebraicMethod(mls::AlgebraicFit::kRamls),
-                                                  AlgebraicMethod(mls::AlgebraicFit::kApss)};
+                                                  AlgebraicMethod(mls::AlgebraicFit::kApss), TrackMethod()};
   return methods;
 }
 
@@ -287,6 +288,7 @@ absl::StatusOr<SurfaceResult> RunSurfaceMethod(const std::string& method,
                                                const ParameterMap& parameters,
                                                core::PointCloud cloud, core::JobContext& ctx) {
   if (absl::Status s = ValidateRequest(method, parameters); !s.ok()) return s;
+  if (method == kTrackMethod) return absl::InvalidArgumentError("'track' is a front-tracking job, not a surface method");
   auto param = [&](const char* name) { return ParameterOrDefault(method, parameters, name); };
   SurfaceResult result;
   auto stat = [&](std::string name, double value) { result.statistics.emplace_back(std::move(name), value); };

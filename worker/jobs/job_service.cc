@@ -10,6 +10,7 @@
 #include "worker/core/strings.h"
 #include "worker/io/draco_codec.h"
 #include "worker/io/files.h"
+#include "worker/jobs/front_job.h"
 
 namespace lsqsurf::jobs {
 namespace {
@@ -149,15 +150,24 @@ absl::StatusOr<JobRecord> JobService::Submit(const JobSpec& spec, std::string in
   if (spec.mesh_position_bits < 8 || spec.mesh_position_bits > 30) {
     return absl::InvalidArgumentError("mesh_position_bits must be between 8 and 30");
   }
-  if (input.empty()) return absl::InvalidArgumentError("no input data was uploaded");
+  // A front-tracking job of a named shape needs no upload, and ignores one.
+  const bool needs_input = spec.method != kTrackMethod || TrackNeedsUpload(spec.parameters);
+  if (!needs_input) input.clear();
+  if (needs_input && input.empty()) return absl::InvalidArgumentError("no input data was uploaded");
   if (static_cast<int64_t>(input.size()) > options_.max_input_bytes) {
     return absl::ResourceExhaustedError(core::StrCat("the upload has ", input.size(),
                                                      " bytes; this server accepts at most ",
                                                      options_.max_input_bytes));
   }
-  auto cloud = io::DecodeDracoPointCloud(input);
-  if (!cloud.ok()) return absl::InvalidArgumentError(core::StrCat("input: ", cloud.status().message()));
-  if (absl::Status s = ValidateCloud(*cloud, spec, options_); !s.ok()) return s;
+  absl::StatusOr<core::PointCloud> cloud = core::PointCloud{};
+  if (needs_input) {
+    cloud = io::DecodeDracoPointCloud(input);
+    if (!cloud.ok()) return absl::InvalidArgumentError(core::StrCat("input: ", cloud.status().message()));
+    if (spec.method == kTrackMethod && !cloud->has_normals()) {
+      return absl::InvalidArgumentError("a tracked interface needs oriented normals (outward)");
+    }
+    if (absl::Status s = ValidateCloud(*cloud, spec, options_); !s.ok()) return s;
+  }
   {
     std::lock_guard lock(mutex_);
     if (shutting_down_) return absl::UnavailableError("the server is shutting down");
@@ -346,8 +356,25 @@ void JobService::RunJob(const std::shared_ptr<Entry>& entry) {
   spdlog::info("[job {}] started (attempt {})", id, entry->record.attempts);
   const auto start = std::chrono::steady_clock::now();
   absl::StatusOr<SurfaceResult> result = absl::InternalError("not run");
+  std::vector<std::string> artifacts = {kMeshArtifact};
   Context ctx(*this, entry);
   try {
+    if (entry->record.spec.method == kTrackMethod) {
+      const ParameterMap& parameters = entry->record.spec.parameters;
+      absl::StatusOr<core::PointCloud> uploaded = core::PointCloud{};
+      if (TrackNeedsUpload(parameters)) {
+        auto bytes = io::ReadFileBytes(JobDir(id) + "/" + kInputFile);
+        uploaded = bytes.ok() ? io::DecodeDracoPointCloud(*bytes) : absl::StatusOr<core::PointCloud>(bytes.status());
+      }
+      auto tracked = uploaded.ok() ? RunTrackJob(parameters, &*uploaded, JobDir(id), ctx)
+                                   : absl::StatusOr<TrackOutput>(uploaded.status());
+      if (tracked.ok()) {
+        result = SurfaceResult{{}, tracked->statistics};
+        artifacts = tracked->artifacts;
+      } else {
+        result = tracked.status();
+      }
+    } else {
     auto bytes = io::ReadFileBytes(JobDir(id) + "/" + kInputFile);
     auto cloud = bytes.ok() ? io::DecodeDracoPointCloud(*bytes)
                             : absl::StatusOr<core::PointCloud>(bytes.status());
@@ -364,6 +391,7 @@ void JobService::RunJob(const std::shared_ptr<Entry>& entry) {
         result = s;
       }
     }
+    }
   } catch (const std::bad_alloc&) {
     result = absl::ResourceExhaustedError("the job ran out of memory");
   } catch (const std::exception& e) {
@@ -377,7 +405,7 @@ void JobService::RunJob(const std::shared_ptr<Entry>& entry) {
       r.progress = 1;
       r.statistics = result->statistics;
       r.statistics.emplace_back("wall_seconds", seconds);
-      r.results = {kMeshArtifact};
+      r.results = artifacts;
     });
     spdlog::info("[job {}] succeeded in {:.2f} s, {} triangles", id, seconds, result->mesh.faces.size());
   } else if (entry->interrupted && result.status().code() == absl::StatusCode::kCancelled) {

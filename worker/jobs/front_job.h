@@ -1,0 +1,41 @@
+// worker/jobs/front_job.h — the front-tracking job kind (method name "track").
+//
+// A job advects an interface (an uploaded oriented cloud, or one of the benchmark shapes) through
+// a named velocity field and writes one artifact per output frame plus a statistics table:
+//   frame_NNNNN.drc  Draco point cloud with normals, NNNNN the step;
+//   stats.csv        step,time,points,volume,volume_change (change relative to step 0);
+//   summary.txt      for a named shape run to where the field brings it back (one revolution of
+//                    the rotation, or t = T of the deformation): e1_rel= and volume_change=,
+//                    both fractions.
+#pragma once
+
+#include <string>
+#include <utility>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "worker/core/geometry.h"
+#include "worker/core/job_context.h"
+#include "worker/jobs/engines.h"
+
+namespace lsqsurf::jobs {
+
+inline constexpr char kTrackMethod[] = "track";
+
+MethodSpec TrackMethod();
+
+// Whether the request tracks an uploaded interface (otherwise it names a shape and needs none).
+bool TrackNeedsUpload(const ParameterMap& parameters);
+
+struct TrackOutput {
+  std::vector<std::pair<std::string, double>> statistics;
+  std::vector<std::string> artifacts;  // In the order written.
+};
+
+// Runs a validated "track" request; `interface` is the uploaded cloud (needed with normals when
+// TrackNeedsUpload), and the artifacts are written into `out_dir`. Errors: kInvalidArgument,
+// kResourceExhausted, kFailedPrecondition, kCancelled, kUnavailable (writing failed).
+absl::StatusOr<TrackOutput> RunTrackJob(const ParameterMap& parameters, const core::PointCloud* interface,
+                                        const std::string& out_dir, core::JobContext& ctx);
+
+}  // namespace lsqsurf::jobs

@@ -287,6 +287,7 @@ int main(int argc, char** argv) {
   CLI11_PARSE(app, argc, argv);
 
   if (*reconstruct || *submit) {
+    if (o.method == "track") return Fail("'track' jobs write frames, not a mesh: use `lsqsurf track`");
     v1::Job job;
     if (int rc = Submit(o, input, &job); rc != 0) return rc;
     if (*submit) {

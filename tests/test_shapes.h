@@ -2,13 +2,16 @@
 #pragma once
 
 #include <cmath>
+#include <memory>
 #include <numbers>
 #include <random>
 
 #include <gtest/gtest.h>
 
 #include "worker/core/geometry.h"
+#include "absl/status/statusor.h"
 #include "worker/core/implicit_function.h"
+#include "worker/core/job_context.h"
 
 namespace lsqsurf::testing {
 
@@ -89,6 +92,18 @@ double MaxSurfaceError(const core::ImplicitFunction& f, Project project, int sam
     worst = std::max(worst, std::abs(v.value) / v.gradient.norm());
   }
   return worst;
+}
+
+// Runs an engine's builder (BuildPu, BuildIamls, …) and fails the test on an error; nullptr then.
+template <typename Function, typename Params>
+std::unique_ptr<Function> BuildOrFail(absl::StatusOr<std::unique_ptr<Function>> (*build)(const core::PointCloud&,
+                                                                                          const Params&,
+                                                                                          core::JobContext&),
+                                      const core::PointCloud& cloud, const Params& params) {
+  core::LocalJobContext ctx;
+  auto f = build(cloud, params, ctx);
+  EXPECT_TRUE(f.ok()) << f.status();
+  return f.ok() ? *std::move(f) : nullptr;
 }
 
 }  // namespace lsqsurf::testing

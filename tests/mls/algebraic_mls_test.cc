@@ -17,10 +17,7 @@ namespace {
 using core::Vec3d;
 
 std::unique_ptr<AlgebraicMlsFunction> Build(const core::PointCloud& cloud, AlgebraicMlsParams p = {}) {
-  core::LocalJobContext ctx;
-  auto f = BuildAlgebraicMls(cloud, p, ctx);
-  EXPECT_TRUE(f.ok()) << f.status();
-  return f.ok() ? *std::move(f) : nullptr;
+  return testing::BuildOrFail(&BuildAlgebraicMls, cloud, p);
 }
 
 // A torus around z, sampled on a regular (θ, φ) grid with arc steps of about `step`, with

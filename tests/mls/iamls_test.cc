@@ -15,10 +15,7 @@ namespace {
 using core::Vec3d;
 
 std::unique_ptr<IamlsFunction> Build(const core::PointCloud& cloud, IamlsParams p = {}) {
-  core::LocalJobContext ctx;
-  auto f = BuildIamls(cloud, p, ctx);
-  EXPECT_TRUE(f.ok()) << f.status();
-  return f.ok() ? *std::move(f) : nullptr;
+  return testing::BuildOrFail(&BuildIamls, cloud, p);
 }
 
 TEST(Iamls, SphereErrorIsSmallAndShrinksWithDensity) {

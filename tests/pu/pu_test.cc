@@ -14,10 +14,7 @@ namespace {
 using core::Vec3d;
 
 std::unique_ptr<PuFunction> Build(const core::PointCloud& cloud, PuParams p = {}) {
-  core::LocalJobContext ctx;
-  auto f = BuildPu(cloud, p, ctx);
-  EXPECT_TRUE(f.ok()) << f.status();
-  return f.ok() ? *std::move(f) : nullptr;
+  return testing::BuildOrFail(&BuildPu, cloud, p);
 }
 
 core::TriangleMesh ExtractMesh(const PuFunction& f, PuExtractParams p = {}) {

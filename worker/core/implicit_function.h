@@ -45,4 +45,11 @@ class ImplicitFunction {
                               const JobContext* ctx = nullptr) const;
 };
 
+// The root of F on the segment a → b, where F(a) = fa and F(b) = fb have opposite signs, as the
+// fraction t ∈ [0, 1] along it: the secant guess refined by `steps` Illinois (modified regula
+// falsi) steps on ValueOnly, superlinear and never leaving the bracket. Stops early at an exact
+// zero or a NaN value.
+double RefineRootOnSegment(const ImplicitFunction& field, const Vec3d& a, const Vec3d& b, double fa, double fb,
+                           int steps);
+
 }  // namespace lsqsurf::core

@@ -18,6 +18,57 @@ struct Crossing {
   double outside_value;
 };
 
+// Edge-connected clusters of a subset of the faces (union-find over faces sharing a side).
+class FaceClusters {
+ public:
+  // Clusters the faces for which `member(f)` holds; calls `on_unshared(lo, hi, f)` for every
+  // side (vertex pair lo < hi) that only one member uses.
+  template <typename Member, typename Unshared>
+  FaceClusters(const std::vector<Triangle>& faces, Member&& member, Unshared&& on_unshared) {
+    struct Side {
+      uint32_t lo, hi, face;
+    };
+    std::vector<Side> sides;
+    for (uint32_t f = 0; f < faces.size(); ++f) {
+      if (!member(f)) continue;
+      parent_.emplace(f, f);
+      for (int i = 0; i < 3; ++i) {
+        const uint32_t a = faces[f][static_cast<size_t>(i)], b = faces[f][static_cast<size_t>((i + 1) % 3)];
+        sides.push_back({std::min(a, b), std::max(a, b), f});
+      }
+    }
+    std::sort(sides.begin(), sides.end(), [](const Side& x, const Side& y) {
+      return x.lo != y.lo ? x.lo < y.lo : x.hi < y.hi;
+    });
+    auto same = [&](size_t i, size_t j) { return sides[i].lo == sides[j].lo && sides[i].hi == sides[j].hi; };
+    for (size_t i = 0; i < sides.size(); ++i) {
+      const bool same_as_previous = i > 0 && same(i, i - 1);
+      if (same_as_previous) parent_[Find(sides[i].face)] = Find(sides[i - 1].face);
+      if (!same_as_previous && !(i + 1 < sides.size() && same(i, i + 1))) {
+        on_unshared(sides[i].lo, sides[i].hi, sides[i].face);
+      }
+    }
+    for (auto& [face, p] : parent_) ++size_[Find(face)];
+  }
+
+  uint32_t Find(uint32_t face) {
+    while (parent_[face] != face) face = parent_[face] = parent_[parent_[face]];
+    return face;
+  }
+  int Size(uint32_t root) { return size_[root]; }
+  // Calls visit(face, root) for every member.
+  template <typename Visit>
+  void ForEach(Visit&& visit) {
+    for (auto& [face, p] : parent_) visit(face, Find(face));
+  }
+
+ private:
+  absl::flat_hash_map<uint32_t, uint32_t> parent_;
+  absl::flat_hash_map<uint32_t, int> size_;
+};
+
+uint64_t EdgeKey(uint32_t a, uint32_t b) { return (uint64_t{std::min(a, b)} << 32) | std::max(a, b); }
+
 // Marks as trusted again every edge-connected cluster of untrusted triangles with at most
 // `max_size` members whose whole border is shared with trusted triangles: such pinholes lie on
 // the real surface where the field's confidence dips for a moment (a gap in random sampling),
@@ -27,63 +78,29 @@ struct Crossing {
 int64_t RestoreSmallPatches(const std::vector<Triangle>& faces, std::vector<char>& trusted,
                             int max_size) {
   if (max_size <= 0) return 0;
-  struct Side {
-    uint32_t lo, hi, face;
-  };
-  std::vector<Side> sides;
-  for (uint32_t f = 0; f < faces.size(); ++f) {
-    if (trusted[f]) continue;
-    for (int i = 0; i < 3; ++i) {
-      const uint32_t a = faces[f][static_cast<size_t>(i)], b = faces[f][static_cast<size_t>((i + 1) % 3)];
-      sides.push_back({std::min(a, b), std::max(a, b), f});
-    }
-  }
-  if (sides.empty()) return 0;
-  std::sort(sides.begin(), sides.end(), [](const Side& x, const Side& y) {
-    return x.lo != y.lo ? x.lo < y.lo : x.hi < y.hi;
-  });
-  absl::flat_hash_map<uint32_t, uint32_t> parent;
-  auto find = [&](uint32_t x) {
-    while (parent[x] != x) x = parent[x] = parent[parent[x]];
-    return x;
-  };
-  for (const Side& s : sides) parent.try_emplace(s.face, s.face);
-  // Border sides: used once among the untrusted triangles.
-  absl::flat_hash_map<uint64_t, uint32_t> border;  // Edge → its face.
-  for (size_t i = 0; i < sides.size(); ++i) {
-    const bool same_as_previous = i > 0 && sides[i].lo == sides[i - 1].lo && sides[i].hi == sides[i - 1].hi;
-    const bool same_as_next =
-        i + 1 < sides.size() && sides[i].lo == sides[i + 1].lo && sides[i].hi == sides[i + 1].hi;
-    if (same_as_previous) parent[find(sides[i].face)] = find(sides[i - 1].face);
-    if (!same_as_previous && !same_as_next) {
-      border.emplace((uint64_t{sides[i].lo} << 32) | sides[i].hi, sides[i].face);
-    }
-  }
-  absl::flat_hash_map<uint32_t, int> size, open_border;
-  for (auto& [face, p] : parent) ++size[find(face)];
-  absl::flat_hash_set<uint32_t> has_border;
-  for (auto& [edge, face] : border) {
-    ++open_border[find(face)];
-    has_border.insert(find(face));
-  }
+  absl::flat_hash_map<uint64_t, uint32_t> border;  // Sides used once among the untrusted: edge → face.
+  FaceClusters clusters(
+      faces, [&](uint32_t f) { return !trusted[f]; },
+      [&](uint32_t lo, uint32_t hi, uint32_t f) { border.emplace(EdgeKey(lo, hi), f); });
+  if (border.empty()) return 0;  // No untrusted triangles.
+  absl::flat_hash_map<uint32_t, int> open_border;
+  for (auto& [edge, face] : border) ++open_border[clusters.Find(face)];
   for (uint32_t f = 0; f < faces.size(); ++f) {
     if (!trusted[f]) continue;
     for (int i = 0; i < 3; ++i) {
       const uint32_t a = faces[f][static_cast<size_t>(i)], b = faces[f][static_cast<size_t>((i + 1) % 3)];
-      if (auto it = border.find((uint64_t{std::min(a, b)} << 32) | std::max(a, b)); it != border.end()) {
-        --open_border[find(it->second)];
-      }
+      if (auto it = border.find(EdgeKey(a, b)); it != border.end()) --open_border[clusters.Find(it->second)];
     }
   }
   int64_t restored = 0;
-  for (auto& [face, p] : parent) {
-    const uint32_t root = find(face);
+  clusters.ForEach([&](uint32_t face, uint32_t root) {
     // A pinhole has a border, and trusted triangles close every side of it.
-    if (size[root] <= max_size && has_border.contains(root) && open_border[root] == 0) {
+    const auto open = open_border.find(root);
+    if (clusters.Size(root) <= max_size && open != open_border.end() && open->second == 0) {
       trusted[face] = 1;
       ++restored;
     }
-  }
+  });
   return restored;
 }
 
@@ -113,50 +130,22 @@ int64_t DropCutOffSpecks(const std::vector<Triangle>& faces, std::vector<char>& 
       for (uint32_t v : faces[f]) ring[v] = std::min<uint8_t>(ring[v], static_cast<uint8_t>(k + 1));
     }
   }
-  struct Side {
-    uint32_t lo, hi, face;
-  };
-  std::vector<Side> sides;
-  absl::flat_hash_map<uint32_t, uint32_t> parent;
-  for (uint32_t f = 0; f < faces.size(); ++f) {
-    const Triangle& t = faces[f];
-    if (!trusted[f] || nearest_ring(t) >= kSpeckRings) continue;
-    parent.emplace(f, f);
-    for (int i = 0; i < 3; ++i) {
-      const uint32_t a = t[static_cast<size_t>(i)], b = t[static_cast<size_t>((i + 1) % 3)];
-      sides.push_back({std::min(a, b), std::max(a, b), f});
-    }
-  }
-  std::sort(sides.begin(), sides.end(), [](const Side& x, const Side& y) {
-    return x.lo != y.lo ? x.lo < y.lo : x.hi < y.hi;
-  });
-  auto find = [&](uint32_t x) {
-    while (parent[x] != x) x = parent[x] = parent[parent[x]];
-    return x;
-  };
   std::vector<uint32_t> escaping;
-  for (size_t i = 0; i < sides.size(); ++i) {
-    const bool same_as_previous = i > 0 && sides[i].lo == sides[i - 1].lo && sides[i].hi == sides[i - 1].hi;
-    const bool same_as_next =
-        i + 1 < sides.size() && sides[i].lo == sides[i + 1].lo && sides[i].hi == sides[i + 1].hi;
-    if (same_as_previous) parent[find(sides[i].face)] = find(sides[i - 1].face);
-    // A triangle beyond the examined rings may share this edge.
-    if (!same_as_previous && !same_as_next && ring[sides[i].lo] >= kSpeckRings && ring[sides[i].hi] >= kSpeckRings) {
-      escaping.push_back(sides[i].face);
-    }
-  }
-  absl::flat_hash_map<uint32_t, int> size;
-  for (auto& [face, p] : parent) ++size[find(face)];
+  FaceClusters clusters(
+      faces, [&](uint32_t f) { return trusted[f] && nearest_ring(faces[f]) < kSpeckRings; },
+      [&](uint32_t lo, uint32_t hi, uint32_t f) {
+        // A triangle beyond the examined rings may share this edge.
+        if (ring[lo] >= kSpeckRings && ring[hi] >= kSpeckRings) escaping.push_back(f);
+      });
   absl::flat_hash_set<uint32_t> escaping_roots;
-  for (uint32_t f : escaping) escaping_roots.insert(find(f));
+  for (uint32_t f : escaping) escaping_roots.insert(clusters.Find(f));
   int64_t dropped = 0;
-  for (auto& [face, p] : parent) {
-    const uint32_t root = find(face);
-    if (size[root] <= max_size && !escaping_roots.contains(root)) {
+  clusters.ForEach([&](uint32_t face, uint32_t root) {
+    if (clusters.Size(root) <= max_size && !escaping_roots.contains(root)) {
       trusted[face] = 0;
       ++dropped;
     }
-  }
+  });
   return dropped;
 }
 
@@ -239,23 +228,7 @@ absl::StatusOr<IsosurfaceResult> MarchTetrahedra(
         for (size_t i = begin; i < end; ++i) {
           const Crossing& c = crossings[i];
           const Vec3d a = position(c.inside_vertex), b = position(c.outside_vertex);
-          double ta = 0.0, tb = 1.0, fa = c.inside_value, fb = c.outside_value;
-          double t = fa / (fa - fb);
-          int side = 0;
-          for (int step = 0; step < params.refine_steps; ++step) {
-            const double fv = field.ValueOnly(a + t * (b - a));
-            if (std::isnan(fv) || fv == 0.0) break;
-            if (fv < 0) {
-              ta = t, fa = fv;
-              if (side == -1) fb *= 0.5;
-              side = -1;
-            } else {
-              tb = t, fb = fv;
-              if (side == 1) fa *= 0.5;
-              side = 1;
-            }
-            t = ta - fa * (tb - ta) / (fb - fa);
-          }
+          double t = RefineRootOnSegment(field, a, b, c.inside_value, c.outside_value, params.refine_steps);
           // Keep vertices strictly inside their edge: coincident vertices would make
           // zero-area triangles that some decoders drop.
           t = std::clamp(t, 1e-4, 1.0 - 1e-4);

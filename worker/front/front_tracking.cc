@@ -86,6 +86,10 @@ class GridField final : public VelocityField {
   std::vector<Vec3d> values_;
 };
 
+Vec3d ShapeCentre(InitialShape shape) {
+  return shape == InitialShape::kSphere ? Vec3d(0.35, 0.35, 0.35) : Vec3d(0.5, 0.75, 0.5);
+}
+
 // The exact benchmark shapes as implicit functions (distance-like, exact gradient almost
 // everywhere), for the initial sampling.
 class ShapeField final : public core::ImplicitFunction {
@@ -101,7 +105,7 @@ class ShapeField final : public core::ImplicitFunction {
 
  private:
   double Eval(const Vec3d& x, Vec3d* gradient) const {
-    const Vec3d centre = shape_ == InitialShape::kSphere ? Vec3d(0.35, 0.35, 0.35) : Vec3d(0.5, 0.75, 0.5);
+    const Vec3d centre = ShapeCentre(shape_);
     const Vec3d d = x - centre;
     const double sphere = d.norm() - kRadius;
     if (gradient) *gradient = d.norm() > 0 ? Vec3d(d.normalized()) : Vec3d::UnitZ();
@@ -176,24 +180,8 @@ absl::StatusOr<GridlineResult> SampleGridlines(const core::ImplicitFunction& fie
         if (m == kNone) continue;
         const core::FieldValue& vb = values[m];
         if (!vb.defined || std::isnan(vb.value) || (va.value < 0) == (vb.value < 0)) continue;
-        const Vec3d a = position(nodes[n]), step = position(next) - a;
-        double ta = 0, tb = 1, fa = va.value, fb = vb.value, t = fa / (fa - fb);
-        int side = 0;
-        for (int s = 0; s < kRootSteps; ++s) {
-          const double f = field.ValueOnly(a + t * step);
-          if (std::isnan(f) || f == 0) break;
-          if ((f < 0) == (fa < 0)) {
-            ta = t, fa = f;
-            if (side == -1) fb *= 0.5;
-            side = -1;
-          } else {
-            tb = t, fb = f;
-            if (side == 1) fa *= 0.5;
-            side = 1;
-          }
-          t = ta - fa * (tb - ta) / (fb - fa);
-        }
-        const Vec3d root = a + t * step;
+        const Vec3d from = position(nodes[n]), to = position(next);
+        const Vec3d root = from + core::RefineRootOnSegment(field, from, to, va.value, vb.value, kRootSteps) * (to - from);
         const core::FieldGradient g = field.ValueAndGradient(root);
         const double length = g.gradient.norm();
         if (!(length > 0)) continue;
@@ -249,11 +237,12 @@ double VolumeOf(std::span<const ZCrossing> z, double h) {
 int GridCells(double h) { return static_cast<int>(std::lround(1.0 / h)); }
 
 // The grid nodes within kNodeReach cells of any point, sorted. `marks` is a reusable dense
-// bitmap of the (n+1)³ nodes, left cleared.
-std::vector<NodeKey> NodesNear(std::span<const Vec3f> points, double h, std::vector<uint8_t>& marks) {
+// bitmap of the (n+1)³ nodes (one bit each: 17 MB at h = 1/512, 135 MB on the h/2 grid of the
+// shape error), left cleared.
+std::vector<NodeKey> NodesNear(std::span<const Vec3f> points, double h, std::vector<bool>& marks) {
   const int n = GridCells(h);
   const auto side = static_cast<size_t>(n + 1);
-  if (marks.size() != side * side * side) marks.assign(side * side * side, 0);
+  if (marks.size() != side * side * side) marks.assign(side * side * side, false);
   std::vector<NodeKey> nodes;
   std::vector<size_t> touched;
   for (const Vec3f& p : points) {
@@ -270,14 +259,14 @@ std::vector<NodeKey> NodesNear(std::span<const Vec3f> points, double h, std::vec
           if (i < 0 || i > n) continue;
           const size_t cell = static_cast<size_t>(i) + side * (static_cast<size_t>(j) + side * static_cast<size_t>(k));
           if (marks[cell]) continue;
-          marks[cell] = 1;
+          marks[cell] = true;
           touched.push_back(cell);
           nodes.push_back(Key(static_cast<uint32_t>(i), static_cast<uint32_t>(j), static_cast<uint32_t>(k)));
         }
       }
     }
   }
-  for (size_t cell : touched) marks[cell] = 0;
+  for (size_t cell : touched) marks[cell] = false;
   std::sort(nodes.begin(), nodes.end());
   return nodes;
 }
@@ -321,6 +310,17 @@ absl::StatusOr<std::unique_ptr<mls::AlgebraicMlsFunction>> FrontFunction(const F
   p.spacing = h;
   p.support_factor = support_factor;
   return mls::BuildAlgebraicMls(cloud, p, ctx);
+}
+
+// The z-gridline crossings, on a grid of spacing `grid`, of the RAMLS function (spacing h) of
+// the front: what the volume and the shape error are measured from.
+absl::StatusOr<std::vector<ZCrossing>> ZCrossings(const Front& front, double h, double grid, double support_factor,
+                                                 std::vector<bool>& marks, core::JobContext& ctx) {
+  auto field = FrontFunction(front, h, support_factor, ctx);
+  if (!field.ok()) return field.status();
+  auto sampled = SampleGridlines(**field, NodesNear(front.points, grid, marks), grid, true, ctx);
+  if (!sampled.ok()) return sampled.status();
+  return std::move(sampled->z_crossings);
 }
 
 absl::Status ValidateSpacing(double h) {
@@ -368,10 +368,6 @@ absl::StatusOr<std::unique_ptr<VelocityField>> GridVelocity(Vec3d origin, double
   return std::make_unique<GridField>(origin, spacing, nx, ny, nz, std::move(values));
 }
 
-bool InsideShape(InitialShape shape, const Vec3d& x) {
-  return ShapeField(shape).Value(x).value < 0;
-}
-
 absl::Status Validate(const TrackingParams& p) {
   LSQSURF_RETURN_IF_ERROR(ValidateSpacing(p.h));
   if (!(p.dt > 0) || !std::isfinite(p.dt)) return absl::InvalidArgumentError("dt must be a positive number");
@@ -387,7 +383,7 @@ absl::Status Validate(const TrackingParams& p) {
 absl::StatusOr<Front> SampleInitialFront(InitialShape shape, double h) {
   LSQSURF_RETURN_IF_ERROR(ValidateSpacing(h));
   const ShapeField field(shape);
-  const Vec3d centre = shape == InitialShape::kSphere ? Vec3d(0.35, 0.35, 0.35) : Vec3d(0.5, 0.75, 0.5);
+  const Vec3d centre = ShapeCentre(shape);
   std::vector<NodeKey> nodes;
   const int n = GridCells(h);
   std::array<int, 3> lo{}, hi{};
@@ -412,31 +408,25 @@ absl::StatusOr<Front> SampleInitialFront(InitialShape shape, double h) {
 absl::StatusOr<double> FrontVolume(const Front& front, double h, double support_factor) {
   LSQSURF_RETURN_IF_ERROR(ValidateSpacing(h));
   core::LocalJobContext ctx;
-  auto field = FrontFunction(front, h, support_factor, ctx);
-  if (!field.ok()) return field.status();
-  std::vector<uint8_t> marks;
-  const std::vector<NodeKey> nodes = NodesNear(front.points, h, marks);
-  auto sampled = SampleGridlines(**field, nodes, h, true, ctx);
-  if (!sampled.ok()) return sampled.status();
-  return VolumeOf(sampled->z_crossings, h);
+  std::vector<bool> marks;
+  auto z = ZCrossings(front, h, h, support_factor, marks, ctx);
+  if (!z.ok()) return z.status();
+  return VolumeOf(*z, h);
 }
 
 absl::StatusOr<double> ShapeError(const Front& front, InitialShape exact, double h, double support_factor) {
   LSQSURF_RETURN_IF_ERROR(ValidateSpacing(h));
   core::LocalJobContext ctx;
-  auto field = FrontFunction(front, h, support_factor, ctx);
-  if (!field.ok()) return field.status();
   const double fine = 0.5 * h;
-  std::vector<uint8_t> marks;
-  const std::vector<NodeKey> nodes = NodesNear(front.points, fine, marks);
-  auto sampled = SampleGridlines(**field, nodes, fine, true, ctx);
-  if (!sampled.ok()) return sampled.status();
+  std::vector<bool> marks;
+  auto crossings = ZCrossings(front, h, fine, support_factor, marks, ctx);
+  if (!crossings.ok()) return crossings.status();
   // Inside intervals of the front per column, then of the exact shape (a sphere's chord, or
   // nothing across the slot), and the length of their symmetric difference.
   absl::flat_hash_map<uint64_t, std::vector<std::pair<double, double>>> front_intervals;
-  ForEachInsideInterval(sampled->z_crossings,
+  ForEachInsideInterval(*crossings,
                         [&](uint64_t column, double lo, double hi) { front_intervals[column].push_back({lo, hi}); });
-  const Vec3d centre = exact == InitialShape::kSphere ? Vec3d(0.35, 0.35, 0.35) : Vec3d(0.5, 0.75, 0.5);
+  const Vec3d centre = ShapeCentre(exact);
   auto exact_interval = [&](double x, double y) -> std::vector<std::pair<double, double>> {
     const double r2 = kRadius * kRadius - (x - centre.x()) * (x - centre.x()) - (y - centre.y()) * (y - centre.y());
     if (r2 <= 0) return {};
@@ -480,21 +470,15 @@ absl::Status Track(const Front& initial, const VelocityField& velocity, const Tr
     return absl::InvalidArgumentError("the initial front needs at least 4 points, each with a normal");
   }
   const double h = params.h, dt = params.dt;
-  std::vector<uint8_t> marks;
+  std::vector<bool> marks;
   Front front = initial;
-  auto volume_of = [&](const Front& f, core::JobContext& c) -> absl::StatusOr<double> {
-    auto field = FrontFunction(f, h, params.support_factor, c);
-    if (!field.ok()) return field.status();
-    auto sampled = SampleGridlines(**field, NodesNear(f.points, h, marks), h, true, c);
-    if (!sampled.ok()) return sampled.status();
-    return VolumeOf(sampled->z_crossings, h);
-  };
-  auto v0 = volume_of(front, ctx);
-  if (!v0.ok()) return v0.status();
-  if (!(*v0 > 0)) return absl::InvalidArgumentError("the initial front encloses no volume on the grid; is it closed and oriented outward?");
+  auto z0 = ZCrossings(front, h, h, params.support_factor, marks, ctx);
+  if (!z0.ok()) return z0.status();
+  const double v0 = VolumeOf(*z0, h);
+  if (!(v0 > 0)) return absl::InvalidArgumentError("the initial front encloses no volume on the grid; is it closed and oriented outward?");
   FrameStats stats;
   stats.points = front.points.size();
-  stats.volume = *v0;
+  stats.volume = v0;
   LSQSURF_RETURN_IF_ERROR(on_frame(stats, front));
   auto since = std::chrono::steady_clock::now();
   for (int step = 1; step <= params.steps; ++step) {
@@ -542,7 +526,7 @@ absl::Status Track(const Front& initial, const VelocityField& velocity, const Tr
       stats.time = step * dt;
       stats.points = front.points.size();
       stats.volume = VolumeOf(sampled->z_crossings, h);
-      stats.volume_change = (stats.volume - *v0) / *v0;
+      stats.volume_change = (stats.volume - v0) / v0;
       stats.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - since).count();
       LSQSURF_RETURN_IF_ERROR(on_frame(stats, front));
       since = std::chrono::steady_clock::now();

@@ -48,8 +48,6 @@ enum class InitialShape {
   kSphere,         // Radius 0.15 at (0.35, 0.35, 0.35): Enright's deformation test.
   kZalesakSphere,  // Radius 0.15 at (0.5, 0.75, 0.5), slot 0.05 wide cut from y = 0.6 to 0.725.
 };
-// Whether x is inside the exact shape (for the E1 error).
-bool InsideShape(InitialShape shape, const core::Vec3d& x);
 
 struct Front {
   std::vector<core::Vec3f> points;

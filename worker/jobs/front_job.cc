@@ -83,6 +83,7 @@ absl::StatusOr<TrackOutput> RunTrackJob(const ParameterMap& parameters, const co
   std::string csv = "step,time,points,volume,volume_change\n";
   front::Front last;
   front::FrameStats last_stats;
+  double v0 = 0;
   const auto start = std::chrono::steady_clock::now();
   LSQSURF_RETURN_IF_ERROR(front::Track(initial, *field, tp, ctx,
                                        [&](const front::FrameStats& s, const front::Front& f) -> absl::Status {
@@ -100,6 +101,7 @@ absl::StatusOr<TrackOutput> RunTrackJob(const ParameterMap& parameters, const co
     char row[160];
     std::snprintf(row, sizeof(row), "%d,%.9g,%zu,%.9g,%.9g\n", s.step, s.time, s.points, s.volume, s.volume_change);
     csv += row;
+    if (s.step == 0) v0 = s.volume;
     last = f;
     last_stats = s;
     return absl::OkStatus();
@@ -118,7 +120,6 @@ absl::StatusOr<TrackOutput> RunTrackJob(const ParameterMap& parameters, const co
     const front::InitialShape exact = shape == kSphere ? front::InitialShape::kSphere : front::InitialShape::kZalesakSphere;
     auto e1 = front::ShapeError(last, exact, tp.h, tp.support_factor);
     if (!e1.ok()) return e1.status();
-    const double v0 = last_stats.volume / (1 + last_stats.volume_change);
     const double e1_rel = *e1 / v0;
     char summary[128];
     std::snprintf(summary, sizeof(summary), "e1_rel=%.6g volume_change=%.6g\n", e1_rel, last_stats.volume_change);

@@ -359,14 +359,15 @@ void JobService::RunJob(const std::shared_ptr<Entry>& entry) {
   std::vector<std::string> artifacts = {kMeshArtifact};
   Context ctx(*this, entry);
   try {
-    if (entry->record.spec.method == kTrackMethod) {
-      const ParameterMap& parameters = entry->record.spec.parameters;
-      absl::StatusOr<core::PointCloud> uploaded = core::PointCloud{};
-      if (TrackNeedsUpload(parameters)) {
-        auto bytes = io::ReadFileBytes(JobDir(id) + "/" + kInputFile);
-        uploaded = bytes.ok() ? io::DecodeDracoPointCloud(*bytes) : absl::StatusOr<core::PointCloud>(bytes.status());
-      }
-      auto tracked = uploaded.ok() ? RunTrackJob(parameters, &*uploaded, JobDir(id), ctx)
+    const JobSpec& spec = entry->record.spec;
+    auto read_input = [&]() -> absl::StatusOr<core::PointCloud> {
+      auto bytes = io::ReadFileBytes(JobDir(id) + "/" + kInputFile);
+      if (!bytes.ok()) return bytes.status();
+      return io::DecodeDracoPointCloud(*bytes);
+    };
+    if (spec.method == kTrackMethod) {
+      auto uploaded = TrackNeedsUpload(spec.parameters) ? read_input() : core::PointCloud{};
+      auto tracked = uploaded.ok() ? RunTrackJob(spec.parameters, &*uploaded, JobDir(id), ctx)
                                    : absl::StatusOr<TrackOutput>(uploaded.status());
       if (tracked.ok()) {
         result = SurfaceResult{{}, tracked->statistics};
@@ -375,22 +376,19 @@ void JobService::RunJob(const std::shared_ptr<Entry>& entry) {
         result = tracked.status();
       }
     } else {
-    auto bytes = io::ReadFileBytes(JobDir(id) + "/" + kInputFile);
-    auto cloud = bytes.ok() ? io::DecodeDracoPointCloud(*bytes)
-                            : absl::StatusOr<core::PointCloud>(bytes.status());
-    result = cloud.ok() ? RunSurfaceMethod(entry->record.spec.method, entry->record.spec.parameters,
-                                           *std::move(cloud), ctx)
-                        : absl::StatusOr<SurfaceResult>(cloud.status());
-    if (result.ok()) {
-      io::DracoOptions draco;
-      draco.position_bits = entry->record.spec.mesh_position_bits;
-      auto encoded = io::EncodeDracoMesh(result->mesh, draco);
-      if (!encoded.ok()) {
-        result = encoded.status();
-      } else if (absl::Status s = io::WriteFileAtomically(JobDir(id) + "/" + kMeshArtifact, *encoded); !s.ok()) {
-        result = s;
+      auto cloud = read_input();
+      result = cloud.ok() ? RunSurfaceMethod(spec.method, spec.parameters, *std::move(cloud), ctx)
+                          : absl::StatusOr<SurfaceResult>(cloud.status());
+      if (result.ok()) {
+        io::DracoOptions draco;
+        draco.position_bits = spec.mesh_position_bits;
+        auto encoded = io::EncodeDracoMesh(result->mesh, draco);
+        if (!encoded.ok()) {
+          result = encoded.status();
+        } else if (absl::Status s = io::WriteFileAtomically(JobDir(id) + "/" + kMeshArtifact, *encoded); !s.ok()) {
+          result = s;
+        }
       }
-    }
     }
   } catch (const std::bad_alloc&) {
     result = absl::ResourceExhaustedError("the job ran out of memory");

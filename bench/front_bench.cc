@@ -10,6 +10,7 @@
 #include <CLI/CLI.hpp>
 
 #include "worker/core/job_context.h"
+#include "worker/core/mesh_metrics.h"
 #include "worker/front/front_tracking.h"
 
 int main(int argc, char** argv) {
@@ -23,6 +24,7 @@ int main(int argc, char** argv) {
   int stride = 0;
   std::string shape_name;
   double support = 3.0;
+  bool mesh_check = false;
   app.add_option("--test", test, "zalesak | enright")->capture_default_str();
   app.add_option("--cells", cells, "grid cells per unit (h = 1/cells)")->capture_default_str();
   app.add_option("--dt", dt, "time step (default: 1 for zalesak, T/(150·cells/64) for enright)");
@@ -30,6 +32,7 @@ int main(int argc, char** argv) {
   app.add_option("--period", period, "Enright period T")->capture_default_str();
   app.add_option("--stride", stride, "print every this many steps (default: steps/8)");
   app.add_option("--support", support, "RAMLS support radius in units of h")->capture_default_str();
+  app.add_flag("--mesh-check", mesh_check, "also print each frame's mesh volume (cross-check of the gridline volume)");
   app.add_option("--shape", shape_name, "sphere | slotted (default: the test's own shape)");
   CLI11_PARSE(app, argc, argv);
   const bool zalesak = test == "zalesak";
@@ -56,7 +59,8 @@ int main(int argc, char** argv) {
   const auto field = zalesak ? front::ZalesakRotation() : front::EnrightDeformation(period);
   std::printf("%s h=1/%d dt=%g steps=%d%s\n", test.c_str(), cells, p.dt, p.steps,
               zalesak ? "" : (" T=" + std::to_string(period)).c_str());
-  std::printf("%6s %9s %9s %12s %12s %9s\n", "step", "time", "points", "volume", "change_%", "wall_s");
+  std::printf("%6s %9s %9s %12s %12s %9s%s\n", "step", "time", "points", "volume", "change_%", "wall_s",
+              mesh_check ? "  mesh_volume mesh_vs_grid_%" : "");
   core::LocalJobContext ctx;
   front::Front last;
   double wall = 0, volume0 = 0, volume_end = 0;
@@ -67,7 +71,14 @@ int main(int argc, char** argv) {
     volume_end = f.volume;
     wall += f.seconds;
     peak_points = std::max(peak_points, f.points);
-    std::printf("%6d %9.3f %9zu %12.6e %12.4f %9.2f\n", f.step, f.time, f.points, f.volume, 100 * f.volume_change, wall);
+    std::printf("%6d %9.3f %9zu %12.6e %12.4f %9.2f", f.step, f.time, f.points, f.volume, 100 * f.volume_change, wall);
+    if (mesh_check) {
+      auto mesh = front::FrontMesh(fr, p.h, ctx, p.support_factor);
+      if (!mesh.ok()) return mesh.status();
+      const double mesh_volume = core::EnclosedVolume(*mesh);
+      std::printf(" %12.6e %12.4f", mesh_volume, 100 * (mesh_volume - f.volume) / f.volume);
+    }
+    std::printf("\n");
     std::fflush(stdout);
     last = fr;
     return absl::OkStatus();

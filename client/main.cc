@@ -93,9 +93,9 @@ bool ParseParams(const std::vector<std::string>& pairs, v1::JobSpec* spec, std::
   return true;
 }
 
-// Uploads `path` as a Draco cloud (nothing when `path` is empty); returns the accepted job or an
-// exit code.
-int Submit(const Options& o, const std::string& path, v1::Job* job) {
+// Uploads `path` as a Draco cloud (nothing when `path` is empty) and the file `velocity_path` as
+// the velocity grid (when not empty); returns the accepted job or an exit code.
+int Submit(const Options& o, const std::string& path, v1::Job* job, const std::string& velocity_path = {}) {
   v1::JobSpec spec;
   spec.set_method(o.method);
   spec.set_mesh_position_bits(o.mesh_bits);
@@ -115,6 +115,12 @@ int Submit(const Options& o, const std::string& path, v1::Job* job) {
     if (!encoded.ok()) return Fail(StrCat(path, ": ", encoded.status().message()));
     bytes = *std::move(encoded);
   }
+  std::string velocity;
+  if (!velocity_path.empty()) {
+    auto raw = lsqsurf::io::ReadFileBytes(velocity_path);
+    if (!raw.ok()) return Fail(StrCat(velocity_path, ": ", raw.status().message()));
+    velocity = *std::move(raw);
+  }
   auto stub = Connect(o);
   grpc::ClientContext ctx;
   auto writer = stub->SubmitJob(&ctx, job);
@@ -124,6 +130,10 @@ int Submit(const Options& o, const std::string& path, v1::Job* job) {
   constexpr size_t kChunk = size_t{1} << 20;
   for (size_t offset = 0; open && offset < bytes.size(); offset += kChunk) {
     request.set_input_chunk(bytes.substr(offset, kChunk));
+    open = writer->Write(request);
+  }
+  for (size_t offset = 0; open && offset < velocity.size(); offset += kChunk) {
+    request.set_velocity_chunk(velocity.substr(offset, kChunk));
     open = writer->Write(request);
   }
   writer->WritesDone();
@@ -271,14 +281,18 @@ int main(int argc, char** argv) {
   std::string interface = "sphere", field = "rotation";
   double period = 3, h = 1.0 / 128, dt = 1;
   int steps = 100, stride = 10;
+  bool track_meshes = false;
   track->add_option("--interface", interface, "zalesak | sphere | FILE (oriented cloud in the unit cube)")
       ->capture_default_str();
-  track->add_option("--field", field, "rotation (Zalesak) | deformation (Enright)")->capture_default_str();
+  track->add_option("--field", field,
+                    "rotation (Zalesak) | deformation (Enright) | FILE (legacy VTK STRUCTURED_POINTS with VECTORS)")
+      ->capture_default_str();
   track->add_option("--period", period, "period T of the deformation field")->capture_default_str();
   track->add_option("--h", h, "grid spacing; 1/h must be a whole number in 8..512")->capture_default_str();
   track->add_option("--dt", dt, "time step")->capture_default_str();
   track->add_option("--steps", steps, "number of steps")->capture_default_str();
   track->add_option("--stride", stride, "write a frame every this many steps")->capture_default_str();
+  track->add_flag("--meshes", track_meshes, "also write a mesh of every frame and its volume (mesh_volume in stats.csv)");
   track->add_option("-o,--output", output, "folder for frame_NNNNN.drc, stats.csv and summary.txt")->required();
   auto* compare = app.add_subcommand("compare", "Chamfer/Hausdorff distance and normal consistency");
   compare->add_option("reference", reference, "reference mesh")->required();
@@ -317,15 +331,15 @@ int main(int argc, char** argv) {
     if (!(h > 0) || std::abs(cells - std::round(cells)) > 1e-6 * cells) {
       return Fail(StrCat("--h ", h, ": 1/h must be a whole number (e.g. 0.0078125 = 1/128)"));
     }
-    if (field != "rotation" && field != "deformation") return Fail("--field must be rotation or deformation");
     const std::string upload = interface == "zalesak" || interface == "sphere" ? "" : interface;
     o.method = "track";
     o.params = {StrCat("interface=", interface == "sphere" ? 1 : interface == "zalesak" ? 2 : 0),
-                StrCat("field=", field == "deformation" ? 1 : 0), StrCat("period=", period),
+                StrCat("field=", field == "rotation" ? 0 : field == "deformation" ? 1 : 2), StrCat("period=", period),
                 StrCat("cells=", std::lround(cells)), StrCat("dt=", dt), StrCat("steps=", steps),
-                StrCat("stride=", stride)};
+                StrCat("stride=", stride), StrCat("meshes=", track_meshes ? 1 : 0)};
     v1::Job job;
-    if (int rc = Submit(o, upload, &job); rc != 0) return rc;
+    const bool named_field = field == "rotation" || field == "deformation";
+    if (int rc = Submit(o, upload, &job, named_field ? "" : field); rc != 0) return rc;
     if (!o.quiet) std::fprintf(stderr, "job %s accepted\n", job.id().c_str());
     if (int rc = Watch(o, job.id(), &job); rc != 0) return rc;
     std::error_code ec;

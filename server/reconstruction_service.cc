@@ -21,23 +21,25 @@ grpc::Status ReconstructionService::SubmitJob(grpc::ServerContext* context,
   if (absl::Status s = jobs::ValidateRequest(spec.method, spec.parameters); !s.ok()) {
     return ToGrpcStatus(s);
   }
-  std::string input;
+  std::string input, velocity;
   const auto limit = static_cast<size_t>(jobs_.options().max_input_bytes);
   while (reader->Read(&message)) {
-    if (!message.has_input_chunk()) {
+    if (message.has_spec()) {
       return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "only the first message may carry a spec");
     }
-    if (message.input_chunk().size() > kMaxChunkBytes) {
-      return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "input chunks must be at most 1 MiB");
+    const bool is_velocity = message.has_velocity_chunk();
+    const std::string& chunk = is_velocity ? message.velocity_chunk() : message.input_chunk();
+    if (chunk.size() > kMaxChunkBytes) {
+      return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "upload chunks must be at most 1 MiB");
     }
-    if (input.size() + message.input_chunk().size() > limit) {
+    if (input.size() + velocity.size() + chunk.size() > limit) {
       return grpc::Status(grpc::StatusCode::RESOURCE_EXHAUSTED,
                           core::StrCat("the upload exceeds this server's limit of ", limit, " bytes"));
     }
-    input += message.input_chunk();
+    (is_velocity ? velocity : input) += chunk;
   }
   if (context->IsCancelled()) return grpc::Status(grpc::StatusCode::CANCELLED, "upload cancelled");
-  auto record = jobs_.Submit(spec, std::move(input));
+  auto record = jobs_.Submit(spec, std::move(input), std::move(velocity));
   if (!record.ok()) {
     spdlog::info("rejected a job from {}: {}", context->peer(), record.status().ToString());
     return ToGrpcStatus(record.status());

@@ -318,20 +318,22 @@ TEST_F(EndToEnd, TrackWritesFramesAndStatistics) {
   ASSERT_NO_FATAL_FAILURE(server.Start(dir_ / "data"));
   const fs::path out = dir_ / "frames";
   const ClientRun r = Client(server.address(), "track --interface sphere --field rotation --h 0.03125 --dt 10 "
-                                               "--steps 16 --stride 8 -o " + out.string());
+                                               "--steps 16 --stride 8 --meshes -o " + out.string());
   ASSERT_EQ(r.code, 0) << r.output;
   auto csv = io::ReadFileBytes((out / "stats.csv").string());
   ASSERT_TRUE(csv.ok());
   std::istringstream lines(*csv);
   std::string line;
   std::getline(lines, line);
-  EXPECT_EQ(line, "step,time,points,volume,volume_change");
+  EXPECT_EQ(line, "step,time,points,volume,volume_change,mesh_volume");
   int rows = 0;
   while (std::getline(lines, line)) {
     int step = 0;
-    double time = 0, volume = 0, change = 0;
+    double time = 0, volume = 0, change = 0, mesh_volume = 0;
     size_t points = 0;
-    ASSERT_EQ(std::sscanf(line.c_str(), "%d,%lf,%zu,%lf,%lf", &step, &time, &points, &volume, &change), 5) << line;
+    ASSERT_EQ(std::sscanf(line.c_str(), "%d,%lf,%zu,%lf,%lf,%lf", &step, &time, &points, &volume, &change, &mesh_volume), 6)
+        << line;
+    EXPECT_NEAR(mesh_volume, volume, 0.02 * volume);
     EXPECT_EQ(step, 8 * rows);
     EXPECT_NEAR(volume, 4.0 / 3.0 * M_PI * 0.15 * 0.15 * 0.15, 0.02 * volume);
     EXPECT_LT(std::abs(change), 0.02);
@@ -341,6 +343,11 @@ TEST_F(EndToEnd, TrackWritesFramesAndStatistics) {
     ASSERT_TRUE(frame.ok()) << name << ": " << frame.status();
     EXPECT_EQ(frame->size(), points);
     EXPECT_TRUE(frame->has_normals());
+    std::snprintf(name, sizeof(name), "frame_%05d_mesh.drc", step);
+    auto mesh = io::ReadMeshFile((out / name).string());
+    ASSERT_TRUE(mesh.ok()) << name << ": " << mesh.status();
+    EXPECT_TRUE(core::AnalyzeTopology(*mesh).watertight()) << name;
+    EXPECT_NEAR(core::EnclosedVolume(*mesh), mesh_volume, 1e-3 * mesh_volume) << name;  // Draco's quantization.
     ++rows;
   }
   EXPECT_EQ(rows, 3);
@@ -358,6 +365,43 @@ TEST_F(EndToEnd, TrackWritesFramesAndStatistics) {
                                                          " --h 0.03125 -o " + (dir_ / "bare").string());
   EXPECT_NE(refused.code, 0);
   EXPECT_NE(refused.output.find("normals"), std::string::npos) << refused.output;
+}
+
+TEST_F(EndToEnd, TrackThroughAnUploadedVelocityGrid) {
+  Server server;
+  ASSERT_NO_FATAL_FAILURE(server.Start(dir_ / "data"));
+  // A uniform field on a 2×2×2 grid: the sphere translates by v·t and keeps its volume.
+  const Eigen::Vector3d v(0.002, -0.001, 0.0015);
+  std::string vtk = "# vtk DataFile Version 3.0\nuniform\nASCII\nDATASET STRUCTURED_POINTS\nDIMENSIONS 2 2 2\n"
+                    "ORIGIN 0 0 0\nSPACING 1 1 1\nPOINT_DATA 8\nVECTORS velocity double\n";
+  for (int i = 0; i < 8; ++i) vtk += "0.002 -0.001 0.0015\n";
+  const std::string grid = (dir_ / "uniform.vtk").string();
+  ASSERT_TRUE(io::WriteFileAtomically(grid, vtk).ok());
+  const fs::path out = dir_ / "moved";
+  const ClientRun r = Client(server.address(), "track --interface sphere --field " + grid +
+                                                   " --h 0.03125 --dt 10 --steps 10 --stride 10 -o " + out.string());
+  ASSERT_EQ(r.code, 0) << r.output;
+  auto first = io::ReadPointCloudFile((out / "frame_00000.drc").string());
+  auto last = io::ReadPointCloudFile((out / "frame_00010.drc").string());
+  ASSERT_TRUE(first.ok() && last.ok());
+  auto centroid = [](const core::PointCloud& c) {
+    Eigen::Vector3d sum = Eigen::Vector3d::Zero();
+    for (const auto& p : c.positions) sum += p.cast<double>();
+    return Eigen::Vector3d(sum / static_cast<double>(c.size()));
+  };
+  const Eigen::Vector3d moved = centroid(*last) - centroid(*first);
+  EXPECT_LT((moved - 100 * v).norm(), 0.25 * 0.03125) << moved.transpose();
+  EXPECT_FALSE(fs::exists(out / "summary.txt"));  // No exact shape to compare with after a user field.
+
+  // A field with a NaN is refused before the job is queued, naming the bad vector.
+  std::string bad = vtk;
+  bad.replace(bad.rfind("0.002"), 5, "nan");
+  const std::string bad_grid = (dir_ / "bad.vtk").string();
+  ASSERT_TRUE(io::WriteFileAtomically(bad_grid, bad).ok());
+  const ClientRun refused = Client(server.address(), "track --interface sphere --field " + bad_grid +
+                                                         " --h 0.03125 -o " + (dir_ / "bad").string());
+  EXPECT_NE(refused.code, 0);
+  EXPECT_NE(refused.output.find("velocity: vector 7 is not finite"), std::string::npos) << refused.output;
 }
 
 TEST_F(EndToEnd, SizeLimitsAreEnforced) {

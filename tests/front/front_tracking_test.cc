@@ -6,6 +6,8 @@
 #include <limits>
 #include <numbers>
 
+#include "worker/core/mesh_metrics.h"
+
 namespace lsqsurf::front {
 namespace {
 
@@ -47,12 +49,35 @@ TEST(FrontTracking, VolumeAndShapeErrorOfTheExactSphere) {
   }
 }
 
+// The mesh of the front's surface encloses the same volume as the gridline measure, and both
+// converge to the sphere's; the mesh is closed.
+TEST(FrontTracking, MeshVolumeCrossChecksTheGridlineVolume) {
+  double previous_error = 1;
+  for (double h : {1.0 / 32, 1.0 / 64, 1.0 / 128}) {
+    const Front front = Sphere(h);
+    core::LocalJobContext ctx;
+    auto mesh = FrontMesh(front, h, ctx);
+    ASSERT_TRUE(mesh.ok()) << mesh.status();
+    EXPECT_TRUE(core::AnalyzeTopology(*mesh).watertight()) << h;
+    const double mesh_volume = core::EnclosedVolume(*mesh);
+    auto grid_volume = FrontVolume(front, h);
+    ASSERT_TRUE(grid_volume.ok());
+    const double error = std::abs(mesh_volume / kSphereVolume - 1);
+    std::printf("h = 1/%.0f: mesh volume error %.3e, gridline volume error %.3e\n", 1 / h, error,
+                std::abs(*grid_volume / kSphereVolume - 1));
+    EXPECT_LT(error, 0.02) << h;
+    EXPECT_LT(error, previous_error) << h;
+    EXPECT_NEAR(mesh_volume / *grid_volume, 1.0, 0.02) << h;
+    previous_error = error;
+  }
+}
+
 // A constant velocity: the front moves rigidly; the volume stays within a bound that shrinks
 // as h halves, and the points stay on the translated sphere.
 TEST(FrontTracking, TranslationKeepsTheVolume) {
   std::vector<double> changes;
   for (double h : {1.0 / 32, 1.0 / 64}) {
-    auto field = GridVelocity(Vec3d::Zero(), 1.0, 1, 1, 1, {Vec3d(0.01, 0.006, -0.004)});
+    auto field = GridVelocity(Vec3d::Zero(), Vec3d::Constant(1.0), 1, 1, 1, {Vec3d(0.01, 0.006, -0.004)});
     ASSERT_TRUE(field.ok());
     TrackingParams p;
     p.h = h;
@@ -108,11 +133,11 @@ class NanField final : public VelocityField {
 };
 
 TEST(FrontTracking, RejectsBadFieldsAndParameters) {
-  EXPECT_EQ(GridVelocity(Vec3d::Zero(), 0.1, 2, 1, 1, {Vec3d::Zero(), Vec3d(NAN, 0, 0)}).status().code(),
+  EXPECT_EQ(GridVelocity(Vec3d::Zero(), Vec3d::Constant(0.1), 2, 1, 1, {Vec3d::Zero(), Vec3d(NAN, 0, 0)}).status().code(),
             absl::StatusCode::kInvalidArgument);
-  EXPECT_EQ(GridVelocity(Vec3d::Zero(), 0.1, 2, 2, 1, {Vec3d::Zero()}).status().code(),
+  EXPECT_EQ(GridVelocity(Vec3d::Zero(), Vec3d::Constant(0.1), 2, 2, 1, {Vec3d::Zero()}).status().code(),
             absl::StatusCode::kInvalidArgument);
-  EXPECT_EQ(GridVelocity(Vec3d::Zero(), 0.0, 1, 1, 1, {Vec3d::Zero()}).status().code(),
+  EXPECT_EQ(GridVelocity(Vec3d::Zero(), Vec3d(0.1, 0.0, 0.1), 1, 1, 1, {Vec3d::Zero()}).status().code(),
             absl::StatusCode::kInvalidArgument);
   const Front front = Sphere(1.0 / 32);
   core::LocalJobContext ctx;

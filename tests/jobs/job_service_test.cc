@@ -106,6 +106,7 @@ TEST_F(JobServiceTest, RejectsBadInputWithTheRightCode) {
     std::string input;
     absl::StatusCode code;
     const char* fragment;
+    std::string velocity = {};
   } cases[] = {
       {"empty upload", {"iamls", {}}, "", absl::StatusCode::kInvalidArgument, "no input"},
       {"truncated Draco", {"iamls", {}}, good.substr(0, good.size() / 2), absl::StatusCode::kInvalidArgument, "Draco"},
@@ -119,9 +120,15 @@ TEST_F(JobServiceTest, RejectsBadInputWithTheRightCode) {
        absl::StatusCode::kInvalidArgument, "no normals"},
       {"too many points", {"iamls", {}}, Encode(testing::SphereCloud(6000)), absl::StatusCode::kResourceExhausted,
        "at most 5000"},
+      {"user field, no grid", {"track", {{"interface", 1}, {"field", 2}}}, "", absl::StatusCode::kInvalidArgument,
+       "none was uploaded"},
+      {"grid without a user field", {"track", {{"interface", 1}}}, "", absl::StatusCode::kInvalidArgument,
+       "only the track method with field=2", "# vtk DataFile Version 3.0\n"},
+      {"grid not VTK", {"track", {{"interface", 1}, {"field", 2}}}, "", absl::StatusCode::kInvalidArgument,
+       "not a legacy VTK file", "P3 2 2"},
   };
   for (const Case& c : cases) {
-    auto r = s.Submit(c.spec, c.input);
+    auto r = s.Submit(c.spec, c.input, c.velocity);
     ASSERT_FALSE(r.ok()) << c.what << " was accepted";
     EXPECT_EQ(r.status().code(), c.code) << c.what << ": " << r.status();
     EXPECT_NE(std::string(r.status().message()).find(c.fragment), std::string::npos) << c.what << ": " << r.status();

@@ -9,6 +9,7 @@
 
 #include "absl/container/flat_hash_map.h"
 #include "worker/core/implicit_function.h"
+#include "worker/core/isosurface.h"
 #include "worker/core/j1a.h"
 #include "worker/core/parallel.h"
 #include "worker/core/status.h"
@@ -28,6 +29,11 @@ constexpr int kRootSteps = 8;
 // The grid nodes sampled around each point: its cell widened by one cell on every side, so that
 // a crossing in a cell the surface only clips is still found.
 constexpr int kNodeReach = 1;
+// Each RAMLS fit uses only the points facing within 120° of the nearest point's normal. Where a
+// stretched sheet is thinner than the 3h support, both of its sides fall in one neighbourhood;
+// their opposite normals cancel in a shared fit and spurious crossings multiply (Enright's test
+// exploded at t ≈ 1.8 without this). 120° keeps the 90° corners of the Zalesak slot whole.
+constexpr double kSideCosine = -0.5;
 
 class ZalesakField final : public VelocityField {
  public:
@@ -53,13 +59,13 @@ class EnrightField final : public VelocityField {
 
 class GridField final : public VelocityField {
  public:
-  GridField(Vec3d origin, double spacing, int nx, int ny, int nz, std::vector<Vec3d> values)
+  GridField(Vec3d origin, Vec3d spacing, int nx, int ny, int nz, std::vector<Vec3d> values)
       : origin_(origin), spacing_(spacing), n_{nx, ny, nz}, values_(std::move(values)) {}
   Vec3d At(const Vec3d& x, double) const override {
     std::array<int, 3> i0{};
     std::array<double, 3> f{};
     for (int a = 0; a < 3; ++a) {
-      const double g = std::clamp((x[a] - origin_[a]) / spacing_, 0.0, static_cast<double>(n_[a] - 1));
+      const double g = std::clamp((x[a] - origin_[a]) / spacing_[a], 0.0, static_cast<double>(n_[a] - 1));
       i0[a] = std::min(static_cast<int>(g), std::max(0, n_[a] - 2));
       f[a] = n_[a] > 1 ? g - i0[a] : 0.0;
     }
@@ -81,7 +87,7 @@ class GridField final : public VelocityField {
 
  private:
   Vec3d origin_;
-  double spacing_;
+  Vec3d spacing_;
   std::array<int, 3> n_;
   std::vector<Vec3d> values_;
 };
@@ -271,7 +277,8 @@ std::vector<NodeKey> NodesNear(std::span<const Vec3f> points, double h, std::vec
   return nodes;
 }
 
-// Greedy thinning in the given order: a point is kept unless a kept point lies within h/2.
+// Greedy thinning in the given order: a point is kept unless a kept point facing the same way
+// lies within h/2 (the two sides of a sheet thinner than h/2 both stay).
 Front Thin(const std::vector<Crossing>& crossings, double h) {
   const double min_distance = 0.5 * h;
   absl::flat_hash_map<uint64_t, std::vector<uint32_t>> buckets;
@@ -286,6 +293,7 @@ Front Thin(const std::vector<Crossing>& crossings, double h) {
       const auto it = buckets.find(bucket_of(c.point, d % 3 - 1, (d / 3) % 3 - 1, d / 9 - 1));
       if (it == buckets.end()) continue;
       for (uint32_t k : it->second) {
+        if (front.normals[k].dot(c.normal) < 0) continue;  // The other side of a thin sheet.
         if ((front.points[k] - c.point).squaredNorm() < min_distance * min_distance) {
           near = true;
           break;
@@ -309,6 +317,7 @@ absl::StatusOr<std::unique_ptr<mls::AlgebraicMlsFunction>> FrontFunction(const F
   mls::AlgebraicMlsParams p;
   p.spacing = h;
   p.support_factor = support_factor;
+  p.side_cosine = kSideCosine;
   return mls::BuildAlgebraicMls(cloud, p, ctx);
 }
 
@@ -350,10 +359,10 @@ Eigen::Matrix3d Jacobian(const VelocityField& v, const Vec3d& x, double t) {
 std::unique_ptr<VelocityField> ZalesakRotation() { return std::make_unique<ZalesakField>(); }
 std::unique_ptr<VelocityField> EnrightDeformation(double period) { return std::make_unique<EnrightField>(period); }
 
-absl::StatusOr<std::unique_ptr<VelocityField>> GridVelocity(Vec3d origin, double spacing, int nx, int ny, int nz,
+absl::StatusOr<std::unique_ptr<VelocityField>> GridVelocity(Vec3d origin, Vec3d spacing, int nx, int ny, int nz,
                                                             std::vector<Vec3d> values) {
-  if (!origin.allFinite() || !(spacing > 0) || !std::isfinite(spacing)) {
-    return absl::InvalidArgumentError("the velocity grid needs a finite origin and a positive spacing");
+  if (!origin.allFinite() || !spacing.allFinite() || !(spacing.minCoeff() > 0)) {
+    return absl::InvalidArgumentError("the velocity grid needs a finite origin and a positive spacing along each axis");
   }
   if (nx < 1 || ny < 1 || nz < 1 || static_cast<int64_t>(nx) * ny * nz > 256LL * 256 * 256) {
     return absl::InvalidArgumentError("the velocity grid must have 1..256³ nodes");
@@ -412,6 +421,18 @@ absl::StatusOr<double> FrontVolume(const Front& front, double h, double support_
   auto z = ZCrossings(front, h, h, support_factor, marks, ctx);
   if (!z.ok()) return z.status();
   return VolumeOf(*z, h);
+}
+
+absl::StatusOr<core::TriangleMesh> FrontMesh(const Front& front, double h, core::JobContext& ctx,
+                                             double support_factor) {
+  LSQSURF_RETURN_IF_ERROR(ValidateSpacing(h));
+  auto field = FrontFunction(front, h, support_factor, ctx);
+  if (!field.ok()) return field.status();
+  core::IsosurfaceParams p;
+  p.cell_size = h;
+  auto extracted = core::ExtractIsosurface(**field, front.points, p, ctx);
+  if (!extracted.ok()) return extracted.status();
+  return std::move(extracted->mesh);
 }
 
 absl::StatusOr<double> ShapeError(const Front& front, InitialShape exact, double h, double support_factor) {

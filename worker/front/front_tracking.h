@@ -38,9 +38,10 @@ std::unique_ptr<VelocityField> ZalesakRotation();
 // LeVeque's 3D deformation field modulated by cos(πt/T): the shape returns at t = T.
 std::unique_ptr<VelocityField> EnrightDeformation(double period);
 // A user field on a regular grid, interpolated trilinearly in space and constant in time.
-// `values` holds nx·ny·nz vectors, x fastest. Errors: kInvalidArgument (sizes, non-finite
-// values, spacing ≤ 0). Outside the grid the nearest boundary value is used.
-absl::StatusOr<std::unique_ptr<VelocityField>> GridVelocity(core::Vec3d origin, double spacing, int nx, int ny,
+// Node (i, j, k) lies at origin + (i, j, k) ⊙ spacing; `values` holds nx·ny·nz vectors, x
+// fastest. Errors: kInvalidArgument (sizes, non-finite values, a spacing ≤ 0). Outside the grid
+// the nearest boundary value is used.
+absl::StatusOr<std::unique_ptr<VelocityField>> GridVelocity(core::Vec3d origin, core::Vec3d spacing, int nx, int ny,
                                                             int nz, std::vector<core::Vec3d> values);
 
 // The analytic interfaces of the benchmarks (BENCHMARKS.md), inside = F < 0.
@@ -81,6 +82,13 @@ absl::StatusOr<Front> SampleInitialFront(InitialShape shape, double h);
 // Volume of the region where the front's RAMLS function is negative, from the z gridlines of
 // spacing `h` (the measure used for every frame). Errors: kInvalidArgument.
 absl::StatusOr<double> FrontVolume(const Front& front, double h, double support_factor = 3.0);
+
+// The front's surface as a triangle mesh: the RAMLS function (support `support_factor`·h)
+// extracted by marching tetrahedra on cubes of edge h around the points, with vertex normals.
+// Its enclosed volume cross-checks FrontVolume. Errors: kInvalidArgument, kResourceExhausted,
+// kCancelled.
+absl::StatusOr<core::TriangleMesh> FrontMesh(const Front& front, double h, core::JobContext& ctx,
+                                             double support_factor = 3.0);
 
 // E1 = ∫ |χ_front − χ_exact| dV (BENCHMARKS.md), with χ_front from the crossings of the front's
 // RAMLS function on z gridlines of spacing `h` / 2 (exact along each line, sampled across).

@@ -4,6 +4,7 @@
 #include <cmath>
 #include <cstdio>
 
+#include "worker/core/mesh_metrics.h"
 #include "worker/core/status.h"
 #include "worker/core/strings.h"
 #include "worker/front/front_tracking.h"
@@ -14,7 +15,7 @@ namespace lsqsurf::jobs {
 namespace {
 
 constexpr int kUploaded = 0, kSphere = 1;  // interface=2: Zalesak.
-constexpr int kRotation = 0, kDeformation = 1;
+constexpr int kRotation = 0, kDeformation = 1, kUploadedField = 2;
 constexpr double kRevolution = 628.0;  // Time units of one turn of Zalesak's rotation.
 
 double Param(const ParameterMap& parameters, const char* name) {
@@ -32,7 +33,8 @@ MethodSpec TrackMethod() {
   m.parameters = {
       {"interface", kUploaded, 0, 2, true, "0: the uploaded oriented cloud; 1: sphere r=0.15 at (0.35,0.35,0.35); "
                                            "2: Zalesak's slotted sphere"},
-      {"field", kRotation, 0, 1, true, "0: Zalesak's rotation about (0.5, 0.5, z); 1: Enright's 3D deformation"},
+      {"field", kRotation, 0, 2, true, "0: Zalesak's rotation about (0.5, 0.5, z); 1: Enright's 3D deformation; "
+                                       "2: the uploaded velocity grid (legacy VTK, trilinear, constant in time)"},
       {"period", 3, 0.01, 1000, false, "period T of the deformation field, cos(pi t / T) modulation"},
       {"cells", std::round(1 / p.h), 8, 512, true, "background grid cells per unit length (h = 1/cells)"},
       {"dt", p.dt, 1e-6, 1000, false, "time step"},
@@ -41,14 +43,21 @@ MethodSpec TrackMethod() {
       {"support_factor", p.support_factor, 1.5, 10, false, "RAMLS support radius in units of h"},
       {"max_points", static_cast<double>(p.max_points), 100, 50'000'000, true,
        "stop with an error if the front grows past this many points"},
+      {"meshes", 0, 0, 1, true, "1: also write frame_NNNNN_mesh.drc (the RAMLS surface on cubes of edge h) and "
+                                "a mesh_volume column in stats.csv, which cross-checks the gridline volume"},
   };
   return m;
 }
 
 bool TrackNeedsUpload(const ParameterMap& parameters) { return static_cast<int>(Param(parameters, "interface")) == kUploaded; }
 
+bool TrackNeedsVelocity(const ParameterMap& parameters) {
+  return static_cast<int>(Param(parameters, "field")) == kUploadedField;
+}
+
 absl::StatusOr<TrackOutput> RunTrackJob(const ParameterMap& parameters, const core::PointCloud* interface,
-                                        const std::string& out_dir, core::JobContext& ctx) {
+                                        const io::VectorGrid* velocity, const std::string& out_dir,
+                                        core::JobContext& ctx) {
   LSQSURF_RETURN_IF_ERROR(ValidateRequest(kTrackMethod, parameters));
   const int shape = static_cast<int>(Param(parameters, "interface"));
   front::TrackingParams tp;
@@ -60,7 +69,8 @@ absl::StatusOr<TrackOutput> RunTrackJob(const ParameterMap& parameters, const co
   tp.max_points = static_cast<size_t>(Param(parameters, "max_points"));
   LSQSURF_RETURN_IF_ERROR(front::Validate(tp));
   const double period = Param(parameters, "period");
-  const bool deformation = static_cast<int>(Param(parameters, "field")) == kDeformation;
+  const int field_kind = static_cast<int>(Param(parameters, "field"));
+  const bool deformation = field_kind == kDeformation;
 
   front::Front initial;
   if (shape == kUploaded) {
@@ -77,10 +87,20 @@ absl::StatusOr<TrackOutput> RunTrackJob(const ParameterMap& parameters, const co
     if (!sampled.ok()) return sampled.status();
     initial = *std::move(sampled);
   }
-  const auto field = deformation ? front::EnrightDeformation(period) : front::ZalesakRotation();
+  std::unique_ptr<front::VelocityField> field;
+  if (field_kind == kUploadedField) {
+    if (velocity == nullptr) return absl::InvalidArgumentError("field=2 needs an uploaded velocity grid");
+    auto grid = front::GridVelocity(velocity->origin, velocity->spacing, velocity->dims[0], velocity->dims[1],
+                                    velocity->dims[2], velocity->values);
+    if (!grid.ok()) return grid.status();
+    field = *std::move(grid);
+  } else {
+    field = deformation ? front::EnrightDeformation(period) : front::ZalesakRotation();
+  }
 
   TrackOutput out;
-  std::string csv = "step,time,points,volume,volume_change\n";
+  const bool meshes = Param(parameters, "meshes") != 0;
+  std::string csv = meshes ? "step,time,points,volume,volume_change,mesh_volume\n" : "step,time,points,volume,volume_change\n";
   front::Front last;
   front::FrameStats last_stats;
   double v0 = 0;
@@ -98,9 +118,23 @@ absl::StatusOr<TrackOutput> RunTrackJob(const ParameterMap& parameters, const co
       return absl::UnavailableError(core::StrCat("cannot write ", name, ": ", w.message()));
     }
     out.artifacts.push_back(name);
-    char row[160];
-    std::snprintf(row, sizeof(row), "%d,%.9g,%zu,%.9g,%.9g\n", s.step, s.time, s.points, s.volume, s.volume_change);
+    char row[192];
+    std::snprintf(row, sizeof(row), "%d,%.9g,%zu,%.9g,%.9g", s.step, s.time, s.points, s.volume, s.volume_change);
     csv += row;
+    if (meshes) {
+      auto mesh = front::FrontMesh(f, tp.h, ctx, tp.support_factor);
+      if (!mesh.ok()) return mesh.status();
+      auto encoded_mesh = io::EncodeDracoMesh(*mesh, {});
+      if (!encoded_mesh.ok()) return encoded_mesh.status();
+      std::snprintf(name, sizeof(name), "frame_%05d_mesh.drc", s.step);
+      if (absl::Status w = io::WriteFileAtomically(out_dir + "/" + name, *encoded_mesh); !w.ok()) {
+        return absl::UnavailableError(core::StrCat("cannot write ", name, ": ", w.message()));
+      }
+      out.artifacts.push_back(name);
+      std::snprintf(row, sizeof(row), ",%.9g", core::EnclosedVolume(*mesh));
+      csv += row;
+    }
+    csv += "\n";
     if (s.step == 0) v0 = s.volume;
     last = f;
     last_stats = s;
@@ -113,10 +147,10 @@ absl::StatusOr<TrackOutput> RunTrackJob(const ParameterMap& parameters, const co
                     {"final_points", static_cast<double>(last_stats.points)},
                     {"volume_change", last_stats.volume_change},
                     {"tracking_seconds", seconds}};
-  // A named shape back where the field returns it: measure E1 against the exact shape.
+  // A named shape back where a named field returns it: measure E1 against the exact shape.
   const double end_time = tp.steps * tp.dt;
   const double back_at = deformation ? period : kRevolution * std::max(1.0, std::round(end_time / kRevolution));
-  if (shape != kUploaded && std::abs(end_time - back_at) <= 1e-6 * back_at) {
+  if (shape != kUploaded && field_kind != kUploadedField && std::abs(end_time - back_at) <= 1e-6 * back_at) {
     const front::InitialShape exact = shape == kSphere ? front::InitialShape::kSphere : front::InitialShape::kZalesakSphere;
     auto e1 = front::ShapeError(last, exact, tp.h, tp.support_factor);
     if (!e1.ok()) return e1.status();

@@ -3,7 +3,9 @@
 // A job advects an interface (an uploaded oriented cloud, or one of the benchmark shapes) through
 // a named velocity field and writes one artifact per output frame plus a statistics table:
 //   frame_NNNNN.drc  Draco point cloud with normals, NNNNN the step;
-//   stats.csv        step,time,points,volume,volume_change (change relative to step 0);
+//   frame_NNNNN_mesh.drc  with meshes=1: the frame's RAMLS surface as a Draco mesh;
+//   stats.csv        step,time,points,volume,volume_change (change relative to step 0), and
+//                    mesh_volume (the mesh's enclosed volume) with meshes=1;
 //   summary.txt      for a named shape run to where the field brings it back (one revolution of
 //                    the rotation, or t = T of the deformation): e1_rel= and volume_change=,
 //                    both fractions.
@@ -16,6 +18,7 @@
 #include "absl/status/statusor.h"
 #include "worker/core/geometry.h"
 #include "worker/core/job_context.h"
+#include "worker/io/vtk_grid.h"
 #include "worker/jobs/engines.h"
 
 namespace lsqsurf::jobs {
@@ -26,6 +29,8 @@ MethodSpec TrackMethod();
 
 // Whether the request tracks an uploaded interface (otherwise it names a shape and needs none).
 bool TrackNeedsUpload(const ParameterMap& parameters);
+// Whether the request moves the interface with an uploaded velocity grid (field = 2).
+bool TrackNeedsVelocity(const ParameterMap& parameters);
 
 struct TrackOutput {
   std::vector<std::pair<std::string, double>> statistics;
@@ -33,9 +38,11 @@ struct TrackOutput {
 };
 
 // Runs a validated "track" request; `interface` is the uploaded cloud (needed with normals when
-// TrackNeedsUpload), and the artifacts are written into `out_dir`. Errors: kInvalidArgument,
+// TrackNeedsUpload), `velocity` the uploaded grid (needed when TrackNeedsVelocity), and the
+// artifacts are written into `out_dir`. Errors: kInvalidArgument,
 // kResourceExhausted, kFailedPrecondition, kCancelled, kUnavailable (writing failed).
 absl::StatusOr<TrackOutput> RunTrackJob(const ParameterMap& parameters, const core::PointCloud* interface,
-                                        const std::string& out_dir, core::JobContext& ctx);
+                                        const io::VectorGrid* velocity, const std::string& out_dir,
+                                        core::JobContext& ctx);
 
 }  // namespace lsqsurf::jobs

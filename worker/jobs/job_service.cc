@@ -10,12 +10,14 @@
 #include "worker/core/strings.h"
 #include "worker/io/draco_codec.h"
 #include "worker/io/files.h"
+#include "worker/io/vtk_grid.h"
 #include "worker/jobs/front_job.h"
 
 namespace lsqsurf::jobs {
 namespace {
 
 constexpr char kInputFile[] = "input.drc";
+constexpr char kVelocityFile[] = "velocity.vtk";
 constexpr char kMeshArtifact[] = "mesh.drc";
 
 int64_t NowMs() {
@@ -145,7 +147,7 @@ std::string JobService::JobDir(const std::string& id) const {
   return (std::filesystem::path(options_.data_dir) / "jobs" / id).string();
 }
 
-absl::StatusOr<JobRecord> JobService::Submit(const JobSpec& spec, std::string input) {
+absl::StatusOr<JobRecord> JobService::Submit(const JobSpec& spec, std::string input, std::string velocity) {
   if (absl::Status s = ValidateRequest(spec.method, spec.parameters); !s.ok()) return s;
   if (spec.mesh_position_bits < 8 || spec.mesh_position_bits > 30) {
     return absl::InvalidArgumentError("mesh_position_bits must be between 8 and 30");
@@ -154,8 +156,8 @@ absl::StatusOr<JobRecord> JobService::Submit(const JobSpec& spec, std::string in
   const bool needs_input = spec.method != kTrackMethod || TrackNeedsUpload(spec.parameters);
   if (!needs_input) input.clear();
   if (needs_input && input.empty()) return absl::InvalidArgumentError("no input data was uploaded");
-  if (static_cast<int64_t>(input.size()) > options_.max_input_bytes) {
-    return absl::ResourceExhaustedError(core::StrCat("the upload has ", input.size(),
+  if (static_cast<int64_t>(input.size() + velocity.size()) > options_.max_input_bytes) {
+    return absl::ResourceExhaustedError(core::StrCat("the upload has ", input.size() + velocity.size(),
                                                      " bytes; this server accepts at most ",
                                                      options_.max_input_bytes));
   }
@@ -167,6 +169,13 @@ absl::StatusOr<JobRecord> JobService::Submit(const JobSpec& spec, std::string in
       return absl::InvalidArgumentError("a tracked interface needs oriented normals (outward)");
     }
     if (absl::Status s = ValidateCloud(*cloud, spec, options_); !s.ok()) return s;
+  }
+  const bool needs_velocity = spec.method == kTrackMethod && TrackNeedsVelocity(spec.parameters);
+  if (needs_velocity) {
+    if (velocity.empty()) return absl::InvalidArgumentError("field=2 tracks through an uploaded velocity grid, but none was uploaded");
+    if (auto grid = io::ParseVtkVectorGrid(velocity, "velocity"); !grid.ok()) return grid.status();
+  } else if (!velocity.empty()) {
+    return absl::InvalidArgumentError("a velocity grid was uploaded, but only the track method with field=2 uses one");
   }
   {
     std::lock_guard lock(mutex_);
@@ -188,6 +197,12 @@ absl::StatusOr<JobRecord> JobService::Submit(const JobSpec& spec, std::string in
   if (ec) return absl::UnavailableError(core::StrCat("cannot create the job folder: ", ec.message()));
   if (absl::Status s = io::WriteFileAtomically(JobDir(r.id) + "/" + kInputFile, input); !s.ok()) {
     return absl::UnavailableError(core::StrCat("cannot store the input: ", s.message()));
+  }
+  if (needs_velocity) {
+    if (absl::Status s = io::WriteFileAtomically(JobDir(r.id) + "/" + kVelocityFile, velocity); !s.ok()) {
+      std::filesystem::remove_all(JobDir(r.id), ec);
+      return absl::UnavailableError(core::StrCat("cannot store the velocity grid: ", s.message()));
+    }
   }
   std::lock_guard lock(mutex_);
   if (shutting_down_ || static_cast<int>(queue_.size()) >= options_.max_queue) {
@@ -367,8 +382,19 @@ void JobService::RunJob(const std::shared_ptr<Entry>& entry) {
     };
     if (spec.method == kTrackMethod) {
       auto uploaded = TrackNeedsUpload(spec.parameters) ? read_input() : core::PointCloud{};
-      auto tracked = uploaded.ok() ? RunTrackJob(spec.parameters, &*uploaded, JobDir(id), ctx)
-                                   : absl::StatusOr<TrackOutput>(uploaded.status());
+      absl::StatusOr<io::VectorGrid> velocity = io::VectorGrid{};
+      if (TrackNeedsVelocity(spec.parameters)) {
+        auto bytes = io::ReadFileBytes(JobDir(id) + "/" + kVelocityFile);
+        velocity = bytes.ok() ? io::ParseVtkVectorGrid(*bytes, "velocity") : absl::StatusOr<io::VectorGrid>(bytes.status());
+      }
+      absl::StatusOr<TrackOutput> tracked = absl::InternalError("not run");
+      if (!uploaded.ok()) {
+        tracked = uploaded.status();
+      } else if (!velocity.ok()) {
+        tracked = velocity.status();
+      } else {
+        tracked = RunTrackJob(spec.parameters, &*uploaded, &*velocity, JobDir(id), ctx);
+      }
       if (tracked.ok()) {
         result = SurfaceResult{{}, tracked->statistics};
         artifacts = tracked->artifacts;

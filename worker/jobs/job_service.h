@@ -43,10 +43,11 @@ class JobService {
   static absl::StatusOr<std::unique_ptr<JobService>> Open(const JobServiceOptions& options);
   ~JobService();  // Calls Shutdown().
 
-  // Validates and enqueues. `input` is a Draco point cloud. Errors: kInvalidArgument (bad method,
+  // Validates and enqueues. `input` is a Draco point cloud; `velocity` a legacy VTK vector grid,
+  // only for the track method with field = 2. Errors: kInvalidArgument (bad method,
   // parameter, or input, with the reason), kResourceExhausted (queue full, too many points or
   // bytes), kUnavailable (shutting down or storage failure).
-  absl::StatusOr<JobRecord> Submit(const JobSpec& spec, std::string input);
+  absl::StatusOr<JobRecord> Submit(const JobSpec& spec, std::string input, std::string velocity = {});
 
   absl::StatusOr<JobRecord> Get(const std::string& id) const;
   std::vector<JobRecord> List() const;  // Newest first.

@@ -61,11 +61,19 @@ struct AlgebraicMlsFunction::Impl {
     const bool apss = params.fit == AlgebraicFit::kApss;
     int weighted = 0;
     double nearest2 = std::numeric_limits<double>::infinity();
+    Vec3f nearest_normal = Vec3f::Zero();
+    for (const core::Neighbor& q : near) {
+      if (q.distance2 < nearest2) {
+        nearest2 = q.distance2;
+        nearest_normal = normals[q.index];
+      }
+    }
+    const bool one_side = params.side_cosine > -1;
     const double r2 = radius * radius;
     for (const core::Neighbor& q : near) {
       const double d2 = q.distance2;
-      nearest2 = std::min(nearest2, d2);
       if (d2 >= r2) continue;
+      if (one_side && nearest_normal.dot(normals[q.index]) < params.side_cosine) continue;
       const double t = 1 - d2 / r2, w = t * t * t * t;
       const Vec3d y = (positions[q.index].cast<double>() - x) / radius;
       const Vec3d n = normals[q.index].cast<double>();
@@ -123,6 +131,7 @@ absl::Status Validate(const AlgebraicMlsParams& p) {
   if (!in(p.support_factor, 1, 10)) return absl::InvalidArgumentError("support_factor must be in [1, 10]");
   if (p.min_neighbors < 4 || p.min_neighbors > 100) return absl::InvalidArgumentError("min_neighbors must be in [4, 100]");
   if (!in(p.coverage, 0.25, 10)) return absl::InvalidArgumentError("coverage must be in [0.25, 10]");
+  if (!in(p.side_cosine, -1, 1)) return absl::InvalidArgumentError("side_cosine must be in [-1, 1]");
   if (p.fit == AlgebraicFit::kApss && !(in(p.apss_beta, 0, 1e12) && p.apss_beta > 0)) {
     return absl::InvalidArgumentError("APSS beta must be in (0, 1e12]: without the normal term the fit is the zero polynomial");
   }

@@ -41,6 +41,11 @@ struct AlgebraicMlsParams {
   int min_neighbors = 6;        // Fewer weighted points: undefined, 4..100.
   double coverage = 1.5;        // Defined within this many h of the nearest point, 0.25..10.
   double apss_beta = 1e6;       // APSS only: weight of the normal term, 0..1e12.
+  // Only points whose normal n satisfies n·n* ≥ side_cosine, n* the nearest point's normal, enter
+  // a fit; −1 (the default) keeps every point. Where the two sides of a sheet thinner than the
+  // support meet, their opposite normals cancel in one fit; a threshold such as −0.5 fits each
+  // side alone while keeping the 90° corners of sharp edges whole. −1..1.
+  double side_cosine = -1.0;
 };
 
 absl::Status Validate(const AlgebraicMlsParams& params);

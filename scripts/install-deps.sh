@@ -12,6 +12,7 @@ packages=(
   libspdlog-dev libfmt-dev
   libgtest-dev libgmock-dev libbenchmark-dev
   libsqlite3-dev libabsl-dev libtbb-dev libcli11-dev
+  libegl-dev libgl-dev libegl-mesa0 libgl1-mesa-dri libstb-dev
 )
 if [[ "${1:-}" == "--with-poisson" ]]; then packages+=(libopen3d-dev); fi
 

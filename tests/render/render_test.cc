@@ -1,0 +1,223 @@
+#include "worker/render/render.h"
+
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <numbers>
+#include <thread>
+
+#include "stb_image.h"
+#include "tests/test_shapes.h"
+
+namespace lsqsurf::render {
+namespace {
+
+using core::Vec3d;
+
+constexpr double kDegree = std::numbers::pi / 180;
+
+class RenderTest : public ::testing::Test {
+ protected:
+  static void SetUpTestSuite() {
+    auto r = CreateRenderer("auto");
+    ASSERT_TRUE(r.ok()) << r.status();
+    renderer_ = r->release();
+    std::printf("renderer: %s\n", renderer_->description().c_str());
+  }
+  static void TearDownTestSuite() {
+    delete renderer_;
+    renderer_ = nullptr;
+  }
+  // Unit sphere seen from distance 5 along +x (elevation 0), 30° field of view.
+  static RenderParams SphereView(int size) {
+    RenderParams p;
+    p.width = p.height = size;
+    p.camera = {0.0, 0.0, 5.0, 30.0};
+    return p;
+  }
+  // The sphere's silhouette radius in pixels: the tangent cone's half-angle asin(r/d), projected.
+  static double SilhouetteRadius(const RenderParams& p) {
+    return std::tan(std::asin(1.0 / p.camera.distance)) / std::tan(0.5 * p.camera.fov_deg * kDegree) * 0.5 * p.height;
+  }
+  static Renderer* renderer_;
+};
+Renderer* RenderTest::renderer_ = nullptr;
+
+int Brightness(const Image& image, int x, int y) {
+  const auto c = image.At(x, y);
+  return c[0] + c[1] + c[2];
+}
+
+TEST_F(RenderTest, SilhouetteMatchesTheProjectedSphere) {
+  RenderParams p = SphereView(512);
+  p.samples = 1;        // Whole pixels, so that covered pixels can be counted.
+  p.transparent = true;
+  const core::TriangleMesh sphere = testing::SphereMesh(128, 256);
+  auto image = renderer_->RenderMesh(sphere, p);
+  ASSERT_TRUE(image.ok()) << image.status();
+  double covered = 0, cx = 0, cy = 0;
+  for (int y = 0; y < p.height; ++y) {
+    for (int x = 0; x < p.width; ++x) {
+      if (image->At(x, y)[3] < 128) continue;
+      covered += 1;
+      cx += x + 0.5;
+      cy += y + 0.5;
+    }
+  }
+  const double radius = std::sqrt(covered / std::numbers::pi);
+  EXPECT_NEAR(radius, SilhouetteRadius(p), 1.0);
+  EXPECT_NEAR(cx / covered, 256, 0.5);
+  EXPECT_NEAR(cy / covered, 256, 0.5);
+  // Background, exactly, wherever the sphere is not: corners and just outside the silhouette.
+  const int outside = static_cast<int>(256 + SilhouetteRadius(p) + 2);
+  for (auto [x, y] : {std::pair{0, 0}, {511, 0}, {0, 511}, {511, 511}, {outside, 256}, {256, 511 - outside}}) {
+    EXPECT_EQ(image->At(x, y)[3], 0) << x << "," << y;
+  }
+  // With the solid background every uncovered pixel is exactly the background colour.
+  p.transparent = false;
+  p.background = {0.2f, 0.4f, 0.6f};
+  auto solid = renderer_->RenderMesh(sphere, p);
+  ASSERT_TRUE(solid.ok());
+  const auto corner = solid->At(3, 3);
+  EXPECT_EQ(corner[0], 51);
+  EXPECT_EQ(corner[1], 102);
+  EXPECT_EQ(corner[2], 153);
+  EXPECT_EQ(corner[3], 255);
+}
+
+TEST_F(RenderTest, ShadingFallsMonotonicallyAwayFromTheLight) {
+  RenderParams p = SphereView(256);
+  p.specular = 0;  // Lambert only: brightness = ambient + diffuse · max(0, n·l).
+  auto image = renderer_->RenderMesh(testing::SphereMesh(128, 256), p);
+  ASSERT_TRUE(image.ok()) << image.status();
+  // The light comes from up-left of the camera: along the diagonal from the top-left to the
+  // bottom-right of the disc, brightness rises to one peak in the top-left half, then falls.
+  const int r = static_cast<int>(SilhouetteRadius(p) * 0.98 / std::sqrt(2.0));
+  std::vector<int> line;
+  for (int k = -r; k <= r; ++k) line.push_back(Brightness(*image, 128 + k, 128 + k));
+  const auto peak = std::max_element(line.begin(), line.end()) - line.begin();
+  EXPECT_LT(peak, r) << "the brightest point should face the light (top left)";
+  EXPECT_GT(peak, r / 4);
+  for (size_t k = static_cast<size_t>(peak) + 1; k < line.size(); ++k) EXPECT_LE(line[k], line[k - 1] + 2) << k;
+  for (size_t k = 1; k <= static_cast<size_t>(peak); ++k) EXPECT_GE(line[k], line[k - 1] - 2) << k;
+  EXPECT_GT(line[static_cast<size_t>(peak)], 2 * line.back()) << "lit side much brighter than the far side";
+}
+
+TEST_F(RenderTest, ColouredAttributeFollowsTheLegend) {
+  RenderParams p = SphereView(512);
+  p.specular = 0;
+  p.color_attribute = "height";
+  RenderInfo info;
+  auto image = renderer_->RenderMesh(testing::SphereMesh(128, 256), p, &info);
+  ASSERT_TRUE(image.ok()) << image.status();
+  EXPECT_NEAR(info.color_min, -1, 1e-6);
+  EXPECT_NEAR(info.color_max, 1, 1e-6);
+  // The legend bar: top = maximum, bottom = minimum, the colour map in between.
+  const int bar_x = p.width - 16;
+  for (double t : {0.02, 0.3, 0.5, 0.7, 0.98}) {
+    const int y = static_cast<int>(std::lround((0.85 - 0.7 * t) * p.height));
+    const auto want = ColorMap(t);
+    const auto got = image->At(bar_x, y);
+    for (int c = 0; c < 3; ++c) EXPECT_NEAR(got[static_cast<size_t>(c)], 255 * want[static_cast<size_t>(c)], 6) << t;
+  }
+  // On the sphere, shading scales all channels alike: a pixel's chromaticity is that of the
+  // colour map at its height. Heights come from intersecting the pixel's ray with the sphere.
+  const double focal = 0.5 * p.height / std::tan(0.5 * p.camera.fov_deg * kDegree);
+  for (int py : {150, 200, 256, 300, 350}) {
+    const Vec3d eye(5, 0, 0);
+    const Vec3d dir = Vec3d(-focal, 0, 256.0 - (py + 0.5)).normalized();  // Column 256: y = 0.
+    const double b = eye.dot(dir), disc = b * b - (eye.squaredNorm() - 1);
+    ASSERT_GT(disc, 0) << py;
+    const double z = (eye + (-b - std::sqrt(disc)) * dir).z();
+    const auto want = ColorMap(0.5 * (z + 1));
+    const auto got = image->At(256, py);
+    const double want_sum = want[0] + want[1] + want[2], got_sum = got[0] + got[1] + got[2];
+    for (size_t c = 0; c < 3; ++c) {
+      EXPECT_NEAR(got[c] / got_sum, want[c] / want_sum, 0.03) << "row " << py << " channel " << c;
+    }
+  }
+}
+
+TEST_F(RenderTest, PointSplatsStayInsideTheSilhouette) {
+  RenderParams p = SphereView(256);
+  p.transparent = true;
+  auto image = renderer_->RenderPoints(testing::SphereCloud(20000), p);
+  ASSERT_TRUE(image.ok()) << image.status();
+  const double radius = SilhouetteRadius(p);
+  int inside = 0, drawn_inside = 0, drawn_far = 0;
+  for (int y = 0; y < 256; ++y) {
+    for (int x = 0; x < 256; ++x) {
+      const double d = std::hypot(x + 0.5 - 128, y + 0.5 - 128);
+      const bool drawn = image->At(x, y)[3] > 0;
+      if (d < radius - 2) {
+        ++inside;
+        drawn_inside += drawn;
+      } else if (d > radius + 6) {
+        drawn_far += drawn;
+      }
+    }
+  }
+  EXPECT_GT(drawn_inside, 0.97 * inside) << "splats should close the surface";
+  EXPECT_EQ(drawn_far, 0);
+}
+
+TEST_F(RenderTest, ConcurrentRequestsAllSucceedAndAgree) {
+  const core::TriangleMesh sphere = testing::SphereMesh(64, 128);
+  RenderParams p = SphereView(200);
+  p.wireframe = true;
+  p.shading = Shading::kFlat;
+  auto reference = renderer_->RenderMesh(sphere, p);
+  ASSERT_TRUE(reference.ok()) << reference.status();
+  std::vector<std::thread> threads;
+  std::atomic<int> same{0}, failed{0};
+  for (int t = 0; t < 4; ++t) {
+    threads.emplace_back([&] {
+      for (int k = 0; k < 3; ++k) {
+        auto image = renderer_->RenderMesh(sphere, p);
+        if (!image.ok()) {
+          ++failed;
+        } else if (image->rgba == reference->rgba) {
+          ++same;
+        }
+      }
+    });
+  }
+  for (auto& t : threads) t.join();
+  EXPECT_EQ(failed.load(), 0);
+  EXPECT_EQ(same.load(), 12);
+}
+
+TEST_F(RenderTest, BadRequestsAreRefused) {
+  const core::TriangleMesh sphere = testing::SphereMesh(8, 16);
+  RenderParams p = SphereView(64);
+  p.width = 5000;
+  EXPECT_EQ(renderer_->RenderMesh(sphere, p).status().code(), absl::StatusCode::kInvalidArgument);
+  p = SphereView(64);
+  p.samples = 3;
+  EXPECT_EQ(renderer_->RenderMesh(sphere, p).status().code(), absl::StatusCode::kInvalidArgument);
+  p = SphereView(64);
+  p.color_attribute = "degree";
+  auto unknown = renderer_->RenderMesh(sphere, p);
+  EXPECT_EQ(unknown.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(unknown.status().message().find("height"), std::string_view::npos) << unknown.status();
+  EXPECT_EQ(renderer_->RenderMesh(core::TriangleMesh{}, SphereView(64)).status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(CreateRenderer("vulkan").status().code(), absl::StatusCode::kInvalidArgument);
+}
+
+TEST_F(RenderTest, PngDecodesToTheSamePixels) {
+  auto image = renderer_->RenderMesh(testing::SphereMesh(16, 32), SphereView(64));
+  ASSERT_TRUE(image.ok());
+  auto png = EncodePng(*image);
+  ASSERT_TRUE(png.ok()) << png.status();
+  int w = 0, h = 0, channels = 0;
+  unsigned char* pixels = stbi_load_from_memory(reinterpret_cast<const unsigned char*>(png->data()),
+                                                static_cast<int>(png->size()), &w, &h, &channels, 4);
+  ASSERT_NE(pixels, nullptr);
+  EXPECT_EQ(w, 64);
+  EXPECT_EQ(h, 64);
+  EXPECT_TRUE(std::equal(image->rgba.begin(), image->rgba.end(), pixels));
+  stbi_image_free(pixels);
+}
+
+}  // namespace
+}  // namespace lsqsurf::render

@@ -1,0 +1,96 @@
+// worker/render/render.h — headless pictures of meshes and point clouds.
+//
+// A Renderer draws one mesh or point cloud per call into an RGBA image. Backends are chosen by
+// name: "egl" (OpenGL 4.5 core through EGL: the EGL device platform first, preferring an NVIDIA
+// device over Mesa's software one, then Mesa's surfaceless platform) and "auto" (the best
+// available, today the same). A renderer is safe to call from many threads: the EGL backend owns
+// its context on one render thread and serves calls in order.
+//
+// Conventions: the camera looks at the centre of the model's bounding box from the direction
+// given by azimuth (about +z, from +x towards +y) and elevation (towards +z); +z is up in the
+// picture. The key light comes from the camera, turned 25° up and 25° left.
+#pragma once
+
+#include <array>
+#include <cstdint>
+#include <memory>
+#include <string>
+#include <string_view>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "worker/core/geometry.h"
+
+namespace lsqsurf::render {
+
+inline constexpr int kMaxImageSide = 4096;
+
+struct Camera {
+  double azimuth_deg = 35.0;    // Around +z, from +x towards +y.
+  double elevation_deg = 25.0;  // Above the xy plane, −89..89.
+  double distance = 0.0;        // From the box centre, model units; 0 = frame the bounding sphere.
+  double fov_deg = 30.0;        // Vertical field of view, 5..120.
+};
+
+enum class Shading { kSmooth, kFlat };
+
+struct RenderParams {
+  int width = 1024, height = 1024;  // 16..kMaxImageSide.
+  Camera camera;
+  Shading shading = Shading::kSmooth;
+  bool wireframe = false;            // Dark edges over the shaded faces.
+  int samples = 4;                   // MSAA samples per pixel: 1, 2, 4 or 8.
+  bool transparent = false;          // Background alpha 0 instead of `background`.
+  std::array<float, 3> background = {1.0f, 1.0f, 1.0f};
+  std::array<float, 3> base_color = {0.78f, 0.80f, 0.84f};  // Without a colour attribute.
+  double specular = 0.25;            // Blinn–Phong highlight strength, 0..1 (0 = Lambert only).
+  // Name of a per-vertex (or per-point) scalar to colour through the colour map; empty = none.
+  // The map spans [color_min, color_max]; equal bounds (the default) mean the data's range.
+  std::string color_attribute;
+  double color_min = 0, color_max = 0;
+  bool legend = true;                // A colour bar with its bounds, when colouring.
+  double point_size = 0;             // Splat diameter in pixels for clouds; 0 = from the spacing.
+};
+
+absl::Status Validate(const RenderParams& params);
+
+struct Image {
+  int width = 0, height = 0;
+  std::vector<uint8_t> rgba;  // Row-major from the top row, 4 bytes per pixel.
+
+  std::array<uint8_t, 4> At(int x, int y) const {
+    const size_t i = 4 * (static_cast<size_t>(y) * static_cast<size_t>(width) + static_cast<size_t>(x));
+    return {rgba[i], rgba[i + 1], rgba[i + 2], rgba[i + 3]};
+  }
+};
+
+// Where the picture's colour bar and its range came from (for callers that report them).
+struct RenderInfo {
+  double color_min = 0, color_max = 0;
+  std::string renderer;  // The GL renderer string, e.g. "llvmpipe (LLVM 15.0.6, 256 bits)".
+};
+
+class Renderer {
+ public:
+  virtual ~Renderer() = default;
+  // Errors: kInvalidArgument (bad parameters, an empty mesh, an unknown colour attribute),
+  // kResourceExhausted (the GL could not allocate the image), kInternal (a GL failure).
+  virtual absl::StatusOr<Image> RenderMesh(const core::TriangleMesh& mesh, const RenderParams& params,
+                                           RenderInfo* info = nullptr) = 0;
+  virtual absl::StatusOr<Image> RenderPoints(const core::PointCloud& cloud, const RenderParams& params,
+                                             RenderInfo* info = nullptr) = 0;
+  virtual std::string description() const = 0;  // Backend, EGL platform and GL renderer.
+};
+
+// "egl" or "auto". Errors: kInvalidArgument (unknown name), kUnavailable (no usable EGL display
+// or OpenGL 4.5 context, with what was tried).
+absl::StatusOr<std::unique_ptr<Renderer>> CreateRenderer(std::string_view backend = "auto");
+
+// The colour map (perceptually ordered, dark blue → green → yellow) at t in [0, 1], as RGB in
+// [0, 1]; the renderer's shader samples the same table.
+std::array<float, 3> ColorMap(double t);
+
+// PNG bytes of the image (RGBA, 8 bits). Errors: kInvalidArgument (empty image), kInternal.
+absl::StatusOr<std::string> EncodePng(const Image& image);
+
+}  // namespace lsqsurf::render

@@ -233,6 +233,24 @@ void PrintJob(const v1::Job& job) {
   for (const auto& r : job.results()) std::printf("result     %s\n", r.c_str());
 }
 
+// Renders an artifact of a finished job into a PNG file.
+int RenderToFile(const Options& o, const std::string& id, const v1::RenderRequest& view, const std::string& path) {
+  v1::RenderRequest request = view;
+  request.set_job_id(id);
+  v1::RenderResponse response;
+  grpc::ClientContext ctx;
+  ctx.set_deadline(std::chrono::system_clock::now() + std::chrono::minutes(5));
+  const grpc::Status status = Connect(o)->Render(&ctx, request, &response);
+  if (!status.ok()) return FailRpc("render", status);
+  if (absl::Status s = lsqsurf::io::WriteFileAtomically(path, response.png()); !s.ok()) return Fail(std::string(s.message()));
+  if (!o.quiet) {
+    std::fprintf(stderr, "wrote %s (%s", path.c_str(), response.renderer().c_str());
+    if (!request.color().empty()) std::fprintf(stderr, "; %s from %g to %g", request.color().c_str(), response.color_min(), response.color_max());
+    std::fprintf(stderr, ")\n");
+  }
+  return 0;
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -259,6 +277,8 @@ int main(int argc, char** argv) {
   reconstruct->add_option("-o,--output", outputs, "mesh to write (.ply .obj .drc); repeat for several")
       ->required();
   add_job_options(reconstruct);
+  std::string preview;
+  reconstruct->add_option("--preview", preview, "also render the mesh to this PNG file");
   auto* submit = app.add_subcommand("submit", "upload a cloud and print the job id");
   submit->add_option("input", input, "point cloud")->required();
   add_job_options(submit);
@@ -294,6 +314,25 @@ int main(int argc, char** argv) {
   track->add_option("--stride", stride, "write a frame every this many steps")->capture_default_str();
   track->add_flag("--meshes", track_meshes, "also write a mesh of every frame and its volume (mesh_volume in stats.csv)");
   track->add_option("-o,--output", output, "folder for frame_NNNNN.drc, stats.csv and summary.txt")->required();
+  auto* render = app.add_subcommand("render", "render a result (mesh, points or frame) to a PNG picture");
+  render->add_option("id", id, "job id")->required();
+  render->add_option("-o,--output", output, "PNG file to write")->required();
+  render->add_option("--name", name, "artifact name (default: the job's first result)");
+  v1::RenderRequest view;
+  int size = 1024, samples_per_pixel = 4;
+  double azimuth = 35, elevation = 25, distance = 0, fov = 30;
+  std::string color;
+  bool flat = false, wireframe = false, transparent = false;
+  render->add_option("--size", size, "image width and height in pixels (16..4096)")->capture_default_str();
+  render->add_option("--azimuth", azimuth, "degrees about +z, from +x")->capture_default_str();
+  render->add_option("--elevation", elevation, "degrees above the xy plane")->capture_default_str();
+  render->add_option("--distance", distance, "camera distance from the box centre (0 = frame the model)")->capture_default_str();
+  render->add_option("--fov", fov, "vertical field of view in degrees")->capture_default_str();
+  render->add_option("--color", color, "per-vertex attribute to colour by, e.g. degree or depth (PU meshes)");
+  render->add_flag("--flat", flat, "flat shading (one normal per triangle)");
+  render->add_flag("--wireframe", wireframe, "draw the triangle edges");
+  render->add_flag("--transparent", transparent, "transparent background");
+  render->add_option("--samples", samples_per_pixel, "MSAA samples per pixel: 1, 2, 4 or 8")->capture_default_str();
   auto* compare = app.add_subcommand("compare", "Chamfer/Hausdorff distance and normal consistency");
   compare->add_option("reference", reference, "reference mesh")->required();
   compare->add_option("candidate", candidate, "candidate mesh")->required();
@@ -320,7 +359,23 @@ int main(int argc, char** argv) {
       for (const auto& s : job.statistics()) std::fprintf(stderr, "  %s = %g\n", s.name().c_str(), s.value());
       for (const auto& path : outputs) std::fprintf(stderr, "wrote %s\n", path.c_str());
     }
+    if (!preview.empty()) return RenderToFile(o, job.id(), v1::RenderRequest(), preview);
     return 0;
+  }
+  if (*render) {
+    view.set_name(name);
+    view.set_width(size);
+    view.set_height(size);
+    view.set_azimuth_deg(azimuth);
+    view.set_elevation_deg(elevation);
+    view.set_distance(distance);
+    view.set_fov_deg(fov);
+    view.set_color(color);
+    view.set_flat_shading(flat);
+    view.set_wireframe(wireframe);
+    view.set_transparent(transparent);
+    view.set_samples(samples_per_pixel);
+    return RenderToFile(o, id, view, output);
   }
   if (*watch) {
     v1::Job job;

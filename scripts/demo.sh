@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # The main job on a fresh Debian 12 machine: install what is needed, build, start lsqsurfd on
-# loopback, reconstruct the bundled sample cloud with the client, and write the mesh to out/.
+# loopback, reconstruct the bundled sample cloud with the client, and write the mesh and a
+# picture of it to out/.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -19,4 +20,5 @@ read -r -t 30 line <&"${SERVER[0]}"
 address=${line#listening on }
 echo "lsqsurfd is listening on $address (log: $log)"
 
-"$bin/lsqsurf" --server "$address" reconstruct samples/spot-30k.ply -o out/spot.ply -o out/spot.drc
+"$bin/lsqsurf" --server "$address" reconstruct samples/spot-30k.ply -o out/spot.ply -o out/spot.drc \
+  --preview out/spot.png

@@ -4,6 +4,7 @@
 
 #include "server/convert.h"
 #include "worker/core/strings.h"
+#include "worker/io/draco_codec.h"
 #include "worker/io/files.h"
 
 namespace lsqsurf::server {
@@ -106,13 +107,7 @@ grpc::Status ReconstructionService::DeleteJob(grpc::ServerContext*, const v1::De
 grpc::Status ReconstructionService::FetchResult(grpc::ServerContext* context,
                                                 const v1::FetchResultRequest* request,
                                                 grpc::ServerWriter<v1::ResultChunk>* writer) {
-  std::string name = request->name();
-  if (name.empty()) {
-    auto record = jobs_.Get(request->job_id());
-    if (!record.ok()) return ToGrpcStatus(record.status());
-    name = record->results.empty() ? "mesh.drc" : record->results.front();
-  }
-  auto path = jobs_.ResultPath(request->job_id(), name);
+  auto path = ArtifactPath(request->job_id(), request->name());
   if (!path.ok()) return ToGrpcStatus(path.status());
   auto bytes = io::ReadFileBytes(*path);
   if (!bytes.ok()) return ToGrpcStatus(bytes.status());
@@ -125,6 +120,69 @@ grpc::Status ReconstructionService::FetchResult(grpc::ServerContext* context,
     chunk.clear_total_bytes();
     if (bytes->empty()) break;
   }
+  return grpc::Status::OK;
+}
+
+absl::StatusOr<std::string> ReconstructionService::ArtifactPath(const std::string& job_id,
+                                                               const std::string& name) const {
+  if (!name.empty()) return jobs_.ResultPath(job_id, name);
+  auto record = jobs_.Get(job_id);
+  if (!record.ok()) return record.status();
+  return jobs_.ResultPath(job_id, record->results.empty() ? "mesh.drc" : record->results.front());
+}
+
+absl::StatusOr<render::Renderer*> ReconstructionService::GetRenderer() {
+  std::lock_guard lock(renderer_mutex_);
+  if (!renderer_) {
+    auto created = render::CreateRenderer("auto");
+    if (!created.ok()) return created.status();  // Tried again on the next request.
+    renderer_ = *std::move(created);
+    spdlog::info("renderer: {}", renderer_->description());
+  }
+  return renderer_.get();
+}
+
+grpc::Status ReconstructionService::Render(grpc::ServerContext*, const v1::RenderRequest* request,
+                                           v1::RenderResponse* response) {
+  render::RenderParams p;
+  if (request->width() != 0) p.width = request->width();
+  if (request->height() != 0) p.height = request->height();
+  if (request->has_azimuth_deg()) p.camera.azimuth_deg = request->azimuth_deg();
+  if (request->has_elevation_deg()) p.camera.elevation_deg = request->elevation_deg();
+  if (request->has_distance()) p.camera.distance = request->distance();
+  if (request->has_fov_deg()) p.camera.fov_deg = request->fov_deg();
+  p.color_attribute = request->color();
+  p.color_min = request->color_min();
+  p.color_max = request->color_max();
+  p.shading = request->flat_shading() ? render::Shading::kFlat : render::Shading::kSmooth;
+  p.wireframe = request->wireframe();
+  p.transparent = request->transparent();
+  if (request->samples() != 0) p.samples = request->samples();
+  // Checked before any file is read or a context is made.
+  if (absl::Status s = render::Validate(p); !s.ok()) return ToGrpcStatus(s);
+  auto path = ArtifactPath(request->job_id(), request->name());
+  if (!path.ok()) return ToGrpcStatus(path.status());
+  auto bytes = io::ReadFileBytes(*path);
+  if (!bytes.ok()) return ToGrpcStatus(bytes.status());
+  auto renderer = GetRenderer();
+  if (!renderer.ok()) return ToGrpcStatus(renderer.status());
+  render::RenderInfo info;
+  absl::StatusOr<render::Image> image = absl::InvalidArgumentError("");
+  if (auto mesh = io::DecodeDracoMesh(*bytes); mesh.ok() && !mesh->faces.empty()) {
+    image = (*renderer)->RenderMesh(*mesh, p, &info);
+  } else if (auto cloud = io::DecodeDracoPointCloud(*bytes); cloud.ok()) {
+    image = (*renderer)->RenderPoints(*cloud, p, &info);
+  } else {
+    return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                        core::StrCat("artifact '", request->name(), "' is not a Draco mesh or point set; only those can be rendered"));
+  }
+  if (!image.ok()) return ToGrpcStatus(image.status());
+  auto png = render::EncodePng(*image);
+  if (!png.ok()) return ToGrpcStatus(png.status());
+  response->set_png(*std::move(png));
+  response->set_color_min(info.color_min);
+  response->set_color_max(info.color_max);
+  response->set_renderer(info.renderer);
   return grpc::Status::OK;
 }
 

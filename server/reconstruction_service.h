@@ -7,9 +7,13 @@
 #pragma once
 
 #include <cstdint>
+#include <memory>
+#include <mutex>
+#include <string>
 
 #include "lsqsurf/v1/reconstruction.grpc.pb.h"
 #include "worker/jobs/job_service.h"
+#include "worker/render/render.h"
 
 namespace lsqsurf::server {
 
@@ -34,11 +38,20 @@ class ReconstructionService final : public v1::Reconstruction::Service {
                            grpc::ServerWriter<v1::ResultChunk>* writer) override;
   grpc::Status ListMethods(grpc::ServerContext* context, const v1::ListMethodsRequest* request,
                            v1::ListMethodsResponse* response) override;
+  grpc::Status Render(grpc::ServerContext* context, const v1::RenderRequest* request,
+                      v1::RenderResponse* response) override;
 
   static constexpr size_t kMaxChunkBytes = size_t{1} << 20;
 
  private:
+  // The path of an artifact of a job; an empty name means the job's first result.
+  absl::StatusOr<std::string> ArtifactPath(const std::string& job_id, const std::string& name) const;
+  // The renderer, created on first use (an EGL context costs ~0.1 s and most servers never render).
+  absl::StatusOr<render::Renderer*> GetRenderer();
+
   jobs::JobService& jobs_;
+  std::mutex renderer_mutex_;
+  std::unique_ptr<render::Renderer> renderer_;
 };
 
 }  // namespace lsqsurf::server

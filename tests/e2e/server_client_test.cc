@@ -19,6 +19,7 @@
 
 #include "grpc/health/v1/health.grpc.pb.h"
 #include "lsqsurf/v1/reconstruction.grpc.pb.h"
+#include "stb_image.h"
 #include "tests/test_shapes.h"
 #include "worker/core/mesh_metrics.h"
 #include "worker/io/files.h"
@@ -173,6 +174,64 @@ TEST_F(EndToEnd, PuMeshCarriesDepthAndDegreeToThePly) {
   EXPECT_LE(ranges["depth"].second, 18.0f);
   EXPECT_GE(ranges["degree"].first, 0.0f);
   EXPECT_LE(ranges["degree"].second, 5.0f);
+}
+
+// Pictures: a preview written by reconstruct, an on-demand render coloured by the PU degree,
+// and the status codes of bad render requests.
+TEST_F(EndToEnd, RendersResultsThroughTheCliAndTheApi) {
+  Server server;
+  ASSERT_NO_FATAL_FAILURE(server.Start(dir_ / "data"));
+  const std::string in = WriteCloud("sphere.ply", testing::SphereCloud(8000));
+  const std::string preview = (dir_ / "preview.png").string();
+  const ClientRun r = Client(server.address(), "reconstruct " + in + " -o " + (dir_ / "pu.drc").string() +
+                                                   " --method pu --preview " + preview);
+  ASSERT_EQ(r.code, 0) << r.output;
+  auto decode = [](const std::string& path, int* w, int* h) {
+    int channels = 0;
+    return stbi_load(path.c_str(), w, h, &channels, 4);
+  };
+  int w = 0, h = 0;
+  unsigned char* pixels = decode(preview, &w, &h);
+  ASSERT_NE(pixels, nullptr) << stbi_failure_reason();
+  EXPECT_EQ(w, 1024);
+  EXPECT_EQ(h, 1024);
+  auto pixel = [&](int x, int y) { return pixels + 4 * (static_cast<size_t>(y) * static_cast<size_t>(w) + static_cast<size_t>(x)); };
+  EXPECT_EQ(pixel(2, 2)[0], 255);                 // White background in the corner,
+  EXPECT_LT(pixel(512, 512)[0] + 0, 250);         // the shaded sphere in the middle.
+  stbi_image_free(pixels);
+
+  const size_t at = r.output.find("job ");
+  ASSERT_NE(at, std::string::npos) << r.output;
+  const std::string id = r.output.substr(at + 4, 16);
+  const std::string view = (dir_ / "degree.png").string();
+  const ClientRun coloured = Client(server.address(), "render " + id + " -o " + view + " --color degree --size 256");
+  ASSERT_EQ(coloured.code, 0) << coloured.output;
+  EXPECT_NE(coloured.output.find("degree from"), std::string::npos) << coloured.output;
+  pixels = decode(view, &w, &h);
+  ASSERT_NE(pixels, nullptr);
+  EXPECT_EQ(w, 256);
+  stbi_image_free(pixels);
+
+  auto stub = v1::Reconstruction::NewStub(grpc::CreateChannel(server.address(), grpc::InsecureChannelCredentials()));
+  auto render = [&](v1::RenderRequest request) {
+    grpc::ClientContext ctx;
+    v1::RenderResponse response;
+    return stub->Render(&ctx, request, &response);
+  };
+  v1::RenderRequest request;
+  request.set_job_id("0123456789abcdef");
+  EXPECT_EQ(render(request).error_code(), grpc::StatusCode::NOT_FOUND);
+  request.set_job_id(id);
+  request.set_width(100000);
+  EXPECT_EQ(render(request).error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+  request.set_width(64);
+  request.set_color("nope");
+  const grpc::Status unknown = render(request);
+  EXPECT_EQ(unknown.error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+  EXPECT_NE(unknown.error_message().find("degree"), std::string::npos) << unknown.error_message();
+  request.set_color("");
+  request.set_name("no-such-artifact.drc");
+  EXPECT_EQ(render(request).error_code(), grpc::StatusCode::NOT_FOUND);
 }
 
 TEST_F(EndToEnd, BadInputsGetClearErrorsAndTheServerKeepsServing) {

@@ -5,41 +5,19 @@
 #include <chrono>
 #include <cmath>
 #include <cstdio>
-#include <numbers>
 #include <vector>
 
 #include <CLI/CLI.hpp>
 
+#include "tests/sphere_mesh.h"
 #include "worker/render/render.h"
 
 namespace {
 
-// A latitude–longitude sphere with about `triangles` faces, exact normals and a "height" scalar.
+// A latitude–longitude sphere with about `triangles` faces.
 lsqsurf::core::TriangleMesh Sphere(double triangles) {
   const int rings = std::max(4, static_cast<int>(std::sqrt(triangles / 4)));
-  const int segments = 2 * rings;
-  lsqsurf::core::TriangleMesh mesh;
-  lsqsurf::core::ScalarAttribute height{"height", {}};
-  for (int i = 0; i <= rings; ++i) {
-    const double theta = std::numbers::pi * i / rings;
-    for (int j = 0; j < segments; ++j) {
-      const double phi = 2 * std::numbers::pi * j / segments;
-      const lsqsurf::core::Vec3f d(static_cast<float>(std::sin(theta) * std::cos(phi)),
-                                   static_cast<float>(std::sin(theta) * std::sin(phi)), static_cast<float>(std::cos(theta)));
-      mesh.vertices.push_back(d);
-      mesh.normals.push_back(d);
-      height.values.push_back(d.z());
-    }
-  }
-  auto at = [&](int i, int j) { return static_cast<uint32_t>(i * segments + (j % segments)); };
-  for (int i = 0; i < rings; ++i) {
-    for (int j = 0; j < segments; ++j) {
-      mesh.faces.push_back({at(i, j), at(i + 1, j), at(i, j + 1)});
-      mesh.faces.push_back({at(i, j + 1), at(i + 1, j), at(i + 1, j + 1)});
-    }
-  }
-  mesh.vertex_attributes.push_back(std::move(height));
-  return mesh;
+  return lsqsurf::testing::SphereMesh(rings, 2 * rings);
 }
 
 }  // namespace

@@ -318,21 +318,22 @@ int main(int argc, char** argv) {
   render->add_option("id", id, "job id")->required();
   render->add_option("-o,--output", output, "PNG file to write")->required();
   render->add_option("--name", name, "artifact name (default: the job's first result)");
-  v1::RenderRequest view;
-  int size = 1024, samples_per_pixel = 4;
-  double azimuth = 35, elevation = 25, distance = 0, fov = 30;
+  // Options left out are not sent: the server's defaults (RenderRequest in the proto) apply.
+  int size = 0, samples_per_pixel = 0;
+  double azimuth = 0, elevation = 0, distance = 0, fov = 0;
   std::string color;
   bool flat = false, wireframe = false, transparent = false;
-  render->add_option("--size", size, "image width and height in pixels (16..4096)")->capture_default_str();
-  render->add_option("--azimuth", azimuth, "degrees about +z, from +x")->capture_default_str();
-  render->add_option("--elevation", elevation, "degrees above the xy plane")->capture_default_str();
-  render->add_option("--distance", distance, "camera distance from the box centre (0 = frame the model)")->capture_default_str();
-  render->add_option("--fov", fov, "vertical field of view in degrees")->capture_default_str();
+  render->add_option("--size", size, "image width and height in pixels, 16..4096 (default 1024)");
+  auto* azimuth_option = render->add_option("--azimuth", azimuth, "degrees about +z, from +x (default 35)");
+  auto* elevation_option = render->add_option("--elevation", elevation, "degrees above the xy plane (default 25)");
+  auto* distance_option =
+      render->add_option("--distance", distance, "camera distance from the box centre (default: frame the model)");
+  auto* fov_option = render->add_option("--fov", fov, "vertical field of view in degrees (default 30)");
   render->add_option("--color", color, "per-vertex attribute to colour by, e.g. degree or depth (PU meshes)");
   render->add_flag("--flat", flat, "flat shading (one normal per triangle)");
   render->add_flag("--wireframe", wireframe, "draw the triangle edges");
   render->add_flag("--transparent", transparent, "transparent background");
-  render->add_option("--samples", samples_per_pixel, "MSAA samples per pixel: 1, 2, 4 or 8")->capture_default_str();
+  render->add_option("--samples", samples_per_pixel, "MSAA samples per pixel: 1, 2, 4 or 8 (default 4)");
   auto* compare = app.add_subcommand("compare", "Chamfer/Hausdorff distance and normal consistency");
   compare->add_option("reference", reference, "reference mesh")->required();
   compare->add_option("candidate", candidate, "candidate mesh")->required();
@@ -363,13 +364,14 @@ int main(int argc, char** argv) {
     return 0;
   }
   if (*render) {
+    v1::RenderRequest view;
     view.set_name(name);
     view.set_width(size);
     view.set_height(size);
-    view.set_azimuth_deg(azimuth);
-    view.set_elevation_deg(elevation);
-    view.set_distance(distance);
-    view.set_fov_deg(fov);
+    if (*azimuth_option) view.set_azimuth_deg(azimuth);
+    if (*elevation_option) view.set_elevation_deg(elevation);
+    if (*distance_option) view.set_distance(distance);
+    if (*fov_option) view.set_fov_deg(fov);
     view.set_color(color);
     view.set_flat_shading(flat);
     view.set_wireframe(wireframe);

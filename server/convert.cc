@@ -52,4 +52,22 @@ jobs::JobSpec FromProto(const v1::JobSpec& spec) {
   return out;
 }
 
+render::RenderParams FromProto(const v1::RenderRequest& request) {
+  render::RenderParams p;
+  if (request.width() != 0) p.width = request.width();
+  if (request.height() != 0) p.height = request.height();
+  if (request.has_azimuth_deg()) p.camera.azimuth_deg = request.azimuth_deg();
+  if (request.has_elevation_deg()) p.camera.elevation_deg = request.elevation_deg();
+  if (request.has_distance()) p.camera.distance = request.distance();
+  if (request.has_fov_deg()) p.camera.fov_deg = request.fov_deg();
+  p.color_attribute = request.color();
+  p.color_min = request.color_min();
+  p.color_max = request.color_max();
+  p.shading = request.flat_shading() ? render::Shading::kFlat : render::Shading::kSmooth;
+  p.wireframe = request.wireframe();
+  p.transparent = request.transparent();
+  if (request.samples() != 0) p.samples = request.samples();
+  return p;
+}
+
 }  // namespace lsqsurf::server

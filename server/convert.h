@@ -1,4 +1,4 @@
-// server/convert.h — the one place where job-layer types meet protobuf and gRPC.
+// server/convert.h — the one place where job-layer and renderer types meet protobuf and gRPC.
 #pragma once
 
 #include <grpcpp/support/status.h>
@@ -6,6 +6,7 @@
 #include "absl/status/status.h"
 #include "lsqsurf/v1/reconstruction.pb.h"
 #include "worker/jobs/job.h"
+#include "worker/render/render.h"
 
 namespace lsqsurf::server {
 
@@ -14,5 +15,7 @@ grpc::Status ToGrpcStatus(const absl::Status& status);
 
 void ToProto(const jobs::JobRecord& record, v1::Job* out);
 jobs::JobSpec FromProto(const v1::JobSpec& spec);
+// Unset fields (0, empty, absent optionals) keep the RenderParams defaults; not validated here.
+render::RenderParams FromProto(const v1::RenderRequest& request);
 
 }  // namespace lsqsurf::server

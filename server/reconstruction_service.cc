@@ -144,20 +144,7 @@ absl::StatusOr<render::Renderer*> ReconstructionService::GetRenderer() {
 
 grpc::Status ReconstructionService::Render(grpc::ServerContext*, const v1::RenderRequest* request,
                                            v1::RenderResponse* response) {
-  render::RenderParams p;
-  if (request->width() != 0) p.width = request->width();
-  if (request->height() != 0) p.height = request->height();
-  if (request->has_azimuth_deg()) p.camera.azimuth_deg = request->azimuth_deg();
-  if (request->has_elevation_deg()) p.camera.elevation_deg = request->elevation_deg();
-  if (request->has_distance()) p.camera.distance = request->distance();
-  if (request->has_fov_deg()) p.camera.fov_deg = request->fov_deg();
-  p.color_attribute = request->color();
-  p.color_min = request->color_min();
-  p.color_max = request->color_max();
-  p.shading = request->flat_shading() ? render::Shading::kFlat : render::Shading::kSmooth;
-  p.wireframe = request->wireframe();
-  p.transparent = request->transparent();
-  if (request->samples() != 0) p.samples = request->samples();
+  const render::RenderParams p = FromProto(*request);
   // Checked before any file is read or a context is made.
   if (absl::Status s = render::Validate(p); !s.ok()) return ToGrpcStatus(s);
   auto path = ArtifactPath(request->job_id(), request->name());

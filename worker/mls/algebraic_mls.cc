@@ -61,17 +61,22 @@ struct AlgebraicMlsFunction::Impl {
     const bool apss = params.fit == AlgebraicFit::kApss;
     int weighted = 0;
     double nearest2 = std::numeric_limits<double>::infinity();
+    // The side rule needs the nearest point's normal before the sums; without it the nearest
+    // distance is tracked in the one pass.
+    const bool one_side = params.side_cosine > -1;
     Vec3f nearest_normal = Vec3f::Zero();
-    for (const core::Neighbor& q : near) {
-      if (q.distance2 < nearest2) {
-        nearest2 = q.distance2;
-        nearest_normal = normals[q.index];
+    if (one_side) {
+      for (const core::Neighbor& q : near) {
+        if (q.distance2 < nearest2) {
+          nearest2 = q.distance2;
+          nearest_normal = normals[q.index];
+        }
       }
     }
-    const bool one_side = params.side_cosine > -1;
     const double r2 = radius * radius;
     for (const core::Neighbor& q : near) {
       const double d2 = q.distance2;
+      nearest2 = std::min(nearest2, d2);
       if (d2 >= r2) continue;
       if (one_side && nearest_normal.dot(normals[q.index]) < params.side_cosine) continue;
       const double t = 1 - d2 / r2, w = t * t * t * t;

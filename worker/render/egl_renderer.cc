@@ -450,7 +450,8 @@ class EglRenderer final : public Renderer {
     gl_.DepthFunc(GL_LESS);
     if (p.samples > 1) gl_.Enable(GL_MULTISAMPLE);
 
-    const View view = MakeView(core::BoundingBox(d.positions), p);
+    const core::Box3 box = core::BoundingBox(d.positions);
+    const View view = MakeView(box, p);
     // Colour range: the request's, or the data's.
     double lo = p.color_min, hi = p.color_max;
     if (!d.scalars.empty() && lo == hi) {
@@ -519,7 +520,7 @@ class EglRenderer final : public Renderer {
       // Splats about as wide as the spacing of points spread over a surface of the box's size.
       double size = p.point_size;
       if (size <= 0) {
-        const double diagonal = core::Diagonal(core::BoundingBox(d.positions));
+        const double diagonal = core::Diagonal(box);
         const double spacing = 1.6 * diagonal / std::sqrt(static_cast<double>(d.positions.size()));
         const double half_height = view.distance * std::tan(0.5 * p.camera.fov_deg * std::numbers::pi / 180);
         size = std::clamp(spacing / (2 * half_height) * h, 1.5, 16.0);

@@ -138,6 +138,43 @@ TEST_F(RenderTest, ColouredAttributeFollowsTheLegend) {
   }
 }
 
+TEST_F(RenderTest, CullingHiddenFacesLeavesThePictureUnchanged) {
+  // The closed sphere is drawn with its back faces culled; the same sphere less one face on the
+  // far side is open, so every face is drawn. Only silhouette samples may differ (there a back
+  // face can cover a sample that no front face does).
+  RenderParams p = SphereView(256);
+  const core::TriangleMesh closed = testing::SphereMesh(96, 192);
+  core::TriangleMesh open = closed;
+  const auto far_face = std::find_if(open.faces.begin(), open.faces.end(), [&](const core::Triangle& f) {
+    return open.vertices[f[0]].x() < -0.99f && open.vertices[f[1]].x() < -0.99f && open.vertices[f[2]].x() < -0.99f;
+  });
+  ASSERT_NE(far_face, open.faces.end());
+  open.faces.erase(far_face);
+  for (bool reversed : {false, true}) {
+    core::TriangleMesh a = closed, b = open;
+    if (reversed) {
+      for (auto* m : {&a, &b}) {
+        for (core::Triangle& f : m->faces) std::swap(f[1], f[2]);
+      }
+    }
+    auto culled = renderer_->RenderMesh(a, p);
+    auto full = renderer_->RenderMesh(b, p);
+    ASSERT_TRUE(culled.ok() && full.ok());
+    const double r = SilhouetteRadius(p);
+    int differing = 0, covered = 0;
+    for (int y = 0; y < 256; ++y) {
+      for (int x = 0; x < 256; ++x) {
+        const double d = std::hypot(x + 0.5 - 128, y + 0.5 - 128);
+        if (d < r) ++covered;
+        if (culled->At(x, y) == full->At(x, y)) continue;
+        ++differing;
+        EXPECT_GT(d, r - 2) << "a visible pixel changed at " << x << "," << y << (reversed ? " (reversed)" : "");
+      }
+    }
+    EXPECT_LT(differing, covered / 50) << (reversed ? "reversed" : "");
+  }
+}
+
 TEST_F(RenderTest, PointSplatsStayInsideTheSilhouette) {
   RenderParams p = SphereView(256);
   p.transparent = true;

@@ -22,6 +22,7 @@
 #include "stb_easy_font.h"
 #include "worker/core/status.h"
 #include "worker/core/strings.h"
+#include "worker/render/face_culling.h"
 #include "worker/render/gl_api.h"
 #include "worker/render/render.h"
 
@@ -129,6 +130,7 @@ constexpr int kColorMapTexels = 256;
 struct View {
   Matrix4 model_view, projection;
   double distance = 0;
+  Eigen::Vector3d eye;
 };
 
 View MakeView(const core::Box3& box, const RenderParams& p) {
@@ -144,6 +146,7 @@ View MakeView(const core::Box3& box, const RenderParams& p) {
   const double az = p.camera.azimuth_deg * std::numbers::pi / 180, el = p.camera.elevation_deg * std::numbers::pi / 180;
   const Eigen::Vector3d back(std::cos(el) * std::cos(az), std::cos(el) * std::sin(az), std::sin(el));
   const Eigen::Vector3d eye = centre + view.distance * back;
+  view.eye = eye;
   const Eigen::Vector3d right = Eigen::Vector3d::UnitZ().cross(back).normalized();
   const Eigen::Vector3d up = back.cross(right);
   Eigen::Matrix4d mv = Eigen::Matrix4d::Identity();
@@ -504,6 +507,14 @@ class EglRenderer final : public Renderer {
       gl_.BufferData(GL_ELEMENT_ARRAY_BUFFER, static_cast<GLsizeiptr>(d.faces.size_bytes()), d.faces.data(), GL_STATIC_DRAW);
       const auto indices = static_cast<GLsizei>(3 * d.faces.size());
       gl_.Uniform1i(uniform("mode"), 0);
+      // Hidden back faces are skipped on closed meshes seen from outside their box.
+      const OutsideWinding winding = ClosedMeshOutsideWinding(d.positions, d.normals, d.faces);
+      const bool eye_outside = !box.contains(view.eye);
+      if (winding != OutsideWinding::kUnknown && eye_outside) {
+        gl_.FrontFace(winding == OutsideWinding::kCounterClockwise ? GL_CCW : GL_CW);
+        gl_.CullFace(GL_BACK);
+        gl_.Enable(GL_CULL_FACE);
+      }
       if (p.wireframe) {
         gl_.Enable(GL_POLYGON_OFFSET_FILL);  // Faces slightly behind, so that their edges win.
         gl_.PolygonOffset(1.0f, 1.0f);
@@ -516,6 +527,7 @@ class EglRenderer final : public Renderer {
         gl_.DrawElements(GL_TRIANGLES, indices, GL_UNSIGNED_INT, nullptr);
         gl_.PolygonMode(GL_FRONT_AND_BACK, GL_FILL);
       }
+      gl_.Disable(GL_CULL_FACE);
     } else {
       // Splats about as wide as the spacing of points spread over a surface of the box's size.
       double size = p.point_size;

@@ -35,7 +35,8 @@ namespace lsqsurf::render::internal {
   X(Uniform1f, UNIFORM1F) X(Uniform1i, UNIFORM1I) X(Uniform2f, UNIFORM2F)                 \
   X(Uniform3f, UNIFORM3F) X(UniformMatrix4fv, UNIFORMMATRIX4FV) X(UseProgram, USEPROGRAM) \
   X(VertexAttrib1f, VERTEXATTRIB1F) X(VertexAttribPointer, VERTEXATTRIBPOINTER)           \
-  X(Viewport, VIEWPORT) X(DepthFunc, DEPTHFUNC) X(BlendFunc, BLENDFUNC)
+  X(Viewport, VIEWPORT) X(DepthFunc, DEPTHFUNC) X(BlendFunc, BLENDFUNC)          \
+  X(CullFace, CULLFACE) X(FrontFace, FRONTFACE)
 
 struct GlApi {
 #define LSQSURF_GL_MEMBER(name, upper) PFNGL##upper##PROC name = nullptr;

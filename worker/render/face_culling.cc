@@ -1,0 +1,54 @@
+#include "worker/render/face_culling.h"
+
+#include <cstdint>
+
+namespace lsqsurf::render {
+namespace {
+
+// splitmix64's finaliser: a bijective mix, so distinct edges get unrelated hashes.
+uint64_t Mix(uint64_t x) {
+  x = (x ^ (x >> 30)) * 0xbf58476d1ce4e5b9ULL;
+  x = (x ^ (x >> 27)) * 0x94d049bb133111ebULL;
+  return x ^ (x >> 31);
+}
+
+uint64_t EdgeHash(uint32_t from, uint32_t to) { return Mix((static_cast<uint64_t>(from) << 32) | to); }
+
+}  // namespace
+
+OutsideWinding ClosedMeshOutsideWinding(std::span<const core::Vec3f> vertices, std::span<const core::Vec3f> normals,
+                                        std::span<const core::Triangle> faces) {
+  if (faces.empty()) return OutsideWinding::kUnknown;
+  // Sum of hash(a→b) − hash(b→a) over all directed edges: zero when each edge is matched by its
+  // reverse, so the surface has no boundary and neighbouring faces agree on orientation.
+  uint64_t unmatched = 0;
+  const bool use_normals = normals.size() == vertices.size();
+  int64_t agree = 0, disagree = 0;
+  double six_volume = 0;
+  for (const core::Triangle& f : faces) {
+    for (int i = 0; i < 3; ++i) {
+      const uint32_t a = f[static_cast<size_t>(i)], b = f[static_cast<size_t>((i + 1) % 3)];
+      unmatched += EdgeHash(a, b) - EdgeHash(b, a);
+    }
+    const core::Vec3f &p = vertices[f[0]], &q = vertices[f[1]], &r = vertices[f[2]];
+    if (use_normals) {
+      const float s = (q - p).cross(r - p).dot(normals[f[0]] + normals[f[1]] + normals[f[2]]);
+      agree += s > 0;
+      disagree += s < 0;
+    }
+    six_volume += p.cast<double>().dot(q.cast<double>().cross(r.cast<double>()));
+  }
+  if (unmatched != 0 || six_volume == 0) return OutsideWinding::kUnknown;
+  const OutsideWinding by_volume = six_volume > 0 ? OutsideWinding::kCounterClockwise : OutsideWinding::kClockwise;
+  if (!use_normals) return by_volume;
+  // The normals must agree face by face (a component wound the other way breaks the 99 %) and
+  // with the volume (normals that point inwards are not trusted).
+  const int64_t total = agree + disagree;
+  if (total == 0) return OutsideWinding::kUnknown;
+  const OutsideWinding by_normals = agree >= total - total / 100      ? OutsideWinding::kCounterClockwise
+                                    : disagree >= total - total / 100 ? OutsideWinding::kClockwise
+                                                                      : OutsideWinding::kUnknown;
+  return by_normals == by_volume ? by_volume : OutsideWinding::kUnknown;
+}
+
+}  // namespace lsqsurf::render

@@ -8,6 +8,7 @@
 #include <filesystem>
 #include <cstdlib>
 #include <iostream>
+#include <optional>
 
 #include <CLI/CLI.hpp>
 
@@ -59,6 +60,47 @@ struct Options {
   std::vector<std::string> params;
   int mesh_bits = 0;
   bool quiet = false;
+  std::optional<v1::PreviewSpec> preview;  // Pictures the job draws into its results.
+};
+
+// View options shared by render, reconstruct --preview, submit --job-preview and track
+// --pictures. Options left out are not sent: the server's defaults (RenderOptions) apply.
+struct ViewFlags {
+  int size = 0, samples = 0;
+  std::optional<double> azimuth, elevation, distance, fov;
+  std::string up, color;
+  bool flat = false, wireframe = false, transparent = false;
+
+  void AddTo(CLI::App* cmd) {
+    cmd->add_option("--size", size, "picture width and height in pixels, 16..4096 (default 1024)");
+    cmd->add_option("--up", up, "axis pointing up in the picture: x, y or z (default z; scans are often y)");
+    cmd->add_option("--azimuth", azimuth, "camera degrees about the up axis (default 35)");
+    cmd->add_option("--elevation", elevation, "camera degrees above the plane normal to the up axis (default 25)");
+    cmd->add_option("--distance", distance, "camera distance from the box centre (default: frame the model)");
+    cmd->add_option("--fov", fov, "vertical field of view in degrees (default 30)");
+    cmd->add_option("--color", color, "per-vertex attribute to colour by, e.g. degree or depth (PU meshes)");
+    cmd->add_flag("--flat", flat, "flat shading (one normal per triangle)");
+    cmd->add_flag("--wireframe", wireframe, "draw the triangle edges");
+    cmd->add_flag("--transparent", transparent, "transparent background");
+    cmd->add_option("--samples", samples, "MSAA samples per pixel: 1, 2, 4 or 8 (default 4)");
+  }
+
+  v1::RenderOptions Options() const {
+    v1::RenderOptions view;
+    view.set_width(size);
+    view.set_height(size);
+    if (azimuth) view.set_azimuth_deg(*azimuth);
+    if (elevation) view.set_elevation_deg(*elevation);
+    if (distance) view.set_distance(*distance);
+    if (fov) view.set_fov_deg(*fov);
+    view.set_up_axis(up);
+    view.set_color(color);
+    view.set_flat_shading(flat);
+    view.set_wireframe(wireframe);
+    view.set_transparent(transparent);
+    view.set_samples(samples);
+    return view;
+  }
 };
 
 std::unique_ptr<v1::Reconstruction::Stub> Connect(const Options& o) {
@@ -99,6 +141,7 @@ int Submit(const Options& o, const std::string& path, v1::Job* job, const std::s
   v1::JobSpec spec;
   spec.set_method(o.method);
   spec.set_mesh_position_bits(o.mesh_bits);
+  if (o.preview) *spec.mutable_preview() = *o.preview;
   std::string error;
   if (!ParseParams(o.params, &spec, &error)) return Fail(error);
   std::string bytes;
@@ -234,9 +277,12 @@ void PrintJob(const v1::Job& job) {
 }
 
 // Renders an artifact of a finished job into a PNG file.
-int RenderToFile(const Options& o, const std::string& id, const v1::RenderRequest& view, const std::string& path) {
-  v1::RenderRequest request = view;
+int RenderToFile(const Options& o, const std::string& id, const std::string& name, const v1::RenderOptions& view,
+                 const std::string& path) {
+  v1::RenderRequest request;
   request.set_job_id(id);
+  request.set_name(name);
+  *request.mutable_options() = view;
   v1::RenderResponse response;
   grpc::ClientContext ctx;
   ctx.set_deadline(std::chrono::system_clock::now() + std::chrono::minutes(5));
@@ -245,7 +291,7 @@ int RenderToFile(const Options& o, const std::string& id, const v1::RenderReques
   if (absl::Status s = lsqsurf::io::WriteFileAtomically(path, response.png()); !s.ok()) return Fail(std::string(s.message()));
   if (!o.quiet) {
     std::fprintf(stderr, "wrote %s (%s", path.c_str(), response.renderer().c_str());
-    if (!request.color().empty()) std::fprintf(stderr, "; %s from %g to %g", request.color().c_str(), response.color_min(), response.color_max());
+    if (!view.color().empty()) std::fprintf(stderr, "; %s from %g to %g", view.color().c_str(), response.color_min(), response.color_max());
     std::fprintf(stderr, ")\n");
   }
   return 0;
@@ -278,10 +324,15 @@ int main(int argc, char** argv) {
       ->required();
   add_job_options(reconstruct);
   std::string preview;
-  reconstruct->add_option("--preview", preview, "also render the mesh to this PNG file");
+  reconstruct->add_option("--preview", preview, "also render the mesh to this PNG file (view options below)");
+  ViewFlags view;
+  view.AddTo(reconstruct);
   auto* submit = app.add_subcommand("submit", "upload a cloud and print the job id");
   submit->add_option("input", input, "point cloud")->required();
   add_job_options(submit);
+  bool job_preview = false;
+  submit->add_flag("--job-preview", job_preview, "the job also draws preview.png into its results (view options below)");
+  view.AddTo(submit);
   auto* watch = app.add_subcommand("watch", "follow a job until it ends");
   watch->add_option("id", id, "job id")->required();
   auto* status = app.add_subcommand("status", "show a job");
@@ -294,8 +345,8 @@ int main(int argc, char** argv) {
   remove->add_option("id", id, "job id")->required();
   auto* fetch = app.add_subcommand("fetch", "download a result");
   fetch->add_option("id", id, "job id")->required();
-  fetch->add_option("-o,--output", output, "file to write (.ply .obj .drc)")->required();
-  fetch->add_option("--name", name, "artifact name (default: the mesh)");
+  fetch->add_option("-o,--output", output, "file to write (.ply .obj .drc; other artifacts as they are)")->required();
+  fetch->add_option("--name", name, "artifact name, e.g. preview.png or stats.csv (default: the mesh)");
   auto* methods = app.add_subcommand("methods", "list the server's methods and parameters");
   auto* track = app.add_subcommand("track", "advect an interface through a velocity field; write frames and stats");
   std::string interface = "sphere", field = "rotation";
@@ -314,26 +365,16 @@ int main(int argc, char** argv) {
   track->add_option("--stride", stride, "write a frame every this many steps")->capture_default_str();
   track->add_flag("--meshes", track_meshes, "also write a mesh of every frame and its volume (mesh_volume in stats.csv)");
   track->add_option("-o,--output", output, "folder for frame_NNNNN.drc, stats.csv and summary.txt")->required();
+  bool pictures = false;
+  double turntable = 0;
+  track->add_flag("--pictures", pictures, "also draw every frame to frame_NNNNN.png (view options below)");
+  track->add_option("--turntable", turntable, "with --pictures: degrees the camera turns from frame to frame");
+  view.AddTo(track);
   auto* render = app.add_subcommand("render", "render a result (mesh, points or frame) to a PNG picture");
   render->add_option("id", id, "job id")->required();
   render->add_option("-o,--output", output, "PNG file to write")->required();
   render->add_option("--name", name, "artifact name (default: the job's first result)");
-  // Options left out are not sent: the server's defaults (RenderRequest in the proto) apply.
-  int size = 0, samples_per_pixel = 0;
-  double azimuth = 0, elevation = 0, distance = 0, fov = 0;
-  std::string color;
-  bool flat = false, wireframe = false, transparent = false;
-  render->add_option("--size", size, "image width and height in pixels, 16..4096 (default 1024)");
-  auto* azimuth_option = render->add_option("--azimuth", azimuth, "degrees about +z, from +x (default 35)");
-  auto* elevation_option = render->add_option("--elevation", elevation, "degrees above the xy plane (default 25)");
-  auto* distance_option =
-      render->add_option("--distance", distance, "camera distance from the box centre (default: frame the model)");
-  auto* fov_option = render->add_option("--fov", fov, "vertical field of view in degrees (default 30)");
-  render->add_option("--color", color, "per-vertex attribute to colour by, e.g. degree or depth (PU meshes)");
-  render->add_flag("--flat", flat, "flat shading (one normal per triangle)");
-  render->add_flag("--wireframe", wireframe, "draw the triangle edges");
-  render->add_flag("--transparent", transparent, "transparent background");
-  render->add_option("--samples", samples_per_pixel, "MSAA samples per pixel: 1, 2, 4 or 8 (default 4)");
+  view.AddTo(render);
   auto* compare = app.add_subcommand("compare", "Chamfer/Hausdorff distance and normal consistency");
   compare->add_option("reference", reference, "reference mesh")->required();
   compare->add_option("candidate", candidate, "candidate mesh")->required();
@@ -342,6 +383,10 @@ int main(int argc, char** argv) {
 
   if (*reconstruct || *submit) {
     if (o.method == "track") return Fail("'track' jobs write frames, not a mesh: use `lsqsurf track`");
+    if (job_preview) {
+      o.preview.emplace();
+      *o.preview->mutable_options() = view.Options();
+    }
     v1::Job job;
     if (int rc = Submit(o, input, &job); rc != 0) return rc;
     if (*submit) {
@@ -360,25 +405,10 @@ int main(int argc, char** argv) {
       for (const auto& s : job.statistics()) std::fprintf(stderr, "  %s = %g\n", s.name().c_str(), s.value());
       for (const auto& path : outputs) std::fprintf(stderr, "wrote %s\n", path.c_str());
     }
-    if (!preview.empty()) return RenderToFile(o, job.id(), v1::RenderRequest(), preview);
+    if (!preview.empty()) return RenderToFile(o, job.id(), "", view.Options(), preview);
     return 0;
   }
-  if (*render) {
-    v1::RenderRequest view;
-    view.set_name(name);
-    view.set_width(size);
-    view.set_height(size);
-    if (*azimuth_option) view.set_azimuth_deg(azimuth);
-    if (*elevation_option) view.set_elevation_deg(elevation);
-    if (*distance_option) view.set_distance(distance);
-    if (*fov_option) view.set_fov_deg(fov);
-    view.set_color(color);
-    view.set_flat_shading(flat);
-    view.set_wireframe(wireframe);
-    view.set_transparent(transparent);
-    view.set_samples(samples_per_pixel);
-    return RenderToFile(o, id, view, output);
-  }
+  if (*render) return RenderToFile(o, id, name, view.Options(), output);
   if (*watch) {
     v1::Job job;
     return Watch(o, id, &job);
@@ -394,6 +424,11 @@ int main(int argc, char** argv) {
                 StrCat("field=", field == "rotation" ? 0 : field == "deformation" ? 1 : 2), StrCat("period=", period),
                 StrCat("cells=", std::lround(cells)), StrCat("dt=", dt), StrCat("steps=", steps),
                 StrCat("stride=", stride), StrCat("meshes=", track_meshes ? 1 : 0)};
+    if (pictures) {
+      o.preview.emplace();
+      *o.preview->mutable_options() = view.Options();
+      o.preview->set_turntable_deg_per_frame(turntable);
+    }
     v1::Job job;
     const bool named_field = field == "rotation" || field == "deformation";
     if (int rc = Submit(o, upload, &job, named_field ? "" : field); rc != 0) return rc;
@@ -454,6 +489,11 @@ int main(int argc, char** argv) {
   if (*fetch) {
     std::string bytes;
     if (int rc = FetchBytes(o, id, name, &bytes); rc != 0) return rc;
+    // Meshes convert to the output's format; pictures, tables and text are written as they are.
+    if (!name.empty() && !name.ends_with(".drc")) {
+      if (absl::Status s = lsqsurf::io::WriteFileAtomically(output, bytes); !s.ok()) return Fail(std::string(s.message()));
+      return 0;
+    }
     return WriteResult(bytes, output);
   }
   if (*methods) {
@@ -465,6 +505,9 @@ int main(int argc, char** argv) {
         std::printf("  %-18s default %-8g range [%g, %g]%s  %s\n", p.name().c_str(), p.default_value(),
                     p.min_value(), p.max_value(), p.integer() ? " integer" : "", p.help().c_str());
       }
+      std::string attributes;
+      for (const auto& a : m.attributes()) attributes += (attributes.empty() ? "" : ", ") + a;
+      if (!attributes.empty()) std::printf("  mesh attributes (--color): %s\n", attributes.c_str());
     }
     return 0;
   }

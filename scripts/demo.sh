@@ -21,4 +21,4 @@ address=${line#listening on }
 echo "lsqsurfd is listening on $address (log: $log)"
 
 "$bin/lsqsurf" --server "$address" reconstruct samples/spot-30k.ply -o out/spot.ply -o out/spot.drc \
-  --preview out/spot.png
+  --preview out/spot.png --up y --azimuth 215

@@ -1,5 +1,7 @@
 #include "server/convert.h"
 
+#include "worker/core/strings.h"
+
 namespace lsqsurf::server {
 
 grpc::Status ToGrpcStatus(const absl::Status& status) {
@@ -27,6 +29,11 @@ void ToProto(const jobs::JobRecord& r, v1::Job* out) {
   out->mutable_spec()->set_method(r.spec.method);
   for (const auto& [name, value] : r.spec.parameters) (*out->mutable_spec()->mutable_parameters())[name] = value;
   out->mutable_spec()->set_mesh_position_bits(r.spec.mesh_position_bits);
+  if (r.spec.preview.enabled) {
+    v1::PreviewSpec* preview = out->mutable_spec()->mutable_preview();
+    ToProto(r.spec.preview.render, preview->mutable_options());
+    preview->set_turntable_deg_per_frame(r.spec.preview.turntable_deg_per_frame);
+  }
   out->set_state(ToProto(r.state));
   out->set_stage(r.stage);
   out->set_progress(r.progress);
@@ -44,30 +51,59 @@ void ToProto(const jobs::JobRecord& r, v1::Job* out) {
   for (const auto& name : r.results) out->add_results(name);
 }
 
-jobs::JobSpec FromProto(const v1::JobSpec& spec) {
+absl::StatusOr<jobs::JobSpec> FromProto(const v1::JobSpec& spec) {
   jobs::JobSpec out;
   out.method = spec.method();
   for (const auto& [name, value] : spec.parameters()) out.parameters[name] = value;
   if (spec.mesh_position_bits() != 0) out.mesh_position_bits = spec.mesh_position_bits();
+  if (spec.has_preview()) {
+    auto render = FromProto(spec.preview().options());
+    if (!render.ok()) return absl::InvalidArgumentError(core::StrCat("preview: ", render.status().message()));
+    out.preview.enabled = true;
+    out.preview.render = *std::move(render);
+    out.preview.turntable_deg_per_frame = spec.preview().turntable_deg_per_frame();
+  }
   return out;
 }
 
-render::RenderParams FromProto(const v1::RenderRequest& request) {
+absl::StatusOr<render::RenderParams> FromProto(const v1::RenderOptions& o) {
   render::RenderParams p;
-  if (request.width() != 0) p.width = request.width();
-  if (request.height() != 0) p.height = request.height();
-  if (request.has_azimuth_deg()) p.camera.azimuth_deg = request.azimuth_deg();
-  if (request.has_elevation_deg()) p.camera.elevation_deg = request.elevation_deg();
-  if (request.has_distance()) p.camera.distance = request.distance();
-  if (request.has_fov_deg()) p.camera.fov_deg = request.fov_deg();
-  p.color_attribute = request.color();
-  p.color_min = request.color_min();
-  p.color_max = request.color_max();
-  p.shading = request.flat_shading() ? render::Shading::kFlat : render::Shading::kSmooth;
-  p.wireframe = request.wireframe();
-  p.transparent = request.transparent();
-  if (request.samples() != 0) p.samples = request.samples();
+  if (o.width() != 0) p.width = o.width();
+  if (o.height() != 0) p.height = o.height();
+  if (o.has_azimuth_deg()) p.camera.azimuth_deg = o.azimuth_deg();
+  if (o.has_elevation_deg()) p.camera.elevation_deg = o.elevation_deg();
+  if (o.has_distance()) p.camera.distance = o.distance();
+  if (o.has_fov_deg()) p.camera.fov_deg = o.fov_deg();
+  if (!o.up_axis().empty()) {
+    auto up = render::ParseUpAxis(o.up_axis());
+    if (!up.ok()) return up.status();
+    p.camera.up = *up;
+  }
+  p.color_attribute = o.color();
+  p.color_min = o.color_min();
+  p.color_max = o.color_max();
+  p.shading = o.flat_shading() ? render::Shading::kFlat : render::Shading::kSmooth;
+  p.wireframe = o.wireframe();
+  p.transparent = o.transparent();
+  if (o.samples() != 0) p.samples = o.samples();
   return p;
+}
+
+void ToProto(const render::RenderParams& p, v1::RenderOptions* out) {
+  out->set_width(p.width);
+  out->set_height(p.height);
+  out->set_azimuth_deg(p.camera.azimuth_deg);
+  out->set_elevation_deg(p.camera.elevation_deg);
+  if (p.camera.distance > 0) out->set_distance(p.camera.distance);
+  out->set_fov_deg(p.camera.fov_deg);
+  out->set_up_axis(p.camera.up == render::UpAxis::kX ? "x" : p.camera.up == render::UpAxis::kY ? "y" : "z");
+  out->set_color(p.color_attribute);
+  out->set_color_min(p.color_min);
+  out->set_color_max(p.color_max);
+  out->set_flat_shading(p.shading == render::Shading::kFlat);
+  out->set_wireframe(p.wireframe);
+  out->set_transparent(p.transparent);
+  out->set_samples(p.samples);
 }
 
 }  // namespace lsqsurf::server

@@ -3,7 +3,7 @@
 
 #include <grpcpp/support/status.h>
 
-#include "absl/status/status.h"
+#include "absl/status/statusor.h"
 #include "lsqsurf/v1/reconstruction.pb.h"
 #include "worker/jobs/job.h"
 #include "worker/render/render.h"
@@ -14,8 +14,11 @@ namespace lsqsurf::server {
 grpc::Status ToGrpcStatus(const absl::Status& status);
 
 void ToProto(const jobs::JobRecord& record, v1::Job* out);
-jobs::JobSpec FromProto(const v1::JobSpec& spec);
-// Unset fields (0, empty, absent optionals) keep the RenderParams defaults; not validated here.
-render::RenderParams FromProto(const v1::RenderRequest& request);
+// Errors: kInvalidArgument for a field that cannot be represented (an unknown up axis).
+absl::StatusOr<jobs::JobSpec> FromProto(const v1::JobSpec& spec);
+// Unset fields (0, empty, absent optionals) keep the RenderParams defaults; ranges are not
+// checked here (render::Validate does). Errors: kInvalidArgument (an unknown up axis).
+absl::StatusOr<render::RenderParams> FromProto(const v1::RenderOptions& options);
+void ToProto(const render::RenderParams& params, v1::RenderOptions* out);
 
 }  // namespace lsqsurf::server

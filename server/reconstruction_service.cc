@@ -17,7 +17,9 @@ grpc::Status ReconstructionService::SubmitJob(grpc::ServerContext* context,
     return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
                         "the first SubmitJob message must carry the job spec");
   }
-  const jobs::JobSpec spec = FromProto(message.spec());
+  auto converted = FromProto(message.spec());
+  if (!converted.ok()) return ToGrpcStatus(converted.status());
+  const jobs::JobSpec& spec = *converted;
   // Reject a bad spec before taking the upload.
   if (absl::Status s = jobs::ValidateRequest(spec.method, spec.parameters); !s.ok()) {
     return ToGrpcStatus(s);
@@ -131,27 +133,18 @@ absl::StatusOr<std::string> ReconstructionService::ArtifactPath(const std::strin
   return jobs_.ResultPath(job_id, record->results.empty() ? "mesh.drc" : record->results.front());
 }
 
-absl::StatusOr<render::Renderer*> ReconstructionService::GetRenderer() {
-  std::lock_guard lock(renderer_mutex_);
-  if (!renderer_) {
-    auto created = render::CreateRenderer("auto");
-    if (!created.ok()) return created.status();  // Tried again on the next request.
-    renderer_ = *std::move(created);
-    spdlog::info("renderer: {}", renderer_->description());
-  }
-  return renderer_.get();
-}
-
 grpc::Status ReconstructionService::Render(grpc::ServerContext*, const v1::RenderRequest* request,
                                            v1::RenderResponse* response) {
-  const render::RenderParams p = FromProto(*request);
+  auto params = FromProto(request->options());
+  if (!params.ok()) return ToGrpcStatus(params.status());
+  const render::RenderParams& p = *params;
   // Checked before any file is read or a context is made.
   if (absl::Status s = render::Validate(p); !s.ok()) return ToGrpcStatus(s);
   auto path = ArtifactPath(request->job_id(), request->name());
   if (!path.ok()) return ToGrpcStatus(path.status());
   auto bytes = io::ReadFileBytes(*path);
   if (!bytes.ok()) return ToGrpcStatus(bytes.status());
-  auto renderer = GetRenderer();
+  auto renderer = jobs_.renderer().Get();
   if (!renderer.ok()) return ToGrpcStatus(renderer.status());
   render::RenderInfo info;
   absl::StatusOr<render::Image> image = absl::InvalidArgumentError("");
@@ -179,6 +172,7 @@ grpc::Status ReconstructionService::ListMethods(grpc::ServerContext*, const v1::
     v1::Method* out = response->add_methods();
     out->set_name(m.name);
     out->set_description(m.description);
+    for (const auto& a : m.attributes) out->add_attributes(a);
     for (const auto& p : m.parameters) {
       v1::Parameter* param = out->add_parameters();
       param->set_name(p.name);

@@ -46,12 +46,8 @@ class ReconstructionService final : public v1::Reconstruction::Service {
  private:
   // The path of an artifact of a job; an empty name means the job's first result.
   absl::StatusOr<std::string> ArtifactPath(const std::string& job_id, const std::string& name) const;
-  // The renderer, created on first use (an EGL context costs ~0.1 s and most servers never render).
-  absl::StatusOr<render::Renderer*> GetRenderer();
 
   jobs::JobService& jobs_;
-  std::mutex renderer_mutex_;
-  std::unique_ptr<render::Renderer> renderer_;
 };
 
 }  // namespace lsqsurf::server

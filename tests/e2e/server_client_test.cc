@@ -222,16 +222,93 @@ TEST_F(EndToEnd, RendersResultsThroughTheCliAndTheApi) {
   request.set_job_id("0123456789abcdef");
   EXPECT_EQ(render(request).error_code(), grpc::StatusCode::NOT_FOUND);
   request.set_job_id(id);
-  request.set_width(100000);
+  request.mutable_options()->set_width(100000);
   EXPECT_EQ(render(request).error_code(), grpc::StatusCode::INVALID_ARGUMENT);
-  request.set_width(64);
-  request.set_color("nope");
+  request.mutable_options()->set_width(64);
+  request.mutable_options()->set_up_axis("w");
+  const grpc::Status bad_axis = render(request);
+  EXPECT_EQ(bad_axis.error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+  EXPECT_NE(bad_axis.error_message().find("up axis"), std::string::npos) << bad_axis.error_message();
+  request.mutable_options()->set_up_axis("y");
+  request.mutable_options()->set_color("nope");
   const grpc::Status unknown = render(request);
   EXPECT_EQ(unknown.error_code(), grpc::StatusCode::INVALID_ARGUMENT);
   EXPECT_NE(unknown.error_message().find("degree"), std::string::npos) << unknown.error_message();
-  request.set_color("");
+  request.mutable_options()->set_color("");
   request.set_name("no-such-artifact.drc");
   EXPECT_EQ(render(request).error_code(), grpc::StatusCode::NOT_FOUND);
+}
+
+// A job that draws its own preview: asked for at submission, checked there, fetched as a PNG.
+TEST_F(EndToEnd, JobsDrawTheirOwnPreview) {
+  Server server;
+  ASSERT_NO_FATAL_FAILURE(server.Start(dir_ / "data"));
+  const std::string in = WriteCloud("sphere.ply", testing::SphereCloud(8000));
+  const ClientRun bad = Client(server.address(), "submit " + in + " --method iamls --job-preview --color degree");
+  EXPECT_EQ(bad.code, 1);
+  EXPECT_NE(bad.output.find("no attribute 'degree'"), std::string::npos) << bad.output;
+  const ClientRun submitted =
+      Client(server.address(), "submit " + in + " --method pu --job-preview --color degree --size 160 --transparent");
+  ASSERT_EQ(submitted.code, 0) << submitted.output;
+  const std::string id = Trim(submitted.output);
+  ASSERT_EQ(Client(server.address(), "watch " + id).code, 0);
+  const ClientRun status = Client(server.address(), "status " + id);
+  EXPECT_NE(status.output.find("result     preview.png"), std::string::npos) << status.output;
+  const std::string png = (dir_ / "job-preview.png").string();
+  ASSERT_EQ(Client(server.address(), "fetch " + id + " --name preview.png -o " + png).code, 0);
+  int w = 0, h = 0, channels = 0;
+  unsigned char* pixels = stbi_load(png.c_str(), &w, &h, &channels, 4);
+  ASSERT_NE(pixels, nullptr) << stbi_failure_reason();
+  EXPECT_EQ(w, 160);
+  EXPECT_EQ(h, 160);
+  EXPECT_EQ(pixels[3], 0);                                   // Transparent corner,
+  EXPECT_EQ(pixels[4 * (80 * 160 + 80) + 3], 255);           // the sphere in the middle.
+  stbi_image_free(pixels);
+}
+
+// Track pictures are framed on the unit cube: seen from above, the sphere circles the image
+// centre by the rotation's angle per output frame; a turntable camera adds its own turn.
+TEST_F(EndToEnd, TrackFramesArePicturesOfAFixedScene) {
+  Server server;
+  ASSERT_NO_FATAL_FAILURE(server.Start(dir_ / "data"));
+  // Angles, seen in the picture, of the sphere's centroid about the image centre, per frame.
+  auto angles = [&](const std::string& extra) {
+    const fs::path out = dir_ / ("pictures" + std::to_string(extra.size()));
+    const ClientRun r = Client(server.address(), "track --interface sphere --field rotation --h 0.03125 --dt 10 "
+                                                 "--steps 16 --stride 8 --pictures --size 128 --transparent "
+                                                 "--elevation 89 " + extra + " -o " + out.string());
+    EXPECT_EQ(r.code, 0) << r.output;
+    std::vector<double> result;
+    for (int step : {0, 8, 16}) {
+      char name[32];
+      std::snprintf(name, sizeof(name), "frame_%05d.png", step);
+      int w = 0, h = 0, channels = 0;
+      unsigned char* pixels = stbi_load((out / name).string().c_str(), &w, &h, &channels, 4);
+      EXPECT_NE(pixels, nullptr) << name;
+      if (pixels == nullptr) return result;
+      double n = 0, sx = 0, sy = 0;
+      for (int y = 0; y < h; ++y) {
+        for (int x = 0; x < w; ++x) {
+          if (pixels[4 * (y * w + x) + 3] < 128) continue;
+          n += 1, sx += x + 0.5, sy += y + 0.5;
+        }
+      }
+      stbi_image_free(pixels);
+      EXPECT_GT(n, 50) << name;
+      result.push_back(std::atan2(sy / n - 64, sx / n - 64) * 180 / M_PI);
+    }
+    return result;
+  };
+  auto turn = [](double from, double to) { return std::remainder(to - from, 360.0); };
+  const double per_frame = 360.0 * 80 / 628;  // Zalesak's field turns once in 628 time units.
+  const std::vector<double> fixed = angles("");
+  ASSERT_EQ(fixed.size(), 3u);
+  EXPECT_NEAR(std::abs(turn(fixed[0], fixed[1])), per_frame, 3);
+  EXPECT_NEAR(std::abs(turn(fixed[1], fixed[2])), per_frame, 3);
+  const std::vector<double> turning = angles("--turntable 30");
+  ASSERT_EQ(turning.size(), 3u);
+  EXPECT_NEAR(std::abs(std::abs(turn(turning[0], turning[1])) - per_frame), 30, 3);
+  EXPECT_NEAR(turn(fixed[0], turning[0]), 0, 1);  // The first frame is the same view.
 }
 
 TEST_F(EndToEnd, BadInputsGetClearErrorsAndTheServerKeepsServing) {

@@ -1,6 +1,7 @@
 #include "worker/jobs/job_service.h"
 
 #include <gtest/gtest.h>
+#include <sqlite3.h>
 
 #include <cmath>
 #include <filesystem>
@@ -171,6 +172,80 @@ TEST_F(JobServiceTest, JobsSurviveARestart) {
   EXPECT_EQ(again->spec.parameters.at("iterations"), 2);
   EXPECT_FALSE(again->statistics.empty());
   EXPECT_TRUE(reopened.ResultPath(id, "mesh.drc").ok());
+}
+
+TEST_F(JobServiceTest, PreviewsAreCheckedDrawnAndSurviveARestart) {
+  JobService& s = Open();
+  const std::string input = Encode(testing::SphereCloud(3000));
+  JobSpec spec{"iamls", {{"iterations", 2}}};
+  spec.preview.enabled = true;
+  spec.preview.render.color_attribute = "degree";  // Only PU meshes carry it.
+  auto refused = s.Submit(spec, input);
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(refused.status().message().find("no attribute 'degree'"), std::string_view::npos) << refused.status();
+  spec.preview.render.color_attribute.clear();
+  spec.preview.render.width = 5;
+  EXPECT_EQ(s.Submit(spec, input).status().code(), absl::StatusCode::kInvalidArgument);
+
+  spec.preview.render.width = 96;
+  spec.preview.render.height = 64;
+  spec.preview.render.camera.up = render::UpAxis::kY;
+  spec.preview.render.camera.azimuth_deg = 10;
+  spec.preview.render.wireframe = true;
+  auto job = s.Submit(spec, input);
+  ASSERT_TRUE(job.ok()) << job.status();
+  const JobRecord done = WaitTerminal(job->id);
+  ASSERT_EQ(done.state, JobState::kSucceeded) << done.error;
+  EXPECT_NE(std::find(done.results.begin(), done.results.end(), "preview.png"), done.results.end());
+  auto path = s.ResultPath(job->id, "preview.png");
+  ASSERT_TRUE(path.ok());
+  auto png = io::ReadFileBytes(*path);
+  ASSERT_TRUE(png.ok());
+  // PNG signature, then the IHDR chunk: big-endian width and height at bytes 16 and 20.
+  ASSERT_GT(png->size(), 24u);
+  EXPECT_EQ(png->substr(0, 8), std::string("\x89PNG\r\n\x1a\n", 8));
+  auto be32 = [&](size_t at) {
+    uint32_t v = 0;
+    for (size_t i = 0; i < 4; ++i) v = v << 8 | static_cast<uint8_t>((*png)[at + i]);
+    return v;
+  };
+  EXPECT_EQ(be32(16), 96u);
+  EXPECT_EQ(be32(20), 64u);
+
+  JobService& reopened = Open();
+  auto again = reopened.Get(job->id);
+  ASSERT_TRUE(again.ok());
+  const PreviewSpec& kept = again->spec.preview;
+  EXPECT_TRUE(kept.enabled);
+  EXPECT_EQ(kept.render.width, 96);
+  EXPECT_EQ(kept.render.height, 64);
+  EXPECT_EQ(kept.render.camera.up, render::UpAxis::kY);
+  EXPECT_EQ(kept.render.camera.azimuth_deg, 10);
+  EXPECT_TRUE(kept.render.wireframe);
+  EXPECT_FALSE(reopened.Get(job->id).value().spec.preview.render.transparent);
+}
+
+TEST_F(JobServiceTest, DatabasesFromBeforePreviewsStillOpen) {
+  // The table as the first releases wrote it, with one finished job.
+  {
+    sqlite3* db = nullptr;
+    std::filesystem::create_directories(dir_);
+    ASSERT_EQ(sqlite3_open((dir_ / "jobs.db").string().c_str(), &db), SQLITE_OK);
+    const char* sql =
+        "CREATE TABLE jobs (id TEXT PRIMARY KEY, method TEXT, parameters TEXT, mesh_bits INTEGER, state INTEGER, "
+        "stage TEXT, attempts INTEGER, error TEXT, created_ms INTEGER, updated_ms INTEGER, input_points INTEGER, "
+        "input_bytes INTEGER, statistics TEXT, results TEXT);"
+        "INSERT INTO jobs VALUES ('cccc', 'iamls', 'iterations=3;', 16, 2, 'done', 1, '', 1, 2, 3000, 100, "
+        "'wall_seconds=1;', 'mesh.drc;');";
+    EXPECT_EQ(sqlite3_exec(db, sql, nullptr, nullptr, nullptr), SQLITE_OK);
+    sqlite3_close(db);
+  }
+  JobService& s = Open();
+  auto old = s.Get("cccc");
+  ASSERT_TRUE(old.ok()) << old.status();
+  EXPECT_EQ(old->state, JobState::kSucceeded);
+  EXPECT_EQ(old->spec.parameters.at("iterations"), 3);
+  EXPECT_FALSE(old->spec.preview.enabled);
 }
 
 TEST_F(JobServiceTest, InterruptedJobsRunAgainOnceThenFail) {

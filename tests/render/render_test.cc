@@ -32,7 +32,10 @@ class RenderTest : public ::testing::Test {
   static RenderParams SphereView(int size) {
     RenderParams p;
     p.width = p.height = size;
-    p.camera = {0.0, 0.0, 5.0, 30.0};
+    p.camera.azimuth_deg = 0;
+    p.camera.elevation_deg = 0;
+    p.camera.distance = 5;
+    p.camera.fov_deg = 30;
     return p;
   }
   // The sphere's silhouette radius in pixels: the tangent cone's half-angle asin(r/d), projected.
@@ -173,6 +176,65 @@ TEST_F(RenderTest, CullingHiddenFacesLeavesThePictureUnchanged) {
     }
     EXPECT_LT(differing, covered / 50) << (reversed ? "reversed" : "");
   }
+}
+
+// Extent of the non-transparent pixels: (width, height, centre x, centre y).
+std::array<double, 4> Coverage(const Image& image) {
+  int x0 = image.width, x1 = -1, y0 = image.height, y1 = -1;
+  for (int y = 0; y < image.height; ++y) {
+    for (int x = 0; x < image.width; ++x) {
+      if (image.At(x, y)[3] < 128) continue;
+      x0 = std::min(x0, x), x1 = std::max(x1, x), y0 = std::min(y0, y), y1 = std::max(y1, y);
+    }
+  }
+  return {x1 - x0 + 1.0, y1 - y0 + 1.0, 0.5 * (x0 + x1 + 1), 0.5 * (y0 + y1 + 1)};
+}
+
+TEST_F(RenderTest, TheUpAxisPointsUpInThePicture) {
+  // An ellipsoid twice as long along y as along x and z, seen from the side at distance 12.
+  core::TriangleMesh ellipsoid = testing::SphereMesh(48, 96);
+  for (core::Vec3f& v : ellipsoid.vertices) v.y() *= 2;
+  RenderParams p = SphereView(256);
+  p.transparent = true;
+  p.camera.distance = 12;
+  const double focal = 128 / std::tan(0.5 * p.camera.fov_deg * kDegree);
+  // A sphere of radius r at distance d spans 2·f·tan(asin(r/d)) pixels; the ellipsoid's long
+  // axis lies across the view, where perspective stretches it slightly more.
+  const double short_px = 2 * focal * std::tan(std::asin(1.0 / 12)), long_px = 2 * focal * 2 / std::sqrt(144 - 1.0);
+  p.camera.up = UpAxis::kY;  // Azimuth 0, elevation 0: looking down −z, y up, x right.
+  auto y_up = renderer_->RenderMesh(ellipsoid, p);
+  ASSERT_TRUE(y_up.ok()) << y_up.status();
+  const auto side = Coverage(*y_up);
+  EXPECT_NEAR(side[0], short_px, 2);
+  EXPECT_NEAR(side[1], long_px, 2);
+  p.camera.up = UpAxis::kZ;  // Looking down −x, z up, y across.
+  auto z_up = renderer_->RenderMesh(ellipsoid, p);
+  ASSERT_TRUE(z_up.ok());
+  const auto across = Coverage(*z_up);
+  EXPECT_NEAR(across[0], long_px, 2);
+  EXPECT_NEAR(across[1], short_px, 2);
+  EXPECT_EQ(ParseUpAxis("+y").value(), UpAxis::kY);
+  EXPECT_EQ(ParseUpAxis("w").status().code(), absl::StatusCode::kInvalidArgument);
+}
+
+TEST_F(RenderTest, AFramingBoxMovesTheAimPoint) {
+  // Aiming at (0, 0.5, 0) from +x at distance 10: the unit sphere at the origin lies 0.5 to the
+  // left (screen right is +y). Its silhouette spans the angles atan(0.5/10) ± asin(1/|c|).
+  RenderParams p = SphereView(256);
+  p.transparent = true;
+  p.camera.distance = 10;
+  p.camera.framing_box = core::Box3(core::Vec3d(-1, -0.5, -1), core::Vec3d(1, 1.5, 1));
+  auto image = renderer_->RenderMesh(testing::SphereMesh(64, 128), p);
+  ASSERT_TRUE(image.ok()) << image.status();
+  const double focal = 128 / std::tan(0.5 * p.camera.fov_deg * kDegree);
+  const double centre = std::atan(0.05), half = std::asin(1 / std::hypot(10.0, 0.5));
+  const double left = 128 - focal * std::tan(centre + half), right = 128 - focal * std::tan(centre - half);
+  const auto coverage = Coverage(*image);
+  EXPECT_NEAR(coverage[0], right - left, 2);
+  EXPECT_NEAR(coverage[2], 0.5 * (left + right), 1);
+  EXPECT_NEAR(coverage[3], 128, 1);
+  p.camera.framing_box = core::Box3(core::Vec3d(0, 0, 0), core::Vec3d(NAN, 1, 1));
+  EXPECT_EQ(renderer_->RenderMesh(testing::SphereMesh(8, 16), p).status().code(), absl::StatusCode::kInvalidArgument);
 }
 
 TEST_F(RenderTest, PointSplatsStayInsideTheSilhouette) {

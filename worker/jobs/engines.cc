@@ -30,7 +30,7 @@ std::vector<ParameterSpec> CommonParameters() {
 
 MethodSpec IamlsMethod() {
   const mls::IamlsParams p;
-  MethodSpec m{"iamls", "iterated approximate MLS surface (seed §4), extracted on a tetrahedral grid", {}};
+  MethodSpec m{"iamls", "iterated approximate MLS surface (seed §4), extracted on a tetrahedral grid", {}, {}};
   m.parameters = {
       {"epsilon", p.epsilon, 0.05, 3, false, "kernel shape parameter; larger = more detail"},
       {"iterations", static_cast<double>(p.iterations), 0, 20, true, "residual-correction iterations; more = closer fit"},
@@ -59,7 +59,7 @@ MethodSpec AlgebraicMethod(mls::AlgebraicFit fit) {
                       "beta, extracted on J1a tetrahedra"
                     : "robust algebraic MLS surface (seed §3): closed-form normal-driven sphere fits, extracted on J1a "
                       "tetrahedra",
-               {}};
+               {}, {}};
   m.parameters = {
       {"spacing", p.spacing, 0, 1e30, false, "h in model units; 0 = spacing_scale x mean nearest-neighbour distance"},
       {"spacing_scale", p.spacing_scale, 0.25, 8, false, "multiplier of the measured spacing"},
@@ -85,7 +85,7 @@ MethodSpec PuMethod() {
   MethodSpec m{"pu",
                "twofold adaptive partition-of-unity implicit (seed §2): orthogonal-polynomial fits of "
                "adaptive degree on an adaptive octree, extracted on its J1a tetrahedra",
-               {}};
+               {}, {}};
   m.parameters = {
       {"error_threshold", p.error_threshold, 1e-6, 0.1, false,
        "largest fitting error accepted in a cell, as a share of the bounding-box diagonal; "
@@ -112,6 +112,7 @@ MethodSpec PuMethod() {
        "root-refinement steps per crossing edge"},
   };
   for (auto& c : CommonParameters()) m.parameters.push_back(std::move(c));
+  m.attributes = {"depth", "degree"};  // Octree depth and polynomial degree of the fit dominating at a vertex.
   return m;
 }
 

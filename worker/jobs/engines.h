@@ -29,6 +29,7 @@ struct MethodSpec {
   std::string name;
   std::string description;
   std::vector<ParameterSpec> parameters;
+  std::vector<std::string> attributes;  // Per-vertex scalars on its result meshes (to colour by).
 };
 
 using ParameterMap = std::map<std::string, double>;

@@ -4,12 +4,15 @@
 #include <cmath>
 #include <cstdio>
 
+#include <spdlog/spdlog.h>
+
 #include "worker/core/mesh_metrics.h"
 #include "worker/core/status.h"
 #include "worker/core/strings.h"
 #include "worker/front/front_tracking.h"
 #include "worker/io/draco_codec.h"
 #include "worker/io/files.h"
+#include "worker/jobs/pictures.h"
 
 namespace lsqsurf::jobs {
 namespace {
@@ -29,7 +32,7 @@ MethodSpec TrackMethod() {
   MethodSpec m{kTrackMethod,
                "front tracking (seed §3): advects an interface with RK4 and re-samples it on the gridlines "
                "through its RAMLS surface every step; results are frames, stats.csv and summary.txt",
-               {}};
+               {}, {}};
   m.parameters = {
       {"interface", kUploaded, 0, 2, true, "0: the uploaded oriented cloud; 1: sphere r=0.15 at (0.35,0.35,0.35); "
                                            "2: Zalesak's slotted sphere"},
@@ -57,7 +60,7 @@ bool TrackNeedsVelocity(const ParameterMap& parameters) {
 
 absl::StatusOr<TrackOutput> RunTrackJob(const ParameterMap& parameters, const core::PointCloud* interface,
                                         const io::VectorGrid* velocity, const std::string& out_dir,
-                                        core::JobContext& ctx) {
+                                        core::JobContext& ctx, const FramePictures* pictures) {
   LSQSURF_RETURN_IF_ERROR(ValidateRequest(kTrackMethod, parameters));
   const int shape = static_cast<int>(Param(parameters, "interface"));
   front::TrackingParams tp;
@@ -100,6 +103,31 @@ absl::StatusOr<TrackOutput> RunTrackJob(const ParameterMap& parameters, const co
 
   TrackOutput out;
   const bool meshes = Param(parameters, "meshes") != 0;
+  // Every picture frames the same box, so that the sequence plays without jumps in scale.
+  render::RenderParams picture;
+  if (pictures != nullptr) {
+    picture = pictures->params;
+    picture.camera.framing_box = core::Box3(core::Vec3d::Zero(), core::Vec3d::Ones());
+    if (field_kind == kUploadedField) {
+      const core::Vec3d extent(velocity->spacing.x() * (velocity->dims[0] - 1), velocity->spacing.y() * (velocity->dims[1] - 1),
+                               velocity->spacing.z() * (velocity->dims[2] - 1));
+      picture.camera.framing_box = core::Box3(velocity->origin, velocity->origin + extent);
+    }
+  }
+  int pictures_drawn = 0, picture_failures = 0;
+  auto draw = [&](const auto& geometry, int step) {
+    char name[32];
+    std::snprintf(name, sizeof(name), "frame_%05d.png", step);
+    render::RenderParams p = picture;
+    p.camera.azimuth_deg += pictures_drawn * pictures->turntable_deg_per_frame;
+    ++pictures_drawn;
+    if (absl::Status s = WritePicture(*pictures->renderer, geometry, p, out_dir + "/" + name); !s.ok()) {
+      ++picture_failures;  // The frames and statistics are what the job is for; a picture is not.
+      spdlog::warn("{} not drawn: {}", name, s.message());
+      return;
+    }
+    out.artifacts.push_back(name);
+  };
   std::string csv = meshes ? "step,time,points,volume,volume_change,mesh_volume\n" : "step,time,points,volume,volume_change\n";
   front::Front last;
   front::FrameStats last_stats;
@@ -121,9 +149,11 @@ absl::StatusOr<TrackOutput> RunTrackJob(const ParameterMap& parameters, const co
     char row[192];
     std::snprintf(row, sizeof(row), "%d,%.9g,%zu,%.9g,%.9g", s.step, s.time, s.points, s.volume, s.volume_change);
     csv += row;
+    if (pictures != nullptr && !meshes) draw(cloud, s.step);
     if (meshes) {
       auto mesh = front::FrontMesh(f, tp.h, ctx, tp.support_factor);
       if (!mesh.ok()) return mesh.status();
+      if (pictures != nullptr) draw(*mesh, s.step);
       auto encoded_mesh = io::EncodeDracoMesh(*mesh, {});
       if (!encoded_mesh.ok()) return encoded_mesh.status();
       std::snprintf(name, sizeof(name), "frame_%05d_mesh.drc", s.step);
@@ -147,6 +177,7 @@ absl::StatusOr<TrackOutput> RunTrackJob(const ParameterMap& parameters, const co
                     {"final_points", static_cast<double>(last_stats.points)},
                     {"volume_change", last_stats.volume_change},
                     {"tracking_seconds", seconds}};
+  if (picture_failures > 0) out.statistics.emplace_back("preview_failures", picture_failures);
   // A named shape back where a named field returns it: measure E1 against the exact shape.
   const double end_time = tp.steps * tp.dt;
   const double back_at = deformation ? period : kRevolution * std::max(1.0, std::round(end_time / kRevolution));

@@ -7,6 +7,7 @@
 #include <vector>
 
 #include "worker/jobs/engines.h"
+#include "worker/render/render.h"
 
 namespace lsqsurf::jobs {
 
@@ -15,10 +16,19 @@ enum class JobState { kQueued, kRunning, kSucceeded, kFailed, kCancelled };
 const char* JobStateName(JobState state);
 bool IsTerminal(JobState state);
 
+// Pictures a job draws into its results when it succeeds: preview.png of a surface job's mesh,
+// or frame_NNNNN.png of every output frame of a track job (framed on the tracking domain).
+struct PreviewSpec {
+  bool enabled = false;
+  render::RenderParams render;         // Size, camera, colouring; the framing box is the job's.
+  double turntable_deg_per_frame = 0;  // Track jobs: azimuth step between frames, −360..360.
+};
+
 struct JobSpec {
   std::string method;          // A name from SurfaceMethods().
   ParameterMap parameters;     // Validated against the method.
   int mesh_position_bits = 16; // Draco quantization of the result mesh positions (8..30).
+  PreviewSpec preview{};  // Off unless enabled.
 };
 
 struct JobRecord {

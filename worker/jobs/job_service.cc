@@ -5,6 +5,7 @@
 #include <atomic>
 #include <cmath>
 #include <filesystem>
+#include <optional>
 #include <random>
 
 #include "worker/core/strings.h"
@@ -12,6 +13,7 @@
 #include "worker/io/files.h"
 #include "worker/io/vtk_grid.h"
 #include "worker/jobs/front_job.h"
+#include "worker/jobs/pictures.h"
 
 namespace lsqsurf::jobs {
 namespace {
@@ -19,6 +21,7 @@ namespace {
 constexpr char kInputFile[] = "input.drc";
 constexpr char kVelocityFile[] = "velocity.vtk";
 constexpr char kMeshArtifact[] = "mesh.drc";
+constexpr char kPreviewArtifact[] = "preview.png";
 
 int64_t NowMs() {
   return std::chrono::duration_cast<std::chrono::milliseconds>(
@@ -31,6 +34,29 @@ std::string NewJobId() {
   static std::mt19937_64 rng(std::random_device{}());
   std::lock_guard lock(mutex);
   return fmt::format("{:016x}", rng());
+}
+
+// Checks the pictures a job asks for: a view the renderer accepts, a colour the method's
+// results carry, a finite turntable step.
+absl::Status ValidatePreview(const JobSpec& spec) {
+  const PreviewSpec& preview = spec.preview;
+  if (!preview.enabled) return absl::OkStatus();
+  if (absl::Status s = render::Validate(preview.render); !s.ok()) return absl::InvalidArgumentError(core::StrCat("preview: ", s.message()));
+  if (!(std::abs(preview.turntable_deg_per_frame) <= 360)) {
+    return absl::InvalidArgumentError("preview: turntable_deg_per_frame must be within [-360, 360]");
+  }
+  const std::string& colour = preview.render.color_attribute;
+  if (colour.empty()) return absl::OkStatus();
+  std::string known;
+  for (const MethodSpec& m : SurfaceMethods()) {
+    if (m.name != spec.method) continue;
+    for (const std::string& a : m.attributes) {
+      if (a == colour) return absl::OkStatus();
+      known += (known.empty() ? "" : ", ") + a;
+    }
+  }
+  return absl::InvalidArgumentError(core::StrCat("preview: the ", spec.method, " method's results have no attribute '",
+                                                 colour, "' to colour by; they have: ", known.empty() ? "none" : known));
 }
 
 // Checks a decoded upload; the messages tell the user what to fix.
@@ -151,6 +177,13 @@ absl::StatusOr<JobRecord> JobService::Submit(const JobSpec& spec, std::string in
   if (absl::Status s = ValidateRequest(spec.method, spec.parameters); !s.ok()) return s;
   if (spec.mesh_position_bits < 8 || spec.mesh_position_bits > 30) {
     return absl::InvalidArgumentError("mesh_position_bits must be between 8 and 30");
+  }
+  if (absl::Status s = ValidatePreview(spec); !s.ok()) return s;
+  if (spec.preview.enabled) {
+    if (auto r = renderer_.Get(); !r.ok()) {
+      return absl::UnavailableError(core::StrCat("this server cannot draw previews (", r.status().message(),
+                                                 "); submit the job without one"));
+    }
   }
   // A front-tracking job of a named shape needs no upload, and ignores one.
   const bool needs_input = spec.method != kTrackMethod || TrackNeedsUpload(spec.parameters);
@@ -393,7 +426,15 @@ void JobService::RunJob(const std::shared_ptr<Entry>& entry) {
       } else if (!velocity.ok()) {
         tracked = velocity.status();
       } else {
-        tracked = RunTrackJob(spec.parameters, &*uploaded, &*velocity, JobDir(id), ctx);
+        std::optional<FramePictures> pictures;
+        if (spec.preview.enabled) {
+          if (auto r = renderer_.Get(); r.ok()) {
+            pictures = FramePictures{*r, spec.preview.render, spec.preview.turntable_deg_per_frame};
+          } else {
+            spdlog::warn("[job {}] no frame pictures: {}", id, r.status().message());
+          }
+        }
+        tracked = RunTrackJob(spec.parameters, &*uploaded, &*velocity, JobDir(id), ctx, pictures ? &*pictures : nullptr);
       }
       if (tracked.ok()) {
         result = SurfaceResult{{}, tracked->statistics};
@@ -413,6 +454,19 @@ void JobService::RunJob(const std::shared_ptr<Entry>& entry) {
           result = encoded.status();
         } else if (absl::Status s = io::WriteFileAtomically(JobDir(id) + "/" + kMeshArtifact, *encoded); !s.ok()) {
           result = s;
+        } else if (spec.preview.enabled) {
+          ctx.ReportProgress("drawing the preview", 0.99);
+          // A picture that cannot be drawn does not cost the user the mesh: counted, logged.
+          auto renderer = renderer_.Get();
+          const absl::Status p = renderer.ok() ? WritePicture(**renderer, result->mesh, spec.preview.render,
+                                                              JobDir(id) + "/" + kPreviewArtifact)
+                                               : renderer.status();
+          if (p.ok()) {
+            artifacts.push_back(kPreviewArtifact);
+          } else {
+            spdlog::warn("[job {}] preview failed: {}", id, p.message());
+            result->statistics.emplace_back("preview_failures", 1);
+          }
         }
       }
     }

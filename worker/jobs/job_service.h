@@ -45,8 +45,9 @@ class JobService {
 
   // Validates and enqueues. `input` is a Draco point cloud; `velocity` a legacy VTK vector grid,
   // only for the track method with field = 2. Errors: kInvalidArgument (bad method,
-  // parameter, or input, with the reason), kResourceExhausted (queue full, too many points or
-  // bytes), kUnavailable (shutting down or storage failure).
+  // parameter, preview, or input, with the reason), kResourceExhausted (queue full, too many
+  // points or bytes), kUnavailable (shutting down, storage failure, or a preview asked of a
+  // server that cannot draw).
   absl::StatusOr<JobRecord> Submit(const JobSpec& spec, std::string input, std::string velocity = {});
 
   absl::StatusOr<JobRecord> Get(const std::string& id) const;
@@ -69,6 +70,8 @@ class JobService {
   void Shutdown();
 
   const JobServiceOptions& options() const { return options_; }
+  // The process's renderer (previews of jobs, and pictures on request), made on first use.
+  render::SharedRenderer& renderer() { return renderer_; }
   bool shutting_down() const {
     std::lock_guard lock(mutex_);
     return shutting_down_;
@@ -86,6 +89,7 @@ class JobService {
   std::string JobDir(const std::string& id) const;
 
   JobServiceOptions options_;
+  render::SharedRenderer renderer_;
   std::unique_ptr<JobStore> store_;
   mutable std::mutex mutex_;
   mutable std::condition_variable changed_;   // Any job changed (watchers).

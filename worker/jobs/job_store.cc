@@ -40,6 +40,46 @@ std::vector<std::pair<std::string, double>> DecodePairs(std::string_view text) {
   return out;
 }
 
+// The preview as numeric pairs (the colour attribute's name goes in its own column); an empty
+// text means no preview.
+std::string EncodePreview(const PreviewSpec& p) {
+  if (!p.enabled) return "";
+  const render::RenderParams& r = p.render;
+  const std::vector<std::pair<std::string, double>> pairs = {
+      {"width", r.width}, {"height", r.height}, {"up", static_cast<double>(r.camera.up)},
+      {"azimuth", r.camera.azimuth_deg}, {"elevation", r.camera.elevation_deg},
+      {"distance", r.camera.distance}, {"fov", r.camera.fov_deg}, {"color_min", r.color_min},
+      {"color_max", r.color_max}, {"flat", r.shading == render::Shading::kFlat ? 1.0 : 0.0},
+      {"wireframe", r.wireframe ? 1.0 : 0.0}, {"transparent", r.transparent ? 1.0 : 0.0},
+      {"samples", r.samples}, {"turntable", p.turntable_deg_per_frame}};
+  return EncodePairs(pairs);
+}
+
+PreviewSpec DecodePreview(std::string_view text, std::string colour) {
+  PreviewSpec p;
+  if (text.empty()) return p;
+  p.enabled = true;
+  render::RenderParams& r = p.render;
+  r.color_attribute = std::move(colour);
+  for (const auto& [name, v] : DecodePairs(text)) {
+    if (name == "width") r.width = static_cast<int>(v);
+    if (name == "height") r.height = static_cast<int>(v);
+    if (name == "up") r.camera.up = static_cast<render::UpAxis>(std::clamp(static_cast<int>(v), 0, 2));
+    if (name == "azimuth") r.camera.azimuth_deg = v;
+    if (name == "elevation") r.camera.elevation_deg = v;
+    if (name == "distance") r.camera.distance = v;
+    if (name == "fov") r.camera.fov_deg = v;
+    if (name == "color_min") r.color_min = v;
+    if (name == "color_max") r.color_max = v;
+    if (name == "flat") r.shading = v != 0 ? render::Shading::kFlat : render::Shading::kSmooth;
+    if (name == "wireframe") r.wireframe = v != 0;
+    if (name == "transparent") r.transparent = v != 0;
+    if (name == "samples") r.samples = static_cast<int>(v);
+    if (name == "turntable") p.turntable_deg_per_frame = v;
+  }
+  return p;
+}
+
 std::string Column(sqlite3_stmt* st, int i) {
   const auto* text = sqlite3_column_text(st, i);
   return text ? reinterpret_cast<const char*>(text) : "";
@@ -75,8 +115,17 @@ absl::StatusOr<std::unique_ptr<JobStore>> JobStore::Open(const std::string& path
                           "CREATE TABLE IF NOT EXISTS jobs (id TEXT PRIMARY KEY, method TEXT, "
                           "parameters TEXT, mesh_bits INTEGER, state INTEGER, stage TEXT, "
                           "attempts INTEGER, error TEXT, created_ms INTEGER, updated_ms INTEGER, "
-                          "input_points INTEGER, input_bytes INTEGER, statistics TEXT, results TEXT)"}) {
+                          "input_points INTEGER, input_bytes INTEGER, statistics TEXT, results TEXT, "
+                          "preview TEXT, preview_color TEXT)"}) {
     if (absl::Status s = store->Exec(sql); !s.ok()) return s;
+  }
+  // Databases written before previews existed lack their columns.
+  for (const char* column : {"preview", "preview_color"}) {
+    if (!store->HasColumn(column)) {
+      if (absl::Status s = store->Exec(core::StrCat("ALTER TABLE jobs ADD COLUMN ", column, " TEXT").c_str()); !s.ok()) {
+        return s;
+      }
+    }
   }
   return store;
 }
@@ -93,13 +142,22 @@ absl::Status JobStore::Exec(const char* sql) {
   return absl::OkStatus();
 }
 
+bool JobStore::HasColumn(const char* name) {
+  sqlite3_stmt* st = nullptr;
+  if (sqlite3_prepare_v2(db_, "SELECT name FROM pragma_table_info('jobs')", -1, &st, nullptr) != SQLITE_OK) return false;
+  bool found = false;
+  while (!found && sqlite3_step(st) == SQLITE_ROW) found = Column(st, 0) == name;
+  sqlite3_finalize(st);
+  return found;
+}
+
 absl::Status JobStore::Put(const JobRecord& r) {
   std::lock_guard lock(mutex_);
   sqlite3_stmt* st = nullptr;
   const char* sql =
       "INSERT OR REPLACE INTO jobs (id, method, parameters, mesh_bits, state, stage, attempts, "
-      "error, created_ms, updated_ms, input_points, input_bytes, statistics, results) "
-      "VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14)";
+      "error, created_ms, updated_ms, input_points, input_bytes, statistics, results, preview, preview_color) "
+      "VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15, ?16)";
   if (sqlite3_prepare_v2(db_, sql, -1, &st, nullptr) != SQLITE_OK) {
     return absl::UnavailableError(core::StrCat("job database: ", sqlite3_errmsg(db_)));
   }
@@ -120,6 +178,9 @@ absl::Status JobStore::Put(const JobRecord& r) {
   sqlite3_bind_int64(st, 12, r.input_bytes);
   sqlite3_bind_text(st, 13, stats.c_str(), -1, SQLITE_TRANSIENT);
   sqlite3_bind_text(st, 14, results.c_str(), -1, SQLITE_TRANSIENT);
+  const std::string preview = EncodePreview(r.spec.preview);
+  sqlite3_bind_text(st, 15, preview.c_str(), -1, SQLITE_TRANSIENT);
+  sqlite3_bind_text(st, 16, r.spec.preview.render.color_attribute.c_str(), -1, SQLITE_TRANSIENT);
   const int rc = sqlite3_step(st);
   sqlite3_finalize(st);
   if (rc != SQLITE_DONE) return absl::UnavailableError(core::StrCat("job database: ", sqlite3_errmsg(db_)));
@@ -144,7 +205,8 @@ absl::StatusOr<std::vector<JobRecord>> JobStore::LoadAll() {
   sqlite3_stmt* st = nullptr;
   const char* sql =
       "SELECT id, method, parameters, mesh_bits, state, stage, attempts, error, created_ms, "
-      "updated_ms, input_points, input_bytes, statistics, results FROM jobs ORDER BY created_ms, id";
+      "updated_ms, input_points, input_bytes, statistics, results, preview, preview_color FROM jobs "
+      "ORDER BY created_ms, id";
   if (sqlite3_prepare_v2(db_, sql, -1, &st, nullptr) != SQLITE_OK) {
     return absl::UnavailableError(core::StrCat("job database: ", sqlite3_errmsg(db_)));
   }
@@ -168,6 +230,7 @@ absl::StatusOr<std::vector<JobRecord>> JobStore::LoadAll() {
     for (std::string name; std::getline(ss, name, ';');) {
       if (!name.empty()) r.results.push_back(name);
     }
+    r.spec.preview = DecodePreview(Column(st, 14), Column(st, 15));
     if (IsTerminal(r.state)) r.progress = r.state == JobState::kSucceeded ? 1.0 : 0.0;
     out.push_back(std::move(r));
   }

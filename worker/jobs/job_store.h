@@ -32,6 +32,7 @@ class JobStore {
  private:
   explicit JobStore(sqlite3* db) : db_(db) {}
   absl::Status Exec(const char* sql);
+  bool HasColumn(const char* name);  // Of the jobs table.
   std::mutex mutex_;
   sqlite3* db_;
 };

@@ -22,6 +22,9 @@ absl::Status Validate(const RenderParams& p) {
       !(c.distance >= 0) || !std::isfinite(c.distance)) {
     return absl::InvalidArgumentError("camera: elevation must be in [-89, 89], fov in [5, 120] degrees, distance >= 0");
   }
+  if (!c.framing_box.isEmpty() && !(c.framing_box.min().allFinite() && c.framing_box.max().allFinite())) {
+    return absl::InvalidArgumentError("the framing box must have finite corners");
+  }
   if (!(p.specular >= 0 && p.specular <= 1)) return absl::InvalidArgumentError("specular must be in [0, 1]");
   if (!std::isfinite(p.color_min) || !std::isfinite(p.color_max) || p.color_min > p.color_max) {
     return absl::InvalidArgumentError("the colour range needs finite bounds with min <= max");
@@ -31,6 +34,14 @@ absl::Status Validate(const RenderParams& p) {
     if (!(v >= 0 && v <= 1)) return absl::InvalidArgumentError("background components must be in [0, 1]");
   }
   return absl::OkStatus();
+}
+
+absl::StatusOr<UpAxis> ParseUpAxis(std::string_view name) {
+  if (!name.empty() && name.front() == '+') name.remove_prefix(1);
+  if (name == "x") return UpAxis::kX;
+  if (name == "y") return UpAxis::kY;
+  if (name == "z") return UpAxis::kZ;
+  return absl::InvalidArgumentError(core::StrCat("unknown up axis '", name, "' (use x, y or z)"));
 }
 
 std::array<float, 3> ColorMap(double t) {

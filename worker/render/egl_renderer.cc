@@ -133,8 +133,9 @@ struct View {
   Eigen::Vector3d eye;
 };
 
-View MakeView(const core::Box3& box, const RenderParams& p) {
-  const Eigen::Vector3d lo = box.min().cast<double>(), hi = box.max().cast<double>();
+View MakeView(const core::Box3& model_box, const RenderParams& p) {
+  const core::Box3& box = p.camera.framing_box.isEmpty() ? model_box : p.camera.framing_box;
+  const Eigen::Vector3d lo = box.min(), hi = box.max();
   const Eigen::Vector3d centre = 0.5 * (lo + hi);
   const double radius = std::max(0.5 * (hi - lo).norm(), 1e-9);
   const double aspect = static_cast<double>(p.width) / p.height;
@@ -144,10 +145,15 @@ View MakeView(const core::Box3& box, const RenderParams& p) {
   View view;
   view.distance = p.camera.distance > 0 ? p.camera.distance : 1.02 * radius / std::sin(half_narrow);
   const double az = p.camera.azimuth_deg * std::numbers::pi / 180, el = p.camera.elevation_deg * std::numbers::pi / 180;
-  const Eigen::Vector3d back(std::cos(el) * std::cos(az), std::cos(el) * std::sin(az), std::sin(el));
+  // The up axis and the two after it in cyclic order (x → y → z → x).
+  const int k = p.camera.up == UpAxis::kX ? 0 : p.camera.up == UpAxis::kY ? 1 : 2;
+  const Eigen::Vector3d up_axis = Eigen::Vector3d::Unit(k);
+  const Eigen::Vector3d first = Eigen::Vector3d::Unit((k + 1) % 3), second = Eigen::Vector3d::Unit((k + 2) % 3);
+  const Eigen::Vector3d back =
+      std::cos(el) * (std::cos(az) * first + std::sin(az) * second) + std::sin(el) * up_axis;
   const Eigen::Vector3d eye = centre + view.distance * back;
   view.eye = eye;
-  const Eigen::Vector3d right = Eigen::Vector3d::UnitZ().cross(back).normalized();
+  const Eigen::Vector3d right = up_axis.cross(back).normalized();
   const Eigen::Vector3d up = back.cross(right);
   Eigen::Matrix4d mv = Eigen::Matrix4d::Identity();
   mv.block<1, 3>(0, 0) = right.transpose();
@@ -643,6 +649,16 @@ absl::StatusOr<std::unique_ptr<Renderer>> CreateRenderer(std::string_view backen
     return absl::InvalidArgumentError(core::StrCat("unknown renderer backend '", backend, "' (available: egl, auto)"));
   }
   return EglRenderer::Create();
+}
+
+absl::StatusOr<Renderer*> SharedRenderer::Get() {
+  std::lock_guard lock(mutex_);
+  if (!renderer_) {
+    auto created = CreateRenderer(backend_);
+    if (!created.ok()) return created.status();
+    renderer_ = *std::move(created);
+  }
+  return renderer_.get();
 }
 
 }  // namespace lsqsurf::render

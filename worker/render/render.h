@@ -6,14 +6,17 @@
 // available, today the same). A renderer is safe to call from many threads: the EGL backend owns
 // its context on one render thread and serves calls in order.
 //
-// Conventions: the camera looks at the centre of the model's bounding box from the direction
-// given by azimuth (about +z, from +x towards +y) and elevation (towards +z); +z is up in the
-// picture. The key light comes from the camera, turned 25° up and 25° left.
+// Conventions: the camera looks at the centre of the model's bounding box (or of a given box)
+// from the direction given by azimuth and elevation about the up axis: with +z up, azimuth turns
+// from +x towards +y; with +y up, from +z towards +x; with +x up, from +y towards +z (always the
+// next two axes in cyclic order). The up axis points up in the picture. The key light comes from
+// the camera, turned 25° up and 25° left.
 #pragma once
 
 #include <array>
 #include <cstdint>
 #include <memory>
+#include <mutex>
 #include <string>
 #include <string_view>
 #include <vector>
@@ -25,12 +28,21 @@ namespace lsqsurf::render {
 
 inline constexpr int kMaxImageSide = 4096;
 
+enum class UpAxis { kX, kY, kZ };
+
 struct Camera {
-  double azimuth_deg = 35.0;    // Around +z, from +x towards +y.
-  double elevation_deg = 25.0;  // Above the xy plane, −89..89.
+  UpAxis up = UpAxis::kZ;       // Scanned models are often y-up (e.g. the Spot and bunny data).
+  double azimuth_deg = 35.0;    // Around the up axis (see the conventions above).
+  double elevation_deg = 25.0;  // Above the plane normal to the up axis, −89..89.
   double distance = 0.0;        // From the box centre, model units; 0 = frame the bounding sphere.
   double fov_deg = 30.0;        // Vertical field of view, 5..120.
+  // The region to frame and aim at; empty (the default) = the model's bounding box. A fixed
+  // box keeps the scale of a sequence of frames constant.
+  core::Box3 framing_box;
 };
+
+// "x", "y" or "z" (also "+x" … ); kInvalidArgument otherwise.
+absl::StatusOr<UpAxis> ParseUpAxis(std::string_view name);
 
 enum class Shading { kSmooth, kFlat };
 
@@ -85,6 +97,20 @@ class Renderer {
 // "egl" or "auto". Errors: kInvalidArgument (unknown name), kUnavailable (no usable EGL display
 // or OpenGL 4.5 context, with what was tried).
 absl::StatusOr<std::unique_ptr<Renderer>> CreateRenderer(std::string_view backend = "auto");
+
+// A renderer made on first use and shared by its callers: a context costs about 0.1 s and
+// many processes never draw. A failed creation is retried by the next call. Thread-safe.
+class SharedRenderer {
+ public:
+  explicit SharedRenderer(std::string backend = "auto") : backend_(std::move(backend)) {}
+  // Errors: those of CreateRenderer.
+  absl::StatusOr<Renderer*> Get();
+
+ private:
+  std::string backend_;
+  std::mutex mutex_;
+  std::unique_ptr<Renderer> renderer_;
+};
 
 // The colour map (perceptually ordered, dark blue → green → yellow) at t in [0, 1], as RGB in
 // [0, 1]; the renderer's shader samples the same table.

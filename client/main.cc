@@ -367,8 +367,9 @@ int main(int argc, char** argv) {
   track->add_option("-o,--output", output, "folder for frame_NNNNN.drc, stats.csv and summary.txt")->required();
   bool pictures = false;
   double turntable = 0;
-  track->add_flag("--pictures", pictures, "also draw every frame to frame_NNNNN.png (view options below)");
-  track->add_option("--turntable", turntable, "with --pictures: degrees the camera turns from frame to frame");
+  auto* pictures_flag = track->add_flag("--pictures", pictures, "also draw every frame to frame_NNNNN.png (view options below)");
+  track->add_option("--turntable", turntable, "with --pictures: degrees the camera turns from frame to frame")
+      ->needs(pictures_flag);
   view.AddTo(track);
   auto* render = app.add_subcommand("render", "render a result (mesh, points or frame) to a PNG picture");
   render->add_option("id", id, "job id")->required();

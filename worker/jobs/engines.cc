@@ -116,12 +116,6 @@ MethodSpec PuMethod() {
   return m;
 }
 
-const MethodSpec* FindMethod(const std::string& name) {
-  for (const auto& m : SurfaceMethods()) {
-    if (m.name == name) return &m;
-  }
-  return nullptr;
-}
 
 double Seconds(std::chrono::steady_clock::time_point since) {
   return std::chrono::duration<double>(std::chrono::steady_clock::now() - since).count();
@@ -243,6 +237,13 @@ const std::vector<MethodSpec>& SurfaceMethods() {
   static const std::vector<MethodSpec> methods = {IamlsMethod(), PuMethod(), AlgebraicMethod(mls::AlgebraicFit::kRamls),
                                                   AlgebraicMethod(mls::AlgebraicFit::kApss), TrackMethod()};
   return methods;
+}
+
+const MethodSpec* FindMethod(const std::string& name) {
+  for (const auto& m : SurfaceMethods()) {
+    if (m.name == name) return &m;
+  }
+  return nullptr;
 }
 
 absl::Status ValidateRequest(const std::string& method, const ParameterMap& parameters) {

@@ -38,6 +38,9 @@ using ParameterMap = std::map<std::string, double>;
 // `normal_neighbors`).
 const std::vector<MethodSpec>& SurfaceMethods();
 
+// The method called `name`, or nullptr.
+const MethodSpec* FindMethod(const std::string& name);
+
 // kInvalidArgument for an unknown method (listing the known ones), an unknown parameter
 // (listing the valid ones), a non-integer where an integer is needed, or a value out of range.
 absl::Status ValidateRequest(const std::string& method, const ParameterMap& parameters);

@@ -121,7 +121,9 @@ absl::StatusOr<TrackOutput> RunTrackJob(const ParameterMap& parameters, const co
     render::RenderParams p = picture;
     p.camera.azimuth_deg += pictures_drawn * pictures->turntable_deg_per_frame;
     ++pictures_drawn;
-    if (absl::Status s = WritePicture(*pictures->renderer, geometry, p, out_dir + "/" + name); !s.ok()) {
+    const absl::Status s = pictures->renderer != nullptr ? WritePicture(*pictures->renderer, geometry, p, out_dir + "/" + name)
+                                                         : absl::UnavailableError("no renderer");
+    if (!s.ok()) {
       ++picture_failures;  // The frames and statistics are what the job is for; a picture is not.
       spdlog::warn("{} not drawn: {}", name, s.message());
       return;

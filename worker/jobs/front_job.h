@@ -42,7 +42,7 @@ struct TrackOutput {
 
 // Pictures of the output frames.
 struct FramePictures {
-  render::Renderer* renderer = nullptr;
+  render::Renderer* renderer = nullptr;  // nullptr: none could be made; every picture fails.
   render::RenderParams params;         // Its framing box is replaced by the tracking domain.
   double turntable_deg_per_frame = 0;  // Added to the azimuth from one output frame to the next.
 };

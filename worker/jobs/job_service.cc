@@ -48,9 +48,8 @@ absl::Status ValidatePreview(const JobSpec& spec) {
   const std::string& colour = preview.render.color_attribute;
   if (colour.empty()) return absl::OkStatus();
   std::string known;
-  for (const MethodSpec& m : SurfaceMethods()) {
-    if (m.name != spec.method) continue;
-    for (const std::string& a : m.attributes) {
+  if (const MethodSpec* m = FindMethod(spec.method)) {
+    for (const std::string& a : m->attributes) {
       if (a == colour) return absl::OkStatus();
       known += (known.empty() ? "" : ", ") + a;
     }
@@ -428,11 +427,10 @@ void JobService::RunJob(const std::shared_ptr<Entry>& entry) {
       } else {
         std::optional<FramePictures> pictures;
         if (spec.preview.enabled) {
-          if (auto r = renderer_.Get(); r.ok()) {
-            pictures = FramePictures{*r, spec.preview.render, spec.preview.turntable_deg_per_frame};
-          } else {
-            spdlog::warn("[job {}] no frame pictures: {}", id, r.status().message());
-          }
+          // Without a renderer every picture counts as failed; the frames themselves still come.
+          auto r = renderer_.Get();
+          if (!r.ok()) spdlog::warn("[job {}] no frame pictures: {}", id, r.status().message());
+          pictures = FramePictures{r.ok() ? *r : nullptr, spec.preview.render, spec.preview.turntable_deg_per_frame};
         }
         tracked = RunTrackJob(spec.parameters, &*uploaded, &*velocity, JobDir(id), ctx, pictures ? &*pictures : nullptr);
       }

@@ -174,11 +174,14 @@ View MakeView(const core::Box3& model_box, const RenderParams& p) {
   return view;
 }
 
-// Geometry handed to the GL: positions, optional normals and scalars, optional triangles.
+// Geometry handed to the GL: positions, optional normals and scalars, optional triangles, and
+// what the caller's thread worked out about them (the render thread only draws).
 struct Drawable {
   std::span<const Vec3f> positions, normals;
   std::span<const float> scalars;
   std::span<const core::Triangle> faces;  // Empty: points.
+  core::Box3 box{};
+  OutsideWinding winding = OutsideWinding::kUnknown;
 };
 
 class EglRenderer final : public Renderer {
@@ -207,8 +210,7 @@ class EglRenderer final : public Renderer {
     if (mesh.faces.empty()) return absl::InvalidArgumentError("the mesh has no triangles to draw");
     auto scalars = FindScalars(mesh.vertex_attributes, params.color_attribute);
     if (!scalars.ok()) return scalars.status();
-    Drawable d{mesh.vertices, mesh.normals, *scalars, mesh.faces};
-    return Run([&] { return Draw(d, params, info); });
+    return Enqueue({mesh.vertices, mesh.normals, *scalars, mesh.faces}, params, info);
   }
 
   absl::StatusOr<Image> RenderPoints(const core::PointCloud& cloud, const RenderParams& params,
@@ -217,8 +219,7 @@ class EglRenderer final : public Renderer {
     if (cloud.positions.empty()) return absl::InvalidArgumentError("the point cloud is empty");
     auto scalars = FindScalars(cloud.attributes, params.color_attribute);
     if (!scalars.ok()) return scalars.status();
-    Drawable d{cloud.positions, cloud.normals, *scalars, {}};
-    return Run([&] { return Draw(d, params, info); });
+    return Enqueue({cloud.positions, cloud.normals, *scalars, {}}, params, info);
   }
 
   std::string description() const override { return description_; }
@@ -236,6 +237,13 @@ class EglRenderer final : public Renderer {
     }
     return absl::InvalidArgumentError(core::StrCat("no attribute '", name, "' to colour by; this result has: ",
                                                    known.empty() ? "none" : known));
+  }
+
+  // Measures the geometry on the calling thread, then draws it on the render thread.
+  absl::StatusOr<Image> Enqueue(Drawable d, const RenderParams& params, RenderInfo* info) {
+    d.box = core::BoundingBox(d.positions);
+    if (!d.faces.empty()) d.winding = ClosedMeshOutsideWinding(d.positions, d.normals, d.faces);
+    return Run([&] { return Draw(d, params, info); });
   }
 
   // Runs `work` on the render thread and waits for it.
@@ -459,7 +467,7 @@ class EglRenderer final : public Renderer {
     gl_.DepthFunc(GL_LESS);
     if (p.samples > 1) gl_.Enable(GL_MULTISAMPLE);
 
-    const core::Box3 box = core::BoundingBox(d.positions);
+    const core::Box3& box = d.box;
     const View view = MakeView(box, p);
     // Colour range: the request's, or the data's.
     double lo = p.color_min, hi = p.color_max;
@@ -514,10 +522,9 @@ class EglRenderer final : public Renderer {
       const auto indices = static_cast<GLsizei>(3 * d.faces.size());
       gl_.Uniform1i(uniform("mode"), 0);
       // Hidden back faces are skipped on closed meshes seen from outside their box.
-      const OutsideWinding winding = ClosedMeshOutsideWinding(d.positions, d.normals, d.faces);
       const bool eye_outside = !box.contains(view.eye);
-      if (winding != OutsideWinding::kUnknown && eye_outside) {
-        gl_.FrontFace(winding == OutsideWinding::kCounterClockwise ? GL_CCW : GL_CW);
+      if (d.winding != OutsideWinding::kUnknown && eye_outside) {
+        gl_.FrontFace(d.winding == OutsideWinding::kCounterClockwise ? GL_CCW : GL_CW);
         gl_.CullFace(GL_BACK);
         gl_.Enable(GL_CULL_FACE);
       }

@@ -5,6 +5,8 @@
 
 #include <chrono>
 #include <cstdio>
+#include <fstream>
+#include <memory>
 #include <string>
 
 #include <CLI/CLI.hpp>
@@ -12,6 +14,7 @@
 #include "worker/core/job_context.h"
 #include "worker/core/mesh_metrics.h"
 #include "worker/front/front_tracking.h"
+#include "worker/render/render.h"
 
 int main(int argc, char** argv) {
   using namespace lsqsurf;
@@ -25,6 +28,7 @@ int main(int argc, char** argv) {
   std::string shape_name;
   double support = 3.0;
   bool mesh_check = false;
+  std::string pictures;
   app.add_option("--test", test, "zalesak | enright")->capture_default_str();
   app.add_option("--cells", cells, "grid cells per unit (h = 1/cells)")->capture_default_str();
   app.add_option("--dt", dt, "time step (default: 1 for zalesak, T/(150·cells/64) for enright)");
@@ -33,6 +37,7 @@ int main(int argc, char** argv) {
   app.add_option("--stride", stride, "print every this many steps (default: steps/8)");
   app.add_option("--support", support, "RAMLS support radius in units of h")->capture_default_str();
   app.add_flag("--mesh-check", mesh_check, "also print each frame's mesh volume (cross-check of the gridline volume)");
+  app.add_option("--pictures", pictures, "write a picture of each printed frame's points as DIR/frame_STEP.png (the directory must exist)");
   app.add_option("--shape", shape_name, "sphere | slotted (default: the test's own shape)");
   CLI11_PARSE(app, argc, argv);
   const bool zalesak = test == "zalesak";
@@ -61,6 +66,12 @@ int main(int argc, char** argv) {
               zalesak ? "" : (" T=" + std::to_string(period)).c_str());
   std::printf("%6s %9s %9s %12s %12s %9s%s\n", "step", "time", "points", "volume", "change_%", "wall_s",
               mesh_check ? "  mesh_volume mesh_vs_grid_%" : "");
+  std::unique_ptr<render::Renderer> renderer;
+  if (!pictures.empty()) {
+    auto created = render::CreateRenderer();
+    if (!created.ok()) return std::fprintf(stderr, "%s\n", created.status().ToString().c_str()), 1;
+    renderer = std::move(*created);
+  }
   core::LocalJobContext ctx;
   front::Front last;
   double wall = 0, volume0 = 0, volume_end = 0;
@@ -80,6 +91,23 @@ int main(int argc, char** argv) {
     }
     std::printf("\n");
     std::fflush(stdout);
+    if (renderer) {
+      // The points themselves: a mesh extracted on cubes of edge h would drop sheets thinner
+      // than h that the front still carries.
+      core::PointCloud cloud;
+      cloud.positions = fr.points;
+      cloud.normals = fr.normals;
+      render::RenderParams view;
+      view.width = view.height = 768;
+      view.camera.framing_box = core::Box3(core::Vec3d::Zero(), core::Vec3d::Ones());
+      auto image = renderer->RenderPoints(cloud, view);
+      if (!image.ok()) return image.status();
+      auto png = render::EncodePng(*image);
+      if (!png.ok()) return png.status();
+      const std::string path = pictures + "/frame_" + std::to_string(f.step) + ".png";
+      std::ofstream file(path, std::ios::binary);
+      if (!(file << *png) || !file.flush()) return absl::UnavailableError("cannot write " + path);
+    }
     last = fr;
     return absl::OkStatus();
   });

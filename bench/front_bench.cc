@@ -5,7 +5,6 @@
 
 #include <chrono>
 #include <cstdio>
-#include <fstream>
 #include <memory>
 #include <string>
 
@@ -13,7 +12,9 @@
 
 #include "worker/core/job_context.h"
 #include "worker/core/mesh_metrics.h"
+#include "worker/core/status.h"
 #include "worker/front/front_tracking.h"
+#include "worker/jobs/pictures.h"
 #include "worker/render/render.h"
 
 int main(int argc, char** argv) {
@@ -100,13 +101,8 @@ int main(int argc, char** argv) {
       render::RenderParams view;
       view.width = view.height = 768;
       view.camera.framing_box = core::Box3(core::Vec3d::Zero(), core::Vec3d::Ones());
-      auto image = renderer->RenderPoints(cloud, view);
-      if (!image.ok()) return image.status();
-      auto png = render::EncodePng(*image);
-      if (!png.ok()) return png.status();
-      const std::string path = pictures + "/frame_" + std::to_string(f.step) + ".png";
-      std::ofstream file(path, std::ios::binary);
-      if (!(file << *png) || !file.flush()) return absl::UnavailableError("cannot write " + path);
+      LSQSURF_RETURN_IF_ERROR(
+          jobs::WritePicture(*renderer, cloud, view, pictures + "/frame_" + std::to_string(f.step) + ".png"));
     }
     last = fr;
     return absl::OkStatus();

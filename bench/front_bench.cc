@@ -30,6 +30,8 @@ int main(int argc, char** argv) {
   double support = 3.0;
   bool mesh_check = false;
   std::string pictures;
+  std::string resampling = "gridlines";
+  double marker_spacing = 0.5, marker_gap = 0.75;
   app.add_option("--test", test, "zalesak | enright")->capture_default_str();
   app.add_option("--cells", cells, "grid cells per unit (h = 1/cells)")->capture_default_str();
   app.add_option("--dt", dt, "time step (default: 1 for zalesak, T/(150·cells/64) for enright)");
@@ -39,6 +41,9 @@ int main(int argc, char** argv) {
   app.add_option("--support", support, "RAMLS support radius in units of h")->capture_default_str();
   app.add_flag("--mesh-check", mesh_check, "also print each frame's mesh volume (cross-check of the gridline volume)");
   app.add_option("--pictures", pictures, "write a picture of each printed frame's points as DIR/frame_STEP.png (the directory must exist)");
+  app.add_option("--resampling", resampling, "gridlines (the seed's re-generation) | markers")->capture_default_str();
+  app.add_option("--marker-spacing", marker_spacing, "markers: thinning distance in units of h")->capture_default_str();
+  app.add_option("--marker-gap", marker_gap, "markers: gap-filling distance in units of h")->capture_default_str();
   app.add_option("--shape", shape_name, "sphere | slotted (default: the test's own shape)");
   CLI11_PARSE(app, argc, argv);
   const bool zalesak = test == "zalesak";
@@ -46,6 +51,10 @@ int main(int argc, char** argv) {
   front::TrackingParams p;
   p.h = 1.0 / cells;
   p.support_factor = support;
+  if (resampling != "gridlines" && resampling != "markers") return std::fprintf(stderr, "unknown --resampling\n"), 2;
+  p.resampling = resampling == "markers" ? front::Resampling::kMarkers : front::Resampling::kGridlines;
+  p.marker_spacing = marker_spacing;
+  p.marker_gap = marker_gap;
   if (zalesak) {
     p.dt = dt > 0 ? dt : 1.0;
     p.steps = steps > 0 ? steps : static_cast<int>(std::lround(628 / p.dt));
@@ -63,7 +72,7 @@ int main(int argc, char** argv) {
   auto e1_initial = front::ShapeError(*initial, shape, p.h);
   if (!e1_initial.ok()) return std::fprintf(stderr, "%s\n", e1_initial.status().ToString().c_str()), 1;
   const auto field = zalesak ? front::ZalesakRotation() : front::EnrightDeformation(period);
-  std::printf("%s h=1/%d dt=%g steps=%d%s\n", test.c_str(), cells, p.dt, p.steps,
+  std::printf("%s h=1/%d dt=%g steps=%d resampling=%s%s\n", test.c_str(), cells, p.dt, p.steps, resampling.c_str(),
               zalesak ? "" : (" T=" + std::to_string(period)).c_str());
   std::printf("%6s %9s %9s %12s %12s %9s%s\n", "step", "time", "points", "volume", "change_%", "wall_s",
               mesh_check ? "  mesh_volume mesh_vs_grid_%" : "");

@@ -353,6 +353,7 @@ int main(int argc, char** argv) {
   double period = 3, h = 1.0 / 128, dt = 1;
   int steps = 100, stride = 10;
   bool track_meshes = false;
+  std::string resampling = "markers";
   track->add_option("--interface", interface, "zalesak | sphere | FILE (oriented cloud in the unit cube)")
       ->capture_default_str();
   track->add_option("--field", field,
@@ -363,6 +364,11 @@ int main(int argc, char** argv) {
   track->add_option("--dt", dt, "time step")->capture_default_str();
   track->add_option("--steps", steps, "number of steps")->capture_default_str();
   track->add_option("--stride", stride, "write a frame every this many steps")->capture_default_str();
+  track->add_option("--resampling", resampling,
+                    "markers (advected points kept, gaps filled; keeps thin sheets) | gridlines (the seed's "
+                    "re-generation every step)")
+      ->check(CLI::IsMember({"markers", "gridlines"}))
+      ->capture_default_str();
   track->add_flag("--meshes", track_meshes, "also write a mesh of every frame and its volume (mesh_volume in stats.csv)");
   track->add_option("-o,--output", output, "folder for frame_NNNNN.drc, stats.csv and summary.txt")->required();
   bool pictures = false;
@@ -424,7 +430,8 @@ int main(int argc, char** argv) {
     o.params = {StrCat("interface=", interface == "sphere" ? 1 : interface == "zalesak" ? 2 : 0),
                 StrCat("field=", field == "rotation" ? 0 : field == "deformation" ? 1 : 2), StrCat("period=", period),
                 StrCat("cells=", std::lround(cells)), StrCat("dt=", dt), StrCat("steps=", steps),
-                StrCat("stride=", stride), StrCat("meshes=", track_meshes ? 1 : 0)};
+                StrCat("stride=", stride), StrCat("meshes=", track_meshes ? 1 : 0),
+                StrCat("resampling=", resampling == "markers" ? 1 : 0)};
     if (pictures) {
       o.preview.emplace();
       *o.preview->mutable_options() = view.Options();

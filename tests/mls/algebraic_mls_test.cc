@@ -86,6 +86,39 @@ TEST(AlgebraicMls, BothFitsReproduceASphereExactly) {
   }
 }
 
+// A slab far thinner than the support: the planes z = ±0.1h, sampled on a grid of step h with
+// outward normals ±z. Fitted to one face each, the value is the exact signed distance to that
+// face and the gradient its normal, however close the other face is.
+TEST(AlgebraicMls, FacingFitKeepsTheTwoFacesOfAThinSheetApart) {
+  const double h = 0.01, half = 0.1 * h;
+  core::PointCloud cloud;
+  for (int i = -20; i <= 20; ++i) {
+    for (int j = -20; j <= 20; ++j) {
+      for (double side : {-1.0, 1.0}) {
+        // The lower face is shifted by half a step so that the two faces do not pair up.
+        const double shift = side < 0 ? 0.5 * h : 0;
+        cloud.positions.push_back(Vec3d(i * h + shift, j * h + shift, side * half).cast<float>());
+        cloud.normals.push_back(Vec3d(0, 0, side).cast<float>());
+      }
+    }
+  }
+  AlgebraicMlsParams p;
+  p.spacing = h;
+  auto f = Build(cloud, p);
+  ASSERT_TRUE(f);
+  for (const Vec3d& x : {Vec3d(0.013, -0.021, 0.0), Vec3d(-0.04, 0.05, 0.3 * h), Vec3d(0.07, 0.002, -1.2 * h)}) {
+    for (double side : {-1.0, 1.0}) {
+      const core::FieldGradient one = f->ValueAndGradientFacing(x, Vec3d(0.2, -0.1, side), 0.0);
+      ASSERT_TRUE(one.defined) << x.transpose();
+      EXPECT_NEAR(one.value, side * (x.z() - side * half), 1e-6) << x.transpose() << " side " << side;
+      EXPECT_NEAR(one.gradient.z(), side, 1e-6);
+      EXPECT_NEAR(one.gradient.head<2>().norm(), 0.0, 1e-6);
+    }
+  }
+  // Facing away from every point: nothing to fit.
+  EXPECT_FALSE(f->ValueAndGradientFacing(Vec3d::Zero(), Vec3d(1, 0, 0), 0.5).defined);
+}
+
 // METHODS.md §2.6: the RAMLS surface of a torus converges at about second order as h halves.
 TEST(AlgebraicMls, RamlsTorusErrorFallsAtAboutSecondOrder) {
   const double R = 0.3, r = 0.12;

@@ -6,11 +6,13 @@
 #include <cmath>
 #include <limits>
 #include <numbers>
+#include <numeric>
 
 #include "absl/container/flat_hash_map.h"
 #include "worker/core/implicit_function.h"
 #include "worker/core/isosurface.h"
 #include "worker/core/j1a.h"
+#include "worker/core/kd_tree.h"
 #include "worker/core/parallel.h"
 #include "worker/core/status.h"
 #include "worker/core/strings.h"
@@ -277,31 +279,46 @@ std::vector<NodeKey> NodesNear(std::span<const Vec3f> points, double h, std::vec
   return nodes;
 }
 
+// Points bucketed in cubes of edge `cell`, for the question "does a point facing the same way
+// lie within d ≤ cell of here?" (the two sides of a sheet thinner than d do not count).
+class SpacingGrid {
+ public:
+  explicit SpacingGrid(double cell) : cell_(cell) {}
+  bool HasNear(const Vec3f& p, const Vec3f& normal, double distance) const {
+    const double d2 = distance * distance;
+    for (int d = 0; d < 27; ++d) {
+      const auto it = buckets_.find(Bucket(p, d % 3 - 1, (d / 3) % 3 - 1, d / 9 - 1));
+      if (it == buckets_.end()) continue;
+      for (uint32_t k : it->second) {
+        if (normals_[k].dot(normal) >= 0 && (points_[k] - p).squaredNorm() < d2) return true;
+      }
+    }
+    return false;
+  }
+  void Add(const Vec3f& p, const Vec3f& normal) {
+    buckets_[Bucket(p, 0, 0, 0)].push_back(static_cast<uint32_t>(points_.size()));
+    points_.push_back(p);
+    normals_.push_back(normal);
+  }
+
+ private:
+  uint64_t Bucket(const Vec3f& p, int dx, int dy, int dz) const {
+    auto c = [&](int a, int d) { return static_cast<uint64_t>(static_cast<int64_t>(std::floor(p[a] / cell_)) + d + (1 << 20)); };
+    return c(0, dx) | (c(1, dy) << 21) | (c(2, dz) << 42);
+  }
+  double cell_;
+  absl::flat_hash_map<uint64_t, std::vector<uint32_t>> buckets_;
+  std::vector<Vec3f> points_, normals_;
+};
+
 // Greedy thinning in the given order: a point is kept unless a kept point facing the same way
 // lies within h/2 (the two sides of a sheet thinner than h/2 both stay).
 Front Thin(const std::vector<Crossing>& crossings, double h) {
-  const double min_distance = 0.5 * h;
-  absl::flat_hash_map<uint64_t, std::vector<uint32_t>> buckets;
-  auto bucket_of = [&](const Vec3f& p, int dx, int dy, int dz) {
-    auto c = [&](int a, int d) { return static_cast<uint64_t>(static_cast<int64_t>(std::floor(p[a] / min_distance)) + d + (1 << 20)); };
-    return c(0, dx) | (c(1, dy) << 21) | (c(2, dz) << 42);
-  };
+  SpacingGrid kept(0.5 * h);
   Front front;
   for (const Crossing& c : crossings) {
-    bool near = false;
-    for (int d = 0; d < 27 && !near; ++d) {
-      const auto it = buckets.find(bucket_of(c.point, d % 3 - 1, (d / 3) % 3 - 1, d / 9 - 1));
-      if (it == buckets.end()) continue;
-      for (uint32_t k : it->second) {
-        if (front.normals[k].dot(c.normal) < 0) continue;  // The other side of a thin sheet.
-        if ((front.points[k] - c.point).squaredNorm() < min_distance * min_distance) {
-          near = true;
-          break;
-        }
-      }
-    }
-    if (near) continue;
-    buckets[bucket_of(c.point, 0, 0, 0)].push_back(static_cast<uint32_t>(front.points.size()));
+    if (kept.HasNear(c.point, c.normal, 0.5 * h)) continue;
+    kept.Add(c.point, c.normal);
     front.points.push_back(c.point);
     front.normals.push_back(c.normal);
   }
@@ -319,6 +336,94 @@ absl::StatusOr<std::unique_ptr<mls::AlgebraicMlsFunction>> FrontFunction(const F
   p.support_factor = support_factor;
   p.side_cosine = kSideCosine;
   return mls::BuildAlgebraicMls(cloud, p, ctx);
+}
+
+// Marker points carry the step they were made at; older markers have been moved by the exact
+// flow for longer and outrank younger ones when two crowd each other.
+struct Markers {
+  Front front;
+  std::vector<int> birth;
+};
+
+// Drops every marker that an older (or, at equal age, earlier) kept marker facing the same way
+// lies within `min_distance` of.
+void ThinMarkers(Markers& m, double min_distance) {
+  std::vector<uint32_t> order(m.front.points.size());
+  std::iota(order.begin(), order.end(), 0u);
+  std::stable_sort(order.begin(), order.end(), [&](uint32_t a, uint32_t b) { return m.birth[a] < m.birth[b]; });
+  SpacingGrid kept(min_distance);
+  std::vector<char> keep(order.size(), 0);
+  for (uint32_t i : order) {
+    if (kept.HasNear(m.front.points[i], m.front.normals[i], min_distance)) continue;
+    kept.Add(m.front.points[i], m.front.normals[i]);
+    keep[i] = 1;
+  }
+  Markers out;
+  for (size_t i = 0; i < keep.size(); ++i) {
+    if (!keep[i]) continue;
+    out.front.points.push_back(m.front.points[i]);
+    out.front.normals.push_back(m.front.normals[i]);
+    out.birth.push_back(m.birth[i]);
+  }
+  m = std::move(out);
+}
+
+// Where the flow has stretched the markers apart, adds new ones. The midpoint of two markers
+// facing the same way (within 60°) and at most 2h apart, with no marker facing that way within
+// `gap` of it, is projected onto the RAMLS surface fitted to that side alone (the markers facing
+// within 90° of the pair), so the two faces of a sheet never mix however thin it is. Midpoints
+// only interpolate: a spot beyond the last marker, at a sheet's rim, is never made up. A
+// projection that does not settle on the surface within h/2 is dropped.
+absl::Status FillGaps(Markers& m, int step, double h, double gap, double support_factor, core::JobContext& ctx) {
+  constexpr int kProjections = 3;
+  constexpr double kPairCosine = 0.5;
+  const double reach = 2 * h;
+  auto field = FrontFunction(m.front, h, support_factor, ctx);
+  if (!field.ok()) return field.status();
+  const core::KdTree tree(m.front.points);
+  SpacingGrid grid(gap);
+  for (size_t i = 0; i < m.front.points.size(); ++i) grid.Add(m.front.points[i], m.front.normals[i]);
+  const size_t n = m.front.points.size();
+  std::vector<std::vector<Crossing>> spots(n);
+  LSQSURF_RETURN_IF_ERROR(core::ParallelFor(n, 256, [&](size_t b, size_t e) {
+    std::vector<core::Neighbor> near;
+    for (size_t i = b; i < e; ++i) {
+      const Vec3f& pi = m.front.points[i];
+      const Vec3f& ni = m.front.normals[i];
+      tree.Radius(pi, static_cast<float>(reach), near);
+      for (const core::Neighbor& q : near) {
+        if (q.index <= i || q.distance2 < 4 * gap * gap) continue;
+        const Vec3f& nj = m.front.normals[q.index];
+        if (ni.dot(nj) < kPairCosine) continue;
+        const Vec3d mid = 0.5 * (pi + m.front.points[q.index]).cast<double>();
+        const Vec3d facing = (ni + nj).cast<double>().normalized();
+        if (grid.HasNear(mid.cast<float>(), facing.cast<float>(), gap)) continue;
+        Vec3d x = mid;
+        core::FieldGradient g;
+        bool ok = true;
+        for (int it = 0; it <= kProjections && ok; ++it) {
+          g = (*field)->ValueAndGradientFacing(x, facing, 0.0);
+          const double g2 = g.gradient.squaredNorm();
+          ok = g.defined && g2 > 0;
+          if (ok && it < kProjections) x -= g.value / g2 * g.gradient;
+        }
+        if (!ok || !x.allFinite() || std::abs(g.value) > 1e-3 * h || (x - mid).norm() > 0.5 * h) continue;
+        const Vec3d fitted = g.gradient.normalized();
+        if (fitted.dot(facing) < kPairCosine) continue;  // The fit turned away from its own side.
+        spots[i].push_back({x.cast<float>(), fitted.cast<float>()});
+      }
+    }
+  }, &ctx));
+  for (const std::vector<Crossing>& around : spots) {
+    for (const Crossing& c : around) {
+      if (grid.HasNear(c.point, c.normal, gap)) continue;
+      grid.Add(c.point, c.normal);
+      m.front.points.push_back(c.point);
+      m.front.normals.push_back(c.normal);
+      m.birth.push_back(step);
+    }
+  }
+  return absl::OkStatus();
 }
 
 // The z-gridline crossings, on a grid of spacing `grid`, of the RAMLS function (spacing h) of
@@ -385,6 +490,12 @@ absl::Status Validate(const TrackingParams& p) {
   if (p.max_points < 4) return absl::InvalidArgumentError("max_points must be at least 4");
   if (!(p.support_factor >= 1.5 && p.support_factor <= 10)) {
     return absl::InvalidArgumentError("support_factor must be in [1.5, 10]");
+  }
+  if (!(p.marker_spacing >= 0.1 && p.marker_spacing <= 1)) {
+    return absl::InvalidArgumentError("marker_spacing must be in [0.1, 1] (units of h)");
+  }
+  if (!(p.marker_gap > p.marker_spacing && p.marker_gap <= 1)) {
+    return absl::InvalidArgumentError("marker_gap must be in (marker_spacing, 1] (units of h)");
   }
   return absl::OkStatus();
 }
@@ -492,7 +603,8 @@ absl::Status Track(const Front& initial, const VelocityField& velocity, const Tr
   }
   const double h = params.h, dt = params.dt;
   std::vector<bool> marks;
-  Front front = initial;
+  Markers markers{initial, std::vector<int>(initial.points.size(), 0)};
+  Front& front = markers.front;
   auto z0 = ZCrossings(front, h, h, params.support_factor, marks, ctx);
   if (!z0.ok()) return z0.status();
   const double v0 = VolumeOf(*z0, h);
@@ -527,12 +639,21 @@ absl::Status Track(const Front& initial, const VelocityField& velocity, const Tr
     if (!finite) {
       return absl::InvalidArgumentError(core::StrCat("the velocity field gave a non-finite value at step ", step));
     }
-    // 2. Re-generation on the gridlines, 3. thinning.
-    auto field = FrontFunction(front, h, params.support_factor, ctx);
-    if (!field.ok()) return field.status();
-    auto sampled = SampleGridlines(**field, NodesNear(front.points, h, marks), h, false, ctx);
-    if (!sampled.ok()) return sampled.status();
-    front = Thin(sampled->crossings, h);
+    std::vector<ZCrossing> z_crossings;
+    if (params.resampling == Resampling::kGridlines) {
+      // 2. Re-generation on the gridlines, 3. thinning.
+      auto field = FrontFunction(front, h, params.support_factor, ctx);
+      if (!field.ok()) return field.status();
+      auto sampled = SampleGridlines(**field, NodesNear(front.points, h, marks), h, false, ctx);
+      if (!sampled.ok()) return sampled.status();
+      front = Thin(sampled->crossings, h);
+      markers.birth.assign(front.points.size(), step);
+      z_crossings = std::move(sampled->z_crossings);
+    } else {
+      // 2. Markers that crowd are thinned, 3. gaps are filled.
+      ThinMarkers(markers, params.marker_spacing * h);
+      LSQSURF_RETURN_IF_ERROR(FillGaps(markers, step, h, params.marker_gap * h, params.support_factor, ctx));
+    }
     if (front.points.size() < 4) {
       return absl::FailedPreconditionError(core::StrCat("the front vanished at step ", step,
                                                         ": it became thinner than the grid spacing h"));
@@ -546,7 +667,12 @@ absl::Status Track(const Front& initial, const VelocityField& velocity, const Tr
       stats.step = step;
       stats.time = step * dt;
       stats.points = front.points.size();
-      stats.volume = VolumeOf(sampled->z_crossings, h);
+      if (params.resampling == Resampling::kMarkers) {
+        auto z = ZCrossings(front, h, h, params.support_factor, marks, ctx);
+        if (!z.ok()) return z.status();
+        z_crossings = std::move(*z);
+      }
+      stats.volume = VolumeOf(z_crossings, h);
       stats.volume_change = (stats.volume - v0) / v0;
       stats.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - since).count();
       LSQSURF_RETURN_IF_ERROR(on_frame(stats, front));

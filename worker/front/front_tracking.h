@@ -5,11 +5,16 @@
 //  1. each point moves with classical RK4 along the velocity field; its normal is carried by the
 //     flow's Jacobian (n ← n − Δt ∇vᵀ n, renormalized; the seed keeps the old normal, which then
 //     lags the surface by the rotation of one step);
-//  2. the RAMLS function of the moved points (support 3h) is sampled at the background-grid nodes
-//     near them (spacing h), and every grid edge along x, y or z whose ends have opposite signs
-//     gives a new point: the root of F on that edge (Illinois regula falsi), with the normal of
-//     the fitted sphere there;
-//  3. new points closer than h/2 to an already kept one are dropped (greedy, in grid order).
+//  2. the points are re-sampled through the RAMLS function of the moved points (support 3h), in
+//     one of two ways (Resampling):
+//     * markers (the default): the moved points stay. Of two facing the same way closer than
+//       h/2, the younger goes; the midpoint of two that the flow has pulled apart is projected
+//       onto the RAMLS surface of their side and becomes a new point. Only new points carry a
+//       fitting error, and a sheet's two faces are never fitted together.
+//     * gridlines (the seed's): the function is sampled at the background-grid nodes near the
+//       points (spacing h); every grid edge whose ends have opposite signs gives a new point (the
+//       root on the edge, Illinois regula falsi, with the fitted sphere's normal); new points
+//       closer than h/2 to an already kept one are dropped. The whole front is replaced.
 // The enclosed volume comes from the z-edges: along each z gridline the crossings alternate
 // between entering (F goes from + to −) and leaving, and V = h² Σ (z_leave − z_enter).
 #pragma once
@@ -55,6 +60,18 @@ struct Front {
   std::vector<core::Vec3f> normals;  // Unit, outward.
 };
 
+// What keeps the front's points spread over the surface after each advection step.
+enum class Resampling {
+  // The seed's: the front is replaced every step by the roots of its RAMLS function on the
+  // gridlines of spacing h, thinned to h/2. Each replacement projects once more, and sheets
+  // thinner than about 2h are lost (worker/front/README.md).
+  kGridlines,
+  // The advected points stay (markers): where they crowd, the younger of two facing the same way
+  // within marker_spacing·h goes; where the flow stretches them apart, a new marker is projected
+  // onto the RAMLS surface of that side alone. Only the new markers carry a fitting error.
+  kMarkers,
+};
+
 struct TrackingParams {
   double h = 1.0 / 128;        // Background grid spacing in the unit cube [0, 1]³, 1/512..1/8.
   double dt = 1.0;             // Time step, > 0.
@@ -62,6 +79,10 @@ struct TrackingParams {
   int output_stride = 1;       // Report every this many steps (and the last), ≥ 1.
   double support_factor = 3.0; // RAMLS support radius in units of h (the seed's 3).
   size_t max_points = 4'000'000;  // A front that grows past this stops with kResourceExhausted.
+  Resampling resampling = Resampling::kMarkers;
+  double marker_spacing = 0.5; // kMarkers: the closest two markers facing the same way may come, units of h, 0.1..1.
+  double marker_gap = 0.75;    // kMarkers: a spot h from a marker with no marker within this gets one, units of h,
+                               // (marker_spacing, 1].
 };
 
 absl::Status Validate(const TrackingParams& params);

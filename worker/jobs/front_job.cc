@@ -30,8 +30,9 @@ double Param(const ParameterMap& parameters, const char* name) {
 MethodSpec TrackMethod() {
   const front::TrackingParams p;
   MethodSpec m{kTrackMethod,
-               "front tracking (seed §3): advects an interface with RK4 and re-samples it on the gridlines "
-               "through its RAMLS surface every step; results are frames, stats.csv and summary.txt",
+               "front tracking (seed §3): advects an interface with RK4 and keeps it sampled through its RAMLS "
+               "surface every step (markers, or the seed's gridline re-generation); results are frames, stats.csv "
+               "and summary.txt",
                {}, {}};
   m.parameters = {
       {"interface", kUploaded, 0, 2, true, "0: the uploaded oriented cloud; 1: sphere r=0.15 at (0.35,0.35,0.35); "
@@ -44,6 +45,15 @@ MethodSpec TrackMethod() {
       {"steps", 100, 1, 100000, true, "number of steps"},
       {"stride", 10, 1, 100000, true, "write a frame every this many steps (and after the last)"},
       {"support_factor", p.support_factor, 1.5, 10, false, "RAMLS support radius in units of h"},
+      {"resampling", p.resampling == front::Resampling::kMarkers ? 1.0 : 0.0, 0, 1, true,
+       "1: markers (the advected points stay; crowded ones are thinned, stretched gaps filled from the RAMLS "
+       "surface of their side; keeps sheets thinner than h); 0: the seed's re-generation on the gridlines every "
+       "step"},
+      {"marker_spacing", p.marker_spacing, 0.1, 1, false,
+       "resampling=1: of two markers facing the same way closer than this (units of h), the younger goes"},
+      {"marker_gap", p.marker_gap, 0.15, 1, false,
+       "resampling=1: a midpoint of two markers with no marker within this (units of h) gets a new one; "
+       "must exceed marker_spacing"},
       {"max_points", static_cast<double>(p.max_points), 100, 50'000'000, true,
        "stop with an error if the front grows past this many points"},
       {"meshes", 0, 0, 1, true, "1: also write frame_NNNNN_mesh.drc (the RAMLS surface on cubes of edge h) and "
@@ -70,6 +80,9 @@ absl::StatusOr<TrackOutput> RunTrackJob(const ParameterMap& parameters, const co
   tp.output_stride = static_cast<int>(Param(parameters, "stride"));
   tp.support_factor = Param(parameters, "support_factor");
   tp.max_points = static_cast<size_t>(Param(parameters, "max_points"));
+  tp.resampling = Param(parameters, "resampling") != 0 ? front::Resampling::kMarkers : front::Resampling::kGridlines;
+  tp.marker_spacing = Param(parameters, "marker_spacing");
+  tp.marker_gap = Param(parameters, "marker_gap");
   LSQSURF_RETURN_IF_ERROR(front::Validate(tp));
   const double period = Param(parameters, "period");
   const int field_kind = static_cast<int>(Param(parameters, "field"));

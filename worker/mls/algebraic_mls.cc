@@ -49,8 +49,10 @@ struct AlgebraicMlsFunction::Impl {
   AlgebraicMlsParams params;
   double h = 1, radius = 1;
 
-  // F and the fitted sphere's gradient at x; `defined` as documented in the header.
-  core::FieldGradient Evaluate(const Vec3d& x) const {
+  // F and the fitted sphere's gradient at x; `defined` as documented in the header. With
+  // `facing`, only the points whose normal n has n·facing ≥ min_cosine enter the fit, in place of
+  // the side rule of the parameters.
+  core::FieldGradient Evaluate(const Vec3d& x, const Vec3f* facing = nullptr, float min_cosine = -1) const {
     thread_local std::vector<core::Neighbor> near;
     kd_tree->Radius(x.cast<float>(), static_cast<float>(radius), near);
     core::FieldGradient out;
@@ -63,9 +65,10 @@ struct AlgebraicMlsFunction::Impl {
     double nearest2 = std::numeric_limits<double>::infinity();
     // The side rule needs the nearest point's normal before the sums; without it the nearest
     // distance is tracked in the one pass.
-    const bool one_side = params.side_cosine > -1;
-    Vec3f nearest_normal = Vec3f::Zero();
-    if (one_side) {
+    const bool one_side = facing != nullptr || params.side_cosine > -1;
+    const double side_cosine = facing != nullptr ? min_cosine : params.side_cosine;
+    Vec3f nearest_normal = facing != nullptr ? *facing : Vec3f::Zero();
+    if (one_side && facing == nullptr) {
       for (const core::Neighbor& q : near) {
         if (q.distance2 < nearest2) {
           nearest2 = q.distance2;
@@ -76,9 +79,9 @@ struct AlgebraicMlsFunction::Impl {
     const double r2 = radius * radius;
     for (const core::Neighbor& q : near) {
       const double d2 = q.distance2;
-      nearest2 = std::min(nearest2, d2);
       if (d2 >= r2) continue;
-      if (one_side && nearest_normal.dot(normals[q.index]) < params.side_cosine) continue;
+      if (one_side && nearest_normal.dot(normals[q.index]) < side_cosine) continue;
+      nearest2 = std::min(nearest2, d2);
       const double t = 1 - d2 / r2, w = t * t * t * t;
       const Vec3d y = (positions[q.index].cast<double>() - x) / radius;
       const Vec3d n = normals[q.index].cast<double>();
@@ -156,6 +159,12 @@ core::FieldValue AlgebraicMlsFunction::Value(const Vec3d& x) const {
 double AlgebraicMlsFunction::ValueOnly(const Vec3d& x) const { return impl_->Evaluate(x).value; }
 
 core::FieldGradient AlgebraicMlsFunction::ValueAndGradient(const Vec3d& x) const { return impl_->Evaluate(x); }
+
+core::FieldGradient AlgebraicMlsFunction::ValueAndGradientFacing(const Vec3d& x, const Vec3d& facing,
+                                                                 double min_cosine) const {
+  const Vec3f unit = facing.normalized().cast<float>();
+  return impl_->Evaluate(x, &unit, static_cast<float>(min_cosine));
+}
 
 absl::StatusOr<std::unique_ptr<AlgebraicMlsFunction>> BuildAlgebraicMls(const core::PointCloud& cloud,
                                                                        const AlgebraicMlsParams& params,

@@ -58,6 +58,10 @@ class AlgebraicMlsFunction final : public core::ImplicitFunction {
   // of the moving fit: exact for a sphere, first-order accurate elsewhere.
   core::FieldGradient ValueAndGradient(const core::Vec3d& x) const override;
   double ValueOnly(const core::Vec3d& x) const override;
+  // F and gradient fitted only to the points whose normal n has n·facing ≥ min_cosine (facing
+  // need not be unit), in place of the side rule of the parameters: one side of a sheet thinner
+  // than the support, chosen by the caller. `defined` counts only those points.
+  core::FieldGradient ValueAndGradientFacing(const core::Vec3d& x, const core::Vec3d& facing, double min_cosine) const;
 
   double spacing() const { return h_; }
   double support_radius() const;

@@ -461,6 +461,16 @@ Eigen::Matrix3d Jacobian(const VelocityField& v, const Vec3d& x, double t) {
 
 }  // namespace
 
+double ShapeDistance(InitialShape shape, const Vec3d& x) { return std::abs(ShapeField(shape).Value(x).value); }
+
+Vec3d Rk4Step(const VelocityField& v, const Vec3d& x, double t, double dt) {
+  const Vec3d k1 = v.At(x, t);
+  const Vec3d k2 = v.At(x + 0.5 * dt * k1, t + 0.5 * dt);
+  const Vec3d k3 = v.At(x + 0.5 * dt * k2, t + 0.5 * dt);
+  const Vec3d k4 = v.At(x + dt * k3, t + dt);
+  return x + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4);
+}
+
 std::unique_ptr<VelocityField> ZalesakRotation() { return std::make_unique<ZalesakField>(); }
 std::unique_ptr<VelocityField> EnrightDeformation(double period) { return std::make_unique<EnrightField>(period); }
 
@@ -621,11 +631,7 @@ absl::Status Track(const Front& initial, const VelocityField& velocity, const Tr
     LSQSURF_RETURN_IF_ERROR(core::ParallelFor(front.points.size(), 512, [&](size_t b, size_t e) {
       for (size_t i = b; i < e; ++i) {
         const Vec3d p = front.points[i].cast<double>();
-        const Vec3d k1 = velocity.At(p, t);
-        const Vec3d k2 = velocity.At(p + 0.5 * dt * k1, t + 0.5 * dt);
-        const Vec3d k3 = velocity.At(p + 0.5 * dt * k2, t + 0.5 * dt);
-        const Vec3d k4 = velocity.At(p + dt * k3, t + dt);
-        const Vec3d moved = p + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4);
+        const Vec3d moved = Rk4Step(velocity, p, t, dt);
         const Vec3d n = front.normals[i].cast<double>();
         const Vec3d turned = n - dt * Jacobian(velocity, 0.5 * (p + moved), t + 0.5 * dt).transpose() * n;
         if (!moved.allFinite() || !turned.allFinite() || !(turned.norm() > 0)) {

@@ -49,11 +49,20 @@ std::unique_ptr<VelocityField> EnrightDeformation(double period);
 absl::StatusOr<std::unique_ptr<VelocityField>> GridVelocity(core::Vec3d origin, core::Vec3d spacing, int nx, int ny,
                                                             int nz, std::vector<core::Vec3d> values);
 
+// One classical RK4 step of dx/dt = v(x, t) from (x, t) to t + dt (dt may be negative: the flow
+// run backwards).
+core::Vec3d Rk4Step(const VelocityField& v, const core::Vec3d& x, double t, double dt);
+
 // The analytic interfaces of the benchmarks (BENCHMARKS.md), inside = F < 0.
 enum class InitialShape {
   kSphere,         // Radius 0.15 at (0.35, 0.35, 0.35): Enright's deformation test.
   kZalesakSphere,  // Radius 0.15 at (0.5, 0.75, 0.5), slot 0.05 wide cut from y = 0.6 to 0.725.
 };
+
+// How far x lies from the exact shape's surface: the distance for the sphere; for the slotted
+// sphere the larger of the distances to the sphere and to the slot (exact except near the
+// slot's edges, where it is smaller).
+double ShapeDistance(InitialShape shape, const core::Vec3d& x);
 
 struct Front {
   std::vector<core::Vec3f> points;

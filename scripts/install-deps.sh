@@ -2,7 +2,9 @@
 # Installs every Debian package lsqsurf needs to build, test and benchmark.
 # Idempotent: packages already present are skipped, so a second run is quick.
 # --with-poisson also installs Open3D (libopen3d-dev, large), needed only by the benchmark
-# preset `bench-poisson` that runs screened Poisson side by side.
+# preset `bench-poisson` that runs screened Poisson side by side; --with-openvdb installs
+# libopenvdb-dev, needed only by the preset `bench-openvdb` (the level-set reference of the
+# front-tracking benchmarks). Both may be given.
 set -euo pipefail
 
 packages=(
@@ -14,7 +16,13 @@ packages=(
   libsqlite3-dev libabsl-dev libtbb-dev libcli11-dev
   libegl-dev libgl-dev libegl-mesa0 libgl1-mesa-dri libstb-dev
 )
-if [[ "${1:-}" == "--with-poisson" ]]; then packages+=(libopen3d-dev); fi
+for option in "$@"; do
+  case "$option" in
+    --with-poisson) packages+=(libopen3d-dev) ;;
+    --with-openvdb) packages+=(libopenvdb-dev libboost-dev) ;;  # OpenVDB's headers include Boost's.
+    *) echo "install-deps: unknown option $option (--with-poisson, --with-openvdb)" >&2; exit 2 ;;
+  esac
+done
 
 missing=()
 for p in "${packages[@]}"; do

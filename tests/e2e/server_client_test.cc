@@ -489,10 +489,12 @@ TEST_F(EndToEnd, TrackWritesFramesAndStatistics) {
   EXPECT_EQ(rows, 3);
   EXPECT_FALSE(fs::exists(out / "summary.txt"));  // A quarter turn does not bring the shape back.
 
-  // An uploaded interface: the sampled sphere with its normals; without normals it is refused.
+  // An uploaded interface (through the seed's gridline re-generation; the sphere above used the
+  // default markers): the sampled sphere with its normals; without normals it is refused.
   const std::string cloud = WriteCloud("interface.ply", testing::SphereCloud(2000, 0.15, {0.5, 0.3, 0.5}));
   const ClientRun uploaded = Client(server.address(), "track --interface " + cloud +
-                                                          " --h 0.03125 --steps 2 --stride 1 -o " + (dir_ / "up").string());
+                                                          " --h 0.03125 --steps 2 --stride 1 --resampling gridlines -o " +
+                                                          (dir_ / "up").string());
   EXPECT_EQ(uploaded.code, 0) << uploaded.output;
   EXPECT_TRUE(fs::exists(dir_ / "up" / "frame_00002.drc"));
   core::PointCloud bare = testing::SphereCloud(2000, 0.15, {0.5, 0.3, 0.5});
@@ -501,6 +503,10 @@ TEST_F(EndToEnd, TrackWritesFramesAndStatistics) {
                                                          " --h 0.03125 -o " + (dir_ / "bare").string());
   EXPECT_NE(refused.code, 0);
   EXPECT_NE(refused.output.find("normals"), std::string::npos) << refused.output;
+  const ClientRun unknown = Client(server.address(), "track --interface sphere --resampling lagrange -o " +
+                                                         (dir_ / "unknown").string());
+  EXPECT_NE(unknown.code, 0);
+  EXPECT_NE(unknown.output.find("resampling"), std::string::npos) << unknown.output;
 }
 
 TEST_F(EndToEnd, TrackThroughAnUploadedVelocityGrid) {

@@ -90,8 +90,8 @@ struct TrackingParams {
   size_t max_points = 4'000'000;  // A front that grows past this stops with kResourceExhausted.
   Resampling resampling = Resampling::kMarkers;
   double marker_spacing = 0.5; // kMarkers: the closest two markers facing the same way may come, units of h, 0.1..1.
-  double marker_gap = 0.75;    // kMarkers: a spot h from a marker with no marker within this gets one, units of h,
-                               // (marker_spacing, 1].
+  double marker_gap = 0.75;    // kMarkers: the midpoint of two markers with no marker within this gets one,
+                               // units of h, (marker_spacing, 1].
 };
 
 absl::Status Validate(const TrackingParams& params);

@@ -39,7 +39,7 @@ std::pair<double, double> PreimageError(const lsqsurf::front::VelocityField& fie
     for (size_t i = b; i < e; ++i) {
       Vec3d x = front.points[i].cast<double>();
       for (int s = 0; s < steps; ++s) x = lsqsurf::front::Rk4Step(field, x, t + s * back, back);
-      error[i] = lsqsurf::front::ShapeDistance(shape, x);
+      error[i] = std::abs(lsqsurf::front::ShapeValue(shape, x));
     }
   }, &ctx);
   double sum = 0, max = 0;

@@ -43,13 +43,6 @@ class Field {
   const lsqsurf::front::VelocityField* v_;
 };
 
-// The benchmark shapes of BENCHMARKS.md (the same as lsqsurf::front::InitialShape).
-bool InsideExact(bool slotted, const Vec3d& x) {
-  const Vec3d centre = slotted ? Vec3d(0.5, 0.75, 0.5) : Vec3d(0.35, 0.35, 0.35);
-  if ((x - centre).norm() >= 0.15) return false;
-  return !(slotted && std::abs(x.x() - 0.5) <= 0.025 && x.y() <= 0.725);
-}
-
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -68,6 +61,7 @@ int main(int argc, char** argv) {
   if (cells < 16 || cells > 512 || frames < 1) return std::fprintf(stderr, "--cells in 16..512, --frames ≥ 1\n"), 2;
   openvdb::initialize();
   const double h = 1.0 / cells;
+  const auto shape = zalesak ? lsqsurf::front::InitialShape::kZalesakSphere : lsqsurf::front::InitialShape::kSphere;
 
   openvdb::FloatGrid::Ptr grid;
   if (zalesak) {
@@ -99,7 +93,7 @@ int main(int argc, char** argv) {
       for (double y = std::ceil(box_lo.y() / across) * across; y <= box_hi.y(); y += across) {
         for (double z = box_lo.z() + 0.5 * along; z < box_hi.z(); z += along) {
           const bool inside = sampler.wsSample(openvdb::Vec3d(x, y, z)) < 0;
-          if (inside != InsideExact(zalesak, Vec3d(x, y, z))) e1 += along;
+          if (inside != (lsqsurf::front::ShapeValue(shape, Vec3d(x, y, z)) < 0)) e1 += along;
         }
       }
     }

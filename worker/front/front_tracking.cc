@@ -461,7 +461,7 @@ Eigen::Matrix3d Jacobian(const VelocityField& v, const Vec3d& x, double t) {
 
 }  // namespace
 
-double ShapeDistance(InitialShape shape, const Vec3d& x) { return std::abs(ShapeField(shape).Value(x).value); }
+double ShapeValue(InitialShape shape, const Vec3d& x) { return ShapeField(shape).Value(x).value; }
 
 Vec3d Rk4Step(const VelocityField& v, const Vec3d& x, double t, double dt) {
   const Vec3d k1 = v.At(x, t);

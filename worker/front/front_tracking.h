@@ -59,10 +59,10 @@ enum class InitialShape {
   kZalesakSphere,  // Radius 0.15 at (0.5, 0.75, 0.5), slot 0.05 wide cut from y = 0.6 to 0.725.
 };
 
-// How far x lies from the exact shape's surface: the distance for the sphere; for the slotted
-// sphere the larger of the distances to the sphere and to the slot (exact except near the
-// slot's edges, where it is smaller).
-double ShapeDistance(InitialShape shape, const core::Vec3d& x);
+// The exact shape as a signed, distance-like value, < 0 inside: the signed distance for the
+// sphere; for the slotted sphere the larger of the sphere's and the slot's (exact except near
+// the slot's edges, where its magnitude is smaller).
+double ShapeValue(InitialShape shape, const core::Vec3d& x);
 
 struct Front {
   std::vector<core::Vec3f> points;

@@ -30,7 +30,9 @@
 #include "worker/core/surface_distance.h"
 #include "worker/io/draco_codec.h"
 #include "worker/io/files.h"
-#include "worker/jobs/engines.h"
+#include "worker/core/status.h"
+#include "worker/jobs/method_registry.h"
+#include "worker/jobs/surface_job.h"
 #if LSQSURF_WITH_POISSON
 #include "bench/poisson_open3d.h"
 #endif
@@ -132,16 +134,14 @@ std::string FirstLine(const std::string& cmd) {
   return line;
 }
 
-}  // namespace
 
-int main(int argc, char** argv) {
-  CLI::App app{"lsqsurf-bench: engines vs ground-truth meshes"};
+struct BenchOptions {
   std::string data_dir = "../shared/data/meshes";
   std::vector<std::string> models = {"stanford-bunny", "spot", "fandisk"};
   std::vector<size_t> sizes = {100000};
   std::vector<double> noises = {0.0};
   std::string method = "iamls";
-  std::vector<std::string> params;
+  std::vector<std::string> params;  // name=value, as the CLI's --param.
   size_t samples = 1'000'000;
   bool server = false;
   bool drop_normals = false;
@@ -149,37 +149,209 @@ int main(int argc, char** argv) {
   std::string save_dir;
   std::string bin_dir;
   int poisson_depth = 0;
-  app.add_option("--data", data_dir, "folder with <model>.obj ground-truth meshes")->capture_default_str();
-  app.add_option("--models", models, "model names")->capture_default_str();
-  app.add_option("--sizes", sizes, "cloud sizes")->capture_default_str();
-  app.add_option("--noise", noises, "noise sigma as a fraction of the diagonal (0 = clean)")->capture_default_str();
-  app.add_option("--method", method, "surface method")->capture_default_str();
-  app.add_option("--param", params, "method parameter name=value (repeatable)");
-  app.add_option("--samples", samples, "samples per surface for the distances")->capture_default_str();
-  app.add_flag("--server", server, "also run every case through lsqsurfd and the lsqsurf client");
-  app.add_option("--save", save_dir, "write every direct result to DIR/<model>-<points>-<noise>.ply");
-  app.add_flag("--stats", show_statistics, "print the engine's statistics of every direct run");
-  app.add_flag("--no-normals", drop_normals, "drop the sampled normals (the engines estimate them)");
-  app.add_option("--bin", bin_dir, "folder with lsqsurfd and lsqsurf (default: beside this program)");
-  app.add_option("--poisson-depth", poisson_depth,
+};
+
+// One benchmark case: a model's ground truth and a cloud sampled from it.
+struct BenchCase {
+  const core::TriangleMesh& truth;
+  const core::PointCloud& cloud;
+  std::string model;
+  size_t points = 0;
+  double noise = 0;
+};
+
+void Print(const BenchCase& c, const char* mode, const CaseResult& r) {
+  if (!r.error.empty()) {
+    std::printf("%-15s %8zu %6.4f %-7s failed: %s\n", c.model.c_str(), c.points, c.noise, mode, r.error.c_str());
+  } else {
+    std::printf("%-15s %8zu %6.4f %-7s %8.2f %9.0f %10lld %10.3e %10.3e %7.4f %6s %6lld %10.3e\n", c.model.c_str(),
+                c.points, c.noise, mode, r.seconds, r.peak_mib, static_cast<long long>(r.triangles), r.chamfer,
+                r.hausdorff, r.normal_consistency, r.watertight ? "yes" : "no", static_cast<long long>(r.components),
+                r.far_fraction);
+  }
+  std::fflush(stdout);
+}
+
+// The engine called in this process's child, as the service's worker calls it.
+CaseResult RunDirect(const BenchOptions& o, const core::ParamSet& params, const BenchCase& c) {
+  return InChild([&] {
+    CaseResult r;
+    core::LocalJobContext ctx;
+    const auto start = Clock::now();
+    auto result = jobs::ReconstructSurface(o.method, params, c.cloud, ctx);
+    r.seconds = Since(start);
+    if (!result.ok()) {
+      r.error = std::string(result.status().message());
+      return r;
+    }
+    if (!o.save_dir.empty()) {
+      const auto path = fs::path(o.save_dir) / core::StrCat(c.model, "-", c.points, "-", c.noise, ".ply");
+      if (absl::Status s = io::WriteMeshFile(path.string(), result->mesh); !s.ok()) {
+        std::fprintf(stderr, "%s\n", s.ToString().c_str());
+      }
+    }
+    if (o.show_statistics) {
+      for (const auto& [name, value] : result->statistics) std::printf("  %s=%g\n", name.c_str(), value);
+      std::fflush(stdout);
+    }
+    Measure(c.truth, result->mesh, o.samples, r);
+    return r;
+  });
+}
+
+#if LSQSURF_WITH_POISSON
+void RunPoisson(const BenchOptions& o, const BenchCase& c, const CaseResult& direct) {
+  const CaseResult poisson = InChild([&] {
+    CaseResult r;
+    const auto start = Clock::now();
+    auto mesh = bench::ScreenedPoisson(c.cloud, {.depth = o.poisson_depth});
+    r.seconds = Since(start);
+    if (!mesh.ok()) {
+      r.error = std::string(mesh.status().message());
+      return r;
+    }
+    Measure(c.truth, *mesh, o.samples, r);
+    return r;
+  });
+  Print(c, "poisson", poisson);
+  if (direct.error.empty() && poisson.error.empty()) {
+    std::printf("    %s / poisson depth %d: time %.2fx, peak memory %.2fx, Chamfer %.2fx, triangles %.2fx\n",
+                o.method.c_str(), o.poisson_depth, direct.seconds / poisson.seconds, direct.peak_mib / poisson.peak_mib,
+                direct.chamfer / poisson.chamfer,
+                static_cast<double>(direct.triangles) / static_cast<double>(poisson.triangles));
+  }
+}
+#endif
+
+// A real lsqsurfd on a free loopback port, in its own data folder; stopped on destruction.
+class BenchServer {
+ public:
+  BenchServer(const std::string& bin_dir, const fs::path& work) : work_(work) {
+    const std::string data = (work / "server-data").string();
+    fs::remove_all(data);
+    const std::string addr_file = (work / "address").string();
+    fs::remove(addr_file);
+    const std::string start = core::StrCat("(", bin_dir, "/lsqsurfd --listen 127.0.0.1:0 --data-dir ", data,
+                                           " 2>/dev/null & echo $! > ", work.string(), "/pid; wait) | head -1 > ",
+                                           addr_file, " &");
+    (void)std::system(start.c_str());
+    // The server prints "listening on ADDRESS" once it serves; the shell writes it on exit of head.
+    for (int i = 0; i < 100 && address_.empty(); ++i) {
+      std::this_thread::sleep_for(std::chrono::milliseconds(50));
+      std::ifstream in(addr_file);
+      std::string word;
+      in >> word >> word >> address_;
+    }
+    std::ifstream pid_in(work / "pid");
+    pid_in >> pid_;
+  }
+  ~BenchServer() {
+    if (pid_ > 0) ::kill(static_cast<pid_t>(pid_), SIGTERM);
+    std::this_thread::sleep_for(std::chrono::milliseconds(300));
+  }
+  const std::string& address() const { return address_; }
+  double PeakMib() const {
+    std::ifstream status(core::StrCat("/proc/", pid_, "/status"));
+    for (std::string line; std::getline(status, line);) {
+      if (line.rfind("VmHWM:", 0) == 0) return std::stod(line.substr(6)) / 1024.0;
+    }
+    return 0;
+  }
+
+ private:
+  fs::path work_;
+  std::string address_;
+  long pid_ = 0;
+};
+
+// The same cloud through a real server and the real client: upload, reconstruct, download.
+void RunService(const BenchOptions& o, const BenchCase& c, const fs::path& work) {
+  const std::string cloud_path = (work / "cloud.drc").string(), mesh_path = (work / "mesh.drc").string();
+  const auto t_encode = Clock::now();
+  auto encoded = io::EncodeDracoPointCloud(c.cloud, {});
+  const double encode_s = Since(t_encode);
+  const auto t_decode = Clock::now();
+  (void)io::DecodeDracoPointCloud(*encoded);
+  const double decode_s = Since(t_decode);
+  (void)io::WriteFileAtomically(cloud_path, *encoded);
+  BenchServer server(o.bin_dir, work);
+  const std::string client = core::StrCat(o.bin_dir, "/lsqsurf -q --server ", server.address(), " ");
+  std::string param_args;
+  for (const auto& p : o.params) param_args += " --param " + p;
+  const auto t_upload = Clock::now();
+  const std::string submitted = FirstLine(client + "submit " + cloud_path + " --method " + o.method + param_args);
+  const double upload_s = Since(t_upload);
+  // That job only measured the upload: cancel it so it does not delay the timed one.
+  if (!submitted.empty()) RunTool(client + "cancel " + submitted);
+  const auto t_e2e = Clock::now();
+  const int rc =
+      RunTool(client + "reconstruct " + cloud_path + " -o " + mesh_path + " --method " + o.method + param_args);
+  const double seconds = Since(t_e2e);
+  const double peak = server.PeakMib();
+  CaseResult r;
+  if (rc != 0 || submitted.empty()) {
+    r.error = "the client failed";
+  } else {
+    // Measured in a child too: this process must never start oneTBB's workers (see InChild).
+    r = InChild([&] {
+      CaseResult m;
+      auto mesh = io::ReadMeshFile(mesh_path);
+      if (!mesh.ok()) m.error = std::string(mesh.status().message());
+      else Measure(c.truth, *mesh, o.samples, m);
+      return m;
+    });
+  }
+  r.seconds = seconds;
+  r.peak_mib = peak;
+  Print(c, "service", r);
+  std::printf("    draco: %.2f MB, encode %.0f ms, decode %.0f ms; upload+validate %.2f s (%.1f MB/s)\n",
+              static_cast<double>(encoded->size()) / 1e6, encode_s * 1e3, decode_s * 1e3, upload_s,
+              static_cast<double>(encoded->size()) / 1e6 / upload_s);
+}
+
+// The method's parameters from name=value texts. Errors: kInvalidArgument.
+absl::StatusOr<core::ParamSet> ParseParams(const std::string& method, const std::vector<std::string>& texts) {
+  auto params = jobs::DefaultParams(method);
+  if (!params.ok()) return params.status();
+  for (const auto& p : texts) {
+    const size_t eq = p.find('=');
+    if (eq == std::string::npos) return absl::InvalidArgumentError(core::StrCat("bad --param ", p, "; use NAME=VALUE"));
+    LSQSURF_RETURN_IF_ERROR(params->Parse(p.substr(0, eq), p.substr(eq + 1)));
+  }
+  LSQSURF_RETURN_IF_ERROR(params->Validate());
+  return params;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  BenchOptions o;
+  CLI::App app{"lsqsurf-bench: engines vs ground-truth meshes"};
+  app.add_option("--data", o.data_dir, "folder with <model>.obj ground-truth meshes")->capture_default_str();
+  app.add_option("--models", o.models, "model names")->capture_default_str();
+  app.add_option("--sizes", o.sizes, "cloud sizes")->capture_default_str();
+  app.add_option("--noise", o.noises, "noise sigma as a fraction of the diagonal (0 = clean)")->capture_default_str();
+  app.add_option("--method", o.method, "surface method")->capture_default_str();
+  app.add_option("--param", o.params, "method parameter name=value (repeatable)");
+  app.add_option("--samples", o.samples, "samples per surface for the distances")->capture_default_str();
+  app.add_flag("--server", o.server, "also run every case through lsqsurfd and the lsqsurf client");
+  app.add_option("--save", o.save_dir, "write every direct result to DIR/<model>-<points>-<noise>.ply");
+  app.add_flag("--stats", o.show_statistics, "print the engine's statistics of every direct run");
+  app.add_flag("--no-normals", o.drop_normals, "drop the sampled normals (the engines estimate them)");
+  app.add_option("--bin", o.bin_dir, "folder with lsqsurfd and lsqsurf (default: beside this program)");
+  app.add_option("--poisson-depth", o.poisson_depth,
                  "also run screened Poisson (Open3D) at this depth on every cloud; 0 = off");
   CLI11_PARSE(app, argc, argv);
 #if !LSQSURF_WITH_POISSON
-  if (poisson_depth > 0) {
+  if (o.poisson_depth > 0) {
     std::fprintf(stderr, "--poisson-depth needs a build with -DLSQSURF_BENCH_POISSON=ON (and libopen3d-dev)\n");
     return 2;
   }
 #endif
-  if (bin_dir.empty()) bin_dir = fs::canonical("/proc/self/exe").parent_path().string();
-
-  jobs::ParameterMap parameters;
-  for (const auto& p : params) {
-    const size_t eq = p.find('=');
-    if (eq == std::string::npos) return std::fprintf(stderr, "bad --param %s\n", p.c_str()), 2;
-    parameters[p.substr(0, eq)] = std::stod(p.substr(eq + 1));
-  }
-  if (absl::Status s = jobs::ValidateRequest(method, parameters); !s.ok()) {
-    std::fprintf(stderr, "%s\n", s.ToString().c_str());
+  if (o.bin_dir.empty()) o.bin_dir = fs::canonical("/proc/self/exe").parent_path().string();
+  auto params = ParseParams(o.method, o.params);
+  if (!params.ok()) {
+    std::fprintf(stderr, "%s\n", params.status().ToString().c_str());
     return 2;
   }
 
@@ -187,142 +359,24 @@ int main(int argc, char** argv) {
   fs::create_directories(work);
   std::printf("%-15s %8s %6s %-7s %8s %9s %10s %10s %10s %7s %6s %6s %10s\n", "model", "points", "noise", "mode",
               "wall_s", "peak_MiB", "triangles", "chamfer", "hausdorff", "normals", "closed", "comps", "far>1e-3");
-  for (const auto& model : models) {
-    auto truth = io::ReadMeshFile((fs::path(data_dir) / (model + ".obj")).string());
+  for (const auto& model : o.models) {
+    auto truth = io::ReadMeshFile((fs::path(o.data_dir) / (model + ".obj")).string());
     if (!truth.ok()) {
       std::fprintf(stderr, "%s\n", truth.status().ToString().c_str());
       return 1;
     }
     const double diag = core::Diagonal(core::BoundingBox(truth->vertices));
-    for (size_t n : sizes) {
-      for (double noise : noises) {
+    for (size_t n : o.sizes) {
+      for (double noise : o.noises) {
         core::PointCloud cloud = core::SampleCloud(*truth, n, 1234, noise * diag);
-        if (drop_normals) cloud.normals.clear();
-        auto print = [&](const char* mode, const CaseResult& r) {
-          if (!r.error.empty()) {
-            std::printf("%-15s %8zu %6.4f %-7s failed: %s\n", model.c_str(), n, noise, mode, r.error.c_str());
-          } else {
-            std::printf("%-15s %8zu %6.4f %-7s %8.2f %9.0f %10lld %10.3e %10.3e %7.4f %6s %6lld %10.3e\n",
-                        model.c_str(), n, noise, mode, r.seconds, r.peak_mib, static_cast<long long>(r.triangles),
-                        r.chamfer, r.hausdorff, r.normal_consistency, r.watertight ? "yes" : "no",
-                        static_cast<long long>(r.components), r.far_fraction);
-          }
-          std::fflush(stdout);
-        };
-        const CaseResult direct = InChild([&] {
-                CaseResult r;
-                core::LocalJobContext ctx;
-                const auto start = Clock::now();
-                auto result = jobs::RunSurfaceMethod(method, parameters, cloud, ctx);
-                r.seconds = Since(start);
-                if (!result.ok()) {
-                  r.error = std::string(result.status().message());
-                  return r;
-                }
-                if (!save_dir.empty()) {
-                  const auto path = fs::path(save_dir) / core::StrCat(model, "-", n, "-", noise, ".ply");
-                  if (absl::Status s = io::WriteMeshFile(path.string(), result->mesh); !s.ok()) {
-                    std::fprintf(stderr, "%s\n", s.ToString().c_str());
-                  }
-                }
-                if (show_statistics) {
-                  for (const auto& [name, value] : result->statistics) std::printf("  %s=%g\n", name.c_str(), value);
-                  std::fflush(stdout);
-                }
-                Measure(*truth, result->mesh, samples, r);
-                return r;
-              });
-        print("direct", direct);
+        if (o.drop_normals) cloud.normals.clear();
+        const BenchCase c{*truth, cloud, model, n, noise};
+        const CaseResult direct = RunDirect(o, *params, c);
+        Print(c, "direct", direct);
 #if LSQSURF_WITH_POISSON
-        if (poisson_depth > 0) {
-          const CaseResult poisson = InChild([&] {
-            CaseResult r;
-            const auto start = Clock::now();
-            auto mesh = bench::ScreenedPoisson(cloud, {.depth = poisson_depth});
-            r.seconds = Since(start);
-            if (!mesh.ok()) {
-              r.error = std::string(mesh.status().message());
-              return r;
-            }
-            Measure(*truth, *mesh, samples, r);
-            return r;
-          });
-          print("poisson", poisson);
-          if (direct.error.empty() && poisson.error.empty()) {
-            std::printf("    %s / poisson depth %d: time %.2fx, peak memory %.2fx, Chamfer %.2fx, triangles %.2fx\n",
-                        method.c_str(), poisson_depth, direct.seconds / poisson.seconds,
-                        direct.peak_mib / poisson.peak_mib, direct.chamfer / poisson.chamfer,
-                        static_cast<double>(direct.triangles) / static_cast<double>(poisson.triangles));
-          }
-        }
+        if (o.poisson_depth > 0) RunPoisson(o, c, direct);
 #endif
-        if (!server) continue;
-        // Through the service: a real server and the real client, end to end.
-        const std::string cloud_path = (work / "cloud.drc").string(), mesh_path = (work / "mesh.drc").string();
-        const auto t_encode = Clock::now();
-        auto encoded = io::EncodeDracoPointCloud(cloud, {});
-        const double encode_s = Since(t_encode);
-        const auto t_decode = Clock::now();
-        (void)io::DecodeDracoPointCloud(*encoded);
-        const double decode_s = Since(t_decode);
-        (void)io::WriteFileAtomically(cloud_path, *encoded);
-        const std::string data = (work / "server-data").string();
-        fs::remove_all(data);
-        const std::string addr_file = (work / "address").string();
-        const std::string start_server = core::StrCat(
-            "(", bin_dir, "/lsqsurfd --listen 127.0.0.1:0 --data-dir ", data, " 2>/dev/null & echo $! > ", work.string(),
-            "/pid; wait) | head -1 > ", addr_file, " &");
-        (void)std::system(start_server.c_str());
-        std::string address;
-        for (int i = 0; i < 100 && address.empty(); ++i) {
-          std::this_thread::sleep_for(std::chrono::milliseconds(50));
-          std::ifstream in(addr_file);
-          std::string word;
-          in >> word >> word >> address;
-        }
-        std::ifstream pid_in(work / "pid");
-        long server_pid = 0;
-        pid_in >> server_pid;
-        const std::string client = core::StrCat(bin_dir, "/lsqsurf -q --server ", address, " ");
-        std::string param_args;
-        for (const auto& p : params) param_args += " --param " + p;
-        const auto t_upload = Clock::now();
-        const std::string submitted = FirstLine(client + "submit " + cloud_path + " --method " + method + param_args);
-        const double upload_s = Since(t_upload);
-        const int submit_rc = submitted.empty() ? 1 : 0;
-        // That job only measured the upload: cancel it so it does not delay the timed one.
-        if (!submitted.empty()) RunTool(client + "cancel " + submitted);
-        const auto t_e2e = Clock::now();
-        const int rc = RunTool(client + "reconstruct " + cloud_path + " -o " + mesh_path + " --method " + method +
-                               param_args);
-        CaseResult r;
-        r.seconds = Since(t_e2e);
-        std::ifstream status(core::StrCat("/proc/", server_pid, "/status"));
-        for (std::string line; std::getline(status, line);) {
-          if (line.rfind("VmHWM:", 0) == 0) r.peak_mib = std::stod(line.substr(6)) / 1024.0;
-        }
-        ::kill(static_cast<pid_t>(server_pid), SIGTERM);
-        if (rc != 0 || submit_rc != 0) {
-          r.error = "the client failed";
-        } else {
-          // Measured in a child too: this process must never start oneTBB's workers (see InChild).
-          const CaseResult m = InChild([&] {
-            CaseResult c;
-            auto mesh = io::ReadMeshFile(mesh_path);
-            if (!mesh.ok()) c.error = std::string(mesh.status().message());
-            else Measure(*truth, *mesh, samples, c);
-            return c;
-          });
-          const double seconds = r.seconds, peak = r.peak_mib;
-          r = m;
-          r.seconds = seconds;
-          r.peak_mib = peak;
-        }
-        print("service", r);
-        std::printf("    draco: %.2f MB, encode %.0f ms, decode %.0f ms; upload+validate %.2f s (%.1f MB/s)\n",
-                    static_cast<double>(encoded->size()) / 1e6, encode_s * 1e3, decode_s * 1e3, upload_s,
-                    static_cast<double>(encoded->size()) / 1e6 / upload_s);
-        std::this_thread::sleep_for(std::chrono::milliseconds(300));
+        if (o.server) RunService(o, c, work);
       }
     }
   }

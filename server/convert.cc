@@ -1,15 +1,143 @@
 #include "server/convert.h"
 
+#include <cctype>
+
 #include "worker/core/strings.h"
+#include "worker/jobs/method_registry.h"
 
 namespace lsqsurf::server {
+namespace {
+
+using google::protobuf::EnumDescriptor;
+using google::protobuf::EnumValueDescriptor;
+using google::protobuf::FieldDescriptor;
+using google::protobuf::Message;
+using google::protobuf::Reflection;
+
+// "UpAxis" -> "UP_AXIS_": the prefix of the enum's value names.
+std::string EnumPrefix(const EnumDescriptor& type) {
+  std::string out;
+  for (char c : type.name()) {
+    if (std::isupper(static_cast<unsigned char>(c)) && !out.empty()) out += '_';
+    out += static_cast<char>(std::toupper(static_cast<unsigned char>(c)));
+  }
+  return out + "_";
+}
+
+// The choice a value names, or empty for the _UNSPECIFIED value (the default).
+std::string ChoiceName(const EnumValueDescriptor& value) {
+  const std::string prefix = EnumPrefix(*value.type());
+  std::string name = value.name();
+  if (name.rfind(prefix, 0) == 0) name = name.substr(prefix.size());
+  if (name == "UNSPECIFIED") return "";
+  for (char& c : name) c = static_cast<char>(std::tolower(static_cast<unsigned char>(c)));
+  return name;
+}
+
+absl::Status FillField(const Message& message, const FieldDescriptor& f, core::ParamSet* params) {
+  const Reflection& r = *message.GetReflection();
+  const std::string& name = f.name();
+  switch (f.cpp_type()) {
+    case FieldDescriptor::CPPTYPE_DOUBLE: return params->Set(name, r.GetDouble(message, &f));
+    case FieldDescriptor::CPPTYPE_FLOAT: return params->Set(name, r.GetFloat(message, &f));
+    case FieldDescriptor::CPPTYPE_INT32: return params->Set(name, r.GetInt32(message, &f));
+    case FieldDescriptor::CPPTYPE_INT64: return params->Set(name, static_cast<double>(r.GetInt64(message, &f)));
+    case FieldDescriptor::CPPTYPE_UINT32: return params->Set(name, r.GetUInt32(message, &f));
+    case FieldDescriptor::CPPTYPE_UINT64: return params->Set(name, static_cast<double>(r.GetUInt64(message, &f)));
+    case FieldDescriptor::CPPTYPE_BOOL: return params->Set(name, r.GetBool(message, &f) ? 1 : 0);
+    case FieldDescriptor::CPPTYPE_STRING: return params->SetText(name, r.GetString(message, &f));
+    case FieldDescriptor::CPPTYPE_ENUM: {
+      const std::string choice = ChoiceName(*r.GetEnum(message, &f));
+      return choice.empty() ? absl::OkStatus() : params->Parse(name, choice);
+    }
+    case FieldDescriptor::CPPTYPE_MESSAGE: break;
+  }
+  return absl::InvalidArgumentError(core::StrCat(name, " is not a parameter value"));
+}
+
+}  // namespace
 
 grpc::Status ToGrpcStatus(const absl::Status& status) {
   if (status.ok()) return grpc::Status::OK;
   return grpc::Status(static_cast<grpc::StatusCode>(status.code()), std::string(status.message()));
 }
 
-namespace {
+std::string EnumValueName(const EnumDescriptor& type, const std::string& choice) {
+  std::string out = EnumPrefix(type);
+  for (char c : choice) out += static_cast<char>(std::toupper(static_cast<unsigned char>(c)));
+  return out;
+}
+
+absl::Status FillParams(const Message& message, core::ParamSet* params) {
+  std::vector<const FieldDescriptor*> fields;
+  message.GetReflection()->ListFields(message, &fields);  // The fields that are set.
+  for (const FieldDescriptor* f : fields) {
+    if (absl::Status s = FillField(message, *f, params); !s.ok()) return s;
+  }
+  return absl::OkStatus();
+}
+
+void ParamsToProto(const core::ParamSet& params, Message* message) {
+  const Reflection& r = *message->GetReflection();
+  for (const core::ParamInfo& info : params.Describe()) {
+    const FieldDescriptor* f = message->GetDescriptor()->FindFieldByName(info.name);
+    if (f == nullptr) continue;  // The server's tests keep tables and messages in step.
+    if (info.type == core::ParamType::kText) {
+      if (f->cpp_type() == FieldDescriptor::CPPTYPE_STRING) r.SetString(message, f, params.GetText(info.name).value_or(""));
+      continue;
+    }
+    const double v = params.Get(info.name).value_or(0);
+    switch (f->cpp_type()) {
+      case FieldDescriptor::CPPTYPE_DOUBLE: r.SetDouble(message, f, v); break;
+      case FieldDescriptor::CPPTYPE_FLOAT: r.SetFloat(message, f, static_cast<float>(v)); break;
+      case FieldDescriptor::CPPTYPE_INT32: r.SetInt32(message, f, static_cast<int32_t>(v)); break;
+      case FieldDescriptor::CPPTYPE_INT64: r.SetInt64(message, f, static_cast<int64_t>(v)); break;
+      case FieldDescriptor::CPPTYPE_UINT32: r.SetUInt32(message, f, static_cast<uint32_t>(v)); break;
+      case FieldDescriptor::CPPTYPE_UINT64: r.SetUInt64(message, f, static_cast<uint64_t>(v)); break;
+      case FieldDescriptor::CPPTYPE_BOOL: r.SetBool(message, f, v != 0); break;
+      case FieldDescriptor::CPPTYPE_ENUM: {
+        const core::ParamChoice* c = info.FindChoice(static_cast<int>(v));
+        const EnumValueDescriptor* e = c ? f->enum_type()->FindValueByName(EnumValueName(*f->enum_type(), c->name)) : nullptr;
+        if (e != nullptr) r.SetEnum(message, f, e);
+        break;
+      }
+      default: break;
+    }
+  }
+}
+
+absl::StatusOr<jobs::JobSpec> FromProto(const v1::JobSpec& spec) {
+  const FieldDescriptor* method =
+      spec.GetReflection()->GetOneofFieldDescriptor(spec, v1::JobSpec::descriptor()->FindOneofByName("method"));
+  if (method == nullptr) {
+    std::string known;
+    for (const auto& m : jobs::Methods()) core::StrAppend(&known, known.empty() ? "" : ", ", m.info.name);
+    return absl::InvalidArgumentError(core::StrCat("the spec names no method; set one of: ", known));
+  }
+  jobs::JobSpec out;
+  out.method = method->name();
+  auto params = jobs::DefaultParams(out.method);
+  if (!params.ok()) return params.status();
+  out.params = *std::move(params);
+  if (absl::Status s = FillParams(spec.GetReflection()->GetMessage(spec, method), &out.params); !s.ok()) {
+    return absl::InvalidArgumentError(core::StrCat(out.method, ": ", s.message()));
+  }
+  out.mesh_position_bits = spec.mesh_position_bits();
+  if (spec.has_preview()) {
+    auto view = FromProto(spec.preview().options());
+    if (!view.ok()) return absl::InvalidArgumentError(core::StrCat("preview: ", view.status().message()));
+    out.preview.enabled = true;
+    out.preview.view = *std::move(view);
+    out.preview.turntable_deg_per_frame = spec.preview().turntable_deg_per_frame();
+  }
+  return out;
+}
+
+absl::StatusOr<core::ParamSet> FromProto(const v1::RenderOptions& options) {
+  core::ParamSet view = jobs::DefaultView();
+  if (absl::Status s = FillParams(options, &view); !s.ok()) return s;
+  return view;
+}
 
 v1::JobState ToProto(jobs::JobState state) {
   switch (state) {
@@ -22,16 +150,16 @@ v1::JobState ToProto(jobs::JobState state) {
   return v1::JOB_STATE_UNSPECIFIED;
 }
 
-}  // namespace
-
 void ToProto(const jobs::JobRecord& r, v1::Job* out) {
   out->set_id(r.id);
-  out->mutable_spec()->set_method(r.spec.method);
-  for (const auto& [name, value] : r.spec.parameters) (*out->mutable_spec()->mutable_parameters())[name] = value;
-  out->mutable_spec()->set_mesh_position_bits(r.spec.mesh_position_bits);
+  v1::JobSpec* spec = out->mutable_spec();
+  if (const FieldDescriptor* f = v1::JobSpec::descriptor()->FindFieldByName(r.spec.method); f != nullptr && !r.spec.params.empty()) {
+    ParamsToProto(r.spec.params, spec->GetReflection()->MutableMessage(spec, f));
+  }
+  spec->set_mesh_position_bits(r.spec.mesh_position_bits);
   if (r.spec.preview.enabled) {
-    v1::PreviewSpec* preview = out->mutable_spec()->mutable_preview();
-    ToProto(r.spec.preview.render, preview->mutable_options());
+    v1::PreviewSpec* preview = spec->mutable_preview();
+    ParamsToProto(r.spec.preview.view, preview->mutable_options());
     preview->set_turntable_deg_per_frame(r.spec.preview.turntable_deg_per_frame);
   }
   out->set_state(ToProto(r.state));
@@ -51,59 +179,29 @@ void ToProto(const jobs::JobRecord& r, v1::Job* out) {
   for (const auto& name : r.results) out->add_results(name);
 }
 
-absl::StatusOr<jobs::JobSpec> FromProto(const v1::JobSpec& spec) {
-  jobs::JobSpec out;
-  out.method = spec.method();
-  for (const auto& [name, value] : spec.parameters()) out.parameters[name] = value;
-  if (spec.mesh_position_bits() != 0) out.mesh_position_bits = spec.mesh_position_bits();
-  if (spec.has_preview()) {
-    auto render = FromProto(spec.preview().options());
-    if (!render.ok()) return absl::InvalidArgumentError(core::StrCat("preview: ", render.status().message()));
-    out.preview.enabled = true;
-    out.preview.render = *std::move(render);
-    out.preview.turntable_deg_per_frame = spec.preview().turntable_deg_per_frame();
+void ToProto(const core::ParamInfo& p, v1::Parameter* out) {
+  out->set_name(p.name);
+  switch (p.type) {
+    case core::ParamType::kReal: out->set_type(v1::Parameter::TYPE_REAL); break;
+    case core::ParamType::kInteger: out->set_type(v1::Parameter::TYPE_INTEGER); break;
+    case core::ParamType::kFlag: out->set_type(v1::Parameter::TYPE_FLAG); break;
+    case core::ParamType::kChoice: out->set_type(v1::Parameter::TYPE_CHOICE); break;
+    case core::ParamType::kText: out->set_type(v1::Parameter::TYPE_TEXT); break;
   }
-  return out;
-}
-
-absl::StatusOr<render::RenderParams> FromProto(const v1::RenderOptions& o) {
-  render::RenderParams p;
-  if (o.width() != 0) p.width = o.width();
-  if (o.height() != 0) p.height = o.height();
-  if (o.has_azimuth_deg()) p.camera.azimuth_deg = o.azimuth_deg();
-  if (o.has_elevation_deg()) p.camera.elevation_deg = o.elevation_deg();
-  if (o.has_distance()) p.camera.distance = o.distance();
-  if (o.has_fov_deg()) p.camera.fov_deg = o.fov_deg();
-  if (!o.up_axis().empty()) {
-    auto up = render::ParseUpAxis(o.up_axis());
-    if (!up.ok()) return up.status();
-    p.camera.up = *up;
+  out->set_default_value(p.default_value);
+  out->set_min_value(p.type == core::ParamType::kFlag ? 0 : p.min_value);
+  out->set_max_value(p.type == core::ParamType::kFlag ? 1 : p.max_value);
+  out->set_integer(p.type == core::ParamType::kInteger);
+  out->set_help(p.help);
+  out->set_unit(p.unit);
+  for (const auto& c : p.choices) {
+    v1::Parameter::Choice* choice = out->add_choices();
+    choice->set_name(c.name);
+    choice->set_help(c.help);
   }
-  p.color_attribute = o.color();
-  p.color_min = o.color_min();
-  p.color_max = o.color_max();
-  p.shading = o.flat_shading() ? render::Shading::kFlat : render::Shading::kSmooth;
-  p.wireframe = o.wireframe();
-  p.transparent = o.transparent();
-  if (o.samples() != 0) p.samples = o.samples();
-  return p;
-}
-
-void ToProto(const render::RenderParams& p, v1::RenderOptions* out) {
-  out->set_width(p.width);
-  out->set_height(p.height);
-  out->set_azimuth_deg(p.camera.azimuth_deg);
-  out->set_elevation_deg(p.camera.elevation_deg);
-  if (p.camera.distance > 0) out->set_distance(p.camera.distance);
-  out->set_fov_deg(p.camera.fov_deg);
-  out->set_up_axis(p.camera.up == render::UpAxis::kX ? "x" : p.camera.up == render::UpAxis::kY ? "y" : "z");
-  out->set_color(p.color_attribute);
-  out->set_color_min(p.color_min);
-  out->set_color_max(p.color_max);
-  out->set_flat_shading(p.shading == render::Shading::kFlat);
-  out->set_wireframe(p.wireframe);
-  out->set_transparent(p.transparent);
-  out->set_samples(p.samples);
+  if (p.type == core::ParamType::kChoice) {
+    if (const core::ParamChoice* c = p.FindChoice(static_cast<int>(p.default_value))) out->set_default_choice(c->name);
+  }
 }
 
 }  // namespace lsqsurf::server

@@ -29,6 +29,8 @@ int main(int argc, char** argv) {
       ->check(CLI::Range(int64_t{16}, int64_t{2'000'000'000}));
   app.add_option("--max-upload-mib", max_upload_mib, "largest accepted upload, MiB")->capture_default_str()
       ->check(CLI::Range(int64_t{1}, int64_t{1} << 20));
+  app.add_option("--max-renders", options.max_renders, "pictures drawn at once by Render; more are refused")
+      ->capture_default_str()->check(CLI::Range(1, 64));
   app.set_config("--config", "", "read options from this TOML/INI file");
   CLI11_PARSE(app, argc, argv);
   options.max_input_bytes = max_upload_mib << 20;
@@ -63,6 +65,7 @@ int main(int argc, char** argv) {
     spdlog::critical("cannot listen on {}", listen);
     return 1;
   }
+  server->GetHealthCheckService()->SetServingStatus(lsqsurf::server::ReconstructionService::kServiceName, true);
   const std::string host = listen.substr(0, listen.rfind(':'));
   std::printf("listening on %s:%d\n", host.c_str(), port);
   std::fflush(stdout);
@@ -73,6 +76,7 @@ int main(int argc, char** argv) {
     sigwait(&signals, &signal);
     spdlog::info("signal {} received: shutting down", signal);
     // Interrupted jobs go back to the queue on disk first, then open streams are closed.
+    server->GetHealthCheckService()->SetServingStatus(false);
     (*jobs)->Shutdown();
     server->Shutdown(std::chrono::system_clock::now() + std::chrono::seconds(3));
   });

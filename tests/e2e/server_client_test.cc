@@ -225,11 +225,11 @@ TEST_F(EndToEnd, RendersResultsThroughTheCliAndTheApi) {
   request.mutable_options()->set_width(100000);
   EXPECT_EQ(render(request).error_code(), grpc::StatusCode::INVALID_ARGUMENT);
   request.mutable_options()->set_width(64);
-  request.mutable_options()->set_up_axis("w");
+  request.mutable_options()->set_up_axis(static_cast<v1::RenderOptions::UpAxis>(7));  // Not in the enum.
   const grpc::Status bad_axis = render(request);
   EXPECT_EQ(bad_axis.error_code(), grpc::StatusCode::INVALID_ARGUMENT);
-  EXPECT_NE(bad_axis.error_message().find("up axis"), std::string::npos) << bad_axis.error_message();
-  request.mutable_options()->set_up_axis("y");
+  EXPECT_NE(bad_axis.error_message().find("up_axis"), std::string::npos) << bad_axis.error_message();
+  request.mutable_options()->set_up_axis(v1::RenderOptions::UP_AXIS_Y);
   request.mutable_options()->set_color("nope");
   const grpc::Status unknown = render(request);
   EXPECT_EQ(unknown.error_code(), grpc::StatusCode::INVALID_ARGUMENT);
@@ -336,9 +336,10 @@ TEST_F(EndToEnd, BadInputsGetClearErrorsAndTheServerKeepsServing) {
       {"reconstruct " + lossless_nan + " -o x.ply", 1, "NaN or infinite"},  // Server-side check.
       {"reconstruct " + WriteCloud("nan.ply", nan_cloud) + " -o x.ply", 3, "NaN or infinite"},  // Client-side.
       {"reconstruct " + (dir_ / "cut.drc").string() + " -o x.ply", 1, "Draco"},
-      {"reconstruct " + good + " -o x.ply --method nosuch", 1, "unknown method"},
+      // Client-side: the proto names every method and parameter; ranges are the server's.
+      {"reconstruct " + good + " -o x.ply --method nosuch", 3, "unknown method"},
       {"reconstruct " + good + " -o x.ply --param epsilon=7", 1, "out of range"},
-      {"reconstruct " + good + " -o x.ply --param colour=1", 1, "unknown parameter"},
+      {"reconstruct " + good + " -o x.ply --param colour=1", 3, "unknown parameter"},
       {"reconstruct " + WriteCloud("bare.ply", bare) + " -o x.ply --param estimate_normals=0", 1, "no normals"},
       {"reconstruct " + (dir_ / "missing.ply").string() + " -o x.ply", 3, "no such file"},
       {"status 0123456789abcdef", 1, "no job"},
@@ -389,7 +390,7 @@ TEST_F(EndToEnd, RawApiStatusCodes) {
     return writer->Finish();
   };
   v1::SubmitJobRequest spec, chunk, huge;
-  spec.mutable_spec()->set_method("iamls");
+  spec.mutable_spec()->mutable_iamls();
   chunk.set_input_chunk("abc");
   huge.set_input_chunk(std::string((1 << 20) + 1, 'x'));
   EXPECT_EQ(submit({chunk}).error_code(), grpc::StatusCode::INVALID_ARGUMENT);        // No spec first.

@@ -267,7 +267,7 @@ TEST(FrontTracking, RejectsBadFieldsAndParameters) {
   EXPECT_EQ(Track(Front{}, *rotation, TrackingParams{}, ctx, ignore).code(), absl::StatusCode::kInvalidArgument);
   p = {};
   p.h = 1.0 / 32;
-  p.max_points = 50;  // Fewer than the sphere needs.
+  p.max_points = 100;  // Fewer than the sphere needs.
   EXPECT_EQ(Track(front, *rotation, p, ctx, ignore).code(), absl::StatusCode::kResourceExhausted);
   p = {};
   p.h = 1.0 / 32;

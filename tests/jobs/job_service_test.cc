@@ -4,15 +4,18 @@
 #include <sqlite3.h>
 
 #include <cmath>
+#include <condition_variable>
 #include <filesystem>
 #include <limits>
+#include <mutex>
 
 #include "tests/test_shapes.h"
 #include "worker/core/mesh_metrics.h"
 #include "worker/io/draco_codec.h"
 #include "worker/io/files.h"
-#include "worker/jobs/engines.h"
-#include "worker/jobs/front_job.h"
+#include "worker/jobs/method_registry.h"
+#include "worker/jobs/surface_job.h"
+#include "worker/jobs/track_job.h"
 
 namespace lsqsurf::jobs {
 namespace {
@@ -25,6 +28,57 @@ std::string Encode(const core::PointCloud& cloud, int position_bits = 16) {
   return bytes.ok() ? *bytes : std::string();
 }
 
+// A spec for `method` with the named parameters parsed from text, as the CLI gives them.
+JobSpec Spec(const std::string& method, const std::map<std::string, std::string>& values = {}) {
+  JobSpec spec;
+  spec.method = method;
+  auto defaults = DefaultParams(method);
+  if (defaults.ok()) spec.params = *defaults;
+  for (const auto& [name, text] : values) EXPECT_TRUE(spec.params.Parse(name, text).ok()) << name << "=" << text;
+  return spec;
+}
+
+Uploads Input(std::string bytes) { return {{kInputUpload, std::move(bytes)}}; }
+
+// A kind that holds every job it runs until released (or cancelled), so that tests can act on a
+// job that is certainly running.
+class LatchKind final : public JobKind {
+ public:
+  std::string_view name() const override { return "latch"; }
+  std::vector<MethodInfo> Methods() const override { return {}; }
+  absl::StatusOr<int64_t> CheckUploads(const JobSpec&, const Uploads&, const InputLimits&) const override {
+    return 1;
+  }
+  absl::StatusOr<Statistics> Run(const JobSpec&, const Uploads&, RunEnvironment& env) const override {
+    std::unique_lock lock(mutex_);
+    ++started_;
+    changed_.notify_all();
+    // The job context has no wake-up of its own; a short wait keeps the cancel check prompt.
+    while (!released_) {
+      if (env.context.IsCancelled()) return absl::CancelledError("cancelled");
+      changed_.wait_for(lock, std::chrono::milliseconds(5));
+    }
+    if (absl::Status s = env.sink.Write("held.txt", "released"); !s.ok()) return s;
+    return Statistics{{"held", 1}};
+  }
+  // Blocks until `n` jobs have started.
+  void WaitStarted(int n) const {
+    std::unique_lock lock(mutex_);
+    changed_.wait(lock, [&] { return started_ >= n; });
+  }
+  void Release() const {
+    std::lock_guard lock(mutex_);
+    released_ = true;
+    changed_.notify_all();
+  }
+
+ private:
+  mutable std::mutex mutex_;
+  mutable std::condition_variable changed_;
+  mutable int started_ = 0;
+  mutable bool released_ = false;
+};
+
 class JobServiceTest : public ::testing::Test {
  protected:
   void SetUp() override {
@@ -35,6 +89,7 @@ class JobServiceTest : public ::testing::Test {
     options_.data_dir = dir_.string();
   }
   void TearDown() override {
+    latch_.Release();
     service_.reset();
     std::filesystem::remove_all(dir_);
   }
@@ -45,42 +100,67 @@ class JobServiceTest : public ::testing::Test {
     service_ = *std::move(s);
     return *service_;
   }
-  // Waits (at most ~5 min, for sanitizer builds) until the job satisfies `done`.
+  // iamls jobs run on the latch from now on (until the service is reopened without it).
+  void HoldIamlsJobs() { options_.kind_overrides["iamls"] = &latch_; }
+  // Waits until the job satisfies `done`; the job's own progress bounds the wait.
   JobRecord WaitUntil(const std::string& id, const std::function<bool(const JobRecord&)>& done) {
     auto r = service_->Get(id);
-    for (int i = 0; i < 3000 && r.ok() && !done(*r); ++i) {
-      r = service_->WaitForChange(id, r->version, std::chrono::milliseconds(100));
-    }
+    while (r.ok() && !done(*r)) r = service_->WaitForChange(id, r->version, std::chrono::seconds(1));
     EXPECT_TRUE(r.ok());
     return r.ok() ? *r : JobRecord{};
   }
   JobRecord WaitTerminal(const std::string& id) {
     return WaitUntil(id, [](const JobRecord& r) { return IsTerminal(r.state); });
   }
+  std::string ReadResult(const std::string& id, const std::string& name) {
+    auto reader = service_->OpenResult(id, name);
+    EXPECT_TRUE(reader.ok()) << reader.status();
+    if (!reader.ok()) return {};
+    std::string all;
+    for (;;) {
+      auto chunk = (*reader)->Next(1000);  // Small chunks: the reader must stitch them exactly.
+      EXPECT_TRUE(chunk.ok());
+      if (!chunk.ok() || chunk->empty()) break;
+      all += *chunk;
+    }
+    EXPECT_EQ(static_cast<int64_t>(all.size()), (*reader)->size());
+    return all;
+  }
 
   std::filesystem::path dir_;
   JobServiceOptions options_;
   std::unique_ptr<JobService> service_;
+  LatchKind latch_;
 };
 
-TEST_F(JobServiceTest, EveryMethodReconstructsASphere) {
+double Statistic(const JobRecord& r, const std::string& name) {
+  for (const auto& [n, v] : r.statistics) {
+    if (n == name) return v;
+  }
+  ADD_FAILURE() << "no statistic " << name;
+  return NAN;
+}
+
+TEST_F(JobServiceTest, EverySurfaceMethodReconstructsASphere) {
   JobService& s = Open();
-  for (const MethodSpec& method : SurfaceMethods()) {
-    if (method.name == kTrackMethod) continue;  // Not a surface method (see the end-to-end test).
-    auto job = s.Submit({method.name, {}}, Encode(testing::SphereCloud(5000)));
+  for (const MethodEntry& method : Methods()) {
+    if (method.kind != &SurfaceJobKind()) continue;  // Track jobs: see the end-to-end test.
+    auto job = s.Submit(Spec(method.info.name), Input(Encode(testing::SphereCloud(5000))));
     ASSERT_TRUE(job.ok()) << job.status();
     EXPECT_EQ(job->state, JobState::kQueued);
     const JobRecord done = WaitTerminal(job->id);
-    ASSERT_EQ(done.state, JobState::kSucceeded) << method.name << ": " << done.error;
-    auto path = s.ResultPath(job->id, "mesh.drc");
-    ASSERT_TRUE(path.ok());
-    auto mesh = io::ReadMeshFile(*path);
+    ASSERT_EQ(done.state, JobState::kSucceeded) << method.info.name << ": " << done.error;
+    auto mesh = io::DecodeDracoMesh(ReadResult(job->id, "mesh.drc"));
     ASSERT_TRUE(mesh.ok()) << mesh.status();
-    const core::MeshTopology t = core::AnalyzeTopology(*mesh);
-    EXPECT_TRUE(t.watertight()) << method.name;
-    EXPECT_EQ(t.euler_characteristic(), 2) << method.name;
-    EXPECT_NEAR(core::EnclosedVolume(*mesh) / (4.0 / 3.0 * M_PI), 1.0, 0.02) << method.name;
-    EXPECT_FALSE(done.statistics.empty());
+    // The delivered mesh, merged by position as STL export does, is a closed sphere.
+    const core::MeshTopology t = core::AnalyzeTopology(core::WeldByPosition(*mesh));
+    EXPECT_TRUE(t.watertight()) << method.info.name;
+    EXPECT_EQ(t.euler_characteristic(), 2) << method.info.name;
+    EXPECT_NEAR(core::EnclosedVolume(*mesh) / (4.0 / 3.0 * M_PI), 1.0, 0.02) << method.info.name;
+    // The statistics describe that delivered mesh.
+    EXPECT_EQ(Statistic(done, "non_manifold_edges"), t.non_manifold_edges) << method.info.name;
+    EXPECT_EQ(Statistic(done, "boundary_edges"), t.boundary_edges) << method.info.name;
+    EXPECT_GE(Statistic(done, "delivered_position_bits"), 16) << method.info.name;
   }
 }
 
@@ -88,7 +168,7 @@ TEST_F(JobServiceTest, EstimatesMissingNormalsByDefault) {
   JobService& s = Open();
   core::PointCloud cloud = testing::SphereCloud(4000);
   cloud.normals.clear();
-  auto job = s.Submit({"iamls", {}}, Encode(cloud));
+  auto job = s.Submit(Spec("iamls"), Input(Encode(cloud)));
   ASSERT_TRUE(job.ok()) << job.status();
   EXPECT_EQ(WaitTerminal(job->id).state, JobState::kSucceeded);
 }
@@ -101,35 +181,54 @@ TEST_F(JobServiceTest, RejectsBadInputWithTheRightCode) {
   nan_cloud.positions[17].y() = std::numeric_limits<float>::quiet_NaN();
   core::PointCloud no_normals = testing::SphereCloud(1000);
   no_normals.normals.clear();
+  core::PointCloud long_normals = testing::SphereCloud(1000);
+  for (auto& n : long_normals.normals) n *= 3.0f;
+  core::TriangleMesh tetrahedron;
+  tetrahedron.vertices = {{0, 0, 0}, {1, 0, 0}, {0, 1, 0}, {0, 0, 1}};
+  tetrahedron.faces = {{0, 2, 1}, {0, 1, 3}, {0, 3, 2}, {1, 2, 3}};
+  auto mesh_upload = io::EncodeDracoMesh(tetrahedron, {});
+  ASSERT_TRUE(mesh_upload.ok());
+  JobSpec far_epsilon = Spec("iamls");
+  far_epsilon.params.Mutable<IamlsJobParams>()->fit.epsilon = 9;
+  JobSpec negative_noise = Spec("pu");
+  negative_noise.params.Mutable<PuJobParams>()->fit.noise_level = -0.5;
+  JobSpec bad_bits = Spec("iamls");
+  bad_bits.mesh_position_bits = 40;
   struct Case {
     const char* what;
     JobSpec spec;
-    std::string input;
+    Uploads uploads;
     absl::StatusCode code;
     const char* fragment;
-    std::string velocity = {};
   } cases[] = {
-      {"empty upload", {"iamls", {}}, "", absl::StatusCode::kInvalidArgument, "no input"},
-      {"truncated Draco", {"iamls", {}}, good.substr(0, good.size() / 2), absl::StatusCode::kInvalidArgument, "Draco"},
-      {"not Draco", {"iamls", {}}, "hello", absl::StatusCode::kInvalidArgument, "Draco"},
-      {"NaN", {"iamls", {}}, Encode(nan_cloud, /*lossless*/ 0), absl::StatusCode::kInvalidArgument, "NaN"},
-      {"unknown method", {"poisson", {}}, good, absl::StatusCode::kInvalidArgument, "available: iamls"},
-      {"unknown parameter", {"iamls", {{"epsilonn", 1}}}, good, absl::StatusCode::kInvalidArgument, "valid parameters"},
-      {"out of range", {"iamls", {{"epsilon", 9}}}, good, absl::StatusCode::kInvalidArgument, "out of range"},
-      {"not whole", {"iamls", {{"iterations", 2.5}}}, good, absl::StatusCode::kInvalidArgument, "whole number"},
-      {"no normals, no estimation", {"iamls", {{"estimate_normals", 0}}}, Encode(no_normals),
+      {"empty upload", Spec("iamls"), Input(""), absl::StatusCode::kInvalidArgument, "no input"},
+      {"truncated Draco", Spec("iamls"), Input(good.substr(0, good.size() / 2)), absl::StatusCode::kInvalidArgument,
+       "Draco"},
+      {"not Draco", Spec("iamls"), Input("hello"), absl::StatusCode::kInvalidArgument, "Draco"},
+      {"a mesh, not a cloud", Spec("iamls"), Input(*mesh_upload), absl::StatusCode::kInvalidArgument,
+       "triangle mesh"},
+      {"NaN", Spec("iamls"), Input(Encode(nan_cloud, /*lossless*/ 0)), absl::StatusCode::kInvalidArgument, "NaN"},
+      {"non-unit normals", Spec("iamls"), Input(Encode(long_normals)), absl::StatusCode::kInvalidArgument,
+       "length"},
+      {"unknown method", Spec("poisson"), Input(good), absl::StatusCode::kInvalidArgument, "available: iamls"},
+      {"out of range", far_epsilon, Input(good), absl::StatusCode::kInvalidArgument, "epsilon=9 is out of range"},
+      {"noise below zero", negative_noise, Input(good), absl::StatusCode::kInvalidArgument, "noise_level"},
+      {"Draco bits", bad_bits, Input(good), absl::StatusCode::kInvalidArgument, "mesh_position_bits=40"},
+      {"no normals, no estimation", Spec("iamls", {{"estimate_normals", "false"}}), Input(Encode(no_normals)),
        absl::StatusCode::kInvalidArgument, "no normals"},
-      {"too many points", {"iamls", {}}, Encode(testing::SphereCloud(6000)), absl::StatusCode::kResourceExhausted,
-       "at most 5000"},
-      {"user field, no grid", {"track", {{"interface", 1}, {"field", 2}}}, "", absl::StatusCode::kInvalidArgument,
-       "none was uploaded"},
-      {"grid without a user field", {"track", {{"interface", 1}}}, "", absl::StatusCode::kInvalidArgument,
-       "only the track method with field=2", "# vtk DataFile Version 3.0\n"},
-      {"grid not VTK", {"track", {{"interface", 1}, {"field", 2}}}, "", absl::StatusCode::kInvalidArgument,
-       "not a legacy VTK file", "P3 2 2"},
+      {"too many points", Spec("iamls"), Input(Encode(testing::SphereCloud(6000))),
+       absl::StatusCode::kResourceExhausted, "at most 5000"},
+      {"velocity for a surface", Spec("iamls"), {{kInputUpload, good}, {kVelocityUpload, "# vtk"}},
+       absl::StatusCode::kInvalidArgument, "no 'velocity' upload"},
+      {"user field, no grid", Spec("track", {{"interface", "sphere"}, {"field", "uploaded"}}), {},
+       absl::StatusCode::kInvalidArgument, "none was uploaded"},
+      {"grid without a user field", Spec("track"), {{kVelocityUpload, "# vtk DataFile Version 3.0\n"}},
+       absl::StatusCode::kInvalidArgument, "only field=uploaded uses one"},
+      {"grid not VTK", Spec("track", {{"field", "uploaded"}}), {{kVelocityUpload, "P3 2 2"}},
+       absl::StatusCode::kInvalidArgument, "not a legacy VTK file"},
   };
   for (const Case& c : cases) {
-    auto r = s.Submit(c.spec, c.input, c.velocity);
+    auto r = s.Submit(c.spec, c.uploads);
     ASSERT_FALSE(r.ok()) << c.what << " was accepted";
     EXPECT_EQ(r.status().code(), c.code) << c.what << ": " << r.status();
     EXPECT_NE(std::string(r.status().message()).find(c.fragment), std::string::npos) << c.what << ": " << r.status();
@@ -137,76 +236,104 @@ TEST_F(JobServiceTest, RejectsBadInputWithTheRightCode) {
   EXPECT_TRUE(s.List().empty());  // Nothing half-accepted.
 }
 
-TEST_F(JobServiceTest, FullQueueIsRefusedAndCancelStopsARunningJob) {
+TEST_F(JobServiceTest, FullQueueIsRefusedAndQueuedJobsCancelAtOnce) {
   options_.max_queue = 1;
+  HoldIamlsJobs();
   JobService& s = Open();
-  const std::string big = Encode(testing::TorusCloud(300000, 1.0, 0.3));
-  auto first = s.Submit({"iamls", {}}, big);
+  const Uploads input = Input(Encode(testing::SphereCloud(1000)));
+  auto first = s.Submit(Spec("iamls"), input);
   ASSERT_TRUE(first.ok());
-  WaitUntil(first->id, [](const JobRecord& r) { return r.state != JobState::kQueued; });
-  auto second = s.Submit({"iamls", {}}, big);
+  latch_.WaitStarted(1);  // Out of the queue, held running.
+  auto second = s.Submit(Spec("iamls"), input);
   ASSERT_TRUE(second.ok()) << second.status();
-  auto third = s.Submit({"iamls", {}}, big);
+  auto third = s.Submit(Spec("iamls"), input);
   EXPECT_EQ(third.status().code(), absl::StatusCode::kResourceExhausted);
 
-  ASSERT_TRUE(s.Cancel(second->id).ok());
-  EXPECT_EQ(s.Get(second->id)->state, JobState::kCancelled);  // Queued: cancelled at once.
-  ASSERT_TRUE(s.Cancel(first->id).ok());
-  const JobRecord stopped = WaitTerminal(first->id);
+  auto cancelled = s.Cancel(second->id);
+  ASSERT_TRUE(cancelled.ok());
+  EXPECT_EQ(cancelled->state, JobState::kCancelled);  // Queued: cancelled at once.
+  EXPECT_TRUE(s.Submit(Spec("iamls"), input).ok());    // Its place in the queue is free again.
+}
+
+TEST_F(JobServiceTest, RunningJobsCancelOnlyThroughTheirEngine) {
+  HoldIamlsJobs();
+  JobService& s = Open();
+  auto job = s.Submit(Spec("iamls"), Input(Encode(testing::SphereCloud(1000))));
+  ASSERT_TRUE(job.ok());
+  latch_.WaitStarted(1);
+  EXPECT_EQ(s.Delete(job->id).code(), absl::StatusCode::kFailedPrecondition);  // Not while running.
+  auto requested = s.Cancel(job->id);
+  ASSERT_TRUE(requested.ok());
+  EXPECT_EQ(requested->state, JobState::kRunning);  // CANCELLED follows when the engine stops.
+  const JobRecord stopped = WaitTerminal(job->id);
   EXPECT_EQ(stopped.state, JobState::kCancelled);
-  EXPECT_EQ(s.Cancel(first->id).status().code(), absl::StatusCode::kFailedPrecondition);
-  ASSERT_TRUE(s.Delete(first->id).ok());
-  EXPECT_EQ(s.Get(first->id).status().code(), absl::StatusCode::kNotFound);
+  EXPECT_EQ(s.Cancel(job->id).status().code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_EQ(s.OpenResult(job->id, "").status().code(), absl::StatusCode::kFailedPrecondition);
+  ASSERT_TRUE(s.Delete(job->id).ok());
+  EXPECT_EQ(s.Get(job->id).status().code(), absl::StatusCode::kNotFound);
+  EXPECT_FALSE(std::filesystem::exists(dir_ / "jobs" / job->id));
+}
+
+TEST_F(JobServiceTest, ReleasedJobsSucceedWithTheirArtifacts) {
+  HoldIamlsJobs();
+  JobService& s = Open();
+  auto job = s.Submit(Spec("iamls"), Input(Encode(testing::SphereCloud(1000))));
+  ASSERT_TRUE(job.ok());
+  latch_.WaitStarted(1);
+  latch_.Release();
+  const JobRecord done = WaitTerminal(job->id);
+  ASSERT_EQ(done.state, JobState::kSucceeded) << done.error;
+  EXPECT_EQ(done.results, std::vector<std::string>{"held.txt"});
+  EXPECT_EQ(ReadResult(job->id, ""), "released");  // The first result by default.
+  EXPECT_EQ(s.OpenResult(job->id, "mesh.drc").status().code(), absl::StatusCode::kNotFound);
 }
 
 TEST_F(JobServiceTest, JobsSurviveARestart) {
   JobService& s = Open();
-  auto job = s.Submit({"iamls", {{"iterations", 2}}}, Encode(testing::SphereCloud(3000)));
+  auto job = s.Submit(Spec("iamls", {{"iterations", "2"}}), Input(Encode(testing::SphereCloud(3000))));
   ASSERT_TRUE(job.ok());
   const std::string id = job->id;
   ASSERT_EQ(WaitTerminal(id).state, JobState::kSucceeded);
+  const std::string mesh = ReadResult(id, "mesh.drc");
   JobService& reopened = Open();
   auto again = reopened.Get(id);
   ASSERT_TRUE(again.ok());
   EXPECT_EQ(again->state, JobState::kSucceeded);
-  EXPECT_EQ(again->spec.parameters.at("iterations"), 2);
+  EXPECT_EQ(again->spec.params.Get("iterations"), 2);
+  EXPECT_EQ(again->spec.params.Get("epsilon"), Spec("iamls").params.Get("epsilon"));  // Unset: the default.
   EXPECT_FALSE(again->statistics.empty());
-  EXPECT_TRUE(reopened.ResultPath(id, "mesh.drc").ok());
+  EXPECT_EQ(ReadResult(id, "mesh.drc"), mesh);
 }
 
 TEST_F(JobServiceTest, PreviewsAreCheckedDrawnAndSurviveARestart) {
   JobService& s = Open();
-  const std::string input = Encode(testing::SphereCloud(3000));
-  JobSpec spec{"iamls", {{"iterations", 2}}};
+  const Uploads input = Input(Encode(testing::SphereCloud(3000)));
+  JobSpec spec = Spec("iamls", {{"iterations", "2"}});
   spec.preview.enabled = true;
-  spec.preview.render.color_attribute = "degree";  // Only PU meshes carry it.
+  spec.preview.view = DefaultView();
+  ASSERT_TRUE(spec.preview.view.SetText("color", "degree").ok());  // Only PU meshes carry it.
   auto refused = s.Submit(spec, input);
   EXPECT_EQ(refused.status().code(), absl::StatusCode::kInvalidArgument);
   EXPECT_NE(refused.status().message().find("no attribute 'degree'"), std::string_view::npos) << refused.status();
-  spec.preview.render.color_attribute.clear();
-  spec.preview.render.width = 5;
-  EXPECT_EQ(s.Submit(spec, input).status().code(), absl::StatusCode::kInvalidArgument);
+  ASSERT_TRUE(spec.preview.view.SetText("color", "").ok());
 
-  spec.preview.render.width = 96;
-  spec.preview.render.height = 64;
-  spec.preview.render.camera.up = render::UpAxis::kY;
-  spec.preview.render.camera.azimuth_deg = 10;
-  spec.preview.render.wireframe = true;
+  ASSERT_TRUE(spec.preview.view.Parse("width", "96").ok());
+  ASSERT_TRUE(spec.preview.view.Parse("height", "64").ok());
+  ASSERT_TRUE(spec.preview.view.Parse("up_axis", "y").ok());
+  ASSERT_TRUE(spec.preview.view.Parse("azimuth_deg", "10").ok());
+  ASSERT_TRUE(spec.preview.view.Parse("wireframe", "true").ok());
   auto job = s.Submit(spec, input);
   ASSERT_TRUE(job.ok()) << job.status();
   const JobRecord done = WaitTerminal(job->id);
   ASSERT_EQ(done.state, JobState::kSucceeded) << done.error;
   EXPECT_NE(std::find(done.results.begin(), done.results.end(), "preview.png"), done.results.end());
-  auto path = s.ResultPath(job->id, "preview.png");
-  ASSERT_TRUE(path.ok());
-  auto png = io::ReadFileBytes(*path);
-  ASSERT_TRUE(png.ok());
+  const std::string png = ReadResult(job->id, "preview.png");
   // PNG signature, then the IHDR chunk: big-endian width and height at bytes 16 and 20.
-  ASSERT_GT(png->size(), 24u);
-  EXPECT_EQ(png->substr(0, 8), std::string("\x89PNG\r\n\x1a\n", 8));
+  ASSERT_GT(png.size(), 24u);
+  EXPECT_EQ(png.substr(0, 8), std::string("\x89PNG\r\n\x1a\n", 8));
   auto be32 = [&](size_t at) {
     uint32_t v = 0;
-    for (size_t i = 0; i < 4; ++i) v = v << 8 | static_cast<uint8_t>((*png)[at + i]);
+    for (size_t i = 0; i < 4; ++i) v = v << 8 | static_cast<uint8_t>(png[at + i]);
     return v;
   };
   EXPECT_EQ(be32(16), 96u);
@@ -217,16 +344,12 @@ TEST_F(JobServiceTest, PreviewsAreCheckedDrawnAndSurviveARestart) {
   ASSERT_TRUE(again.ok());
   const PreviewSpec& kept = again->spec.preview;
   EXPECT_TRUE(kept.enabled);
-  EXPECT_EQ(kept.render.width, 96);
-  EXPECT_EQ(kept.render.height, 64);
-  EXPECT_EQ(kept.render.camera.up, render::UpAxis::kY);
-  EXPECT_EQ(kept.render.camera.azimuth_deg, 10);
-  EXPECT_TRUE(kept.render.wireframe);
-  EXPECT_FALSE(reopened.Get(job->id).value().spec.preview.render.transparent);
+  EXPECT_EQ(kept.view.Encode(), spec.preview.view.Encode());
 }
 
-TEST_F(JobServiceTest, DatabasesFromBeforePreviewsStillOpen) {
-  // The table as the first releases wrote it, with one finished job.
+TEST_F(JobServiceTest, DatabasesFromEarlierVersionsStillOpen) {
+  // The table as the first releases wrote it, with one finished job, and a later one with a
+  // preview in the old text form.
   {
     sqlite3* db = nullptr;
     std::filesystem::create_directories(dir_);
@@ -236,7 +359,9 @@ TEST_F(JobServiceTest, DatabasesFromBeforePreviewsStillOpen) {
         "stage TEXT, attempts INTEGER, error TEXT, created_ms INTEGER, updated_ms INTEGER, input_points INTEGER, "
         "input_bytes INTEGER, statistics TEXT, results TEXT);"
         "INSERT INTO jobs VALUES ('cccc', 'iamls', 'iterations=3;', 16, 2, 'done', 1, '', 1, 2, 3000, 100, "
-        "'wall_seconds=1;', 'mesh.drc;');";
+        "'wall_seconds=1;', 'mesh.drc;');"
+        "INSERT INTO jobs VALUES ('dddd', 'track', 'interface=2;field=1;resampling=0;steps=20;', 16, 2, 'done', 1, "
+        "'', 1, 2, 0, 0, '', 'stats.csv;');";
     EXPECT_EQ(sqlite3_exec(db, sql, nullptr, nullptr, nullptr), SQLITE_OK);
     sqlite3_close(db);
   }
@@ -244,23 +369,29 @@ TEST_F(JobServiceTest, DatabasesFromBeforePreviewsStillOpen) {
   auto old = s.Get("cccc");
   ASSERT_TRUE(old.ok()) << old.status();
   EXPECT_EQ(old->state, JobState::kSucceeded);
-  EXPECT_EQ(old->spec.parameters.at("iterations"), 3);
+  EXPECT_EQ(old->spec.params.Get("iterations"), 3);
   EXPECT_FALSE(old->spec.preview.enabled);
+  auto track = s.Get("dddd");
+  ASSERT_TRUE(track.ok()) << track.status();
+  // Numeric codes of the time before enums map to the same choices.
+  EXPECT_EQ(track->spec.params.Get("interface"), static_cast<int>(TrackInterface::kZalesak));
+  EXPECT_EQ(track->spec.params.Get("field"), static_cast<int>(TrackField::kDeformation));
+  EXPECT_EQ(track->spec.params.Get("steps"), 20);
 }
 
-TEST_F(JobServiceTest, InterruptedJobsRunAgainOnceThenFail) {
-  // Simulate the records a killed server leaves behind: jobs marked running.
+TEST_F(JobServiceTest, CrashedJobsRunAgainOnceThenFail) {
+  // The records a killed server leaves behind: jobs marked running.
   std::filesystem::create_directories(dir_ / "jobs" / "aaaa");
   std::filesystem::create_directories(dir_ / "jobs" / "bbbb");
   const std::string input = Encode(testing::SphereCloud(3000));
   ASSERT_TRUE(io::WriteFileAtomically((dir_ / "jobs" / "aaaa" / "input.drc").string(), input).ok());
   ASSERT_TRUE(io::WriteFileAtomically((dir_ / "jobs" / "bbbb" / "input.drc").string(), input).ok());
   {
-    auto store = JobStore::Open((dir_ / "jobs.db").string());
+    auto store = SqliteJobStore::Open((dir_ / "jobs.db").string());
     ASSERT_TRUE(store.ok());
     JobRecord once;
     once.id = "aaaa";
-    once.spec.method = "iamls";
+    once.spec = Spec("iamls");
     once.state = JobState::kRunning;
     once.attempts = 1;
     JobRecord twice = once;
@@ -277,17 +408,24 @@ TEST_F(JobServiceTest, InterruptedJobsRunAgainOnceThenFail) {
   EXPECT_EQ(resumed.attempts, 2);
 }
 
-TEST_F(JobServiceTest, ShutdownRequeuesTheRunningJob) {
+TEST_F(JobServiceTest, ShutdownRequeuesTheRunningJobWithoutHoldingItAgainstIt) {
+  options_.max_attempts = 1;  // A crash would fail it; a graceful stop must not.
+  HoldIamlsJobs();
   JobService& s = Open();
-  auto job = s.Submit({"iamls", {}}, Encode(testing::TorusCloud(100000, 1.0, 0.3)));
+  auto job = s.Submit(Spec("iamls"), Input(Encode(testing::SphereCloud(3000))));
   ASSERT_TRUE(job.ok());
-  WaitUntil(job->id, [](const JobRecord& r) { return r.state == JobState::kRunning; });
+  latch_.WaitStarted(1);
   s.Shutdown();
-  EXPECT_EQ(s.Get(job->id)->state, JobState::kQueued);
-  EXPECT_EQ(s.Get(job->id)->attempts, 0);
-  JobService& reopened = Open();
-  EXPECT_EQ(WaitTerminal(job->id).state, JobState::kSucceeded);
-  (void)reopened;
+  const JobRecord stopped = *s.Get(job->id);
+  EXPECT_EQ(stopped.state, JobState::kQueued);
+  EXPECT_EQ(stopped.attempts, 1);
+  EXPECT_EQ(stopped.interruptions, 1);
+  EXPECT_EQ(s.Submit(Spec("iamls"), Input("x")).status().code(), absl::StatusCode::kUnavailable);
+  options_.kind_overrides.clear();  // The real engine this time.
+  Open();
+  const JobRecord done = WaitTerminal(job->id);
+  EXPECT_EQ(done.state, JobState::kSucceeded) << done.error;
+  EXPECT_EQ(done.attempts, 2);
 }
 
 }  // namespace

@@ -13,7 +13,41 @@ uint32_t FindRoot(std::vector<uint32_t>& parent, uint32_t x) {
   return x;
 }
 
+// Vertex indices ordered by position (lexicographic), so equal positions are adjacent.
+std::vector<uint32_t> OrderByPosition(const std::vector<Vec3f>& v) {
+  std::vector<uint32_t> order(v.size());
+  std::iota(order.begin(), order.end(), 0u);
+  std::sort(order.begin(), order.end(), [&](uint32_t a, uint32_t b) {
+    return std::tie(v[a].x(), v[a].y(), v[a].z()) < std::tie(v[b].x(), v[b].y(), v[b].z());
+  });
+  return order;
+}
+
 }  // namespace
+
+TriangleMesh WeldByPosition(const TriangleMesh& mesh) {
+  const std::vector<uint32_t> order = OrderByPosition(mesh.vertices);
+  std::vector<uint32_t> remap(mesh.vertices.size());
+  TriangleMesh out;
+  for (size_t i = 0; i < order.size(); ++i) {
+    if (i == 0 || mesh.vertices[order[i]] != mesh.vertices[order[i - 1]]) {
+      out.vertices.push_back(mesh.vertices[order[i]]);
+    }
+    remap[order[i]] = static_cast<uint32_t>(out.vertices.size() - 1);
+  }
+  out.faces.reserve(mesh.faces.size());
+  for (const Triangle& f : mesh.faces) out.faces.push_back({remap[f[0]], remap[f[1]], remap[f[2]]});
+  return out;
+}
+
+int64_t CountDistinctPositions(const std::vector<Vec3f>& positions) {
+  const std::vector<uint32_t> order = OrderByPosition(positions);
+  int64_t distinct = 0;
+  for (size_t i = 0; i < order.size(); ++i) {
+    if (i == 0 || positions[order[i]] != positions[order[i - 1]]) ++distinct;
+  }
+  return distinct;
+}
 
 MeshTopology AnalyzeTopology(const TriangleMesh& mesh) {
   MeshTopology t;

@@ -26,6 +26,14 @@ struct MeshTopology {
 // O(F log F). Works on any index soup; out-of-range indices are a broken invariant (asserted).
 MeshTopology AnalyzeTopology(const TriangleMesh& mesh);
 
+// The mesh with vertices at exactly the same position merged into one (as STL export and most
+// tools do); faces keep their order and may become degenerate. Normals and attributes are
+// dropped. O(V log V).
+TriangleMesh WeldByPosition(const TriangleMesh& mesh);
+
+// Number of distinct vertex positions.
+int64_t CountDistinctPositions(const std::vector<Vec3f>& positions);
+
 // Signed volume enclosed by a closed mesh (divergence theorem); positive when faces are
 // oriented outward. Meaningless for open meshes.
 double EnclosedVolume(const TriangleMesh& mesh);

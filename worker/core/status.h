@@ -1,15 +1,29 @@
 // worker/core/status.h — error propagation between modules.
 //
 // Modules return `absl::Status` / `absl::StatusOr<T>`; the 2022 abseil shipped with Debian lacks
-// the return-if-error helper, so this macro stands in for it.
+// the return-if-error helpers, so these macros stand in for them.
 #pragma once
 
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
 
-// Returns from the enclosing function when `expr` (an absl::Status) is not OK.
-#define LSQSURF_RETURN_IF_ERROR(expr)                          \
-  do {                                                         \
-    if (absl::Status lsqsurf_status_ = (expr); !lsqsurf_status_.ok()) \
-      return lsqsurf_status_;                                  \
+#define LSQSURF_STATUS_CONCAT_INNER(a, b) a##b
+#define LSQSURF_STATUS_CONCAT(a, b) LSQSURF_STATUS_CONCAT_INNER(a, b)
+
+// Returns from the enclosing function when `expr` (an absl::Status) is not OK. The variable's
+// name is unique per line, so the macro nests (e.g. inside a lambda passed to another use).
+#define LSQSURF_RETURN_IF_ERROR(expr)                                                          \
+  do {                                                                                         \
+    if (absl::Status LSQSURF_STATUS_CONCAT(lsqsurf_status_, __LINE__) = (expr);                \
+        !LSQSURF_STATUS_CONCAT(lsqsurf_status_, __LINE__).ok())                                \
+      return LSQSURF_STATUS_CONCAT(lsqsurf_status_, __LINE__);                                 \
   } while (false)
+
+// `LSQSURF_ASSIGN_OR_RETURN(auto x, MakeX());` declares `x` from an absl::StatusOr, or returns
+// its status from the enclosing function.
+#define LSQSURF_ASSIGN_OR_RETURN(lhs, expr) \
+  LSQSURF_ASSIGN_OR_RETURN_IMPL(LSQSURF_STATUS_CONCAT(lsqsurf_statusor_, __LINE__), lhs, expr)
+#define LSQSURF_ASSIGN_OR_RETURN_IMPL(statusor, lhs, expr) \
+  auto statusor = (expr);                                  \
+  if (!statusor.ok()) return statusor.status();            \
+  lhs = *std::move(statusor)

@@ -492,23 +492,44 @@ absl::StatusOr<std::unique_ptr<VelocityField>> GridVelocity(Vec3d origin, Vec3d 
   return std::make_unique<GridField>(origin, spacing, nx, ny, nz, std::move(values));
 }
 
-absl::Status Validate(const TrackingParams& p) {
-  LSQSURF_RETURN_IF_ERROR(ValidateSpacing(p.h));
-  if (!(p.dt > 0) || !std::isfinite(p.dt)) return absl::InvalidArgumentError("dt must be a positive number");
-  if (p.steps < 1 || p.steps > 100000) return absl::InvalidArgumentError("steps must be in [1, 100000]");
-  if (p.output_stride < 1) return absl::InvalidArgumentError("output_stride must be at least 1");
-  if (p.max_points < 4) return absl::InvalidArgumentError("max_points must be at least 4");
-  if (!(p.support_factor >= 1.5 && p.support_factor <= 10)) {
-    return absl::InvalidArgumentError("support_factor must be in [1.5, 10]");
-  }
-  if (!(p.marker_spacing >= 0.1 && p.marker_spacing <= 1)) {
-    return absl::InvalidArgumentError("marker_spacing must be in [0.1, 1] (units of h)");
-  }
-  if (!(p.marker_gap > p.marker_spacing && p.marker_gap <= 1)) {
-    return absl::InvalidArgumentError("marker_gap must be in (marker_spacing, 1] (units of h)");
-  }
-  return absl::OkStatus();
+const core::ParamTable<TrackingParams>& TrackingParamTable() {
+  static const auto* table = [] {
+    auto* t = new core::ParamTable<TrackingParams>();
+    t->Real<&TrackingParams::h>("h", 1.0 / 512, 1.0 / 8, "unit-cube lengths", "background grid spacing; 1/h must be whole")
+        .Real<&TrackingParams::dt>("dt", 1e-6, 1000, "time units", "time step")
+        .Integer<&TrackingParams::steps>("steps", 1, 100000, "", "number of steps")
+        .Integer<&TrackingParams::output_stride>("stride", 1, 100000, "steps",
+                                                 "write a frame every this many steps (and after the last)")
+        .Real<&TrackingParams::support_factor>("support_factor", 1.5, 10, "h", "RAMLS support radius")
+        .Choice<&TrackingParams::resampling>(
+            "resampling",
+            {{"markers", static_cast<int>(Resampling::kMarkers),
+              "the advected points stay; crowded ones are thinned, stretched gaps filled from the RAMLS surface of "
+              "their side; keeps sheets thinner than h"},
+             {"gridlines", static_cast<int>(Resampling::kGridlines),
+              "the seed's re-generation of the whole front on the gridlines every step"}},
+            "how the front stays sampled after each step")
+        .Real<&TrackingParams::marker_spacing>("marker_spacing", 0.1, 1, "h",
+                                               "markers: of two markers facing the same way closer than this, the "
+                                               "younger goes")
+        .Real<&TrackingParams::marker_gap>("marker_gap", 0.15, 1, "h",
+                                           "markers: a midpoint of two markers with no marker within this gets a "
+                                           "new one; must exceed marker_spacing")
+        .Integer<&TrackingParams::max_points>("max_points", 100, 50'000'000, "points",
+                                              "stop with an error if the front grows past this many points")
+        .AddRule([](const TrackingParams& p) { return ValidateSpacing(p.h); })
+        .AddRule([](const TrackingParams& p) {
+          return p.marker_gap > p.marker_spacing
+                     ? absl::OkStatus()
+                     : absl::InvalidArgumentError(core::StrCat("marker_gap=", p.marker_gap,
+                                                               " must exceed marker_spacing=", p.marker_spacing));
+        });
+    return t;
+  }();
+  return *table;
 }
+
+absl::Status Validate(const TrackingParams& p) { return TrackingParamTable().Validate(p); }
 
 absl::StatusOr<Front> SampleInitialFront(InitialShape shape, double h) {
   LSQSURF_RETURN_IF_ERROR(ValidateSpacing(h));

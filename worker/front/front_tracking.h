@@ -27,6 +27,7 @@
 #include "absl/status/statusor.h"
 #include "worker/core/geometry.h"
 #include "worker/core/job_context.h"
+#include "worker/core/params.h"
 
 namespace lsqsurf::front {
 
@@ -94,6 +95,9 @@ struct TrackingParams {
                                // units of h, (marker_spacing, 1].
 };
 
+// The one description of every TrackingParams field (output_stride is called "stride");
+// Validate() checks it, with the rules that 1/h is whole and marker_gap > marker_spacing.
+const core::ParamTable<TrackingParams>& TrackingParamTable();
 absl::Status Validate(const TrackingParams& params);
 
 struct FrameStats {

@@ -1,13 +1,13 @@
-// worker/jobs/job.h — what the service knows about a job.
+// worker/jobs/job.h — what the service knows about a job: its spec, state and record.
 #pragma once
 
 #include <cstdint>
+#include <map>
 #include <string>
 #include <utility>
 #include <vector>
 
-#include "worker/jobs/engines.h"
-#include "worker/render/render.h"
+#include "worker/core/params.h"
 
 namespace lsqsurf::jobs {
 
@@ -20,16 +20,25 @@ bool IsTerminal(JobState state);
 // or frame_NNNNN.png of every output frame of a track job (framed on the tracking domain).
 struct PreviewSpec {
   bool enabled = false;
-  render::RenderParams render;         // Size, camera, colouring; the framing box is the job's.
+  core::ParamSet view;                 // render::RenderParams through ViewParams(); the framing box is the job's.
   double turntable_deg_per_frame = 0;  // Track jobs: azimuth step between frames, −360..360.
 };
 
 struct JobSpec {
-  std::string method;          // A name from SurfaceMethods().
-  ParameterMap parameters;     // Validated against the method.
-  int mesh_position_bits = 16; // Draco quantization of the result mesh positions (8..30).
+  std::string method;           // A name from Methods() (method_registry.h).
+  core::ParamSet params;        // The method's parameter struct; unset fields keep its defaults.
+  // Draco quantization of result mesh positions, bits over the bounding box (8..30); 0 = chosen
+  // per mesh, enough that no two distinct vertices merge.
+  int mesh_position_bits = 0;
   PreviewSpec preview{};  // Off unless enabled.
 };
+
+// Uploaded bytes by slot: "input" (a Draco point cloud) and "velocity" (a legacy VTK grid).
+using Uploads = std::map<std::string, std::string>;
+inline constexpr char kInputUpload[] = "input";
+inline constexpr char kVelocityUpload[] = "velocity";
+
+using Statistics = std::vector<std::pair<std::string, double>>;  // Name (units in it), value.
 
 struct JobRecord {
   std::string id;
@@ -38,13 +47,14 @@ struct JobRecord {
   std::string stage;           // Current stage while running.
   double progress = 0;         // Overall fraction in [0, 1].
   int attempts = 0;            // Times a worker started the job.
+  int interruptions = 0;       // Starts ended by a server shutdown (not the job's fault).
   std::string error;           // Why it failed or was cancelled.
   int64_t created_ms = 0;      // Unix epoch milliseconds.
   int64_t updated_ms = 0;
   int64_t input_points = 0;
   int64_t input_bytes = 0;
-  std::vector<std::pair<std::string, double>> statistics;  // Final statistics of a success.
-  std::vector<std::string> results;                        // Artifact names of a success.
+  Statistics statistics;              // Final statistics of a success.
+  std::vector<std::string> results;   // Artifact names of a success.
   uint64_t version = 0;        // Bumped on every change (watchers compare it).
 };
 

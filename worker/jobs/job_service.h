@@ -1,20 +1,25 @@
-// worker/jobs/job_service.h — accepts, stores, schedules and runs reconstruction jobs.
+// worker/jobs/job_service.h — accepts, stores, schedules and runs jobs of every kind.
 //
-// The server's single entry point into the workers; it knows nothing of gRPC. Inputs are
-// validated completely before a job is accepted (so a bad upload is refused at once, with a
-// message that says what is wrong); an accepted job is on disk (SQLite row + input file)
-// before Submit returns and is never lost: after a restart, queued jobs run, and jobs that
-// were running are queued again once, then failed with a reason.
+// The server's single entry point into the workers; it knows nothing of gRPC, and nothing of
+// a kind's details (those live behind JobKind). Specs are validated once here (ValidateSpec),
+// uploads by the job's kind, before a job is accepted; an accepted job is on disk (a store
+// record + its uploads) before Submit returns and is never lost: after a restart, queued jobs
+// run, and jobs that were running are queued again, then failed with a reason once they have
+// crashed the server `max_attempts` times (a graceful shutdown does not count).
 //
 // Threading: a fixed pool of `workers` threads runs jobs from a bounded FIFO queue; every
-// public method is thread-safe and returns quickly (no engine work happens on the caller's
-// thread; Submit decodes the upload to validate it, ~0.3 s per million points).
+// public method is thread-safe. Store writes happen outside the service's lock, so reads
+// (Get, List, WaitForChange) never wait on the disk. Submit decodes the uploads once to check
+// them (~0.3 s per million points, on the caller's thread); Render draws on the caller's thread
+// with at most `max_renders` at once.
 #pragma once
 
+#include <atomic>
 #include <chrono>
 #include <condition_variable>
 #include <cstdint>
 #include <deque>
+#include <functional>
 #include <map>
 #include <memory>
 #include <mutex>
@@ -24,7 +29,12 @@
 
 #include "absl/status/statusor.h"
 #include "worker/jobs/job.h"
+#include "worker/jobs/job_kind.h"
 #include "worker/jobs/job_store.h"
+
+namespace lsqsurf::render {
+class SharedRenderer;
+}
 
 namespace lsqsurf::jobs {
 
@@ -33,8 +43,28 @@ struct JobServiceOptions {
   int workers = 1;                       // Jobs that run at once (each uses every core).
   int max_queue = 64;                    // Queued jobs beyond which Submit is refused.
   int64_t max_points = 20'000'000;       // Largest accepted cloud.
-  int64_t max_input_bytes = int64_t{1} << 30;  // Largest accepted upload.
-  int max_attempts = 2;                  // Starts before an interrupted job is failed.
+  int64_t min_points = 16;               // Smallest accepted surface cloud.
+  int64_t max_input_bytes = int64_t{1} << 30;  // Largest accepted upload (all slots together).
+  int max_attempts = 2;                  // Crashed starts before a job is failed.
+  int max_renders = 2;                   // Render calls drawn at once; more get kResourceExhausted.
+  // Tests only: replaces the kind that runs a method's jobs (e.g. one that blocks on a latch).
+  std::map<std::string, const JobKind*> kind_overrides;
+};
+
+// A picture of a result.
+struct RenderedPicture {
+  std::string png;
+  double color_min = 0, color_max = 0;  // The colour range used, when colouring.
+  std::string renderer;                 // The GL renderer that drew it.
+};
+
+// Reads one artifact in chunks.
+class ArtifactReader {
+ public:
+  virtual ~ArtifactReader() = default;
+  virtual int64_t size() const = 0;
+  // Up to `max_bytes` more bytes; empty at the end. Errors: kUnavailable.
+  virtual absl::StatusOr<std::string> Next(size_t max_bytes) = 0;
 };
 
 class JobService {
@@ -43,22 +73,27 @@ class JobService {
   static absl::StatusOr<std::unique_ptr<JobService>> Open(const JobServiceOptions& options);
   ~JobService();  // Calls Shutdown().
 
-  // Validates and enqueues. `input` is a Draco point cloud; `velocity` a legacy VTK vector grid,
-  // only for the track method with field = 2. Errors: kInvalidArgument (bad method,
-  // parameter, preview, or input, with the reason), kResourceExhausted (queue full, too many
-  // points or bytes), kUnavailable (shutting down, storage failure, or a preview asked of a
-  // server that cannot draw).
-  absl::StatusOr<JobRecord> Submit(const JobSpec& spec, std::string input, std::string velocity = {});
+  // Validates and enqueues. Errors: kInvalidArgument (bad method, parameter, preview, or
+  // upload, with the reason), kResourceExhausted (queue full, too many points or bytes),
+  // kUnavailable (shutting down, storage failure, or a preview asked of a server that cannot
+  // draw).
+  absl::StatusOr<JobRecord> Submit(const JobSpec& spec, Uploads uploads);
 
   absl::StatusOr<JobRecord> Get(const std::string& id) const;
   std::vector<JobRecord> List() const;  // Newest first.
-  // Requests cancellation: a queued job ends at once, a running one within about a second.
-  // Errors: kNotFound, kFailedPrecondition (already finished).
+  // Requests cancellation: a queued job ends at once (the returned record is CANCELLED); a
+  // running one stops within about a second (the returned record is still RUNNING; CANCELLED
+  // follows). Errors: kNotFound, kFailedPrecondition (already finished).
   absl::StatusOr<JobRecord> Cancel(const std::string& id);
   // Removes a finished job and its files. Errors: kNotFound, kFailedPrecondition (not finished).
   absl::Status Delete(const std::string& id);
-  // Path of a result artifact. Errors: kNotFound (job or artifact), kFailedPrecondition (not done).
-  absl::StatusOr<std::string> ResultPath(const std::string& id, const std::string& name) const;
+  // A result artifact for reading; an empty name means the job's first result. Errors:
+  // kNotFound (job or artifact), kFailedPrecondition (not succeeded).
+  absl::StatusOr<std::unique_ptr<ArtifactReader>> OpenResult(const std::string& id, const std::string& name) const;
+  // Draws a Draco artifact (a mesh or a point set) with view options from DefaultView().
+  // Errors: those of OpenResult, kInvalidArgument (bad view, not geometry), kUnavailable (no
+  // renderer), kResourceExhausted (max_renders pictures being drawn).
+  absl::StatusOr<RenderedPicture> Render(const std::string& id, const std::string& name, const core::ParamSet& view);
 
   // Blocks until the job's version differs from `seen_version`, the timeout passes, or the
   // service shuts down; returns the current record. Errors: kNotFound.
@@ -66,12 +101,12 @@ class JobService {
                                           std::chrono::milliseconds timeout) const;
 
   // Stops accepting work; running jobs are interrupted and put back in the queue on disk (their
-  // attempt is not counted), so the next start resumes them. Idempotent.
+  // interruption is counted, not held against them), so the next start resumes them. Idempotent.
   void Shutdown();
 
   const JobServiceOptions& options() const { return options_; }
-  // The process's renderer (previews of jobs, and pictures on request), made on first use.
-  render::SharedRenderer& renderer() { return renderer_; }
+  // Whether pictures can be drawn (makes the renderer on first use, about 0.1 s).
+  bool CanRender();
   bool shutting_down() const {
     std::lock_guard lock(mutex_);
     return shutting_down_;
@@ -80,17 +115,22 @@ class JobService {
  private:
   struct Entry;
   class Context;
-  explicit JobService(JobServiceOptions options) : options_(std::move(options)) {}
+  explicit JobService(JobServiceOptions options);
   void WorkerLoop();
   void RunJob(const std::shared_ptr<Entry>& entry);
-  // Applies `change` to the record under the lock, persists it and wakes watchers.
+  absl::StatusOr<Statistics> RunKind(const std::shared_ptr<Entry>& entry, class DirectorySink& sink);
+  // Applies `change` to the record under the lock, wakes watchers, then persists it.
   void Update(const std::shared_ptr<Entry>& entry, const std::function<void(JobRecord&)>& change,
               bool persist = true);
+  void Persist(const std::shared_ptr<Entry>& entry, const JobRecord& copy);
+  const JobKind* KindOf(const std::string& method) const;
   std::string JobDir(const std::string& id) const;
 
   JobServiceOptions options_;
-  render::SharedRenderer renderer_;
+  std::unique_ptr<render::SharedRenderer> renderer_;
   std::unique_ptr<JobStore> store_;
+  std::mutex store_mutex_;  // Orders store writes (never held with mutex_).
+  std::atomic<int> renders_{0};
   mutable std::mutex mutex_;
   mutable std::condition_variable changed_;   // Any job changed (watchers).
   std::condition_variable work_available_;    // Queue gained a job or shutdown began.

@@ -18,6 +18,20 @@ absl::Status WritePng(const absl::StatusOr<render::Image>& image, const std::str
 
 }  // namespace
 
+absl::StatusOr<std::string> PicturePng(render::Renderer& renderer, const core::TriangleMesh& mesh,
+                                       const render::RenderParams& params) {
+  auto image = renderer.RenderMesh(mesh, params);
+  if (!image.ok()) return image.status();
+  return render::EncodePng(*image);
+}
+
+absl::StatusOr<std::string> PicturePng(render::Renderer& renderer, const core::PointCloud& cloud,
+                                       const render::RenderParams& params) {
+  auto image = renderer.RenderPoints(cloud, params);
+  if (!image.ok()) return image.status();
+  return render::EncodePng(*image);
+}
+
 absl::Status WritePicture(render::Renderer& renderer, const core::TriangleMesh& mesh, const render::RenderParams& params,
                           const std::string& path) {
   return WritePng(renderer.RenderMesh(mesh, params), path);

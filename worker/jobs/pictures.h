@@ -3,11 +3,17 @@
 
 #include <string>
 
-#include "absl/status/status.h"
+#include "absl/status/statusor.h"
 #include "worker/core/geometry.h"
 #include "worker/render/render.h"
 
 namespace lsqsurf::jobs {
+
+// PNG bytes of the mesh (or the cloud). Errors: the renderer's.
+absl::StatusOr<std::string> PicturePng(render::Renderer& renderer, const core::TriangleMesh& mesh,
+                                       const render::RenderParams& params);
+absl::StatusOr<std::string> PicturePng(render::Renderer& renderer, const core::PointCloud& cloud,
+                                       const render::RenderParams& params);
 
 // Draws the mesh (or the cloud) and writes the PNG atomically to `path`. Errors: the renderer's,
 // or kUnavailable when the file cannot be written.

@@ -130,21 +130,37 @@ struct AlgebraicMlsFunction::Impl {
   }
 };
 
-absl::Status Validate(const AlgebraicMlsParams& p) {
-  auto in = [](double v, double lo, double hi) { return std::isfinite(v) && v >= lo && v <= hi; };
-  if (!(p.spacing == 0 || (std::isfinite(p.spacing) && p.spacing > 0))) {
-    return absl::InvalidArgumentError("spacing must be 0 (measure it) or a positive length");
+namespace {
+
+core::ParamTable<AlgebraicMlsParams>* MakeAlgebraicTable(AlgebraicFit fit) {
+  auto* t = new core::ParamTable<AlgebraicMlsParams>();
+  t->Real<&AlgebraicMlsParams::spacing>("spacing", 0, 1e30, "model units",
+                                        "h; 0 = spacing_scale x mean nearest-neighbour distance")
+      .Real<&AlgebraicMlsParams::spacing_scale>("spacing_scale", 0.25, 8, "", "multiplier of the measured spacing")
+      .Real<&AlgebraicMlsParams::support_factor>("support_factor", 1, 10, "h", "support radius")
+      .Integer<&AlgebraicMlsParams::min_neighbors>("min_neighbors", 4, 100, "points",
+                                                   "no surface where fewer points carry weight")
+      .Real<&AlgebraicMlsParams::coverage>("coverage", 0.25, 10, "h", "no surface farther than this from the nearest point")
+      .Real<&AlgebraicMlsParams::side_cosine>("side_cosine", -1, 1, "",
+                                              "only points whose normal has at least this cosine with the nearest "
+                                              "point's normal enter a fit; -1 keeps all, -0.5 fits each side of a "
+                                              "thin sheet alone");
+  if (fit == AlgebraicFit::kApss) {
+    t->Real<&AlgebraicMlsParams::apss_beta>("beta", 1e-6, 1e12, "",
+                                            "weight of the normal term against the position term (large = RAMLS)");
   }
-  if (!in(p.spacing_scale, 0.25, 8)) return absl::InvalidArgumentError("spacing_scale must be in [0.25, 8]");
-  if (!in(p.support_factor, 1, 10)) return absl::InvalidArgumentError("support_factor must be in [1, 10]");
-  if (p.min_neighbors < 4 || p.min_neighbors > 100) return absl::InvalidArgumentError("min_neighbors must be in [4, 100]");
-  if (!in(p.coverage, 0.25, 10)) return absl::InvalidArgumentError("coverage must be in [0.25, 10]");
-  if (!in(p.side_cosine, -1, 1)) return absl::InvalidArgumentError("side_cosine must be in [-1, 1]");
-  if (p.fit == AlgebraicFit::kApss && !(in(p.apss_beta, 0, 1e12) && p.apss_beta > 0)) {
-    return absl::InvalidArgumentError("APSS beta must be in (0, 1e12]: without the normal term the fit is the zero polynomial");
-  }
-  return absl::OkStatus();
+  return t;
 }
+
+}  // namespace
+
+const core::ParamTable<AlgebraicMlsParams>& AlgebraicMlsParamTable(AlgebraicFit fit) {
+  static const auto* ramls = MakeAlgebraicTable(AlgebraicFit::kRamls);
+  static const auto* apss = MakeAlgebraicTable(AlgebraicFit::kApss);
+  return fit == AlgebraicFit::kApss ? *apss : *ramls;
+}
+
+absl::Status Validate(const AlgebraicMlsParams& p) { return AlgebraicMlsParamTable(p.fit).Validate(p); }
 
 AlgebraicMlsFunction::AlgebraicMlsFunction() : impl_(std::make_unique<Impl>()) {}
 AlgebraicMlsFunction::~AlgebraicMlsFunction() = default;

@@ -27,6 +27,7 @@
 #include "worker/core/geometry.h"
 #include "worker/core/implicit_function.h"
 #include "worker/core/job_context.h"
+#include "worker/core/params.h"
 
 namespace lsqsurf::mls {
 
@@ -48,6 +49,10 @@ struct AlgebraicMlsParams {
   double side_cosine = -1.0;
 };
 
+// The one description of the fields users set for `fit` (APSS adds `beta`, the apss_beta
+// field); `fit` itself is chosen by the method, not a parameter.
+const core::ParamTable<AlgebraicMlsParams>& AlgebraicMlsParamTable(AlgebraicFit fit);
+// The table of params.fit.
 absl::Status Validate(const AlgebraicMlsParams& params);
 
 class AlgebraicMlsFunction final : public core::ImplicitFunction {

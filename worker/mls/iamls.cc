@@ -51,27 +51,24 @@ struct IamlsFunction::Impl {
   double fallback_scale = 0;  // Scale of the sign-only extension (a typical ΣΨ).
 };
 
-absl::Status Validate(const IamlsParams& p) {
-  if (!(p.epsilon >= 0.05 && p.epsilon <= 3.0)) {
-    return absl::InvalidArgumentError(core::StrCat("epsilon must be in [0.05, 3], got ", p.epsilon));
-  }
-  if (p.iterations < 0 || p.iterations > 20) {
-    return absl::InvalidArgumentError(core::StrCat("iterations must be in [0, 20], got ", p.iterations));
-  }
-  if (!(p.spacing >= 0.0) || !std::isfinite(p.spacing)) {
-    return absl::InvalidArgumentError("spacing must be 0 (automatic) or a positive length");
-  }
-  if (!(p.spacing_scale >= 0.25 && p.spacing_scale <= 8.0)) {
-    return absl::InvalidArgumentError(core::StrCat("spacing_scale must be in [0.25, 8], got ", p.spacing_scale));
-  }
-  if (!(p.cutoff >= 2.0 && p.cutoff <= 8.0)) {
-    return absl::InvalidArgumentError(core::StrCat("cutoff must be in [2, 8], got ", p.cutoff));
-  }
-  if (!(p.min_weight >= 0.0 && p.min_weight < 1.0)) {
-    return absl::InvalidArgumentError("min_weight must be in [0, 1)");
-  }
-  return absl::OkStatus();
+const core::ParamTable<IamlsParams>& IamlsParamTable() {
+  static const auto* table = [] {
+    auto* t = new core::ParamTable<IamlsParams>();
+    t->Real<&IamlsParams::epsilon>("epsilon", 0.05, 3, "", "kernel shape parameter; larger = more detail")
+        .Integer<&IamlsParams::iterations>("iterations", 0, 20, "", "residual-correction iterations; more = closer fit")
+        .Real<&IamlsParams::spacing>("spacing", 0, 1e30, "model units",
+                                     "kernel spacing h; 0 = spacing_scale x mean nearest-neighbour distance")
+        .Real<&IamlsParams::spacing_scale>("spacing_scale", 0.25, 8, "", "multiplier of the measured spacing")
+        .Real<&IamlsParams::cutoff>("cutoff", 2, 8, "", "kernel truncation at epsilon*r = cutoff")
+        .Real<&IamlsParams::min_weight>("min_weight", 0, 0.99, "",
+                                        "ghost-sheet guard: no surface where the kernel sum is below this share of "
+                                        "its mean at the samples");
+    return t;
+  }();
+  return *table;
 }
+
+absl::Status Validate(const IamlsParams& p) { return IamlsParamTable().Validate(p); }
 
 namespace {
 

@@ -23,6 +23,7 @@
 #include "worker/core/geometry.h"
 #include "worker/core/implicit_function.h"
 #include "worker/core/job_context.h"
+#include "worker/core/params.h"
 
 namespace lsqsurf::mls {
 
@@ -40,8 +41,10 @@ struct IamlsParams {
                             // the guard against the ghost sheets of the kernel's negative lobe.
 };
 
-// Static checks with messages a user can act on (the data-dependent divergence check happens
-// in BuildIamls).
+// The one description of every IamlsParams field (range, unit, meaning).
+const core::ParamTable<IamlsParams>& IamlsParamTable();
+// The table's checks, with messages a user can act on (the data-dependent divergence check
+// happens in BuildIamls).
 absl::Status Validate(const IamlsParams& params);
 
 struct IamlsStats {

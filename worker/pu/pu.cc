@@ -502,19 +502,53 @@ double Seconds(std::chrono::steady_clock::time_point since) {
 
 }  // namespace
 
-absl::Status Validate(const PuParams& p) {
-  auto in = [](double v, double lo, double hi) { return std::isfinite(v) && v >= lo && v <= hi; };
-  if (!in(p.error_threshold, 1e-6, 0.1)) return absl::InvalidArgumentError("error_threshold must be in [1e-6, 0.1]");
-  if (p.max_depth < 1 || p.max_depth > 18) return absl::InvalidArgumentError("max_depth must be in [1, 18]");
-  if (p.max_degree < 0 || p.max_degree > kMaxDegree) return absl::InvalidArgumentError("max_degree must be in [0, 4]");
-  if (!in(p.support_factor, 0.55, 2)) return absl::InvalidArgumentError("support_factor must be in [0.55, 2]");
-  if (p.min_points < 4 || p.min_points > 200) return absl::InvalidArgumentError("min_points must be in [4, 200]");
-  if (!in(p.max_normal_angle, 10, 180)) return absl::InvalidArgumentError("max_normal_angle must be in [10, 180] degrees");
-  if (!in(p.coverage_factor, 0.5, 20)) return absl::InvalidArgumentError("coverage_factor must be in [0.5, 20]");
-  if (!(p.noise_level == -1 || in(p.noise_level, 0, 0.1))) {
-    return absl::InvalidArgumentError("noise_level must be -1 (estimate it) or in [0, 0.1]");
-  }
-  return absl::OkStatus();
+const core::ParamTable<PuParams>& PuParamTable() {
+  static const auto* table = [] {
+    auto* t = new core::ParamTable<PuParams>();
+    t->Real<&PuParams::error_threshold>("error_threshold", 1e-6, 0.1, "share of the diagonal",
+                                        "largest fitting error accepted in a cell; set it near the noise amplitude "
+                                        "for noisy scans")
+        .Integer<&PuParams::max_depth>("max_depth", 1, 18, "levels", "octree levels below the root cube")
+        .Integer<&PuParams::max_degree>("max_degree", 0, kMaxDegree, "", "highest polynomial degree of a local fit")
+        .Real<&PuParams::support_factor>("support_factor", 0.55, 2, "cell diagonals", "support radius of a cell")
+        .Integer<&PuParams::min_points>("min_points", 4, 200, "points",
+                                        "the fitting ball of a sparse cell grows until it holds this many points")
+        .Real<&PuParams::max_normal_angle>("max_normal_angle", 10, 180, "degrees",
+                                           "normal-cone criterion: wider cells are split (180 disables it)")
+        .Flag<&PuParams::coverage_check>("coverage",
+                                         "coverage criteria: no sheets away from the data, holes stay open")
+        .Real<&PuParams::coverage_factor>("coverage_factor", 0.5, 20, "local spacings",
+                                          "surface only within this many local spacings (distance to the 8th "
+                                          "neighbour) of a data point")
+        .Flag<&PuParams::orientation_check>("orientation_check", "reject fits whose gradient opposes their points' normals")
+        .Real<&PuParams::noise_level>("noise_level", -1, 0.1, "share of the diagonal",
+                                      "scan noise sigma; -1 estimates it, 0 declares the data exact; above "
+                                      "error_threshold the threshold becomes 3 sigma and min_points at least 80")
+        .AddRule([](const PuParams& p) {
+          return p.noise_level == -1 || p.noise_level >= 0
+                     ? absl::OkStatus()
+                     : absl::InvalidArgumentError(core::StrCat("noise_level=", p.noise_level,
+                                                               " must be -1 (estimate it) or within [0, 0.1]"));
+        });
+    return t;
+  }();
+  return *table;
+}
+
+absl::Status Validate(const PuParams& p) { return PuParamTable().Validate(p); }
+
+const core::ParamTable<PuExtractParams>& PuExtractParamTable() {
+  static const auto* table = [] {
+    auto* t = new core::ParamTable<PuExtractParams>();
+    t->Real<&PuExtractParams::cell_size>("cell_size", 0.25, 64, "mean point spacings",
+                                         "smallest extraction cell at the surface (rounded to an octree level); cells "
+                                         "near the data are up to 4x larger where the fits allowed larger cells")
+        .Custom({"refine_steps", core::ParamType::kInteger, 0, {}, 0, 20, "steps", "root-refinement steps per crossing edge", {}},
+                [](const PuExtractParams& p) { return static_cast<double>(p.marching.refine_steps); },
+                [](PuExtractParams& p, double v) { p.marching.refine_steps = static_cast<int>(v); });
+    return t;
+  }();
+  return *table;
 }
 
 PuFunction::PuFunction() : impl_(std::make_unique<Impl>()) {}

@@ -35,6 +35,7 @@
 #include "worker/core/implicit_function.h"
 #include "worker/core/isosurface.h"
 #include "worker/core/job_context.h"
+#include "worker/core/params.h"
 
 namespace lsqsurf::pu {
 
@@ -56,6 +57,8 @@ struct PuParams {
   double noise_level = -1;
 };
 
+// The one description of every PuParams field (range, unit, meaning); Validate() checks it.
+const core::ParamTable<PuParams>& PuParamTable();
 absl::Status Validate(const PuParams& params);
 
 struct PuStats {
@@ -120,6 +123,9 @@ struct PuExtractParams {
   core::MarchingOptions marching;
   bool label_vertices = true;  // Adds the vertex attributes "depth" and "degree".
 };
+
+// The user-facing fields of PuExtractParams: cell_size and refine_steps.
+const core::ParamTable<PuExtractParams>& PuExtractParamTable();
 
 // The zero set of F on J1a tetrahedra: the fitting tree down to `cell_size`, refined to at least
 // 4 × `cell_size` around the data and 2:1 balanced, so cells grow away from the surface. Errors: kInvalidArgument, kResourceExhausted, kCancelled.

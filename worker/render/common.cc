@@ -3,20 +3,70 @@
 #include <cmath>
 
 #include "stb_image_write.h"
+#include "worker/core/status.h"
 #include "worker/core/strings.h"
 #include "worker/render/render.h"
 
 namespace lsqsurf::render {
 
+namespace {
+
+// Camera fields live one level down; the table reaches them through these accessors.
+core::ParamInfo CameraReal(std::string name, double lo, double hi, std::string help) {
+  return {std::move(name), core::ParamType::kReal, 0, {}, lo, hi, "degrees", std::move(help), {}};
+}
+
+}  // namespace
+
+const core::ParamTable<RenderParams>& ViewParamTable() {
+  static const auto* table = [] {
+    auto* t = new core::ParamTable<RenderParams>();
+    t->Integer<&RenderParams::width>("width", 16, kMaxImageSide, "pixels", "image width")
+        .Integer<&RenderParams::height>("height", 16, kMaxImageSide, "pixels", "image height")
+        .Custom(CameraReal("azimuth_deg", -1e6, 1e6, "camera angle about the up axis"),
+                [](const RenderParams& p) { return p.camera.azimuth_deg; },
+                [](RenderParams& p, double v) { p.camera.azimuth_deg = v; })
+        .Custom(CameraReal("elevation_deg", -89, 89, "camera angle above the plane normal to the up axis"),
+                [](const RenderParams& p) { return p.camera.elevation_deg; },
+                [](RenderParams& p, double v) { p.camera.elevation_deg = v; })
+        .Custom({"distance", core::ParamType::kReal, 0, {}, 0, 1e30, "model units",
+                 "camera distance from the centre of the box; 0 frames the whole model", {}},
+                [](const RenderParams& p) { return p.camera.distance; },
+                [](RenderParams& p, double v) { p.camera.distance = v; })
+        .Custom(CameraReal("fov_deg", 5, 120, "vertical field of view"),
+                [](const RenderParams& p) { return p.camera.fov_deg; },
+                [](RenderParams& p, double v) { p.camera.fov_deg = v; })
+        .Custom({"up_axis", core::ParamType::kChoice, 0, {}, 0, 0, {}, "the axis that points up in the picture",
+                 {{"x", static_cast<int>(UpAxis::kX), "azimuth turns from +y towards +z"},
+                  {"y", static_cast<int>(UpAxis::kY), "azimuth turns from +z towards +x (most scans)"},
+                  {"z", static_cast<int>(UpAxis::kZ), "azimuth turns from +x towards +y"}}},
+                [](const RenderParams& p) { return static_cast<double>(static_cast<int>(p.camera.up)); },
+                [](RenderParams& p, double v) { p.camera.up = static_cast<UpAxis>(static_cast<int>(v)); })
+        .Text<&RenderParams::color_attribute>("color", "per-vertex scalar to colour by, with a legend; empty = plain shading")
+        .Real<&RenderParams::color_min>("color_min", -1e300, 1e300, "", "colour map bounds; the data's range unless color_min < color_max")
+        .Real<&RenderParams::color_max>("color_max", -1e300, 1e300, "", "see color_min")
+        .Custom({"flat_shading", core::ParamType::kFlag, 0, {}, 0, 1, {}, "one normal per triangle", {}},
+                [](const RenderParams& p) { return p.shading == Shading::kFlat ? 1.0 : 0.0; },
+                [](RenderParams& p, double v) { p.shading = v != 0 ? Shading::kFlat : Shading::kSmooth; })
+        .Flag<&RenderParams::wireframe>("wireframe", "dark triangle edges over the faces")
+        .Flag<&RenderParams::transparent>("transparent", "transparent background")
+        .Integer<&RenderParams::samples>("samples", 1, 8, "per pixel", "multisampling: 1, 2, 4 or 8")
+        .AddRule([](const RenderParams& p) {
+          return p.samples == 1 || p.samples == 2 || p.samples == 4 || p.samples == 8
+                     ? absl::OkStatus()
+                     : absl::InvalidArgumentError(core::StrCat("samples=", p.samples, " must be 1, 2, 4 or 8"));
+        })
+        .AddRule([](const RenderParams& p) {
+          return p.color_min <= p.color_max ? absl::OkStatus()
+                                            : absl::InvalidArgumentError("color_min must not exceed color_max");
+        });
+    return t;
+  }();
+  return *table;
+}
+
 absl::Status Validate(const RenderParams& p) {
-  auto side_ok = [](int s) { return s >= 16 && s <= kMaxImageSide; };
-  if (!side_ok(p.width) || !side_ok(p.height)) {
-    return absl::InvalidArgumentError(core::StrCat("image size ", p.width, "x", p.height, " is outside 16..",
-                                                   kMaxImageSide, " pixels per side"));
-  }
-  if (p.samples != 1 && p.samples != 2 && p.samples != 4 && p.samples != 8) {
-    return absl::InvalidArgumentError("samples must be 1, 2, 4 or 8");
-  }
+  LSQSURF_RETURN_IF_ERROR(ViewParamTable().Validate(p));
   const Camera& c = p.camera;
   if (!std::isfinite(c.azimuth_deg) || !(std::abs(c.elevation_deg) <= 89) || !(c.fov_deg >= 5 && c.fov_deg <= 120) ||
       !(c.distance >= 0) || !std::isfinite(c.distance)) {

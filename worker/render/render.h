@@ -23,6 +23,7 @@
 
 #include "absl/status/statusor.h"
 #include "worker/core/geometry.h"
+#include "worker/core/params.h"
 
 namespace lsqsurf::render {
 
@@ -64,6 +65,11 @@ struct RenderParams {
   double point_size = 0;             // Splat diameter in pixels for clouds; 0 = from the spacing.
 };
 
+// The view options users set (size, camera, colouring, shading): the one description of them,
+// which the service's RenderOptions mirror by name. Background, specular, legend, point size
+// and the framing box are set by code, not users.
+const core::ParamTable<RenderParams>& ViewParamTable();
+// The table's checks, then those of the fields only code sets.
 absl::Status Validate(const RenderParams& params);
 
 struct Image {

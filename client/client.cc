@@ -1,0 +1,269 @@
+#include "client/client.h"
+
+#include <grpcpp/grpcpp.h>
+
+#include <cctype>
+#include <cstdlib>
+
+#include "worker/core/strings.h"
+
+namespace lsqsurf::client {
+namespace {
+
+using google::protobuf::FieldDescriptor;
+using google::protobuf::Message;
+using core::StrCat;
+
+const google::protobuf::OneofDescriptor& MethodOneof() {
+  return *v1::JobSpec::descriptor()->FindOneofByName("method");
+}
+
+std::string KnownMethods() {
+  std::string known;
+  const auto& oneof = MethodOneof();
+  for (int i = 0; i < oneof.field_count(); ++i) core::StrAppend(&known, i ? ", " : "", oneof.field(i)->name());
+  return known;
+}
+
+// "Interface" -> "INTERFACE_", as the server maps choices onto enum values.
+std::string EnumPrefix(const std::string& type_name) {
+  std::string out;
+  for (char c : type_name) {
+    if (std::isupper(static_cast<unsigned char>(c)) && !out.empty()) out += '_';
+    out += static_cast<char>(std::toupper(static_cast<unsigned char>(c)));
+  }
+  return out + "_";
+}
+
+absl::Status SetEnum(Message* m, const FieldDescriptor& f, std::string_view value) {
+  std::string upper;
+  for (char c : value) upper += static_cast<char>(std::toupper(static_cast<unsigned char>(c)));
+  const auto& type = *f.enum_type();
+  const auto* e = type.FindValueByName(EnumPrefix(type.name()) + upper);
+  if (e == nullptr) e = type.FindValueByName(upper);
+  if (e == nullptr) {
+    std::string names;
+    const std::string prefix = EnumPrefix(type.name());
+    for (int i = 0; i < type.value_count(); ++i) {
+      std::string n = type.value(i)->name().substr(prefix.size());
+      if (n == "UNSPECIFIED") continue;
+      for (char& c : n) c = static_cast<char>(std::tolower(static_cast<unsigned char>(c)));
+      core::StrAppend(&names, names.empty() ? "" : ", ", n);
+    }
+    return absl::InvalidArgumentError(StrCat(f.name(), "='", value, "' is not one of: ", names));
+  }
+  m->GetReflection()->SetEnum(m, &f, e);
+  return absl::OkStatus();
+}
+
+absl::Status SetField(Message* m, const FieldDescriptor& f, std::string_view value) {
+  const auto* r = m->GetReflection();
+  const std::string text(value);
+  if (f.cpp_type() == FieldDescriptor::CPPTYPE_ENUM) return SetEnum(m, f, value);
+  if (f.cpp_type() == FieldDescriptor::CPPTYPE_STRING) {
+    r->SetString(m, &f, text);
+    return absl::OkStatus();
+  }
+  if (f.cpp_type() == FieldDescriptor::CPPTYPE_BOOL) {
+    if (text != "true" && text != "false" && text != "1" && text != "0") {
+      return absl::InvalidArgumentError(StrCat(f.name(), "='", value, "' is not true or false"));
+    }
+    r->SetBool(m, &f, text == "true" || text == "1");
+    return absl::OkStatus();
+  }
+  char* end = nullptr;
+  const double v = std::strtod(text.c_str(), &end);
+  if (text.empty() || *end != '\0') return absl::InvalidArgumentError(StrCat(f.name(), "='", value, "' is not a number"));
+  const bool whole = v == static_cast<double>(static_cast<int64_t>(v));
+  switch (f.cpp_type()) {
+    case FieldDescriptor::CPPTYPE_DOUBLE: r->SetDouble(m, &f, v); return absl::OkStatus();
+    case FieldDescriptor::CPPTYPE_FLOAT: r->SetFloat(m, &f, static_cast<float>(v)); return absl::OkStatus();
+    case FieldDescriptor::CPPTYPE_INT32:
+      if (!whole || std::abs(v) > 2e9) break;
+      r->SetInt32(m, &f, static_cast<int32_t>(v));
+      return absl::OkStatus();
+    case FieldDescriptor::CPPTYPE_INT64:
+      if (!whole) break;
+      r->SetInt64(m, &f, static_cast<int64_t>(v));
+      return absl::OkStatus();
+    default: break;
+  }
+  return absl::InvalidArgumentError(StrCat(f.name(), "='", value, "' must be a whole number"));
+}
+
+template <class Request, class Response>
+absl::StatusOr<Response> Unary(grpc::Status (v1::Reconstruction::Stub::*call)(grpc::ClientContext*, const Request&,
+                                                                             Response*),
+                               v1::Reconstruction::Stub& stub, const Request& request) {
+  grpc::ClientContext ctx;
+  Response response;
+  if (grpc::Status s = (stub.*call)(&ctx, request, &response); !s.ok()) return FromGrpc(s);
+  return response;
+}
+
+}  // namespace
+
+absl::Status FromGrpc(const grpc::Status& status) {
+  if (status.ok()) return absl::OkStatus();
+  return absl::Status(static_cast<absl::StatusCode>(status.error_code()), status.error_message());
+}
+
+std::string MethodOf(const v1::JobSpec& spec) {
+  const FieldDescriptor* f = spec.GetReflection()->GetOneofFieldDescriptor(spec, &MethodOneof());
+  return f ? f->name() : "";
+}
+
+absl::Status SetMethod(v1::JobSpec* spec, const std::string& method) {
+  const FieldDescriptor* f = v1::JobSpec::descriptor()->FindFieldByName(method);
+  if (f == nullptr || f->containing_oneof() != &MethodOneof()) {
+    return absl::InvalidArgumentError(StrCat("unknown method '", method, "'; available: ", KnownMethods()));
+  }
+  spec->GetReflection()->MutableMessage(spec, f);
+  return absl::OkStatus();
+}
+
+absl::Status SetParam(v1::JobSpec* spec, std::string_view name, std::string_view value) {
+  const FieldDescriptor* method = spec->GetReflection()->GetOneofFieldDescriptor(*spec, &MethodOneof());
+  if (method == nullptr) return absl::InvalidArgumentError("set a method before its parameters");
+  Message* params = spec->GetReflection()->MutableMessage(spec, method);
+  const FieldDescriptor* f = params->GetDescriptor()->FindFieldByName(std::string(name));
+  if (f == nullptr) {
+    std::string valid;
+    for (int i = 0; i < params->GetDescriptor()->field_count(); ++i) {
+      core::StrAppend(&valid, i ? ", " : "", params->GetDescriptor()->field(i)->name());
+    }
+    return absl::InvalidArgumentError(
+        StrCat("unknown parameter '", name, "' for method ", method->name(), "; valid parameters: ", valid));
+  }
+  return SetField(params, *f, value);
+}
+
+absl::Status SetParamAssignment(v1::JobSpec* spec, std::string_view assignment) {
+  const size_t eq = assignment.find('=');
+  if (eq == std::string_view::npos || eq == 0) {
+    return absl::InvalidArgumentError(StrCat("--param expects name=value, got '", assignment, "'"));
+  }
+  return SetParam(spec, assignment.substr(0, eq), assignment.substr(eq + 1));
+}
+
+const char* StateName(v1::JobState s) {
+  switch (s) {
+    case v1::JOB_STATE_QUEUED: return "queued";
+    case v1::JOB_STATE_RUNNING: return "running";
+    case v1::JOB_STATE_SUCCEEDED: return "succeeded";
+    case v1::JOB_STATE_FAILED: return "failed";
+    case v1::JOB_STATE_CANCELLED: return "cancelled";
+    default: return "unknown";
+  }
+}
+
+bool IsTerminal(v1::JobState s) {
+  return s == v1::JOB_STATE_SUCCEEDED || s == v1::JOB_STATE_FAILED || s == v1::JOB_STATE_CANCELLED;
+}
+
+Client::Client(const std::string& address) {
+  grpc::ChannelArguments args;
+  args.SetMaxReceiveMessageSize(16 << 20);
+  args.SetMaxSendMessageSize(16 << 20);
+  stub_ = v1::Reconstruction::NewStub(grpc::CreateCustomChannel(address, grpc::InsecureChannelCredentials(), args));
+}
+
+absl::StatusOr<v1::Job> Client::Submit(const v1::JobSpec& spec, std::string_view input, std::string_view velocity) {
+  grpc::ClientContext ctx;
+  v1::Job job;
+  auto writer = stub_->SubmitJob(&ctx, &job);
+  v1::SubmitJobRequest request;
+  *request.mutable_spec() = spec;
+  bool open = writer->Write(request);
+  constexpr size_t kChunk = size_t{1} << 20;
+  for (size_t offset = 0; open && offset < input.size(); offset += kChunk) {
+    request.set_input_chunk(std::string(input.substr(offset, kChunk)));
+    open = writer->Write(request);
+  }
+  for (size_t offset = 0; open && offset < velocity.size(); offset += kChunk) {
+    request.set_velocity_chunk(std::string(velocity.substr(offset, kChunk)));
+    open = writer->Write(request);
+  }
+  writer->WritesDone();
+  if (grpc::Status s = writer->Finish(); !s.ok()) return FromGrpc(s);
+  return job;
+}
+
+absl::StatusOr<v1::Job> Client::Watch(const std::string& id, const std::function<void(const v1::Job&)>& on_event) {
+  grpc::ClientContext ctx;
+  v1::WatchJobRequest request;
+  request.set_job_id(id);
+  auto reader = stub_->WatchJob(&ctx, request);
+  v1::JobEvent event;
+  v1::Job last;
+  while (reader->Read(&event)) {
+    last = event.job();
+    if (on_event) on_event(last);
+  }
+  if (grpc::Status s = reader->Finish(); !s.ok()) return FromGrpc(s);
+  if (!IsTerminal(last.state())) return absl::AbortedError("the watch ended before the job finished");
+  return last;
+}
+
+absl::StatusOr<std::string> Client::Fetch(const std::string& id, const std::string& name) {
+  grpc::ClientContext ctx;
+  v1::FetchResultRequest request;
+  request.set_job_id(id);
+  request.set_name(name);
+  auto reader = stub_->FetchResult(&ctx, request);
+  v1::ResultChunk chunk;
+  std::string bytes;
+  while (reader->Read(&chunk)) {
+    if (chunk.total_bytes() > 0) bytes.reserve(static_cast<size_t>(chunk.total_bytes()));
+    bytes += chunk.data();
+  }
+  if (grpc::Status s = reader->Finish(); !s.ok()) return FromGrpc(s);
+  return bytes;
+}
+
+absl::StatusOr<v1::RenderResponse> Client::Render(const std::string& id, const std::string& name,
+                                                  const v1::RenderOptions& options) {
+  v1::RenderRequest request;
+  request.set_job_id(id);
+  request.set_name(name);
+  *request.mutable_options() = options;
+  grpc::ClientContext ctx;
+  ctx.set_deadline(std::chrono::system_clock::now() + std::chrono::minutes(5));
+  v1::RenderResponse response;
+  if (grpc::Status s = stub_->Render(&ctx, request, &response); !s.ok()) return FromGrpc(s);
+  return response;
+}
+
+absl::StatusOr<v1::Job> Client::Get(const std::string& id) {
+  v1::GetJobRequest request;
+  request.set_job_id(id);
+  return Unary(&v1::Reconstruction::Stub::GetJob, *stub_, request);
+}
+
+absl::StatusOr<v1::ListJobsResponse> Client::List(int limit) {
+  v1::ListJobsRequest request;
+  request.set_limit(limit);
+  return Unary(&v1::Reconstruction::Stub::ListJobs, *stub_, request);
+}
+
+absl::StatusOr<v1::Job> Client::Cancel(const std::string& id) {
+  v1::CancelJobRequest request;
+  request.set_job_id(id);
+  return Unary(&v1::Reconstruction::Stub::CancelJob, *stub_, request);
+}
+
+absl::Status Client::Delete(const std::string& id) {
+  v1::DeleteJobRequest request;
+  request.set_job_id(id);
+  return Unary(&v1::Reconstruction::Stub::DeleteJob, *stub_, request).status();
+}
+
+absl::StatusOr<v1::ListMethodsResponse> Client::ListMethods() {
+  return Unary(&v1::Reconstruction::Stub::ListMethods, *stub_, v1::ListMethodsRequest{});
+}
+
+absl::StatusOr<v1::ServerInfo> Client::GetServerInfo() {
+  return Unary(&v1::Reconstruction::Stub::GetServerInfo, *stub_, v1::GetServerInfoRequest{});
+}
+
+}  // namespace lsqsurf::client

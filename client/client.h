@@ -1,0 +1,60 @@
+// client/client.h — a small library over the lsqsurf.v1 API: each call returns a StatusOr, so
+// the CLI (and other programs) need not handle gRPC streams themselves.
+//
+// Thread safety: a Client may be used from one thread at a time per call; calls open their
+// own contexts on a shared channel.
+#pragma once
+
+#include <functional>
+#include <memory>
+#include <string>
+#include <string_view>
+
+#include "absl/status/statusor.h"
+#include "lsqsurf/v1/reconstruction.grpc.pb.h"
+
+namespace lsqsurf::client {
+
+// The gRPC status as an absl::Status (the codes are the same numbers).
+absl::Status FromGrpc(const grpc::Status& status);
+
+// The method a spec names ("" when none), and setting one (an empty parameter message).
+// Errors: kInvalidArgument for an unknown method, listing the known ones.
+std::string MethodOf(const v1::JobSpec& spec);
+absl::Status SetMethod(v1::JobSpec* spec, const std::string& method);
+// Sets the parameter `name` of the spec's method from its text form: a number, true/false/1/0
+// for flags, a choice's name (e.g. "gridlines") for enums. Ranges are the server's to check.
+// Errors: kInvalidArgument naming the field (unknown, or a value of the wrong type).
+absl::Status SetParam(v1::JobSpec* spec, std::string_view name, std::string_view value);
+// "name=value" as given to --param.
+absl::Status SetParamAssignment(v1::JobSpec* spec, std::string_view assignment);
+
+// Display names: "queued", "running", ...
+const char* StateName(v1::JobState state);
+bool IsTerminal(v1::JobState state);
+
+class Client {
+ public:
+  explicit Client(const std::string& address);
+
+  // Uploads `input` (Draco bytes; may be empty for jobs that need none) and `velocity` (legacy
+  // VTK; empty when not used) in 1 MiB chunks. Returns the accepted job.
+  absl::StatusOr<v1::Job> Submit(const v1::JobSpec& spec, std::string_view input, std::string_view velocity = {});
+  // Follows the job until it ends, calling `on_event` with every state; returns the final job.
+  // Errors: the RPC's, or kAborted when the stream ended before the job did.
+  absl::StatusOr<v1::Job> Watch(const std::string& id, const std::function<void(const v1::Job&)>& on_event = {});
+  absl::StatusOr<std::string> Fetch(const std::string& id, const std::string& name);
+  absl::StatusOr<v1::RenderResponse> Render(const std::string& id, const std::string& name,
+                                            const v1::RenderOptions& options);
+  absl::StatusOr<v1::Job> Get(const std::string& id);
+  absl::StatusOr<v1::ListJobsResponse> List(int limit);
+  absl::StatusOr<v1::Job> Cancel(const std::string& id);
+  absl::Status Delete(const std::string& id);
+  absl::StatusOr<v1::ListMethodsResponse> ListMethods();
+  absl::StatusOr<v1::ServerInfo> GetServerInfo();
+
+ private:
+  std::unique_ptr<v1::Reconstruction::Stub> stub_;
+};
+
+}  // namespace lsqsurf::client

@@ -1,0 +1,70 @@
+// worker/jobs/job_kind.h — the interface every kind of work implements (a surface, a moving
+// front, next a volume).
+//
+// A kind names its methods and their parameter tables, checks a spec's uploads before the job
+// is accepted, and runs the job with a cancel/progress context, writing its artifacts through a
+// sink. The job service knows queues, states and recovery, never a kind's details.
+#pragma once
+
+#include <cstdint>
+#include <string>
+#include <string_view>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "worker/core/job_context.h"
+#include "worker/core/params.h"
+#include "worker/jobs/job.h"
+
+namespace lsqsurf::render {
+class SharedRenderer;
+}
+
+namespace lsqsurf::jobs {
+
+// One method a kind offers: what ListMethods shows and what a spec's parameters start from.
+struct MethodInfo {
+  std::string name;
+  std::string description;
+  core::ParamSet defaults;               // The method's parameter struct with its defaults.
+  std::vector<std::string> attributes;   // Per-vertex scalars on its result meshes (to colour by).
+  std::vector<std::string> uploads;      // Upload slots it accepts (kInputUpload, kVelocityUpload).
+};
+
+// Server limits a kind checks uploads against.
+struct InputLimits {
+  int64_t max_points = 20'000'000;
+  int64_t min_points = 16;
+};
+
+// Stores a job's artifacts; each write is atomic and the name is recorded in order.
+class ArtifactSink {
+ public:
+  virtual ~ArtifactSink() = default;
+  // Errors: kUnavailable (storage failed).
+  virtual absl::Status Write(std::string_view name, std::string_view bytes) = 0;
+};
+
+struct RunEnvironment {
+  ArtifactSink& sink;
+  core::JobContext& context;
+  render::SharedRenderer* renderer = nullptr;  // For previews; nullptr: none can be drawn.
+};
+
+class JobKind {
+ public:
+  virtual ~JobKind() = default;
+  virtual std::string_view name() const = 0;  // "surface", "track".
+  virtual std::vector<MethodInfo> Methods() const = 0;
+  // Checks a validated spec's uploads (decoding them), returning the number of input points.
+  // Errors: kInvalidArgument (a missing, undecodable or unsuitable upload, with what to fix),
+  // kResourceExhausted (over the limits).
+  virtual absl::StatusOr<int64_t> CheckUploads(const JobSpec& spec, const Uploads& uploads,
+                                               const InputLimits& limits) const = 0;
+  // Runs an accepted job; the artifacts go through `env.sink`. Returns the final statistics.
+  // Errors: kCancelled, or the engine's own (kInvalidArgument, kResourceExhausted, ...).
+  virtual absl::StatusOr<Statistics> Run(const JobSpec& spec, const Uploads& uploads,
+                                         RunEnvironment& env) const = 0;
+};
+
+}  // namespace lsqsurf::jobs

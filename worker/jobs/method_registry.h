@@ -1,0 +1,36 @@
+// worker/jobs/method_registry.h — every method of every job kind, and the one validation of a
+// job spec at the service boundary.
+#pragma once
+
+#include <string>
+#include <string_view>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "worker/core/params.h"
+#include "worker/jobs/job.h"
+#include "worker/jobs/job_kind.h"
+
+namespace lsqsurf::jobs {
+
+struct MethodEntry {
+  MethodInfo info;
+  const JobKind* kind = nullptr;
+};
+
+// Surface methods first, then front tracking. Built once; safe to read from any thread.
+const std::vector<MethodEntry>& Methods();
+// The method called `name`, or nullptr.
+const MethodEntry* FindMethod(std::string_view name);
+// The parameters of `method` at their defaults. Errors: kInvalidArgument for an unknown method,
+// listing the known ones.
+absl::StatusOr<core::ParamSet> DefaultParams(std::string_view method);
+// View options (render::RenderParams) at their defaults: what previews and pictures take.
+core::ParamSet DefaultView();
+
+// Everything about a spec that can be checked without its uploads: a known method, parameters
+// in range and consistent, the Draco bits, the preview's view and colour attribute (one the
+// method's meshes carry). Errors: kInvalidArgument naming the field and what is accepted.
+absl::Status ValidateSpec(const JobSpec& spec);
+
+}  // namespace lsqsurf::jobs

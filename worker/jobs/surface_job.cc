@@ -1,0 +1,412 @@
+#include "worker/jobs/surface_job.h"
+
+#include <spdlog/spdlog.h>
+
+#include <chrono>
+#include <cmath>
+#include <functional>
+
+#include "worker/core/isosurface.h"
+#include "worker/core/j1a_isosurface.h"
+#include "worker/core/mesh_metrics.h"
+#include "worker/core/status.h"
+#include "worker/core/strings.h"
+#include "worker/io/draco_codec.h"
+#include "worker/jobs/pictures.h"
+#include "worker/render/render.h"
+
+namespace lsqsurf::jobs {
+namespace {
+
+constexpr char kMeshArtifact[] = "mesh.drc";
+constexpr char kPreviewArtifact[] = "preview.png";
+
+const core::ParamTable<NormalsParams>& NormalsTable() {
+  static const auto* table = [] {
+    auto* t = new core::ParamTable<NormalsParams>();
+    t->Flag<&NormalsParams::estimate_normals>("estimate_normals",
+                                              "estimate normals when the cloud has none (PCA + spanning-tree "
+                                              "orientation); false rejects clouds without normals")
+        .Integer<&NormalsParams::normal_neighbors>("normal_neighbors", 3, 128, "points",
+                                                   "neighbours used to estimate normals");
+    return t;
+  }();
+  return *table;
+}
+
+template <class P>
+void AddExtractionHints(core::ParamTable<P>& t) {
+  t.template Real<&P::cell_size>("cell_size", 0.1, 16, "h",
+                                 "spacing of the extraction vertices (J1a leaves are twice as large, with vertices at "
+                                 "their centres and face and edge midpoints)")
+      .template Integer<&P::refine_steps>("refine_steps", 0, 20, "steps", "root-refinement steps per crossing edge");
+}
+
+const core::ParamTable<IamlsJobParams>& IamlsTable() {
+  static const auto* table = [] {
+    auto* t = new core::ParamTable<IamlsJobParams>();
+    t->Include(&IamlsJobParams::fit, mls::IamlsParamTable());
+    AddExtractionHints(*t);
+    t->Choice<&IamlsJobParams::extractor>(
+        "extractor",
+        {{"j1a", static_cast<int>(SurfaceExtractor::kJ1a), "J1a tetrahedra on an adaptive octree"},
+         {"grid", static_cast<int>(SurfaceExtractor::kUniformGrid), "surface-following uniform Kuhn grid (a little faster)"}},
+        "where the zero set is extracted");
+    t->Include(&IamlsJobParams::normals, NormalsTable());
+    return t;
+  }();
+  return *table;
+}
+
+template <mls::AlgebraicFit kFit>
+const core::ParamTable<AlgebraicJobParams<kFit>>& AlgebraicTable() {
+  using P = AlgebraicJobParams<kFit>;
+  static const auto* table = [] {
+    auto* t = new core::ParamTable<P>();
+    t->Include(&P::fit, mls::AlgebraicMlsParamTable(kFit));
+    AddExtractionHints(*t);
+    t->Include(&P::normals, NormalsTable());
+    return t;
+  }();
+  return *table;
+}
+
+const core::ParamTable<PuJobParams>& PuTable() {
+  static const auto* table = [] {
+    auto* t = new core::ParamTable<PuJobParams>();
+    t->Include(&PuJobParams::fit, pu::PuParamTable())
+        .Include(&PuJobParams::extract, pu::PuExtractParamTable())
+        .Include(&PuJobParams::normals, NormalsTable());
+    return t;
+  }();
+  return *table;
+}
+
+double Seconds(std::chrono::steady_clock::time_point since) {
+  return std::chrono::duration<double>(std::chrono::steady_clock::now() - since).count();
+}
+
+void AddStatistic(Statistics* stats, std::string name, double value) {
+  for (auto& [n, v] : *stats) {
+    if (n == name) {
+      v = value;
+      return;
+    }
+  }
+  stats->emplace_back(std::move(name), value);
+}
+
+// Where the methods without an extractor of their own hand their function: the one shared
+// extractor, on J1a leaves of twice the vertex spacing (a leaf has vertices at half its edge)
+// or on a uniform grid of the vertex spacing.
+struct ExtractionHints {
+  double vertex_spacing = 0;  // Model units.
+  int refine_steps = 3;
+  SurfaceExtractor extractor = SurfaceExtractor::kJ1a;
+};
+
+absl::StatusOr<core::IsosurfaceResult> ExtractShared(const core::ImplicitFunction& field, const core::PointCloud& cloud,
+                                                     const ExtractionHints& hints, core::JobContext& ctx) {
+  core::MarchingOptions marching;
+  marching.refine_steps = hints.refine_steps;
+  if (hints.extractor == SurfaceExtractor::kJ1a) {
+    return core::ExtractIsosurfaceJ1a(field, cloud.positions, {2 * hints.vertex_spacing, 20'000'000, marching}, ctx);
+  }
+  return core::ExtractIsosurface(field, cloud.positions, {hints.vertex_spacing, 60'000'000, marching}, ctx);
+}
+
+using StatFn = std::function<void(std::string, double)>;
+
+absl::StatusOr<core::IsosurfaceResult> RunIamls(const IamlsJobParams& p, const core::PointCloud& cloud,
+                                                core::JobContext& ctx, const StatFn& stat) {
+  const auto start = std::chrono::steady_clock::now();
+  core::SubContext build_ctx(ctx, "building iaMLS", 0.0, 0.3);
+  auto field = mls::BuildIamls(cloud, p.fit, build_ctx);
+  if (!field.ok()) return field.status();
+  stat("fit_seconds", Seconds(start));
+  stat("spacing", (*field)->spacing());
+  stat("largest_eigenvalue", (*field)->stats().largest_eigenvalue);
+  if (!(*field)->stats().residuals.empty()) stat("final_residual_over_h", (*field)->stats().residuals.back());
+  const auto extract_start = std::chrono::steady_clock::now();
+  core::SubContext extract_ctx(ctx, "extracting surface", 0.3, 1.0);
+  auto extracted = ExtractShared(**field, cloud, {p.cell_size * (*field)->spacing(), p.refine_steps, p.extractor},
+                                 extract_ctx);
+  if (extracted.ok()) stat("extract_seconds", Seconds(extract_start));
+  return extracted;
+}
+
+template <mls::AlgebraicFit kFit>
+absl::StatusOr<core::IsosurfaceResult> RunAlgebraic(const AlgebraicJobParams<kFit>& p, const core::PointCloud& cloud,
+                                                    core::JobContext& ctx, const StatFn& stat) {
+  core::SubContext build_ctx(ctx, "indexing points", 0.0, 0.05);
+  auto field = mls::BuildAlgebraicMls(cloud, p.fit, build_ctx);
+  if (!field.ok()) return field.status();
+  stat("spacing", (*field)->spacing());
+  const auto start = std::chrono::steady_clock::now();
+  core::SubContext extract_ctx(ctx, "extracting surface", 0.05, 1.0);
+  auto extracted = ExtractShared(**field, cloud, {p.cell_size * (*field)->spacing(), p.refine_steps,
+                                                  SurfaceExtractor::kJ1a},
+                                 extract_ctx);
+  if (extracted.ok()) stat("extract_seconds", Seconds(start));
+  return extracted;
+}
+
+void PuStatistics(const pu::PuStats& s, const StatFn& stat) {
+  stat("fit_seconds", s.fit_seconds);
+  stat("index_seconds", s.index_seconds);
+  stat("mean_spacing", s.mean_spacing);
+  stat("noise_level", s.noise_estimate);
+  stat("error_threshold_used", s.error_threshold);
+  stat("min_points_used", s.min_points);
+  for (size_t d = 0; d < s.fits_per_degree.size(); ++d) {
+    stat(core::StrCat("fits_degree_", d), static_cast<double>(s.fits_per_degree[d]));
+  }
+  stat("fits_quadric", static_cast<double>(s.quadric_fits));
+  stat("fits_above_threshold", static_cast<double>(s.unmet_threshold));
+  for (size_t d = 0; d < s.leaves_per_depth.size(); ++d) {
+    if (s.leaves_per_depth[d] > 0) stat(core::StrCat("leaves_depth_", d), static_cast<double>(s.leaves_per_depth[d]));
+  }
+}
+
+absl::StatusOr<core::IsosurfaceResult> RunPu(const PuJobParams& p, const core::PointCloud& cloud, core::JobContext& ctx,
+                                             const StatFn& stat) {
+  core::SubContext build_ctx(ctx, "fitting", 0.0, 0.4);
+  auto field = pu::BuildPu(cloud, p.fit, build_ctx);
+  if (!field.ok()) return field.status();
+  PuStatistics((*field)->stats(), stat);
+  const auto start = std::chrono::steady_clock::now();
+  core::SubContext extract_ctx(ctx, "extracting surface", 0.4, 1.0);
+  auto extracted = pu::Extract(**field, p.extract, extract_ctx);
+  if (extracted.ok()) {
+    stat("extract_seconds", Seconds(start));
+    stat("tetrahedra", static_cast<double>(extracted->stats.tetrahedra));
+  }
+  return extracted;
+}
+
+// One entry per method: its description and how its typed parameters run.
+struct SurfaceMethod {
+  MethodInfo info;
+  std::function<absl::StatusOr<core::IsosurfaceResult>(const core::ParamSet&, const core::PointCloud&,
+                                                       core::JobContext&, const StatFn&)>
+      run;
+  std::function<const NormalsParams*(const core::ParamSet&)> normals;
+};
+
+template <class P, class Run>
+SurfaceMethod MakeMethod(std::string name, std::string description, const core::ParamTable<P>& table, Run run,
+                         std::vector<std::string> attributes = {}) {
+  SurfaceMethod m;
+  m.info = {std::move(name), std::move(description), core::ParamSet(table), std::move(attributes), {kInputUpload}};
+  m.run = [run](const core::ParamSet& params, const core::PointCloud& cloud, core::JobContext& ctx,
+                const StatFn& stat) -> absl::StatusOr<core::IsosurfaceResult> {
+    const P* p = params.As<P>();
+    if (p == nullptr) return absl::InternalError("parameters of another method");
+    return run(*p, cloud, ctx, stat);
+  };
+  m.normals = [](const core::ParamSet& params) -> const NormalsParams* {
+    const P* p = params.As<P>();
+    return p ? &p->normals : nullptr;
+  };
+  return m;
+}
+
+const std::vector<SurfaceMethod>& SurfaceMethods() {
+  static const auto* methods = new std::vector<SurfaceMethod>{
+      MakeMethod("iamls", "iterated approximate MLS surface (seed §4), extracted on a tetrahedral grid", IamlsTable(),
+                 RunIamls),
+      MakeMethod("pu",
+                 "twofold adaptive partition-of-unity implicit (seed §2): orthogonal-polynomial fits of adaptive "
+                 "degree on an adaptive octree, extracted on its J1a tetrahedra",
+                 PuTable(), RunPu, {"depth", "degree"}),
+      MakeMethod("ramls",
+                 "robust algebraic MLS surface (seed §3): closed-form normal-driven sphere fits, extracted on J1a "
+                 "tetrahedra",
+                 AlgebraicTable<mls::AlgebraicFit::kRamls>(), RunAlgebraic<mls::AlgebraicFit::kRamls>),
+      MakeMethod("apss",
+                 "algebraic point set surface (Guennebaud & Gross): normal-constrained sphere fits weighted by beta, "
+                 "extracted on J1a tetrahedra",
+                 AlgebraicTable<mls::AlgebraicFit::kApss>(), RunAlgebraic<mls::AlgebraicFit::kApss>),
+  };
+  return *methods;
+}
+
+const SurfaceMethod* FindSurfaceMethod(const std::string& name) {
+  for (const auto& m : SurfaceMethods()) {
+    if (m.info.name == name) return &m;
+  }
+  return nullptr;
+}
+
+absl::Status CheckCloud(const core::PointCloud& cloud, const NormalsParams& normals, const InputLimits& limits) {
+  if (cloud.empty()) return absl::InvalidArgumentError("the point cloud is empty");
+  if (static_cast<int64_t>(cloud.size()) > limits.max_points) {
+    return absl::ResourceExhaustedError(core::StrCat("the cloud has ", cloud.size(), " points; this server accepts at most ",
+                                                     limits.max_points));
+  }
+  if (const int64_t bad = core::FindNonFinite(cloud.positions); bad >= 0) {
+    return absl::InvalidArgumentError(core::StrCat("point ", bad, " has a NaN or infinite coordinate"));
+  }
+  if (cloud.has_normals()) {
+    for (size_t i = 0; i < cloud.size(); ++i) {
+      const float len = cloud.normals[i].norm();
+      // Draco's octahedral coding keeps unit normals within about 1e-3.
+      if (!std::isfinite(len) || std::abs(len - 1.0f) > 0.01f) {
+        return absl::InvalidArgumentError(core::StrCat("normal ", i, " has length ", len,
+                                                       "; normals must be unit vectors (normalize them before upload)"));
+      }
+    }
+  } else if (!normals.estimate_normals) {
+    return absl::InvalidArgumentError(
+        "the cloud has no normals and estimate_normals is false; upload normals or allow estimation");
+  }
+  if (static_cast<int64_t>(cloud.size()) < limits.min_points) {
+    return absl::InvalidArgumentError(core::StrCat("the cloud has only ", cloud.size(), " points; at least ",
+                                                   limits.min_points, " are needed"));
+  }
+  return absl::OkStatus();
+}
+
+// Decodes the upload; a Draco mesh is refused rather than read as its vertices.
+absl::StatusOr<core::PointCloud> DecodeCloud(const Uploads& uploads) {
+  auto it = uploads.find(kInputUpload);
+  if (it == uploads.end() || it->second.empty()) return absl::InvalidArgumentError("no input data was uploaded");
+  if (auto mesh = io::DecodeDracoMesh(it->second); mesh.ok() && !mesh->faces.empty()) {
+    return absl::InvalidArgumentError("input: the upload is a Draco triangle mesh; upload a Draco point cloud");
+  }
+  auto cloud = io::DecodeDracoPointCloud(it->second);
+  if (!cloud.ok()) return absl::InvalidArgumentError(core::StrCat("input: ", cloud.status().message()));
+  return cloud;
+}
+
+class SurfaceKind final : public JobKind {
+ public:
+  std::string_view name() const override { return "surface"; }
+
+  std::vector<MethodInfo> Methods() const override {
+    std::vector<MethodInfo> out;
+    for (const auto& m : SurfaceMethods()) out.push_back(m.info);
+    return out;
+  }
+
+  absl::StatusOr<int64_t> CheckUploads(const JobSpec& spec, const Uploads& uploads,
+                                       const InputLimits& limits) const override {
+    const SurfaceMethod* m = FindSurfaceMethod(spec.method);
+    if (m == nullptr || m->normals(spec.params) == nullptr) return absl::InternalError("not a surface method");
+    auto cloud = DecodeCloud(uploads);
+    if (!cloud.ok()) return cloud.status();
+    LSQSURF_RETURN_IF_ERROR(CheckCloud(*cloud, *m->normals(spec.params), limits));
+    return static_cast<int64_t>(cloud->size());
+  }
+
+  absl::StatusOr<Statistics> Run(const JobSpec& spec, const Uploads& uploads, RunEnvironment& env) const override {
+    auto cloud = DecodeCloud(uploads);
+    if (!cloud.ok()) return cloud.status();
+    auto result = ReconstructSurface(spec.method, spec.params, *std::move(cloud), env.context);
+    if (!result.ok()) return result.status();
+    auto encoded = EncodeResultMesh(result->mesh, spec.mesh_position_bits, &result->statistics);
+    if (!encoded.ok()) return encoded.status();
+    LSQSURF_RETURN_IF_ERROR(env.sink.Write(kMeshArtifact, *encoded));
+    if (spec.preview.enabled) {
+      env.context.ReportProgress("drawing the preview", 0.99);
+      // A picture that cannot be drawn does not cost the user the mesh: counted, logged.
+      const absl::Status p = DrawPreview(result->mesh, spec.preview, env);
+      if (!p.ok()) {
+        spdlog::warn("preview failed: {}", p.message());
+        result->statistics.emplace_back("preview_failures", 1);
+      }
+    }
+    return std::move(result->statistics);
+  }
+
+ private:
+  static absl::Status DrawPreview(const core::TriangleMesh& mesh, const PreviewSpec& preview, RunEnvironment& env) {
+    if (env.renderer == nullptr) return absl::UnavailableError("no renderer");
+    auto renderer = env.renderer->Get();
+    if (!renderer.ok()) return renderer.status();
+    const auto* view = preview.view.As<render::RenderParams>();
+    if (view == nullptr) return absl::InternalError("preview without view options");
+    auto png = PicturePng(**renderer, mesh, *view);
+    if (!png.ok()) return png.status();
+    return env.sink.Write(kPreviewArtifact, *png);
+  }
+};
+
+}  // namespace
+
+const JobKind& SurfaceJobKind() {
+  static const SurfaceKind kind;
+  return kind;
+}
+
+absl::StatusOr<SurfaceResult> ReconstructSurface(const std::string& method, const core::ParamSet& params,
+                                                 core::PointCloud cloud, core::JobContext& ctx) {
+  const SurfaceMethod* m = FindSurfaceMethod(method);
+  if (m == nullptr || m->normals(params) == nullptr) {
+    return absl::InvalidArgumentError(core::StrCat("'", method, "' is not a surface method with these parameters"));
+  }
+  LSQSURF_RETURN_IF_ERROR(params.Validate());
+  const NormalsParams& normals = *m->normals(params);
+  SurfaceResult result;
+  auto stat = [&](std::string name, double value) { result.statistics.emplace_back(std::move(name), value); };
+  stat("input_points", static_cast<double>(cloud.size()));
+
+  double normals_share = 0.0;
+  if (!cloud.has_normals()) {
+    if (!normals.estimate_normals) {
+      return absl::InvalidArgumentError("the cloud has no normals and estimate_normals is false");
+    }
+    normals_share = 0.2;
+    const auto start = std::chrono::steady_clock::now();
+    core::SubContext sub(ctx, "estimating normals", 0.0, normals_share);
+    core::NormalEstimationParams np;
+    np.neighbors = normals.normal_neighbors;
+    auto estimated = core::EstimateNormals(cloud.positions, np, sub);
+    if (!estimated.ok()) return estimated.status();
+    cloud.normals = *std::move(estimated);
+    stat("normals_seconds", Seconds(start));
+  }
+
+  core::SubContext engine_ctx(ctx, method, normals_share, 1.0);
+  auto extracted = m->run(params, cloud, engine_ctx, stat);
+  if (!extracted.ok()) return extracted.status();
+  result.mesh = std::move(extracted->mesh);
+  if (result.mesh.faces.empty()) {
+    return absl::FailedPreconditionError("no surface was found: the points may be too sparse for the chosen spacing");
+  }
+  const core::MeshTopology topo = core::AnalyzeTopology(result.mesh);
+  stat("triangles", static_cast<double>(topo.faces));
+  stat("vertices", static_cast<double>(topo.vertices));
+  stat("boundary_edges", static_cast<double>(topo.boundary_edges));
+  stat("non_manifold_edges", static_cast<double>(topo.non_manifold_edges));
+  stat("components", static_cast<double>(topo.components));
+  stat("cells_visited", static_cast<double>(extracted->stats.cells_visited));
+  return result;
+}
+
+absl::StatusOr<std::string> EncodeResultMesh(const core::TriangleMesh& mesh, int position_bits, Statistics* statistics) {
+  const int64_t distinct = core::CountDistinctPositions(mesh.vertices);
+  io::DracoOptions draco;
+  draco.position_bits = position_bits > 0 ? position_bits : 16;
+  for (;;) {
+    auto encoded = io::EncodeDracoMesh(mesh, draco);
+    if (!encoded.ok()) return encoded.status();
+    // What the user will decode, merged by position: its topology is what the job reports.
+    auto delivered = io::DecodeDracoMesh(*encoded);
+    if (!delivered.ok()) return absl::InternalError(core::StrCat("the result mesh does not decode: ", delivered.status().message()));
+    const bool kept = core::CountDistinctPositions(delivered->vertices) >= distinct;
+    if (kept || position_bits > 0 || draco.position_bits >= 30) {
+      const core::MeshTopology topo = core::AnalyzeTopology(core::WeldByPosition(*delivered));
+      AddStatistic(statistics, "delivered_position_bits", draco.position_bits);
+      AddStatistic(statistics, "boundary_edges", static_cast<double>(topo.boundary_edges));
+      AddStatistic(statistics, "non_manifold_edges", static_cast<double>(topo.non_manifold_edges));
+      AddStatistic(statistics, "degenerate_faces", static_cast<double>(topo.degenerate_faces));
+      AddStatistic(statistics, "components", static_cast<double>(topo.components));
+      if (!kept) spdlog::warn("result mesh: distinct vertices share a position even at {} bits", draco.position_bits);
+      return encoded;
+    }
+    draco.position_bits = std::min(30, draco.position_bits + 2);
+  }
+}
+
+}  // namespace lsqsurf::jobs

@@ -1,0 +1,78 @@
+// worker/jobs/surface_job.h — the surface job kind: an oriented (or unoriented) point cloud in,
+// a watertight-where-the-data-is triangle mesh out (mesh.drc, and preview.png on request).
+//
+// Methods: iamls, pu, ramls, apss. Each method's parameters are one struct below with one
+// descriptor table (the engine's own table, its extraction hints and the normal estimation);
+// every method hands the job layer the same thing: a mesh from its own extractor (pu) or from
+// the one shared extractor given the method's hints (the others).
+#pragma once
+
+#include <string>
+
+#include "absl/status/statusor.h"
+#include "worker/core/geometry.h"
+#include "worker/core/job_context.h"
+#include "worker/core/normals.h"
+#include "worker/jobs/job_kind.h"
+#include "worker/mls/algebraic_mls.h"
+#include "worker/mls/iamls.h"
+#include "worker/pu/pu.h"
+
+namespace lsqsurf::jobs {
+
+// Normals for clouds that come without them.
+struct NormalsParams {
+  bool estimate_normals = true;  // PCA + spanning-tree orientation; false rejects clouds without normals.
+  int normal_neighbors = core::NormalEstimationParams{}.neighbors;  // k of the PCA, 3..128.
+};
+
+// Where the shared extractor looks for the surface, for the methods without their own.
+enum class SurfaceExtractor { kUniformGrid = 0, kJ1a = 1 };
+
+struct IamlsJobParams {
+  mls::IamlsParams fit;
+  double cell_size = 1.5;  // Spacing of the extraction vertices in units of h.
+  int refine_steps = 3;    // Root-refinement steps per crossing edge.
+  SurfaceExtractor extractor = SurfaceExtractor::kJ1a;
+  NormalsParams normals;
+};
+
+template <mls::AlgebraicFit kFit>
+struct AlgebraicJobParams {
+  AlgebraicJobParams() { fit.fit = kFit; }
+  mls::AlgebraicMlsParams fit;
+  double cell_size = 1.0;  // Spacing of the extraction vertices in units of h.
+  int refine_steps = 3;
+  NormalsParams normals;
+};
+using RamlsJobParams = AlgebraicJobParams<mls::AlgebraicFit::kRamls>;
+using ApssJobParams = AlgebraicJobParams<mls::AlgebraicFit::kApss>;
+
+struct PuJobParams {
+  pu::PuParams fit;
+  pu::PuExtractParams extract;
+  NormalsParams normals;
+};
+
+const JobKind& SurfaceJobKind();
+
+struct SurfaceResult {
+  core::TriangleMesh mesh;
+  Statistics statistics;
+};
+
+// Reconstructs a cloud with a method's validated parameters (`params` from the method's
+// defaults): normals first when the cloud has none, then the method, then topology statistics.
+// The service and the benchmark's direct mode both run this. Errors: kInvalidArgument,
+// kResourceExhausted, kFailedPrecondition (no surface found), kCancelled.
+absl::StatusOr<SurfaceResult> ReconstructSurface(const std::string& method, const core::ParamSet& params,
+                                                 core::PointCloud cloud, core::JobContext& ctx);
+
+// The Draco bytes of a result mesh at `position_bits` (0: the fewest bits, from 16 up to 30,
+// at which no two distinct vertices of the mesh share a quantized position, so the mesh merged
+// by position keeps its topology). Adds delivered_position_bits and the delivered mesh's
+// topology (merged by position) to `statistics`. Errors: those of the encoder.
+absl::StatusOr<std::string> EncodeResultMesh(const core::TriangleMesh& mesh, int position_bits,
+                                             Statistics* statistics);
+
+}  // namespace lsqsurf::jobs

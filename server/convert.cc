@@ -2,6 +2,7 @@
 
 #include <cctype>
 
+#include "worker/core/status.h"
 #include "worker/core/strings.h"
 #include "worker/jobs/method_registry.h"
 
@@ -130,6 +131,8 @@ absl::StatusOr<jobs::JobSpec> FromProto(const v1::JobSpec& spec) {
     out.preview.view = *std::move(view);
     out.preview.turntable_deg_per_frame = spec.preview().turntable_deg_per_frame();
   }
+  // The cross-field rules and the preview's attribute, so that a bad spec fails before its upload.
+  LSQSURF_RETURN_IF_ERROR(jobs::ValidateSpec(out));
   return out;
 }
 

@@ -26,7 +26,8 @@ absl::Status FillParams(const google::protobuf::Message& message, core::ParamSet
 // Sets every field of `message` that `params` describes, to the current values.
 void ParamsToProto(const core::ParamSet& params, google::protobuf::Message* message);
 
-// Errors: kInvalidArgument (no method set, or a bad parameter or view option).
+// A spec checked as the job service checks it (jobs::ValidateSpec). Errors: kInvalidArgument
+// (no method set, a bad parameter, a broken cross-field rule, a bad view option).
 absl::StatusOr<jobs::JobSpec> FromProto(const v1::JobSpec& spec);
 // View options over the defaults. Errors: kInvalidArgument.
 absl::StatusOr<core::ParamSet> FromProto(const v1::RenderOptions& options);

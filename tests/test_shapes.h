@@ -49,6 +49,42 @@ inline core::PointCloud TorusCloud(size_t n, double R, double r, uint64_t seed =
   return cloud;
 }
 
+// A CAD-like part: the block [-a, a] x [-b, b] x [-c, c] drilled through along z by a hole of
+// radius `hole` at the origin, sampled uniformly by area (sharp edges, flat faces, a genus-1
+// surface); exact outward normals. Volume 8abc - 2c * pi * hole^2.
+inline core::PointCloud DrilledBlockCloud(size_t n, double a = 1.0, double b = 0.6, double c = 0.3,
+                                          double hole = 0.3, uint64_t seed = 11) {
+  core::PointCloud cloud;
+  std::mt19937_64 rng(seed);
+  std::uniform_real_distribution<double> u(0.0, 1.0);
+  const double pi = std::numbers::pi;
+  // Areas: top+bottom (minus the hole), x faces, y faces, the hole's wall.
+  const double areas[4] = {2 * (4 * a * b - pi * hole * hole), 2 * 4 * b * c, 2 * 4 * a * c, 2 * pi * hole * 2 * c};
+  const double total = areas[0] + areas[1] + areas[2] + areas[3];
+  auto emit = [&](core::Vec3d p, core::Vec3d normal) {
+    cloud.positions.push_back(p.cast<float>());
+    cloud.normals.push_back(normal.cast<float>());
+  };
+  while (cloud.size() < n) {
+    double pick = u(rng) * total;
+    const double sign = u(rng) < 0.5 ? -1 : 1;
+    if ((pick -= areas[0]) < 0) {
+      const core::Vec3d p((2 * u(rng) - 1) * a, (2 * u(rng) - 1) * b, sign * c);
+      if (p.x() * p.x() + p.y() * p.y() < hole * hole) continue;
+      emit(p, {0, 0, sign});
+    } else if ((pick -= areas[1]) < 0) {
+      emit({sign * a, (2 * u(rng) - 1) * b, (2 * u(rng) - 1) * c}, {sign, 0, 0});
+    } else if ((pick -= areas[2]) < 0) {
+      emit({(2 * u(rng) - 1) * a, sign * b, (2 * u(rng) - 1) * c}, {0, sign, 0});
+    } else {
+      const double t = 2 * pi * u(rng);
+      const core::Vec3d radial(std::cos(t), std::sin(t), 0);
+      emit(hole * radial + core::Vec3d(0, 0, (2 * u(rng) - 1) * c), -radial);  // Faces into the hole.
+    }
+  }
+  return cloud;
+}
+
 class SphereField : public core::ImplicitFunction {
  public:
   explicit SphereField(double radius) : radius_(radius) {}

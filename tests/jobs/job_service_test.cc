@@ -9,6 +9,7 @@
 #include <limits>
 #include <mutex>
 
+#include "tests/latch_kind.h"
 #include "tests/test_shapes.h"
 #include "worker/core/mesh_metrics.h"
 #include "worker/io/draco_codec.h"
@@ -39,45 +40,6 @@ JobSpec Spec(const std::string& method, const std::map<std::string, std::string>
 }
 
 Uploads Input(std::string bytes) { return {{kInputUpload, std::move(bytes)}}; }
-
-// A kind that holds every job it runs until released (or cancelled), so that tests can act on a
-// job that is certainly running.
-class LatchKind final : public JobKind {
- public:
-  std::string_view name() const override { return "latch"; }
-  std::vector<MethodInfo> Methods() const override { return {}; }
-  absl::StatusOr<int64_t> CheckUploads(const JobSpec&, const Uploads&, const InputLimits&) const override {
-    return 1;
-  }
-  absl::StatusOr<Statistics> Run(const JobSpec&, const Uploads&, RunEnvironment& env) const override {
-    std::unique_lock lock(mutex_);
-    ++started_;
-    changed_.notify_all();
-    // The job context has no wake-up of its own; a short wait keeps the cancel check prompt.
-    while (!released_) {
-      if (env.context.IsCancelled()) return absl::CancelledError("cancelled");
-      changed_.wait_for(lock, std::chrono::milliseconds(5));
-    }
-    if (absl::Status s = env.sink.Write("held.txt", "released"); !s.ok()) return s;
-    return Statistics{{"held", 1}};
-  }
-  // Blocks until `n` jobs have started.
-  void WaitStarted(int n) const {
-    std::unique_lock lock(mutex_);
-    changed_.wait(lock, [&] { return started_ >= n; });
-  }
-  void Release() const {
-    std::lock_guard lock(mutex_);
-    released_ = true;
-    changed_.notify_all();
-  }
-
- private:
-  mutable std::mutex mutex_;
-  mutable std::condition_variable changed_;
-  mutable int started_ = 0;
-  mutable bool released_ = false;
-};
 
 class JobServiceTest : public ::testing::Test {
  protected:
@@ -130,7 +92,7 @@ class JobServiceTest : public ::testing::Test {
   std::filesystem::path dir_;
   JobServiceOptions options_;
   std::unique_ptr<JobService> service_;
-  LatchKind latch_;
+  testing::LatchKind latch_;
 };
 
 double Statistic(const JobRecord& r, const std::string& name) {

@@ -1,0 +1,54 @@
+// tests/latch_kind.h — a job kind that holds its jobs until a test lets them go.
+//
+// Installed through JobServiceOptions::kind_overrides, it replaces a method's engine so that a
+// test can act on a job that is certainly running (cancel, delete, shutdown) without racing it.
+#pragma once
+
+#include <chrono>
+#include <condition_variable>
+#include <mutex>
+
+#include "worker/jobs/job_kind.h"
+
+namespace lsqsurf::testing {
+
+// A kind that holds every job it runs until released (or cancelled), so that tests can act on a
+// job that is certainly running.
+class LatchKind final : public jobs::JobKind {
+ public:
+  std::string_view name() const override { return "latch"; }
+  std::vector<jobs::MethodInfo> Methods() const override { return {}; }
+  absl::StatusOr<int64_t> CheckUploads(const jobs::JobSpec&, const jobs::Uploads&, const jobs::InputLimits&) const override {
+    return 1;
+  }
+  absl::StatusOr<jobs::Statistics> Run(const jobs::JobSpec&, const jobs::Uploads&, jobs::RunEnvironment& env) const override {
+    std::unique_lock lock(mutex_);
+    ++started_;
+    changed_.notify_all();
+    // The job context has no wake-up of its own; a short wait keeps the cancel check prompt.
+    while (!released_) {
+      if (env.context.IsCancelled()) return absl::CancelledError("cancelled");
+      changed_.wait_for(lock, std::chrono::milliseconds(5));
+    }
+    if (absl::Status s = env.sink.Write("held.txt", "released"); !s.ok()) return s;
+    return jobs::Statistics{{"held", 1}};
+  }
+  // Blocks until `n` jobs have started.
+  void WaitStarted(int n) const {
+    std::unique_lock lock(mutex_);
+    changed_.wait(lock, [&] { return started_ >= n; });
+  }
+  void Release() const {
+    std::lock_guard lock(mutex_);
+    released_ = true;
+    changed_.notify_all();
+  }
+
+ private:
+  mutable std::mutex mutex_;
+  mutable std::condition_variable changed_;
+  mutable int started_ = 0;
+  mutable bool released_ = false;
+};
+
+}  // namespace lsqsurf::testing

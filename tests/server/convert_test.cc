@@ -1,0 +1,196 @@
+// The wire and the descriptor tables agree field by field, in both directions, and statuses
+// keep their codes and messages.
+#include "server/convert.h"
+
+#include <gtest/gtest.h>
+
+#include <set>
+
+#include "worker/jobs/method_registry.h"
+
+namespace lsqsurf::server {
+namespace {
+
+using google::protobuf::Descriptor;
+using google::protobuf::FieldDescriptor;
+
+// Whether a proto field can carry a table field of this type.
+bool Carries(const FieldDescriptor& f, core::ParamType type) {
+  switch (type) {
+    case core::ParamType::kReal: return f.cpp_type() == FieldDescriptor::CPPTYPE_DOUBLE;
+    case core::ParamType::kInteger:
+      return f.cpp_type() == FieldDescriptor::CPPTYPE_INT32 || f.cpp_type() == FieldDescriptor::CPPTYPE_INT64;
+    case core::ParamType::kFlag: return f.cpp_type() == FieldDescriptor::CPPTYPE_BOOL;
+    case core::ParamType::kChoice: return f.cpp_type() == FieldDescriptor::CPPTYPE_ENUM;
+    case core::ParamType::kText: return f.cpp_type() == FieldDescriptor::CPPTYPE_STRING;
+  }
+  return false;
+}
+
+// Every table field has a proto field of a matching type (and every choice its enum value,
+// besides _UNSPECIFIED for "the default"), every field is `optional` so that unset means the
+// default. Returns the names the message carries.
+void ExpectMessageCarriesTable(const Descriptor& message, const std::vector<core::ParamInfo>& table,
+                               const std::string& what) {
+  for (const core::ParamInfo& p : table) {
+    const FieldDescriptor* f = message.FindFieldByName(p.name);
+    ASSERT_NE(f, nullptr) << what << ": " << message.name() << " has no field " << p.name;
+    EXPECT_TRUE(Carries(*f, p.type)) << what << "." << p.name << " is a " << f->cpp_type_name();
+    EXPECT_TRUE(f->has_presence()) << what << "." << p.name << " must be optional";
+    if (p.type != core::ParamType::kChoice) continue;
+    EXPECT_NE(f->enum_type()->FindValueByNumber(0), nullptr);
+    EXPECT_EQ(f->enum_type()->FindValueByNumber(0)->name(), EnumValueName(*f->enum_type(), "unspecified"));
+    EXPECT_EQ(f->enum_type()->value_count(), static_cast<int>(p.choices.size()) + 1) << what << "." << p.name;
+    for (const auto& c : p.choices) {
+      EXPECT_NE(f->enum_type()->FindValueByName(EnumValueName(*f->enum_type(), c.name)), nullptr)
+          << what << "." << p.name << " lacks " << c.name;
+    }
+  }
+}
+
+const Descriptor& MethodMessage(const std::string& method) {
+  const FieldDescriptor* f = v1::JobSpec::descriptor()->FindFieldByName(method);
+  EXPECT_NE(f, nullptr) << "JobSpec has no field " << method;
+  EXPECT_EQ(f->containing_oneof(), v1::JobSpec::descriptor()->FindOneofByName("method"));
+  return *f->message_type();
+}
+
+TEST(Convert, EveryMethodTableAndItsMessageAgree) {
+  // Messages shared by several methods (ramls and apss) carry the union of their tables.
+  std::map<const Descriptor*, std::set<std::string>> carried;
+  for (const auto& m : jobs::Methods()) {
+    const Descriptor& message = MethodMessage(m.info.name);
+    const auto table = m.info.defaults.Describe();
+    ExpectMessageCarriesTable(message, table, m.info.name);
+    for (const auto& p : table) carried[&message].insert(p.name);
+  }
+  for (const auto& [message, names] : carried) {
+    for (int i = 0; i < message->field_count(); ++i) {
+      EXPECT_TRUE(names.contains(message->field(i)->name()))
+          << message->name() << "." << message->field(i)->name() << " is no method's parameter";
+    }
+  }
+  // And every method field of the oneof is a method.
+  const auto* oneof = v1::JobSpec::descriptor()->FindOneofByName("method");
+  for (int i = 0; i < oneof->field_count(); ++i) {
+    EXPECT_NE(jobs::FindMethod(oneof->field(i)->name()), nullptr) << oneof->field(i)->name();
+  }
+}
+
+TEST(Convert, RenderOptionsAndTheViewTableAgree) {
+  const auto table = jobs::DefaultView().Describe();
+  ExpectMessageCarriesTable(*v1::RenderOptions::descriptor(), table, "RenderOptions");
+  EXPECT_EQ(v1::RenderOptions::descriptor()->field_count(), static_cast<int>(table.size()));
+}
+
+// Every parameter at a value other than its default (its bound, or another choice) survives
+// the trip to the wire and back.
+TEST(Convert, ParametersRoundTripThroughTheWire) {
+  for (const auto& m : jobs::Methods()) {
+    core::ParamSet changed = m.info.defaults;
+    for (const auto& p : changed.Describe()) {
+      switch (p.type) {
+        case core::ParamType::kReal:
+        case core::ParamType::kInteger:
+          ASSERT_TRUE(changed.Set(p.name, p.default_value == p.max_value ? p.min_value : p.max_value).ok());
+          break;
+        case core::ParamType::kFlag: ASSERT_TRUE(changed.Set(p.name, 1 - p.default_value).ok()); break;
+        case core::ParamType::kChoice: ASSERT_TRUE(changed.Set(p.name, p.choices.back().value).ok()); break;
+        case core::ParamType::kText: ASSERT_TRUE(changed.SetText(p.name, "x").ok()); break;
+      }
+    }
+    v1::JobSpec wire;
+    const FieldDescriptor* f = v1::JobSpec::descriptor()->FindFieldByName(m.info.name);
+    ParamsToProto(changed, wire.GetReflection()->MutableMessage(&wire, f));
+    core::ParamSet back = m.info.defaults;
+    ASSERT_TRUE(FillParams(wire.GetReflection()->GetMessage(wire, f), &back).ok()) << m.info.name;
+    EXPECT_EQ(back.Encode(), changed.Encode()) << m.info.name;
+  }
+}
+
+TEST(Convert, UnsetFieldsKeepTheDefaults) {
+  v1::JobSpec wire;
+  wire.mutable_track()->set_steps(7);
+  wire.mutable_track()->set_resampling(v1::TrackParams::RESAMPLING_GRIDLINES);
+  auto spec = FromProto(wire);
+  ASSERT_TRUE(spec.ok()) << spec.status();
+  EXPECT_EQ(spec->method, "track");
+  EXPECT_EQ(spec->params.Get("steps"), 7);
+  const core::ParamSet defaults = *jobs::DefaultParams("track");
+  EXPECT_NE(spec->params.Get("resampling"), defaults.Get("resampling"));
+  for (const char* unset : {"stride", "cells", "dt", "interface", "field", "marker_gap"}) {
+    EXPECT_EQ(spec->params.Get(unset), defaults.Get(unset)) << unset;
+  }
+  EXPECT_FALSE(spec->preview.enabled);
+  EXPECT_EQ(spec->mesh_position_bits, 0);  // Chosen per mesh.
+}
+
+TEST(Convert, RefusesWhatTheMethodDoesNotTake) {
+  struct Case {
+    const char* what;
+    v1::JobSpec spec;
+    const char* fragment;
+  };
+  std::vector<Case> cases(5);
+  cases[0] = {"no method", {}, "names no method"};
+  cases[1].what = "beta is APSS's";
+  cases[1].spec.mutable_ramls()->set_beta(10);
+  cases[1].fragment = "unknown parameter 'beta'";
+  cases[2].what = "negative noise";
+  cases[2].spec.mutable_pu()->set_noise_level(-0.5);
+  cases[2].fragment = "noise_level=-0.5";
+  cases[3].what = "not a choice";
+  cases[3].spec.mutable_track()->set_field(static_cast<v1::TrackParams::Field>(9));
+  cases[3].fragment = "field";
+  cases[4].what = "a view out of range";
+  cases[4].spec.mutable_iamls();
+  cases[4].spec.mutable_preview()->mutable_options()->set_width(3);
+  cases[4].fragment = "preview: width=3";
+  for (const Case& c : cases) {
+    auto spec = FromProto(c.spec);
+    ASSERT_FALSE(spec.ok()) << c.what;
+    EXPECT_EQ(spec.status().code(), absl::StatusCode::kInvalidArgument) << c.what;
+    EXPECT_NE(spec.status().message().find(c.fragment), std::string_view::npos) << c.what << ": " << spec.status();
+  }
+}
+
+TEST(Convert, StatusCodesAndMessagesPassThrough) {
+  for (int code = 1; code <= 16; ++code) {
+    const absl::Status s(static_cast<absl::StatusCode>(code), "what to fix");
+    const grpc::Status g = ToGrpcStatus(s);
+    EXPECT_EQ(static_cast<int>(g.error_code()), code);
+    EXPECT_EQ(g.error_message(), "what to fix");
+  }
+  EXPECT_TRUE(ToGrpcStatus(absl::OkStatus()).ok());
+}
+
+TEST(Convert, EveryJobStateHasItsOwnWireValue) {
+  std::set<int> seen;
+  for (auto s : {jobs::JobState::kQueued, jobs::JobState::kRunning, jobs::JobState::kSucceeded,
+                 jobs::JobState::kFailed, jobs::JobState::kCancelled}) {
+    const v1::JobState wire = ToProto(s);
+    EXPECT_NE(wire, v1::JOB_STATE_UNSPECIFIED);
+    EXPECT_TRUE(seen.insert(wire).second);
+    // The display names agree too (the CLI prints the wire's, the logs the job layer's).
+    EXPECT_EQ(v1::JobState_Name(wire), EnumValueName(*v1::JobState_descriptor(), jobs::JobStateName(s)));
+  }
+}
+
+TEST(Convert, ListedParametersDescribeTheirTables) {
+  for (const auto& m : jobs::Methods()) {
+    for (const auto& p : m.info.defaults.Describe()) {
+      v1::Parameter wire;
+      ToProto(p, &wire);
+      EXPECT_EQ(wire.name(), p.name);
+      EXPECT_EQ(wire.default_value(), p.default_value) << m.info.name << "." << p.name;
+      EXPECT_EQ(wire.choices_size(), static_cast<int>(p.choices.size()));
+      if (p.type == core::ParamType::kReal || p.type == core::ParamType::kInteger) {
+        EXPECT_LE(wire.min_value(), wire.default_value()) << m.info.name << "." << p.name;
+        EXPECT_GE(wire.max_value(), wire.default_value()) << m.info.name << "." << p.name;
+      }
+    }
+  }
+}
+
+}  // namespace
+}  // namespace lsqsurf::server

@@ -1,0 +1,155 @@
+// ReconstructionService in this process, on a loopback port, with jobs held by a latch: the
+// calls a client makes while a job is certainly running, and the limits it can discover.
+#include "server/reconstruction_service.h"
+
+#include <grpcpp/grpcpp.h>
+#include <gtest/gtest.h>
+
+#include <filesystem>
+
+#include "client/client.h"
+#include "tests/latch_kind.h"
+#include "tests/test_shapes.h"
+#include "worker/io/draco_codec.h"
+
+namespace lsqsurf::server {
+namespace {
+
+class ServiceTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    dir_ = std::filesystem::temp_directory_path() /
+           ("lsqsurf-service-" + std::to_string(::getpid()) + "-" +
+            ::testing::UnitTest::GetInstance()->current_test_info()->name());
+    std::filesystem::remove_all(dir_);
+    options_.data_dir = dir_.string();
+    options_.max_queue = 1;
+    options_.max_points = 123456;
+    options_.kind_overrides["iamls"] = &latch_;
+    auto jobs = jobs::JobService::Open(options_);
+    ASSERT_TRUE(jobs.ok()) << jobs.status();
+    jobs_ = *std::move(jobs);
+    service_ = std::make_unique<ReconstructionService>(*jobs_);
+    grpc::ServerBuilder builder;
+    int port = 0;
+    builder.AddListeningPort("127.0.0.1:0", grpc::InsecureServerCredentials(), &port);
+    builder.RegisterService(service_.get());
+    server_ = builder.BuildAndStart();
+    ASSERT_NE(server_, nullptr);
+    client_ = std::make_unique<client::Client>("127.0.0.1:" + std::to_string(port));
+    auto input = io::EncodeDracoPointCloud(testing::SphereCloud(2000), {});
+    ASSERT_TRUE(input.ok());
+    input_ = *input;
+    spec_.mutable_iamls()->set_iterations(2);
+  }
+  void TearDown() override {
+    latch_.Release();
+    if (server_) server_->Shutdown();
+    jobs_.reset();
+    std::filesystem::remove_all(dir_);
+  }
+
+  std::filesystem::path dir_;
+  jobs::JobServiceOptions options_;
+  testing::LatchKind latch_;
+  std::unique_ptr<jobs::JobService> jobs_;
+  std::unique_ptr<ReconstructionService> service_;
+  std::unique_ptr<grpc::Server> server_;
+  std::unique_ptr<client::Client> client_;
+  std::string input_;
+  v1::JobSpec spec_;
+};
+
+TEST_F(ServiceTest, ARunningJobCanBeCancelledButNotDeletedOrFetched) {
+  auto job = client_->Submit(spec_, input_);
+  ASSERT_TRUE(job.ok()) << job.status();
+  EXPECT_EQ(job->spec().iamls().iterations(), 2);
+  latch_.WaitStarted(1);
+  EXPECT_EQ(client_->Delete(job->id()).code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_EQ(client_->Fetch(job->id(), "").status().code(), absl::StatusCode::kFailedPrecondition);
+  auto requested = client_->Cancel(job->id());
+  ASSERT_TRUE(requested.ok());
+  EXPECT_EQ(requested->state(), v1::JOB_STATE_RUNNING);  // CANCELLED follows.
+  std::vector<v1::JobState> seen;
+  auto last = client_->Watch(job->id(), [&](const v1::Job& j) { seen.push_back(j.state()); });
+  ASSERT_TRUE(last.ok()) << last.status();
+  EXPECT_EQ(last->state(), v1::JOB_STATE_CANCELLED);
+  EXPECT_EQ(seen.back(), v1::JOB_STATE_CANCELLED);
+  EXPECT_EQ(client_->Cancel(job->id()).status().code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_TRUE(client_->Delete(job->id()).ok());
+  EXPECT_EQ(client_->Get(job->id()).status().code(), absl::StatusCode::kNotFound);
+}
+
+TEST_F(ServiceTest, AFullQueueAnswersResourceExhausted) {
+  auto running = client_->Submit(spec_, input_);
+  ASSERT_TRUE(running.ok());
+  latch_.WaitStarted(1);
+  auto queued = client_->Submit(spec_, input_);
+  ASSERT_TRUE(queued.ok()) << queued.status();
+  EXPECT_EQ(queued->state(), v1::JOB_STATE_QUEUED);
+  const auto refused = client_->Submit(spec_, input_);
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kResourceExhausted);
+  EXPECT_NE(refused.status().message().find("queue is full"), std::string_view::npos) << refused.status();
+  auto cancelled = client_->Cancel(queued->id());
+  ASSERT_TRUE(cancelled.ok());
+  EXPECT_EQ(cancelled->state(), v1::JOB_STATE_CANCELLED);  // Queued jobs end at once.
+}
+
+TEST_F(ServiceTest, WatchersSeeEveryStateAndTheResultStreamsBack) {
+  auto job = client_->Submit(spec_, input_);
+  ASSERT_TRUE(job.ok());
+  latch_.WaitStarted(1);
+  latch_.Release();
+  auto last = client_->Watch(job->id());
+  ASSERT_TRUE(last.ok());
+  EXPECT_EQ(last->state(), v1::JOB_STATE_SUCCEEDED);
+  EXPECT_EQ(last->attempts(), 1);
+  auto bytes = client_->Fetch(job->id(), "held.txt");
+  ASSERT_TRUE(bytes.ok()) << bytes.status();
+  EXPECT_EQ(*bytes, "released");
+  EXPECT_EQ(client_->Fetch(job->id(), "mesh.drc").status().code(), absl::StatusCode::kNotFound);
+}
+
+TEST_F(ServiceTest, LimitsAreDiscoverable) {
+  auto info = client_->GetServerInfo();
+  ASSERT_TRUE(info.ok()) << info.status();
+  EXPECT_EQ(info->max_points(), 123456);
+  EXPECT_EQ(info->max_queue(), 1);
+  EXPECT_EQ(info->min_points(), options_.min_points);
+  EXPECT_EQ(info->max_upload_bytes(), options_.max_input_bytes);
+  EXPECT_EQ(info->max_chunk_bytes(), static_cast<int64_t>(ReconstructionService::kMaxChunkBytes));
+  EXPECT_FALSE(info->version().empty());
+  auto too_many = io::EncodeDracoPointCloud(testing::SphereCloud(200000), {});
+  ASSERT_TRUE(too_many.ok());
+  v1::JobSpec pu;
+  pu.mutable_pu();
+  EXPECT_EQ(client_->Submit(pu, *too_many).status().code(), absl::StatusCode::kResourceExhausted);
+}
+
+TEST_F(ServiceTest, BadSpecsAreRefusedBeforeTheUpload) {
+  v1::JobSpec bad;
+  bad.mutable_pu()->set_noise_level(-0.5);
+  const auto refused = client_->Submit(bad, input_);
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(refused.status().message().find("noise_level"), std::string_view::npos) << refused.status();
+  auto listed = client_->List(10);
+  ASSERT_TRUE(listed.ok());
+  EXPECT_EQ(listed->jobs_size(), 0);
+}
+
+TEST_F(ServiceTest, MethodsListTheirParametersWithDefaults) {
+  auto methods = client_->ListMethods();
+  ASSERT_TRUE(methods.ok());
+  std::vector<std::string> names;
+  for (const auto& m : methods->methods()) names.push_back(m.name());
+  EXPECT_EQ(names, (std::vector<std::string>{"iamls", "pu", "ramls", "apss", "track"}));
+  for (const auto& m : methods->methods()) {
+    EXPECT_GT(m.parameters_size(), 0) << m.name();
+    for (const auto& p : m.parameters()) {
+      EXPECT_FALSE(p.help().empty()) << m.name() << "." << p.name();
+    }
+  }
+}
+
+}  // namespace
+}  // namespace lsqsurf::server

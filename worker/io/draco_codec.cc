@@ -153,6 +153,19 @@ absl::StatusOr<std::string> EncodeDracoMesh(const core::TriangleMesh& mesh,
   return std::string(buffer.data(), buffer.size());
 }
 
+absl::StatusOr<DracoGeometry> PeekDracoGeometry(std::string_view bytes) {
+  if (bytes.empty()) return absl::InvalidArgumentError("the Draco data is empty");
+  draco::DecoderBuffer buffer;
+  buffer.Init(bytes.data(), bytes.size());
+  auto type = draco::Decoder::GetEncodedGeometryType(&buffer);
+  if (!type.ok()) return DracoError("cannot read the Draco header", type.status());
+  switch (type.value()) {
+    case draco::POINT_CLOUD: return DracoGeometry::kPointCloud;
+    case draco::TRIANGULAR_MESH: return DracoGeometry::kTriangleMesh;
+    default: return absl::InvalidArgumentError("the Draco data holds neither a point cloud nor a triangle mesh");
+  }
+}
+
 absl::StatusOr<core::PointCloud> DecodeDracoPointCloud(std::string_view bytes) {
   if (bytes.empty()) return absl::InvalidArgumentError("the Draco data is empty");
   draco::DecoderBuffer buffer;
@@ -168,13 +181,13 @@ absl::StatusOr<core::PointCloud> DecodeDracoPointCloud(std::string_view bytes) {
 
 absl::StatusOr<core::TriangleMesh> DecodeDracoMesh(std::string_view bytes) {
   if (bytes.empty()) return absl::InvalidArgumentError("the Draco data is empty");
-  draco::DecoderBuffer buffer;
-  buffer.Init(bytes.data(), bytes.size());
-  auto type = draco::Decoder::GetEncodedGeometryType(&buffer);
-  if (!type.ok()) return DracoError("cannot read the Draco header", type.status());
-  if (type.value() != draco::TRIANGULAR_MESH) {
+  auto type = PeekDracoGeometry(bytes);
+  if (!type.ok()) return type.status();
+  if (*type != DracoGeometry::kTriangleMesh) {
     return absl::InvalidArgumentError("the Draco data holds a point cloud, not a triangle mesh");
   }
+  draco::DecoderBuffer buffer;
+  buffer.Init(bytes.data(), bytes.size());
   draco::Decoder decoder;
   auto decoded = decoder.DecodeMeshFromBuffer(&buffer);
   if (!decoded.ok()) return DracoError("cannot decode the Draco mesh", decoded.status());

@@ -32,6 +32,11 @@ absl::StatusOr<std::string> EncodeDracoPointCloud(const core::PointCloud& cloud,
 absl::StatusOr<std::string> EncodeDracoMesh(const core::TriangleMesh& mesh,
                                             const DracoOptions& options);
 
+enum class DracoGeometry { kPointCloud, kTriangleMesh };
+// What the data holds, from its header alone (no decoding). Errors: kInvalidArgument for data
+// that is empty, not Draco, or of another geometry type.
+absl::StatusOr<DracoGeometry> PeekDracoGeometry(std::string_view bytes);
+
 // Decodes a Draco point cloud, or the vertices of a Draco mesh. Errors: kInvalidArgument with
 // Draco's reason for truncated or corrupt data, or a position attribute that is not 3-D.
 absl::StatusOr<core::PointCloud> DecodeDracoPointCloud(std::string_view bytes);

@@ -4,13 +4,11 @@
 
 #include <cmath>
 #include <filesystem>
-#include <fstream>
 #include <random>
 
 #include "worker/core/status.h"
 #include "worker/core/strings.h"
 #include "worker/io/draco_codec.h"
-#include "worker/io/files.h"
 #include "worker/jobs/method_registry.h"
 #include "worker/render/render.h"
 
@@ -38,33 +36,14 @@ std::string NewJobId() {
 
 absl::Status NoJob(const std::string& id) { return absl::NotFoundError(core::StrCat("no job with id '", id, "'")); }
 
-class FileReader final : public ArtifactReader {
- public:
-  FileReader(std::ifstream in, int64_t size) : in_(std::move(in)), size_(size) {}
-  int64_t size() const override { return size_; }
-  absl::StatusOr<std::string> Next(size_t max_bytes) override {
-    std::string out(max_bytes, '\0');
-    in_.read(out.data(), static_cast<std::streamsize>(max_bytes));
-    if (in_.bad()) return absl::UnavailableError("cannot read the artifact");
-    out.resize(static_cast<size_t>(in_.gcount()));
-    return out;
-  }
-
- private:
-  std::ifstream in_;
-  int64_t size_;
-};
-
 }  // namespace
 
-// Writes a job's artifacts into its folder, atomically, recording their names in order.
-class DirectorySink final : public ArtifactSink {
+// Writes a job's artifacts into the blob store, recording their names in order.
+class BlobSink final : public ArtifactSink {
  public:
-  explicit DirectorySink(std::string dir) : dir_(std::move(dir)) {}
+  BlobSink(BlobStore& blobs, std::string job_id) : blobs_(blobs), job_id_(std::move(job_id)) {}
   absl::Status Write(std::string_view name, std::string_view bytes) override {
-    if (absl::Status s = io::WriteFileAtomically(core::StrCat(dir_, "/", name), bytes); !s.ok()) {
-      return absl::UnavailableError(core::StrCat("cannot write ", name, ": ", s.message()));
-    }
+    LSQSURF_RETURN_IF_ERROR(blobs_.Put(job_id_, name, bytes));
     std::lock_guard lock(mutex_);
     if (std::find(names_.begin(), names_.end(), name) == names_.end()) names_.emplace_back(name);
     return absl::OkStatus();
@@ -75,7 +54,8 @@ class DirectorySink final : public ArtifactSink {
   }
 
  private:
-  std::string dir_;
+  BlobStore& blobs_;
+  std::string job_id_;
   mutable std::mutex mutex_;
   std::vector<std::string> names_;
 };
@@ -123,11 +103,18 @@ absl::StatusOr<std::unique_ptr<JobService>> JobService::Open(const JobServiceOpt
     return absl::InvalidArgumentError("workers, max_queue and max_renders must be at least 1");
   }
   std::error_code ec;
-  std::filesystem::create_directories(std::filesystem::path(options.data_dir) / "jobs", ec);
+  std::filesystem::create_directories(options.data_dir, ec);
   if (ec) {
     return absl::UnavailableError(core::StrCat("cannot create data directory ", options.data_dir, ": ", ec.message()));
   }
   std::unique_ptr<JobService> service(new JobService(options));
+  if (options.blobs != nullptr) {
+    service->blobs_ = options.blobs;
+  } else {
+    auto blobs = LocalDirBlobStore::Open((std::filesystem::path(options.data_dir) / "jobs").string());
+    if (!blobs.ok()) return blobs.status();
+    service->blobs_ = *std::move(blobs);
+  }
   auto store = SqliteJobStore::Open((std::filesystem::path(options.data_dir) / "jobs.db").string());
   if (!store.ok()) return store.status();
   service->store_ = *std::move(store);
@@ -162,10 +149,6 @@ absl::StatusOr<std::unique_ptr<JobService>> JobService::Open(const JobServiceOpt
 }
 
 JobService::~JobService() { Shutdown(); }
-
-std::string JobService::JobDir(const std::string& id) const {
-  return (std::filesystem::path(options_.data_dir) / "jobs" / id).string();
-}
 
 const JobKind* JobService::KindOf(const std::string& method) const {
   if (auto it = options_.kind_overrides.find(method); it != options_.kind_overrides.end()) return it->second;
@@ -216,20 +199,17 @@ absl::StatusOr<JobRecord> JobService::Submit(const JobSpec& spec, Uploads upload
   r.created_ms = r.updated_ms = NowMs();
   r.input_points = *points;
   r.input_bytes = bytes;
-  std::error_code ec;
-  std::filesystem::create_directories(JobDir(r.id), ec);
-  if (ec) return absl::UnavailableError(core::StrCat("cannot create the job folder: ", ec.message()));
   for (const auto& [slot, data] : uploads) {
-    if (absl::Status s = io::WriteFileAtomically(JobDir(r.id) + "/" + UploadFiles().at(slot), data); !s.ok()) {
-      std::filesystem::remove_all(JobDir(r.id), ec);
-      return absl::UnavailableError(core::StrCat("cannot store the ", slot, " upload: ", s.message()));
+    if (absl::Status s = blobs_->Put(r.id, UploadFiles().at(slot), data); !s.ok()) {
+      (void)blobs_->RemoveJob(r.id);
+      return s;
     }
   }
   // Durable before it is visible: a job the caller hears of is on disk.
   {
     std::lock_guard store_lock(store_mutex_);
     if (absl::Status s = store_->Put(r); !s.ok()) {
-      std::filesystem::remove_all(JobDir(r.id), ec);
+      (void)blobs_->RemoveJob(r.id);
       return s;
     }
   }
@@ -239,7 +219,7 @@ absl::StatusOr<JobRecord> JobService::Submit(const JobSpec& spec, Uploads upload
     lock.unlock();
     std::lock_guard store_lock(store_mutex_);
     (void)store_->Remove(r.id);
-    std::filesystem::remove_all(JobDir(r.id), ec);
+    (void)blobs_->RemoveJob(r.id);
     return stopping ? absl::UnavailableError("the server is shutting down")
                     : absl::ResourceExhaustedError("the job queue is full; try again later");
   }
@@ -331,14 +311,13 @@ absl::Status JobService::Delete(const std::string& id) {
     std::lock_guard store_lock(store_mutex_);
     if (absl::Status s = store_->Remove(id); !s.ok()) spdlog::error("[job {}] cannot remove its record: {}", id, s.ToString());
   }
-  std::error_code ec;
-  std::filesystem::remove_all(JobDir(id), ec);
+  if (absl::Status s = blobs_->RemoveJob(id); !s.ok()) spdlog::error("[job {}] {}", id, s.ToString());
   changed_.notify_all();
   spdlog::info("[job {}] deleted", id);
   return absl::OkStatus();
 }
 
-absl::StatusOr<std::unique_ptr<ArtifactReader>> JobService::OpenResult(const std::string& id,
+absl::StatusOr<std::unique_ptr<BlobReader>> JobService::OpenResult(const std::string& id,
                                                                        const std::string& name) const {
   auto r = Get(id);
   if (!r.ok()) return r.status();
@@ -352,12 +331,7 @@ absl::StatusOr<std::unique_ptr<ArtifactReader>> JobService::OpenResult(const std
     for (const auto& n : r->results) core::StrAppend(&names, names.empty() ? "" : ", ", n);
     return absl::NotFoundError(core::StrCat("job ", id, " has no result '", artifact, "'; it has: ", names));
   }
-  const std::string path = JobDir(id) + "/" + artifact;
-  std::error_code ec;
-  const auto size = std::filesystem::file_size(path, ec);
-  std::ifstream in(path, std::ios::binary);
-  if (ec || !in) return absl::UnavailableError(core::StrCat("the artifact ", artifact, " cannot be read"));
-  return std::make_unique<FileReader>(std::move(in), static_cast<int64_t>(size));
+  return blobs_->Open(id, artifact);
 }
 
 absl::StatusOr<RenderedPicture> JobService::Render(const std::string& id, const std::string& name,
@@ -377,19 +351,30 @@ absl::StatusOr<RenderedPicture> JobService::Render(const std::string& id, const 
   } release{renders_};
   auto reader = OpenResult(id, name);
   if (!reader.ok()) return reader.status();
-  auto bytes = (*reader)->Next(static_cast<size_t>((*reader)->size()));
-  if (!bytes.ok()) return bytes.status();
+  std::string bytes;
+  for (;;) {
+    auto chunk = (*reader)->Next(size_t{1} << 22);
+    if (!chunk.ok()) return chunk.status();
+    if (chunk->empty()) break;
+    bytes += *chunk;
+  }
+  auto geometry = io::PeekDracoGeometry(bytes);
+  if (!geometry.ok()) {
+    return absl::InvalidArgumentError(
+        core::StrCat("artifact '", name, "' is not a Draco mesh or point set; only those can be rendered"));
+  }
   auto renderer = renderer_->Get();
   if (!renderer.ok()) return renderer.status();
   render::RenderInfo info;
   absl::StatusOr<render::Image> image = absl::InvalidArgumentError("");
-  if (auto mesh = io::DecodeDracoMesh(*bytes); mesh.ok() && !mesh->faces.empty()) {
+  if (*geometry == io::DracoGeometry::kTriangleMesh) {
+    auto mesh = io::DecodeDracoMesh(bytes);
+    if (!mesh.ok()) return mesh.status();
     image = (*renderer)->RenderMesh(*mesh, *params, &info);
-  } else if (auto cloud = io::DecodeDracoPointCloud(*bytes); cloud.ok()) {
-    image = (*renderer)->RenderPoints(*cloud, *params, &info);
   } else {
-    return absl::InvalidArgumentError(
-        core::StrCat("artifact '", name, "' is not a Draco mesh or point set; only those can be rendered"));
+    auto cloud = io::DecodeDracoPointCloud(bytes);
+    if (!cloud.ok()) return cloud.status();
+    image = (*renderer)->RenderPoints(*cloud, *params, &info);
   }
   if (!image.ok()) return image.status();
   auto png = render::EncodePng(*image);
@@ -441,13 +426,12 @@ void JobService::WorkerLoop() {
   }
 }
 
-absl::StatusOr<Statistics> JobService::RunKind(const std::shared_ptr<Entry>& entry, DirectorySink& sink) {
+absl::StatusOr<Statistics> JobService::RunKind(const std::shared_ptr<Entry>& entry, BlobSink& sink) {
   const JobRecord& record = entry->record;  // Only this worker changes spec and id.
   Uploads uploads;
-  for (const auto& [slot, file] : UploadFiles()) {
-    const std::string path = JobDir(record.id) + "/" + file;
-    if (!std::filesystem::exists(path)) continue;
-    auto bytes = io::ReadFileBytes(path);
+  for (const auto& [slot, blob] : UploadFiles()) {
+    if (!blobs_->Exists(record.id, blob)) continue;
+    auto bytes = blobs_->Read(record.id, blob);
     if (!bytes.ok()) return bytes.status();
     uploads[slot] = *std::move(bytes);
   }
@@ -474,7 +458,7 @@ void JobService::RunJob(const std::shared_ptr<Entry>& entry) {
   });
   spdlog::info("[job {}] started (attempt {})", id, entry->record.attempts);
   const auto start = std::chrono::steady_clock::now();
-  DirectorySink sink(JobDir(id));
+  BlobSink sink(*blobs_, id);
   absl::StatusOr<Statistics> result = RunKind(entry, sink);
   const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   if (result.ok()) {

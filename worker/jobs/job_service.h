@@ -28,6 +28,7 @@
 #include <vector>
 
 #include "absl/status/statusor.h"
+#include "worker/jobs/blob_store.h"
 #include "worker/jobs/job.h"
 #include "worker/jobs/job_kind.h"
 #include "worker/jobs/job_store.h"
@@ -47,6 +48,8 @@ struct JobServiceOptions {
   int64_t max_input_bytes = int64_t{1} << 30;  // Largest accepted upload (all slots together).
   int max_attempts = 2;                  // Crashed starts before a job is failed.
   int max_renders = 2;                   // Render calls drawn at once; more get kResourceExhausted.
+  // Where uploads and artifacts are kept; null: files under data_dir/jobs.
+  std::shared_ptr<BlobStore> blobs;
   // Tests only: replaces the kind that runs a method's jobs (e.g. one that blocks on a latch).
   std::map<std::string, const JobKind*> kind_overrides;
 };
@@ -56,15 +59,6 @@ struct RenderedPicture {
   std::string png;
   double color_min = 0, color_max = 0;  // The colour range used, when colouring.
   std::string renderer;                 // The GL renderer that drew it.
-};
-
-// Reads one artifact in chunks.
-class ArtifactReader {
- public:
-  virtual ~ArtifactReader() = default;
-  virtual int64_t size() const = 0;
-  // Up to `max_bytes` more bytes; empty at the end. Errors: kUnavailable.
-  virtual absl::StatusOr<std::string> Next(size_t max_bytes) = 0;
 };
 
 class JobService {
@@ -89,7 +83,7 @@ class JobService {
   absl::Status Delete(const std::string& id);
   // A result artifact for reading; an empty name means the job's first result. Errors:
   // kNotFound (job or artifact), kFailedPrecondition (not succeeded).
-  absl::StatusOr<std::unique_ptr<ArtifactReader>> OpenResult(const std::string& id, const std::string& name) const;
+  absl::StatusOr<std::unique_ptr<BlobReader>> OpenResult(const std::string& id, const std::string& name) const;
   // Draws a Draco artifact (a mesh or a point set) with view options from DefaultView().
   // Errors: those of OpenResult, kInvalidArgument (bad view, not geometry), kUnavailable (no
   // renderer), kResourceExhausted (max_renders pictures being drawn).
@@ -118,17 +112,17 @@ class JobService {
   explicit JobService(JobServiceOptions options);
   void WorkerLoop();
   void RunJob(const std::shared_ptr<Entry>& entry);
-  absl::StatusOr<Statistics> RunKind(const std::shared_ptr<Entry>& entry, class DirectorySink& sink);
+  absl::StatusOr<Statistics> RunKind(const std::shared_ptr<Entry>& entry, class BlobSink& sink);
   // Applies `change` to the record under the lock, wakes watchers, then persists it.
   void Update(const std::shared_ptr<Entry>& entry, const std::function<void(JobRecord&)>& change,
               bool persist = true);
   void Persist(const std::shared_ptr<Entry>& entry, const JobRecord& copy);
   const JobKind* KindOf(const std::string& method) const;
-  std::string JobDir(const std::string& id) const;
 
   JobServiceOptions options_;
   std::unique_ptr<render::SharedRenderer> renderer_;
   std::unique_ptr<JobStore> store_;
+  std::shared_ptr<BlobStore> blobs_;
   std::mutex store_mutex_;  // Orders store writes (never held with mutex_).
   std::atomic<int> renders_{0};
   mutable std::mutex mutex_;

@@ -271,7 +271,7 @@ absl::Status CheckCloud(const core::PointCloud& cloud, const NormalsParams& norm
 absl::StatusOr<core::PointCloud> DecodeCloud(const Uploads& uploads) {
   auto it = uploads.find(kInputUpload);
   if (it == uploads.end() || it->second.empty()) return absl::InvalidArgumentError("no input data was uploaded");
-  if (auto mesh = io::DecodeDracoMesh(it->second); mesh.ok() && !mesh->faces.empty()) {
+  if (auto type = io::PeekDracoGeometry(it->second); type.ok() && *type == io::DracoGeometry::kTriangleMesh) {
     return absl::InvalidArgumentError("input: the upload is a Draco triangle mesh; upload a Draco point cloud");
   }
   auto cloud = io::DecodeDracoPointCloud(it->second);

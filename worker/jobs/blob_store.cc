@@ -1,0 +1,88 @@
+#include "worker/jobs/blob_store.h"
+
+#include <filesystem>
+#include <fstream>
+
+#include "worker/core/strings.h"
+#include "worker/io/files.h"
+
+namespace lsqsurf::jobs {
+namespace {
+
+class FileReader final : public BlobReader {
+ public:
+  FileReader(std::ifstream in, int64_t size) : in_(std::move(in)), size_(size) {}
+  int64_t size() const override { return size_; }
+  absl::StatusOr<std::string> Next(size_t max_bytes) override {
+    std::string out(max_bytes, '\0');
+    in_.read(out.data(), static_cast<std::streamsize>(max_bytes));
+    if (in_.bad()) return absl::UnavailableError("the stored data cannot be read");
+    out.resize(static_cast<size_t>(in_.gcount()));
+    return out;
+  }
+
+ private:
+  std::ifstream in_;
+  int64_t size_;
+};
+
+}  // namespace
+
+absl::StatusOr<std::string> BlobStore::Read(const std::string& job_id, std::string_view name) const {
+  auto reader = Open(job_id, name);
+  if (!reader.ok()) return reader.status();
+  std::string all;
+  all.reserve(static_cast<size_t>((*reader)->size()));
+  for (;;) {
+    auto chunk = (*reader)->Next(size_t{1} << 22);
+    if (!chunk.ok()) return chunk.status();
+    if (chunk->empty()) return all;
+    all += *chunk;
+  }
+}
+
+absl::StatusOr<std::unique_ptr<LocalDirBlobStore>> LocalDirBlobStore::Open(std::string root) {
+  std::error_code ec;
+  std::filesystem::create_directories(root, ec);
+  if (ec) return absl::UnavailableError(core::StrCat("cannot create ", root, ": ", ec.message()));
+  return std::unique_ptr<LocalDirBlobStore>(new LocalDirBlobStore(std::move(root)));
+}
+
+std::string LocalDirBlobStore::PathOf(const std::string& job_id, std::string_view name) const {
+  return core::StrCat(root_, "/", job_id, "/", name);
+}
+
+absl::Status LocalDirBlobStore::Put(const std::string& job_id, std::string_view name, std::string_view bytes) {
+  std::error_code ec;
+  std::filesystem::create_directories(core::StrCat(root_, "/", job_id), ec);
+  if (ec) return absl::UnavailableError(core::StrCat("cannot create the folder of job ", job_id, ": ", ec.message()));
+  if (absl::Status s = io::WriteFileAtomically(PathOf(job_id, name), bytes); !s.ok()) {
+    return absl::UnavailableError(core::StrCat("cannot store ", name, ": ", s.message()));
+  }
+  return absl::OkStatus();
+}
+
+absl::StatusOr<std::unique_ptr<BlobReader>> LocalDirBlobStore::Open(const std::string& job_id,
+                                                                    std::string_view name) const {
+  const std::string path = PathOf(job_id, name);
+  std::error_code ec;
+  const auto size = std::filesystem::file_size(path, ec);
+  if (ec) return absl::NotFoundError(core::StrCat("job ", job_id, " has no stored ", name));
+  std::ifstream in(path, std::ios::binary);
+  if (!in) return absl::UnavailableError(core::StrCat("the stored ", name, " of job ", job_id, " cannot be read"));
+  return std::make_unique<FileReader>(std::move(in), static_cast<int64_t>(size));
+}
+
+bool LocalDirBlobStore::Exists(const std::string& job_id, std::string_view name) const {
+  std::error_code ec;
+  return std::filesystem::is_regular_file(PathOf(job_id, name), ec);
+}
+
+absl::Status LocalDirBlobStore::RemoveJob(const std::string& job_id) {
+  std::error_code ec;
+  std::filesystem::remove_all(core::StrCat(root_, "/", job_id), ec);
+  if (ec) return absl::UnavailableError(core::StrCat("cannot remove the files of job ", job_id, ": ", ec.message()));
+  return absl::OkStatus();
+}
+
+}  // namespace lsqsurf::jobs

@@ -7,8 +7,8 @@
 #include <random>
 
 #include "tests/test_shapes.h"
-#include "worker/core/isosurface.h"
-#include "worker/core/j1a_isosurface.h"
+#include "worker/extract/isosurface.h"
+#include "worker/extract/j1a_isosurface.h"
 #include "worker/core/mesh_metrics.h"
 
 namespace lsqsurf::mls {
@@ -168,10 +168,10 @@ TEST(AlgebraicMls, UndefinedAwayFromTheDataAndClosedMeshOnIt) {
   EXPECT_FALSE(f->Value(Vec3d(0, 0, 1 + 2 * f->spacing())).defined);  // Beyond the coverage.
   EXPECT_FALSE(f->Value(Vec3d(0, 0, 0)).defined);                      // No support at all.
   core::LocalJobContext ctx;
-  core::J1aIsosurfaceParams ip;
+  extract::J1aIsosurfaceParams ip;
   ip.cell_size = 2 * f->spacing();
   ip.marching.refine_steps = 12;  // Converged roots, so that the check below sees F itself.
-  auto mesh = core::ExtractIsosurfaceJ1a(*f, testing::SphereCloud(3000).positions, ip, ctx);
+  auto mesh = extract::ExtractIsosurfaceJ1a(*f, testing::SphereCloud(3000).positions, ip, ctx);
   ASSERT_TRUE(mesh.ok()) << mesh.status();
   const core::MeshTopology t = core::AnalyzeTopology(mesh->mesh);
   EXPECT_TRUE(t.watertight());

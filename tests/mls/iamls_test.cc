@@ -6,7 +6,7 @@
 #include <random>
 
 #include "tests/test_shapes.h"
-#include "worker/core/isosurface.h"
+#include "worker/extract/isosurface.h"
 #include "worker/core/mesh_metrics.h"
 
 namespace lsqsurf::mls {
@@ -75,9 +75,9 @@ TEST(Iamls, ReconstructsAClosedSphereOfTheRightVolume) {
   auto f = Build(cloud);
   ASSERT_TRUE(f);
   core::LocalJobContext ctx;
-  core::IsosurfaceParams xp;
+  extract::IsosurfaceParams xp;
   xp.cell_size = 1.5 * f->spacing();
-  auto mesh = core::ExtractIsosurface(*f, cloud.positions, xp, ctx);
+  auto mesh = extract::ExtractIsosurface(*f, cloud.positions, xp, ctx);
   ASSERT_TRUE(mesh.ok());
   const core::MeshTopology t = core::AnalyzeTopology(mesh->mesh);
   EXPECT_TRUE(t.watertight());

@@ -10,8 +10,8 @@
 
 #include "absl/container/flat_hash_map.h"
 #include "worker/core/implicit_function.h"
-#include "worker/core/isosurface.h"
-#include "worker/core/j1a.h"
+#include "worker/extract/isosurface.h"
+#include "worker/extract/j1a.h"
 #include "worker/core/kd_tree.h"
 #include "worker/core/parallel.h"
 #include "worker/core/status.h"
@@ -141,7 +141,7 @@ class ShapeField final : public core::ImplicitFunction {
 
 // Grid nodes are integer triples (i, j, k) at i·h; keys pack them like J1a vertex keys.
 using NodeKey = uint64_t;
-NodeKey Key(uint32_t i, uint32_t j, uint32_t k) { return core::PackVertex(i, j, k); }
+NodeKey Key(uint32_t i, uint32_t j, uint32_t k) { return extract::PackVertex(i, j, k); }
 
 struct Crossing {
   Vec3f point, normal;
@@ -167,7 +167,7 @@ absl::StatusOr<GridlineResult> SampleGridlines(const core::ImplicitFunction& fie
   index.reserve(nodes.size());
   for (uint32_t n = 0; n < nodes.size(); ++n) index.emplace(nodes[n], n);
   auto position = [&](NodeKey key) {
-    const auto [i, j, k] = core::UnpackVertex(key);
+    const auto [i, j, k] = extract::UnpackVertex(key);
     return Vec3d(i * h, j * h, k * h);
   };
   LSQSURF_RETURN_IF_ERROR(core::ParallelFor(nodes.size(), 256, [&](size_t b, size_t e) {
@@ -180,7 +180,7 @@ absl::StatusOr<GridlineResult> SampleGridlines(const core::ImplicitFunction& fie
     for (size_t n = b; n < e; ++n) {
       const core::FieldValue& va = values[n];
       if (!va.defined || std::isnan(va.value)) continue;
-      const auto [i, j, k] = core::UnpackVertex(nodes[n]);
+      const auto [i, j, k] = extract::UnpackVertex(nodes[n]);
       for (int axis = z_only ? 2 : 0; axis < 3; ++axis) {
         const NodeKey next = Key(i + (axis == 0), j + (axis == 1), k + (axis == 2));
         const auto it = index.find(next);
@@ -205,7 +205,7 @@ absl::StatusOr<GridlineResult> SampleGridlines(const core::ImplicitFunction& fie
       const Crossing& c = found[n][static_cast<size_t>(axis)];
       out.crossings.push_back(c);
       if (axis == 2) {
-        const auto [i, j, k] = core::UnpackVertex(nodes[n]);
+        const auto [i, j, k] = extract::UnpackVertex(nodes[n]);
         out.z_crossings.push_back({uint64_t{i} | (uint64_t{j} << 32), c.point.z(), values[n].value > 0});
       }
     }
@@ -570,9 +570,9 @@ absl::StatusOr<core::TriangleMesh> FrontMesh(const Front& front, double h, core:
   LSQSURF_RETURN_IF_ERROR(ValidateSpacing(h));
   auto field = FrontFunction(front, h, support_factor, ctx);
   if (!field.ok()) return field.status();
-  core::IsosurfaceParams p;
+  extract::IsosurfaceParams p;
   p.cell_size = h;
-  auto extracted = core::ExtractIsosurface(**field, front.points, p, ctx);
+  auto extracted = extract::ExtractIsosurface(**field, front.points, p, ctx);
   if (!extracted.ok()) return extracted.status();
   return std::move(extracted->mesh);
 }

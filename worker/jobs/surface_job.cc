@@ -6,8 +6,8 @@
 #include <cmath>
 #include <functional>
 
-#include "worker/core/isosurface.h"
-#include "worker/core/j1a_isosurface.h"
+#include "worker/extract/isosurface.h"
+#include "worker/extract/j1a_isosurface.h"
 #include "worker/core/mesh_metrics.h"
 #include "worker/core/status.h"
 #include "worker/core/strings.h"
@@ -105,19 +105,19 @@ struct ExtractionHints {
   SurfaceExtractor extractor = SurfaceExtractor::kJ1a;
 };
 
-absl::StatusOr<core::IsosurfaceResult> ExtractShared(const core::ImplicitFunction& field, const core::PointCloud& cloud,
+absl::StatusOr<extract::IsosurfaceResult> ExtractShared(const core::ImplicitFunction& field, const core::PointCloud& cloud,
                                                      const ExtractionHints& hints, core::JobContext& ctx) {
-  core::MarchingOptions marching;
+  extract::MarchingOptions marching;
   marching.refine_steps = hints.refine_steps;
   if (hints.extractor == SurfaceExtractor::kJ1a) {
-    return core::ExtractIsosurfaceJ1a(field, cloud.positions, {2 * hints.vertex_spacing, 20'000'000, marching}, ctx);
+    return extract::ExtractIsosurfaceJ1a(field, cloud.positions, {2 * hints.vertex_spacing, 20'000'000, marching}, ctx);
   }
-  return core::ExtractIsosurface(field, cloud.positions, {hints.vertex_spacing, 60'000'000, marching}, ctx);
+  return extract::ExtractIsosurface(field, cloud.positions, {hints.vertex_spacing, 60'000'000, marching}, ctx);
 }
 
 using StatFn = std::function<void(std::string, double)>;
 
-absl::StatusOr<core::IsosurfaceResult> RunIamls(const IamlsJobParams& p, const core::PointCloud& cloud,
+absl::StatusOr<extract::IsosurfaceResult> RunIamls(const IamlsJobParams& p, const core::PointCloud& cloud,
                                                 core::JobContext& ctx, const StatFn& stat) {
   const auto start = std::chrono::steady_clock::now();
   core::SubContext build_ctx(ctx, "building iaMLS", 0.0, 0.3);
@@ -136,7 +136,7 @@ absl::StatusOr<core::IsosurfaceResult> RunIamls(const IamlsJobParams& p, const c
 }
 
 template <mls::AlgebraicFit kFit>
-absl::StatusOr<core::IsosurfaceResult> RunAlgebraic(const AlgebraicJobParams<kFit>& p, const core::PointCloud& cloud,
+absl::StatusOr<extract::IsosurfaceResult> RunAlgebraic(const AlgebraicJobParams<kFit>& p, const core::PointCloud& cloud,
                                                     core::JobContext& ctx, const StatFn& stat) {
   core::SubContext build_ctx(ctx, "indexing points", 0.0, 0.05);
   auto field = mls::BuildAlgebraicMls(cloud, p.fit, build_ctx);
@@ -168,7 +168,7 @@ void PuStatistics(const pu::PuStats& s, const StatFn& stat) {
   }
 }
 
-absl::StatusOr<core::IsosurfaceResult> RunPu(const PuJobParams& p, const core::PointCloud& cloud, core::JobContext& ctx,
+absl::StatusOr<extract::IsosurfaceResult> RunPu(const PuJobParams& p, const core::PointCloud& cloud, core::JobContext& ctx,
                                              const StatFn& stat) {
   core::SubContext build_ctx(ctx, "fitting", 0.0, 0.4);
   auto field = pu::BuildPu(cloud, p.fit, build_ctx);
@@ -187,7 +187,7 @@ absl::StatusOr<core::IsosurfaceResult> RunPu(const PuJobParams& p, const core::P
 // One entry per method: its description and how its typed parameters run.
 struct SurfaceMethod {
   MethodInfo info;
-  std::function<absl::StatusOr<core::IsosurfaceResult>(const core::ParamSet&, const core::PointCloud&,
+  std::function<absl::StatusOr<extract::IsosurfaceResult>(const core::ParamSet&, const core::PointCloud&,
                                                        core::JobContext&, const StatFn&)>
       run;
   std::function<const NormalsParams*(const core::ParamSet&)> normals;
@@ -199,7 +199,7 @@ SurfaceMethod MakeMethod(std::string name, std::string description, const core::
   SurfaceMethod m;
   m.info = {std::move(name), std::move(description), core::ParamSet(table), std::move(attributes), {kInputUpload}};
   m.run = [run](const core::ParamSet& params, const core::PointCloud& cloud, core::JobContext& ctx,
-                const StatFn& stat) -> absl::StatusOr<core::IsosurfaceResult> {
+                const StatFn& stat) -> absl::StatusOr<extract::IsosurfaceResult> {
     const P* p = params.As<P>();
     if (p == nullptr) return absl::InternalError("parameters of another method");
     return run(*p, cloud, ctx, stat);

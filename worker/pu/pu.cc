@@ -9,8 +9,8 @@
 
 #include <Eigen/Cholesky>
 
-#include "worker/core/j1a.h"
-#include "worker/core/j1a_isosurface.h"
+#include "worker/extract/j1a.h"
+#include "worker/extract/j1a_isosurface.h"
 #include "worker/core/kd_tree.h"
 #include "worker/core/parallel.h"
 #include "worker/core/status.h"
@@ -131,7 +131,7 @@ struct PuFunction::Impl {
   }
 
   // The node at `cell`, or the leaf above it where the tree stops sooner.
-  int32_t DeepestNodeAt(const core::OctreeCell& cell) const {
+  int32_t DeepestNodeAt(const extract::OctreeCell& cell) const {
     int32_t index = 0;
     for (int l = 1; l <= cell.level; ++l) {
       const Node& n = nodes[static_cast<size_t>(index)];
@@ -742,7 +742,7 @@ absl::StatusOr<std::unique_ptr<PuFunction>> BuildPu(const core::PointCloud& clou
   return function;
 }
 
-absl::StatusOr<core::IsosurfaceResult> Extract(const PuFunction& function, const PuExtractParams& params,
+absl::StatusOr<extract::IsosurfaceResult> Extract(const PuFunction& function, const PuExtractParams& params,
                                                core::JobContext& ctx) {
   if (!(params.cell_size > 0) || !std::isfinite(params.cell_size)) {
     return absl::InvalidArgumentError("cell_size must be a positive number");
@@ -754,15 +754,15 @@ absl::StatusOr<core::IsosurfaceResult> Extract(const PuFunction& function, const
   // at least two levels above it, and in between it follows the fitting tree: where the fits
   // needed small cells the surface gets small tetrahedra too.
   const int depth = std::clamp(static_cast<int>(std::lround(std::log2(impl.root_edge / target))), 2,
-                               core::AdaptiveOctree::kMaxDepth);
+                               extract::AdaptiveOctree::kMaxDepth);
   const int band_level = depth - 2;
   core::SubContext build_ctx(ctx, "building the J1a tree", 0.0, 0.1);
-  core::AdaptiveOctree tree(core::Box3(impl.origin, impl.origin + Vec3d::Constant(impl.root_edge)), depth);
-  core::SurfaceBand band = core::MarkSurfaceBand(tree, impl.positions, band_level);
-  core::SurfaceBand fine_band = core::MarkSurfaceBand(tree, impl.positions, depth);
+  extract::AdaptiveOctree tree(core::Box3(impl.origin, impl.origin + Vec3d::Constant(impl.root_edge)), depth);
+  extract::SurfaceBand band = extract::MarkSurfaceBand(tree, impl.positions, band_level);
+  extract::SurfaceBand fine_band = extract::MarkSurfaceBand(tree, impl.positions, depth);
   band.occupied.clear();
-  tree.Refine([&](const core::OctreeCell& c) {
-    const uint64_t key = core::CellKey(c);
+  tree.Refine([&](const extract::OctreeCell& c) {
+    const uint64_t key = extract::CellKey(c);
     if (c.level <= band_level && band.ancestors.contains(key)) return true;
     if (!fine_band.ancestors.contains(key)) return false;  // Away from the data.
     const Node& node = impl.nodes[static_cast<size_t>(impl.DeepestNodeAt(c))];
@@ -776,12 +776,12 @@ absl::StatusOr<core::IsosurfaceResult> Extract(const PuFunction& function, const
   tree.Balance();
   LSQSURF_RETURN_IF_ERROR(ctx.CheckCancelled());
   // Start at the finest cells that hold points (the extractor maps them to their leaves).
-  std::vector<core::OctreeCell> start;
+  std::vector<extract::OctreeCell> start;
   start.reserve(fine_band.occupied.size());
-  for (uint64_t key : fine_band.occupied) start.push_back(core::CellFromKey(key));
+  for (uint64_t key : fine_band.occupied) start.push_back(extract::CellFromKey(key));
   fine_band.occupied.clear();
   core::SubContext extract_ctx(ctx, "extracting surface", 0.1, 0.95);
-  auto result = core::ExtractIsosurfaceOnTree(function, tree, start, params.max_leaves, params.marching, extract_ctx);
+  auto result = extract::ExtractIsosurfaceOnTree(function, tree, start, params.max_leaves, params.marching, extract_ctx);
   if (!result.ok() || !params.label_vertices) return result;
   core::TriangleMesh& mesh = result->mesh;
   core::ScalarAttribute depth_attribute{"depth", std::vector<float>(mesh.vertices.size())};

@@ -33,7 +33,7 @@
 #include "absl/status/statusor.h"
 #include "worker/core/geometry.h"
 #include "worker/core/implicit_function.h"
-#include "worker/core/isosurface.h"
+#include "worker/extract/isosurface.h"
 #include "worker/core/job_context.h"
 #include "worker/core/params.h"
 
@@ -101,7 +101,7 @@ class PuFunction final : public core::ImplicitFunction {
  private:
   friend absl::StatusOr<std::unique_ptr<PuFunction>> BuildPu(const core::PointCloud&, const PuParams&,
                                                              core::JobContext&);
-  friend absl::StatusOr<core::IsosurfaceResult> Extract(const PuFunction&, const PuExtractParams&,
+  friend absl::StatusOr<extract::IsosurfaceResult> Extract(const PuFunction&, const PuExtractParams&,
                                                         core::JobContext&);
   PuFunction();
   std::unique_ptr<Impl> impl_;
@@ -120,7 +120,7 @@ struct PuExtractParams {
   // tetrahedra, so its leaves can be several times larger than the cubes of a Kuhn grid.
   double cell_size = 5.0;
   int64_t max_leaves = 20'000'000;
-  core::MarchingOptions marching;
+  extract::MarchingOptions marching;
   bool label_vertices = true;  // Adds the vertex attributes "depth" and "degree".
 };
 
@@ -129,7 +129,7 @@ const core::ParamTable<PuExtractParams>& PuExtractParamTable();
 
 // The zero set of F on J1a tetrahedra: the fitting tree down to `cell_size`, refined to at least
 // 4 × `cell_size` around the data and 2:1 balanced, so cells grow away from the surface. Errors: kInvalidArgument, kResourceExhausted, kCancelled.
-absl::StatusOr<core::IsosurfaceResult> Extract(const PuFunction& function, const PuExtractParams& params,
+absl::StatusOr<extract::IsosurfaceResult> Extract(const PuFunction& function, const PuExtractParams& params,
                                                core::JobContext& ctx);
 
 }  // namespace lsqsurf::pu

@@ -1,4 +1,4 @@
-#include "worker/core/isosurface.h"
+#include "worker/extract/isosurface.h"
 
 #include <gtest/gtest.h>
 
@@ -9,11 +9,13 @@
 #include <utility>
 
 #include "tests/test_shapes.h"
-#include "worker/core/j1a_isosurface.h"
+#include "worker/extract/j1a_isosurface.h"
 #include "worker/core/mesh_metrics.h"
 
-namespace lsqsurf::core {
+namespace lsqsurf::extract {
 namespace {
+
+using namespace ::lsqsurf::core;  // The tests speak in core types throughout.
 
 // Both extractors, behind one signature, so that the shared properties are tested once.
 using Extractor = IsosurfaceResult (*)(const ImplicitFunction&, const PointCloud&, double cell);
@@ -182,4 +184,4 @@ TEST(J1aIsosurface, FollowsTheSurfaceIntoCoarseLeaves) {
 }
 
 }  // namespace
-}  // namespace lsqsurf::core
+}  // namespace lsqsurf::extract

@@ -1,4 +1,4 @@
-#include "worker/core/marching_tets.h"
+#include "worker/extract/marching_tets.h"
 
 #include <algorithm>
 #include <cmath>
@@ -8,7 +8,7 @@
 #include "worker/core/parallel.h"
 #include "worker/core/status.h"
 
-namespace lsqsurf::core::internal {
+namespace lsqsurf::extract::internal {
 namespace {
 
 struct Crossing {
@@ -222,13 +222,13 @@ absl::StatusOr<IsosurfaceResult> MarchTetrahedra(
   mesh.vertices.resize(crossings.size());
   if (params.vertex_normals) mesh.normals.resize(crossings.size());
   std::vector<char> valid(crossings.size(), 0);
-  LSQSURF_RETURN_IF_ERROR(ParallelFor(
+  LSQSURF_RETURN_IF_ERROR(core::ParallelFor(
       crossings.size(), 256,
       [&](size_t begin, size_t end) {
         for (size_t i = begin; i < end; ++i) {
           const Crossing& c = crossings[i];
           const Vec3d a = position(c.inside_vertex), b = position(c.outside_vertex);
-          double t = RefineRootOnSegment(field, a, b, c.inside_value, c.outside_value, params.refine_steps);
+          double t = core::RefineRootOnSegment(field, a, b, c.inside_value, c.outside_value, params.refine_steps);
           // Keep vertices strictly inside their edge: coincident vertices would make
           // zero-area triangles that some decoders drop.
           t = std::clamp(t, 1e-4, 1.0 - 1e-4);
@@ -305,4 +305,4 @@ absl::StatusOr<IsosurfaceResult> MarchTetrahedra(
   return result;
 }
 
-}  // namespace lsqsurf::core::internal
+}  // namespace lsqsurf::extract::internal

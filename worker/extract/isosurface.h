@@ -1,4 +1,4 @@
-// worker/core/isosurface.h — zero-set extraction on a sparse uniform grid of tetrahedra.
+// worker/extract/isosurface.h — zero-set extraction on a sparse uniform grid of tetrahedra.
 //
 // The grid is never dense: extraction starts from the cubes that hold input points and follows
 // the surface from cube to cube across the faces it crosses, so memory and time scale with the
@@ -21,7 +21,18 @@
 #include "worker/core/implicit_function.h"
 #include "worker/core/job_context.h"
 
-namespace lsqsurf::core {
+namespace lsqsurf::extract {
+
+// The core vocabulary, used throughout extraction.
+using core::Box3;
+using core::FieldGradient;
+using core::FieldValue;
+using core::ImplicitFunction;
+using core::JobContext;
+using core::Triangle;
+using core::TriangleMesh;
+using core::Vec3d;
+using core::Vec3f;
 
 // How crossings become triangles; shared by every extractor.
 struct MarchingOptions {
@@ -65,4 +76,4 @@ absl::StatusOr<IsosurfaceResult> ExtractIsosurface(const ImplicitFunction& field
                                                    const IsosurfaceParams& params,
                                                    JobContext& ctx);
 
-}  // namespace lsqsurf::core
+}  // namespace lsqsurf::extract

@@ -1,4 +1,4 @@
-// worker/core/j1a_isosurface.h — zero-set extraction on the adaptive J1a tetrahedralization.
+// worker/extract/j1a_isosurface.h — zero-set extraction on the adaptive J1a tetrahedralization.
 //
 // The seeds' cubes at the finest level, and their 26 neighbours, are refined to the finest
 // level; the tree is 2:1 balanced and triangulated with J1a (see j1a.h). Extraction follows the
@@ -16,11 +16,11 @@
 #include "absl/status/statusor.h"
 #include "worker/core/geometry.h"
 #include "worker/core/implicit_function.h"
-#include "worker/core/isosurface.h"
-#include "worker/core/j1a.h"
+#include "worker/extract/isosurface.h"
+#include "worker/extract/j1a.h"
 #include "worker/core/job_context.h"
 
-namespace lsqsurf::core {
+namespace lsqsurf::extract {
 
 struct J1aIsosurfaceParams {
   double cell_size = 0.0;          // Edge of the finest leaves, model units; must be > 0.
@@ -54,4 +54,4 @@ absl::StatusOr<IsosurfaceResult> ExtractIsosurfaceOnTree(const ImplicitFunction&
                                                          const MarchingOptions& marching,
                                                          JobContext& ctx);
 
-}  // namespace lsqsurf::core
+}  // namespace lsqsurf::extract

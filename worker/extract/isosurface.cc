@@ -1,4 +1,4 @@
-#include "worker/core/isosurface.h"
+#include "worker/extract/isosurface.h"
 
 #include <algorithm>
 #include <array>
@@ -6,10 +6,10 @@
 
 #include "absl/container/flat_hash_map.h"
 #include "absl/container/flat_hash_set.h"
-#include "worker/core/marching_tets.h"
+#include "worker/extract/marching_tets.h"
 #include "worker/core/status.h"
 
-namespace lsqsurf::core {
+namespace lsqsurf::extract {
 namespace {
 
 // Grid coordinates are packed 20 bits per axis (biased), so a vertex key fits in 60 bits and
@@ -79,7 +79,7 @@ absl::StatusOr<IsosurfaceResult> ExtractIsosurface(const ImplicitFunction& field
                                                    JobContext& ctx) {
   if (absl::Status s = Validate(params); !s.ok()) return s;
   if (seeds.empty()) return absl::InvalidArgumentError("isosurface extraction needs seed points");
-  const Box3 box = BoundingBox(seeds);
+  const Box3 box = core::BoundingBox(seeds);
   const double h = params.cell_size;
   if ((box.sizes() / h).maxCoeff() > static_cast<double>(kLimit)) {
     return absl::InvalidArgumentError(
@@ -95,7 +95,7 @@ absl::StatusOr<IsosurfaceResult> ExtractIsosurface(const ImplicitFunction& field
 
   IsosurfaceResult result;
   IsosurfaceStats& stats = result.stats;
-  SubContext track_ctx(ctx, "tracking surface", 0.0, 0.75);
+  core::SubContext track_ctx(ctx, "tracking surface", 0.0, 0.75);
 
   absl::flat_hash_set<Key> visited;
   std::vector<Key> frontier;
@@ -164,7 +164,7 @@ absl::StatusOr<IsosurfaceResult> ExtractIsosurface(const ImplicitFunction& field
   stats.tetrahedra = static_cast<int64_t>(surface_cells.size() * kTets.size());
   LSQSURF_RETURN_IF_ERROR(ctx.CheckCancelled());
 
-  SubContext emit_ctx(ctx, "extracting triangles", 0.75, 1.0);
+  core::SubContext emit_ctx(ctx, "extracting triangles", 0.75, 1.0);
   return internal::MarchTetrahedra(
       field,
       [&](const std::function<void(const internal::TetCorners&)>& visit) {
@@ -178,4 +178,4 @@ absl::StatusOr<IsosurfaceResult> ExtractIsosurface(const ImplicitFunction& field
       values, vertex_position, params.marching, stats, emit_ctx);
 }
 
-}  // namespace lsqsurf::core
+}  // namespace lsqsurf::extract

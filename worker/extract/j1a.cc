@@ -1,10 +1,10 @@
 // J1a: Castelo et al. 2006; construction of METHODS.md §1.3 (see j1a.h).
-#include "worker/core/j1a.h"
+#include "worker/extract/j1a.h"
 
 #include <algorithm>
 #include <cassert>
 
-namespace lsqsurf::core {
+namespace lsqsurf::extract {
 
 VertexKey PackVertex(uint32_t x, uint32_t y, uint32_t z) {
   return (static_cast<uint64_t>(x) << 42) | (static_cast<uint64_t>(y) << 21) | z;
@@ -210,4 +210,4 @@ void AppendJ1aTetrahedra(const AdaptiveOctree& tree, const OctreeCell& leaf, std
   }
 }
 
-}  // namespace lsqsurf::core
+}  // namespace lsqsurf::extract

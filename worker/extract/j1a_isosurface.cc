@@ -1,14 +1,14 @@
-#include "worker/core/j1a_isosurface.h"
+#include "worker/extract/j1a_isosurface.h"
 
 #include <algorithm>
 #include <cmath>
 
 #include "absl/container/flat_hash_set.h"
-#include "worker/core/marching_tets.h"
+#include "worker/extract/marching_tets.h"
 #include "worker/core/parallel.h"
 #include "worker/core/status.h"
 
-namespace lsqsurf::core {
+namespace lsqsurf::extract {
 
 SurfaceBand MarkSurfaceBand(const AdaptiveOctree& tree, std::span<const Vec3f> points, int level) {
   SurfaceBand band;
@@ -45,8 +45,8 @@ absl::StatusOr<IsosurfaceResult> ExtractIsosurfaceJ1a(const ImplicitFunction& fi
   }
   LSQSURF_RETURN_IF_ERROR(Validate(params.marching));
   if (seeds.empty()) return absl::InvalidArgumentError("isosurface extraction needs seed points");
-  SubContext build_ctx(ctx, "building the J1a tree", 0.0, 0.1);
-  const Box3 box = BoundingBox(seeds);
+  core::SubContext build_ctx(ctx, "building the J1a tree", 0.0, 0.1);
+  const Box3 box = core::BoundingBox(seeds);
   // Two finest cells of margin on every side, then the smallest power-of-two cube around it.
   const double extent = box.sizes().maxCoeff() + 4 * params.cell_size;
   const int depth = std::max(1, static_cast<int>(std::ceil(std::log2(extent / params.cell_size))));
@@ -65,7 +65,7 @@ absl::StatusOr<IsosurfaceResult> ExtractIsosurfaceJ1a(const ImplicitFunction& fi
   std::vector<OctreeCell> start;
   start.reserve(band.occupied.size());
   for (uint64_t key : band.occupied) start.push_back(CellFromKey(key));
-  SubContext extract_ctx(ctx, "tracking surface", 0.1, 1.0);
+  core::SubContext extract_ctx(ctx, "tracking surface", 0.1, 1.0);
   return ExtractIsosurfaceOnTree(field, tree, start, params.max_leaves, params.marching, extract_ctx);
 }
 
@@ -79,7 +79,7 @@ absl::StatusOr<IsosurfaceResult> ExtractIsosurfaceOnTree(const ImplicitFunction&
   if (start.empty()) return absl::InvalidArgumentError("isosurface extraction needs start cells");
   // Follow the surface from leaf to leaf, a batch of leaves at a time: the tetrahedra and
   // neighbours of a leaf are found in parallel, only the shared vertex cache is filled serially.
-  SubContext track_ctx(ctx, "tracking surface", 0.0, 0.75);
+  core::SubContext track_ctx(ctx, "tracking surface", 0.0, 0.75);
   IsosurfaceStats stats;
   absl::flat_hash_set<uint64_t> visited;
   std::vector<OctreeCell> frontier;
@@ -113,7 +113,7 @@ absl::StatusOr<IsosurfaceResult> ExtractIsosurfaceOnTree(const ImplicitFunction&
       const std::span<const OctreeCell> leaves =
           std::span<const OctreeCell>(frontier).subspan(batch, std::min(kLeavesPerBatch, frontier.size() - batch));
       if (work.size() < leaves.size()) work.resize(leaves.size());
-      LSQSURF_RETURN_IF_ERROR(ParallelFor(leaves.size(), 64, [&](size_t b, size_t e) {
+      LSQSURF_RETURN_IF_ERROR(core::ParallelFor(leaves.size(), 64, [&](size_t b, size_t e) {
         for (size_t i = b; i < e; ++i) {
           LeafWork& w = work[i];
           w.tets.clear();
@@ -138,7 +138,7 @@ absl::StatusOr<IsosurfaceResult> ExtractIsosurfaceOnTree(const ImplicitFunction&
       for (size_t i = 0; i < pending.size(); ++i) values[pending[i]] = FieldValue{pending_values[i], false};
       stats.field_evaluations += static_cast<int64_t>(pending.size());
       // Read-only on `values` and the tree, so the leaves are independent.
-      LSQSURF_RETURN_IF_ERROR(ParallelFor(leaves.size(), 64, [&](size_t b, size_t e) {
+      LSQSURF_RETURN_IF_ERROR(core::ParallelFor(leaves.size(), 64, [&](size_t b, size_t e) {
         for (size_t i = b; i < e; ++i) {
           LeafWork& w = work[i];
           w.neighbors.clear();
@@ -193,7 +193,7 @@ absl::StatusOr<IsosurfaceResult> ExtractIsosurfaceOnTree(const ImplicitFunction&
   visited = {};
   LSQSURF_RETURN_IF_ERROR(ctx.CheckCancelled());
 
-  SubContext emit_ctx(ctx, "extracting triangles", 0.75, 1.0);
+  core::SubContext emit_ctx(ctx, "extracting triangles", 0.75, 1.0);
   return internal::MarchTetrahedra(
       field,
       [&](const std::function<void(const internal::TetCorners&)>& visit) {
@@ -202,4 +202,4 @@ absl::StatusOr<IsosurfaceResult> ExtractIsosurfaceOnTree(const ImplicitFunction&
       values, [&](internal::CornerKey k) { return tree.Position(k); }, marching, stats, emit_ctx);
 }
 
-}  // namespace lsqsurf::core
+}  // namespace lsqsurf::extract

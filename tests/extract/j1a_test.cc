@@ -1,12 +1,14 @@
-#include "worker/core/j1a.h"
+#include "worker/extract/j1a.h"
 
 #include <gtest/gtest.h>
 
 #include <algorithm>
 #include <random>
 
-namespace lsqsurf::core {
+namespace lsqsurf::extract {
 namespace {
+
+using namespace ::lsqsurf::core;  // The tests speak in core types throughout.
 
 // Six times the volume, exactly, in vertex units.
 int64_t SixVolume(const TetKeys& t) {
@@ -138,4 +140,4 @@ TEST(J1a, VerticesAreSharedByKey) {
 }
 
 }  // namespace
-}  // namespace lsqsurf::core
+}  // namespace lsqsurf::extract

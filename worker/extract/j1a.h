@@ -1,4 +1,4 @@
-// worker/core/j1a.h — adaptive octree and its J1a tetrahedralization.
+// worker/extract/j1a.h — adaptive octree and its J1a tetrahedralization.
 //
 // Castelo, Nonato, Siqueira, Minghim, Tavares, "The J1a triangulation: an adaptive
 // triangulation in any dimension", Computers & Graphics 30(5), 2006; the construction used here
@@ -21,7 +21,14 @@
 #include "absl/container/flat_hash_map.h"
 #include "worker/core/geometry.h"
 
-namespace lsqsurf::core {
+namespace lsqsurf::extract {
+
+// The core vocabulary, used throughout extraction.
+using core::Box3;
+using core::Triangle;
+using core::TriangleMesh;
+using core::Vec3d;
+using core::Vec3f;
 
 // A cube of the tree: `level` 0 is the root; x, y, z index the cube among the 2^level per axis.
 struct OctreeCell {
@@ -90,4 +97,4 @@ using TetKeys = std::array<VertexKey, 4>;
 void AppendJ1aTetrahedra(const AdaptiveOctree& tree, const OctreeCell& leaf,
                          std::vector<TetKeys>& out);
 
-}  // namespace lsqsurf::core
+}  // namespace lsqsurf::extract

@@ -1,4 +1,4 @@
-// worker/core/marching_tets.h — marching tetrahedra shared by the extractors (internal).
+// worker/extract/marching_tets.h — marching tetrahedra shared by the extractors (internal).
 //
 // Input: tetrahedra named by the keys of their corners, the field value at every corner, and
 // the position of a key. Crossings are keyed by the unordered corner pair, so neighbouring
@@ -16,10 +16,10 @@
 #include "absl/container/flat_hash_map.h"
 #include "absl/status/statusor.h"
 #include "worker/core/implicit_function.h"
-#include "worker/core/isosurface.h"
+#include "worker/extract/isosurface.h"
 #include "worker/core/job_context.h"
 
-namespace lsqsurf::core::internal {
+namespace lsqsurf::extract::internal {
 
 using CornerKey = uint64_t;
 using TetCorners = std::array<CornerKey, 4>;
@@ -35,4 +35,4 @@ absl::StatusOr<IsosurfaceResult> MarchTetrahedra(
     const std::function<Vec3d(CornerKey)>& position, const MarchingOptions& params,
     const IsosurfaceStats& tracking, JobContext& ctx);
 
-}  // namespace lsqsurf::core::internal
+}  // namespace lsqsurf::extract::internal

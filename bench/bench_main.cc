@@ -12,25 +12,27 @@
 #include <sys/wait.h>
 #include <unistd.h>
 
+#include <CLI/CLI.hpp>
+#include <algorithm>
+#include <atomic>
 #include <chrono>
+#include <csignal>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
 #include <sstream>
-#include <thread>
-#include <csignal>
 #include <string>
+#include <thread>
 #include <vector>
 
-#include <CLI/CLI.hpp>
-
+#include "client/client.h"
 #include "worker/core/mesh_metrics.h"
 #include "worker/core/sampling.h"
+#include "worker/core/status.h"
 #include "worker/core/strings.h"
 #include "worker/core/surface_distance.h"
 #include "worker/io/draco_codec.h"
 #include "worker/io/files.h"
-#include "worker/core/status.h"
 #include "worker/jobs/method_registry.h"
 #include "worker/jobs/surface_job.h"
 #if LSQSURF_WITH_POISSON
@@ -134,7 +136,6 @@ std::string FirstLine(const std::string& cmd) {
   return line;
 }
 
-
 struct BenchOptions {
   std::string data_dir = "../shared/data/meshes";
   std::vector<std::string> models = {"stanford-bunny", "spot", "fandisk"};
@@ -231,9 +232,9 @@ class BenchServer {
     fs::remove_all(data);
     const std::string addr_file = (work / "address").string();
     fs::remove(addr_file);
-    const std::string start = core::StrCat("(", bin_dir, "/lsqsurfd --listen 127.0.0.1:0 --data-dir ", data,
-                                           " 2>/dev/null & echo $! > ", work.string(), "/pid; wait) | head -1 > ",
-                                           addr_file, " &");
+    const std::string start =
+        core::StrCat("(", bin_dir, "/lsqsurfd --listen 127.0.0.1:0 --data-dir ", data, " 2>/dev/null & echo $! > ",
+                     work.string(), "/pid; wait) | head -1 > ", addr_file, " &");
     (void)std::system(start.c_str());
     // The server prints "listening on ADDRESS" once it serves; the shell writes it on exit of head.
     for (int i = 0; i < 100 && address_.empty(); ++i) {
@@ -283,10 +284,25 @@ void RunService(const BenchOptions& o, const BenchCase& c, const fs::path& work)
   const double upload_s = Since(t_upload);
   // That job only measured the upload: cancel it so it does not delay the timed one.
   if (!submitted.empty()) RunTool(client + "cancel " + submitted);
+  // While the timed job uploads and runs, another caller reads a job's state: its latency shows
+  // whether the service's threads wait on uploads, engines or the disk.
+  std::atomic<bool> polling{true};
+  std::vector<double> latencies_ms;
+  std::thread poller([&] {
+    client::Client api(server.address());
+    while (polling) {
+      const auto t = Clock::now();
+      (void)api.Get(submitted);
+      latencies_ms.push_back(1e3 * Since(t));
+      std::this_thread::sleep_for(std::chrono::milliseconds(20));
+    }
+  });
   const auto t_e2e = Clock::now();
   const int rc =
       RunTool(client + "reconstruct " + cloud_path + " -o " + mesh_path + " --method " + o.method + param_args);
   const double seconds = Since(t_e2e);
+  polling = false;
+  poller.join();
   const double peak = server.PeakMib();
   CaseResult r;
   if (rc != 0 || submitted.empty()) {
@@ -296,8 +312,10 @@ void RunService(const BenchOptions& o, const BenchCase& c, const fs::path& work)
     r = InChild([&] {
       CaseResult m;
       auto mesh = io::ReadMeshFile(mesh_path);
-      if (!mesh.ok()) m.error = std::string(mesh.status().message());
-      else Measure(c.truth, *mesh, o.samples, m);
+      if (!mesh.ok())
+        m.error = std::string(mesh.status().message());
+      else
+        Measure(c.truth, *mesh, o.samples, m);
       return m;
     });
   }
@@ -307,6 +325,14 @@ void RunService(const BenchOptions& o, const BenchCase& c, const fs::path& work)
   std::printf("    draco: %.2f MB, encode %.0f ms, decode %.0f ms; upload+validate %.2f s (%.1f MB/s)\n",
               static_cast<double>(encoded->size()) / 1e6, encode_s * 1e3, decode_s * 1e3, upload_s,
               static_cast<double>(encoded->size()) / 1e6 / upload_s);
+  if (!latencies_ms.empty()) {
+    std::sort(latencies_ms.begin(), latencies_ms.end());
+    auto at = [&](double q) {
+      return latencies_ms[static_cast<size_t>(q * static_cast<double>(latencies_ms.size() - 1))];
+    };
+    std::printf("    GetJob during upload and run: %zu calls, median %.2f ms, p99 %.2f ms, max %.2f ms\n",
+                latencies_ms.size(), at(0.5), at(0.99), latencies_ms.back());
+  }
 }
 
 // The method's parameters from name=value texts. Errors: kInvalidArgument.

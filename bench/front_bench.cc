@@ -3,15 +3,14 @@
 // against the exact initial shape, point counts, wall time and peak RSS.
 #include <sys/resource.h>
 
+#include <CLI/CLI.hpp>
 #include <chrono>
 #include <cmath>
-#include <utility>
-#include <vector>
 #include <cstdio>
 #include <memory>
 #include <string>
-
-#include <CLI/CLI.hpp>
+#include <utility>
+#include <vector>
 
 #include "worker/core/job_context.h"
 #include "worker/core/mesh_metrics.h"
@@ -35,16 +34,32 @@ std::pair<double, double> PreimageError(const lsqsurf::front::VelocityField& fie
   const double back = -t / steps;
   std::vector<double> error(front.points.size());
   lsqsurf::core::LocalJobContext ctx;
-  (void)lsqsurf::core::ParallelFor(front.points.size(), 256, [&](size_t b, size_t e) {
-    for (size_t i = b; i < e; ++i) {
-      Vec3d x = front.points[i].cast<double>();
-      for (int s = 0; s < steps; ++s) x = lsqsurf::front::Rk4Step(field, x, t + s * back, back);
-      error[i] = std::abs(lsqsurf::front::ShapeValue(shape, x));
-    }
-  }, &ctx);
+  (void)lsqsurf::core::ParallelFor(
+      front.points.size(), 256,
+      [&](size_t b, size_t e) {
+        for (size_t i = b; i < e; ++i) {
+          Vec3d x = front.points[i].cast<double>();
+          for (int s = 0; s < steps; ++s) x = lsqsurf::front::Rk4Step(field, x, t + s * back, back);
+          error[i] = std::abs(lsqsurf::front::ShapeValue(shape, x));
+        }
+      },
+      &ctx);
   double sum = 0, max = 0;
   for (double d : error) sum += d, max = std::max(max, d);
   return {sum / static_cast<double>(error.size()), max};
+}
+
+// The frame's points themselves: a mesh extracted on cubes of edge h would drop sheets thinner
+// than h that the front still carries.
+absl::Status WriteFramePicture(lsqsurf::render::Renderer& renderer, const lsqsurf::front::Front& front,
+                               const std::string& dir, int step) {
+  lsqsurf::core::PointCloud cloud;
+  cloud.positions = front.points;
+  cloud.normals = front.normals;
+  lsqsurf::render::RenderParams view;
+  view.width = view.height = 768;
+  view.camera.framing_box = lsqsurf::core::Box3(lsqsurf::core::Vec3d::Zero(), lsqsurf::core::Vec3d::Ones());
+  return lsqsurf::jobs::WritePicture(renderer, cloud, view, dir + "/frame_" + std::to_string(step) + ".png");
 }
 
 }  // namespace
@@ -73,7 +88,8 @@ int main(int argc, char** argv) {
   app.add_option("--stride", stride, "print every this many steps (default: steps/8)");
   app.add_option("--support", support, "RAMLS support radius in units of h")->capture_default_str();
   app.add_flag("--mesh-check", mesh_check, "also print each frame's mesh volume (cross-check of the gridline volume)");
-  app.add_option("--pictures", pictures, "write a picture of each printed frame's points as DIR/frame_STEP.png (the directory must exist)");
+  app.add_option("--pictures", pictures,
+                 "write a picture of each printed frame's points as DIR/frame_STEP.png (the directory must exist)");
   app.add_option("--resampling", resampling, "gridlines (the seed's re-generation) | markers")->capture_default_str();
   app.add_option("--marker-spacing", marker_spacing, "markers: thinning distance in units of h")->capture_default_str();
   app.add_option("--marker-gap", marker_gap, "markers: gap-filling distance in units of h")->capture_default_str();
@@ -102,7 +118,8 @@ int main(int argc, char** argv) {
   p.output_stride = stride > 0 ? stride : std::max(1, p.steps / 8);
   if (shape_name.empty()) shape_name = zalesak ? "slotted" : "sphere";
   if (shape_name != "sphere" && shape_name != "slotted") return std::fprintf(stderr, "unknown --shape\n"), 2;
-  const front::InitialShape shape = shape_name == "slotted" ? front::InitialShape::kZalesakSphere : front::InitialShape::kSphere;
+  const front::InitialShape shape =
+      shape_name == "slotted" ? front::InitialShape::kZalesakSphere : front::InitialShape::kSphere;
   auto initial = front::SampleInitialFront(shape, p.h);
   if (!initial.ok()) return std::fprintf(stderr, "%s\n", initial.status().ToString().c_str()), 1;
   auto e1_initial = front::ShapeError(*initial, shape, p.h);
@@ -112,7 +129,9 @@ int main(int argc, char** argv) {
               zalesak ? "" : (" T=" + std::to_string(period)).c_str());
   std::printf("%6s %9s %9s %12s %12s %9s%s\n", "step", "time", "points", "volume", "change_%", "wall_s",
               mesh_check ? "  mesh_volume mesh_vs_grid_%" : "");
-  if (preimage) std::printf("        (preimage columns: mean and max distance of the points' preimages from the exact surface, in h)\n");
+  if (preimage)
+    std::printf(
+        "        (preimage columns: mean and max distance of the points' preimages from the exact surface, in h)\n");
   std::unique_ptr<render::Renderer> renderer;
   if (!pictures.empty()) {
     auto created = render::CreateRenderer();
@@ -124,49 +143,40 @@ int main(int argc, char** argv) {
   double wall = 0, volume0 = 0, volume_end = 0;
   size_t peak_points = 0;
   const auto start = std::chrono::steady_clock::now();
-  const absl::Status s = front::Track(*initial, *field, p, ctx, [&](const front::FrameStats& f, const front::Front& fr) {
-    if (f.step == 0) volume0 = f.volume;
-    volume_end = f.volume;
-    wall += f.seconds;
-    peak_points = std::max(peak_points, f.points);
-    std::printf("%6d %9.3f %9zu %12.6e %12.4f %9.2f", f.step, f.time, f.points, f.volume, 100 * f.volume_change, wall);
-    if (mesh_check) {
-      auto mesh = front::FrontMesh(fr, p.h, ctx, p.support_factor);
-      if (!mesh.ok()) return mesh.status();
-      const double mesh_volume = core::EnclosedVolume(*mesh);
-      std::printf(" %12.6e %12.4f", mesh_volume, 100 * (mesh_volume - f.volume) / f.volume);
-    }
-    if (preimage) {
-      const auto [mean, max] = PreimageError(*field, fr, f.time, p.dt, shape);
-      std::printf("  preimage %.2e %.2e", mean / p.h, max / p.h);
-    }
-    std::printf("\n");
-    std::fflush(stdout);
-    if (renderer) {
-      // The points themselves: a mesh extracted on cubes of edge h would drop sheets thinner
-      // than h that the front still carries.
-      core::PointCloud cloud;
-      cloud.positions = fr.points;
-      cloud.normals = fr.normals;
-      render::RenderParams view;
-      view.width = view.height = 768;
-      view.camera.framing_box = core::Box3(core::Vec3d::Zero(), core::Vec3d::Ones());
-      LSQSURF_RETURN_IF_ERROR(
-          jobs::WritePicture(*renderer, cloud, view, pictures + "/frame_" + std::to_string(f.step) + ".png"));
-    }
-    last = fr;
-    return absl::OkStatus();
-  });
+  const absl::Status s =
+      front::Track(*initial, *field, p, ctx, [&](const front::FrameStats& f, const front::Front& fr) {
+        if (f.step == 0) volume0 = f.volume;
+        volume_end = f.volume;
+        wall += f.seconds;
+        peak_points = std::max(peak_points, f.points);
+        std::printf("%6d %9.3f %9zu %12.6e %12.4f %9.2f", f.step, f.time, f.points, f.volume, 100 * f.volume_change,
+                    wall);
+        if (mesh_check) {
+          auto mesh = front::FrontMesh(fr, p.h, ctx, p.support_factor);
+          if (!mesh.ok()) return mesh.status();
+          const double mesh_volume = core::EnclosedVolume(*mesh);
+          std::printf(" %12.6e %12.4f", mesh_volume, 100 * (mesh_volume - f.volume) / f.volume);
+        }
+        if (preimage) {
+          const auto [mean, max] = PreimageError(*field, fr, f.time, p.dt, shape);
+          std::printf("  preimage %.2e %.2e", mean / p.h, max / p.h);
+        }
+        std::printf("\n");
+        std::fflush(stdout);
+        if (renderer) LSQSURF_RETURN_IF_ERROR(WriteFramePicture(*renderer, fr, pictures, f.step));
+        last = fr;
+        return absl::OkStatus();
+      });
   const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   if (!s.ok()) return std::fprintf(stderr, "%s\n", s.ToString().c_str()), 1;
   auto e1 = front::ShapeError(last, shape, p.h);
   if (!e1.ok()) return std::fprintf(stderr, "%s\n", e1.status().ToString().c_str()), 1;
   struct rusage usage {};
   ::getrusage(RUSAGE_SELF, &usage);
-  std::printf("summary: volume_change=%.4f%% e1_rel=%.4f%% (initial sampling: %.4f%%) points_start=%zu points_end=%zu points_peak=%zu "
-              "wall=%.1fs peak_rss=%.0fMiB\n",
-              100 * (volume_end - volume0) / volume0, 100 * *e1 / volume0, 100 * *e1_initial / volume0,
-              initial->points.size(), last.points.size(),
-              peak_points, seconds, static_cast<double>(usage.ru_maxrss) / 1024.0);
+  std::printf(
+      "summary: volume_change=%.4f%% e1_rel=%.4f%% (initial sampling: %.4f%%) points_start=%zu "
+      "points_end=%zu points_peak=%zu wall=%.1fs peak_rss=%.0fMiB\n",
+      100 * (volume_end - volume0) / volume0, 100 * *e1 / volume0, 100 * *e1_initial / volume0, initial->points.size(),
+      last.points.size(), peak_points, seconds, static_cast<double>(usage.ru_maxrss) / 1024.0);
   return 0;
 }

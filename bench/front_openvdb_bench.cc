@@ -4,14 +4,6 @@
 // same spacing h, and measured the same way: volume change and E1 = ∫ |χ − χ_exact| dV against
 // the exact initial shape (z lines of spacing h/2 across, sampled every h/8 along).
 // Built only with the `bench-openvdb` preset (Debian libopenvdb-dev); OpenVDB stays in this file.
-#include <sys/resource.h>
-
-#include <chrono>
-#include <cmath>
-#include <cstdio>
-#include <string>
-
-#include <CLI/CLI.hpp>
 #include <openvdb/openvdb.h>
 #include <openvdb/tools/Composite.h>
 #include <openvdb/tools/Interpolation.h>
@@ -19,6 +11,13 @@
 #include <openvdb/tools/LevelSetMeasure.h>
 #include <openvdb/tools/LevelSetSphere.h>
 #include <openvdb/tools/MeshToVolume.h>
+#include <sys/resource.h>
+
+#include <CLI/CLI.hpp>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <string>
 
 #include "worker/front/front_tracking.h"
 
@@ -66,7 +65,7 @@ int main(int argc, char** argv) {
   openvdb::FloatGrid::Ptr grid;
   if (zalesak) {
     grid = openvdb::tools::createLevelSetSphere<openvdb::FloatGrid>(0.15f, openvdb::Vec3f(0.5f, 0.75f, 0.5f),
-                                                                   static_cast<float>(h));
+                                                                    static_cast<float>(h));
     // The slot: 0.05 wide, from below the sphere up to y = 0.725, through the whole sphere in z.
     const openvdb::math::BBox<openvdb::Vec3s> slot(openvdb::Vec3s(0.475f, 0.55f, 0.3f),
                                                    openvdb::Vec3s(0.525f, 0.725f, 0.7f));
@@ -74,7 +73,7 @@ int main(int argc, char** argv) {
     openvdb::tools::csgDifference(*grid, *box);
   } else {
     grid = openvdb::tools::createLevelSetSphere<openvdb::FloatGrid>(0.15f, openvdb::Vec3f(0.35f, 0.35f, 0.35f),
-                                                                   static_cast<float>(h));
+                                                                    static_cast<float>(h));
   }
   // E1 over the box holding both the level set's narrow band and the exact shape.
   auto shape_error = [&]() {

@@ -1,9 +1,9 @@
 #include "bench/poisson_open3d.h"
 
-#include <algorithm>
-
 #include <open3d/geometry/PointCloud.h>
 #include <open3d/geometry/TriangleMesh.h>
+
+#include <algorithm>
 
 namespace lsqsurf::bench {
 

@@ -8,10 +8,10 @@
 namespace lsqsurf::bench {
 
 struct PoissonOptions {
-  int depth = 10;                   // Octree depth; 10 is the reference setting of BENCHMARKS.md.
-  double scale = 1.1;               // Reconstruction cube / bounding cube of the points.
-  double trim_density_quantile = 0; // Drop the vertices below this density quantile (0 = keep all,
-                                    // as the plain watertight Poisson surface).
+  int depth = 10;                    // Octree depth; 10 is the reference setting of BENCHMARKS.md.
+  double scale = 1.1;                // Reconstruction cube / bounding cube of the points.
+  double trim_density_quantile = 0;  // Drop the vertices below this density quantile (0 = keep all,
+                                     // as the plain watertight Poisson surface).
 };
 
 // Needs oriented normals. Errors: kInvalidArgument, kInternal (Open3D produced nothing).

@@ -1,13 +1,12 @@
 // lsqsurf-render-bench — milliseconds per frame of the headless renderer: a sphere tessellated
 // to about --triangles triangles, drawn at --size² with the default shading (smooth, specular,
 // 4× MSAA) or the options given, first frame and steady state (median of --frames).
+#include <CLI/CLI.hpp>
 #include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
 #include <vector>
-
-#include <CLI/CLI.hpp>
 
 #include "tests/sphere_mesh.h"
 #include "worker/render/render.h"

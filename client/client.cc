@@ -10,13 +10,11 @@
 namespace lsqsurf::client {
 namespace {
 
+using core::StrCat;
 using google::protobuf::FieldDescriptor;
 using google::protobuf::Message;
-using core::StrCat;
 
-const google::protobuf::OneofDescriptor& MethodOneof() {
-  return *v1::JobSpec::descriptor()->FindOneofByName("method");
-}
+const google::protobuf::OneofDescriptor& MethodOneof() { return *v1::JobSpec::descriptor()->FindOneofByName("method"); }
 
 std::string KnownMethods() {
   std::string known;
@@ -73,7 +71,8 @@ absl::Status SetField(Message* m, const FieldDescriptor& f, std::string_view val
   }
   char* end = nullptr;
   const double v = std::strtod(text.c_str(), &end);
-  if (text.empty() || *end != '\0') return absl::InvalidArgumentError(StrCat(f.name(), "='", value, "' is not a number"));
+  if (text.empty() || *end != '\0')
+    return absl::InvalidArgumentError(StrCat(f.name(), "='", value, "' is not a number"));
   const bool whole = v == static_cast<double>(static_cast<int64_t>(v));
   switch (f.cpp_type()) {
     case FieldDescriptor::CPPTYPE_DOUBLE: r->SetDouble(m, &f, v); return absl::OkStatus();
@@ -93,7 +92,7 @@ absl::Status SetField(Message* m, const FieldDescriptor& f, std::string_view val
 
 template <class Request, class Response>
 absl::StatusOr<Response> Unary(grpc::Status (v1::Reconstruction::Stub::*call)(grpc::ClientContext*, const Request&,
-                                                                             Response*),
+                                                                              Response*),
                                v1::Reconstruction::Stub& stub, const Request& request) {
   grpc::ClientContext ctx;
   Response response;

@@ -2,13 +2,12 @@
 // compare meshes with the benchmark measures. Parses flags and calls the client library.
 #include <unistd.h>
 
+#include <CLI/CLI.hpp>
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
 #include <filesystem>
 #include <optional>
-
-#include <CLI/CLI.hpp>
 
 #include "client/client.h"
 #include "worker/core/strings.h"
@@ -34,8 +33,8 @@ int Fail(const std::string& message, int code = kExitLocal) {
 }
 
 int FailStatus(const char* what, const absl::Status& s) {
-  const int code = s.code() == absl::StatusCode::kUnavailable || s.code() == absl::StatusCode::kAborted ? kExitLocal
-                                                                                                        : kExitFailed;
+  const int code =
+      s.code() == absl::StatusCode::kUnavailable || s.code() == absl::StatusCode::kAborted ? kExitLocal : kExitFailed;
   return Fail(StrCat(what, ": ", s.message(), " (", static_cast<int>(s.code()), ")"), code);
 }
 
@@ -69,9 +68,10 @@ struct ViewFlags {
     if (elevation) view.set_elevation_deg(*elevation);
     if (distance) view.set_distance(*distance);
     if (fov) view.set_fov_deg(*fov);
-    if (up) view.set_up_axis(*up == "x" ? v1::RenderOptions::UP_AXIS_X
-                             : *up == "y" ? v1::RenderOptions::UP_AXIS_Y
-                                          : v1::RenderOptions::UP_AXIS_Z);
+    if (up)
+      view.set_up_axis(*up == "x"   ? v1::RenderOptions::UP_AXIS_X
+                       : *up == "y" ? v1::RenderOptions::UP_AXIS_Y
+                                    : v1::RenderOptions::UP_AXIS_Z);
     if (color) view.set_color(*color);
     if (flat) view.set_flat_shading(true);
     if (wireframe) view.set_wireframe(true);
@@ -99,7 +99,8 @@ struct JobFlags {
   }
 
   absl::StatusOr<v1::JobSpec> Spec() const {
-    if (method == "track") return absl::InvalidArgumentError("'track' jobs write frames, not a mesh: use `lsqsurf track`");
+    if (method == "track")
+      return absl::InvalidArgumentError("'track' jobs write frames, not a mesh: use `lsqsurf track`");
     v1::JobSpec spec;
     if (absl::Status s = client::SetMethod(&spec, method); !s.ok()) return s;
     for (const auto& p : params) {
@@ -200,13 +201,15 @@ void PrintStatistics(const v1::Job& job) {
 void PrintJob(const v1::Job& job) {
   std::printf("id         %s\nmethod     %s\nstate      %s\n", job.id().c_str(), client::MethodOf(job.spec()).c_str(),
               client::StateName(job.state()));
-  if (job.state() == v1::JOB_STATE_RUNNING) std::printf("progress   %.0f%% (%s)\n", job.progress() * 100, job.stage().c_str());
+  if (job.state() == v1::JOB_STATE_RUNNING)
+    std::printf("progress   %.0f%% (%s)\n", job.progress() * 100, job.stage().c_str());
   if (!job.error().empty()) std::printf("error      %s\n", job.error().c_str());
   std::printf("input      %lld points, %lld bytes\nattempts   %d\n", static_cast<long long>(job.input_points()),
               static_cast<long long>(job.input_bytes()), job.attempts());
   // The parameters as run, in the text form --param takes.
   const auto& spec = job.spec();
-  if (const auto* f = spec.GetReflection()->GetOneofFieldDescriptor(spec, v1::JobSpec::descriptor()->FindOneofByName("method"))) {
+  if (const auto* f =
+          spec.GetReflection()->GetOneofFieldDescriptor(spec, v1::JobSpec::descriptor()->FindOneofByName("method"))) {
     std::string text = spec.GetReflection()->GetMessage(spec, f).ShortDebugString();
     std::printf("params     %s\n", text.c_str());
   }
@@ -218,7 +221,8 @@ int RenderToFile(const Globals& g, const std::string& id, const std::string& nam
                  const std::string& path) {
   auto response = client::Client(g.server).Render(id, name, view);
   if (!response.ok()) return FailStatus("render", response.status());
-  if (absl::Status s = lsqsurf::io::WriteFileAtomically(path, response->png()); !s.ok()) return Fail(std::string(s.message()));
+  if (absl::Status s = lsqsurf::io::WriteFileAtomically(path, response->png()); !s.ok())
+    return Fail(std::string(s.message()));
   if (!g.quiet) {
     std::fprintf(stderr, "wrote %s (%s", path.c_str(), response->renderer().c_str());
     if (!view.color().empty()) {
@@ -281,7 +285,8 @@ struct TrackCommand {
   ViewFlags view;
 
   void AddTo(CLI::App* track) {
-    track->add_option("--interface", interface, "zalesak | sphere | FILE (oriented cloud in the unit cube); default sphere");
+    track->add_option("--interface", interface,
+                      "zalesak | sphere | FILE (oriented cloud in the unit cube); default sphere");
     track->add_option("--field", field,
                       "rotation (Zalesak) | deformation (Enright) | FILE (legacy VTK STRUCTURED_POINTS with VECTORS); "
                       "default rotation");
@@ -290,9 +295,10 @@ struct TrackCommand {
     track->add_option("--dt", dt, "time step (default 1)");
     track->add_option("--steps", steps, "number of steps (default 100)");
     track->add_option("--stride", stride, "write a frame every this many steps (default 10)");
-    track->add_option("--resampling", resampling,
-                      "markers (advected points kept, gaps filled; keeps thin sheets; the default) | gridlines (the "
-                      "seed's re-generation every step)")
+    track
+        ->add_option("--resampling", resampling,
+                     "markers (advected points kept, gaps filled; keeps thin sheets; the default) | gridlines (the "
+                     "seed's re-generation every step)")
         ->check(CLI::IsMember({"markers", "gridlines"}));
     track->add_flag("--meshes", meshes, "also write a mesh of every frame and its volume (mesh_volume in stats.csv)");
     track->add_option("-o,--output", output, "folder for frame_NNNNN.drc, stats.csv and summary.txt")->required();
@@ -364,7 +370,8 @@ struct TrackCommand {
       auto bytes = c.Fetch(done.id(), artifact);
       if (!bytes.ok()) return FailStatus("fetch", bytes.status());
       const std::string path = (std::filesystem::path(output) / artifact).string();
-      if (absl::Status s = lsqsurf::io::WriteFileAtomically(path, *bytes); !s.ok()) return Fail(std::string(s.message()));
+      if (absl::Status s = lsqsurf::io::WriteFileAtomically(path, *bytes); !s.ok())
+        return Fail(std::string(s.message()));
     }
     if (!g.quiet) {
       PrintStatistics(done);
@@ -403,11 +410,12 @@ int PrintMethods(const Globals& g) {
 int PrintServerInfo(const Globals& g) {
   auto info = client::Client(g.server).GetServerInfo();
   if (!info.ok()) return FailStatus("info", info.status());
-  std::printf("version          %s\nmax_points       %lld\nmin_points       %lld\nmax_upload_bytes %lld\n"
-              "max_queue        %d\nworkers          %d\nmax_renders      %d\ncan_render       %s\n",
-              info->version().c_str(), static_cast<long long>(info->max_points()),
-              static_cast<long long>(info->min_points()), static_cast<long long>(info->max_upload_bytes()),
-              info->max_queue(), info->workers(), info->max_renders(), info->can_render() ? "yes" : "no");
+  std::printf(
+      "version          %s\nmax_points       %lld\nmin_points       %lld\nmax_upload_bytes %lld\n"
+      "max_queue        %d\nworkers          %d\nmax_renders      %d\ncan_render       %s\n",
+      info->version().c_str(), static_cast<long long>(info->max_points()), static_cast<long long>(info->min_points()),
+      static_cast<long long>(info->max_upload_bytes()), info->max_queue(), info->workers(), info->max_renders(),
+      info->can_render() ? "yes" : "no");
   return 0;
 }
 
@@ -421,9 +429,10 @@ int Compare(const std::string& reference, const std::string& candidate, size_t s
   params.samples = samples;
   auto r = lsqsurf::core::CompareMeshes(*ref, *cand, params, local);
   if (!r.ok()) return Fail(std::string(r.status().message()));
-  std::printf("chamfer            %.4e\nhausdorff          %.4e\nnormal_consistency %.5f\n"
-              "far_fraction       %.4e\ndiagonal           %.6g\n",
-              r->chamfer, r->hausdorff, r->normal_consistency, r->far_fraction, r->diagonal);
+  std::printf(
+      "chamfer            %.4e\nhausdorff          %.4e\nnormal_consistency %.5f\n"
+      "far_fraction       %.4e\ndiagonal           %.6g\n",
+      r->chamfer, r->hausdorff, r->normal_consistency, r->far_fraction, r->diagonal);
   return 0;
 }
 
@@ -475,21 +484,25 @@ int main(int argc, char** argv) {
   SurfaceCommand surface;
   auto* reconstruct = app.add_subcommand("reconstruct", "upload a cloud, wait, and write the mesh");
   reconstruct->add_option("input", surface.input, "point cloud (.ply .obj .xyz .xyzn .drc)")->required();
-  reconstruct->add_option("-o,--output", surface.outputs, "mesh to write (.ply .obj .drc); repeat for several")->required();
+  reconstruct->add_option("-o,--output", surface.outputs, "mesh to write (.ply .obj .drc); repeat for several")
+      ->required();
   surface.job.AddTo(reconstruct);
   reconstruct->add_option("--preview", surface.preview, "also render the mesh to this PNG file (view options below)");
   surface.view.AddTo(reconstruct);
   auto* submit = app.add_subcommand("submit", "upload a cloud and print the job id");
   submit->add_option("input", surface.input, "point cloud")->required();
   surface.job.AddTo(submit);
-  submit->add_flag("--job-preview", surface.job_preview, "the job also draws preview.png into its results (view options below)");
+  submit->add_flag("--job-preview", surface.job_preview,
+                   "the job also draws preview.png into its results (view options below)");
   surface.view.AddTo(submit);
 
   std::string id, name, output, reference, candidate;
   std::vector<CLI::App*> id_commands;
-  for (const auto& [command, help] : std::vector<std::pair<const char*, const char*>>{
-           {"watch", "follow a job until it ends"}, {"status", "show a job"},
-           {"cancel", "cancel a queued or running job"}, {"delete", "delete a finished job and its files"}}) {
+  for (const auto& [command, help] :
+       std::vector<std::pair<const char*, const char*>>{{"watch", "follow a job until it ends"},
+                                                        {"status", "show a job"},
+                                                        {"cancel", "cancel a queued or running job"},
+                                                        {"delete", "delete a finished job and its files"}}) {
     id_commands.push_back(app.add_subcommand(command, help));
     id_commands.back()->add_option("id", id, "job id")->required();
   }

@@ -1,10 +1,12 @@
 #!/usr/bin/env bash
-# The whole test suite: an optimised build and an AddressSanitizer + UndefinedBehaviorSanitizer
-# build, each followed by ctest. Installs missing packages first. CI runs exactly this.
+# The whole test suite: the style gates (scripts/check-style.sh), then an optimised build and an
+# AddressSanitizer + UndefinedBehaviorSanitizer build, each followed by ctest. Installs missing
+# packages first. CI runs exactly this.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
 bash scripts/install-deps.sh
+bash scripts/check-style.sh
 
 cmake --preset release
 cmake --build --preset release

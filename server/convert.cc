@@ -84,7 +84,8 @@ void ParamsToProto(const core::ParamSet& params, Message* message) {
     const FieldDescriptor* f = message->GetDescriptor()->FindFieldByName(info.name);
     if (f == nullptr) continue;  // The server's tests keep tables and messages in step.
     if (info.type == core::ParamType::kText) {
-      if (f->cpp_type() == FieldDescriptor::CPPTYPE_STRING) r.SetString(message, f, params.GetText(info.name).value_or(""));
+      if (f->cpp_type() == FieldDescriptor::CPPTYPE_STRING)
+        r.SetString(message, f, params.GetText(info.name).value_or(""));
       continue;
     }
     const double v = params.Get(info.name).value_or(0);
@@ -98,7 +99,8 @@ void ParamsToProto(const core::ParamSet& params, Message* message) {
       case FieldDescriptor::CPPTYPE_BOOL: r.SetBool(message, f, v != 0); break;
       case FieldDescriptor::CPPTYPE_ENUM: {
         const core::ParamChoice* c = info.FindChoice(static_cast<int>(v));
-        const EnumValueDescriptor* e = c ? f->enum_type()->FindValueByName(EnumValueName(*f->enum_type(), c->name)) : nullptr;
+        const EnumValueDescriptor* e =
+            c ? f->enum_type()->FindValueByName(EnumValueName(*f->enum_type(), c->name)) : nullptr;
         if (e != nullptr) r.SetEnum(message, f, e);
         break;
       }
@@ -156,7 +158,8 @@ v1::JobState ToProto(jobs::JobState state) {
 void ToProto(const jobs::JobRecord& r, v1::Job* out) {
   out->set_id(r.id);
   v1::JobSpec* spec = out->mutable_spec();
-  if (const FieldDescriptor* f = v1::JobSpec::descriptor()->FindFieldByName(r.spec.method); f != nullptr && !r.spec.params.empty()) {
+  if (const FieldDescriptor* f = v1::JobSpec::descriptor()->FindFieldByName(r.spec.method);
+      f != nullptr && !r.spec.params.empty()) {
     ParamsToProto(r.spec.params, spec->GetReflection()->MutableMessage(spec, f));
   }
   spec->set_mesh_position_bits(r.spec.mesh_position_bits);

@@ -5,14 +5,14 @@
 #include <spdlog/sinks/stdout_color_sinks.h>
 #include <spdlog/spdlog.h>
 
+#include <CLI/CLI.hpp>
 #include <csignal>
 #include <cstdio>
 #include <thread>
 
-#include <CLI/CLI.hpp>
-
 #include "server/reconstruction_service.h"
 #include "worker/jobs/job_service.h"
+#include "worker/jobs/method_registry.h"
 
 int main(int argc, char** argv) {
   CLI::App app{"lsqsurfd: surface reconstruction server"};
@@ -22,22 +22,37 @@ int main(int argc, char** argv) {
   int64_t max_upload_mib = 1024;
   app.add_option("--listen", listen, "HOST:PORT to listen on; port 0 picks a free port")->capture_default_str();
   app.add_option("--data-dir", options.data_dir, "where jobs, inputs and results are kept")->capture_default_str();
-  app.add_option("--workers", options.workers, "jobs that run at once")->capture_default_str()->check(CLI::Range(1, 64));
+  app.add_option("--workers", options.workers, "jobs that run at once")
+      ->capture_default_str()
+      ->check(CLI::Range(1, 64));
   app.add_option("--max-queue", options.max_queue, "queued jobs before submissions are refused")
-      ->capture_default_str()->check(CLI::Range(1, 100000));
-  app.add_option("--max-points", options.max_points, "largest accepted cloud")->capture_default_str()
+      ->capture_default_str()
+      ->check(CLI::Range(1, 100000));
+  app.add_option("--max-points", options.max_points, "largest accepted cloud")
+      ->capture_default_str()
       ->check(CLI::Range(int64_t{16}, int64_t{2'000'000'000}));
-  app.add_option("--max-upload-mib", max_upload_mib, "largest accepted upload, MiB")->capture_default_str()
+  app.add_option("--max-upload-mib", max_upload_mib, "largest accepted upload, MiB")
+      ->capture_default_str()
       ->check(CLI::Range(int64_t{1}, int64_t{1} << 20));
   app.add_option("--max-renders", options.max_renders, "pictures drawn at once by Render; more are refused")
-      ->capture_default_str()->check(CLI::Range(1, 64));
+      ->capture_default_str()
+      ->check(CLI::Range(1, 64));
   app.add_option("--max-attempts", options.max_attempts,
                  "starts cut short by a crash after which a job is failed (a graceful stop does not count)")
-      ->capture_default_str()->check(CLI::Range(1, 100));
-  app.add_option("--min-points", options.min_points, "smallest accepted surface cloud")->capture_default_str()
+      ->capture_default_str()
+      ->check(CLI::Range(1, 100));
+  app.add_option("--min-points", options.min_points, "smallest accepted surface cloud")
+      ->capture_default_str()
       ->check(CLI::Range(int64_t{4}, int64_t{1'000'000}));
   app.set_config("--config", "", "read options from this TOML/INI file");
+  bool parameter_reference = false;
+  app.add_flag("--parameter-reference", parameter_reference,
+               "print every method's parameters (and the view options) as Markdown, then exit");
   CLI11_PARSE(app, argc, argv);
+  if (parameter_reference) {
+    std::fputs(lsqsurf::jobs::ParameterReference().c_str(), stdout);
+    return 0;
+  }
   options.max_input_bytes = max_upload_mib << 20;
 
   // Logs go to stderr; stdout carries only the "listening on" line that scripts wait for.

@@ -1,24 +1,23 @@
 // tests/test_shapes.h — analytic shapes shared by the tests: exact samples, normals, volumes.
 #pragma once
 
+#include <gtest/gtest.h>
+
 #include <cmath>
 #include <memory>
 #include <numbers>
 #include <random>
 
-#include <gtest/gtest.h>
-
-#include "worker/core/geometry.h"
 #include "absl/status/statusor.h"
+#include "tests/sphere_mesh.h"
+#include "worker/core/geometry.h"
 #include "worker/core/implicit_function.h"
 #include "worker/core/job_context.h"
-#include "tests/sphere_mesh.h"
 
 namespace lsqsurf::testing {
 
 // Fibonacci lattice on a sphere: near-uniform samples with exact outward normals.
-inline core::PointCloud SphereCloud(size_t n, double radius = 1.0,
-                                    core::Vec3d center = core::Vec3d::Zero()) {
+inline core::PointCloud SphereCloud(size_t n, double radius = 1.0, core::Vec3d center = core::Vec3d::Zero()) {
   core::PointCloud cloud;
   const double golden = std::numbers::pi * (3.0 - std::sqrt(5.0));
   for (size_t i = 0; i < n; ++i) {
@@ -52,8 +51,8 @@ inline core::PointCloud TorusCloud(size_t n, double R, double r, uint64_t seed =
 // A CAD-like part: the block [-a, a] x [-b, b] x [-c, c] drilled through along z by a hole of
 // radius `hole` at the origin, sampled uniformly by area (sharp edges, flat faces, a genus-1
 // surface); exact outward normals. Volume 8abc - 2c * pi * hole^2.
-inline core::PointCloud DrilledBlockCloud(size_t n, double a = 1.0, double b = 0.6, double c = 0.3,
-                                          double hole = 0.3, uint64_t seed = 11) {
+inline core::PointCloud DrilledBlockCloud(size_t n, double a = 1.0, double b = 0.6, double c = 0.3, double hole = 0.3,
+                                          uint64_t seed = 11) {
   core::PointCloud cloud;
   std::mt19937_64 rng(seed);
   std::uniform_real_distribution<double> u(0.0, 1.0);
@@ -106,9 +105,7 @@ class TorusField : public core::ImplicitFunction {
     const core::Vec3d ring(R_ * x.x() / q, R_ * x.y() / q, 0);
     return {Distance(x), (x - ring).normalized(), true};
   }
-  double Distance(const core::Vec3d& x) const {
-    return std::hypot(std::hypot(x.x(), x.y()) - R_, x.z()) - r_;
-  }
+  double Distance(const core::Vec3d& x) const { return std::hypot(std::hypot(x.x(), x.y()) - R_, x.z()) - r_; }
 
  private:
   double R_, r_;
@@ -134,8 +131,8 @@ double MaxSurfaceError(const core::ImplicitFunction& f, Project project, int sam
 // Runs an engine's builder (BuildPu, BuildIamls, …) and fails the test on an error; nullptr then.
 template <typename Function, typename Params>
 std::unique_ptr<Function> BuildOrFail(absl::StatusOr<std::unique_ptr<Function>> (*build)(const core::PointCloud&,
-                                                                                          const Params&,
-                                                                                          core::JobContext&),
+                                                                                         const Params&,
+                                                                                         core::JobContext&),
                                       const core::PointCloud& cloud, const Params& params) {
   core::LocalJobContext ctx;
   auto f = build(cloud, params, ctx);

@@ -59,7 +59,7 @@ TEST(SurfaceDistance, MeasuresAKnownOffset) {
   ASSERT_TRUE(moved.ok());
   const double diag = std::sqrt(3.0);
   EXPECT_NEAR(moved->mean_ref_to_cand * diag, 0.1, 1e-3);  // Faces are parallel at distance 0.1.
-  EXPECT_GT(moved->hausdorff * diag, 0.15);  // Near the corners: up to 0.1·√3.
+  EXPECT_GT(moved->hausdorff * diag, 0.15);                // Near the corners: up to 0.1·√3.
   EXPECT_NEAR(moved->far_fraction, 1.0, 1e-9);
 }
 

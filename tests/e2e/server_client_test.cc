@@ -1,26 +1,24 @@
 // End-to-end: the real lsqsurfd on a free loopback port, driven by the real lsqsurf client.
 #include <fcntl.h>
+#include <grpcpp/grpcpp.h>
+#include <gtest/gtest.h>
 #include <signal.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
-#include <gtest/gtest.h>
-
 #include <algorithm>
-#include <map>
-#include <grpcpp/grpcpp.h>
-
 #include <array>
 #include <chrono>
 #include <cstdio>
 #include <filesystem>
+#include <map>
 #include <sstream>
 #include <thread>
 
+#include "client/client.h"
 #include "grpc/health/v1/health.grpc.pb.h"
 #include "lsqsurf/v1/reconstruction.grpc.pb.h"
 #include "stb_image.h"
-#include "client/client.h"
 #include "tests/test_shapes.h"
 #include "worker/core/mesh_metrics.h"
 #include "worker/io/files.h"
@@ -188,7 +186,8 @@ TEST_F(EndToEnd, PuMeshCarriesDepthAndDegreeToThePly) {
   std::map<std::string, std::pair<float, float>> ranges;
   for (const auto& a : mesh->vertex_attributes) {
     ASSERT_EQ(a.values.size(), mesh->vertices.size()) << a.name;
-    ranges[a.name] = {*std::min_element(a.values.begin(), a.values.end()), *std::max_element(a.values.begin(), a.values.end())};
+    ranges[a.name] = {*std::min_element(a.values.begin(), a.values.end()),
+                      *std::max_element(a.values.begin(), a.values.end())};
   }
   ASSERT_TRUE(ranges.contains("depth") && ranges.contains("degree"));
   EXPECT_GE(ranges["depth"].first, 1.0f);
@@ -216,9 +215,11 @@ TEST_F(EndToEnd, RendersResultsThroughTheCliAndTheApi) {
   ASSERT_NE(pixels, nullptr) << stbi_failure_reason();
   EXPECT_EQ(w, 1024);
   EXPECT_EQ(h, 1024);
-  auto pixel = [&](int x, int y) { return pixels + 4 * (static_cast<size_t>(y) * static_cast<size_t>(w) + static_cast<size_t>(x)); };
-  EXPECT_EQ(pixel(2, 2)[0], 255);                 // White background in the corner,
-  EXPECT_LT(pixel(512, 512)[0] + 0, 250);         // the shaded sphere in the middle.
+  auto pixel = [&](int x, int y) {
+    return pixels + 4 * (static_cast<size_t>(y) * static_cast<size_t>(w) + static_cast<size_t>(x));
+  };
+  EXPECT_EQ(pixel(2, 2)[0], 255);          // White background in the corner,
+  EXPECT_LT(pixel(512, 512)[0] + 0, 250);  // the shaded sphere in the middle.
   stbi_image_free(pixels);
 
   const size_t at = r.output.find("job ");
@@ -282,8 +283,8 @@ TEST_F(EndToEnd, JobsDrawTheirOwnPreview) {
   ASSERT_NE(pixels, nullptr) << stbi_failure_reason();
   EXPECT_EQ(w, 160);
   EXPECT_EQ(h, 160);
-  EXPECT_EQ(pixels[3], 0);                                   // Transparent corner,
-  EXPECT_EQ(pixels[4 * (80 * 160 + 80) + 3], 255);           // the sphere in the middle.
+  EXPECT_EQ(pixels[3], 0);                          // Transparent corner,
+  EXPECT_EQ(pixels[4 * (80 * 160 + 80) + 3], 255);  // the sphere in the middle.
   stbi_image_free(pixels);
 }
 
@@ -295,9 +296,11 @@ TEST_F(EndToEnd, TrackFramesArePicturesOfAFixedScene) {
   // Angles, seen in the picture, of the sphere's centroid about the image centre, per frame.
   auto angles = [&](const std::string& extra) {
     const fs::path out = dir_ / ("pictures" + std::to_string(extra.size()));
-    const ClientRun r = Client(server.address(), "track --interface sphere --field rotation --h 0.03125 --dt 10 "
-                                                 "--steps 16 --stride 8 --pictures --size 128 --transparent "
-                                                 "--elevation 89 " + extra + " -o " + out.string());
+    const ClientRun r = Client(server.address(),
+                               "track --interface sphere --field rotation --h 0.03125 --dt 10 "
+                               "--steps 16 --stride 8 --pictures --size 128 --transparent "
+                               "--elevation 89 " +
+                                   extra + " -o " + out.string());
     EXPECT_EQ(r.code, 0) << r.output;
     std::vector<double> result;
     for (int step : {0, 8, 16}) {
@@ -354,7 +357,7 @@ TEST_F(EndToEnd, BadInputsGetClearErrorsAndTheServerKeepsServing) {
     int code;
     std::string fragment;
   } cases[] = {
-      {"reconstruct " + lossless_nan + " -o x.ply", 1, "NaN or infinite"},  // Server-side check.
+      {"reconstruct " + lossless_nan + " -o x.ply", 1, "NaN or infinite"},                      // Server-side check.
       {"reconstruct " + WriteCloud("nan.ply", nan_cloud) + " -o x.ply", 3, "NaN or infinite"},  // Client-side.
       {"reconstruct " + (dir_ / "cut.drc").string() + " -o x.ply", 1, "Draco"},
       // Client-side: the proto names every method and parameter; ranges are the server's.
@@ -472,8 +475,10 @@ TEST_F(EndToEnd, TrackWritesFramesAndStatistics) {
   Server server;
   ASSERT_NO_FATAL_FAILURE(server.Start(dir_ / "data"));
   const fs::path out = dir_ / "frames";
-  const ClientRun r = Client(server.address(), "track --interface sphere --field rotation --h 0.03125 --dt 10 "
-                                               "--steps 16 --stride 8 --meshes -o " + out.string());
+  const ClientRun r = Client(server.address(),
+                             "track --interface sphere --field rotation --h 0.03125 --dt 10 "
+                             "--steps 16 --stride 8 --meshes -o " +
+                                 out.string());
   ASSERT_EQ(r.code, 0) << r.output;
   auto csv = io::ReadFileBytes((out / "stats.csv").string());
   ASSERT_TRUE(csv.ok());
@@ -486,7 +491,8 @@ TEST_F(EndToEnd, TrackWritesFramesAndStatistics) {
     int step = 0;
     double time = 0, volume = 0, change = 0, mesh_volume = 0;
     size_t points = 0;
-    ASSERT_EQ(std::sscanf(line.c_str(), "%d,%lf,%zu,%lf,%lf,%lf", &step, &time, &points, &volume, &change, &mesh_volume), 6)
+    ASSERT_EQ(
+        std::sscanf(line.c_str(), "%d,%lf,%zu,%lf,%lf,%lf", &step, &time, &points, &volume, &change, &mesh_volume), 6)
         << line;
     EXPECT_NEAR(mesh_volume, volume, 0.02 * volume);
     EXPECT_EQ(step, 8 * rows);
@@ -511,9 +517,9 @@ TEST_F(EndToEnd, TrackWritesFramesAndStatistics) {
   // An uploaded interface (through the seed's gridline re-generation; the sphere above used the
   // default markers): the sampled sphere with its normals; without normals it is refused.
   const std::string cloud = WriteCloud("interface.ply", testing::SphereCloud(2000, 0.15, {0.5, 0.3, 0.5}));
-  const ClientRun uploaded = Client(server.address(), "track --interface " + cloud +
-                                                          " --h 0.03125 --steps 2 --stride 1 --resampling gridlines -o " +
-                                                          (dir_ / "up").string());
+  const ClientRun uploaded = Client(
+      server.address(), "track --interface " + cloud + " --h 0.03125 --steps 2 --stride 1 --resampling gridlines -o " +
+                            (dir_ / "up").string());
   EXPECT_EQ(uploaded.code, 0) << uploaded.output;
   EXPECT_TRUE(fs::exists(dir_ / "up" / "frame_00002.drc"));
   core::PointCloud bare = testing::SphereCloud(2000, 0.15, {0.5, 0.3, 0.5});
@@ -522,8 +528,8 @@ TEST_F(EndToEnd, TrackWritesFramesAndStatistics) {
                                                          " --h 0.03125 -o " + (dir_ / "bare").string());
   EXPECT_NE(refused.code, 0);
   EXPECT_NE(refused.output.find("normals"), std::string::npos) << refused.output;
-  const ClientRun unknown = Client(server.address(), "track --interface sphere --resampling lagrange -o " +
-                                                         (dir_ / "unknown").string());
+  const ClientRun unknown =
+      Client(server.address(), "track --interface sphere --resampling lagrange -o " + (dir_ / "unknown").string());
   EXPECT_NE(unknown.code, 0);
   EXPECT_NE(unknown.output.find("resampling"), std::string::npos) << unknown.output;
 }
@@ -533,8 +539,9 @@ TEST_F(EndToEnd, TrackThroughAnUploadedVelocityGrid) {
   ASSERT_NO_FATAL_FAILURE(server.Start(dir_ / "data"));
   // A uniform field on a 2×2×2 grid: the sphere translates by v·t and keeps its volume.
   const Eigen::Vector3d v(0.002, -0.001, 0.0015);
-  std::string vtk = "# vtk DataFile Version 3.0\nuniform\nASCII\nDATASET STRUCTURED_POINTS\nDIMENSIONS 2 2 2\n"
-                    "ORIGIN 0 0 0\nSPACING 1 1 1\nPOINT_DATA 8\nVECTORS velocity double\n";
+  std::string vtk =
+      "# vtk DataFile Version 3.0\nuniform\nASCII\nDATASET STRUCTURED_POINTS\nDIMENSIONS 2 2 2\n"
+      "ORIGIN 0 0 0\nSPACING 1 1 1\nPOINT_DATA 8\nVECTORS velocity double\n";
   for (int i = 0; i < 8; ++i) vtk += "0.002 -0.001 0.0015\n";
   const std::string grid = (dir_ / "uniform.vtk").string();
   ASSERT_TRUE(io::WriteFileAtomically(grid, vtk).ok());
@@ -559,8 +566,8 @@ TEST_F(EndToEnd, TrackThroughAnUploadedVelocityGrid) {
   bad.replace(bad.rfind("0.002"), 5, "nan");
   const std::string bad_grid = (dir_ / "bad.vtk").string();
   ASSERT_TRUE(io::WriteFileAtomically(bad_grid, bad).ok());
-  const ClientRun refused = Client(server.address(), "track --interface sphere --field " + bad_grid +
-                                                         " --h 0.03125 -o " + (dir_ / "bad").string());
+  const ClientRun refused = Client(
+      server.address(), "track --interface sphere --field " + bad_grid + " --h 0.03125 -o " + (dir_ / "bad").string());
   EXPECT_NE(refused.code, 0);
   EXPECT_NE(refused.output.find("velocity: vector 7 is not finite"), std::string::npos) << refused.output;
 }
@@ -611,6 +618,24 @@ TEST_F(EndToEnd, AGracefulStopRequeuesTheRunningJob) {
   ASSERT_NO_FATAL_FAILURE(restarted.Start(dir_ / "data", {"--max-attempts", "1"}));
   ASSERT_TRUE(WaitRunning(restarted.address(), id));
   EXPECT_EQ(Client(restarted.address(), "cancel " + id).code, 0);
+}
+
+// The checked-in parameter reference is what the tables generate: a table change that does not
+// regenerate it (lsqsurfd --parameter-reference > docs/parameters.md) fails here.
+TEST(ParameterReference, TheDocsAreGeneratedFromTheTables) {
+  FILE* p = ::popen(LSQSURFD_PATH " --parameter-reference", "r");
+  ASSERT_NE(p, nullptr);
+  std::string generated;
+  std::array<char, 4096> buf;
+  size_t n;
+  while ((n = std::fread(buf.data(), 1, buf.size(), p)) > 0) generated.append(buf.data(), n);
+  ASSERT_EQ(::pclose(p), 0);
+  auto docs = io::ReadFileBytes(LSQSURF_SOURCE_DIR "/docs/parameters.md");
+  ASSERT_TRUE(docs.ok()) << docs.status();
+  EXPECT_EQ(*docs, generated) << "regenerate docs/parameters.md with lsqsurfd --parameter-reference";
+  for (const char* method : {"## iamls", "## pu", "## ramls", "## apss", "## track", "## View options"}) {
+    EXPECT_NE(generated.find(method), std::string::npos) << method;
+  }
 }
 
 }  // namespace

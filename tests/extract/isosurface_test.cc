@@ -9,8 +9,8 @@
 #include <utility>
 
 #include "tests/test_shapes.h"
-#include "worker/extract/j1a_isosurface.h"
 #include "worker/core/mesh_metrics.h"
+#include "worker/extract/j1a_isosurface.h"
 
 namespace lsqsurf::extract {
 namespace {
@@ -20,8 +20,8 @@ using namespace ::lsqsurf::core;  // The tests speak in core types throughout.
 // Both extractors, behind one signature, so that the shared properties are tested once.
 using Extractor = IsosurfaceResult (*)(const ImplicitFunction&, const PointCloud&, double cell);
 
-template <class Params, absl::StatusOr<IsosurfaceResult> (*kExtract)(
-                           const ImplicitFunction&, std::span<const Vec3f>, const Params&, JobContext&)>
+template <class Params, absl::StatusOr<IsosurfaceResult> (*kExtract)(const ImplicitFunction&, std::span<const Vec3f>,
+                                                                     const Params&, JobContext&)>
 IsosurfaceResult Run(const ImplicitFunction& f, const PointCloud& seeds, double cell) {
   LocalJobContext ctx;
   Params p;
@@ -106,7 +106,8 @@ int BoundaryEdgesBelow(const TriangleMesh& mesh, float z) {
     }
   }
   int count = 0;
-  for (const auto& [edge, n] : uses) count += n == 1 && mesh.vertices[edge.first].z() < z && mesh.vertices[edge.second].z() < z;
+  for (const auto& [edge, n] : uses)
+    count += n == 1 && mesh.vertices[edge.first].z() < z && mesh.vertices[edge.second].z() < z;
   return count;
 }
 
@@ -138,8 +139,8 @@ TEST(J1aIsosurface, KeepsSpecksAndPinholesOpenWhenAskedTo) {
   for (const auto& v : r->mesh.vertices) {
     smallest_angle = std::min(smallest_angle, SphereWithUntrustedBand::PolarAngle(v.cast<double>()));
   }
-  EXPECT_GT(BoundaryEdgesBelow(r->mesh, -0.9f), 0);  // The pinhole stays open.
-  EXPECT_LT(smallest_angle, 0.05);  // The cap stays,
+  EXPECT_GT(BoundaryEdgesBelow(r->mesh, -0.9f), 0);   // The pinhole stays open.
+  EXPECT_LT(smallest_angle, 0.05);                    // The cap stays,
   EXPECT_EQ(AnalyzeTopology(r->mesh).components, 2);  // as a second piece.
 }
 
@@ -150,16 +151,13 @@ TEST(Isosurface, RejectsBadParametersAndHonoursCancellation) {
   const auto seeds = testing::SphereCloud(100);
   LocalJobContext ctx;
   IsosurfaceParams p;
-  EXPECT_EQ(ExtractIsosurface(sphere, seeds.positions, p, ctx).status().code(),
-            absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(ExtractIsosurface(sphere, seeds.positions, p, ctx).status().code(), absl::StatusCode::kInvalidArgument);
   p.cell_size = 0.01;
   p.max_cells = 1000;
-  EXPECT_EQ(ExtractIsosurface(sphere, seeds.positions, p, ctx).status().code(),
-            absl::StatusCode::kResourceExhausted);
+  EXPECT_EQ(ExtractIsosurface(sphere, seeds.positions, p, ctx).status().code(), absl::StatusCode::kResourceExhausted);
   p.max_cells = 60'000'000;
   ctx.Cancel();
-  EXPECT_EQ(ExtractIsosurface(sphere, seeds.positions, p, ctx).status().code(),
-            absl::StatusCode::kCancelled);
+  EXPECT_EQ(ExtractIsosurface(sphere, seeds.positions, p, ctx).status().code(), absl::StatusCode::kCancelled);
 }
 
 // Seeds cover only part of the surface: tracking leaves the refined band and carries on through

@@ -16,7 +16,9 @@ int64_t SixVolume(const TetKeys& t) {
   const auto a = UnpackVertex(t[0]);
   for (int r = 0; r < 3; ++r) {
     const auto p = UnpackVertex(t[static_cast<size_t>(r + 1)]);
-    for (int k = 0; k < 3; ++k) m[static_cast<size_t>(r)][static_cast<size_t>(k)] = int64_t{p[static_cast<size_t>(k)]} - a[static_cast<size_t>(k)];
+    for (int k = 0; k < 3; ++k)
+      m[static_cast<size_t>(r)][static_cast<size_t>(k)] =
+          int64_t{p[static_cast<size_t>(k)]} - a[static_cast<size_t>(k)];
   }
   return m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1]) - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0]) +
          m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0]);
@@ -123,7 +125,7 @@ TEST(J1a, RandomBalancedTreesAreConformingAndFillTheCube) {
     }
     const Census c = Triangulate(tree);
     EXPECT_GT(c.tets, 48u * 100u) << "seed " << seed;
-    EXPECT_EQ(c.bad_faces, 0u) << "seed " << seed;  // Every interior triangle in exactly 2 tets.
+    EXPECT_EQ(c.bad_faces, 0u) << "seed " << seed;      // Every interior triangle in exactly 2 tets.
     EXPECT_GT(c.min_six_volume, 0) << "seed " << seed;  // Positively oriented, none flat.
     const int64_t side = tree.CellUnits(0);
     EXPECT_EQ(c.six_volume, 6 * side * side * side) << "seed " << seed;  // Exactly the root cube.

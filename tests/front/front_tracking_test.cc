@@ -98,7 +98,8 @@ TEST_P(Resamplings, TranslationKeepsTheVolume) {
                 }).ok());
     const Vec3d centre = Vec3d(0.35, 0.35, 0.35) + 20 * Vec3d(0.01, 0.006, -0.004);
     double deviation = 0;
-    for (const auto& q : last.points) deviation = std::max(deviation, std::abs((q.cast<double>() - centre).norm() - 0.15));
+    for (const auto& q : last.points)
+      deviation = std::max(deviation, std::abs((q.cast<double>() - centre).norm() - 0.15));
     EXPECT_LT(deviation, 0.05 * h) << h;
     changes.push_back(worst);
   }
@@ -131,7 +132,9 @@ TEST_P(Resamplings, RotationKeepsTheVolumeAndTheShape) {
 }
 
 INSTANTIATE_TEST_SUITE_P(FrontTracking, Resamplings, ::testing::Values(Resampling::kMarkers, Resampling::kGridlines),
-                         [](const ::testing::TestParamInfo<Resampling>& p) { return p.param == Resampling::kMarkers ? "Markers" : "Gridlines"; });
+                         [](const ::testing::TestParamInfo<Resampling>& p) {
+                           return p.param == Resampling::kMarkers ? "Markers" : "Gridlines";
+                         });
 
 // v = rate (x − c): a sphere about c stays a sphere of radius r₀ e^{rate t}, its normals stay
 // radial, and its volume is V₀ e^{3 rate t} exactly.
@@ -241,8 +244,9 @@ class NanField final : public VelocityField {
 };
 
 TEST(FrontTracking, RejectsBadFieldsAndParameters) {
-  EXPECT_EQ(GridVelocity(Vec3d::Zero(), Vec3d::Constant(0.1), 2, 1, 1, {Vec3d::Zero(), Vec3d(NAN, 0, 0)}).status().code(),
-            absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(
+      GridVelocity(Vec3d::Zero(), Vec3d::Constant(0.1), 2, 1, 1, {Vec3d::Zero(), Vec3d(NAN, 0, 0)}).status().code(),
+      absl::StatusCode::kInvalidArgument);
   EXPECT_EQ(GridVelocity(Vec3d::Zero(), Vec3d::Constant(0.1), 2, 2, 1, {Vec3d::Zero()}).status().code(),
             absl::StatusCode::kInvalidArgument);
   EXPECT_EQ(GridVelocity(Vec3d::Zero(), Vec3d(0.1, 0.0, 0.1), 1, 1, 1, {Vec3d::Zero()}).status().code(),

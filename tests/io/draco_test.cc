@@ -1,11 +1,10 @@
-#include "worker/io/draco_codec.h"
-
 #include <gtest/gtest.h>
 
 #include <cstdio>
 #include <filesystem>
 #include <random>
 
+#include "worker/io/draco_codec.h"
 #include "worker/io/files.h"
 #include "worker/io/ply.h"
 

@@ -73,16 +73,19 @@ TEST(Ply, ErrorsNameTheProblemAndPlace) {
   ExpectError("ply\nformat ascii 1.0\nelement vertex 1\nproperty flot x\nend_header\n", "line 4");
   ExpectError("ply\nformat ascii 1.0\nelement vertex 1\nproperty float y\nproperty float z\nend_header\n1 2\n",
               "lacks x, y or z");
-  ExpectError("ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\n"
-              "property float z\nend_header\n1 2 3\n1 2 oops\n",
-              "line 9");
-  ExpectError("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
-              "property float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n"
-              "0 0 0\n1 0 0\n0 1 0\n3 0 1 7\n",
-              "refers to vertex 7");
-  ExpectError("ply\nformat binary_little_endian 1.0\nelement vertex 1000000000\nproperty float x\n"
-              "property float y\nproperty float z\nend_header\n",
-              "too short");
+  ExpectError(
+      "ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\n"
+      "property float z\nend_header\n1 2 3\n1 2 oops\n",
+      "line 9");
+  ExpectError(
+      "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+      "property float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n"
+      "0 0 0\n1 0 0\n0 1 0\n3 0 1 7\n",
+      "refers to vertex 7");
+  ExpectError(
+      "ply\nformat binary_little_endian 1.0\nelement vertex 1000000000\nproperty float x\n"
+      "property float y\nproperty float z\nend_header\n",
+      "too short");
   ExpectError("ply\nformat ascii 1.0\nelement vertex 1\n", "no end_header");
 }
 

@@ -90,8 +90,10 @@ TEST(VtkGrid, RefusesMalformedFilesWithTheLine) {
   std::string huge = ascii;
   huge.replace(huge.find("DIMENSIONS 2 1 2"), 16, "DIMENSIONS 1000 1000 1000");
   expect_error(huge, "at most");
-  std::string binary = "# vtk DataFile Version 3.0\nb\nBINARY\nDATASET STRUCTURED_POINTS\nDIMENSIONS 2 1 1\n"
-                       "POINT_DATA 2\nVECTORS v double\n" + std::string(40, '\0');
+  std::string binary =
+      "# vtk DataFile Version 3.0\nb\nBINARY\nDATASET STRUCTURED_POINTS\nDIMENSIONS 2 1 1\n"
+      "POINT_DATA 2\nVECTORS v double\n" +
+      std::string(40, '\0');
   expect_error(binary, "truncated");
 }
 

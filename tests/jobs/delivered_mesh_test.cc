@@ -1,9 +1,10 @@
 // The mesh a client decodes keeps the engine's topology: decoded with Draco and merged by
 // position (as STL export and most tools do), it is as closed and manifold as the engine's own
 // mesh, and the job's statistics describe it.
+#include "tests/jobs/delivered_mesh.h"
+
 #include <gtest/gtest.h>
 
-#include "tests/jobs/delivered_mesh.h"
 #include "tests/test_shapes.h"
 #include "worker/core/mesh_metrics.h"
 #include "worker/io/draco_codec.h"

@@ -44,9 +44,8 @@ Uploads Input(std::string bytes) { return {{kInputUpload, std::move(bytes)}}; }
 class JobServiceTest : public ::testing::Test {
  protected:
   void SetUp() override {
-    dir_ = std::filesystem::temp_directory_path() /
-           ("lsqsurf-jobs-" + std::to_string(::getpid()) + "-" +
-            ::testing::UnitTest::GetInstance()->current_test_info()->name());
+    dir_ = std::filesystem::temp_directory_path() / ("lsqsurf-jobs-" + std::to_string(::getpid()) + "-" +
+                                                     ::testing::UnitTest::GetInstance()->current_test_info()->name());
     std::filesystem::remove_all(dir_);
     options_.data_dir = dir_.string();
   }
@@ -167,11 +166,9 @@ TEST_F(JobServiceTest, RejectsBadInputWithTheRightCode) {
       {"truncated Draco", Spec("iamls"), Input(good.substr(0, good.size() / 2)), absl::StatusCode::kInvalidArgument,
        "Draco"},
       {"not Draco", Spec("iamls"), Input("hello"), absl::StatusCode::kInvalidArgument, "Draco"},
-      {"a mesh, not a cloud", Spec("iamls"), Input(*mesh_upload), absl::StatusCode::kInvalidArgument,
-       "triangle mesh"},
+      {"a mesh, not a cloud", Spec("iamls"), Input(*mesh_upload), absl::StatusCode::kInvalidArgument, "triangle mesh"},
       {"NaN", Spec("iamls"), Input(Encode(nan_cloud, /*lossless*/ 0)), absl::StatusCode::kInvalidArgument, "NaN"},
-      {"non-unit normals", Spec("iamls"), Input(Encode(long_normals)), absl::StatusCode::kInvalidArgument,
-       "length"},
+      {"non-unit normals", Spec("iamls"), Input(Encode(long_normals)), absl::StatusCode::kInvalidArgument, "length"},
       {"unknown method", Spec("poisson"), Input(good), absl::StatusCode::kInvalidArgument, "available: iamls"},
       {"out of range", far_epsilon, Input(good), absl::StatusCode::kInvalidArgument, "epsilon=9 is out of range"},
       {"noise below zero", negative_noise, Input(good), absl::StatusCode::kInvalidArgument, "noise_level"},
@@ -180,14 +177,26 @@ TEST_F(JobServiceTest, RejectsBadInputWithTheRightCode) {
        absl::StatusCode::kInvalidArgument, "no normals"},
       {"too many points", Spec("iamls"), Input(Encode(testing::SphereCloud(6000))),
        absl::StatusCode::kResourceExhausted, "at most 5000"},
-      {"velocity for a surface", Spec("iamls"), {{kInputUpload, good}, {kVelocityUpload, "# vtk"}},
-       absl::StatusCode::kInvalidArgument, "no 'velocity' upload"},
-      {"user field, no grid", Spec("track", {{"interface", "sphere"}, {"field", "uploaded"}}), {},
-       absl::StatusCode::kInvalidArgument, "none was uploaded"},
-      {"grid without a user field", Spec("track"), {{kVelocityUpload, "# vtk DataFile Version 3.0\n"}},
-       absl::StatusCode::kInvalidArgument, "only field=uploaded uses one"},
-      {"grid not VTK", Spec("track", {{"field", "uploaded"}}), {{kVelocityUpload, "P3 2 2"}},
-       absl::StatusCode::kInvalidArgument, "not a legacy VTK file"},
+      {"velocity for a surface",
+       Spec("iamls"),
+       {{kInputUpload, good}, {kVelocityUpload, "# vtk"}},
+       absl::StatusCode::kInvalidArgument,
+       "no 'velocity' upload"},
+      {"user field, no grid",
+       Spec("track", {{"interface", "sphere"}, {"field", "uploaded"}}),
+       {},
+       absl::StatusCode::kInvalidArgument,
+       "none was uploaded"},
+      {"grid without a user field",
+       Spec("track"),
+       {{kVelocityUpload, "# vtk DataFile Version 3.0\n"}},
+       absl::StatusCode::kInvalidArgument,
+       "only field=uploaded uses one"},
+      {"grid not VTK",
+       Spec("track", {{"field", "uploaded"}}),
+       {{kVelocityUpload, "P3 2 2"}},
+       absl::StatusCode::kInvalidArgument,
+       "not a legacy VTK file"},
   };
   for (const Case& c : cases) {
     auto r = s.Submit(c.spec, c.uploads);
@@ -214,7 +223,7 @@ TEST_F(JobServiceTest, FullQueueIsRefusedAndQueuedJobsCancelAtOnce) {
   auto cancelled = s.Cancel(second->id);
   ASSERT_TRUE(cancelled.ok());
   EXPECT_EQ(cancelled->state, JobState::kCancelled);  // Queued: cancelled at once.
-  EXPECT_TRUE(s.Submit(Spec("iamls"), input).ok());    // Its place in the queue is free again.
+  EXPECT_TRUE(s.Submit(Spec("iamls"), input).ok());   // Its place in the queue is free again.
 }
 
 TEST_F(JobServiceTest, RunningJobsCancelOnlyThroughTheirEngine) {

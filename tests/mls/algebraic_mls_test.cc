@@ -7,9 +7,9 @@
 #include <random>
 
 #include "tests/test_shapes.h"
+#include "worker/core/mesh_metrics.h"
 #include "worker/extract/isosurface.h"
 #include "worker/extract/j1a_isosurface.h"
-#include "worker/core/mesh_metrics.h"
 
 namespace lsqsurf::mls {
 namespace {
@@ -166,7 +166,7 @@ TEST(AlgebraicMls, UndefinedAwayFromTheDataAndClosedMeshOnIt) {
   ASSERT_TRUE(f);
   EXPECT_TRUE(f->Value(Vec3d(0, 0, 1)).defined);
   EXPECT_FALSE(f->Value(Vec3d(0, 0, 1 + 2 * f->spacing())).defined);  // Beyond the coverage.
-  EXPECT_FALSE(f->Value(Vec3d(0, 0, 0)).defined);                      // No support at all.
+  EXPECT_FALSE(f->Value(Vec3d(0, 0, 0)).defined);                     // No support at all.
   core::LocalJobContext ctx;
   extract::J1aIsosurfaceParams ip;
   ip.cell_size = 2 * f->spacing();
@@ -192,12 +192,10 @@ TEST(AlgebraicMls, RejectsBadInput) {
   AlgebraicMlsParams p;
   p.fit = AlgebraicFit::kApss;
   p.apss_beta = 0;
-  EXPECT_EQ(BuildAlgebraicMls(testing::SphereCloud(100), p, ctx).status().code(),
-            absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(BuildAlgebraicMls(testing::SphereCloud(100), p, ctx).status().code(), absl::StatusCode::kInvalidArgument);
   p = {};
   p.support_factor = 0.5;
-  EXPECT_EQ(BuildAlgebraicMls(testing::SphereCloud(100), p, ctx).status().code(),
-            absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(BuildAlgebraicMls(testing::SphereCloud(100), p, ctx).status().code(), absl::StatusCode::kInvalidArgument);
 }
 
 }  // namespace

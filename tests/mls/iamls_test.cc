@@ -6,8 +6,8 @@
 #include <random>
 
 #include "tests/test_shapes.h"
-#include "worker/extract/isosurface.h"
 #include "worker/core/mesh_metrics.h"
+#include "worker/extract/isosurface.h"
 
 namespace lsqsurf::mls {
 namespace {
@@ -23,7 +23,8 @@ TEST(Iamls, SphereErrorIsSmallAndShrinksWithDensity) {
   for (size_t n : {2000, 8000, 32000}) {
     auto f = Build(testing::SphereCloud(n));
     ASSERT_TRUE(f);
-    const double err = testing::MaxSurfaceError(*f, [](const Vec3d& d) { return d; }, 300);
+    const double err = testing::MaxSurfaceError(
+        *f, [](const Vec3d& d) { return d; }, 300);
     EXPECT_LT(err, 0.01) << n;  // Radius 1.
     EXPECT_LT(err, previous) << n;
     previous = err;

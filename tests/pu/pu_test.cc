@@ -34,7 +34,9 @@ double MaxSphereDeviation(const core::TriangleMesh& mesh) {
 TEST(Pu, SphereFieldIsSignedAndAccurate) {
   auto f = Build(testing::SphereCloud(20000));
   ASSERT_TRUE(f);
-  EXPECT_LT(testing::MaxSurfaceError(*f, [](const Vec3d& d) { return d; }, 500), 2e-4);
+  EXPECT_LT(testing::MaxSurfaceError(
+                *f, [](const Vec3d& d) { return d; }, 500),
+            2e-4);
   // Signs inside and outside, near the surface and across the volume.
   EXPECT_LT(f->Value(Vec3d(0, 0, 0.9)).value, 0);
   EXPECT_GT(f->Value(Vec3d(0, 0, 1.1)).value, 0);

@@ -10,9 +10,7 @@
 namespace lsqsurf::render {
 namespace {
 
-OutsideWinding Winding(const core::TriangleMesh& m) {
-  return ClosedMeshOutsideWinding(m.vertices, m.normals, m.faces);
-}
+OutsideWinding Winding(const core::TriangleMesh& m) { return ClosedMeshOutsideWinding(m.vertices, m.normals, m.faces); }
 
 void FlipFaces(core::TriangleMesh& m, size_t first, size_t last) {
   for (size_t f = first; f < last; ++f) std::swap(m.faces[f][1], m.faces[f][2]);

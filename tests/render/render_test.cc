@@ -53,7 +53,7 @@ int Brightness(const Image& image, int x, int y) {
 
 TEST_F(RenderTest, SilhouetteMatchesTheProjectedSphere) {
   RenderParams p = SphereView(512);
-  p.samples = 1;        // Whole pixels, so that covered pixels can be counted.
+  p.samples = 1;  // Whole pixels, so that covered pixels can be counted.
   p.transparent = true;
   const core::TriangleMesh sphere = testing::SphereMesh(128, 256);
   auto image = renderer_->RenderMesh(sphere, p);
@@ -299,7 +299,8 @@ TEST_F(RenderTest, BadRequestsAreRefused) {
   auto unknown = renderer_->RenderMesh(sphere, p);
   EXPECT_EQ(unknown.status().code(), absl::StatusCode::kInvalidArgument);
   EXPECT_NE(unknown.status().message().find("height"), std::string_view::npos) << unknown.status();
-  EXPECT_EQ(renderer_->RenderMesh(core::TriangleMesh{}, SphereView(64)).status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(renderer_->RenderMesh(core::TriangleMesh{}, SphereView(64)).status().code(),
+            absl::StatusCode::kInvalidArgument);
   EXPECT_EQ(CreateRenderer("vulkan").status().code(), absl::StatusCode::kInvalidArgument);
 }
 

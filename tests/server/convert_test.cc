@@ -4,6 +4,10 @@
 
 #include <gtest/gtest.h>
 
+#include <cctype>
+#include <fstream>
+#include <map>
+#include <regex>
 #include <set>
 
 #include "worker/jobs/method_registry.h"
@@ -166,8 +170,8 @@ TEST(Convert, StatusCodesAndMessagesPassThrough) {
 
 TEST(Convert, EveryJobStateHasItsOwnWireValue) {
   std::set<int> seen;
-  for (auto s : {jobs::JobState::kQueued, jobs::JobState::kRunning, jobs::JobState::kSucceeded,
-                 jobs::JobState::kFailed, jobs::JobState::kCancelled}) {
+  for (auto s : {jobs::JobState::kQueued, jobs::JobState::kRunning, jobs::JobState::kSucceeded, jobs::JobState::kFailed,
+                 jobs::JobState::kCancelled}) {
     const v1::JobState wire = ToProto(s);
     EXPECT_NE(wire, v1::JOB_STATE_UNSPECIFIED);
     EXPECT_TRUE(seen.insert(wire).second);
@@ -190,6 +194,84 @@ TEST(Convert, ListedParametersDescribeTheirTables) {
       }
     }
   }
+}
+
+// The proto's comments state each field's default, "(default X)", and each enum's
+// "_UNSPECIFIED = 0;  // The default: NAME.": they must be the tables' defaults. Returns, per
+// message, field name -> the stated default.
+std::map<std::string, std::map<std::string, std::string>> StatedDefaults() {
+  std::ifstream in(LSQSURF_SOURCE_DIR "/proto/lsqsurf/v1/reconstruction.proto");
+  EXPECT_TRUE(in.good());
+  std::map<std::string, std::map<std::string, std::string>> out;
+  std::vector<std::string> scopes;                  // Enclosing message and enum names.
+  std::map<std::string, std::string> enum_default;  // Enum type name -> stated default.
+  const std::regex open(R"(^\s*(message|enum)\s+(\w+)\s*\{)"), close(R"(^\s*\})");
+  const std::regex field(R"(^\s*optional\s+(\w+)\s+(\w+)\s*=\s*\d+;.*\(default ([^),]+))");
+  const std::regex unspecified(R"(^\s*\w+_UNSPECIFIED\s*=\s*0;.*The default: (\w+)\.)");
+  std::map<std::string, std::vector<std::pair<std::string, std::string>>> enum_fields;  // message -> (field, type)
+  const std::regex enum_field(R"(^\s*optional\s+(\w+)\s+(\w+)\s*=\s*\d+;)");
+  for (std::string line; std::getline(in, line);) {
+    std::smatch m;
+    if (std::regex_search(line, m, open)) {
+      scopes.push_back(m[2]);
+    } else if (std::regex_search(line, m, close) && !scopes.empty()) {
+      scopes.pop_back();
+    } else if (std::regex_search(line, m, unspecified) && !scopes.empty()) {
+      enum_default[scopes.back()] = m[1];
+    } else if (std::regex_search(line, m, field) && !scopes.empty()) {
+      out[scopes.back()][m[2]] = m[3];
+    } else if (std::regex_search(line, m, enum_field) && !scopes.empty()) {
+      enum_fields[scopes.back()].emplace_back(m[2], m[1]);
+    }
+  }
+  for (const auto& [message, fields] : enum_fields) {
+    for (const auto& [name, type] : fields) {
+      if (enum_default.contains(type)) out[message][name] = enum_default[type];
+    }
+  }
+  return out;
+}
+
+void ExpectStatedDefaultsMatch(const std::map<std::string, std::string>& stated,
+                               const std::vector<core::ParamInfo>& table, const std::string& what) {
+  for (const core::ParamInfo& p : table) {
+    auto it = stated.find(p.name);
+    if (it == stated.end()) continue;
+    const std::string& text = it->second;
+    switch (p.type) {
+      case core::ParamType::kFlag:
+        EXPECT_EQ(text, p.default_value != 0 ? "true" : "false") << what << "." << p.name;
+        break;
+      case core::ParamType::kChoice: {
+        const core::ParamChoice* c = p.FindChoice(static_cast<int>(p.default_value));
+        ASSERT_NE(c, nullptr);
+        std::string upper;
+        for (char ch : c->name) upper += static_cast<char>(std::toupper(static_cast<unsigned char>(ch)));
+        EXPECT_EQ(text, upper) << what << "." << p.name;
+        break;
+      }
+      case core::ParamType::kText: break;
+      default: {
+        const std::string number = text.substr(0, text.find_first_of(" :"));
+        EXPECT_NEAR(std::stod(number), p.default_value, 1e-12 * std::abs(p.default_value))
+            << what << "." << p.name << ": the proto says " << text;
+      }
+    }
+  }
+}
+
+TEST(Convert, TheProtoStatesTheTablesDefaults) {
+  const auto stated = StatedDefaults();
+  size_t checked = 0;
+  for (const auto& m : jobs::Methods()) {
+    const std::string message = MethodMessage(m.info.name).name();
+    ASSERT_TRUE(stated.contains(message)) << message;
+    ExpectStatedDefaultsMatch(stated.at(message), m.info.defaults.Describe(), m.info.name);
+    checked += stated.at(message).size();
+  }
+  ASSERT_TRUE(stated.contains("RenderOptions"));
+  ExpectStatedDefaultsMatch(stated.at("RenderOptions"), jobs::DefaultView().Describe(), "RenderOptions");
+  EXPECT_GT(checked, 40u);  // The parser found the comments.
 }
 
 }  // namespace

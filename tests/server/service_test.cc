@@ -1,13 +1,12 @@
 // ReconstructionService in this process, on a loopback port, with jobs held by a latch: the
 // calls a client makes while a job is certainly running, and the limits it can discover.
-#include "server/reconstruction_service.h"
-
 #include <grpcpp/grpcpp.h>
 #include <gtest/gtest.h>
 
 #include <filesystem>
 
 #include "client/client.h"
+#include "server/reconstruction_service.h"
 #include "tests/latch_kind.h"
 #include "tests/test_shapes.h"
 #include "worker/io/draco_codec.h"
@@ -18,9 +17,8 @@ namespace {
 class ServiceTest : public ::testing::Test {
  protected:
   void SetUp() override {
-    dir_ = std::filesystem::temp_directory_path() /
-           ("lsqsurf-service-" + std::to_string(::getpid()) + "-" +
-            ::testing::UnitTest::GetInstance()->current_test_info()->name());
+    dir_ = std::filesystem::temp_directory_path() / ("lsqsurf-service-" + std::to_string(::getpid()) + "-" +
+                                                     ::testing::UnitTest::GetInstance()->current_test_info()->name());
     std::filesystem::remove_all(dir_);
     options_.data_dir = dir_.string();
     options_.max_queue = 1;

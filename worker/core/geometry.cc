@@ -1,10 +1,10 @@
 #include "worker/core/geometry.h"
 
+#include <tbb/parallel_sort.h>
+
 #include <algorithm>
 #include <cmath>
 #include <numeric>
-
-#include <tbb/parallel_sort.h>
 
 namespace lsqsurf::core {
 

@@ -4,14 +4,13 @@
 // scan stays under 400 MB of positions. Engines compute in double where accuracy needs it.
 #pragma once
 
+#include <Eigen/Core>
+#include <Eigen/Geometry>
 #include <array>
 #include <cstdint>
 #include <span>
 #include <string>
 #include <vector>
-
-#include <Eigen/Core>
-#include <Eigen/Geometry>
 
 namespace lsqsurf::core {
 
@@ -27,8 +26,8 @@ struct ScalarAttribute {
 
 // An unorganized point set with optional unit normals and optional named scalars.
 struct PointCloud {
-  std::vector<Vec3f> positions;       // Model units.
-  std::vector<Vec3f> normals;         // Empty, or one unit vector per point (outward).
+  std::vector<Vec3f> positions;  // Model units.
+  std::vector<Vec3f> normals;    // Empty, or one unit vector per point (outward).
   std::vector<ScalarAttribute> attributes;
 
   size_t size() const { return positions.size(); }
@@ -40,9 +39,9 @@ using Triangle = std::array<uint32_t, 3>;
 
 // An indexed triangle mesh; faces are counter-clockwise seen from outside.
 struct TriangleMesh {
-  std::vector<Vec3f> vertices;        // Model units.
-  std::vector<Triangle> faces;        // Indices into `vertices`.
-  std::vector<Vec3f> normals;         // Empty, or one per vertex.
+  std::vector<Vec3f> vertices;                     // Model units.
+  std::vector<Triangle> faces;                     // Indices into `vertices`.
+  std::vector<Vec3f> normals;                      // Empty, or one per vertex.
   std::vector<ScalarAttribute> vertex_attributes;  // Each with one value per vertex.
 
   bool empty() const { return faces.empty(); }

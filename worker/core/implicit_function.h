@@ -41,8 +41,7 @@ class ImplicitFunction {
 
   // ValueOnly at many points, in parallel. `out.size()` must equal `xs.size()`.
   // Errors: kCancelled when `ctx` is cancelled.
-  absl::Status ValueOnlyBatch(std::span<const Vec3d> xs, std::span<double> out,
-                              const JobContext* ctx = nullptr) const;
+  absl::Status ValueOnlyBatch(std::span<const Vec3d> xs, std::span<double> out, const JobContext* ctx = nullptr) const;
 };
 
 // The root of F on the segment a → b, where F(a) = fa and F(b) = fb have opposite signs, as the

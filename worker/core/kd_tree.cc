@@ -3,7 +3,6 @@
 #include <algorithm>
 #include <atomic>
 #include <cmath>
-
 #include <nanoflann.hpp>
 
 #include "worker/core/parallel.h"
@@ -17,11 +16,13 @@ struct SpanAdaptor {
   size_t kdtree_get_point_count() const { return points.size(); }
   float kdtree_get_pt(size_t i, size_t dim) const { return points[i][static_cast<int>(dim)]; }
   template <class Box>
-  bool kdtree_get_bbox(Box&) const { return false; }
+  bool kdtree_get_bbox(Box&) const {
+    return false;
+  }
 };
 
-using Tree = nanoflann::KDTreeSingleIndexAdaptor<nanoflann::L2_Simple_Adaptor<float, SpanAdaptor>,
-                                                 SpanAdaptor, 3, uint32_t>;
+using Tree =
+    nanoflann::KDTreeSingleIndexAdaptor<nanoflann::L2_Simple_Adaptor<float, SpanAdaptor>, SpanAdaptor, 3, uint32_t>;
 
 }  // namespace
 
@@ -35,8 +36,7 @@ struct KdTree::Index {
   Tree tree;
 };
 
-KdTree::KdTree(std::span<const Vec3f> points)
-    : points_(points), index_(std::make_unique<Index>(points)) {}
+KdTree::KdTree(std::span<const Vec3f> points) : points_(points), index_(std::make_unique<Index>(points)) {}
 
 KdTree::~KdTree() = default;
 

@@ -15,8 +15,8 @@
 namespace lsqsurf::core {
 
 struct Neighbor {
-  uint32_t index;     // Index into the point set the tree was built on.
-  float distance2;    // Squared Euclidean distance to the query.
+  uint32_t index;   // Index into the point set the tree was built on.
+  float distance2;  // Squared Euclidean distance to the query.
 };
 
 class KdTree {

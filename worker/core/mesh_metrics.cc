@@ -71,9 +71,8 @@ MeshTopology AnalyzeTopology(const TriangleMesh& mesh) {
     }
   }
   t.vertices = std::count(used.begin(), used.end(), 1);
-  std::sort(half.begin(), half.end(), [](const HalfEdge& x, const HalfEdge& y) {
-    return std::tie(x.lo, x.hi) < std::tie(y.lo, y.hi);
-  });
+  std::sort(half.begin(), half.end(),
+            [](const HalfEdge& x, const HalfEdge& y) { return std::tie(x.lo, x.hi) < std::tie(y.lo, y.hi); });
   std::vector<uint32_t> parent(mesh.faces.size());
   std::iota(parent.begin(), parent.end(), 0u);
   for (size_t i = 0; i < half.size();) {
@@ -110,9 +109,7 @@ double SurfaceArea(const TriangleMesh& mesh) {
   double area = 0;
   for (const Triangle& f : mesh.faces) {
     const Vec3d a = mesh.vertices[f[0]].cast<double>();
-    area += 0.5 * (mesh.vertices[f[1]].cast<double>() - a)
-                      .cross(mesh.vertices[f[2]].cast<double>() - a)
-                      .norm();
+    area += 0.5 * (mesh.vertices[f[1]].cast<double>() - a).cross(mesh.vertices[f[2]].cast<double>() - a).norm();
   }
   return area;
 }

@@ -8,8 +8,8 @@
 namespace lsqsurf::core {
 
 struct MeshTopology {
-  int64_t vertices = 0;            // Vertices referenced by at least one face.
-  int64_t edges = 0;               // Distinct undirected edges.
+  int64_t vertices = 0;  // Vertices referenced by at least one face.
+  int64_t edges = 0;     // Distinct undirected edges.
   int64_t faces = 0;
   int64_t boundary_edges = 0;      // Edges with exactly one incident face.
   int64_t non_manifold_edges = 0;  // Edges with three or more incident faces.

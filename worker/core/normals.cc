@@ -1,10 +1,9 @@
 #include "worker/core/normals.h"
 
+#include <Eigen/Eigenvalues>
 #include <algorithm>
 #include <numeric>
 #include <queue>
-
-#include <Eigen/Eigenvalues>
 
 #include "worker/core/kd_tree.h"
 #include "worker/core/parallel.h"
@@ -18,8 +17,30 @@ absl::Status Validate(const NormalEstimationParams& params) {
   return absl::OkStatus();
 }
 
-absl::StatusOr<std::vector<Vec3f>> EstimateNormals(std::span<const Vec3f> points,
-                                                   const NormalEstimationParams& params,
+namespace {
+
+// Outward per component: the sign that makes the normals point away from its centroid.
+void PointAwayFromCentroids(std::span<const Vec3f> points, const std::vector<uint32_t>& component, uint32_t components,
+                            std::vector<Vec3f>& normals) {
+  const size_t n = points.size();
+  std::vector<Vec3d> centroid(components, Vec3d::Zero());
+  std::vector<double> count(components, 0.0), flux(components, 0.0);
+  for (size_t i = 0; i < n; ++i) {
+    centroid[component[i]] += points[i].cast<double>();
+    count[component[i]] += 1.0;
+  }
+  for (uint32_t c = 0; c < components; ++c) centroid[c] /= count[c];
+  for (size_t i = 0; i < n; ++i) {
+    flux[component[i]] += (points[i].cast<double>() - centroid[component[i]]).dot(normals[i].cast<double>());
+  }
+  for (size_t i = 0; i < n; ++i) {
+    if (flux[component[i]] < 0) normals[i] = -normals[i];
+  }
+}
+
+}  // namespace
+
+absl::StatusOr<std::vector<Vec3f>> EstimateNormals(std::span<const Vec3f> points, const NormalEstimationParams& params,
                                                    JobContext& ctx) {
   if (absl::Status s = Validate(params); !s.ok()) return s;
   const size_t n = points.size();
@@ -85,8 +106,7 @@ absl::StatusOr<std::vector<Vec3f>> EstimateNormals(std::span<const Vec3f> points
   // normal is turned towards +z (Hoppe's choice).
   std::vector<uint32_t> order(n);
   std::iota(order.begin(), order.end(), 0u);
-  std::sort(order.begin(), order.end(),
-            [&](uint32_t a, uint32_t b) { return points[a].z() > points[b].z(); });
+  std::sort(order.begin(), order.end(), [&](uint32_t a, uint32_t b) { return points[a].z() > points[b].z(); });
   std::vector<uint32_t> component(n, UINT32_MAX);
   struct Edge {
     float cost;
@@ -123,21 +143,7 @@ absl::StatusOr<std::vector<Vec3f>> EstimateNormals(std::span<const Vec3f> points
     }
   }
 
-  // Outward per component: the sign that makes the normals point away from its centroid.
-  std::vector<Vec3d> centroid(components, Vec3d::Zero());
-  std::vector<double> count(components, 0.0), flux(components, 0.0);
-  for (size_t i = 0; i < n; ++i) {
-    centroid[component[i]] += points[i].cast<double>();
-    count[component[i]] += 1.0;
-  }
-  for (uint32_t c = 0; c < components; ++c) centroid[c] /= count[c];
-  for (size_t i = 0; i < n; ++i) {
-    flux[component[i]] += (points[i].cast<double>() - centroid[component[i]]).dot(
-        normals[i].cast<double>());
-  }
-  for (size_t i = 0; i < n; ++i) {
-    if (flux[component[i]] < 0) normals[i] = -normals[i];
-  }
+  PointAwayFromCentroids(points, component, components, normals);
   orient_ctx.Report(1.0);
   return normals;
 }

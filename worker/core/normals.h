@@ -24,8 +24,7 @@ absl::Status Validate(const NormalEstimationParams& params);
 
 // Unit normals, one per point. Errors: kInvalidArgument (fewer than 3 points, bad params),
 // kCancelled. Cost: one k-NN query per point plus an O(n k log(n k)) spanning tree.
-absl::StatusOr<std::vector<Vec3f>> EstimateNormals(std::span<const Vec3f> points,
-                                                   const NormalEstimationParams& params,
+absl::StatusOr<std::vector<Vec3f>> EstimateNormals(std::span<const Vec3f> points, const NormalEstimationParams& params,
                                                    JobContext& ctx);
 
 }  // namespace lsqsurf::core

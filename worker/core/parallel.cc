@@ -1,17 +1,17 @@
 #include "worker/core/parallel.h"
 
-#include <atomic>
-#include <mutex>
-
 #include <tbb/blocked_range.h>
 #include <tbb/info.h>
 #include <tbb/parallel_for.h>
 #include <tbb/task_group.h>
 
+#include <atomic>
+#include <mutex>
+
 namespace lsqsurf::core {
 
-absl::Status ParallelFor(size_t n, size_t grain, const std::function<void(size_t, size_t)>& body,
-                         const JobContext* ctx, const std::function<void(double)>& progress) {
+absl::Status ParallelFor(size_t n, size_t grain, const std::function<void(size_t, size_t)>& body, const JobContext* ctx,
+                         const std::function<void(double)>& progress) {
   if (n == 0) return ctx ? ctx->CheckCancelled() : absl::OkStatus();
   grain = grain == 0 ? 1 : grain;
   std::atomic<bool> stop{false};

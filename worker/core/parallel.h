@@ -17,8 +17,7 @@ namespace lsqsurf::core {
 // returned. `progress`, when given, receives the completed fraction in [0, 1] (rate-limited).
 // `grain` is the smallest chunk worth a task (choose it so a chunk takes ~0.1–1 ms).
 absl::Status ParallelFor(size_t n, size_t grain, const std::function<void(size_t, size_t)>& body,
-                         const JobContext* ctx = nullptr,
-                         const std::function<void(double)>& progress = nullptr);
+                         const JobContext* ctx = nullptr, const std::function<void(double)>& progress = nullptr);
 
 // Number of worker threads the pool runs (the machine's cores unless limited).
 int ParallelismLevel();

@@ -96,8 +96,8 @@ std::string ParamInfo::FormatValue(double value) const {
 
 absl::Status CheckValue(const ParamInfo& info, double value) {
   auto fail = [&](std::string_view why) {
-    return absl::InvalidArgumentError(StrCat(info.name, "=", info.FormatValue(value), " ", why, "; expected ",
-                                             info.RangeText()));
+    return absl::InvalidArgumentError(
+        StrCat(info.name, "=", info.FormatValue(value), " ", why, "; expected ", info.RangeText()));
   };
   if (!std::isfinite(value)) return fail("is not a finite number");
   switch (info.type) {
@@ -127,8 +127,8 @@ const ParamInfo* ParamSet::Info(std::string_view name) const { return holder_ ? 
 absl::Status ParamSet::UnknownName(std::string_view name) const {
   std::string valid;
   for (const auto& p : Describe()) StrAppend(&valid, valid.empty() ? "" : ", ", p.name);
-  return absl::InvalidArgumentError(StrCat("unknown parameter '", name, "'; valid parameters: ",
-                                           valid.empty() ? "none" : valid));
+  return absl::InvalidArgumentError(
+      StrCat("unknown parameter '", name, "'; valid parameters: ", valid.empty() ? "none" : valid));
 }
 
 absl::Status ParamSet::Set(std::string_view name, double value) {
@@ -155,8 +155,8 @@ absl::Status ParamSet::Parse(std::string_view name, std::string_view text) {
     case ParamType::kText: return SetText(name, std::string(text));
     case ParamType::kChoice:
       if (const ParamChoice* c = info->FindChoice(text)) return Set(name, c->value);
-      return absl::InvalidArgumentError(StrCat(name, "='", text, "' is not a known choice; expected ",
-                                               info->RangeText()));
+      return absl::InvalidArgumentError(
+          StrCat(name, "='", text, "' is not a known choice; expected ", info->RangeText()));
     case ParamType::kFlag:
       if (text == "true" || text == "1") return Set(name, 1);
       if (text == "false" || text == "0") return Set(name, 0);
@@ -221,15 +221,18 @@ absl::Status ParamSet::Decode(std::string_view text) {
 }
 
 std::string ParamReferenceMarkdown(const std::vector<ParamInfo>& params) {
-  std::string out = "| parameter | type | default | range | meaning |\n|---|---|---|---|---|\n";
+  std::string out = "| parameter | type | default | range | unit | meaning |\n|---|---|---|---|---|---|\n";
   for (const auto& p : params) {
-    const std::string def = p.type == ParamType::kText ? StrCat("'", p.default_text, "'") : p.FormatValue(p.default_value);
+    const std::string def =
+        p.type == ParamType::kText ? StrCat("'", p.default_text, "'") : p.FormatValue(p.default_value);
     std::string meaning = p.help;
     if (p.type == ParamType::kChoice) {
       for (const auto& c : p.choices) StrAppend(&meaning, "<br>`", c.name, "`: ", c.help);
     }
-    StrAppend(&out, "| `", p.name, "` | ", ParamTypeName(p.type), " | ", def, " | ", p.RangeText(), " | ", meaning,
-              " |\n");
+    std::string range = p.RangeText();  // Without the unit, which has its own column.
+    if (!p.unit.empty() && range.ends_with(" " + p.unit)) range.resize(range.size() - p.unit.size() - 1);
+    StrAppend(&out, "| `", p.name, "` | ", ParamTypeName(p.type), " | ", def, " | ", range, " | ", p.unit, " | ",
+              meaning, " |\n");
   }
   return out;
 }

@@ -46,12 +46,12 @@ struct ParamChoice {
 struct ParamInfo {
   std::string name;
   ParamType type = ParamType::kReal;
-  double default_value = 0;            // Numbers, flags (0/1) and choices (the value).
-  std::string default_text;            // kText only.
-  double min_value = 0, max_value = 0; // Inclusive; kReal and kInteger only.
-  std::string unit;                    // Empty for dimensionless values.
-  std::string help;                    // Meaning; the range and unit are not repeated in it.
-  std::vector<ParamChoice> choices;    // kChoice only.
+  double default_value = 0;             // Numbers, flags (0/1) and choices (the value).
+  std::string default_text;             // kText only.
+  double min_value = 0, max_value = 0;  // Inclusive; kReal and kInteger only.
+  std::string unit;                     // Empty for dimensionless values.
+  std::string help;                     // Meaning; the range and unit are not repeated in it.
+  std::vector<ParamChoice> choices;     // kChoice only.
 
   // The choice called `name` / with `value`, or nullptr.
   const ParamChoice* FindChoice(std::string_view choice_name) const;
@@ -71,23 +71,23 @@ class ParamTable {
  public:
   struct Field {
     ParamInfo info;
-    std::function<double(const P&)> get;           // Not kText.
-    std::function<void(P&, double)> set;           // Not kText; the value is already checked.
-    std::function<std::string(const P&)> get_text; // kText only.
-    std::function<void(P&, std::string)> set_text; // kText only.
+    std::function<double(const P&)> get;            // Not kText.
+    std::function<void(P&, double)> set;            // Not kText; the value is already checked.
+    std::function<std::string(const P&)> get_text;  // kText only.
+    std::function<void(P&, std::string)> set_text;  // kText only.
   };
   using Rule = std::function<absl::Status(const P&)>;
 
   // A direct member of P (`&P::member`), numeric or bool or enum.
   template <auto Member>
   ParamTable& Real(std::string name, double min_value, double max_value, std::string unit, std::string help) {
-    return Add(Numeric<Member>({std::move(name), ParamType::kReal, 0, {}, min_value, max_value, std::move(unit),
-                                std::move(help), {}}));
+    return Add(Numeric<Member>(
+        {std::move(name), ParamType::kReal, 0, {}, min_value, max_value, std::move(unit), std::move(help), {}}));
   }
   template <auto Member>
   ParamTable& Integer(std::string name, double min_value, double max_value, std::string unit, std::string help) {
-    return Add(Numeric<Member>({std::move(name), ParamType::kInteger, 0, {}, min_value, max_value, std::move(unit),
-                                std::move(help), {}}));
+    return Add(Numeric<Member>(
+        {std::move(name), ParamType::kInteger, 0, {}, min_value, max_value, std::move(unit), std::move(help), {}}));
   }
   template <auto Member>
   ParamTable& Flag(std::string name, std::string help) {
@@ -95,8 +95,8 @@ class ParamTable {
   }
   template <auto Member>
   ParamTable& Choice(std::string name, std::vector<ParamChoice> choices, std::string help) {
-    return Add(Numeric<Member>({std::move(name), ParamType::kChoice, 0, {}, 0, 0, {}, std::move(help),
-                                std::move(choices)}));
+    return Add(
+        Numeric<Member>({std::move(name), ParamType::kChoice, 0, {}, 0, 0, {}, std::move(help), std::move(choices)}));
   }
   template <auto Member>
   ParamTable& Text(std::string name, std::string help) {

@@ -10,8 +10,7 @@ std::vector<Vec3f> VertexNormals(const TriangleMesh& mesh) {
   for (const Triangle& f : mesh.faces) {
     const Vec3d a = mesh.vertices[f[0]].cast<double>();
     // Unnormalised cross product = 2 × area × unit normal: area weighting for free.
-    const Vec3d n = (mesh.vertices[f[1]].cast<double>() - a)
-                        .cross(mesh.vertices[f[2]].cast<double>() - a);
+    const Vec3d n = (mesh.vertices[f[1]].cast<double>() - a).cross(mesh.vertices[f[2]].cast<double>() - a);
     for (uint32_t v : f) sum[v] += n;
   }
   std::vector<Vec3f> out(sum.size());
@@ -22,8 +21,7 @@ std::vector<Vec3f> VertexNormals(const TriangleMesh& mesh) {
   return out;
 }
 
-std::vector<SurfaceSample> SampleSurface(const TriangleMesh& mesh, size_t count, uint64_t seed,
-                                         bool smooth_normals) {
+std::vector<SurfaceSample> SampleSurface(const TriangleMesh& mesh, size_t count, uint64_t seed, bool smooth_normals) {
   std::vector<SurfaceSample> out;
   if (mesh.faces.empty() || count == 0) return out;
   std::vector<double> cumulative(mesh.faces.size());
@@ -31,9 +29,7 @@ std::vector<SurfaceSample> SampleSurface(const TriangleMesh& mesh, size_t count,
   for (size_t i = 0; i < mesh.faces.size(); ++i) {
     const auto& f = mesh.faces[i];
     const Vec3d a = mesh.vertices[f[0]].cast<double>();
-    total += 0.5 * (mesh.vertices[f[1]].cast<double>() - a)
-                       .cross(mesh.vertices[f[2]].cast<double>() - a)
-                       .norm();
+    total += 0.5 * (mesh.vertices[f[1]].cast<double>() - a).cross(mesh.vertices[f[2]].cast<double>() - a).norm();
     cumulative[i] = total;
   }
   std::vector<Vec3f> vertex_normals;
@@ -46,8 +42,7 @@ std::vector<SurfaceSample> SampleSurface(const TriangleMesh& mesh, size_t count,
   for (size_t s = 0; s < count; ++s) {
     const double pick = uniform(rng) * total;
     const size_t fi = std::min<size_t>(
-        std::upper_bound(cumulative.begin(), cumulative.end(), pick) - cumulative.begin(),
-        mesh.faces.size() - 1);
+        std::upper_bound(cumulative.begin(), cumulative.end(), pick) - cumulative.begin(), mesh.faces.size() - 1);
     const auto& f = mesh.faces[fi];
     // Square-root warping gives uniform barycentric coordinates over the triangle.
     const double r1 = std::sqrt(uniform(rng)), r2 = uniform(rng);
@@ -63,8 +58,8 @@ std::vector<SurfaceSample> SampleSurface(const TriangleMesh& mesh, size_t count,
     }
     if (n.norm() == 0) n = (b - a).cross(c - a);
     if (n.norm() == 0) n = Vec3d::UnitZ();
-    out.push_back({Vec3f((wa * a + wb * b + wc * c).cast<float>()),
-                   Vec3f(n.normalized().cast<float>()), static_cast<uint32_t>(fi)});
+    out.push_back({Vec3f((wa * a + wb * b + wc * c).cast<float>()), Vec3f(n.normalized().cast<float>()),
+                   static_cast<uint32_t>(fi)});
   }
   return out;
 }

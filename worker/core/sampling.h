@@ -10,8 +10,8 @@ namespace lsqsurf::core {
 
 struct SurfaceSample {
   Vec3f position;
-  Vec3f normal;       // Interpolated vertex normal (smooth), or the face normal if none.
-  uint32_t face;      // Face the sample lies on.
+  Vec3f normal;   // Interpolated vertex normal (smooth), or the face normal if none.
+  uint32_t face;  // Face the sample lies on.
 };
 
 // Area-weighted vertex normals (outward for outward-oriented faces).
@@ -25,7 +25,6 @@ std::vector<SurfaceSample> SampleSurface(const TriangleMesh& mesh, size_t count,
 
 // A point cloud with normals made from `SampleSurface`; with `noise_sigma` > 0 every point is
 // displaced along its normal by Gaussian noise of that standard deviation (model units).
-PointCloud SampleCloud(const TriangleMesh& mesh, size_t count, uint64_t seed,
-                       double noise_sigma = 0.0);
+PointCloud SampleCloud(const TriangleMesh& mesh, size_t count, uint64_t seed, double noise_sigma = 0.0);
 
 }  // namespace lsqsurf::core

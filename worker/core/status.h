@@ -12,11 +12,11 @@
 
 // Returns from the enclosing function when `expr` (an absl::Status) is not OK. The variable's
 // name is unique per line, so the macro nests (e.g. inside a lambda passed to another use).
-#define LSQSURF_RETURN_IF_ERROR(expr)                                                          \
-  do {                                                                                         \
-    if (absl::Status LSQSURF_STATUS_CONCAT(lsqsurf_status_, __LINE__) = (expr);                \
-        !LSQSURF_STATUS_CONCAT(lsqsurf_status_, __LINE__).ok())                                \
-      return LSQSURF_STATUS_CONCAT(lsqsurf_status_, __LINE__);                                 \
+#define LSQSURF_RETURN_IF_ERROR(expr)                                           \
+  do {                                                                          \
+    if (absl::Status LSQSURF_STATUS_CONCAT(lsqsurf_status_, __LINE__) = (expr); \
+        !LSQSURF_STATUS_CONCAT(lsqsurf_status_, __LINE__).ok())                 \
+      return LSQSURF_STATUS_CONCAT(lsqsurf_status_, __LINE__);                  \
   } while (false)
 
 // `LSQSURF_ASSIGN_OR_RETURN(auto x, MakeX());` declares `x` from an absl::StatusOr, or returns

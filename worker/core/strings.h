@@ -5,9 +5,9 @@
 // values print in their shortest round-trip form.
 #pragma once
 
-#include <string>
-
 #include <fmt/format.h>
+
+#include <string>
 
 #include "absl/strings/string_view.h"
 

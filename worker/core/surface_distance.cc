@@ -49,8 +49,8 @@ Vec3d FaceNormal(const TriangleMesh& m, uint32_t f) {
 
 struct TriangleTree::Node {
   Box3 box;
-  uint32_t begin = 0, end = 0;  // Leaf: range in `order_`.
-  uint32_t left = 0, right = 0; // Inner: child node indices (0 = none; the root is never a child).
+  uint32_t begin = 0, end = 0;   // Leaf: range in `order_`.
+  uint32_t left = 0, right = 0;  // Inner: child node indices (0 = none; the root is never a child).
 };
 
 TriangleTree::TriangleTree(const TriangleMesh& mesh) : mesh_(mesh) {
@@ -81,15 +81,13 @@ void TriangleTree::Build(uint32_t node, uint32_t begin, uint32_t end, int depth)
   int axis = 0;
   centroids.sizes().maxCoeff(&axis);
   const uint32_t mid = begin + (end - begin) / 2;
-  std::nth_element(order_.begin() + begin, order_.begin() + mid, order_.begin() + end,
-                   [&](uint32_t x, uint32_t y) {
-                     auto key = [&](uint32_t f) {
-                       const auto& t = mesh_.faces[f];
-                       return mesh_.vertices[t[0]][axis] + mesh_.vertices[t[1]][axis] +
-                              mesh_.vertices[t[2]][axis];
-                     };
-                     return key(x) < key(y);
-                   });
+  std::nth_element(order_.begin() + begin, order_.begin() + mid, order_.begin() + end, [&](uint32_t x, uint32_t y) {
+    auto key = [&](uint32_t f) {
+      const auto& t = mesh_.faces[f];
+      return mesh_.vertices[t[0]][axis] + mesh_.vertices[t[1]][axis] + mesh_.vertices[t[2]][axis];
+    };
+    return key(x) < key(y);
+  });
   const auto left = static_cast<uint32_t>(nodes_.size());
   nodes_.emplace_back();
   const auto right = static_cast<uint32_t>(nodes_.size());
@@ -113,8 +111,7 @@ TriangleTree::Hit TriangleTree::Closest(const Vec3d& query) const {
       for (uint32_t i = node.begin; i < node.end; ++i) {
         const auto& f = mesh_.faces[order_[i]];
         const Vec3d p = ClosestOnTriangle(query, mesh_.vertices[f[0]].cast<double>(),
-                                          mesh_.vertices[f[1]].cast<double>(),
-                                          mesh_.vertices[f[2]].cast<double>());
+                                          mesh_.vertices[f[1]].cast<double>(), mesh_.vertices[f[2]].cast<double>());
         const double d2 = (p - query).squaredNorm();
         if (d2 < best.distance2) best = {d2, p, order_[i]};
       }
@@ -134,8 +131,7 @@ TriangleTree::Hit TriangleTree::Closest(const Vec3d& query) const {
   return best;
 }
 
-absl::StatusOr<CompareResult> CompareMeshes(const TriangleMesh& reference,
-                                            const TriangleMesh& candidate,
+absl::StatusOr<CompareResult> CompareMeshes(const TriangleMesh& reference, const TriangleMesh& candidate,
                                             const CompareParams& params, JobContext& ctx) {
   if (reference.faces.empty()) return absl::InvalidArgumentError("the reference mesh has no faces");
   if (candidate.faces.empty()) return absl::InvalidArgumentError("the candidate mesh has no faces");
@@ -146,8 +142,8 @@ absl::StatusOr<CompareResult> CompareMeshes(const TriangleMesh& reference,
   struct OneSided {
     double mean = 0, max = 0, cos_sum = 0, far = 0;
   };
-  auto one_sided = [&](const TriangleMesh& from, const TriangleMesh& to, uint64_t seed,
-                       double begin, double end) -> absl::StatusOr<OneSided> {
+  auto one_sided = [&](const TriangleMesh& from, const TriangleMesh& to, uint64_t seed, double begin,
+                       double end) -> absl::StatusOr<OneSided> {
     SubContext sub(ctx, "measuring distances", begin, end);
     const auto samples = SampleSurface(from, params.samples, seed, false);
     TriangleTree tree(to);

@@ -46,18 +46,17 @@ struct CompareParams {
 };
 
 struct CompareResult {
-  double chamfer = 0;            // ½ (mean ref→cand + mean cand→ref) / diagonal.
-  double hausdorff = 0;          // max of both one-sided maxima / diagonal.
-  double mean_ref_to_cand = 0;   // / diagonal.
-  double mean_cand_to_ref = 0;   // / diagonal.
-  double normal_consistency = 0; // Mean |cos| between face normals of closest-point pairs.
-  double far_fraction = 0;       // Share of reference samples farther than 1e-3 diagonal.
-  double diagonal = 0;           // Reference bounding-box diagonal (model units).
+  double chamfer = 0;             // ½ (mean ref→cand + mean cand→ref) / diagonal.
+  double hausdorff = 0;           // max of both one-sided maxima / diagonal.
+  double mean_ref_to_cand = 0;    // / diagonal.
+  double mean_cand_to_ref = 0;    // / diagonal.
+  double normal_consistency = 0;  // Mean |cos| between face normals of closest-point pairs.
+  double far_fraction = 0;        // Share of reference samples farther than 1e-3 diagonal.
+  double diagonal = 0;            // Reference bounding-box diagonal (model units).
 };
 
 // Errors: kInvalidArgument when either mesh has no faces; kCancelled.
-absl::StatusOr<CompareResult> CompareMeshes(const TriangleMesh& reference,
-                                            const TriangleMesh& candidate,
+absl::StatusOr<CompareResult> CompareMeshes(const TriangleMesh& reference, const TriangleMesh& candidate,
                                             const CompareParams& params, JobContext& ctx);
 
 }  // namespace lsqsurf::core

@@ -6,8 +6,8 @@
 
 #include "absl/container/flat_hash_map.h"
 #include "absl/container/flat_hash_set.h"
-#include "worker/extract/marching_tets.h"
 #include "worker/core/status.h"
+#include "worker/extract/marching_tets.h"
 
 namespace lsqsurf::extract {
 namespace {
@@ -21,14 +21,14 @@ constexpr int64_t kLimit = kBias - 2;
 using Key = uint64_t;
 
 Key Pack(int64_t x, int64_t y, int64_t z) {
-  return (static_cast<uint64_t>(x + kBias) << (2 * kBits)) |
-         (static_cast<uint64_t>(y + kBias) << kBits) | static_cast<uint64_t>(z + kBias);
+  return (static_cast<uint64_t>(x + kBias) << (2 * kBits)) | (static_cast<uint64_t>(y + kBias) << kBits) |
+         static_cast<uint64_t>(z + kBias);
 }
 
 std::array<int64_t, 3> Unpack(Key k) {
   const uint64_t mask = (uint64_t{1} << kBits) - 1;
-  return {static_cast<int64_t>((k >> (2 * kBits)) & mask) - kBias,
-          static_cast<int64_t>((k >> kBits) & mask) - kBias, static_cast<int64_t>(k & mask) - kBias};
+  return {static_cast<int64_t>((k >> (2 * kBits)) & mask) - kBias, static_cast<int64_t>((k >> kBits) & mask) - kBias,
+          static_cast<int64_t>(k & mask) - kBias};
 }
 
 // Corner c of a cube has offset (c & 1, c >> 1 & 1, c >> 2 & 1).
@@ -38,12 +38,8 @@ Key CornerKey(Key cell, int c) {
 }
 
 // The 6 Kuhn tetrahedra of a cube: chains 0 ⊂ 1<<a ⊂ 1<<a|1<<b ⊂ 7 over the axis orders.
-constexpr std::array<std::array<int, 4>, 6> kTets = {{{0, 1, 3, 7},
-                                                      {0, 1, 5, 7},
-                                                      {0, 2, 3, 7},
-                                                      {0, 2, 6, 7},
-                                                      {0, 4, 5, 7},
-                                                      {0, 4, 6, 7}}};
+constexpr std::array<std::array<int, 4>, 6> kTets = {
+    {{0, 1, 3, 7}, {0, 1, 5, 7}, {0, 2, 3, 7}, {0, 2, 6, 7}, {0, 4, 5, 7}, {0, 4, 6, 7}}};
 
 // The 4 corners of each face, for the six directions −x, +x, −y, +y, −z, +z.
 std::array<int, 4> FaceCorners(int face) {
@@ -73,10 +69,8 @@ absl::Status Validate(const IsosurfaceParams& params) {
   return Validate(params.marching);
 }
 
-absl::StatusOr<IsosurfaceResult> ExtractIsosurface(const ImplicitFunction& field,
-                                                   std::span<const Vec3f> seeds,
-                                                   const IsosurfaceParams& params,
-                                                   JobContext& ctx) {
+absl::StatusOr<IsosurfaceResult> ExtractIsosurface(const ImplicitFunction& field, std::span<const Vec3f> seeds,
+                                                   const IsosurfaceParams& params, JobContext& ctx) {
   if (absl::Status s = Validate(params); !s.ok()) return s;
   if (seeds.empty()) return absl::InvalidArgumentError("isosurface extraction needs seed points");
   const Box3 box = core::BoundingBox(seeds);
@@ -89,8 +83,7 @@ absl::StatusOr<IsosurfaceResult> ExtractIsosurface(const ImplicitFunction& field
   const Vec3d origin = box.min() - Vec3d::Constant(0.5 * h);
   auto vertex_position = [&](Key k) {
     const auto [x, y, z] = Unpack(k);
-    return Vec3d(origin + h * Vec3d(static_cast<double>(x), static_cast<double>(y),
-                                    static_cast<double>(z)));
+    return Vec3d(origin + h * Vec3d(static_cast<double>(x), static_cast<double>(y), static_cast<double>(z)));
   };
 
   IsosurfaceResult result;
@@ -115,9 +108,8 @@ absl::StatusOr<IsosurfaceResult> ExtractIsosurface(const ImplicitFunction& field
   while (!frontier.empty()) {
     stats.cells_visited += static_cast<int64_t>(frontier.size());
     if (stats.cells_visited > params.max_cells) {
-      return absl::ResourceExhaustedError(
-          "the surface needs more than " + std::to_string(params.max_cells) +
-          " grid cells; raise cell_size or the cell limit");
+      return absl::ResourceExhaustedError("the surface needs more than " + std::to_string(params.max_cells) +
+                                          " grid cells; raise cell_size or the cell limit");
     }
     pending.clear();
     for (Key cell : frontier) {
@@ -157,8 +149,7 @@ absl::StatusOr<IsosurfaceResult> ExtractIsosurface(const ImplicitFunction& field
       if (crossed) surface_cells.push_back(cell);
     }
     frontier = std::move(next);
-    track_ctx.Report(1.0 - std::min(1.0, static_cast<double>(frontier.size()) /
-                                             std::max(1.0, seed_cells)));
+    track_ctx.Report(1.0 - std::min(1.0, static_cast<double>(frontier.size()) / std::max(1.0, seed_cells)));
   }
   stats.surface_cells = static_cast<int64_t>(surface_cells.size());
   stats.tetrahedra = static_cast<int64_t>(surface_cells.size() * kTets.size());
@@ -170,8 +161,7 @@ absl::StatusOr<IsosurfaceResult> ExtractIsosurface(const ImplicitFunction& field
       [&](const std::function<void(const internal::TetCorners&)>& visit) {
         for (Key cell : surface_cells) {
           for (const auto& tet : kTets) {
-            visit({CornerKey(cell, tet[0]), CornerKey(cell, tet[1]), CornerKey(cell, tet[2]),
-                   CornerKey(cell, tet[3])});
+            visit({CornerKey(cell, tet[0]), CornerKey(cell, tet[1]), CornerKey(cell, tet[2]), CornerKey(cell, tet[3])});
           }
         }
       },

@@ -46,7 +46,7 @@ struct MarchingOptions {
 absl::Status Validate(const MarchingOptions& options);
 
 struct IsosurfaceParams {
-  double cell_size = 0.0;        // Cube edge length in model units; must be > 0.
+  double cell_size = 0.0;          // Cube edge length in model units; must be > 0.
   int64_t max_cells = 60'000'000;  // Visited cubes before failing with kResourceExhausted.
   MarchingOptions marching;
 };
@@ -54,13 +54,13 @@ struct IsosurfaceParams {
 absl::Status Validate(const IsosurfaceParams& params);
 
 struct IsosurfaceStats {
-  int64_t cells_visited = 0;     // Cubes whose corners were evaluated.
-  int64_t surface_cells = 0;     // Cubes the surface passes through.
-  int64_t field_evaluations = 0; // Corner evaluations (refinement not included).
-  int64_t tetrahedra = 0;        // Tetrahedra sign-tested (J1a: of every visited leaf; grid: of the surface cubes).
-  int64_t crossings = 0;         // Output vertices.
-  int64_t rejected_polygons = 0; // Triangles dropped because a root lay where F is undefined.
-  int64_t restored_triangles = 0; // Untrusted triangles kept as parts of small pinhole patches.
+  int64_t cells_visited = 0;       // Cubes whose corners were evaluated.
+  int64_t surface_cells = 0;       // Cubes the surface passes through.
+  int64_t field_evaluations = 0;   // Corner evaluations (refinement not included).
+  int64_t tetrahedra = 0;          // Tetrahedra sign-tested (J1a: of every visited leaf; grid: of the surface cubes).
+  int64_t crossings = 0;           // Output vertices.
+  int64_t rejected_polygons = 0;   // Triangles dropped because a root lay where F is undefined.
+  int64_t restored_triangles = 0;  // Untrusted triangles kept as parts of small pinhole patches.
 };
 
 struct IsosurfaceResult {
@@ -71,9 +71,7 @@ struct IsosurfaceResult {
 // Extracts {F = 0} near `seeds` (normally the input points: extraction starts in their cubes).
 // Errors: kInvalidArgument (bad params, no seeds, grid too large for 21-bit coordinates),
 // kResourceExhausted (more than `max_cells` cubes), kCancelled.
-absl::StatusOr<IsosurfaceResult> ExtractIsosurface(const ImplicitFunction& field,
-                                                   std::span<const Vec3f> seeds,
-                                                   const IsosurfaceParams& params,
-                                                   JobContext& ctx);
+absl::StatusOr<IsosurfaceResult> ExtractIsosurface(const ImplicitFunction& field, std::span<const Vec3f> seeds,
+                                                   const IsosurfaceParams& params, JobContext& ctx);
 
 }  // namespace lsqsurf::extract

@@ -16,8 +16,7 @@ std::array<uint32_t, 3> UnpackVertex(VertexKey key) {
           static_cast<uint32_t>(key & mask)};
 }
 
-AdaptiveOctree::AdaptiveOctree(const Box3& root, int max_depth)
-    : max_depth_(std::clamp(max_depth, 0, kMaxDepth)) {
+AdaptiveOctree::AdaptiveOctree(const Box3& root, int max_depth) : max_depth_(std::clamp(max_depth, 0, kMaxDepth)) {
   origin_ = root.min();
   const double size = std::max(root.sizes().maxCoeff(), 1e-30);
   unit_ = size / static_cast<double>(CellUnits(0));
@@ -98,8 +97,8 @@ void AdaptiveOctree::Balance() {
         for (int dx = -1; dx <= 1; ++dx) {
           const int64_t x = int64_t{c.x} + dx, y = int64_t{c.y} + dy, z = int64_t{c.z} + dz;
           if ((dx | dy | dz) == 0 || !InRange(c.level, x, y, z)) continue;
-          const OctreeCell* n = LeafContaining({c.level, static_cast<uint32_t>(x), static_cast<uint32_t>(y),
-                                                static_cast<uint32_t>(z)});
+          const OctreeCell* n =
+              LeafContaining({c.level, static_cast<uint32_t>(x), static_cast<uint32_t>(y), static_cast<uint32_t>(z)});
           if (n == nullptr || n->level >= c.level - 1) continue;
           const OctreeCell coarse = *n;
           Split(coarse);
@@ -116,9 +115,7 @@ std::vector<OctreeCell> AdaptiveOctree::Leaves() const {
   std::vector<OctreeCell> out;
   out.reserve(leaves_.size());
   for (const auto& [key, cell] : leaves_) out.push_back(cell);
-  std::sort(out.begin(), out.end(), [](const OctreeCell& a, const OctreeCell& b) {
-    return CellKey(a) < CellKey(b);
-  });
+  std::sort(out.begin(), out.end(), [](const OctreeCell& a, const OctreeCell& b) { return CellKey(a) < CellKey(b); });
   return out;
 }
 
@@ -138,15 +135,14 @@ void AppendJ1aTetrahedra(const AdaptiveOctree& tree, const OctreeCell& leaf, std
     for (int64_t v : index) {
       if (v < 0 || v >= cells_per_axis) return false;
     }
-    return tree.IsSubdivided({L, static_cast<uint32_t>(index[0]), static_cast<uint32_t>(index[1]),
-                              static_cast<uint32_t>(index[2])});
+    return tree.IsSubdivided(
+        {L, static_cast<uint32_t>(index[0]), static_cast<uint32_t>(index[1]), static_cast<uint32_t>(index[2])});
   };
   auto key = [](const std::array<int64_t, 3>& p) {
     return PackVertex(static_cast<uint32_t>(p[0]), static_cast<uint32_t>(p[1]), static_cast<uint32_t>(p[2]));
   };
   const std::array<int64_t, 3> centre = {c0[0] + s / 2, c0[1] + s / 2, c0[2] + s / 2};
-  auto emit = [&](const std::array<int64_t, 3>& p, const std::array<int64_t, 3>& q,
-                  const std::array<int64_t, 3>& v) {
+  auto emit = [&](const std::array<int64_t, 3>& p, const std::array<int64_t, 3>& q, const std::array<int64_t, 3>& v) {
     TetKeys t = {key(centre), key(p), key(q), key(v)};
     // Orientation from integer coordinates: exact.
     int64_t m[3][3];

@@ -94,7 +94,6 @@ std::array<uint32_t, 3> UnpackVertex(VertexKey key);
 using TetKeys = std::array<VertexKey, 4>;
 
 // Appends the J1a tetrahedra of `leaf` (which must be a leaf of a balanced tree) to `out`.
-void AppendJ1aTetrahedra(const AdaptiveOctree& tree, const OctreeCell& leaf,
-                         std::vector<TetKeys>& out);
+void AppendJ1aTetrahedra(const AdaptiveOctree& tree, const OctreeCell& leaf, std::vector<TetKeys>& out);
 
 }  // namespace lsqsurf::extract

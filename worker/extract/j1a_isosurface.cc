@@ -4,9 +4,9 @@
 #include <cmath>
 
 #include "absl/container/flat_hash_set.h"
-#include "worker/extract/marching_tets.h"
 #include "worker/core/parallel.h"
 #include "worker/core/status.h"
+#include "worker/extract/marching_tets.h"
 
 namespace lsqsurf::extract {
 
@@ -16,7 +16,9 @@ SurfaceBand MarkSurfaceBand(const AdaptiveOctree& tree, std::span<const Vec3f> p
   const int64_t n = int64_t{1} << level;
   for (const Vec3f& p : points) {
     const Vec3d g = (p.cast<double>() - tree.origin()) / edge;
-    const auto clamp = [&](double v) { return static_cast<uint32_t>(std::clamp<int64_t>(static_cast<int64_t>(std::floor(v)), 0, n - 1)); };
+    const auto clamp = [&](double v) {
+      return static_cast<uint32_t>(std::clamp<int64_t>(static_cast<int64_t>(std::floor(v)), 0, n - 1));
+    };
     band.occupied.insert(CellKey({level, clamp(g.x()), clamp(g.y()), clamp(g.z())}));
   }
   for (uint64_t key : band.occupied) {
@@ -26,8 +28,10 @@ SurfaceBand MarkSurfaceBand(const AdaptiveOctree& tree, std::span<const Vec3f> p
       if (x < 0 || y < 0 || z < 0 || x >= n || y >= n || z >= n) continue;
       for (int l = level - 1; l >= 0; --l) {
         const int shift = level - l;
-        if (!band.ancestors.insert(CellKey({l, static_cast<uint32_t>(x >> shift), static_cast<uint32_t>(y >> shift),
-                                            static_cast<uint32_t>(z >> shift)})).second) {
+        if (!band.ancestors
+                 .insert(CellKey({l, static_cast<uint32_t>(x >> shift), static_cast<uint32_t>(y >> shift),
+                                  static_cast<uint32_t>(z >> shift)}))
+                 .second) {
           break;  // Its ancestors are in already.
         }
       }
@@ -36,10 +40,8 @@ SurfaceBand MarkSurfaceBand(const AdaptiveOctree& tree, std::span<const Vec3f> p
   return band;
 }
 
-absl::StatusOr<IsosurfaceResult> ExtractIsosurfaceJ1a(const ImplicitFunction& field,
-                                                      std::span<const Vec3f> seeds,
-                                                      const J1aIsosurfaceParams& params,
-                                                      JobContext& ctx) {
+absl::StatusOr<IsosurfaceResult> ExtractIsosurfaceJ1a(const ImplicitFunction& field, std::span<const Vec3f> seeds,
+                                                      const J1aIsosurfaceParams& params, JobContext& ctx) {
   if (!(params.cell_size > 0) || !std::isfinite(params.cell_size)) {
     return absl::InvalidArgumentError("cell_size must be a positive number");
   }
@@ -69,12 +71,54 @@ absl::StatusOr<IsosurfaceResult> ExtractIsosurfaceJ1a(const ImplicitFunction& fi
   return ExtractIsosurfaceOnTree(field, tree, start, params.max_leaves, params.marching, extract_ctx);
 }
 
-absl::StatusOr<IsosurfaceResult> ExtractIsosurfaceOnTree(const ImplicitFunction& field,
-                                                         const AdaptiveOctree& tree,
-                                                         std::span<const OctreeCell> start,
-                                                         int64_t max_leaves,
-                                                         const MarchingOptions& marching,
-                                                         JobContext& ctx) {
+namespace {
+
+struct LeafWork {
+  std::vector<TetKeys> tets;          // All tetrahedra; after the sign test, the crossed ones.
+  std::vector<VertexKey> corners;     // Distinct corners.
+  std::vector<OctreeCell> neighbors;  // Leaves touching a crossed leaf.
+};
+
+// Keeps the leaf's tetrahedra that the surface crosses and, when there are any, lists the
+// leaves it may continue into (every leaf touching this one). Reads only the tree and `values`.
+void KeepCrossedTetrahedra(const AdaptiveOctree& tree, const absl::flat_hash_map<VertexKey, FieldValue>& values,
+                           const OctreeCell& leaf, LeafWork& w) {
+  w.neighbors.clear();
+  size_t kept = 0;
+  for (const TetKeys& t : w.tets) {
+    bool neg = false, pos = false;
+    for (VertexKey k : t) {
+      const double v = values.find(k)->second.value;
+      if (std::isnan(v)) continue;
+      (v < 0 ? neg : pos) = true;
+    }
+    if (neg && pos) w.tets[kept++] = t;
+  }
+  w.tets.resize(kept);
+  if (kept == 0) return;
+  const int64_t cells = int64_t{1} << leaf.level;
+  for (int d = 0; d < 27; ++d) {
+    const int64_t x = int64_t{leaf.x} + d % 3 - 1, y = int64_t{leaf.y} + (d / 3) % 3 - 1,
+                  z = int64_t{leaf.z} + d / 9 - 1;
+    if (d == 13 || x < 0 || y < 0 || z < 0 || x >= cells || y >= cells || z >= cells) continue;
+    const OctreeCell probe{leaf.level, static_cast<uint32_t>(x), static_cast<uint32_t>(y), static_cast<uint32_t>(z)};
+    if (const OctreeCell* other = tree.LeafContaining(probe)) {
+      w.neighbors.push_back(*other);
+    } else {  // Finer: in a balanced tree its children are leaves.
+      for (uint32_t c = 0; c < 8; ++c) {
+        const OctreeCell child{leaf.level + 1, 2 * probe.x + (c & 1), 2 * probe.y + ((c >> 1) & 1),
+                               2 * probe.z + ((c >> 2) & 1)};
+        if (tree.IsLeaf(child)) w.neighbors.push_back(child);
+      }
+    }
+  }
+}
+
+}  // namespace
+
+absl::StatusOr<IsosurfaceResult> ExtractIsosurfaceOnTree(const ImplicitFunction& field, const AdaptiveOctree& tree,
+                                                         std::span<const OctreeCell> start, int64_t max_leaves,
+                                                         const MarchingOptions& marching, JobContext& ctx) {
   LSQSURF_RETURN_IF_ERROR(Validate(marching));
   if (start.empty()) return absl::InvalidArgumentError("isosurface extraction needs start cells");
   // Follow the surface from leaf to leaf, a batch of leaves at a time: the tetrahedra and
@@ -90,11 +134,6 @@ absl::StatusOr<IsosurfaceResult> ExtractIsosurfaceOnTree(const ImplicitFunction&
   }
   // Bounds the memory of a batch (the tetrahedra of every leaf in it) on large first frontiers.
   constexpr size_t kLeavesPerBatch = 16384;
-  struct LeafWork {
-    std::vector<TetKeys> tets;          // All tetrahedra; after the sign test, the crossed ones.
-    std::vector<VertexKey> corners;     // Distinct corners.
-    std::vector<OctreeCell> neighbors;  // Leaves touching a crossed leaf.
-  };
   std::vector<LeafWork> work(std::min(kLeavesPerBatch, frontier.size()));
   absl::flat_hash_map<VertexKey, FieldValue> values;
   std::vector<TetKeys> crossed_tets;
@@ -113,17 +152,20 @@ absl::StatusOr<IsosurfaceResult> ExtractIsosurfaceOnTree(const ImplicitFunction&
       const std::span<const OctreeCell> leaves =
           std::span<const OctreeCell>(frontier).subspan(batch, std::min(kLeavesPerBatch, frontier.size() - batch));
       if (work.size() < leaves.size()) work.resize(leaves.size());
-      LSQSURF_RETURN_IF_ERROR(core::ParallelFor(leaves.size(), 64, [&](size_t b, size_t e) {
-        for (size_t i = b; i < e; ++i) {
-          LeafWork& w = work[i];
-          w.tets.clear();
-          AppendJ1aTetrahedra(tree, leaves[i], w.tets);
-          w.corners.clear();
-          for (const TetKeys& t : w.tets) w.corners.insert(w.corners.end(), t.begin(), t.end());
-          std::sort(w.corners.begin(), w.corners.end());
-          w.corners.erase(std::unique(w.corners.begin(), w.corners.end()), w.corners.end());
-        }
-      }, &ctx));
+      LSQSURF_RETURN_IF_ERROR(core::ParallelFor(
+          leaves.size(), 64,
+          [&](size_t b, size_t e) {
+            for (size_t i = b; i < e; ++i) {
+              LeafWork& w = work[i];
+              w.tets.clear();
+              AppendJ1aTetrahedra(tree, leaves[i], w.tets);
+              w.corners.clear();
+              for (const TetKeys& t : w.tets) w.corners.insert(w.corners.end(), t.begin(), t.end());
+              std::sort(w.corners.begin(), w.corners.end());
+              w.corners.erase(std::unique(w.corners.begin(), w.corners.end()), w.corners.end());
+            }
+          },
+          &ctx));
       pending.clear();
       for (size_t i = 0; i < leaves.size(); ++i) {
         stats.tetrahedra += static_cast<int64_t>(work[i].tets.size());
@@ -138,43 +180,12 @@ absl::StatusOr<IsosurfaceResult> ExtractIsosurfaceOnTree(const ImplicitFunction&
       for (size_t i = 0; i < pending.size(); ++i) values[pending[i]] = FieldValue{pending_values[i], false};
       stats.field_evaluations += static_cast<int64_t>(pending.size());
       // Read-only on `values` and the tree, so the leaves are independent.
-      LSQSURF_RETURN_IF_ERROR(core::ParallelFor(leaves.size(), 64, [&](size_t b, size_t e) {
-        for (size_t i = b; i < e; ++i) {
-          LeafWork& w = work[i];
-          w.neighbors.clear();
-          size_t kept = 0;
-          for (const TetKeys& t : w.tets) {
-            bool neg = false, pos = false;
-            for (VertexKey k : t) {
-              const double v = values.find(k)->second.value;
-              if (std::isnan(v)) continue;
-              (v < 0 ? neg : pos) = true;
-            }
-            if (neg && pos) w.tets[kept++] = t;
-          }
-          w.tets.resize(kept);
-          if (kept == 0) continue;
-          // The surface may continue into any leaf that touches this one.
-          const OctreeCell& leaf = leaves[i];
-          const int64_t cells = int64_t{1} << leaf.level;
-          for (int d = 0; d < 27; ++d) {
-            const int64_t x = int64_t{leaf.x} + d % 3 - 1, y = int64_t{leaf.y} + (d / 3) % 3 - 1,
-                          z = int64_t{leaf.z} + d / 9 - 1;
-            if (d == 13 || x < 0 || y < 0 || z < 0 || x >= cells || y >= cells || z >= cells) continue;
-            const OctreeCell probe{leaf.level, static_cast<uint32_t>(x), static_cast<uint32_t>(y),
-                                   static_cast<uint32_t>(z)};
-            if (const OctreeCell* other = tree.LeafContaining(probe)) {
-              w.neighbors.push_back(*other);
-            } else {  // Finer: in a balanced tree its children are leaves.
-              for (uint32_t c = 0; c < 8; ++c) {
-                const OctreeCell child{leaf.level + 1, 2 * probe.x + (c & 1), 2 * probe.y + ((c >> 1) & 1),
-                                       2 * probe.z + ((c >> 2) & 1)};
-                if (tree.IsLeaf(child)) w.neighbors.push_back(child);
-              }
-            }
-          }
-        }
-      }, &ctx));
+      LSQSURF_RETURN_IF_ERROR(core::ParallelFor(
+          leaves.size(), 64,
+          [&](size_t b, size_t e) {
+            for (size_t i = b; i < e; ++i) KeepCrossedTetrahedra(tree, values, leaves[i], work[i]);
+          },
+          &ctx));
       for (size_t i = 0; i < leaves.size(); ++i) {
         const LeafWork& w = work[i];
         if (w.tets.empty()) continue;
@@ -186,8 +197,9 @@ absl::StatusOr<IsosurfaceResult> ExtractIsosurfaceOnTree(const ImplicitFunction&
       }
     }
     std::swap(frontier, next);
-    track_ctx.Report(std::min(0.95, static_cast<double>(stats.surface_cells) /
-                                        static_cast<double>(stats.surface_cells + static_cast<int64_t>(frontier.size()) + 1)));
+    track_ctx.Report(
+        std::min(0.95, static_cast<double>(stats.surface_cells) /
+                           static_cast<double>(stats.surface_cells + static_cast<int64_t>(frontier.size()) + 1)));
   }
   work = {};
   visited = {};

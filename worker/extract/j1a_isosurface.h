@@ -12,28 +12,25 @@
 #include <span>
 
 #include "absl/container/flat_hash_set.h"
-
 #include "absl/status/statusor.h"
 #include "worker/core/geometry.h"
 #include "worker/core/implicit_function.h"
+#include "worker/core/job_context.h"
 #include "worker/extract/isosurface.h"
 #include "worker/extract/j1a.h"
-#include "worker/core/job_context.h"
 
 namespace lsqsurf::extract {
 
 struct J1aIsosurfaceParams {
-  double cell_size = 0.0;          // Edge of the finest leaves, model units; must be > 0.
-  int64_t max_leaves = 20'000'000; // Visited leaves before failing with kResourceExhausted.
+  double cell_size = 0.0;           // Edge of the finest leaves, model units; must be > 0.
+  int64_t max_leaves = 20'000'000;  // Visited leaves before failing with kResourceExhausted.
   MarchingOptions marching;
 };
 
 // Errors: kInvalidArgument (bad params, no seeds, more than 2^19 finest cells per axis),
 // kResourceExhausted, kCancelled. `cells_visited` counts leaves, `surface_cells` surface leaves.
-absl::StatusOr<IsosurfaceResult> ExtractIsosurfaceJ1a(const ImplicitFunction& field,
-                                                      std::span<const Vec3f> seeds,
-                                                      const J1aIsosurfaceParams& params,
-                                                      JobContext& ctx);
+absl::StatusOr<IsosurfaceResult> ExtractIsosurfaceJ1a(const ImplicitFunction& field, std::span<const Vec3f> seeds,
+                                                      const J1aIsosurfaceParams& params, JobContext& ctx);
 
 // The band of `level` cells that hold a point or touch one that does: `occupied` holds the keys
 // of the cells with points, `ancestors` every proper ancestor of a band cell (the cells to split
@@ -47,11 +44,8 @@ SurfaceBand MarkSurfaceBand(const AdaptiveOctree& tree, std::span<const Vec3f> p
 // Extraction on a caller-built, 2:1-balanced tree: follows the surface from the `start` leaves
 // across every leaf that touches a crossed one. Errors: kInvalidArgument (no start leaves),
 // kResourceExhausted (more than `max_leaves` visited), kCancelled.
-absl::StatusOr<IsosurfaceResult> ExtractIsosurfaceOnTree(const ImplicitFunction& field,
-                                                         const AdaptiveOctree& tree,
-                                                         std::span<const OctreeCell> start,
-                                                         int64_t max_leaves,
-                                                         const MarchingOptions& marching,
-                                                         JobContext& ctx);
+absl::StatusOr<IsosurfaceResult> ExtractIsosurfaceOnTree(const ImplicitFunction& field, const AdaptiveOctree& tree,
+                                                         std::span<const OctreeCell> start, int64_t max_leaves,
+                                                         const MarchingOptions& marching, JobContext& ctx);
 
 }  // namespace lsqsurf::extract

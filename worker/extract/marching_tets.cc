@@ -4,7 +4,6 @@
 #include <cmath>
 
 #include "absl/container/flat_hash_set.h"
-
 #include "worker/core/parallel.h"
 #include "worker/core/status.h"
 
@@ -37,9 +36,8 @@ class FaceClusters {
         sides.push_back({std::min(a, b), std::max(a, b), f});
       }
     }
-    std::sort(sides.begin(), sides.end(), [](const Side& x, const Side& y) {
-      return x.lo != y.lo ? x.lo < y.lo : x.hi < y.hi;
-    });
+    std::sort(sides.begin(), sides.end(),
+              [](const Side& x, const Side& y) { return x.lo != y.lo ? x.lo < y.lo : x.hi < y.hi; });
     auto same = [&](size_t i, size_t j) { return sides[i].lo == sides[j].lo && sides[i].hi == sides[j].hi; };
     for (size_t i = 0; i < sides.size(); ++i) {
       const bool same_as_previous = i > 0 && same(i, i - 1);
@@ -75,8 +73,7 @@ uint64_t EdgeKey(uint32_t a, uint32_t b) { return (uint64_t{std::min(a, b)} << 3
 // and dropping them would open the surface. Large clusters (holes in the data, ghost sheets) and
 // clusters that trusted surface does not surround (isolated bubbles and fragments) stay
 // untrusted. Returns the triangles restored.
-int64_t RestoreSmallPatches(const std::vector<Triangle>& faces, std::vector<char>& trusted,
-                            int max_size) {
+int64_t RestoreSmallPatches(const std::vector<Triangle>& faces, std::vector<char>& trusted, int max_size) {
   if (max_size <= 0) return 0;
   absl::flat_hash_map<uint64_t, uint32_t> border;  // Sides used once among the untrusted: edge → face.
   FaceClusters clusters(
@@ -149,80 +146,74 @@ int64_t DropCutOffSpecks(const std::vector<Triangle>& faces, std::vector<char>& 
   return dropped;
 }
 
-}  // namespace
-
-absl::StatusOr<IsosurfaceResult> MarchTetrahedra(
-    const ImplicitFunction& field,
-    const std::function<void(const std::function<void(const TetCorners&)>&)>& for_each_tet,
-    const absl::flat_hash_map<CornerKey, FieldValue>& values,
-    const std::function<Vec3d(CornerKey)>& position, const MarchingOptions& params,
-    const IsosurfaceStats& tracking, JobContext& ctx) {
-  IsosurfaceResult result;
-  result.stats = tracking;
-  IsosurfaceStats& stats = result.stats;
-  // Each polygon is a list of crossing indices, oriented so that its normal points from F < 0
-  // to F >= 0 (decided on the corner positions; the tetrahedra are never flat).
+// The polygons of the crossed tetrahedra over shared edge crossings. Each polygon is a list of
+// crossing indices, oriented so that its normal points from F < 0 to F >= 0 (decided on the
+// corner positions; the tetrahedra are never flat).
+struct PolygonSoup {
   absl::flat_hash_map<std::pair<CornerKey, CornerKey>, uint32_t> edge_index;
   std::vector<Crossing> crossings;
   std::vector<std::array<uint32_t, 4>> polygons;  // [3] == UINT32_MAX for a triangle.
-  for_each_tet([&](const TetCorners& tet) {
-    ++stats.tetrahedra;
+
+  void Add(const TetCorners& tet, const absl::flat_hash_map<CornerKey, FieldValue>& values,
+           const std::function<Vec3d(CornerKey)>& position) {
     std::array<FieldValue, 4> corner;
     std::array<int, 4> inside{}, outside{};
     int n_in = 0, n_out = 0;
-    for (int i = 0; i < 4; ++i) {
-      corner[static_cast<size_t>(i)] = values.at(tet[static_cast<size_t>(i)]);
-      const double v = corner[static_cast<size_t>(i)].value;
+    for (size_t i = 0; i < 4; ++i) {
+      corner[i] = values.at(tet[i]);
+      const double v = corner[i].value;
       if (std::isnan(v)) return;
-      if (v < 0) inside[static_cast<size_t>(n_in++)] = i;
-      else outside[static_cast<size_t>(n_out++)] = i;
+      if (v < 0)
+        inside[static_cast<size_t>(n_in++)] = static_cast<int>(i);
+      else
+        outside[static_cast<size_t>(n_out++)] = static_cast<int>(i);
     }
     if (n_in == 0 || n_out == 0) return;
     std::array<Vec3d, 4> p;
-    for (int i = 0; i < 4; ++i) p[static_cast<size_t>(i)] = position(tet[static_cast<size_t>(i)]);
+    for (size_t i = 0; i < 4; ++i) p[i] = position(tet[i]);
+    auto at = [](auto& array, int i) -> auto& { return array[static_cast<size_t>(i)]; };
     auto edge = [&](int a, int b) {  // a inside, b outside
-      const CornerKey ka = tet[static_cast<size_t>(a)], kb = tet[static_cast<size_t>(b)];
+      const CornerKey ka = at(tet, a), kb = at(tet, b);
       auto [it, inserted] = edge_index.try_emplace(std::minmax(ka, kb), static_cast<uint32_t>(crossings.size()));
-      if (inserted) {
-        crossings.push_back({ka, kb, corner[static_cast<size_t>(a)].value, corner[static_cast<size_t>(b)].value});
-      }
+      if (inserted) crossings.push_back({ka, kb, at(corner, a).value, at(corner, b).value});
       return it->second;
     };
-    auto mid = [&](int a, int b) { return Vec3d(0.5 * (p[static_cast<size_t>(a)] + p[static_cast<size_t>(b)])); };
+    auto mid = [&](std::pair<int, int> e) { return Vec3d(0.5 * (at(p, e.first) + at(p, e.second))); };
     Vec3d in_c = Vec3d::Zero(), out_c = Vec3d::Zero();
-    for (int i = 0; i < n_in; ++i) in_c += p[static_cast<size_t>(inside[static_cast<size_t>(i)])] / n_in;
-    for (int i = 0; i < n_out; ++i) out_c += p[static_cast<size_t>(outside[static_cast<size_t>(i)])] / n_out;
+    for (int i = 0; i < n_in; ++i) in_c += at(p, at(inside, i)) / n_in;
+    for (int i = 0; i < n_out; ++i) out_c += at(p, at(outside, i)) / n_out;
     const Vec3d outward = out_c - in_c;
     std::array<std::pair<int, int>, 4> ring{};
     int ring_size = 0;
     if (n_in == 1) {
-      for (int i = 0; i < 3; ++i) ring[static_cast<size_t>(ring_size++)] = {inside[0], outside[static_cast<size_t>(i)]};
+      for (int i = 0; i < 3; ++i) at(ring, ring_size++) = {inside[0], at(outside, i)};
     } else if (n_out == 1) {
-      for (int i = 0; i < 3; ++i) ring[static_cast<size_t>(ring_size++)] = {inside[static_cast<size_t>(i)], outside[0]};
+      for (int i = 0; i < 3; ++i) at(ring, ring_size++) = {at(inside, i), outside[0]};
     } else {  // Two and two: the crossings form the cycle ac, ad, bd, bc.
       const int a = inside[0], b = inside[1], c = outside[0], d = outside[1];
       ring = {{{a, c}, {a, d}, {b, d}, {b, c}}};
       ring_size = 4;
     }
-    const Vec3d p0 = mid(ring[0].first, ring[0].second);
-    const Vec3d p1 = mid(ring[1].first, ring[1].second);
-    const Vec3d p2 = mid(ring[2].first, ring[2].second);
+    const Vec3d p0 = mid(ring[0]), p1 = mid(ring[1]), p2 = mid(ring[2]);
     const bool flip = (p1 - p0).cross(p2 - p0).dot(outward) < 0;
     std::array<uint32_t, 4> poly{UINT32_MAX, UINT32_MAX, UINT32_MAX, UINT32_MAX};
     for (int i = 0; i < ring_size; ++i) {
-      const int j = flip ? ring_size - 1 - i : i;
-      poly[static_cast<size_t>(i)] = edge(ring[static_cast<size_t>(j)].first, ring[static_cast<size_t>(j)].second);
+      const auto& e = at(ring, flip ? ring_size - 1 - i : i);
+      at(poly, i) = edge(e.first, e.second);
     }
     polygons.push_back(poly);
-  });
-  LSQSURF_RETURN_IF_ERROR(ctx.CheckCancelled());
-  // Root refinement on the true F along each crossing edge (Illinois variant of regula falsi:
-  // superlinear, and it never leaves the bracket).
-  TriangleMesh& mesh = result.mesh;
+  }
+};
+
+// Root refinement on the true F along each crossing edge (Illinois variant of regula falsi:
+// superlinear, and it never leaves the bracket). `valid` marks the roots where F is defined.
+absl::Status RefineCrossings(const ImplicitFunction& field, const std::vector<Crossing>& crossings,
+                             const std::function<Vec3d(CornerKey)>& position, const MarchingOptions& params,
+                             TriangleMesh& mesh, std::vector<char>& valid, JobContext& ctx) {
   mesh.vertices.resize(crossings.size());
   if (params.vertex_normals) mesh.normals.resize(crossings.size());
-  std::vector<char> valid(crossings.size(), 0);
-  LSQSURF_RETURN_IF_ERROR(core::ParallelFor(
+  valid.assign(crossings.size(), 0);
+  return core::ParallelFor(
       crossings.size(), 256,
       [&](size_t begin, size_t end) {
         for (size_t i = begin; i < end; ++i) {
@@ -240,24 +231,26 @@ absl::StatusOr<IsosurfaceResult> MarchTetrahedra(
           valid[i] = g.defined;
           if (params.vertex_normals) {
             const double len = g.gradient.norm();
-            mesh.normals[i] = len > 0 ? Vec3f((g.gradient / len).cast<float>())
-                                      : Vec3f((b - a).normalized().cast<float>());
+            mesh.normals[i] =
+                len > 0 ? Vec3f((g.gradient / len).cast<float>()) : Vec3f((b - a).normalized().cast<float>());
           }
         }
       },
-      &ctx, [&](double f) { ctx.ReportProgress("", 0.9 * f); }));
+      &ctx, [&](double f) { ctx.ReportProgress("", 0.9 * f); });
+}
 
+// Triangles of the polygons (quads split along the shorter diagonal), each marked trusted when
+// every vertex is valid.
+void Triangulate(const std::vector<std::array<uint32_t, 4>>& polygons, const std::vector<char>& valid,
+                 TriangleMesh& mesh, std::vector<char>& face_trusted, IsosurfaceStats& stats) {
   mesh.faces.reserve(polygons.size() * 3 / 2);
-  std::vector<char> face_trusted;
   face_trusted.reserve(polygons.size() * 3 / 2);
   for (const auto& p : polygons) {
-    const bool trusted = valid[p[0]] && valid[p[1]] && valid[p[2]] &&
-                         (p[3] == UINT32_MAX || valid[p[3]]);
+    const bool trusted = valid[p[0]] && valid[p[1]] && valid[p[2]] && (p[3] == UINT32_MAX || valid[p[3]]);
     const size_t before = mesh.faces.size();
     if (p[3] == UINT32_MAX) {
       mesh.faces.push_back({p[0], p[1], p[2]});
     } else {
-      // Split the quad along its shorter diagonal for better-shaped triangles.
       const float d02 = (mesh.vertices[p[0]] - mesh.vertices[p[2]]).squaredNorm();
       const float d13 = (mesh.vertices[p[1]] - mesh.vertices[p[3]]).squaredNorm();
       if (d02 <= d13) {
@@ -271,19 +264,15 @@ absl::StatusOr<IsosurfaceResult> MarchTetrahedra(
     face_trusted.resize(mesh.faces.size(), trusted);
     if (!trusted) stats.rejected_polygons += static_cast<int64_t>(mesh.faces.size() - before);
   }
-  stats.restored_triangles = RestoreSmallPatches(mesh.faces, face_trusted, params.max_patch_triangles);
-  stats.rejected_polygons -= stats.restored_triangles;
-  stats.rejected_polygons +=
-      DropCutOffSpecks(mesh.faces, face_trusted, mesh.vertices.size(), params.max_patch_triangles);
-  {
-    size_t kept_faces = 0;
-    for (size_t f = 0; f < mesh.faces.size(); ++f) {
-      if (face_trusted[f]) mesh.faces[kept_faces++] = mesh.faces[f];
-    }
-    mesh.faces.resize(kept_faces);
-  }
+}
 
-  // Drop the vertices that only rejected polygons used.
+// Keeps the trusted faces and the vertices they use, renumbered in first-use order.
+void KeepTrusted(const std::vector<char>& face_trusted, bool normals, TriangleMesh& mesh) {
+  size_t kept_faces = 0;
+  for (size_t f = 0; f < mesh.faces.size(); ++f) {
+    if (face_trusted[f]) mesh.faces[kept_faces++] = mesh.faces[f];
+  }
+  mesh.faces.resize(kept_faces);
   std::vector<uint32_t> remap(mesh.vertices.size(), UINT32_MAX);
   std::vector<Vec3f> kept_vertices, kept_normals;
   kept_vertices.reserve(mesh.vertices.size());
@@ -292,15 +281,42 @@ absl::StatusOr<IsosurfaceResult> MarchTetrahedra(
       if (remap[v] == UINT32_MAX) {
         remap[v] = static_cast<uint32_t>(kept_vertices.size());
         kept_vertices.push_back(mesh.vertices[v]);
-        if (params.vertex_normals) kept_normals.push_back(mesh.normals[v]);
+        if (normals) kept_normals.push_back(mesh.normals[v]);
       }
       v = remap[v];
     }
   }
   mesh.vertices = std::move(kept_vertices);
   mesh.normals = std::move(kept_normals);
-  const auto kept = mesh.vertices.size();
-  stats.crossings = static_cast<int64_t>(kept);
+}
+
+}  // namespace
+
+absl::StatusOr<IsosurfaceResult> MarchTetrahedra(
+    const ImplicitFunction& field,
+    const std::function<void(const std::function<void(const TetCorners&)>&)>& for_each_tet,
+    const absl::flat_hash_map<CornerKey, FieldValue>& values, const std::function<Vec3d(CornerKey)>& position,
+    const MarchingOptions& params, const IsosurfaceStats& tracking, JobContext& ctx) {
+  IsosurfaceResult result;
+  result.stats = tracking;
+  IsosurfaceStats& stats = result.stats;
+  PolygonSoup soup;
+  for_each_tet([&](const TetCorners& tet) {
+    ++stats.tetrahedra;
+    soup.Add(tet, values, position);
+  });
+  LSQSURF_RETURN_IF_ERROR(ctx.CheckCancelled());
+  TriangleMesh& mesh = result.mesh;
+  std::vector<char> valid;
+  LSQSURF_RETURN_IF_ERROR(RefineCrossings(field, soup.crossings, position, params, mesh, valid, ctx));
+  std::vector<char> face_trusted;
+  Triangulate(soup.polygons, valid, mesh, face_trusted, stats);
+  stats.restored_triangles = RestoreSmallPatches(mesh.faces, face_trusted, params.max_patch_triangles);
+  stats.rejected_polygons -= stats.restored_triangles;
+  stats.rejected_polygons +=
+      DropCutOffSpecks(mesh.faces, face_trusted, mesh.vertices.size(), params.max_patch_triangles);
+  KeepTrusted(face_trusted, params.vertex_normals, mesh);
+  stats.crossings = static_cast<int64_t>(mesh.vertices.size());
   ctx.ReportProgress("", 1.0);
   return result;
 }

@@ -16,8 +16,8 @@
 #include "absl/container/flat_hash_map.h"
 #include "absl/status/statusor.h"
 #include "worker/core/implicit_function.h"
-#include "worker/extract/isosurface.h"
 #include "worker/core/job_context.h"
+#include "worker/extract/isosurface.h"
 
 namespace lsqsurf::extract::internal {
 
@@ -31,8 +31,7 @@ using TetCorners = std::array<CornerKey, 4>;
 absl::StatusOr<IsosurfaceResult> MarchTetrahedra(
     const ImplicitFunction& field,
     const std::function<void(const std::function<void(const TetCorners&)>&)>& for_each_tet,
-    const absl::flat_hash_map<CornerKey, FieldValue>& values,
-    const std::function<Vec3d(CornerKey)>& position, const MarchingOptions& params,
-    const IsosurfaceStats& tracking, JobContext& ctx);
+    const absl::flat_hash_map<CornerKey, FieldValue>& values, const std::function<Vec3d(CornerKey)>& position,
+    const MarchingOptions& params, const IsosurfaceStats& tracking, JobContext& ctx);
 
 }  // namespace lsqsurf::extract::internal

@@ -10,12 +10,12 @@
 
 #include "absl/container/flat_hash_map.h"
 #include "worker/core/implicit_function.h"
-#include "worker/extract/isosurface.h"
-#include "worker/extract/j1a.h"
 #include "worker/core/kd_tree.h"
 #include "worker/core/parallel.h"
 #include "worker/core/status.h"
 #include "worker/core/strings.h"
+#include "worker/extract/isosurface.h"
+#include "worker/extract/j1a.h"
 #include "worker/mls/algebraic_mls.h"
 
 namespace lsqsurf::front {
@@ -82,7 +82,8 @@ class GridField final : public VelocityField {
       }
       if (w == 0) continue;
       v += w * values_[static_cast<size_t>(i[0]) +
-                       static_cast<size_t>(n_[0]) * (static_cast<size_t>(i[1]) + static_cast<size_t>(n_[1]) * static_cast<size_t>(i[2]))];
+                       static_cast<size_t>(n_[0]) *
+                           (static_cast<size_t>(i[1]) + static_cast<size_t>(n_[1]) * static_cast<size_t>(i[2]))];
     }
     return v;
   }
@@ -150,11 +151,11 @@ struct Crossing {
 struct ZCrossing {
   uint64_t column;  // i | j << 32.
   double z;
-  bool entering;    // F goes from + (outside) to − (inside) along +z.
+  bool entering;  // F goes from + (outside) to − (inside) along +z.
 };
 
 struct GridlineResult {
-  std::vector<Crossing> crossings;  // In node order; x, y, z edges of each node.
+  std::vector<Crossing> crossings;     // In node order; x, y, z edges of each node.
   std::vector<ZCrossing> z_crossings;  // Sorted by column, then z.
 };
 
@@ -170,34 +171,41 @@ absl::StatusOr<GridlineResult> SampleGridlines(const core::ImplicitFunction& fie
     const auto [i, j, k] = extract::UnpackVertex(key);
     return Vec3d(i * h, j * h, k * h);
   };
-  LSQSURF_RETURN_IF_ERROR(core::ParallelFor(nodes.size(), 256, [&](size_t b, size_t e) {
-    for (size_t n = b; n < e; ++n) values[n] = field.Value(position(nodes[n]));
-  }, &ctx));
+  LSQSURF_RETURN_IF_ERROR(core::ParallelFor(
+      nodes.size(), 256,
+      [&](size_t b, size_t e) {
+        for (size_t n = b; n < e; ++n) values[n] = field.Value(position(nodes[n]));
+      },
+      &ctx));
   constexpr uint32_t kNone = std::numeric_limits<uint32_t>::max();
   std::vector<std::array<Crossing, 3>> found(nodes.size());
   std::vector<std::array<char, 3>> has(nodes.size(), {0, 0, 0});
-  LSQSURF_RETURN_IF_ERROR(core::ParallelFor(nodes.size(), 256, [&](size_t b, size_t e) {
-    for (size_t n = b; n < e; ++n) {
-      const core::FieldValue& va = values[n];
-      if (!va.defined || std::isnan(va.value)) continue;
-      const auto [i, j, k] = extract::UnpackVertex(nodes[n]);
-      for (int axis = z_only ? 2 : 0; axis < 3; ++axis) {
-        const NodeKey next = Key(i + (axis == 0), j + (axis == 1), k + (axis == 2));
-        const auto it = index.find(next);
-        const uint32_t m = it == index.end() ? kNone : it->second;
-        if (m == kNone) continue;
-        const core::FieldValue& vb = values[m];
-        if (!vb.defined || std::isnan(vb.value) || (va.value < 0) == (vb.value < 0)) continue;
-        const Vec3d from = position(nodes[n]), to = position(next);
-        const Vec3d root = from + core::RefineRootOnSegment(field, from, to, va.value, vb.value, kRootSteps) * (to - from);
-        const core::FieldGradient g = field.ValueAndGradient(root);
-        const double length = g.gradient.norm();
-        if (!(length > 0)) continue;
-        found[n][static_cast<size_t>(axis)] = {root.cast<float>(), (g.gradient / length).cast<float>()};
-        has[n][static_cast<size_t>(axis)] = 1;
-      }
-    }
-  }, &ctx));
+  LSQSURF_RETURN_IF_ERROR(core::ParallelFor(
+      nodes.size(), 256,
+      [&](size_t b, size_t e) {
+        for (size_t n = b; n < e; ++n) {
+          const core::FieldValue& va = values[n];
+          if (!va.defined || std::isnan(va.value)) continue;
+          const auto [i, j, k] = extract::UnpackVertex(nodes[n]);
+          for (int axis = z_only ? 2 : 0; axis < 3; ++axis) {
+            const NodeKey next = Key(i + (axis == 0), j + (axis == 1), k + (axis == 2));
+            const auto it = index.find(next);
+            const uint32_t m = it == index.end() ? kNone : it->second;
+            if (m == kNone) continue;
+            const core::FieldValue& vb = values[m];
+            if (!vb.defined || std::isnan(vb.value) || (va.value < 0) == (vb.value < 0)) continue;
+            const Vec3d from = position(nodes[n]), to = position(next);
+            const Vec3d root =
+                from + core::RefineRootOnSegment(field, from, to, va.value, vb.value, kRootSteps) * (to - from);
+            const core::FieldGradient g = field.ValueAndGradient(root);
+            const double length = g.gradient.norm();
+            if (!(length > 0)) continue;
+            found[n][static_cast<size_t>(axis)] = {root.cast<float>(), (g.gradient / length).cast<float>()};
+            has[n][static_cast<size_t>(axis)] = 1;
+          }
+        }
+      },
+      &ctx));
   GridlineResult out;
   for (size_t n = 0; n < nodes.size(); ++n) {
     for (int axis = 0; axis < 3; ++axis) {
@@ -303,7 +311,9 @@ class SpacingGrid {
 
  private:
   uint64_t Bucket(const Vec3f& p, int dx, int dy, int dz) const {
-    auto c = [&](int a, int d) { return static_cast<uint64_t>(static_cast<int64_t>(std::floor(p[a] / cell_)) + d + (1 << 20)); };
+    auto c = [&](int a, int d) {
+      return static_cast<uint64_t>(static_cast<int64_t>(std::floor(p[a] / cell_)) + d + (1 << 20));
+    };
     return c(0, dx) | (c(1, dy) << 21) | (c(2, dz) << 42);
   }
   double cell_;
@@ -326,8 +336,7 @@ Front Thin(const std::vector<Crossing>& crossings, double h) {
 }
 
 absl::StatusOr<std::unique_ptr<mls::AlgebraicMlsFunction>> FrontFunction(const Front& front, double h,
-                                                                        double support_factor,
-                                                                        core::JobContext& ctx) {
+                                                                         double support_factor, core::JobContext& ctx) {
   core::PointCloud cloud;
   cloud.positions = front.points;
   cloud.normals = front.normals;
@@ -385,35 +394,38 @@ absl::Status FillGaps(Markers& m, int step, double h, double gap, double support
   for (size_t i = 0; i < m.front.points.size(); ++i) grid.Add(m.front.points[i], m.front.normals[i]);
   const size_t n = m.front.points.size();
   std::vector<std::vector<Crossing>> spots(n);
-  LSQSURF_RETURN_IF_ERROR(core::ParallelFor(n, 256, [&](size_t b, size_t e) {
-    std::vector<core::Neighbor> near;
-    for (size_t i = b; i < e; ++i) {
-      const Vec3f& pi = m.front.points[i];
-      const Vec3f& ni = m.front.normals[i];
-      tree.Radius(pi, static_cast<float>(reach), near);
-      for (const core::Neighbor& q : near) {
-        if (q.index <= i || q.distance2 < 4 * gap * gap) continue;
-        const Vec3f& nj = m.front.normals[q.index];
-        if (ni.dot(nj) < kPairCosine) continue;
-        const Vec3d mid = 0.5 * (pi + m.front.points[q.index]).cast<double>();
-        const Vec3d facing = (ni + nj).cast<double>().normalized();
-        if (grid.HasNear(mid.cast<float>(), facing.cast<float>(), gap)) continue;
-        Vec3d x = mid;
-        core::FieldGradient g;
-        bool ok = true;
-        for (int it = 0; it <= kProjections && ok; ++it) {
-          g = (*field)->ValueAndGradientFacing(x, facing, 0.0);
-          const double g2 = g.gradient.squaredNorm();
-          ok = g.defined && g2 > 0;
-          if (ok && it < kProjections) x -= g.value / g2 * g.gradient;
+  LSQSURF_RETURN_IF_ERROR(core::ParallelFor(
+      n, 256,
+      [&](size_t b, size_t e) {
+        std::vector<core::Neighbor> near;
+        for (size_t i = b; i < e; ++i) {
+          const Vec3f& pi = m.front.points[i];
+          const Vec3f& ni = m.front.normals[i];
+          tree.Radius(pi, static_cast<float>(reach), near);
+          for (const core::Neighbor& q : near) {
+            if (q.index <= i || q.distance2 < 4 * gap * gap) continue;
+            const Vec3f& nj = m.front.normals[q.index];
+            if (ni.dot(nj) < kPairCosine) continue;
+            const Vec3d mid = 0.5 * (pi + m.front.points[q.index]).cast<double>();
+            const Vec3d facing = (ni + nj).cast<double>().normalized();
+            if (grid.HasNear(mid.cast<float>(), facing.cast<float>(), gap)) continue;
+            Vec3d x = mid;
+            core::FieldGradient g;
+            bool ok = true;
+            for (int it = 0; it <= kProjections && ok; ++it) {
+              g = (*field)->ValueAndGradientFacing(x, facing, 0.0);
+              const double g2 = g.gradient.squaredNorm();
+              ok = g.defined && g2 > 0;
+              if (ok && it < kProjections) x -= g.value / g2 * g.gradient;
+            }
+            if (!ok || !x.allFinite() || std::abs(g.value) > 1e-3 * h || (x - mid).norm() > 0.5 * h) continue;
+            const Vec3d fitted = g.gradient.normalized();
+            if (fitted.dot(facing) < kPairCosine) continue;  // The fit turned away from its own side.
+            spots[i].push_back({x.cast<float>(), fitted.cast<float>()});
+          }
         }
-        if (!ok || !x.allFinite() || std::abs(g.value) > 1e-3 * h || (x - mid).norm() > 0.5 * h) continue;
-        const Vec3d fitted = g.gradient.normalized();
-        if (fitted.dot(facing) < kPairCosine) continue;  // The fit turned away from its own side.
-        spots[i].push_back({x.cast<float>(), fitted.cast<float>()});
-      }
-    }
-  }, &ctx));
+      },
+      &ctx));
   for (const std::vector<Crossing>& around : spots) {
     for (const Crossing& c : around) {
       if (grid.HasNear(c.point, c.normal, gap)) continue;
@@ -429,7 +441,7 @@ absl::Status FillGaps(Markers& m, int step, double h, double gap, double support
 // The z-gridline crossings, on a grid of spacing `grid`, of the RAMLS function (spacing h) of
 // the front: what the volume and the shape error are measured from.
 absl::StatusOr<std::vector<ZCrossing>> ZCrossings(const Front& front, double h, double grid, double support_factor,
-                                                 std::vector<bool>& marks, core::JobContext& ctx) {
+                                                  std::vector<bool>& marks, core::JobContext& ctx) {
   auto field = FrontFunction(front, h, support_factor, ctx);
   if (!field.ok()) return field.status();
   auto sampled = SampleGridlines(**field, NodesNear(front.points, grid, marks), grid, true, ctx);
@@ -442,7 +454,8 @@ absl::Status ValidateSpacing(double h) {
     return absl::InvalidArgumentError(core::StrCat("h must be in [1/512, 1/8] (the unit cube's grid), got ", h));
   }
   if (std::abs(1.0 / h - std::round(1.0 / h)) > 1e-6 * (1.0 / h)) {
-    return absl::InvalidArgumentError(core::StrCat("h must divide the unit cube: 1/h must be a whole number, got 1/h = ", 1.0 / h));
+    return absl::InvalidArgumentError(
+        core::StrCat("h must divide the unit cube: 1/h must be a whole number, got 1/h = ", 1.0 / h));
   }
   return absl::OkStatus();
 }
@@ -483,8 +496,8 @@ absl::StatusOr<std::unique_ptr<VelocityField>> GridVelocity(Vec3d origin, Vec3d 
     return absl::InvalidArgumentError("the velocity grid must have 1..256³ nodes");
   }
   if (values.size() != static_cast<size_t>(nx) * static_cast<size_t>(ny) * static_cast<size_t>(nz)) {
-    return absl::InvalidArgumentError(core::StrCat("the velocity grid has ", values.size(), " vectors, expected nx·ny·nz = ",
-                                                   static_cast<int64_t>(nx) * ny * nz));
+    return absl::InvalidArgumentError(core::StrCat(
+        "the velocity grid has ", values.size(), " vectors, expected nx·ny·nz = ", static_cast<int64_t>(nx) * ny * nz));
   }
   for (size_t i = 0; i < values.size(); ++i) {
     if (!values[i].allFinite()) return absl::InvalidArgumentError(core::StrCat("velocity ", i, " is not finite"));
@@ -495,7 +508,8 @@ absl::StatusOr<std::unique_ptr<VelocityField>> GridVelocity(Vec3d origin, Vec3d 
 const core::ParamTable<TrackingParams>& TrackingParamTable() {
   static const auto* table = [] {
     auto* t = new core::ParamTable<TrackingParams>();
-    t->Real<&TrackingParams::h>("h", 1.0 / 512, 1.0 / 8, "unit-cube lengths", "background grid spacing; 1/h must be whole")
+    t->Real<&TrackingParams::h>("h", 1.0 / 512, 1.0 / 8, "unit-cube lengths",
+                                "background grid spacing; 1/h must be whole")
         .Real<&TrackingParams::dt>("dt", 1e-6, 1000, "time units", "time step")
         .Integer<&TrackingParams::steps>("steps", 1, 100000, "", "number of steps")
         .Integer<&TrackingParams::output_stride>("stride", 1, 100000, "steps",
@@ -521,8 +535,8 @@ const core::ParamTable<TrackingParams>& TrackingParamTable() {
         .AddRule([](const TrackingParams& p) {
           return p.marker_gap > p.marker_spacing
                      ? absl::OkStatus()
-                     : absl::InvalidArgumentError(core::StrCat("marker_gap=", p.marker_gap,
-                                                               " must exceed marker_spacing=", p.marker_spacing));
+                     : absl::InvalidArgumentError(
+                           core::StrCat("marker_gap=", p.marker_gap, " must exceed marker_spacing=", p.marker_spacing));
         });
     return t;
   }();
@@ -587,8 +601,9 @@ absl::StatusOr<double> ShapeError(const Front& front, InitialShape exact, double
   // Inside intervals of the front per column, then of the exact shape (a sphere's chord, or
   // nothing across the slot), and the length of their symmetric difference.
   absl::flat_hash_map<uint64_t, std::vector<std::pair<double, double>>> front_intervals;
-  ForEachInsideInterval(*crossings,
-                        [&](uint64_t column, double lo, double hi) { front_intervals[column].push_back({lo, hi}); });
+  ForEachInsideInterval(*crossings, [&](uint64_t column, double lo, double hi) {
+    front_intervals[column].push_back({lo, hi});
+  });
   const Vec3d centre = ShapeCentre(exact);
   auto exact_interval = [&](double x, double y) -> std::vector<std::pair<double, double>> {
     const double r2 = kRadius * kRadius - (x - centre.x()) * (x - centre.x()) - (y - centre.y()) * (y - centre.y());
@@ -607,7 +622,10 @@ absl::StatusOr<double> ShapeError(const Front& front, InitialShape exact, double
     for (auto [z, e] : events) {
       if ((in_a > 0) != (in_b > 0)) length += z - last;
       last = z;
-      if (std::abs(e) == 1) in_a += e; else in_b += e / 2;
+      if (std::abs(e) == 1)
+        in_a += e;
+      else
+        in_b += e / 2;
     }
     return length;
   };
@@ -619,7 +637,8 @@ absl::StatusOr<double> ShapeError(const Front& front, InitialShape exact, double
       const auto it = front_intervals.find(column);
       auto ex = exact_interval(i * fine, j * fine);
       if (it == front_intervals.end() && ex.empty()) continue;
-      e1 += symmetric_difference(it == front_intervals.end() ? std::vector<std::pair<double, double>>{} : it->second, ex);
+      e1 +=
+          symmetric_difference(it == front_intervals.end() ? std::vector<std::pair<double, double>>{} : it->second, ex);
     }
   }
   return e1 * fine * fine;
@@ -639,7 +658,9 @@ absl::Status Track(const Front& initial, const VelocityField& velocity, const Tr
   auto z0 = ZCrossings(front, h, h, params.support_factor, marks, ctx);
   if (!z0.ok()) return z0.status();
   const double v0 = VolumeOf(*z0, h);
-  if (!(v0 > 0)) return absl::InvalidArgumentError("the initial front encloses no volume on the grid; is it closed and oriented outward?");
+  if (!(v0 > 0))
+    return absl::InvalidArgumentError(
+        "the initial front encloses no volume on the grid; is it closed and oriented outward?");
   FrameStats stats;
   stats.points = front.points.size();
   stats.volume = v0;
@@ -649,20 +670,23 @@ absl::Status Track(const Front& initial, const VelocityField& velocity, const Tr
     const double t = (step - 1) * dt;
     // 1. Advection (RK4) and normal transport.
     std::atomic<bool> finite{true};
-    LSQSURF_RETURN_IF_ERROR(core::ParallelFor(front.points.size(), 512, [&](size_t b, size_t e) {
-      for (size_t i = b; i < e; ++i) {
-        const Vec3d p = front.points[i].cast<double>();
-        const Vec3d moved = Rk4Step(velocity, p, t, dt);
-        const Vec3d n = front.normals[i].cast<double>();
-        const Vec3d turned = n - dt * Jacobian(velocity, 0.5 * (p + moved), t + 0.5 * dt).transpose() * n;
-        if (!moved.allFinite() || !turned.allFinite() || !(turned.norm() > 0)) {
-          finite = false;
-          continue;
-        }
-        front.points[i] = moved.cast<float>();
-        front.normals[i] = turned.normalized().cast<float>();
-      }
-    }, &ctx));
+    LSQSURF_RETURN_IF_ERROR(core::ParallelFor(
+        front.points.size(), 512,
+        [&](size_t b, size_t e) {
+          for (size_t i = b; i < e; ++i) {
+            const Vec3d p = front.points[i].cast<double>();
+            const Vec3d moved = Rk4Step(velocity, p, t, dt);
+            const Vec3d n = front.normals[i].cast<double>();
+            const Vec3d turned = n - dt * Jacobian(velocity, 0.5 * (p + moved), t + 0.5 * dt).transpose() * n;
+            if (!moved.allFinite() || !turned.allFinite() || !(turned.norm() > 0)) {
+              finite = false;
+              continue;
+            }
+            front.points[i] = moved.cast<float>();
+            front.normals[i] = turned.normalized().cast<float>();
+          }
+        },
+        &ctx));
     if (!finite) {
       return absl::InvalidArgumentError(core::StrCat("the velocity field gave a non-finite value at step ", step));
     }
@@ -682,12 +706,13 @@ absl::Status Track(const Front& initial, const VelocityField& velocity, const Tr
       LSQSURF_RETURN_IF_ERROR(FillGaps(markers, step, h, params.marker_gap * h, params.support_factor, ctx));
     }
     if (front.points.size() < 4) {
-      return absl::FailedPreconditionError(core::StrCat("the front vanished at step ", step,
-                                                        ": it became thinner than the grid spacing h"));
+      return absl::FailedPreconditionError(
+          core::StrCat("the front vanished at step ", step, ": it became thinner than the grid spacing h"));
     }
     if (front.points.size() > params.max_points) {
-      return absl::ResourceExhaustedError(core::StrCat("the front grew to ", front.points.size(), " points at step ", step,
-                                                       " (limit ", params.max_points, "); a finer h resolves thin sheets"));
+      return absl::ResourceExhaustedError(core::StrCat("the front grew to ", front.points.size(), " points at step ",
+                                                       step, " (limit ", params.max_points,
+                                                       "); a finer h resolves thin sheets"));
     }
     ctx.ReportProgress("tracking the front", static_cast<double>(step) / params.steps);
     if (step % params.output_stride == 0 || step == params.steps) {

@@ -83,16 +83,16 @@ enum class Resampling {
 };
 
 struct TrackingParams {
-  double h = 1.0 / 128;        // Background grid spacing in the unit cube [0, 1]³, 1/512..1/8.
-  double dt = 1.0;             // Time step, > 0.
-  int steps = 1;               // Number of steps, 1..100000.
-  int output_stride = 1;       // Report every this many steps (and the last), ≥ 1.
-  double support_factor = 3.0; // RAMLS support radius in units of h (the seed's 3).
+  double h = 1.0 / 128;           // Background grid spacing in the unit cube [0, 1]³, 1/512..1/8.
+  double dt = 1.0;                // Time step, > 0.
+  int steps = 1;                  // Number of steps, 1..100000.
+  int output_stride = 1;          // Report every this many steps (and the last), ≥ 1.
+  double support_factor = 3.0;    // RAMLS support radius in units of h (the seed's 3).
   size_t max_points = 4'000'000;  // A front that grows past this stops with kResourceExhausted.
   Resampling resampling = Resampling::kMarkers;
-  double marker_spacing = 0.5; // kMarkers: the closest two markers facing the same way may come, units of h, 0.1..1.
-  double marker_gap = 0.75;    // kMarkers: the midpoint of two markers with no marker within this gets one,
-                               // units of h, (marker_spacing, 1].
+  double marker_spacing = 0.5;  // kMarkers: the closest two markers facing the same way may come, units of h, 0.1..1.
+  double marker_gap = 0.75;     // kMarkers: the midpoint of two markers with no marker within this gets one,
+                                // units of h, (marker_spacing, 1].
 };
 
 // The one description of every TrackingParams field (output_stride is called "stride");
@@ -104,9 +104,9 @@ struct FrameStats {
   int step = 0;
   double time = 0;
   size_t points = 0;
-  double volume = 0;        // Enclosed volume from the z gridlines.
-  double volume_change = 0; // (V − V₀) / V₀.
-  double seconds = 0;       // Wall time of the steps since the previous frame.
+  double volume = 0;         // Enclosed volume from the z gridlines.
+  double volume_change = 0;  // (V − V₀) / V₀.
+  double seconds = 0;        // Wall time of the steps since the previous frame.
 };
 
 // Samples the exact shape on the gridlines of spacing `h` (the same rule as every step).
@@ -134,7 +134,6 @@ absl::StatusOr<double> ShapeError(const Front& front, InitialShape exact, double
 // velocities), kFailedPrecondition (the front vanished), kResourceExhausted (more than
 // max_points points), kCancelled.
 absl::Status Track(const Front& initial, const VelocityField& velocity, const TrackingParams& params,
-                   core::JobContext& ctx,
-                   const std::function<absl::Status(const FrameStats&, const Front&)>& on_frame);
+                   core::JobContext& ctx, const std::function<absl::Status(const FrameStats&, const Front&)>& on_frame);
 
 }  // namespace lsqsurf::front

@@ -13,8 +13,8 @@ namespace {
 
 constexpr char kNameEntry[] = "name";
 
-int AddFloatAttribute(draco::PointCloud& pc, draco::GeometryAttribute::Type type, int components,
-                      const float* data, size_t count) {
+int AddFloatAttribute(draco::PointCloud& pc, draco::GeometryAttribute::Type type, int components, const float* data,
+                      size_t count) {
   draco::GeometryAttribute ga;
   ga.Init(type, nullptr, static_cast<uint8_t>(components), draco::DT_FLOAT32, false,
           sizeof(float) * static_cast<size_t>(components), 0);
@@ -29,8 +29,7 @@ int AddFloatAttribute(draco::PointCloud& pc, draco::GeometryAttribute::Type type
 
 // Adds positions, normals and named scalars; `normals`/`attributes` may be empty.
 void FillPointCloud(draco::PointCloud& pc, const std::vector<core::Vec3f>& positions,
-                    const std::vector<core::Vec3f>& normals,
-                    const std::vector<core::ScalarAttribute>& attributes) {
+                    const std::vector<core::Vec3f>& normals, const std::vector<core::ScalarAttribute>& attributes) {
   const size_t n = positions.size();
   pc.set_num_points(static_cast<uint32_t>(n));
   AddFloatAttribute(pc, draco::GeometryAttribute::POSITION, 3, positions.front().data(), n);
@@ -60,8 +59,7 @@ absl::Status DracoError(std::string_view what, const draco::Status& s) {
 
 // Reads positions, normals and named scalars of the points (vertices) of a decoded geometry.
 absl::Status ExtractPoints(const draco::PointCloud& pc, std::vector<core::Vec3f>& positions,
-                           std::vector<core::Vec3f>& normals,
-                           std::vector<core::ScalarAttribute>& attributes) {
+                           std::vector<core::Vec3f>& normals, std::vector<core::ScalarAttribute>& attributes) {
   const draco::PointAttribute* pos = pc.GetNamedAttribute(draco::GeometryAttribute::POSITION);
   if (pos == nullptr) return absl::InvalidArgumentError("Draco data has no position attribute");
   if (pos->num_components() != 3) {
@@ -90,8 +88,8 @@ absl::Status ExtractPoints(const draco::PointCloud& pc, std::vector<core::Vec3f>
     if (att->num_components() != 1) continue;  // Only scalar attributes are product data.
     core::ScalarAttribute out;
     out.name = core::StrCat("generic_", g);
-    if (const draco::AttributeMetadata* md = pc.GetAttributeMetadataByAttributeId(
-            pc.GetAttributeIdByUniqueId(att->unique_id()))) {
+    if (const draco::AttributeMetadata* md =
+            pc.GetAttributeMetadataByAttributeId(pc.GetAttributeIdByUniqueId(att->unique_id()))) {
       md->GetEntryString(kNameEntry, &out.name);
     }
     out.values.resize(n);
@@ -116,8 +114,7 @@ absl::Status Validate(const DracoOptions& o) {
   return absl::OkStatus();
 }
 
-absl::StatusOr<std::string> EncodeDracoPointCloud(const core::PointCloud& cloud,
-                                                  const DracoOptions& options) {
+absl::StatusOr<std::string> EncodeDracoPointCloud(const core::PointCloud& cloud, const DracoOptions& options) {
   if (absl::Status s = Validate(options); !s.ok()) return s;
   if (cloud.empty()) return absl::InvalidArgumentError("cannot encode an empty point cloud");
   if (const int64_t bad = core::FindNonFinite(cloud.positions); bad >= 0 && options.position_bits > 0) {
@@ -132,8 +129,7 @@ absl::StatusOr<std::string> EncodeDracoPointCloud(const core::PointCloud& cloud,
   return std::string(buffer.data(), buffer.size());
 }
 
-absl::StatusOr<std::string> EncodeDracoMesh(const core::TriangleMesh& mesh,
-                                            const DracoOptions& options) {
+absl::StatusOr<std::string> EncodeDracoMesh(const core::TriangleMesh& mesh, const DracoOptions& options) {
   if (absl::Status s = Validate(options); !s.ok()) return s;
   if (mesh.vertices.empty() || mesh.faces.empty()) {
     return absl::InvalidArgumentError("cannot encode a mesh without faces");

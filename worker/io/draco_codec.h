@@ -27,10 +27,8 @@ absl::Status Validate(const DracoOptions& options);
 
 // Errors: kInvalidArgument (empty input, bad options, a NaN or infinite coordinate when positions
 // are quantized — quantization would silently corrupt it), kInternal (Draco refused to encode).
-absl::StatusOr<std::string> EncodeDracoPointCloud(const core::PointCloud& cloud,
-                                                  const DracoOptions& options);
-absl::StatusOr<std::string> EncodeDracoMesh(const core::TriangleMesh& mesh,
-                                            const DracoOptions& options);
+absl::StatusOr<std::string> EncodeDracoPointCloud(const core::PointCloud& cloud, const DracoOptions& options);
+absl::StatusOr<std::string> EncodeDracoMesh(const core::TriangleMesh& mesh, const DracoOptions& options);
 
 enum class DracoGeometry { kPointCloud, kTriangleMesh };
 // What the data holds, from its header alone (no decoding). Errors: kInvalidArgument for data

@@ -22,8 +22,8 @@ absl::StatusOr<FileFormat> FormatFromPath(std::string_view path) {
   if (ext == ".obj") return FileFormat::kObj;
   if (ext == ".xyz" || ext == ".xyzn" || ext == ".txt") return FileFormat::kXyz;
   if (ext == ".drc") return FileFormat::kDraco;
-  return absl::InvalidArgumentError(core::StrCat(
-      path, ": unsupported file type '", ext, "' (use .ply, .obj, .xyz, .xyzn or .drc)"));
+  return absl::InvalidArgumentError(
+      core::StrCat(path, ": unsupported file type '", ext, "' (use .ply, .obj, .xyz, .xyzn or .drc)"));
 }
 
 absl::StatusOr<std::string> ReadFileBytes(const std::string& path, uint64_t max_bytes) {
@@ -129,8 +129,7 @@ absl::StatusOr<core::PointCloud> ReadPointCloudFile(const std::string& path) {
   return CloudFromMesh(*std::move(mesh));
 }
 
-absl::Status WriteMeshFile(const std::string& path, const core::TriangleMesh& mesh,
-                           const WriteOptions& options) {
+absl::Status WriteMeshFile(const std::string& path, const core::TriangleMesh& mesh, const WriteOptions& options) {
   auto format = FormatFromPath(path);
   if (!format.ok()) return format.status();
   switch (*format) {
@@ -147,8 +146,7 @@ absl::Status WriteMeshFile(const std::string& path, const core::TriangleMesh& me
   return absl::InternalError("unreachable");
 }
 
-absl::Status WritePointCloudFile(const std::string& path, const core::PointCloud& cloud,
-                                 const WriteOptions& options) {
+absl::Status WritePointCloudFile(const std::string& path, const core::PointCloud& cloud, const WriteOptions& options) {
   return WriteMeshFile(path, MeshFromCloud(cloud), options);
 }
 

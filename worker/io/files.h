@@ -21,8 +21,7 @@ enum class FileFormat { kPly, kObj, kXyz, kDraco };
 absl::StatusOr<FileFormat> FormatFromPath(std::string_view path);
 
 // Errors: kNotFound, kPermissionDenied, kResourceExhausted (file larger than `max_bytes`).
-absl::StatusOr<std::string> ReadFileBytes(const std::string& path,
-                                          uint64_t max_bytes = uint64_t{4} << 30);
+absl::StatusOr<std::string> ReadFileBytes(const std::string& path, uint64_t max_bytes = uint64_t{4} << 30);
 
 // Writes to a temporary file beside `path`, flushes it to disk and renames it over `path`, so
 // readers see the old file or the whole new one, never a partial write.
@@ -35,8 +34,7 @@ struct WriteOptions {
 
 absl::StatusOr<core::PointCloud> ReadPointCloudFile(const std::string& path);
 absl::StatusOr<core::TriangleMesh> ReadMeshFile(const std::string& path);
-absl::Status WriteMeshFile(const std::string& path, const core::TriangleMesh& mesh,
-                           const WriteOptions& options = {});
+absl::Status WriteMeshFile(const std::string& path, const core::TriangleMesh& mesh, const WriteOptions& options = {});
 absl::Status WritePointCloudFile(const std::string& path, const core::PointCloud& cloud,
                                  const WriteOptions& options = {});
 

@@ -82,8 +82,8 @@ std::string EncodeObj(const core::TriangleMesh& mesh) {
   }
   for (const auto& f : mesh.faces) {
     if (normals) {
-      core::StrAppend(&out, "f ", f[0] + 1, "//", f[0] + 1, " ", f[1] + 1, "//", f[1] + 1, " ", f[2] + 1,
-                      "//", f[2] + 1, "\n");
+      core::StrAppend(&out, "f ", f[0] + 1, "//", f[0] + 1, " ", f[1] + 1, "//", f[1] + 1, " ", f[2] + 1, "//",
+                      f[2] + 1, "\n");
     } else {
       core::StrAppend(&out, "f ", f[0] + 1, " ", f[1] + 1, " ", f[2] + 1, "\n");
     }
@@ -118,7 +118,8 @@ absl::StatusOr<core::PointCloud> ParseXyz(std::string_view text, std::string_vie
                        core::StrCat("expected ", columns, " values like the lines before, found ", n));
     }
     cloud.positions.emplace_back(static_cast<float>(v[0]), static_cast<float>(v[1]), static_cast<float>(v[2]));
-    if (n == 6) cloud.normals.emplace_back(static_cast<float>(v[3]), static_cast<float>(v[4]), static_cast<float>(v[5]));
+    if (n == 6)
+      cloud.normals.emplace_back(static_cast<float>(v[3]), static_cast<float>(v[4]), static_cast<float>(v[5]));
   }
   if (cloud.empty()) return absl::InvalidArgumentError(core::StrCat(name, ": no points in XYZ file"));
   return cloud;

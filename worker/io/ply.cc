@@ -5,6 +5,7 @@
 #include <cstring>
 #include <optional>
 
+#include "worker/core/status.h"
 #include "worker/core/strings.h"
 #include "worker/io/text_scan.h"
 
@@ -31,9 +32,13 @@ std::optional<Type> ParseType(std::string_view s) {
 
 size_t TypeSize(Type t) {
   switch (t) {
-    case Type::kInt8: case Type::kUint8: return 1;
-    case Type::kInt16: case Type::kUint16: return 2;
-    case Type::kInt32: case Type::kUint32: case Type::kFloat32: return 4;
+    case Type::kInt8:
+    case Type::kUint8: return 1;
+    case Type::kInt16:
+    case Type::kUint16: return 2;
+    case Type::kInt32:
+    case Type::kUint32:
+    case Type::kFloat32: return 4;
     case Type::kFloat64: return 8;
   }
   return 0;
@@ -56,8 +61,7 @@ struct Element {
 class BodyReader {
  public:
   BodyReader(std::string_view body, PlyFormat format, size_t body_offset, size_t first_line)
-      : body_(body), format_(format), body_offset_(body_offset), lines_(body),
-        first_line_(first_line) {}
+      : body_(body), format_(format), body_offset_(body_offset), lines_(body), first_line_(first_line) {}
 
   // Starts the next element instance (ascii: the next non-empty line).
   bool BeginRecord() {
@@ -89,14 +93,52 @@ class BodyReader {
     const bool little = format_ == PlyFormat::kBinaryLittleEndian;
     if (little != (std::endian::native == std::endian::little)) std::reverse(raw, raw + n);
     switch (t) {
-      case Type::kInt8: { int8_t v; std::memcpy(&v, raw, 1); out = v; break; }
-      case Type::kUint8: { uint8_t v; std::memcpy(&v, raw, 1); out = v; break; }
-      case Type::kInt16: { int16_t v; std::memcpy(&v, raw, 2); out = v; break; }
-      case Type::kUint16: { uint16_t v; std::memcpy(&v, raw, 2); out = v; break; }
-      case Type::kInt32: { int32_t v; std::memcpy(&v, raw, 4); out = v; break; }
-      case Type::kUint32: { uint32_t v; std::memcpy(&v, raw, 4); out = v; break; }
-      case Type::kFloat32: { float v; std::memcpy(&v, raw, 4); out = v; break; }
-      case Type::kFloat64: { std::memcpy(&out, raw, 8); break; }
+      case Type::kInt8: {
+        int8_t v;
+        std::memcpy(&v, raw, 1);
+        out = v;
+        break;
+      }
+      case Type::kUint8: {
+        uint8_t v;
+        std::memcpy(&v, raw, 1);
+        out = v;
+        break;
+      }
+      case Type::kInt16: {
+        int16_t v;
+        std::memcpy(&v, raw, 2);
+        out = v;
+        break;
+      }
+      case Type::kUint16: {
+        uint16_t v;
+        std::memcpy(&v, raw, 2);
+        out = v;
+        break;
+      }
+      case Type::kInt32: {
+        int32_t v;
+        std::memcpy(&v, raw, 4);
+        out = v;
+        break;
+      }
+      case Type::kUint32: {
+        uint32_t v;
+        std::memcpy(&v, raw, 4);
+        out = v;
+        break;
+      }
+      case Type::kFloat32: {
+        float v;
+        std::memcpy(&v, raw, 4);
+        out = v;
+        break;
+      }
+      case Type::kFloat64: {
+        std::memcpy(&out, raw, 8);
+        break;
+      }
     }
     return true;
   }
@@ -107,6 +149,7 @@ class BodyReader {
     return core::StrCat("byte ", body_offset_ + pos_);
   }
   size_t remaining() const { return body_.size() - pos_; }
+  PlyFormat format() const { return format_; }
 
  private:
   std::string_view body_;
@@ -124,180 +167,223 @@ absl::Status HeaderError(std::string_view name, size_t line, std::string_view wh
 
 }  // namespace
 
-absl::StatusOr<core::TriangleMesh> ParsePly(std::string_view bytes, std::string_view name) {
+namespace {
+
+struct PlyHeader {
+  PlyFormat format = PlyFormat::kAscii;
+  std::vector<Element> elements;
+  size_t body_offset = 0;  // Bytes before the body.
+  size_t lines = 0;        // Header lines (ASCII bodies count on from there).
+};
+
+// `property TYPE NAME` or `property list COUNT_TYPE ITEM_TYPE NAME`, after the keyword.
+absl::StatusOr<Property> ParseProperty(std::string_view rest, std::string_view name, size_t ln) {
+  Property p;
+  const std::string_view t = NextToken(rest);
+  if (t == "list") {
+    p.is_list = true;
+    const auto ct = ParseType(NextToken(rest));
+    const auto it = ParseType(NextToken(rest));
+    if (!ct || !it) return HeaderError(name, ln, "bad list property types");
+    if (*ct == Type::kFloat32 || *ct == Type::kFloat64) {
+      return HeaderError(name, ln, "list count type must be an integer type");
+    }
+    p.count_type = *ct;
+    p.type = *it;
+  } else {
+    const auto pt = ParseType(t);
+    if (!pt) return HeaderError(name, ln, core::StrCat("unknown property type '", t, "'"));
+    p.type = *pt;
+  }
+  p.name = std::string(NextToken(rest));
+  if (p.name.empty()) return HeaderError(name, ln, "property without a name");
+  return p;
+}
+
+absl::StatusOr<PlyHeader> ParseHeader(std::string_view bytes, std::string_view name) {
   LineReader header(bytes);
   std::string_view line;
   if (!header.Next(line) || line != "ply") {
     return absl::InvalidArgumentError(core::StrCat(name, ": not a PLY file (no 'ply' magic)"));
   }
-  std::optional<PlyFormat> format;
-  std::vector<Element> elements;
-  bool ended = false;
-  while (header.Next(line)) {
+  PlyHeader out;
+  bool has_format = false, ended = false;
+  while (!ended && header.Next(line)) {
     std::string_view rest = line;
     const std::string_view key = NextToken(rest);
     const size_t ln = header.line_number();
     if (key.empty() || key == "comment" || key == "obj_info") continue;
     if (key == "format") {
       const std::string_view f = NextToken(rest), version = NextToken(rest);
-      if (f == "ascii") format = PlyFormat::kAscii;
-      else if (f == "binary_little_endian") format = PlyFormat::kBinaryLittleEndian;
-      else if (f == "binary_big_endian") format = PlyFormat::kBinaryBigEndian;
-      else return HeaderError(name, ln, core::StrCat("unknown format '", f, "'"));
+      if (f == "ascii")
+        out.format = PlyFormat::kAscii;
+      else if (f == "binary_little_endian")
+        out.format = PlyFormat::kBinaryLittleEndian;
+      else if (f == "binary_big_endian")
+        out.format = PlyFormat::kBinaryBigEndian;
+      else
+        return HeaderError(name, ln, core::StrCat("unknown format '", f, "'"));
       if (version != "1.0") return HeaderError(name, ln, core::StrCat("unsupported version '", version, "'"));
+      has_format = true;
     } else if (key == "element") {
       Element e;
       e.name = std::string(NextToken(rest));
       if (e.name.empty() || !ParseNumber(NextToken(rest), e.count)) {
         return HeaderError(name, ln, "expected 'element NAME COUNT'");
       }
-      elements.push_back(std::move(e));
+      out.elements.push_back(std::move(e));
     } else if (key == "property") {
-      if (elements.empty()) return HeaderError(name, ln, "property before any element");
-      Property p;
-      std::string_view t = NextToken(rest);
-      if (t == "list") {
-        p.is_list = true;
-        const auto ct = ParseType(NextToken(rest));
-        const std::string_view item = NextToken(rest);
-        const auto it = ParseType(item);
-        if (!ct || !it) return HeaderError(name, ln, "bad list property types");
-        if (*ct == Type::kFloat32 || *ct == Type::kFloat64) {
-          return HeaderError(name, ln, "list count type must be an integer type");
-        }
-        p.count_type = *ct;
-        p.type = *it;
-      } else {
-        const auto pt = ParseType(t);
-        if (!pt) return HeaderError(name, ln, core::StrCat("unknown property type '", t, "'"));
-        p.type = *pt;
-      }
-      p.name = std::string(NextToken(rest));
-      if (p.name.empty()) return HeaderError(name, ln, "property without a name");
-      elements.back().properties.push_back(std::move(p));
+      if (out.elements.empty()) return HeaderError(name, ln, "property before any element");
+      auto p = ParseProperty(rest, name, ln);
+      if (!p.ok()) return p.status();
+      out.elements.back().properties.push_back(*std::move(p));
     } else if (key == "end_header") {
       ended = true;
-      break;
     } else {
       return HeaderError(name, ln, core::StrCat("unknown keyword '", key, "'"));
     }
   }
   if (!ended) return absl::InvalidArgumentError(core::StrCat(name, ": PLY header has no end_header"));
-  if (!format) return absl::InvalidArgumentError(core::StrCat(name, ": PLY header has no format line"));
+  if (!has_format) return absl::InvalidArgumentError(core::StrCat(name, ": PLY header has no format line"));
+  out.body_offset = header.offset();
+  out.lines = header.line_number();
+  return out;
+}
 
-  const size_t body_offset = header.offset();
-  BodyReader body(body_offset <= bytes.size() ? bytes.substr(body_offset) : std::string_view(),
-                  *format, body_offset, header.line_number());
-  core::TriangleMesh mesh;
-  bool saw_vertex = false;
-  for (const Element& e : elements) {
-    // Every record takes at least one byte (binary) or two characters (ascii): a count larger
-    // than that allows is a corrupt header, refused before any allocation.
-    size_t min_record = 0;
-    for (const Property& p : e.properties) min_record += p.is_list ? TypeSize(p.count_type) : TypeSize(p.type);
-    if (*format == PlyFormat::kAscii) min_record = 2 * e.properties.size();
-    if (min_record > 0 && e.count > body.remaining() / min_record) {
-      return absl::InvalidArgumentError(core::StrCat(
-          name, ": PLY element '", e.name, "' declares ", e.count,
-          " records but the file is too short for them (truncated?)"));
-    }
-    const bool is_vertex = e.name == "vertex";
-    const bool is_face = e.name == "face";
-    int ix = -1, iy = -1, iz = -1, inx = -1, iny = -1, inz = -1, ilist = -1;
-    std::vector<int> extra;  // Property index of each extra scalar attribute.
+// Where an element's properties land in the mesh.
+struct ElementLayout {
+  bool is_vertex = false, is_face = false;
+  int x = -1, y = -1, z = -1, nx = -1, ny = -1, nz = -1, face_list = -1;
+  std::vector<int> extra;  // Property index of each extra scalar attribute (vertices).
+
+  explicit ElementLayout(const Element& e) : is_vertex(e.name == "vertex"), is_face(e.name == "face") {
     for (size_t i = 0; i < e.properties.size(); ++i) {
       const Property& p = e.properties[i];
       const int idx = static_cast<int>(i);
       if (is_vertex && !p.is_list) {
-        if (p.name == "x") ix = idx;
-        else if (p.name == "y") iy = idx;
-        else if (p.name == "z") iz = idx;
-        else if (p.name == "nx") inx = idx;
-        else if (p.name == "ny") iny = idx;
-        else if (p.name == "nz") inz = idx;
-        else extra.push_back(idx);
+        int* slot = p.name == "x"    ? &x
+                    : p.name == "y"  ? &y
+                    : p.name == "z"  ? &z
+                    : p.name == "nx" ? &nx
+                    : p.name == "ny" ? &ny
+                    : p.name == "nz" ? &nz
+                                     : nullptr;
+        if (slot != nullptr)
+          *slot = idx;
+        else
+          extra.push_back(idx);
       }
-      if (is_face && p.is_list && (p.name == "vertex_indices" || p.name == "vertex_index")) ilist = idx;
+      if (is_face && p.is_list && (p.name == "vertex_indices" || p.name == "vertex_index")) face_list = idx;
     }
-    if (is_vertex) {
-      if (saw_vertex) return absl::InvalidArgumentError(core::StrCat(name, ": two vertex elements"));
+  }
+  bool has_normals() const { return nx >= 0 && ny >= 0 && nz >= 0; }
+};
+
+// Reads one element's records into `mesh`.
+class ElementReader {
+ public:
+  ElementReader(std::string_view name, const Element& e, BodyReader& body, core::TriangleMesh& mesh)
+      : name_(name), e_(e), layout_(e), body_(body), mesh_(mesh), scalars_(e.properties.size()) {}
+
+  absl::Status Read(bool& saw_vertex) {
+    // Every record takes at least one byte (binary) or two characters (ascii): a count larger
+    // than that allows is a corrupt header, refused before any allocation.
+    size_t min_record = 0;
+    for (const Property& p : e_.properties) min_record += p.is_list ? TypeSize(p.count_type) : TypeSize(p.type);
+    if (body_.format() == PlyFormat::kAscii) min_record = 2 * e_.properties.size();
+    if (min_record > 0 && e_.count > body_.remaining() / min_record) {
+      return Fail(core::StrCat("PLY element '", e_.name, "' declares ", e_.count,
+                               " records but the file is too short for them (truncated?)"));
+    }
+    if (layout_.is_vertex) {
+      if (saw_vertex) return Fail("two vertex elements");
       saw_vertex = true;
-      if (ix < 0 || iy < 0 || iz < 0) {
-        return absl::InvalidArgumentError(core::StrCat(name, ": PLY vertex element lacks x, y or z"));
-      }
-      mesh.vertices.resize(e.count);
-      const bool normals = inx >= 0 && iny >= 0 && inz >= 0;
-      if (normals) mesh.normals.resize(e.count);
-      for (int k : extra) {
-        mesh.vertex_attributes.push_back({e.properties[static_cast<size_t>(k)].name, std::vector<float>(e.count)});
+      if (layout_.x < 0 || layout_.y < 0 || layout_.z < 0) return Fail("PLY vertex element lacks x, y or z");
+      mesh_.vertices.resize(e_.count);
+      if (layout_.has_normals()) mesh_.normals.resize(e_.count);
+      for (int k : layout_.extra) {
+        mesh_.vertex_attributes.push_back({e_.properties[static_cast<size_t>(k)].name, std::vector<float>(e_.count)});
       }
     }
-    if (is_face && ilist < 0) {
-      return absl::InvalidArgumentError(core::StrCat(name, ": PLY face element has no vertex_indices list"));
+    if (layout_.is_face && layout_.face_list < 0) return Fail("PLY face element has no vertex_indices list");
+    for (uint64_t r = 0; r < e_.count; ++r) LSQSURF_RETURN_IF_ERROR(ReadRecord(r));
+    return absl::OkStatus();
+  }
+
+ private:
+  absl::Status Fail(std::string_view what) const { return absl::InvalidArgumentError(core::StrCat(name_, ": ", what)); }
+  absl::Status FailAt(const std::string& where, uint64_t r, std::string_view what) const {
+    return Fail(core::StrCat(where, ": ", e_.name, " ", r, what));
+  }
+  float Scalar(int index) const { return static_cast<float>(scalars_[static_cast<size_t>(index)]); }
+
+  absl::Status ReadRecord(uint64_t r) {
+    if (!body_.BeginRecord()) return Fail(core::StrCat("unexpected end of file in ", e_.name, " ", r));
+    for (size_t i = 0; i < e_.properties.size(); ++i) {
+      const Property& p = e_.properties[i];
+      const std::string where = body_.Where();
+      if (!p.is_list) {
+        if (!body_.Read(p.type, scalars_[i])) {
+          return FailAt(where, r, core::StrCat(": cannot read property '", p.name, "'"));
+        }
+        continue;
+      }
+      LSQSURF_RETURN_IF_ERROR(ReadList(p, static_cast<int>(i) == layout_.face_list, where, r));
     }
-    std::vector<double> scalars(e.properties.size());
-    std::vector<uint32_t> polygon;
-    for (uint64_t r = 0; r < e.count; ++r) {
-      if (!body.BeginRecord()) {
-        return absl::InvalidArgumentError(core::StrCat(name, ": unexpected end of file in ", e.name, " ", r));
-      }
-      for (size_t i = 0; i < e.properties.size(); ++i) {
-        const Property& p = e.properties[i];
-        const std::string where = body.Where();
-        if (!p.is_list) {
-          if (!body.Read(p.type, scalars[i])) {
-            return absl::InvalidArgumentError(core::StrCat(name, ": ", where, ": ", e.name, " ", r,
-                                                           ": cannot read property '", p.name, "'"));
-          }
-          continue;
-        }
-        double count = 0;
-        if (!body.Read(p.count_type, count) || count < 0 || count > 1e6) {
-          return absl::InvalidArgumentError(core::StrCat(name, ": ", where, ": ", e.name, " ", r,
-                                                         ": bad list length for '", p.name, "'"));
-        }
-        polygon.clear();
-        for (int j = 0; j < static_cast<int>(count); ++j) {
-          double v = 0;
-          if (!body.Read(p.type, v)) {
-            return absl::InvalidArgumentError(core::StrCat(name, ": ", body.Where(), ": ", e.name, " ", r,
-                                                           ": list '", p.name, "' is cut short"));
-          }
-          if (static_cast<int>(i) == ilist) {
-            if (v < 0 || v >= static_cast<double>(mesh.vertices.size()) || v != std::floor(v)) {
-              return absl::InvalidArgumentError(core::StrCat(
-                  name, ": ", where, ": face ", r, " refers to vertex ", v, " but there are ",
-                  mesh.vertices.size(), " vertices"));
-            }
-            polygon.push_back(static_cast<uint32_t>(v));
-          }
-        }
-        if (static_cast<int>(i) == ilist) {
-          if (polygon.size() < 3) {
-            return absl::InvalidArgumentError(core::StrCat(name, ": ", where, ": face ", r, " has fewer than 3 vertices"));
-          }
-          for (size_t j = 1; j + 1 < polygon.size(); ++j) {
-            mesh.faces.push_back({polygon[0], polygon[j], polygon[j + 1]});
-          }
-        }
-      }
-      if (!body.EndRecord()) {
-        return absl::InvalidArgumentError(core::StrCat(name, ": ", body.Where(), ": ", e.name, " ", r,
-                                                       " has more values than the header declares"));
-      }
-      if (is_vertex) {
-        auto& v = mesh.vertices[r];
-        v = core::Vec3f(static_cast<float>(scalars[static_cast<size_t>(ix)]), static_cast<float>(scalars[static_cast<size_t>(iy)]),
-                        static_cast<float>(scalars[static_cast<size_t>(iz)]));
-        if (!mesh.normals.empty()) {
-          mesh.normals[r] = core::Vec3f(static_cast<float>(scalars[static_cast<size_t>(inx)]), static_cast<float>(scalars[static_cast<size_t>(iny)]),
-                                        static_cast<float>(scalars[static_cast<size_t>(inz)]));
-        }
-        for (size_t a = 0; a < extra.size(); ++a) {
-          mesh.vertex_attributes[a].values[r] = static_cast<float>(scalars[static_cast<size_t>(extra[a])]);
-        }
-      }
+    if (!body_.EndRecord()) return FailAt(body_.Where(), r, " has more values than the header declares");
+    if (layout_.is_vertex) {
+      mesh_.vertices[r] = core::Vec3f(Scalar(layout_.x), Scalar(layout_.y), Scalar(layout_.z));
+      if (!mesh_.normals.empty())
+        mesh_.normals[r] = core::Vec3f(Scalar(layout_.nx), Scalar(layout_.ny), Scalar(layout_.nz));
+      for (size_t a = 0; a < layout_.extra.size(); ++a) mesh_.vertex_attributes[a].values[r] = Scalar(layout_.extra[a]);
     }
+    return absl::OkStatus();
+  }
+
+  // A list property; the face list becomes a fan of triangles, other lists are skipped.
+  absl::Status ReadList(const Property& p, bool is_face_list, const std::string& where, uint64_t r) {
+    double count = 0;
+    if (!body_.Read(p.count_type, count) || count < 0 || count > 1e6) {
+      return FailAt(where, r, core::StrCat(": bad list length for '", p.name, "'"));
+    }
+    polygon_.clear();
+    for (int j = 0; j < static_cast<int>(count); ++j) {
+      double v = 0;
+      if (!body_.Read(p.type, v)) return FailAt(body_.Where(), r, core::StrCat(": list '", p.name, "' is cut short"));
+      if (!is_face_list) continue;
+      if (v < 0 || v >= static_cast<double>(mesh_.vertices.size()) || v != std::floor(v)) {
+        return Fail(core::StrCat(where, ": face ", r, " refers to vertex ", v, " but there are ", mesh_.vertices.size(),
+                                 " vertices"));
+      }
+      polygon_.push_back(static_cast<uint32_t>(v));
+    }
+    if (!is_face_list) return absl::OkStatus();
+    if (polygon_.size() < 3) return Fail(core::StrCat(where, ": face ", r, " has fewer than 3 vertices"));
+    for (size_t j = 1; j + 1 < polygon_.size(); ++j) mesh_.faces.push_back({polygon_[0], polygon_[j], polygon_[j + 1]});
+    return absl::OkStatus();
+  }
+
+  std::string_view name_;
+  const Element& e_;
+  ElementLayout layout_;
+  BodyReader& body_;
+  core::TriangleMesh& mesh_;
+  std::vector<double> scalars_;
+  std::vector<uint32_t> polygon_;
+};
+
+}  // namespace
+
+absl::StatusOr<core::TriangleMesh> ParsePly(std::string_view bytes, std::string_view name) {
+  auto header = ParseHeader(bytes, name);
+  if (!header.ok()) return header.status();
+  const size_t offset = header->body_offset;
+  BodyReader body(offset <= bytes.size() ? bytes.substr(offset) : std::string_view(), header->format, offset,
+                  header->lines);
+  core::TriangleMesh mesh;
+  bool saw_vertex = false;
+  for (const Element& e : header->elements) {
+    LSQSURF_RETURN_IF_ERROR(ElementReader(name, e, body, mesh).Read(saw_vertex));
   }
   if (!saw_vertex) return absl::InvalidArgumentError(core::StrCat(name, ": PLY file has no vertex element"));
   return mesh;
@@ -351,7 +437,8 @@ std::string EncodePly(const core::TriangleMesh& mesh, PlyFormat format) {
               mesh.faces.size() * 13);
   for (size_t i = 0; i < mesh.vertices.size(); ++i) {
     for (int k = 0; k < 3; ++k) Append(out, &mesh.vertices[i][k], 4, swap);
-    if (normals) for (int k = 0; k < 3; ++k) Append(out, &mesh.normals[i][k], 4, swap);
+    if (normals)
+      for (int k = 0; k < 3; ++k) Append(out, &mesh.normals[i][k], 4, swap);
     for (const auto& a : mesh.vertex_attributes) Append(out, &a.values[i], 4, swap);
   }
   for (const auto& f : mesh.faces) {

@@ -2,8 +2,8 @@
 
 #include <algorithm>
 #include <bit>
-#include <cstdio>
 #include <cmath>
+#include <cstdio>
 #include <cstring>
 
 #include "worker/core/strings.h"
@@ -97,13 +97,15 @@ absl::StatusOr<VectorGrid> ParseVtkVectorGrid(std::string_view bytes, std::strin
     }
   }
   const size_t vectors_line = lines.line_number();
-  if (!have_dataset || !have_dims) return error(vectors_line, "DATASET STRUCTURED_POINTS and DIMENSIONS must come before VECTORS");
+  if (!have_dataset || !have_dims)
+    return error(vectors_line, "DATASET STRUCTURED_POINTS and DIMENSIONS must come before VECTORS");
   for (int a = 0; a < 3; ++a) {
     if (grid.dims[a] < 1) return error(vectors_line, "DIMENSIONS must be positive");
   }
   const int64_t nodes = int64_t{grid.dims[0]} * grid.dims[1] * grid.dims[2];
   if (nodes > kMaxVectorGridNodes) {
-    return error(vectors_line, core::StrCat("the grid has ", nodes, " nodes; at most ", kMaxVectorGridNodes, " are accepted"));
+    return error(vectors_line,
+                 core::StrCat("the grid has ", nodes, " nodes; at most ", kMaxVectorGridNodes, " are accepted"));
   }
   if (point_data != nodes) return error(vectors_line, core::StrCat("POINT_DATA must equal nx·ny·nz = ", nodes));
   if (!grid.origin.allFinite() || !grid.spacing.allFinite() || !(grid.spacing.minCoeff() > 0)) {
@@ -116,8 +118,8 @@ absl::StatusOr<VectorGrid> ParseVtkVectorGrid(std::string_view bytes, std::strin
   if (binary) {
     const size_t size = doubles ? sizeof(double) : sizeof(float);
     if (data.size() < count * size) {
-      return error(vectors_line, core::StrCat("the binary VECTORS data is truncated: ", data.size(), " bytes, expected ",
-                                              count * size));
+      return error(vectors_line, core::StrCat("the binary VECTORS data is truncated: ", data.size(),
+                                              " bytes, expected ", count * size));
     }
     if (doubles) {
       ReadBigEndian<double>(data, count, flat);
@@ -130,7 +132,8 @@ absl::StatusOr<VectorGrid> ParseVtkVectorGrid(std::string_view bytes, std::strin
     while (flat.size() < count) {
       while (pos < data.size() && IsSpace(data[pos])) ++pos;
       if (pos >= data.size()) {
-        return error(vectors_line, core::StrCat("the VECTORS data is truncated: ", flat.size(), " of ", count, " values"));
+        return error(vectors_line,
+                     core::StrCat("the VECTORS data is truncated: ", flat.size(), " of ", count, " values"));
       }
       size_t end = pos;
       while (end < data.size() && !IsSpace(data[end])) ++end;

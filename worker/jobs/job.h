@@ -25,8 +25,8 @@ struct PreviewSpec {
 };
 
 struct JobSpec {
-  std::string method;           // A name from Methods() (method_registry.h).
-  core::ParamSet params;        // The method's parameter struct; unset fields keep its defaults.
+  std::string method;     // A name from Methods() (method_registry.h).
+  core::ParamSet params;  // The method's parameter struct; unset fields keep its defaults.
   // Draco quantization of result mesh positions, bits over the bounding box (8..30); 0 = chosen
   // per mesh, enough that no two distinct vertices merge.
   int mesh_position_bits = 0;
@@ -44,18 +44,18 @@ struct JobRecord {
   std::string id;
   JobSpec spec;
   JobState state = JobState::kQueued;
-  std::string stage;           // Current stage while running.
-  double progress = 0;         // Overall fraction in [0, 1].
-  int attempts = 0;            // Times a worker started the job.
-  int interruptions = 0;       // Starts ended by a server shutdown (not the job's fault).
-  std::string error;           // Why it failed or was cancelled.
-  int64_t created_ms = 0;      // Unix epoch milliseconds.
+  std::string stage;       // Current stage while running.
+  double progress = 0;     // Overall fraction in [0, 1].
+  int attempts = 0;        // Times a worker started the job.
+  int interruptions = 0;   // Starts ended by a server shutdown (not the job's fault).
+  std::string error;       // Why it failed or was cancelled.
+  int64_t created_ms = 0;  // Unix epoch milliseconds.
   int64_t updated_ms = 0;
   int64_t input_points = 0;
   int64_t input_bytes = 0;
-  Statistics statistics;              // Final statistics of a success.
-  std::vector<std::string> results;   // Artifact names of a success.
-  uint64_t version = 0;        // Bumped on every change (watchers compare it).
+  Statistics statistics;             // Final statistics of a success.
+  std::vector<std::string> results;  // Artifact names of a success.
+  uint64_t version = 0;              // Bumped on every change (watchers compare it).
 };
 
 }  // namespace lsqsurf::jobs

@@ -26,9 +26,9 @@ namespace lsqsurf::jobs {
 struct MethodInfo {
   std::string name;
   std::string description;
-  core::ParamSet defaults;               // The method's parameter struct with its defaults.
-  std::vector<std::string> attributes;   // Per-vertex scalars on its result meshes (to colour by).
-  std::vector<std::string> uploads;      // Upload slots it accepts (kInputUpload, kVelocityUpload).
+  core::ParamSet defaults;              // The method's parameter struct with its defaults.
+  std::vector<std::string> attributes;  // Per-vertex scalars on its result meshes (to colour by).
+  std::vector<std::string> uploads;     // Upload slots it accepts (kInputUpload, kVelocityUpload).
 };
 
 // Server limits a kind checks uploads against.
@@ -63,8 +63,7 @@ class JobKind {
                                                const InputLimits& limits) const = 0;
   // Runs an accepted job; the artifacts go through `env.sink`. Returns the final statistics.
   // Errors: kCancelled, or the engine's own (kInvalidArgument, kResourceExhausted, ...).
-  virtual absl::StatusOr<Statistics> Run(const JobSpec& spec, const Uploads& uploads,
-                                         RunEnvironment& env) const = 0;
+  virtual absl::StatusOr<Statistics> Run(const JobSpec& spec, const Uploads& uploads, RunEnvironment& env) const = 0;
 };
 
 }  // namespace lsqsurf::jobs

@@ -62,7 +62,7 @@ class BlobSink final : public ArtifactSink {
 
 struct JobService::Entry {
   JobRecord record;
-  uint64_t persisted_version = 0;        // Guarded by the service's store_mutex_.
+  uint64_t persisted_version = 0;  // Guarded by the service's store_mutex_.
   std::atomic<bool> cancel_requested{false};
   std::atomic<bool> interrupted{false};  // Shutdown: re-queue rather than cancel.
 };
@@ -266,7 +266,8 @@ void JobService::Persist(const std::shared_ptr<Entry>& entry, const JobRecord& c
   // Writes of one job may arrive out of order from two threads: the newest wins.
   if (copy.version <= entry->persisted_version) return;
   entry->persisted_version = copy.version;
-  if (absl::Status s = store_->Put(copy); !s.ok()) spdlog::error("[job {}] cannot persist state: {}", copy.id, s.ToString());
+  if (absl::Status s = store_->Put(copy); !s.ok())
+    spdlog::error("[job {}] cannot persist state: {}", copy.id, s.ToString());
 }
 
 absl::StatusOr<JobRecord> JobService::Cancel(const std::string& id) {
@@ -309,7 +310,8 @@ absl::Status JobService::Delete(const std::string& id) {
   }
   {
     std::lock_guard store_lock(store_mutex_);
-    if (absl::Status s = store_->Remove(id); !s.ok()) spdlog::error("[job {}] cannot remove its record: {}", id, s.ToString());
+    if (absl::Status s = store_->Remove(id); !s.ok())
+      spdlog::error("[job {}] cannot remove its record: {}", id, s.ToString());
   }
   if (absl::Status s = blobs_->RemoveJob(id); !s.ok()) spdlog::error("[job {}] {}", id, s.ToString());
   changed_.notify_all();
@@ -318,7 +320,7 @@ absl::Status JobService::Delete(const std::string& id) {
 }
 
 absl::StatusOr<std::unique_ptr<BlobReader>> JobService::OpenResult(const std::string& id,
-                                                                       const std::string& name) const {
+                                                                   const std::string& name) const {
   auto r = Get(id);
   if (!r.ok()) return r.status();
   if (r->state != JobState::kSucceeded) {
@@ -390,9 +392,8 @@ absl::StatusOr<JobRecord> JobService::WaitForChange(const std::string& id, uint6
   auto it = jobs_.find(id);
   if (it == jobs_.end()) return NoJob(id);
   std::shared_ptr<Entry> entry = it->second;
-  changed_.wait_for(lock, timeout, [&] {
-    return entry->record.version != seen_version || shutting_down_ || !jobs_.contains(id);
-  });
+  changed_.wait_for(lock, timeout,
+                    [&] { return entry->record.version != seen_version || shutting_down_ || !jobs_.contains(id); });
   if (!jobs_.contains(id)) return absl::NotFoundError(core::StrCat("job '", id, "' was deleted"));
   return entry->record;
 }

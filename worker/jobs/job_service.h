@@ -40,14 +40,14 @@ class SharedRenderer;
 namespace lsqsurf::jobs {
 
 struct JobServiceOptions {
-  std::string data_dir;                  // Holds jobs.db and one folder per job; created if missing.
-  int workers = 1;                       // Jobs that run at once (each uses every core).
-  int max_queue = 64;                    // Queued jobs beyond which Submit is refused.
-  int64_t max_points = 20'000'000;       // Largest accepted cloud.
-  int64_t min_points = 16;               // Smallest accepted surface cloud.
+  std::string data_dir;                        // Holds jobs.db and one folder per job; created if missing.
+  int workers = 1;                             // Jobs that run at once (each uses every core).
+  int max_queue = 64;                          // Queued jobs beyond which Submit is refused.
+  int64_t max_points = 20'000'000;             // Largest accepted cloud.
+  int64_t min_points = 16;                     // Smallest accepted surface cloud.
   int64_t max_input_bytes = int64_t{1} << 30;  // Largest accepted upload (all slots together).
-  int max_attempts = 2;                  // Crashed starts before a job is failed.
-  int max_renders = 2;                   // Render calls drawn at once; more get kResourceExhausted.
+  int max_attempts = 2;                        // Crashed starts before a job is failed.
+  int max_renders = 2;                         // Render calls drawn at once; more get kResourceExhausted.
   // Where uploads and artifacts are kept; null: files under data_dir/jobs.
   std::shared_ptr<BlobStore> blobs;
   // Tests only: replaces the kind that runs a method's jobs (e.g. one that blocks on a latch).
@@ -114,8 +114,7 @@ class JobService {
   void RunJob(const std::shared_ptr<Entry>& entry);
   absl::StatusOr<Statistics> RunKind(const std::shared_ptr<Entry>& entry, class BlobSink& sink);
   // Applies `change` to the record under the lock, wakes watchers, then persists it.
-  void Update(const std::shared_ptr<Entry>& entry, const std::function<void(JobRecord&)>& change,
-              bool persist = true);
+  void Update(const std::shared_ptr<Entry>& entry, const std::function<void(JobRecord&)>& change, bool persist = true);
   void Persist(const std::shared_ptr<Entry>& entry, const JobRecord& copy);
   const JobKind* KindOf(const std::string& method) const;
 
@@ -126,8 +125,8 @@ class JobService {
   std::mutex store_mutex_;  // Orders store writes (never held with mutex_).
   std::atomic<int> renders_{0};
   mutable std::mutex mutex_;
-  mutable std::condition_variable changed_;   // Any job changed (watchers).
-  std::condition_variable work_available_;    // Queue gained a job or shutdown began.
+  mutable std::condition_variable changed_;  // Any job changed (watchers).
+  std::condition_variable work_available_;   // Queue gained a job or shutdown began.
   std::map<std::string, std::shared_ptr<Entry>> jobs_;
   std::deque<std::shared_ptr<Entry>> queue_;
   std::vector<std::thread> workers_;

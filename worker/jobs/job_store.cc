@@ -55,9 +55,11 @@ PreviewSpec DecodePreview(std::string_view text, std::string colour) {
   p.enabled = true;
   p.view = DefaultView();
   // Rows written before the view options had a table used shorter names.
-  static const std::pair<const char*, const char*> kRenamed[] = {
-      {"up", "up_axis"}, {"azimuth", "azimuth_deg"}, {"elevation", "elevation_deg"}, {"fov", "fov_deg"},
-      {"flat", "flat_shading"}};
+  static const std::pair<const char*, const char*> kRenamed[] = {{"up", "up_axis"},
+                                                                 {"azimuth", "azimuth_deg"},
+                                                                 {"elevation", "elevation_deg"},
+                                                                 {"fov", "fov_deg"},
+                                                                 {"flat", "flat_shading"}};
   std::string current;
   for (const auto& [name, value] : DecodeStatistics(text)) {
     if (name == "turntable") {
@@ -99,8 +101,8 @@ bool IsTerminal(JobState state) {
 
 absl::StatusOr<std::unique_ptr<SqliteJobStore>> SqliteJobStore::Open(const std::string& path) {
   sqlite3* db = nullptr;
-  if (sqlite3_open_v2(path.c_str(), &db, SQLITE_OPEN_READWRITE | SQLITE_OPEN_CREATE | SQLITE_OPEN_FULLMUTEX,
-                      nullptr) != SQLITE_OK) {
+  if (sqlite3_open_v2(path.c_str(), &db, SQLITE_OPEN_READWRITE | SQLITE_OPEN_CREATE | SQLITE_OPEN_FULLMUTEX, nullptr) !=
+      SQLITE_OK) {
     std::string msg = db ? sqlite3_errmsg(db) : "out of memory";
     sqlite3_close(db);
     return absl::UnavailableError(core::StrCat("cannot open job database ", path, ": ", msg));
@@ -140,7 +142,8 @@ absl::Status SqliteJobStore::Exec(const char* sql) {
 
 bool SqliteJobStore::HasColumn(const char* name) {
   sqlite3_stmt* st = nullptr;
-  if (sqlite3_prepare_v2(db_, "SELECT name FROM pragma_table_info('jobs')", -1, &st, nullptr) != SQLITE_OK) return false;
+  if (sqlite3_prepare_v2(db_, "SELECT name FROM pragma_table_info('jobs')", -1, &st, nullptr) != SQLITE_OK)
+    return false;
   bool found = false;
   while (!found && sqlite3_step(st) == SQLITE_ROW) found = Column(st, 0) == name;
   sqlite3_finalize(st);

@@ -37,6 +37,29 @@ absl::StatusOr<core::ParamSet> DefaultParams(std::string_view method) {
 
 core::ParamSet DefaultView() { return core::ParamSet(render::ViewParamTable()); }
 
+std::string ParameterReference() {
+  std::string out =
+      "# Parameter reference\n\n"
+      "Generated from the engines' descriptor tables by `lsqsurfd --parameter-reference`; do not edit.\n"
+      "On the command line: `lsqsurf reconstruct CLOUD --method METHOD --param NAME=VALUE`; in the API: the\n"
+      "field NAME of the method's message in `JobSpec` (unset fields keep these defaults). Flags take\n"
+      "true/false or 1/0, choices their names.\n";
+  for (const auto& m : Methods()) {
+    core::StrAppend(&out, "\n## ", m.info.name, "\n\n", m.info.description, "\n\n",
+                    core::ParamReferenceMarkdown(m.info.defaults.Describe()));
+    if (!m.info.attributes.empty()) {
+      std::string names;
+      for (const auto& a : m.info.attributes) core::StrAppend(&names, names.empty() ? "" : ", ", "`", a, "`");
+      core::StrAppend(&out, "\nPer-vertex attributes of its meshes (to colour pictures by): ", names, ".\n");
+    }
+  }
+  core::StrAppend(&out,
+                  "\n## View options\n\nPictures (`lsqsurf render`, `--preview`, `--job-preview`, `track --pictures`;\n"
+                  "`RenderOptions` in the API).\n\n",
+                  core::ParamReferenceMarkdown(DefaultView().Describe()));
+  return out;
+}
+
 absl::Status ValidateSpec(const JobSpec& spec) {
   const MethodEntry* m = FindMethod(spec.method);
   if (m == nullptr) return DefaultParams(spec.method).status();
@@ -47,8 +70,8 @@ absl::Status ValidateSpec(const JobSpec& spec) {
     return absl::InvalidArgumentError(core::StrCat(spec.method, ": ", s.message()));
   }
   if (spec.mesh_position_bits != 0 && (spec.mesh_position_bits < 8 || spec.mesh_position_bits > 30)) {
-    return absl::InvalidArgumentError(core::StrCat("mesh_position_bits=", spec.mesh_position_bits,
-                                                   " must be 0 (chosen per mesh) or within [8, 30]"));
+    return absl::InvalidArgumentError(
+        core::StrCat("mesh_position_bits=", spec.mesh_position_bits, " must be 0 (chosen per mesh) or within [8, 30]"));
   }
   const PreviewSpec& preview = spec.preview;
   if (!preview.enabled) return absl::OkStatus();
@@ -68,7 +91,8 @@ absl::Status ValidateSpec(const JobSpec& spec) {
     core::StrAppend(&known, known.empty() ? "" : ", ", a);
   }
   return absl::InvalidArgumentError(core::StrCat("preview: the ", spec.method, " method's results have no attribute '",
-                                                 colour, "' to colour by; they have: ", known.empty() ? "none" : known));
+                                                 colour,
+                                                 "' to colour by; they have: ", known.empty() ? "none" : known));
 }
 
 }  // namespace lsqsurf::jobs

@@ -28,6 +28,10 @@ absl::StatusOr<core::ParamSet> DefaultParams(std::string_view method);
 // View options (render::RenderParams) at their defaults: what previews and pictures take.
 core::ParamSet DefaultView();
 
+// The parameter reference of every method and of the view options, as Markdown: what
+// docs/parameters.md holds (`lsqsurfd --parameter-reference` prints it).
+std::string ParameterReference();
+
 // Everything about a spec that can be checked without its uploads: a known method, parameters
 // in range and consistent, the Draco bits, the preview's view and colour attribute (one the
 // method's meshes carry). Errors: kInvalidArgument naming the field and what is accepted.

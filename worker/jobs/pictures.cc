@@ -32,8 +32,8 @@ absl::StatusOr<std::string> PicturePng(render::Renderer& renderer, const core::P
   return render::EncodePng(*image);
 }
 
-absl::Status WritePicture(render::Renderer& renderer, const core::TriangleMesh& mesh, const render::RenderParams& params,
-                          const std::string& path) {
+absl::Status WritePicture(render::Renderer& renderer, const core::TriangleMesh& mesh,
+                          const render::RenderParams& params, const std::string& path) {
   return WritePng(renderer.RenderMesh(mesh, params), path);
 }
 

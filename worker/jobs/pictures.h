@@ -17,8 +17,8 @@ absl::StatusOr<std::string> PicturePng(render::Renderer& renderer, const core::P
 
 // Draws the mesh (or the cloud) and writes the PNG atomically to `path`. Errors: the renderer's,
 // or kUnavailable when the file cannot be written.
-absl::Status WritePicture(render::Renderer& renderer, const core::TriangleMesh& mesh, const render::RenderParams& params,
-                          const std::string& path);
+absl::Status WritePicture(render::Renderer& renderer, const core::TriangleMesh& mesh,
+                          const render::RenderParams& params, const std::string& path);
 absl::Status WritePicture(render::Renderer& renderer, const core::PointCloud& cloud, const render::RenderParams& params,
                           const std::string& path);
 

@@ -6,11 +6,11 @@
 #include <cmath>
 #include <functional>
 
-#include "worker/extract/isosurface.h"
-#include "worker/extract/j1a_isosurface.h"
 #include "worker/core/mesh_metrics.h"
 #include "worker/core/status.h"
 #include "worker/core/strings.h"
+#include "worker/extract/isosurface.h"
+#include "worker/extract/j1a_isosurface.h"
 #include "worker/io/draco_codec.h"
 #include "worker/jobs/pictures.h"
 #include "worker/render/render.h"
@@ -50,7 +50,8 @@ const core::ParamTable<IamlsJobParams>& IamlsTable() {
     t->Choice<&IamlsJobParams::extractor>(
         "extractor",
         {{"j1a", static_cast<int>(SurfaceExtractor::kJ1a), "J1a tetrahedra on an adaptive octree"},
-         {"grid", static_cast<int>(SurfaceExtractor::kUniformGrid), "surface-following uniform Kuhn grid (a little faster)"}},
+         {"grid", static_cast<int>(SurfaceExtractor::kUniformGrid),
+          "surface-following uniform Kuhn grid (a little faster)"}},
         "where the zero set is extracted");
     t->Include(&IamlsJobParams::normals, NormalsTable());
     return t;
@@ -105,8 +106,9 @@ struct ExtractionHints {
   SurfaceExtractor extractor = SurfaceExtractor::kJ1a;
 };
 
-absl::StatusOr<extract::IsosurfaceResult> ExtractShared(const core::ImplicitFunction& field, const core::PointCloud& cloud,
-                                                     const ExtractionHints& hints, core::JobContext& ctx) {
+absl::StatusOr<extract::IsosurfaceResult> ExtractShared(const core::ImplicitFunction& field,
+                                                        const core::PointCloud& cloud, const ExtractionHints& hints,
+                                                        core::JobContext& ctx) {
   extract::MarchingOptions marching;
   marching.refine_steps = hints.refine_steps;
   if (hints.extractor == SurfaceExtractor::kJ1a) {
@@ -118,7 +120,7 @@ absl::StatusOr<extract::IsosurfaceResult> ExtractShared(const core::ImplicitFunc
 using StatFn = std::function<void(std::string, double)>;
 
 absl::StatusOr<extract::IsosurfaceResult> RunIamls(const IamlsJobParams& p, const core::PointCloud& cloud,
-                                                core::JobContext& ctx, const StatFn& stat) {
+                                                   core::JobContext& ctx, const StatFn& stat) {
   const auto start = std::chrono::steady_clock::now();
   core::SubContext build_ctx(ctx, "building iaMLS", 0.0, 0.3);
   auto field = mls::BuildIamls(cloud, p.fit, build_ctx);
@@ -129,24 +131,23 @@ absl::StatusOr<extract::IsosurfaceResult> RunIamls(const IamlsJobParams& p, cons
   if (!(*field)->stats().residuals.empty()) stat("final_residual_over_h", (*field)->stats().residuals.back());
   const auto extract_start = std::chrono::steady_clock::now();
   core::SubContext extract_ctx(ctx, "extracting surface", 0.3, 1.0);
-  auto extracted = ExtractShared(**field, cloud, {p.cell_size * (*field)->spacing(), p.refine_steps, p.extractor},
-                                 extract_ctx);
+  auto extracted =
+      ExtractShared(**field, cloud, {p.cell_size * (*field)->spacing(), p.refine_steps, p.extractor}, extract_ctx);
   if (extracted.ok()) stat("extract_seconds", Seconds(extract_start));
   return extracted;
 }
 
 template <mls::AlgebraicFit kFit>
 absl::StatusOr<extract::IsosurfaceResult> RunAlgebraic(const AlgebraicJobParams<kFit>& p, const core::PointCloud& cloud,
-                                                    core::JobContext& ctx, const StatFn& stat) {
+                                                       core::JobContext& ctx, const StatFn& stat) {
   core::SubContext build_ctx(ctx, "indexing points", 0.0, 0.05);
   auto field = mls::BuildAlgebraicMls(cloud, p.fit, build_ctx);
   if (!field.ok()) return field.status();
   stat("spacing", (*field)->spacing());
   const auto start = std::chrono::steady_clock::now();
   core::SubContext extract_ctx(ctx, "extracting surface", 0.05, 1.0);
-  auto extracted = ExtractShared(**field, cloud, {p.cell_size * (*field)->spacing(), p.refine_steps,
-                                                  SurfaceExtractor::kJ1a},
-                                 extract_ctx);
+  auto extracted = ExtractShared(
+      **field, cloud, {p.cell_size * (*field)->spacing(), p.refine_steps, SurfaceExtractor::kJ1a}, extract_ctx);
   if (extracted.ok()) stat("extract_seconds", Seconds(start));
   return extracted;
 }
@@ -168,8 +169,8 @@ void PuStatistics(const pu::PuStats& s, const StatFn& stat) {
   }
 }
 
-absl::StatusOr<extract::IsosurfaceResult> RunPu(const PuJobParams& p, const core::PointCloud& cloud, core::JobContext& ctx,
-                                             const StatFn& stat) {
+absl::StatusOr<extract::IsosurfaceResult> RunPu(const PuJobParams& p, const core::PointCloud& cloud,
+                                                core::JobContext& ctx, const StatFn& stat) {
   core::SubContext build_ctx(ctx, "fitting", 0.0, 0.4);
   auto field = pu::BuildPu(cloud, p.fit, build_ctx);
   if (!field.ok()) return field.status();
@@ -188,7 +189,7 @@ absl::StatusOr<extract::IsosurfaceResult> RunPu(const PuJobParams& p, const core
 struct SurfaceMethod {
   MethodInfo info;
   std::function<absl::StatusOr<extract::IsosurfaceResult>(const core::ParamSet&, const core::PointCloud&,
-                                                       core::JobContext&, const StatFn&)>
+                                                          core::JobContext&, const StatFn&)>
       run;
   std::function<const NormalsParams*(const core::ParamSet&)> normals;
 };
@@ -241,8 +242,8 @@ const SurfaceMethod* FindSurfaceMethod(const std::string& name) {
 absl::Status CheckCloud(const core::PointCloud& cloud, const NormalsParams& normals, const InputLimits& limits) {
   if (cloud.empty()) return absl::InvalidArgumentError("the point cloud is empty");
   if (static_cast<int64_t>(cloud.size()) > limits.max_points) {
-    return absl::ResourceExhaustedError(core::StrCat("the cloud has ", cloud.size(), " points; this server accepts at most ",
-                                                     limits.max_points));
+    return absl::ResourceExhaustedError(
+        core::StrCat("the cloud has ", cloud.size(), " points; this server accepts at most ", limits.max_points));
   }
   if (const int64_t bad = core::FindNonFinite(cloud.positions); bad >= 0) {
     return absl::InvalidArgumentError(core::StrCat("point ", bad, " has a NaN or infinite coordinate"));
@@ -252,8 +253,8 @@ absl::Status CheckCloud(const core::PointCloud& cloud, const NormalsParams& norm
       const float len = cloud.normals[i].norm();
       // Draco's octahedral coding keeps unit normals within about 1e-3.
       if (!std::isfinite(len) || std::abs(len - 1.0f) > 0.01f) {
-        return absl::InvalidArgumentError(core::StrCat("normal ", i, " has length ", len,
-                                                       "; normals must be unit vectors (normalize them before upload)"));
+        return absl::InvalidArgumentError(core::StrCat(
+            "normal ", i, " has length ", len, "; normals must be unit vectors (normalize them before upload)"));
       }
     }
   } else if (!normals.estimate_normals) {
@@ -261,8 +262,8 @@ absl::Status CheckCloud(const core::PointCloud& cloud, const NormalsParams& norm
         "the cloud has no normals and estimate_normals is false; upload normals or allow estimation");
   }
   if (static_cast<int64_t>(cloud.size()) < limits.min_points) {
-    return absl::InvalidArgumentError(core::StrCat("the cloud has only ", cloud.size(), " points; at least ",
-                                                   limits.min_points, " are needed"));
+    return absl::InvalidArgumentError(
+        core::StrCat("the cloud has only ", cloud.size(), " points; at least ", limits.min_points, " are needed"));
   }
   return absl::OkStatus();
 }
@@ -384,7 +385,8 @@ absl::StatusOr<SurfaceResult> ReconstructSurface(const std::string& method, cons
   return result;
 }
 
-absl::StatusOr<std::string> EncodeResultMesh(const core::TriangleMesh& mesh, int position_bits, Statistics* statistics) {
+absl::StatusOr<std::string> EncodeResultMesh(const core::TriangleMesh& mesh, int position_bits,
+                                             Statistics* statistics) {
   const int64_t distinct = core::CountDistinctPositions(mesh.vertices);
   io::DracoOptions draco;
   draco.position_bits = position_bits > 0 ? position_bits : 16;
@@ -393,7 +395,8 @@ absl::StatusOr<std::string> EncodeResultMesh(const core::TriangleMesh& mesh, int
     if (!encoded.ok()) return encoded.status();
     // What the user will decode, merged by position: its topology is what the job reports.
     auto delivered = io::DecodeDracoMesh(*encoded);
-    if (!delivered.ok()) return absl::InternalError(core::StrCat("the result mesh does not decode: ", delivered.status().message()));
+    if (!delivered.ok())
+      return absl::InternalError(core::StrCat("the result mesh does not decode: ", delivered.status().message()));
     const bool kept = core::CountDistinctPositions(delivered->vertices) >= distinct;
     if (kept || position_bits > 0 || draco.position_bits >= 30) {
       const core::MeshTopology topo = core::AnalyzeTopology(core::WeldByPosition(*delivered));

@@ -72,7 +72,6 @@ absl::StatusOr<SurfaceResult> ReconstructSurface(const std::string& method, cons
 // at which no two distinct vertices of the mesh share a quantized position, so the mesh merged
 // by position keeps its topology). Adds delivered_position_bits and the delivered mesh's
 // topology (merged by position) to `statistics`. Errors: those of the encoder.
-absl::StatusOr<std::string> EncodeResultMesh(const core::TriangleMesh& mesh, int position_bits,
-                                             Statistics* statistics);
+absl::StatusOr<std::string> EncodeResultMesh(const core::TriangleMesh& mesh, int position_bits, Statistics* statistics);
 
 }  // namespace lsqsurf::jobs

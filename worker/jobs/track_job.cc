@@ -208,7 +208,8 @@ class TrackKind final : public JobKind {
     const bool has_velocity = uploads.contains(kVelocityUpload) && !uploads.at(kVelocityUpload).empty();
     if (p->field == TrackField::kUploaded) {
       if (!has_velocity) {
-        return absl::InvalidArgumentError("field=uploaded tracks through an uploaded velocity grid, but none was uploaded");
+        return absl::InvalidArgumentError(
+            "field=uploaded tracks through an uploaded velocity grid, but none was uploaded");
       }
       if (auto grid = io::ParseVtkVectorGrid(uploads.at(kVelocityUpload), "velocity"); !grid.ok()) return grid.status();
     } else if (has_velocity) {
@@ -246,7 +247,8 @@ class TrackKind final : public JobKind {
     }
     auto cloud = io::DecodeDracoPointCloud(it->second);
     if (!cloud.ok()) return absl::InvalidArgumentError(core::StrCat("input: ", cloud.status().message()));
-    if (!cloud->has_normals()) return absl::InvalidArgumentError("a tracked interface needs oriented normals (outward)");
+    if (!cloud->has_normals())
+      return absl::InvalidArgumentError("a tracked interface needs oriented normals (outward)");
     return cloud;
   }
 

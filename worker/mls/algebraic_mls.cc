@@ -1,9 +1,8 @@
 #include "worker/mls/algebraic_mls.h"
 
+#include <Eigen/Cholesky>
 #include <cmath>
 #include <limits>
-
-#include <Eigen/Cholesky>
 
 #include "worker/core/kd_tree.h"
 #include "worker/core/status.h"
@@ -140,7 +139,8 @@ core::ParamTable<AlgebraicMlsParams>* MakeAlgebraicTable(AlgebraicFit fit) {
       .Real<&AlgebraicMlsParams::support_factor>("support_factor", 1, 10, "h", "support radius")
       .Integer<&AlgebraicMlsParams::min_neighbors>("min_neighbors", 4, 100, "points",
                                                    "no surface where fewer points carry weight")
-      .Real<&AlgebraicMlsParams::coverage>("coverage", 0.25, 10, "h", "no surface farther than this from the nearest point")
+      .Real<&AlgebraicMlsParams::coverage>("coverage", 0.25, 10, "h",
+                                           "no surface farther than this from the nearest point")
       .Real<&AlgebraicMlsParams::side_cosine>("side_cosine", -1, 1, "",
                                               "only points whose normal has at least this cosine with the nearest "
                                               "point's normal enter a fit; -1 keeps all, -0.5 fits each side of a "
@@ -183,8 +183,8 @@ core::FieldGradient AlgebraicMlsFunction::ValueAndGradientFacing(const Vec3d& x,
 }
 
 absl::StatusOr<std::unique_ptr<AlgebraicMlsFunction>> BuildAlgebraicMls(const core::PointCloud& cloud,
-                                                                       const AlgebraicMlsParams& params,
-                                                                       core::JobContext& ctx) {
+                                                                        const AlgebraicMlsParams& params,
+                                                                        core::JobContext& ctx) {
   LSQSURF_RETURN_IF_ERROR(Validate(params));
   if (!cloud.has_normals()) return absl::InvalidArgumentError("algebraic MLS surfaces need oriented normals");
   if (cloud.size() < 4) return absl::InvalidArgumentError("algebraic MLS surfaces need at least 4 points");
@@ -204,7 +204,8 @@ absl::StatusOr<std::unique_ptr<AlgebraicMlsFunction>> BuildAlgebraicMls(const co
   }
   impl.kd_tree = std::make_unique<core::KdTree>(impl.positions);
   LSQSURF_RETURN_IF_ERROR(ctx.CheckCancelled());
-  impl.h = params.spacing > 0 ? params.spacing : params.spacing_scale * core::MeanNearestNeighborDistance(*impl.kd_tree);
+  impl.h =
+      params.spacing > 0 ? params.spacing : params.spacing_scale * core::MeanNearestNeighborDistance(*impl.kd_tree);
   if (!(impl.h > 0)) return absl::InvalidArgumentError("all points coincide: no spacing to size the support by");
   impl.radius = params.support_factor * impl.h;
   function->h_ = impl.h;

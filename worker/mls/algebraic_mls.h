@@ -86,7 +86,7 @@ class AlgebraicMlsFunction final : public core::ImplicitFunction {
 // 4 points, non-finite values, bad parameters), kCancelled. Cost: a kd-tree; each evaluation is
 // one radius query and an O(neighbours) sum.
 absl::StatusOr<std::unique_ptr<AlgebraicMlsFunction>> BuildAlgebraicMls(const core::PointCloud& cloud,
-                                                                       const AlgebraicMlsParams& params,
-                                                                       core::JobContext& ctx);
+                                                                        const AlgebraicMlsParams& params,
+                                                                        core::JobContext& ctx);
 
 }  // namespace lsqsurf::mls

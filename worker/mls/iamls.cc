@@ -1,14 +1,16 @@
 // iaMLS surfaces: Fasshauer & Zhang 2007; seed §4. See iamls.h for the formulas.
 #include "worker/mls/iamls.h"
 
+#include <fmt/format.h>
+
 #include <algorithm>
 #include <cmath>
 #include <numbers>
 
-#include "worker/core/strings.h"
-#include <fmt/format.h>
 #include "worker/core/kd_tree.h"
 #include "worker/core/parallel.h"
+#include "worker/core/status.h"
+#include "worker/core/strings.h"
 
 namespace lsqsurf::mls {
 namespace {
@@ -43,10 +45,10 @@ struct IamlsFunction::Impl {
   std::vector<Vec3f> normals;
   std::vector<float> coefficient;  // c_i
   std::unique_ptr<core::KdTree> tree;
-  double inv_h2 = 0;     // 1 / h²
-  double eps2 = 0;       // ε²
-  double scale = 0;      // ε³ / π^{3/2}
-  float radius = 0;      // Truncation radius, cutoff · h / ε.
+  double inv_h2 = 0;          // 1 / h²
+  double eps2 = 0;            // ε²
+  double scale = 0;           // ε³ / π^{3/2}
+  float radius = 0;           // Truncation radius, cutoff · h / ε.
   double min_kernel_sum = 0;  // ΣΨ below which F is not trusted.
   double fallback_scale = 0;  // Scale of the sign-only extension (a typical ΣΨ).
 };
@@ -120,6 +122,69 @@ core::FieldGradient Evaluate(const IamlsFunction::Impl& m, const Vec3d& x) {
   return out;
 }
 
+// Kernel matrix rows and the right-hand side s_k = Σ_i ℓ_i(x_k) Ψ_i(x_k).
+// Two passes (count, then fill) build the CSR arrays in place: at a million points the matrix
+// holds ~140 million entries, and a per-row staging copy would double the peak.
+absl::Status FillKernelMatrix(const IamlsFunction::Impl& impl, KernelMatrix& a, std::vector<double>& s,
+                              core::SubContext& setup_ctx, core::JobContext& ctx) {
+  const size_t n = impl.positions.size();
+  a.row_start.assign(n + 1, 0);
+  LSQSURF_RETURN_IF_ERROR(core::ParallelFor(
+      n, 1024,
+      [&](size_t begin, size_t end) {
+        std::vector<core::Neighbor> nn;
+        for (size_t k = begin; k < end; ++k) {
+          impl.tree->Radius(impl.positions[k], impl.radius, nn);
+          a.row_start[k + 1] = nn.size();
+        }
+      },
+      &ctx, [&](double f) { setup_ctx.Report(0.2 + 0.3 * f); }));
+  for (size_t k = 0; k < n; ++k) a.row_start[k + 1] += a.row_start[k];
+  a.column.resize(a.row_start[n]);
+  a.value.resize(a.row_start[n]);
+  return core::ParallelFor(
+      n, 1024,
+      [&](size_t begin, size_t end) {
+        std::vector<core::Neighbor> nn;
+        for (size_t k = begin; k < end; ++k) {
+          impl.tree->Radius(impl.positions[k], impl.radius, nn);
+          const Vec3d xk = impl.positions[k].cast<double>();
+          double sk = 0;
+          uint64_t e = a.row_start[k];
+          for (const core::Neighbor& q : nn) {
+            const Vec3d d = xk - impl.positions[q.index].cast<double>();
+            const double si = impl.eps2 * d.squaredNorm() * impl.inv_h2;
+            const double psi = impl.scale * (2.5 - si) * std::exp(-si);
+            a.column[e] = q.index;
+            a.value[e++] = static_cast<float>(psi);
+            sk += impl.normals[q.index].cast<double>().dot(d) * psi;
+          }
+          s[k] = sk;
+        }
+      },
+      &ctx, [&](double f) { setup_ctx.Report(0.5 + 0.5 * f); });
+}
+
+// The largest eigenvalue of the symmetric kernel matrix, by 25 power steps.
+absl::StatusOr<double> LargestEigenvalue(const KernelMatrix& a, core::JobContext& ctx) {
+  const size_t n = a.row_start.size() - 1;
+  std::vector<double> v(n), av;
+  for (size_t k = 0; k < n; ++k) v[k] = 1.0 + 0.5 * std::sin(static_cast<double>(k));
+  double lambda = 0;
+  for (int step = 0; step < 25; ++step) {
+    double norm = 0;
+    for (double x : v) norm += x * x;
+    norm = std::sqrt(norm);
+    for (double& x : v) x /= norm;
+    a.Multiply(v, av);
+    lambda = 0;
+    for (size_t k = 0; k < n; ++k) lambda += v[k] * av[k];
+    v.swap(av);
+    if (ctx.IsCancelled()) return absl::CancelledError("cancelled by request");
+  }
+  return lambda;
+}
+
 }  // namespace
 
 core::FieldValue IamlsFunction::Value(const Vec3d& x) const {
@@ -127,13 +192,10 @@ core::FieldValue IamlsFunction::Value(const Vec3d& x) const {
   return {g.value, g.defined};
 }
 
-core::FieldGradient IamlsFunction::ValueAndGradient(const Vec3d& x) const {
-  return Evaluate<true>(*impl_, x);
-}
+core::FieldGradient IamlsFunction::ValueAndGradient(const Vec3d& x) const { return Evaluate<true>(*impl_, x); }
 
-absl::StatusOr<std::unique_ptr<IamlsFunction>> BuildIamls(const core::PointCloud& cloud,
-                                                         const IamlsParams& params,
-                                                         core::JobContext& ctx) {
+absl::StatusOr<std::unique_ptr<IamlsFunction>> BuildIamls(const core::PointCloud& cloud, const IamlsParams& params,
+                                                          core::JobContext& ctx) {
   if (absl::Status s = Validate(params); !s.ok()) return s;
   if (cloud.size() < 4) return absl::InvalidArgumentError("iaMLS needs at least 4 points");
   if (!cloud.has_normals()) {
@@ -173,48 +235,9 @@ absl::StatusOr<std::unique_ptr<IamlsFunction>> BuildIamls(const core::PointCloud
   const size_t n = cloud.size();
   impl->coefficient.assign(n, 0.0f);
   {
-    // Kernel matrix rows and the right-hand side s_k = Σ_i ℓ_i(x_k) Ψ_i(x_k).
-    // Two passes (count, then fill) build the CSR arrays in place: at a million points the
-    // matrix holds ~140 million entries, and a per-row staging copy would double the peak.
     KernelMatrix a;
-    a.row_start.assign(n + 1, 0);
     std::vector<double> s(n);
-    absl::Status st = core::ParallelFor(
-        n, 1024,
-        [&](size_t begin, size_t end) {
-          std::vector<core::Neighbor> nn;
-          for (size_t k = begin; k < end; ++k) {
-            impl->tree->Radius(impl->positions[k], impl->radius, nn);
-            a.row_start[k + 1] = nn.size();
-          }
-        },
-        &ctx, [&](double f) { setup_ctx.Report(0.2 + 0.3 * f); });
-    if (!st.ok()) return st;
-    for (size_t k = 0; k < n; ++k) a.row_start[k + 1] += a.row_start[k];
-    a.column.resize(a.row_start[n]);
-    a.value.resize(a.row_start[n]);
-    st = core::ParallelFor(
-        n, 1024,
-        [&](size_t begin, size_t end) {
-          std::vector<core::Neighbor> nn;
-          for (size_t k = begin; k < end; ++k) {
-            impl->tree->Radius(impl->positions[k], impl->radius, nn);
-            const Vec3d xk = impl->positions[k].cast<double>();
-            double sk = 0;
-            uint64_t e = a.row_start[k];
-            for (const core::Neighbor& q : nn) {
-              const Vec3d d = xk - impl->positions[q.index].cast<double>();
-              const double si = impl->eps2 * d.squaredNorm() * impl->inv_h2;
-              const double psi = impl->scale * (2.5 - si) * std::exp(-si);
-              a.column[e] = q.index;
-              a.value[e++] = static_cast<float>(psi);
-              sk += impl->normals[q.index].cast<double>().dot(d) * psi;
-            }
-            s[k] = sk;
-          }
-        },
-        &ctx, [&](double f) { setup_ctx.Report(0.5 + 0.5 * f); });
-    if (!st.ok()) return st;
+    LSQSURF_RETURN_IF_ERROR(FillKernelMatrix(*impl, a, s, setup_ctx, ctx));
     fn->stats_.mean_neighbors = static_cast<double>(a.row_start[n]) / static_cast<double>(n);
     // ΣΨ at the samples sets the scale of "clearly positive" for the ghost-sheet guard.
     double weight_sum = 0;
@@ -230,29 +253,18 @@ absl::StatusOr<std::unique_ptr<IamlsFunction>> BuildIamls(const core::PointCloud
     // Richardson iteration c ← c + (s − A c) converges iff the spectrum of the symmetric A lies
     // in (0, 2). Estimate its largest eigenvalue with a few power steps before iterating.
     core::SubContext iter_ctx(ctx, "iterating iaMLS", 0.4, 1.0);
-    std::vector<double> v(n), av;
-    for (size_t k = 0; k < n; ++k) v[k] = 1.0 + 0.5 * std::sin(static_cast<double>(k));
-    double lambda = 0;
-    for (int step = 0; step < 25; ++step) {
-      double norm = 0;
-      for (double x : v) norm += x * x;
-      norm = std::sqrt(norm);
-      for (double& x : v) x /= norm;
-      a.Multiply(v, av);
-      lambda = 0;
-      for (size_t k = 0; k < n; ++k) lambda += v[k] * av[k];
-      v.swap(av);
-      if (ctx.IsCancelled()) return absl::CancelledError("cancelled by request");
-    }
+    auto largest = LargestEigenvalue(a, ctx);
+    if (!largest.ok()) return largest.status();
+    const double lambda = *largest;
     fn->stats_.largest_eigenvalue = lambda;
     if (lambda >= 1.98) {
       // λ_max grows roughly like ε³ (the self term 2.5 ε³/π^{3/2} dominates); suggest an ε that
       // brings it to about 1.5.
       const double suggested = eps * std::cbrt(1.5 / lambda);
-      return absl::InvalidArgumentError(fmt::format(
-          "epsilon={:.3g} makes the iaMLS iteration diverge on this cloud (largest eigenvalue of "
-          "the kernel matrix {:.3g}, must be below 2); use epsilon <= {:.2f} or iterations=0",
-          eps, lambda, suggested));
+      return absl::InvalidArgumentError(
+          fmt::format("epsilon={:.3g} makes the iaMLS iteration diverge on this cloud (largest eigenvalue of "
+                      "the kernel matrix {:.3g}, must be below 2); use epsilon <= {:.2f} or iterations=0",
+                      eps, lambda, suggested));
     }
     std::vector<double> c(n, 0.0), ac;
     for (int it = 0; it < params.iterations; ++it) {

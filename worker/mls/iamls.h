@@ -32,13 +32,13 @@ struct IamlsParams {
   // randomly sampled clouds (there the mean NN distance is about half the sampling spacing, so
   // the kernel is narrower than the gaps), and ε = 0.8 with twice that h makes the iteration
   // diverge (largest eigenvalue 2.3). h = 2 × NN distance with ε = 0.6 is the measured optimum.
-  double epsilon = 0.6;     // Shape parameter ε (dimensionless), 0.05..3. Larger = more detail.
-  int iterations = 3;       // Residual-correction steps, 0..20. More = closer fit, less smoothing.
-  double spacing = 0.0;     // h in model units; 0 = `spacing_scale` × mean nearest-neighbour distance.
+  double epsilon = 0.6;        // Shape parameter ε (dimensionless), 0.05..3. Larger = more detail.
+  int iterations = 3;          // Residual-correction steps, 0..20. More = closer fit, less smoothing.
+  double spacing = 0.0;        // h in model units; 0 = `spacing_scale` × mean nearest-neighbour distance.
   double spacing_scale = 2.0;  // Multiplier of the measured spacing when `spacing` is 0; 0.25..8.
-  double cutoff = 4.0;      // Kernel truncation at ε r = cutoff, 2..8.
-  double min_weight = 0.1;  // F is undefined where ΣΨ < min_weight × (mean ΣΨ at the samples), 0..1:
-                            // the guard against the ghost sheets of the kernel's negative lobe.
+  double cutoff = 4.0;         // Kernel truncation at ε r = cutoff, 2..8.
+  double min_weight = 0.1;     // F is undefined where ΣΨ < min_weight × (mean ΣΨ at the samples), 0..1:
+                               // the guard against the ghost sheets of the kernel's negative lobe.
 };
 
 // The one description of every IamlsParams field (range, unit, meaning).
@@ -48,11 +48,11 @@ const core::ParamTable<IamlsParams>& IamlsParamTable();
 absl::Status Validate(const IamlsParams& params);
 
 struct IamlsStats {
-  double spacing = 0;              // h actually used (model units).
-  double largest_eigenvalue = 0;   // Of the kernel matrix; the iteration needs it below 2.
-  std::vector<double> residuals;   // max_i |F(x_i)| / h before each iteration and after the last.
-  double mean_neighbors = 0;       // Points within the truncation radius, per point.
-  double mean_sample_weight = 0;   // Mean ΣΨ at the samples.
+  double spacing = 0;             // h actually used (model units).
+  double largest_eigenvalue = 0;  // Of the kernel matrix; the iteration needs it below 2.
+  std::vector<double> residuals;  // max_i |F(x_i)| / h before each iteration and after the last.
+  double mean_neighbors = 0;      // Points within the truncation radius, per point.
+  double mean_sample_weight = 0;  // Mean ΣΨ at the samples.
 };
 
 class IamlsFunction final : public core::ImplicitFunction {
@@ -64,8 +64,7 @@ class IamlsFunction final : public core::ImplicitFunction {
   double spacing() const { return h_; }
 
  private:
-  friend absl::StatusOr<std::unique_ptr<IamlsFunction>> BuildIamls(const core::PointCloud&,
-                                                                   const IamlsParams&,
+  friend absl::StatusOr<std::unique_ptr<IamlsFunction>> BuildIamls(const core::PointCloud&, const IamlsParams&,
                                                                    core::JobContext&);
   IamlsFunction() = default;
 
@@ -82,8 +81,7 @@ class IamlsFunction final : public core::ImplicitFunction {
 // Errors: kInvalidArgument (no normals, fewer than 4 points, bad parameters, or an ε for which
 // the iteration diverges on this cloud — the message says which ε to use), kCancelled.
 // Cost: one radius query per point plus `iterations` sparse products (~50/ε² neighbours each).
-absl::StatusOr<std::unique_ptr<IamlsFunction>> BuildIamls(const core::PointCloud& cloud,
-                                                         const IamlsParams& params,
-                                                         core::JobContext& ctx);
+absl::StatusOr<std::unique_ptr<IamlsFunction>> BuildIamls(const core::PointCloud& cloud, const IamlsParams& params,
+                                                          core::JobContext& ctx);
 
 }  // namespace lsqsurf::mls

@@ -108,7 +108,8 @@ bool OrthogonalFitter::AddTerm(int index, int variable, int parent) {
   norms_[static_cast<size_t>(index)] = norm;
   // Projecting the residual rather than w is the same in exact arithmetic and stabler.
   const double coefficient = Inner(residual_.data(), phi) / norm;
-  for (int m = 0; m < kMaxTerms; ++m) polynomial_.coefficients[static_cast<size_t>(m)] += coefficient * mono[static_cast<size_t>(m)];
+  for (int m = 0; m < kMaxTerms; ++m)
+    polynomial_.coefficients[static_cast<size_t>(m)] += coefficient * mono[static_cast<size_t>(m)];
   for (size_t j = 0; j < n_; ++j) residual_[j] -= coefficient * phi[j];
   residual_energy_ = Inner(residual_.data(), residual_.data());
   return true;

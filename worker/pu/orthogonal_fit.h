@@ -6,8 +6,8 @@
 // orthogonalized against the elements of degree d−2, d−1 and d (it is orthogonal to the lower
 // ones already, in exact arithmetic), with one re-orthogonalization pass. Because the basis is
 // orthogonal, raising the degree adds coefficients and leaves the old ones untouched, each new
-// coefficient is the projection of the current residual (updated in O(n) per term), and a new element that vanishes on the data
-// reveals that the data cannot support that degree.
+// coefficient is the projection of the current residual (updated in O(n) per term), and a new element that vanishes on
+// the data reveals that the data cannot support that degree.
 #pragma once
 
 #include <array>
@@ -62,11 +62,11 @@ class OrthogonalFitter {
   size_t n_ = 0;
   double tolerance_ = 1e-9;
   std::span<const double> u_, v_, weights_;
-  std::vector<double> values_;  // kMaxTerms × n: the basis elements at the data points.
+  std::vector<double> values_;    // kMaxTerms × n: the basis elements at the data points.
   std::vector<double> residual_;  // w − p at the data points.
   std::vector<double> saved_residual_values_;
   std::array<std::array<double, kMaxTerms>, kMaxTerms> monomials_{};  // Basis in monomial form.
-  std::array<double, kMaxTerms> norms_{};  // ⟨φ_k, φ_k⟩.
+  std::array<double, kMaxTerms> norms_{};                             // ⟨φ_k, φ_k⟩.
   int terms_ = 0;
   BivariatePolynomial polynomial_;
   double residual_energy_ = 0;

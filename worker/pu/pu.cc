@@ -1,5 +1,6 @@
 #include "worker/pu/pu.h"
 
+#include <Eigen/Cholesky>
 #include <algorithm>
 #include <bit>
 #include <chrono>
@@ -7,14 +8,12 @@
 #include <limits>
 #include <mutex>
 
-#include <Eigen/Cholesky>
-
-#include "worker/extract/j1a.h"
-#include "worker/extract/j1a_isosurface.h"
 #include "worker/core/kd_tree.h"
 #include "worker/core/parallel.h"
 #include "worker/core/status.h"
 #include "worker/core/strings.h"
+#include "worker/extract/j1a.h"
+#include "worker/extract/j1a_isosurface.h"
 #include "worker/pu/orthogonal_fit.h"
 
 namespace lsqsurf::pu {
@@ -46,12 +45,12 @@ constexpr int kNoisyMinPoints = 80;
 constexpr int kQuadricLabel = 5;
 
 struct LocalFit {
-  Vec3d centre = Vec3d::Zero();   // Of the leaf.
-  double support_radius = 0;      // R_i of the PU weight.
-  Vec3d origin = Vec3d::Zero();   // Local frame: weighted centroid, tangents, mean normal.
+  Vec3d centre = Vec3d::Zero();  // Of the leaf.
+  double support_radius = 0;     // R_i of the PU weight.
+  Vec3d origin = Vec3d::Zero();  // Local frame: weighted centroid, tangents, mean normal.
   Vec3d tangent_u = Vec3d::UnitX(), tangent_v = Vec3d::UnitY(), normal = Vec3d::UnitZ();
-  double scale = 1;               // The fitting radius (larger than the support in sparse leaves);
-                                  // tangent coordinates are divided by it.
+  double scale = 1;                              // The fitting radius (larger than the support in sparse leaves);
+                                                 // tangent coordinates are divided by it.
   std::array<double, kMaxTerms> coefficients{};  // Height polynomial, or quadric in y = (x − origin)/scale.
   int8_t degree = 0;
   int8_t depth = 0;
@@ -64,12 +63,13 @@ struct LocalFit {
       const Vec3d y = d / scale;
       const auto& q = coefficients;
       const double value = q[0] + q[1] * y.x() + q[2] * y.y() + q[3] * y.z() + q[4] * y.x() * y.x() +
-                           q[5] * y.y() * y.y() + q[6] * y.z() * y.z() + q[7] * y.x() * y.y() +
-                           q[8] * y.x() * y.z() + q[9] * y.y() * y.z();
+                           q[5] * y.y() * y.y() + q[6] * y.z() * y.z() + q[7] * y.x() * y.y() + q[8] * y.x() * y.z() +
+                           q[9] * y.y() * y.z();
       if (gradient) {
         *gradient = Vec3d(q[1] + 2 * q[4] * y.x() + q[7] * y.y() + q[8] * y.z(),
                           q[2] + 2 * q[5] * y.y() + q[7] * y.x() + q[9] * y.z(),
-                          q[3] + 2 * q[6] * y.z() + q[8] * y.x() + q[9] * y.y()) / scale;
+                          q[3] + 2 * q[6] * y.z() + q[8] * y.x() + q[9] * y.y()) /
+                    scale;
       }
       return value;
     }
@@ -113,9 +113,7 @@ struct PuFunction::Impl {
   double coverage_factor = 1.25;
 
   double Edge(int level) const { return std::ldexp(root_edge, -level); }
-  Vec3d Centre(const Node& n) const {
-    return origin + (Vec3d(n.x, n.y, n.z) + Vec3d::Constant(0.5)) * Edge(n.level);
-  }
+  Vec3d Centre(const Node& n) const { return origin + (Vec3d(n.x, n.y, n.z) + Vec3d::Constant(0.5)) * Edge(n.level); }
 
   int32_t LeafAt(const Vec3d& x) const {
     const Vec3d g = (x - origin) / root_edge;
@@ -137,8 +135,8 @@ struct PuFunction::Impl {
       const Node& n = nodes[static_cast<size_t>(index)];
       if (n.first_child < 0) return index;
       const int shift = cell.level - l;
-      const int octant = static_cast<int>(((cell.x >> shift) & 1) | (((cell.y >> shift) & 1) << 1) |
-                                          (((cell.z >> shift) & 1) << 2));
+      const int octant =
+          static_cast<int>(((cell.x >> shift) & 1) | (((cell.y >> shift) & 1) << 1) | (((cell.z >> shift) & 1) << 2));
       index = n.first_child + octant;
     }
     return index;
@@ -152,7 +150,8 @@ struct PuFunction::Impl {
     if (leaf < 0) return nullptr;
     const LocalFit* closest = nullptr;
     double closest_s2 = std::numeric_limits<double>::infinity();
-    for (uint32_t k = influence_offsets[static_cast<size_t>(leaf)]; k < influence_offsets[static_cast<size_t>(leaf) + 1]; ++k) {
+    for (uint32_t k = influence_offsets[static_cast<size_t>(leaf)];
+         k < influence_offsets[static_cast<size_t>(leaf) + 1]; ++k) {
       const LocalFit& fit = fits[influence[k]];
       const double s2 = (x - fit.centre).squaredNorm() / (fit.support_radius * fit.support_radius);
       if (s2 < 1) visit(fit, s2);
@@ -186,7 +185,8 @@ struct PuFunction::Impl {
       return out;
     }
     out.value = sum_value / sum_theta;
-    if (with_gradient) out.gradient = (sum_grad_value * sum_theta - sum_value * sum_grad_theta) / (sum_theta * sum_theta);
+    if (with_gradient)
+      out.gradient = (sum_grad_value * sum_theta - sum_value * sum_grad_theta) / (sum_theta * sum_theta);
     out.defined = true;
     if (coverage_check && decide_defined) {
       const core::Neighbor nearest = kd_tree->Nearest(x.cast<float>());
@@ -273,6 +273,73 @@ void PartitionOctants(std::span<uint32_t> order, std::span<const Vec3f> position
   std::copy(sorted.begin(), sorted.end(), order.begin());
 }
 
+struct DegreeSearch {
+  BivariatePolynomial best;  // The lowest-error oriented fit.
+  double best_error = std::numeric_limits<double>::infinity();
+  bool accepted = false;  // `best` meets the error bound.
+};
+
+// Raises the degree of the height fit over the tangent plane, 0 (1 when more is allowed) to
+// `degree_cap`, until the largest error meets the bound; `s` holds the neighbours' tangent
+// coordinates, weights and support flags.
+DegreeSearch SearchDegree(const BuildContext& bc, const LocalFit& fit, int degree_cap, Scratch& s) {
+  const PuParams& params = bc.params;
+  const size_t n = s.neighbors.size();
+  bool any_in_support = false;
+  for (char c : s.in_support) any_in_support |= c != 0;
+  if (n > kMaxFitSamples) {
+    const size_t stride = (n + kMaxFitSamples - 1) / kMaxFitSamples;
+    s.sample_u.clear(), s.sample_v.clear(), s.sample_w.clear(), s.sample_weight.clear();
+    for (size_t j = 0; j < n; j += stride) {
+      if (s.weight[j] <= 0) continue;
+      s.sample_u.push_back(s.u[j]), s.sample_v.push_back(s.v[j]), s.sample_w.push_back(s.w[j]);
+      s.sample_weight.push_back(s.weight[j]);
+    }
+    s.fitter.Reset(s.sample_u, s.sample_v, s.sample_w, s.sample_weight);
+  } else {
+    s.fitter.Reset(s.u, s.v, s.w, s.weight);
+  }
+  DegreeSearch out;
+  for (int degree = 0; degree <= degree_cap; ++degree) {
+    if (degree > 0 && !s.fitter.RaiseDegree()) break;  // Rank deficient: the data cannot say more.
+    if (degree == 0 && degree_cap > 0) continue;       // A tilted plane is never worse.
+    const BivariatePolynomial& p = s.fitter.polynomial();
+    // Taubin distance |f|/|∇f|, measured where the leaf's weight is (MPU's rule), and criterion
+    // 4, orientation: the fit must agree with its points' normals.
+    auto measure = [&](size_t stride, double& error) {
+      error = 0;
+      size_t inverted = 0, counted = 0;
+      for (size_t j = 0; j < n; j += stride) {
+        if (any_in_support && !s.in_support[j]) continue;
+        double h, hu, hv;
+        p.Evaluate(s.u[j], s.v[j], h, hu, hv);
+        const Vec3d gradient = fit.normal - (hu * fit.tangent_u + hv * fit.tangent_v) / fit.scale;
+        error = std::max(error, std::abs(s.w[j] - h) / gradient.norm());
+        ++counted;
+        inverted += gradient.dot(bc.normals[s.neighbors[j].index].cast<double>()) <= 0;
+      }
+      return !params.orientation_check ||
+             static_cast<double>(inverted) <= kMaxInvertedShare * static_cast<double>(counted);
+    };
+    // On large balls a subsample rejects most fits cheaply (its largest error is a lower bound);
+    // only a fit that passes there is measured on every point.
+    double error = 0;
+    const size_t stride = std::max<size_t>(1, n / kMaxFitSamples);
+    bool oriented = measure(stride, error);
+    if (stride > 1 && oriented && error <= bc.error_bound) oriented = measure(1, error);
+    if (!oriented) continue;
+    if (error < out.best_error) {
+      out.best_error = error;
+      out.best = p;
+    }
+    if (error <= bc.error_bound) {
+      out.accepted = true;
+      break;
+    }
+  }
+  return out;
+}
+
 // The twofold adaptive decision for one cell (seed §2; METHODS §1.5): fit, raise the degree
 // while the error is above the bound, split when the highest degree fails.
 CellOutcome ProcessCell(const BuildContext& bc, const Node& node, std::span<uint32_t> inside, uint32_t begin,
@@ -297,7 +364,8 @@ CellOutcome ProcessCell(const BuildContext& bc, const Node& node, std::span<uint
   double fit_radius = support;
   if (s.neighbors.size() < static_cast<size_t>(params.min_points)) {
     impl.kd_tree->Knn(query, static_cast<size_t>(params.min_points), s.neighbors);
-    fit_radius = std::min(kMaxRadiusGrowth * support, 1.05 * std::sqrt(static_cast<double>(s.neighbors.back().distance2)));
+    fit_radius =
+        std::min(kMaxRadiusGrowth * support, 1.05 * std::sqrt(static_cast<double>(s.neighbors.back().distance2)));
     impl.kd_tree->Radius(query, static_cast<float>(fit_radius), s.neighbors);
   }
   const size_t n = s.neighbors.size();
@@ -358,60 +426,10 @@ CellOutcome ProcessCell(const BuildContext& bc, const Node& node, std::span<uint
   // Criterion 2: twice as many points as coefficients.
   while (degree_cap > 0 && weighted < static_cast<size_t>(2 * TermCount(degree_cap))) --degree_cap;
 
-  bool any_in_support = false;
-  for (char c : s.in_support) any_in_support |= c != 0;
-  if (n > kMaxFitSamples) {
-    const size_t stride = (n + kMaxFitSamples - 1) / kMaxFitSamples;
-    s.sample_u.clear(), s.sample_v.clear(), s.sample_w.clear(), s.sample_weight.clear();
-    for (size_t j = 0; j < n; j += stride) {
-      if (s.weight[j] <= 0) continue;
-      s.sample_u.push_back(s.u[j]), s.sample_v.push_back(s.v[j]), s.sample_w.push_back(s.w[j]);
-      s.sample_weight.push_back(s.weight[j]);
-    }
-    s.fitter.Reset(s.sample_u, s.sample_v, s.sample_w, s.sample_weight);
-  } else {
-    s.fitter.Reset(s.u, s.v, s.w, s.weight);
-  }
-  double best_error = std::numeric_limits<double>::infinity();
-  BivariatePolynomial best;
-  bool accepted = false;
-  for (int degree = 0; degree <= degree_cap; ++degree) {
-    if (degree > 0 && !s.fitter.RaiseDegree()) break;  // Rank deficient: the data cannot say more.
-    if (degree == 0 && degree_cap > 0) continue;       // A tilted plane is never worse.
-    const BivariatePolynomial& p = s.fitter.polynomial();
-    // Taubin distance |f|/|∇f|, measured where the leaf's weight is (MPU's rule), and criterion
-    // 4, orientation: the fit must agree with its points' normals.
-    auto measure = [&](size_t stride, double& error) {
-      error = 0;
-      size_t inverted = 0, counted = 0;
-      for (size_t j = 0; j < n; j += stride) {
-        if (any_in_support && !s.in_support[j]) continue;
-        double h, hu, hv;
-        p.Evaluate(s.u[j], s.v[j], h, hu, hv);
-        const Vec3d gradient = fit.normal - (hu * fit.tangent_u + hv * fit.tangent_v) / fit.scale;
-        error = std::max(error, std::abs(s.w[j] - h) / gradient.norm());
-        ++counted;
-        inverted += gradient.dot(bc.normals[s.neighbors[j].index].cast<double>()) <= 0;
-      }
-      return !params.orientation_check ||
-             static_cast<double>(inverted) <= kMaxInvertedShare * static_cast<double>(counted);
-    };
-    // On large balls a subsample rejects most fits cheaply (its largest error is a lower bound);
-    // only a fit that passes there is measured on every point.
-    double error = 0;
-    const size_t stride = std::max<size_t>(1, n / kMaxFitSamples);
-    bool oriented = measure(stride, error);
-    if (stride > 1 && oriented && error <= bc.error_bound) oriented = measure(1, error);
-    if (!oriented) continue;
-    if (error < best_error) {
-      best_error = error;
-      best = p;
-    }
-    if (error <= bc.error_bound) {
-      accepted = true;
-      break;
-    }
-  }
+  const DegreeSearch search = SearchDegree(bc, fit, degree_cap, s);
+  const bool accepted = search.accepted;
+  const double best_error = search.best_error;
+  const BivariatePolynomial& best = search.best;
   if (!accepted && can_split) return split();
   if (!std::isfinite(best_error)) {
     FitQuadric(bc, s.neighbors, s.weight, fit);
@@ -435,8 +453,8 @@ constexpr size_t kNoiseNeighbors = 48;
 constexpr size_t kNoiseMaxFitPoints = 256;
 constexpr double kNoiseBallFactor = 4.0;
 struct NoiseEstimate {
-  double sigma = 0;               // Model units.
-  double points_in_ball = 0;      // Median number of points within kNoiseBallFactor × σ.
+  double sigma = 0;           // Model units.
+  double points_in_ball = 0;  // Median number of points within kNoiseBallFactor × σ.
 };
 // With `known_sigma` >= 0 only the ball is counted.
 NoiseEstimate EstimateNoise(const PuFunction::Impl& impl, std::span<const Vec3f> normals, double known_sigma) {
@@ -515,20 +533,20 @@ const core::ParamTable<PuParams>& PuParamTable() {
                                         "the fitting ball of a sparse cell grows until it holds this many points")
         .Real<&PuParams::max_normal_angle>("max_normal_angle", 10, 180, "degrees",
                                            "normal-cone criterion: wider cells are split (180 disables it)")
-        .Flag<&PuParams::coverage_check>("coverage",
-                                         "coverage criteria: no sheets away from the data, holes stay open")
+        .Flag<&PuParams::coverage_check>("coverage", "coverage criteria: no sheets away from the data, holes stay open")
         .Real<&PuParams::coverage_factor>("coverage_factor", 0.5, 20, "local spacings",
                                           "surface only within this many local spacings (distance to the 8th "
                                           "neighbour) of a data point")
-        .Flag<&PuParams::orientation_check>("orientation_check", "reject fits whose gradient opposes their points' normals")
+        .Flag<&PuParams::orientation_check>("orientation_check",
+                                            "reject fits whose gradient opposes their points' normals")
         .Real<&PuParams::noise_level>("noise_level", -1, 0.1, "share of the diagonal",
                                       "scan noise sigma; -1 estimates it, 0 declares the data exact; above "
                                       "error_threshold the threshold becomes 3 sigma and min_points at least 80")
         .AddRule([](const PuParams& p) {
           return p.noise_level == -1 || p.noise_level >= 0
                      ? absl::OkStatus()
-                     : absl::InvalidArgumentError(core::StrCat("noise_level=", p.noise_level,
-                                                               " must be -1 (estimate it) or within [0, 0.1]"));
+                     : absl::InvalidArgumentError(
+                           core::StrCat("noise_level=", p.noise_level, " must be -1 (estimate it) or within [0, 0.1]"));
         });
     return t;
   }();
@@ -543,9 +561,18 @@ const core::ParamTable<PuExtractParams>& PuExtractParamTable() {
     t->Real<&PuExtractParams::cell_size>("cell_size", 0.25, 64, "mean point spacings",
                                          "smallest extraction cell at the surface (rounded to an octree level); cells "
                                          "near the data are up to 4x larger where the fits allowed larger cells")
-        .Custom({"refine_steps", core::ParamType::kInteger, 0, {}, 0, 20, "steps", "root-refinement steps per crossing edge", {}},
-                [](const PuExtractParams& p) { return static_cast<double>(p.marching.refine_steps); },
-                [](PuExtractParams& p, double v) { p.marching.refine_steps = static_cast<int>(v); });
+        .Custom(
+            {"refine_steps",
+             core::ParamType::kInteger,
+             0,
+             {},
+             0,
+             20,
+             "steps",
+             "root-refinement steps per crossing edge",
+             {}},
+            [](const PuExtractParams& p) { return static_cast<double>(p.marching.refine_steps); },
+            [](PuExtractParams& p, double v) { p.marching.refine_steps = static_cast<int>(v); });
     return t;
   }();
   return *table;
@@ -575,53 +602,41 @@ FitLabel PuFunction::DominantFit(const Vec3d& x) const {
   return label;
 }
 
-absl::StatusOr<std::unique_ptr<PuFunction>> BuildPu(const core::PointCloud& cloud, const PuParams& params,
-                                                    core::JobContext& ctx) {
-  LSQSURF_RETURN_IF_ERROR(Validate(params));
-  if (!cloud.has_normals()) return absl::InvalidArgumentError("PU surfaces need oriented normals");
-  if (cloud.size() < 4) return absl::InvalidArgumentError("PU surfaces need at least 4 points");
-  if (cloud.size() >= std::numeric_limits<uint32_t>::max()) return absl::InvalidArgumentError("too many points");
-  const auto start = std::chrono::steady_clock::now();
-  std::unique_ptr<PuFunction> function(new PuFunction());
-  PuFunction::Impl& impl = *function->impl_;
-  PuStats& stats = function->stats_;
-  impl.positions = cloud.positions;
-  impl.kd_tree = std::make_unique<core::KdTree>(impl.positions);
-  impl.coverage_check = params.coverage_check;
-  impl.coverage_factor = params.coverage_factor;
-  if (params.coverage_check) {
-    // One neighbour query per point gives both the local spacing and the nearest distance.
-    impl.local_spacing.resize(impl.positions.size());
-    std::vector<float> nearest(impl.positions.size());
-    LSQSURF_RETURN_IF_ERROR(core::ParallelFor(
-        impl.positions.size(), 2048,
-        [&](size_t b, size_t e) {
-          std::vector<core::Neighbor> knn;
-          for (size_t i = b; i < e; ++i) {
-            impl.kd_tree->Knn(impl.positions[i], kSpacingNeighbors + 1, knn);
-            impl.local_spacing[i] = std::sqrt(knn.back().distance2);
-            nearest[i] = std::sqrt(knn[1].distance2);
-          }
-        },
-        &ctx));
-    double sum = 0;
-    for (float d : nearest) sum += d;
-    stats.mean_spacing = sum / static_cast<double>(nearest.size());
-  } else {
+namespace {
+
+// The point spacing statistics: with coverage checks, one neighbour query per point gives both
+// the local spacing (kept for evaluation) and the nearest distance (averaged for the stats).
+absl::Status MeasureSpacing(PuFunction::Impl& impl, bool coverage_check, PuStats& stats, core::JobContext& ctx) {
+  if (!coverage_check) {
     stats.mean_spacing = core::MeanNearestNeighborDistance(*impl.kd_tree);
+    return absl::OkStatus();
   }
-  const core::Box3 box = core::BoundingBox(impl.positions);
-  const double diagonal = core::Diagonal(box);
-  if (!(diagonal > 0)) return absl::InvalidArgumentError("all points coincide");
-  // The root cube: 1.2 × the largest side, as in MPU, so that boundary cells have margin.
-  impl.root_edge = 1.2 * box.sizes().maxCoeff();
-  impl.origin = box.center() - Vec3d::Constant(impl.root_edge / 2);
-  stats.root_edge = impl.root_edge;
-  // Noise-aware bounds: a largest-error test cannot pass below about 3σ on noisy points, and
-  // fits over few noisy points follow the noise (blobs, bumps), so where the noise exceeds the
-  // requested accuracy both are raised.
+  impl.local_spacing.resize(impl.positions.size());
+  std::vector<float> nearest(impl.positions.size());
+  LSQSURF_RETURN_IF_ERROR(core::ParallelFor(
+      impl.positions.size(), 2048,
+      [&](size_t b, size_t e) {
+        std::vector<core::Neighbor> knn;
+        for (size_t i = b; i < e; ++i) {
+          impl.kd_tree->Knn(impl.positions[i], kSpacingNeighbors + 1, knn);
+          impl.local_spacing[i] = std::sqrt(knn.back().distance2);
+          nearest[i] = std::sqrt(knn[1].distance2);
+        }
+      },
+      &ctx));
+  double sum = 0;
+  for (float d : nearest) sum += d;
+  stats.mean_spacing = sum / static_cast<double>(nearest.size());
+  return absl::OkStatus();
+}
+
+// Noise-aware bounds: a largest-error test cannot pass below about 3σ on noisy points, and fits
+// over few noisy points follow the noise (blobs, bumps), so where the noise exceeds the requested
+// accuracy both are raised.
+PuParams NoiseAwareParams(const PuFunction::Impl& impl, std::span<const Vec3f> normals, const PuParams& params,
+                          double diagonal, PuStats& stats) {
   const NoiseEstimate noise =
-      EstimateNoise(impl, cloud.normals, params.noise_level >= 0 ? params.noise_level * diagonal : -1.0);
+      EstimateNoise(impl, normals, params.noise_level >= 0 ? params.noise_level * diagonal : -1.0);
   stats.noise_estimate = noise.sigma / diagonal;
   PuParams effective = params;
   if (stats.noise_estimate > params.error_threshold) {
@@ -630,19 +645,23 @@ absl::StatusOr<std::unique_ptr<PuFunction>> BuildPu(const core::PointCloud& clou
   }
   stats.error_threshold = effective.error_threshold;
   stats.min_points = effective.min_points;
-  const BuildContext bc{effective, impl, cloud.normals, effective.error_threshold * diagonal,
-                        std::cos(params.max_normal_angle * M_PI / 180.0)};
+  return effective;
+}
 
-  std::vector<uint32_t> order(cloud.size());
+// The fitting tree, level by level: every cell of a level is fitted in parallel, then split or
+// kept (with its fit) in order, so the tree does not depend on the thread count.
+absl::Status GrowFittingTree(const BuildContext& bc, PuFunction::Impl& impl, size_t points, int max_depth,
+                             PuStats& stats, core::JobContext& ctx) {
+  std::vector<uint32_t> order(points);
   for (uint32_t i = 0; i < order.size(); ++i) order[i] = i;
   std::vector<std::array<uint32_t, 2>> ranges{{0, static_cast<uint32_t>(order.size())}};
   impl.nodes.push_back(Node{});
   std::vector<int32_t> current{0};
-  stats.leaves_per_depth.assign(static_cast<size_t>(params.max_depth) + 1, 0);
-  stats.fits_per_depth.assign(static_cast<size_t>(params.max_depth) + 1, 0);
+  stats.leaves_per_depth.assign(static_cast<size_t>(max_depth) + 1, 0);
+  stats.fits_per_depth.assign(static_cast<size_t>(max_depth) + 1, 0);
   for (int level = 0; !current.empty(); ++level) {
-    core::SubContext level_ctx(ctx, core::StrCat("fitting level ", level), static_cast<double>(level) / (params.max_depth + 1),
-                               static_cast<double>(level + 1) / (params.max_depth + 1));
+    core::SubContext level_ctx(ctx, core::StrCat("fitting level ", level), static_cast<double>(level) / (max_depth + 1),
+                               static_cast<double>(level + 1) / (max_depth + 1));
     std::vector<CellOutcome> outcomes(current.size());
     LSQSURF_RETURN_IF_ERROR(core::ParallelFor(
         current.size(), 8,
@@ -668,8 +687,8 @@ absl::StatusOr<std::unique_ptr<PuFunction>> BuildPu(const core::PointCloud& clou
         impl.nodes[index].first_child = static_cast<int32_t>(impl.nodes.size());
         for (uint32_t k = 0; k < 8; ++k) {
           next.push_back(static_cast<int32_t>(impl.nodes.size()));
-          impl.nodes.push_back(Node{2 * parent.x + (k & 1), 2 * parent.y + ((k >> 1) & 1), 2 * parent.z + ((k >> 2) & 1),
-                                    level + 1, -1, -1});
+          impl.nodes.push_back(Node{2 * parent.x + (k & 1), 2 * parent.y + ((k >> 1) & 1),
+                                    2 * parent.z + ((k >> 2) & 1), level + 1, -1, -1});
           ranges.push_back({o.child_ranges[k], o.child_ranges[k + 1]});
         }
         continue;
@@ -689,12 +708,11 @@ absl::StatusOr<std::unique_ptr<PuFunction>> BuildPu(const core::PointCloud& clou
     }
     current = std::move(next);
   }
-  order = {};
-  ranges = {};
-  stats.fit_seconds = Seconds(start);
+  return absl::OkStatus();
+}
 
-  // Leaf → fits whose support meets it, so that an evaluation visits one short list.
-  const auto index_start = std::chrono::steady_clock::now();
+// Leaf → fits whose support meets it, so that an evaluation visits one short list.
+absl::Status IndexInfluence(PuFunction::Impl& impl, core::JobContext& ctx) {
   auto for_each_leaf_in_ball = [&](const LocalFit& fit, auto&& emit) {
     std::vector<int32_t> stack{0};
     const double r2 = fit.support_radius * fit.support_radius;
@@ -721,7 +739,9 @@ absl::StatusOr<std::unique_ptr<PuFunction>> BuildPu(const core::PointCloud& clou
       [&](size_t b, size_t e) {
         std::vector<std::pair<uint32_t, uint32_t>> pairs;
         for (size_t f = b; f < e; ++f) {
-          for_each_leaf_in_ball(impl.fits[f], [&](int32_t leaf) { pairs.emplace_back(static_cast<uint32_t>(leaf), static_cast<uint32_t>(f)); });
+          for_each_leaf_in_ball(impl.fits[f], [&](int32_t leaf) {
+            pairs.emplace_back(static_cast<uint32_t>(leaf), static_cast<uint32_t>(f));
+          });
         }
         std::lock_guard lock(chunks_mutex);
         pairs_per_chunk.push_back(std::move(pairs));
@@ -736,6 +756,40 @@ absl::StatusOr<std::unique_ptr<PuFunction>> BuildPu(const core::PointCloud& clou
   for (const auto& chunk : pairs_per_chunk) {
     for (const auto& [leaf, fit] : chunk) impl.influence[leaf_counts[leaf]++] = fit;
   }
+  return absl::OkStatus();
+}
+
+}  // namespace
+
+absl::StatusOr<std::unique_ptr<PuFunction>> BuildPu(const core::PointCloud& cloud, const PuParams& params,
+                                                    core::JobContext& ctx) {
+  LSQSURF_RETURN_IF_ERROR(Validate(params));
+  if (!cloud.has_normals()) return absl::InvalidArgumentError("PU surfaces need oriented normals");
+  if (cloud.size() < 4) return absl::InvalidArgumentError("PU surfaces need at least 4 points");
+  if (cloud.size() >= std::numeric_limits<uint32_t>::max()) return absl::InvalidArgumentError("too many points");
+  const auto start = std::chrono::steady_clock::now();
+  std::unique_ptr<PuFunction> function(new PuFunction());
+  PuFunction::Impl& impl = *function->impl_;
+  PuStats& stats = function->stats_;
+  impl.positions = cloud.positions;
+  impl.kd_tree = std::make_unique<core::KdTree>(impl.positions);
+  impl.coverage_check = params.coverage_check;
+  impl.coverage_factor = params.coverage_factor;
+  LSQSURF_RETURN_IF_ERROR(MeasureSpacing(impl, params.coverage_check, stats, ctx));
+  const core::Box3 box = core::BoundingBox(impl.positions);
+  const double diagonal = core::Diagonal(box);
+  if (!(diagonal > 0)) return absl::InvalidArgumentError("all points coincide");
+  // The root cube: 1.2 × the largest side, as in MPU, so that boundary cells have margin.
+  impl.root_edge = 1.2 * box.sizes().maxCoeff();
+  impl.origin = box.center() - Vec3d::Constant(impl.root_edge / 2);
+  stats.root_edge = impl.root_edge;
+  const PuParams effective = NoiseAwareParams(impl, cloud.normals, params, diagonal, stats);
+  const BuildContext bc{effective, impl, cloud.normals, effective.error_threshold * diagonal,
+                        std::cos(params.max_normal_angle * M_PI / 180.0)};
+  LSQSURF_RETURN_IF_ERROR(GrowFittingTree(bc, impl, cloud.size(), params.max_depth, stats, ctx));
+  stats.fit_seconds = Seconds(start);
+  const auto index_start = std::chrono::steady_clock::now();
+  LSQSURF_RETURN_IF_ERROR(IndexInfluence(impl, ctx));
   stats.index_seconds = Seconds(index_start);
   LSQSURF_RETURN_IF_ERROR(ctx.CheckCancelled());
   if (impl.fits.empty()) return absl::FailedPreconditionError("no local fit could be made");
@@ -743,7 +797,7 @@ absl::StatusOr<std::unique_ptr<PuFunction>> BuildPu(const core::PointCloud& clou
 }
 
 absl::StatusOr<extract::IsosurfaceResult> Extract(const PuFunction& function, const PuExtractParams& params,
-                                               core::JobContext& ctx) {
+                                                  core::JobContext& ctx) {
   if (!(params.cell_size > 0) || !std::isfinite(params.cell_size)) {
     return absl::InvalidArgumentError("cell_size must be a positive number");
   }
@@ -781,7 +835,8 @@ absl::StatusOr<extract::IsosurfaceResult> Extract(const PuFunction& function, co
   for (uint64_t key : fine_band.occupied) start.push_back(extract::CellFromKey(key));
   fine_band.occupied.clear();
   core::SubContext extract_ctx(ctx, "extracting surface", 0.1, 0.95);
-  auto result = extract::ExtractIsosurfaceOnTree(function, tree, start, params.max_leaves, params.marching, extract_ctx);
+  auto result =
+      extract::ExtractIsosurfaceOnTree(function, tree, start, params.max_leaves, params.marching, extract_ctx);
   if (!result.ok() || !params.label_vertices) return result;
   core::TriangleMesh& mesh = result->mesh;
   core::ScalarAttribute depth_attribute{"depth", std::vector<float>(mesh.vertices.size())};

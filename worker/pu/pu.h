@@ -33,9 +33,9 @@
 #include "absl/status/statusor.h"
 #include "worker/core/geometry.h"
 #include "worker/core/implicit_function.h"
-#include "worker/extract/isosurface.h"
 #include "worker/core/job_context.h"
 #include "worker/core/params.h"
+#include "worker/extract/isosurface.h"
 
 namespace lsqsurf::pu {
 
@@ -63,18 +63,18 @@ absl::Status Validate(const PuParams& params);
 
 struct PuStats {
   std::array<int64_t, 5> fits_per_degree{};  // Height fits of degree 0..4.
-  int64_t quadric_fits = 0;                 // General-quadric fallbacks.
-  std::vector<int64_t> leaves_per_depth;    // All leaves, with or without a fit.
+  int64_t quadric_fits = 0;                  // General-quadric fallbacks.
+  std::vector<int64_t> leaves_per_depth;     // All leaves, with or without a fit.
   std::vector<int64_t> fits_per_depth;
-  int64_t cells_examined = 0;               // Every cell the adaptive loop looked at.
-  int64_t unmet_threshold = 0;              // Fits kept at the depth limit above the threshold.
+  int64_t cells_examined = 0;   // Every cell the adaptive loop looked at.
+  int64_t unmet_threshold = 0;  // Fits kept at the depth limit above the threshold.
   double fit_seconds = 0;
-  double index_seconds = 0;                 // Building the leaf → support lists.
-  double root_edge = 0;                     // Model units.
-  double mean_spacing = 0;                  // Mean nearest-neighbour distance of the input.
-  double noise_estimate = 0;                // Scan noise σ used (estimated or given), share of the diagonal.
-  double error_threshold = 0;               // The threshold and minimum points actually used
-  int min_points = 0;                       // (after the noise adjustment).
+  double index_seconds = 0;    // Building the leaf → support lists.
+  double root_edge = 0;        // Model units.
+  double mean_spacing = 0;     // Mean nearest-neighbour distance of the input.
+  double noise_estimate = 0;   // Scan noise σ used (estimated or given), share of the diagonal.
+  double error_threshold = 0;  // The threshold and minimum points actually used
+  int min_points = 0;          // (after the noise adjustment).
 };
 
 // Which local fit dominates at a point: the J1a depth and polynomial degree shown as colours
@@ -102,7 +102,7 @@ class PuFunction final : public core::ImplicitFunction {
   friend absl::StatusOr<std::unique_ptr<PuFunction>> BuildPu(const core::PointCloud&, const PuParams&,
                                                              core::JobContext&);
   friend absl::StatusOr<extract::IsosurfaceResult> Extract(const PuFunction&, const PuExtractParams&,
-                                                        core::JobContext&);
+                                                           core::JobContext&);
   PuFunction();
   std::unique_ptr<Impl> impl_;
   PuStats stats_;
@@ -128,8 +128,9 @@ struct PuExtractParams {
 const core::ParamTable<PuExtractParams>& PuExtractParamTable();
 
 // The zero set of F on J1a tetrahedra: the fitting tree down to `cell_size`, refined to at least
-// 4 × `cell_size` around the data and 2:1 balanced, so cells grow away from the surface. Errors: kInvalidArgument, kResourceExhausted, kCancelled.
+// 4 × `cell_size` around the data and 2:1 balanced, so cells grow away from the surface. Errors: kInvalidArgument,
+// kResourceExhausted, kCancelled.
 absl::StatusOr<extract::IsosurfaceResult> Extract(const PuFunction& function, const PuExtractParams& params,
-                                               core::JobContext& ctx);
+                                                  core::JobContext& ctx);
 
 }  // namespace lsqsurf::pu

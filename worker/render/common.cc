@@ -23,31 +23,53 @@ const core::ParamTable<RenderParams>& ViewParamTable() {
     auto* t = new core::ParamTable<RenderParams>();
     t->Integer<&RenderParams::width>("width", 16, kMaxImageSide, "pixels", "image width")
         .Integer<&RenderParams::height>("height", 16, kMaxImageSide, "pixels", "image height")
-        .Custom(CameraReal("azimuth_deg", -1e6, 1e6, "camera angle about the up axis"),
-                [](const RenderParams& p) { return p.camera.azimuth_deg; },
-                [](RenderParams& p, double v) { p.camera.azimuth_deg = v; })
-        .Custom(CameraReal("elevation_deg", -89, 89, "camera angle above the plane normal to the up axis"),
-                [](const RenderParams& p) { return p.camera.elevation_deg; },
-                [](RenderParams& p, double v) { p.camera.elevation_deg = v; })
-        .Custom({"distance", core::ParamType::kReal, 0, {}, 0, 1e30, "model units",
-                 "camera distance from the centre of the box; 0 frames the whole model", {}},
-                [](const RenderParams& p) { return p.camera.distance; },
-                [](RenderParams& p, double v) { p.camera.distance = v; })
-        .Custom(CameraReal("fov_deg", 5, 120, "vertical field of view"),
-                [](const RenderParams& p) { return p.camera.fov_deg; },
-                [](RenderParams& p, double v) { p.camera.fov_deg = v; })
-        .Custom({"up_axis", core::ParamType::kChoice, 0, {}, 0, 0, {}, "the axis that points up in the picture",
-                 {{"x", static_cast<int>(UpAxis::kX), "azimuth turns from +y towards +z"},
-                  {"y", static_cast<int>(UpAxis::kY), "azimuth turns from +z towards +x (most scans)"},
-                  {"z", static_cast<int>(UpAxis::kZ), "azimuth turns from +x towards +y"}}},
-                [](const RenderParams& p) { return static_cast<double>(static_cast<int>(p.camera.up)); },
-                [](RenderParams& p, double v) { p.camera.up = static_cast<UpAxis>(static_cast<int>(v)); })
-        .Text<&RenderParams::color_attribute>("color", "per-vertex scalar to colour by, with a legend; empty = plain shading")
-        .Real<&RenderParams::color_min>("color_min", -1e300, 1e300, "", "colour map bounds; the data's range unless color_min < color_max")
+        .Custom(
+            CameraReal("azimuth_deg", -1e6, 1e6, "camera angle about the up axis"),
+            [](const RenderParams& p) { return p.camera.azimuth_deg; },
+            [](RenderParams& p, double v) { p.camera.azimuth_deg = v; })
+        .Custom(
+            CameraReal("elevation_deg", -89, 89, "camera angle above the plane normal to the up axis"),
+            [](const RenderParams& p) { return p.camera.elevation_deg; },
+            [](RenderParams& p, double v) { p.camera.elevation_deg = v; })
+        .Custom(
+            {"distance",
+             core::ParamType::kReal,
+             0,
+             {},
+             0,
+             1e30,
+             "model units",
+             "camera distance from the centre of the box; 0 frames the whole model",
+             {}},
+            [](const RenderParams& p) { return p.camera.distance; },
+            [](RenderParams& p, double v) { p.camera.distance = v; })
+        .Custom(
+            CameraReal("fov_deg", 5, 120, "vertical field of view"),
+            [](const RenderParams& p) { return p.camera.fov_deg; },
+            [](RenderParams& p, double v) { p.camera.fov_deg = v; })
+        .Custom(
+            {"up_axis",
+             core::ParamType::kChoice,
+             0,
+             {},
+             0,
+             0,
+             {},
+             "the axis that points up in the picture",
+             {{"x", static_cast<int>(UpAxis::kX), "azimuth turns from +y towards +z"},
+              {"y", static_cast<int>(UpAxis::kY), "azimuth turns from +z towards +x (most scans)"},
+              {"z", static_cast<int>(UpAxis::kZ), "azimuth turns from +x towards +y"}}},
+            [](const RenderParams& p) { return static_cast<double>(static_cast<int>(p.camera.up)); },
+            [](RenderParams& p, double v) { p.camera.up = static_cast<UpAxis>(static_cast<int>(v)); })
+        .Text<&RenderParams::color_attribute>("color",
+                                              "per-vertex scalar to colour by, with a legend; empty = plain shading")
+        .Real<&RenderParams::color_min>("color_min", -1e300, 1e300, "",
+                                        "colour map bounds; the data's range unless color_min < color_max")
         .Real<&RenderParams::color_max>("color_max", -1e300, 1e300, "", "see color_min")
-        .Custom({"flat_shading", core::ParamType::kFlag, 0, {}, 0, 1, {}, "one normal per triangle", {}},
-                [](const RenderParams& p) { return p.shading == Shading::kFlat ? 1.0 : 0.0; },
-                [](RenderParams& p, double v) { p.shading = v != 0 ? Shading::kFlat : Shading::kSmooth; })
+        .Custom(
+            {"flat_shading", core::ParamType::kFlag, 0, {}, 0, 1, {}, "one normal per triangle", {}},
+            [](const RenderParams& p) { return p.shading == Shading::kFlat ? 1.0 : 0.0; },
+            [](RenderParams& p, double v) { p.shading = v != 0 ? Shading::kFlat : Shading::kSmooth; })
         .Flag<&RenderParams::wireframe>("wireframe", "dark triangle edges over the faces")
         .Flag<&RenderParams::transparent>("transparent", "transparent background")
         .Integer<&RenderParams::samples>("samples", 1, 8, "per pixel", "multisampling: 1, 2, 4 or 8")
@@ -79,7 +101,8 @@ absl::Status Validate(const RenderParams& p) {
   if (!std::isfinite(p.color_min) || !std::isfinite(p.color_max) || p.color_min > p.color_max) {
     return absl::InvalidArgumentError("the colour range needs finite bounds with min <= max");
   }
-  if (!(p.point_size >= 0 && p.point_size <= 64)) return absl::InvalidArgumentError("point_size must be in [0, 64] pixels");
+  if (!(p.point_size >= 0 && p.point_size <= 64))
+    return absl::InvalidArgumentError("point_size must be in [0, 64] pixels");
   for (float v : p.background) {
     if (!(v >= 0 && v <= 1)) return absl::InvalidArgumentError("background components must be in [0, 1]");
   }

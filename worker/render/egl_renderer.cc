@@ -2,6 +2,7 @@
 #include <EGL/egl.h>
 #include <EGL/eglext.h>
 
+#include <Eigen/Geometry>
 #include <algorithm>
 #include <cmath>
 #include <condition_variable>
@@ -12,8 +13,6 @@
 #include <mutex>
 #include <numbers>
 #include <thread>
-
-#include <Eigen/Geometry>
 
 #if defined(__SANITIZE_ADDRESS__)
 #include <sanitizer/lsan_interface.h>
@@ -30,8 +29,8 @@ namespace lsqsurf::render {
 namespace internal {
 
 std::string GlApi::Load() {
-#define LSQSURF_GL_LOAD(name, upper)                                                            \
-  name = reinterpret_cast<PFNGL##upper##PROC>(eglGetProcAddress("gl" #name));                   \
+#define LSQSURF_GL_LOAD(name, upper)                                          \
+  name = reinterpret_cast<PFNGL##upper##PROC>(eglGetProcAddress("gl" #name)); \
   if (name == nullptr) return "gl" #name;
   LSQSURF_GL_FUNCTIONS(LSQSURF_GL_LOAD)
 #undef LSQSURF_GL_LOAD
@@ -149,8 +148,7 @@ View MakeView(const core::Box3& model_box, const RenderParams& p) {
   const int k = p.camera.up == UpAxis::kX ? 0 : p.camera.up == UpAxis::kY ? 1 : 2;
   const Eigen::Vector3d up_axis = Eigen::Vector3d::Unit(k);
   const Eigen::Vector3d first = Eigen::Vector3d::Unit((k + 1) % 3), second = Eigen::Vector3d::Unit((k + 2) % 3);
-  const Eigen::Vector3d back =
-      std::cos(el) * (std::cos(az) * first + std::sin(az) * second) + std::sin(el) * up_axis;
+  const Eigen::Vector3d back = std::cos(el) * (std::cos(az) * first + std::sin(az) * second) + std::sin(el) * up_axis;
   const Eigen::Vector3d eye = centre + view.distance * back;
   view.eye = eye;
   const Eigen::Vector3d right = up_axis.cross(back).normalized();
@@ -235,8 +233,8 @@ class EglRenderer final : public Renderer {
       if (a.name == name) return std::span<const float>(a.values);
       known += (known.empty() ? "" : ", ") + a.name;
     }
-    return absl::InvalidArgumentError(core::StrCat("no attribute '", name, "' to colour by; this result has: ",
-                                                   known.empty() ? "none" : known));
+    return absl::InvalidArgumentError(
+        core::StrCat("no attribute '", name, "' to colour by; this result has: ", known.empty() ? "none" : known));
   }
 
   // Measures the geometry on the calling thread, then draws it on the render thread.
@@ -293,8 +291,10 @@ class EglRenderer final : public Renderer {
     std::string tried;
     auto query_devices = reinterpret_cast<PFNEGLQUERYDEVICESEXTPROC>(eglGetProcAddress("eglQueryDevicesEXT"));
     auto device_string = reinterpret_cast<PFNEGLQUERYDEVICESTRINGEXTPROC>(eglGetProcAddress("eglQueryDeviceStringEXT"));
-    auto platform_display = reinterpret_cast<PFNEGLGETPLATFORMDISPLAYEXTPROC>(eglGetProcAddress("eglGetPlatformDisplayEXT"));
-    if (platform_display == nullptr) return absl::UnavailableError("EGL has no eglGetPlatformDisplayEXT: no headless display possible");
+    auto platform_display =
+        reinterpret_cast<PFNEGLGETPLATFORMDISPLAYEXTPROC>(eglGetProcAddress("eglGetPlatformDisplayEXT"));
+    if (platform_display == nullptr)
+      return absl::UnavailableError("EGL has no eglGetPlatformDisplayEXT: no headless display possible");
     std::vector<std::pair<int, EGLDeviceEXT>> ranked;
     if (query_devices != nullptr && device_string != nullptr) {
       EGLDeviceEXT devices[16];
@@ -305,7 +305,7 @@ class EglRenderer final : public Renderer {
           const std::string extensions = ext ? ext : "";
           const int rank = extensions.find("EGL_NV_device_cuda") != std::string::npos         ? 0
                            : extensions.find("EGL_MESA_device_software") == std::string::npos ? 1
-                                                                                               : 2;
+                                                                                              : 2;
           ranked.emplace_back(rank, devices[i]);
         }
       }
@@ -313,21 +313,24 @@ class EglRenderer final : public Renderer {
     std::stable_sort(ranked.begin(), ranked.end(), [](const auto& a, const auto& b) { return a.first < b.first; });
     for (const auto& [rank, device] : ranked) {
       static constexpr const char* kKinds[] = {"NVIDIA device", "GPU device", "software device"};
-      if (TryDisplay(platform_display(EGL_PLATFORM_DEVICE_EXT, device, nullptr), core::StrCat("EGL ", kKinds[rank]), tried)) {
+      if (TryDisplay(platform_display(EGL_PLATFORM_DEVICE_EXT, device, nullptr), core::StrCat("EGL ", kKinds[rank]),
+                     tried)) {
         return absl::OkStatus();
       }
     }
-    if (TryDisplay(platform_display(EGL_PLATFORM_SURFACELESS_MESA, EGL_DEFAULT_DISPLAY, nullptr), "Mesa surfaceless", tried)) {
+    if (TryDisplay(platform_display(EGL_PLATFORM_SURFACELESS_MESA, EGL_DEFAULT_DISPLAY, nullptr), "Mesa surfaceless",
+                   tried)) {
       return absl::OkStatus();
     }
-    return absl::UnavailableError(core::StrCat("no OpenGL 4.5 context through EGL (tried: ",
-                                               tried.empty() ? "no EGL devices or platforms" : tried,
-                                               "); install Mesa (libegl-mesa0, libgl1-mesa-dri) or a GPU driver"));
+    return absl::UnavailableError(core::StrCat(
+        "no OpenGL 4.5 context through EGL (tried: ", tried.empty() ? "no EGL devices or platforms" : tried,
+        "); install Mesa (libegl-mesa0, libgl1-mesa-dri) or a GPU driver"));
   }
 
   bool TryDisplay(EGLDisplay display, const std::string& what, std::string& tried) {
     auto fail = [&](const char* step) {
-      tried += core::StrCat(tried.empty() ? "" : "; ", what, ": ", step, " failed (0x", std::to_string(eglGetError()), ")");
+      tried +=
+          core::StrCat(tried.empty() ? "" : "; ", what, ": ", step, " failed (0x", std::to_string(eglGetError()), ")");
       if (display != EGL_NO_DISPLAY) eglTerminate(display);
       return false;
     };
@@ -341,9 +344,9 @@ class EglRenderer final : public Renderer {
     if (eglChooseConfig(display, config_attributes, &config, 1, &configs) != EGL_TRUE || configs == 0) {
       config = nullptr;  // EGL_KHR_no_config_context: the context renders into FBOs only.
     }
-    const EGLint context_attributes[] = {EGL_CONTEXT_MAJOR_VERSION, 4, EGL_CONTEXT_MINOR_VERSION, 5,
-                                         EGL_CONTEXT_OPENGL_PROFILE_MASK, EGL_CONTEXT_OPENGL_CORE_PROFILE_BIT,
-                                         EGL_NONE};
+    const EGLint context_attributes[] = {
+        EGL_CONTEXT_MAJOR_VERSION,           4,       EGL_CONTEXT_MINOR_VERSION, 5, EGL_CONTEXT_OPENGL_PROFILE_MASK,
+        EGL_CONTEXT_OPENGL_CORE_PROFILE_BIT, EGL_NONE};
     EGLContext context = eglCreateContext(display, config, EGL_NO_CONTEXT, context_attributes);
     if (context == EGL_NO_CONTEXT) return fail("OpenGL 4.5 core context");
     if (eglMakeCurrent(display, EGL_NO_SURFACE, EGL_NO_SURFACE, context) != EGL_TRUE) {
@@ -428,60 +431,43 @@ class EglRenderer final : public Renderer {
     eglReleaseThread();  // EGL keeps per-thread state until it is released.
   }
 
-  // Render-thread only.
-  absl::StatusOr<Image> Draw(const Drawable& d, const RenderParams& p, RenderInfo* info) {
-    const int w = p.width, h = p.height;
-    // Framebuffers: multisampled colour + depth, resolved into a single-sample colour buffer.
+  // Multisampled colour + depth, resolved into a single-sample colour buffer.
+  struct Targets {
     GLuint fbo[2] = {}, rbo[3] = {};
-    gl_.GenFramebuffers(2, fbo);
-    gl_.GenRenderbuffers(3, rbo);
-    gl_.BindRenderbuffer(GL_RENDERBUFFER, rbo[0]);
-    gl_.RenderbufferStorageMultisample(GL_RENDERBUFFER, p.samples, GL_RGBA8, w, h);
-    gl_.BindRenderbuffer(GL_RENDERBUFFER, rbo[1]);
-    gl_.RenderbufferStorageMultisample(GL_RENDERBUFFER, p.samples, GL_DEPTH_COMPONENT24, w, h);
-    gl_.BindRenderbuffer(GL_RENDERBUFFER, rbo[2]);
+  };
+  absl::StatusOr<Targets> MakeTargets(int w, int h, int samples) {
+    Targets t;
+    gl_.GenFramebuffers(2, t.fbo);
+    gl_.GenRenderbuffers(3, t.rbo);
+    gl_.BindRenderbuffer(GL_RENDERBUFFER, t.rbo[0]);
+    gl_.RenderbufferStorageMultisample(GL_RENDERBUFFER, samples, GL_RGBA8, w, h);
+    gl_.BindRenderbuffer(GL_RENDERBUFFER, t.rbo[1]);
+    gl_.RenderbufferStorageMultisample(GL_RENDERBUFFER, samples, GL_DEPTH_COMPONENT24, w, h);
+    gl_.BindRenderbuffer(GL_RENDERBUFFER, t.rbo[2]);
     gl_.RenderbufferStorageMultisample(GL_RENDERBUFFER, 0, GL_RGBA8, w, h);
-    gl_.BindFramebuffer(GL_FRAMEBUFFER, fbo[0]);
-    gl_.FramebufferRenderbuffer(GL_FRAMEBUFFER, GL_COLOR_ATTACHMENT0, GL_RENDERBUFFER, rbo[0]);
-    gl_.FramebufferRenderbuffer(GL_FRAMEBUFFER, GL_DEPTH_ATTACHMENT, GL_RENDERBUFFER, rbo[1]);
+    gl_.BindFramebuffer(GL_FRAMEBUFFER, t.fbo[0]);
+    gl_.FramebufferRenderbuffer(GL_FRAMEBUFFER, GL_COLOR_ATTACHMENT0, GL_RENDERBUFFER, t.rbo[0]);
+    gl_.FramebufferRenderbuffer(GL_FRAMEBUFFER, GL_DEPTH_ATTACHMENT, GL_RENDERBUFFER, t.rbo[1]);
     const bool complete = gl_.CheckFramebufferStatus(GL_FRAMEBUFFER) == GL_FRAMEBUFFER_COMPLETE;
-    gl_.BindFramebuffer(GL_FRAMEBUFFER, fbo[1]);
-    gl_.FramebufferRenderbuffer(GL_FRAMEBUFFER, GL_COLOR_ATTACHMENT0, GL_RENDERBUFFER, rbo[2]);
+    gl_.BindFramebuffer(GL_FRAMEBUFFER, t.fbo[1]);
+    gl_.FramebufferRenderbuffer(GL_FRAMEBUFFER, GL_COLOR_ATTACHMENT0, GL_RENDERBUFFER, t.rbo[2]);
     const bool resolved = gl_.CheckFramebufferStatus(GL_FRAMEBUFFER) == GL_FRAMEBUFFER_COMPLETE;
-    auto release_targets = [&] {
-      gl_.BindFramebuffer(GL_FRAMEBUFFER, 0);
-      gl_.DeleteFramebuffers(2, fbo);
-      gl_.DeleteRenderbuffers(3, rbo);
-    };
     if (!complete || !resolved) {
-      release_targets();
+      ReleaseTargets(t);
       gl_.GetError();
-      return absl::ResourceExhaustedError(core::StrCat("the GL could not allocate a ", w, "x", h, " image with ",
-                                                       p.samples, " samples"));
+      return absl::ResourceExhaustedError(
+          core::StrCat("the GL could not allocate a ", w, "x", h, " image with ", samples, " samples"));
     }
-    gl_.BindFramebuffer(GL_FRAMEBUFFER, fbo[0]);
-    gl_.Viewport(0, 0, w, h);
-    gl_.ClearColor(p.background[0], p.background[1], p.background[2], p.transparent ? 0.0f : 1.0f);
-    gl_.Clear(GL_COLOR_BUFFER_BIT | GL_DEPTH_BUFFER_BIT);
-    gl_.Enable(GL_DEPTH_TEST);
-    gl_.DepthFunc(GL_LESS);
-    if (p.samples > 1) gl_.Enable(GL_MULTISAMPLE);
+    return t;
+  }
+  void ReleaseTargets(Targets& t) {
+    gl_.BindFramebuffer(GL_FRAMEBUFFER, 0);
+    gl_.DeleteFramebuffers(2, t.fbo);
+    gl_.DeleteRenderbuffers(3, t.rbo);
+  }
 
-    const core::Box3& box = d.box;
-    const View view = MakeView(box, p);
-    // Colour range: the request's, or the data's.
-    double lo = p.color_min, hi = p.color_max;
-    if (!d.scalars.empty() && lo == hi) {
-      const auto [mn, mx] = std::minmax_element(d.scalars.begin(), d.scalars.end());
-      lo = *mn;
-      hi = *mx;
-    }
-    const double span = hi > lo ? hi - lo : 1.0;
-
-    GLuint vao = 0, buffers[4] = {};
-    gl_.GenVertexArrays(1, &vao);
-    gl_.BindVertexArray(vao);
-    gl_.GenBuffers(4, buffers);
+  // Uploads the vertex attributes into `buffers` (positions, normals, scalars) of the bound VAO.
+  void UploadAttributes(const Drawable& d, const GLuint* buffers, bool has_normals, bool colour) {
     auto attribute = [&](GLuint index, GLuint buffer, const void* data, size_t bytes, GLint components) {
       gl_.BindBuffer(GL_ARRAY_BUFFER, buffer);
       gl_.BufferData(GL_ARRAY_BUFFER, static_cast<GLsizeiptr>(bytes), data, GL_STATIC_DRAW);
@@ -489,16 +475,17 @@ class EglRenderer final : public Renderer {
       gl_.EnableVertexAttribArray(index);
     };
     attribute(0, buffers[0], d.positions.data(), d.positions.size_bytes(), 3);
-    const bool has_normals = d.normals.size() == d.positions.size();
     if (has_normals) attribute(1, buffers[1], d.normals.data(), d.normals.size_bytes(), 3);
-    const bool colour = d.scalars.size() == d.positions.size();
     if (colour) {
       attribute(2, buffers[2], d.scalars.data(), d.scalars.size_bytes(), 1);
     } else {
       gl_.DisableVertexAttribArray(2);
       gl_.VertexAttrib1f(2, 0.0f);
     }
+  }
 
+  // The surface program with the view, shading and colour map of this picture.
+  void SetUniforms(const RenderParams& p, const View& view, double lo, double span, bool has_normals, bool colour) {
     const GLuint prog = surface_program_;
     gl_.UseProgram(prog);
     auto uniform = [&](const char* name) { return gl_.GetUniformLocation(prog, name); };
@@ -515,68 +502,66 @@ class EglRenderer final : public Renderer {
     gl_.ActiveTexture(GL_TEXTURE0);
     gl_.BindTexture(GL_TEXTURE_2D, colormap_);
     gl_.Uniform1i(uniform("colormap"), 0);
+  }
 
-    if (!d.faces.empty()) {
-      gl_.BindBuffer(GL_ELEMENT_ARRAY_BUFFER, buffers[3]);
-      gl_.BufferData(GL_ELEMENT_ARRAY_BUFFER, static_cast<GLsizeiptr>(d.faces.size_bytes()), d.faces.data(), GL_STATIC_DRAW);
-      const auto indices = static_cast<GLsizei>(3 * d.faces.size());
-      gl_.Uniform1i(uniform("mode"), 0);
-      // Hidden back faces are skipped on closed meshes seen from outside their box.
-      const bool eye_outside = !box.contains(view.eye);
-      if (d.winding != OutsideWinding::kUnknown && eye_outside) {
-        gl_.FrontFace(d.winding == OutsideWinding::kCounterClockwise ? GL_CCW : GL_CW);
-        gl_.CullFace(GL_BACK);
-        gl_.Enable(GL_CULL_FACE);
-      }
-      if (p.wireframe) {
-        gl_.Enable(GL_POLYGON_OFFSET_FILL);  // Faces slightly behind, so that their edges win.
-        gl_.PolygonOffset(1.0f, 1.0f);
-      }
-      gl_.DrawElements(GL_TRIANGLES, indices, GL_UNSIGNED_INT, nullptr);
-      if (p.wireframe) {
-        gl_.Disable(GL_POLYGON_OFFSET_FILL);
-        gl_.PolygonMode(GL_FRONT_AND_BACK, GL_LINE);
-        gl_.Uniform1i(uniform("mode"), 1);
-        gl_.DrawElements(GL_TRIANGLES, indices, GL_UNSIGNED_INT, nullptr);
-        gl_.PolygonMode(GL_FRONT_AND_BACK, GL_FILL);
-      }
-      gl_.Disable(GL_CULL_FACE);
-    } else {
-      // Splats about as wide as the spacing of points spread over a surface of the box's size.
-      double size = p.point_size;
-      if (size <= 0) {
-        const double diagonal = core::Diagonal(box);
-        const double spacing = 1.6 * diagonal / std::sqrt(static_cast<double>(d.positions.size()));
-        const double half_height = view.distance * std::tan(0.5 * p.camera.fov_deg * std::numbers::pi / 180);
-        size = std::clamp(spacing / (2 * half_height) * h, 1.5, 16.0);
-      }
-      gl_.Enable(GL_PROGRAM_POINT_SIZE);
-      gl_.Uniform1f(uniform("point_size"), static_cast<float>(size));
-      gl_.Uniform1i(uniform("mode"), 2);
-      gl_.DrawArrays(GL_POINTS, 0, static_cast<GLsizei>(d.positions.size()));
-      gl_.Disable(GL_PROGRAM_POINT_SIZE);
+  void DrawFaces(const Drawable& d, const RenderParams& p, const View& view, GLuint index_buffer) {
+    const GLint mode = gl_.GetUniformLocation(surface_program_, "mode");
+    gl_.BindBuffer(GL_ELEMENT_ARRAY_BUFFER, index_buffer);
+    gl_.BufferData(GL_ELEMENT_ARRAY_BUFFER, static_cast<GLsizeiptr>(d.faces.size_bytes()), d.faces.data(),
+                   GL_STATIC_DRAW);
+    const auto indices = static_cast<GLsizei>(3 * d.faces.size());
+    gl_.Uniform1i(mode, 0);
+    // Hidden back faces are skipped on closed meshes seen from outside their box.
+    const bool eye_outside = !d.box.contains(view.eye);
+    if (d.winding != OutsideWinding::kUnknown && eye_outside) {
+      gl_.FrontFace(d.winding == OutsideWinding::kCounterClockwise ? GL_CCW : GL_CW);
+      gl_.CullFace(GL_BACK);
+      gl_.Enable(GL_CULL_FACE);
     }
-    if (colour && p.legend) DrawLegend(w, h, lo, hi);
+    if (p.wireframe) {
+      gl_.Enable(GL_POLYGON_OFFSET_FILL);  // Faces slightly behind, so that their edges win.
+      gl_.PolygonOffset(1.0f, 1.0f);
+    }
+    gl_.DrawElements(GL_TRIANGLES, indices, GL_UNSIGNED_INT, nullptr);
+    if (p.wireframe) {
+      gl_.Disable(GL_POLYGON_OFFSET_FILL);
+      gl_.PolygonMode(GL_FRONT_AND_BACK, GL_LINE);
+      gl_.Uniform1i(mode, 1);
+      gl_.DrawElements(GL_TRIANGLES, indices, GL_UNSIGNED_INT, nullptr);
+      gl_.PolygonMode(GL_FRONT_AND_BACK, GL_FILL);
+    }
+    gl_.Disable(GL_CULL_FACE);
+  }
 
-    gl_.BindFramebuffer(GL_READ_FRAMEBUFFER, fbo[0]);
-    gl_.BindFramebuffer(GL_DRAW_FRAMEBUFFER, fbo[1]);
+  void DrawPoints(const Drawable& d, const RenderParams& p, const View& view) {
+    // Splats about as wide as the spacing of points spread over a surface of the box's size.
+    double size = p.point_size;
+    if (size <= 0) {
+      const double diagonal = core::Diagonal(d.box);
+      const double spacing = 1.6 * diagonal / std::sqrt(static_cast<double>(d.positions.size()));
+      const double half_height = view.distance * std::tan(0.5 * p.camera.fov_deg * std::numbers::pi / 180);
+      size = std::clamp(spacing / (2 * half_height) * p.height, 1.5, 16.0);
+    }
+    gl_.Enable(GL_PROGRAM_POINT_SIZE);
+    gl_.Uniform1f(gl_.GetUniformLocation(surface_program_, "point_size"), static_cast<float>(size));
+    gl_.Uniform1i(gl_.GetUniformLocation(surface_program_, "mode"), 2);
+    gl_.DrawArrays(GL_POINTS, 0, static_cast<GLsizei>(d.positions.size()));
+    gl_.Disable(GL_PROGRAM_POINT_SIZE);
+  }
+
+  // Resolves the samples and reads the picture back, top row first; the GL's error, if any.
+  Image ReadBack(const Targets& t, int w, int h, GLenum* error) {
+    gl_.BindFramebuffer(GL_READ_FRAMEBUFFER, t.fbo[0]);
+    gl_.BindFramebuffer(GL_DRAW_FRAMEBUFFER, t.fbo[1]);
     gl_.BlitFramebuffer(0, 0, w, h, 0, 0, w, h, GL_COLOR_BUFFER_BIT, GL_NEAREST);
-    gl_.BindFramebuffer(GL_READ_FRAMEBUFFER, fbo[1]);
+    gl_.BindFramebuffer(GL_READ_FRAMEBUFFER, t.fbo[1]);
     Image image;
     image.width = w;
     image.height = h;
     image.rgba.resize(4 * static_cast<size_t>(w) * static_cast<size_t>(h));
     gl_.PixelStorei(GL_PACK_ALIGNMENT, 1);
     gl_.ReadPixels(0, 0, w, h, GL_RGBA, GL_UNSIGNED_BYTE, image.rgba.data());
-    const GLenum error = gl_.GetError();
-
-    gl_.BindVertexArray(0);
-    gl_.DeleteBuffers(4, buffers);
-    gl_.DeleteVertexArrays(1, &vao);
-    release_targets();
-    gl_.Disable(GL_DEPTH_TEST);
-    if (error == GL_OUT_OF_MEMORY) return absl::ResourceExhaustedError("the GL ran out of memory drawing the image");
-    if (error != GL_NO_ERROR) return absl::InternalError(core::StrCat("GL error 0x", std::to_string(error), " while drawing"));
+    *error = gl_.GetError();
     // The GL's rows run bottom-up; images here run top-down.
     const size_t row = 4 * static_cast<size_t>(w);
     for (int y = 0; y < h / 2; ++y) {
@@ -584,6 +569,57 @@ class EglRenderer final : public Renderer {
                        image.rgba.begin() + static_cast<std::ptrdiff_t>(row * static_cast<size_t>(y + 1)),
                        image.rgba.begin() + static_cast<std::ptrdiff_t>(row * static_cast<size_t>(h - 1 - y)));
     }
+    return image;
+  }
+
+  // Render-thread only.
+  absl::StatusOr<Image> Draw(const Drawable& d, const RenderParams& p, RenderInfo* info) {
+    const int w = p.width, h = p.height;
+    auto targets = MakeTargets(w, h, p.samples);
+    if (!targets.ok()) return targets.status();
+    gl_.BindFramebuffer(GL_FRAMEBUFFER, targets->fbo[0]);
+    gl_.Viewport(0, 0, w, h);
+    gl_.ClearColor(p.background[0], p.background[1], p.background[2], p.transparent ? 0.0f : 1.0f);
+    gl_.Clear(GL_COLOR_BUFFER_BIT | GL_DEPTH_BUFFER_BIT);
+    gl_.Enable(GL_DEPTH_TEST);
+    gl_.DepthFunc(GL_LESS);
+    if (p.samples > 1) gl_.Enable(GL_MULTISAMPLE);
+
+    const View view = MakeView(d.box, p);
+    // Colour range: the request's, or the data's.
+    double lo = p.color_min, hi = p.color_max;
+    if (!d.scalars.empty() && lo == hi) {
+      const auto [mn, mx] = std::minmax_element(d.scalars.begin(), d.scalars.end());
+      lo = *mn;
+      hi = *mx;
+    }
+    const double span = hi > lo ? hi - lo : 1.0;
+
+    GLuint vao = 0, buffers[4] = {};
+    gl_.GenVertexArrays(1, &vao);
+    gl_.BindVertexArray(vao);
+    gl_.GenBuffers(4, buffers);
+    const bool has_normals = d.normals.size() == d.positions.size();
+    const bool colour = d.scalars.size() == d.positions.size();
+    UploadAttributes(d, buffers, has_normals, colour);
+    SetUniforms(p, view, lo, span, has_normals, colour);
+    if (!d.faces.empty()) {
+      DrawFaces(d, p, view, buffers[3]);
+    } else {
+      DrawPoints(d, p, view);
+    }
+    if (colour && p.legend) DrawLegend(w, h, lo, hi);
+    GLenum error = GL_NO_ERROR;
+    Image image = ReadBack(*targets, w, h, &error);
+
+    gl_.BindVertexArray(0);
+    gl_.DeleteBuffers(4, buffers);
+    gl_.DeleteVertexArrays(1, &vao);
+    ReleaseTargets(*targets);
+    gl_.Disable(GL_DEPTH_TEST);
+    if (error == GL_OUT_OF_MEMORY) return absl::ResourceExhaustedError("the GL ran out of memory drawing the image");
+    if (error != GL_NO_ERROR)
+      return absl::InternalError(core::StrCat("GL error 0x", std::to_string(error), " while drawing"));
     if (info) {
       info->color_min = lo;
       info->color_max = hi;
@@ -625,10 +661,12 @@ class EglRenderer final : public Renderer {
     gl_.BindVertexArray(vao);
     gl_.GenBuffers(1, &buffer);
     gl_.BindBuffer(GL_ARRAY_BUFFER, buffer);
-    gl_.BufferData(GL_ARRAY_BUFFER, static_cast<GLsizeiptr>(vertices.size() * sizeof(float)), vertices.data(), GL_STREAM_DRAW);
+    gl_.BufferData(GL_ARRAY_BUFFER, static_cast<GLsizeiptr>(vertices.size() * sizeof(float)), vertices.data(),
+                   GL_STREAM_DRAW);
     gl_.VertexAttribPointer(0, 2, GL_FLOAT, GL_FALSE, 3 * sizeof(float), nullptr);
     gl_.EnableVertexAttribArray(0);
-    gl_.VertexAttribPointer(2, 1, GL_FLOAT, GL_FALSE, 3 * sizeof(float), reinterpret_cast<const void*>(2 * sizeof(float)));
+    gl_.VertexAttribPointer(2, 1, GL_FLOAT, GL_FALSE, 3 * sizeof(float),
+                            reinterpret_cast<const void*>(2 * sizeof(float)));
     gl_.EnableVertexAttribArray(2);
     gl_.DrawArrays(GL_TRIANGLES, 0, static_cast<GLsizei>(vertices.size() / 3));
     gl_.DeleteBuffers(1, &buffer);

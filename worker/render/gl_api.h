@@ -9,6 +9,8 @@
 
 namespace lsqsurf::render::internal {
 
+// A table laid out by hand:
+// clang-format off
 #define LSQSURF_GL_FUNCTIONS(X)                                                          \
   X(ActiveTexture, ACTIVETEXTURE) X(AttachShader, ATTACHSHADER) X(BindBuffer, BINDBUFFER) \
   X(BindFramebuffer, BINDFRAMEBUFFER) X(BindRenderbuffer, BINDRENDERBUFFER)              \
@@ -37,6 +39,7 @@ namespace lsqsurf::render::internal {
   X(VertexAttrib1f, VERTEXATTRIB1F) X(VertexAttribPointer, VERTEXATTRIBPOINTER)           \
   X(Viewport, VIEWPORT) X(DepthFunc, DEPTHFUNC) X(BlendFunc, BLENDFUNC)          \
   X(CullFace, CULLFACE) X(FrontFace, FRONTFACE)
+// clang-format on
 
 struct GlApi {
 #define LSQSURF_GL_MEMBER(name, upper) PFNGL##upper##PROC name = nullptr;

@@ -51,18 +51,18 @@ struct RenderParams {
   int width = 1024, height = 1024;  // 16..kMaxImageSide.
   Camera camera;
   Shading shading = Shading::kSmooth;
-  bool wireframe = false;            // Dark edges over the shaded faces.
-  int samples = 4;                   // MSAA samples per pixel: 1, 2, 4 or 8.
-  bool transparent = false;          // Background alpha 0 instead of `background`.
+  bool wireframe = false;    // Dark edges over the shaded faces.
+  int samples = 4;           // MSAA samples per pixel: 1, 2, 4 or 8.
+  bool transparent = false;  // Background alpha 0 instead of `background`.
   std::array<float, 3> background = {1.0f, 1.0f, 1.0f};
   std::array<float, 3> base_color = {0.78f, 0.80f, 0.84f};  // Without a colour attribute.
-  double specular = 0.25;            // Blinn–Phong highlight strength, 0..1 (0 = Lambert only).
+  double specular = 0.25;  // Blinn–Phong highlight strength, 0..1 (0 = Lambert only).
   // Name of a per-vertex (or per-point) scalar to colour through the colour map; empty = none.
   // The map spans [color_min, color_max]; equal bounds (the default) mean the data's range.
   std::string color_attribute;
   double color_min = 0, color_max = 0;
-  bool legend = true;                // A colour bar with its bounds, when colouring.
-  double point_size = 0;             // Splat diameter in pixels for clouds; 0 = from the spacing.
+  bool legend = true;     // A colour bar with its bounds, when colouring.
+  double point_size = 0;  // Splat diameter in pixels for clouds; 0 = from the spacing.
 };
 
 // The view options users set (size, camera, colouring, shading): the one description of them,

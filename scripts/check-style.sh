@@ -1,0 +1,13 @@
+#!/usr/bin/env bash
+# Style gates the test command runs: every C++ source formatted as .clang-format says, and no
+# function in the product longer than 120 lines. Fix formatting with: scripts/check-style.sh --fix
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+mapfile -t sources < <(git ls-files -- '*.cc' '*.h' | grep -v '^third_party/')
+if [[ "${1:-}" == "--fix" ]]; then
+  clang-format -i "${sources[@]}"
+fi
+clang-format --dry-run --Werror "${sources[@]}"
+python3 scripts/function_lengths.py --limit 120 worker server client bench
+echo "check-style: ${#sources[@]} files formatted, no function over 120 lines"

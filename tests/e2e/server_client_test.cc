@@ -199,6 +199,7 @@ TEST_F(EndToEnd, PuMeshCarriesDepthAndDegreeToThePly) {
 // Pictures: a preview written by reconstruct, an on-demand render coloured by the PU degree,
 // and the status codes of bad render requests.
 TEST_F(EndToEnd, RendersResultsThroughTheCliAndTheApi) {
+  if (!LSQSURF_WITH_EGL) GTEST_SKIP() << "built without EGL: the server draws no pictures";
   Server server;
   ASSERT_NO_FATAL_FAILURE(server.Start(dir_ / "data"));
   const std::string in = WriteCloud("sphere.ply", testing::SphereCloud(8000));
@@ -263,6 +264,7 @@ TEST_F(EndToEnd, RendersResultsThroughTheCliAndTheApi) {
 
 // A job that draws its own preview: asked for at submission, checked there, fetched as a PNG.
 TEST_F(EndToEnd, JobsDrawTheirOwnPreview) {
+  if (!LSQSURF_WITH_EGL) GTEST_SKIP() << "built without EGL: the server draws no pictures";
   Server server;
   ASSERT_NO_FATAL_FAILURE(server.Start(dir_ / "data"));
   const std::string in = WriteCloud("sphere.ply", testing::SphereCloud(8000));
@@ -291,6 +293,7 @@ TEST_F(EndToEnd, JobsDrawTheirOwnPreview) {
 // Track pictures are framed on the unit cube: seen from above, the sphere circles the image
 // centre by the rotation's angle per output frame; a turntable camera adds its own turn.
 TEST_F(EndToEnd, TrackFramesArePicturesOfAFixedScene) {
+  if (!LSQSURF_WITH_EGL) GTEST_SKIP() << "built without EGL: the server draws no pictures";
   Server server;
   ASSERT_NO_FATAL_FAILURE(server.Start(dir_ / "data"));
   // Angles, seen in the picture, of the sphere's centroid about the image centre, per frame.

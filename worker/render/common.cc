@@ -147,4 +147,14 @@ absl::StatusOr<std::string> EncodePng(const Image& image) {
   return png;
 }
 
+absl::StatusOr<Renderer*> SharedRenderer::Get() {
+  std::lock_guard lock(mutex_);
+  if (!renderer_) {
+    auto created = CreateRenderer(backend_);
+    if (!created.ok()) return created.status();
+    renderer_ = *std::move(created);
+  }
+  return renderer_.get();
+}
+
 }  // namespace lsqsurf::render

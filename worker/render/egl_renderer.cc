@@ -696,14 +696,4 @@ absl::StatusOr<std::unique_ptr<Renderer>> CreateRenderer(std::string_view backen
   return EglRenderer::Create();
 }
 
-absl::StatusOr<Renderer*> SharedRenderer::Get() {
-  std::lock_guard lock(mutex_);
-  if (!renderer_) {
-    auto created = CreateRenderer(backend_);
-    if (!created.ok()) return created.status();
-    renderer_ = *std::move(created);
-  }
-  return renderer_.get();
-}
-
 }  // namespace lsqsurf::render

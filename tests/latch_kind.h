@@ -18,9 +18,9 @@ class LatchKind final : public jobs::JobKind {
  public:
   std::string_view name() const override { return "latch"; }
   std::vector<jobs::MethodInfo> Methods() const override { return {}; }
-  absl::StatusOr<int64_t> CheckUploads(const jobs::JobSpec&, const jobs::Uploads&,
-                                       const jobs::InputLimits&) const override {
-    return 1;
+  absl::StatusOr<jobs::CheckedInput> CheckUploads(const jobs::JobSpec&, const jobs::Uploads&,
+                                                  const jobs::InputLimits&) const override {
+    return jobs::CheckedInput{1, nullptr};
   }
   absl::StatusOr<jobs::Statistics> Run(const jobs::JobSpec&, const jobs::Uploads&,
                                        jobs::RunEnvironment& env) const override {

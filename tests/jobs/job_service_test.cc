@@ -259,6 +259,59 @@ TEST_F(JobServiceTest, ReleasedJobsSucceedWithTheirArtifacts) {
   EXPECT_EQ(s.OpenResult(job->id, "mesh.drc").status().code(), absl::StatusCode::kNotFound);
 }
 
+// Counts the reads of each blob name, storing through a local folder.
+class CountingBlobStore final : public BlobStore {
+ public:
+  explicit CountingBlobStore(std::unique_ptr<BlobStore> inner) : inner_(std::move(inner)) {}
+  absl::Status Put(const std::string& id, std::string_view name, std::string_view bytes) override {
+    return inner_->Put(id, name, bytes);
+  }
+  absl::StatusOr<std::unique_ptr<BlobReader>> Open(const std::string& id, std::string_view name) const override {
+    std::lock_guard lock(mutex_);
+    ++opened_[std::string(name)];
+    return inner_->Open(id, name);
+  }
+  bool Exists(const std::string& id, std::string_view name) const override { return inner_->Exists(id, name); }
+  absl::Status RemoveJob(const std::string& id) override { return inner_->RemoveJob(id); }
+  int opened(const std::string& name) const {
+    std::lock_guard lock(mutex_);
+    auto it = opened_.find(name);
+    return it == opened_.end() ? 0 : it->second;
+  }
+
+ private:
+  std::unique_ptr<BlobStore> inner_;
+  mutable std::mutex mutex_;
+  mutable std::map<std::string, int> opened_;
+};
+
+TEST_F(JobServiceTest, AnUploadIsDecodedOnceUnlessTheServerRestarted) {
+  auto local = LocalDirBlobStore::Open((dir_ / "jobs").string());
+  ASSERT_TRUE(local.ok());
+  auto blobs = std::make_shared<CountingBlobStore>(*std::move(local));
+  options_.blobs = blobs;
+  JobService& s = Open();
+  auto job = s.Submit(Spec("iamls", {{"iterations", "1"}}), Input(Encode(testing::SphereCloud(3000))));
+  ASSERT_TRUE(job.ok());
+  ASSERT_EQ(WaitTerminal(job->id).state, JobState::kSucceeded);
+  EXPECT_EQ(blobs->opened("input.drc"), 0);  // The run took the cloud decoded at submission.
+
+  // A job queued when the server stopped runs from its stored upload.
+  HoldIamlsJobs();
+  JobService& held = Open();
+  auto first = held.Submit(Spec("iamls"), Input(Encode(testing::SphereCloud(3000))));
+  auto second = held.Submit(Spec("iamls", {{"iterations", "1"}}), Input(Encode(testing::SphereCloud(3000))));
+  ASSERT_TRUE(first.ok() && second.ok());
+  latch_.WaitStarted(1);
+  held.Shutdown();
+  EXPECT_EQ(blobs->opened("input.drc"), 1);  // The latch keeps no decoded input: its run read it.
+  options_.kind_overrides.clear();
+  Open();
+  EXPECT_EQ(WaitTerminal(second->id).state, JobState::kSucceeded);
+  EXPECT_EQ(WaitTerminal(first->id).state, JobState::kSucceeded);
+  EXPECT_EQ(blobs->opened("input.drc"), 3);  // Both read their stored upload after the restart.
+}
+
 TEST_F(JobServiceTest, JobsSurviveARestart) {
   JobService& s = Open();
   auto job = s.Submit(Spec("iamls", {{"iterations", "2"}}), Input(Encode(testing::SphereCloud(3000))));

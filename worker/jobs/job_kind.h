@@ -7,6 +7,7 @@
 #pragma once
 
 #include <cstdint>
+#include <memory>
 #include <string>
 #include <string_view>
 #include <vector>
@@ -45,10 +46,21 @@ class ArtifactSink {
   virtual absl::Status Write(std::string_view name, std::string_view bytes) = 0;
 };
 
+// What checking a job's uploads found: the input's size and, where the kind decoded it, the
+// decoded input (kind-specific), which the job service keeps for the run while memory allows,
+// so that an upload is decoded once.
+struct CheckedInput {
+  int64_t points = 0;
+  std::shared_ptr<void> decoded;  // Null when nothing is kept.
+};
+
 struct RunEnvironment {
   ArtifactSink& sink;
   core::JobContext& context;
   render::SharedRenderer* renderer = nullptr;  // For previews; nullptr: none can be drawn.
+  // CheckUploads' `decoded` of this job when the service still holds it (not after a restart);
+  // the kind may move from it.
+  std::shared_ptr<void> decoded;
 };
 
 class JobKind {
@@ -56,11 +68,10 @@ class JobKind {
   virtual ~JobKind() = default;
   virtual std::string_view name() const = 0;  // "surface", "track".
   virtual std::vector<MethodInfo> Methods() const = 0;
-  // Checks a validated spec's uploads (decoding them), returning the number of input points.
-  // Errors: kInvalidArgument (a missing, undecodable or unsuitable upload, with what to fix),
-  // kResourceExhausted (over the limits).
-  virtual absl::StatusOr<int64_t> CheckUploads(const JobSpec& spec, const Uploads& uploads,
-                                               const InputLimits& limits) const = 0;
+  // Checks a validated spec's uploads (decoding them). Errors: kInvalidArgument (a missing,
+  // undecodable or unsuitable upload, with what to fix), kResourceExhausted (over the limits).
+  virtual absl::StatusOr<CheckedInput> CheckUploads(const JobSpec& spec, const Uploads& uploads,
+                                                    const InputLimits& limits) const = 0;
   // Runs an accepted job; the artifacts go through `env.sink`. Returns the final statistics.
   // Errors: kCancelled, or the engine's own (kInvalidArgument, kResourceExhausted, ...).
   virtual absl::StatusOr<Statistics> Run(const JobSpec& spec, const Uploads& uploads, RunEnvironment& env) const = 0;

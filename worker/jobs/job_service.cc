@@ -62,6 +62,7 @@ class BlobSink final : public ArtifactSink {
 
 struct JobService::Entry {
   JobRecord record;
+  std::shared_ptr<void> decoded;   // The kind's decoded input while queued; guarded by mutex_.
   uint64_t persisted_version = 0;  // Guarded by the service's store_mutex_.
   std::atomic<bool> cancel_requested{false};
   std::atomic<bool> interrupted{false};  // Shutdown: re-queue rather than cancel.
@@ -182,8 +183,8 @@ absl::StatusOr<JobRecord> JobService::Submit(const JobSpec& spec, Uploads upload
     return absl::ResourceExhaustedError(
         core::StrCat("the upload has ", bytes, " bytes; this server accepts at most ", options_.max_input_bytes));
   }
-  auto points = KindOf(spec.method)->CheckUploads(spec, uploads, {options_.max_points, options_.min_points});
-  if (!points.ok()) return points.status();
+  auto checked = KindOf(spec.method)->CheckUploads(spec, uploads, {options_.max_points, options_.min_points});
+  if (!checked.ok()) return checked.status();
   {
     std::lock_guard lock(mutex_);
     if (shutting_down_) return absl::UnavailableError("the server is shutting down");
@@ -197,7 +198,7 @@ absl::StatusOr<JobRecord> JobService::Submit(const JobSpec& spec, Uploads upload
   r.id = NewJobId();
   r.spec = spec;
   r.created_ms = r.updated_ms = NowMs();
-  r.input_points = *points;
+  r.input_points = checked->points;
   r.input_bytes = bytes;
   for (const auto& [slot, data] : uploads) {
     if (absl::Status s = blobs_->Put(r.id, UploadFiles().at(slot), data); !s.ok()) {
@@ -222,6 +223,11 @@ absl::StatusOr<JobRecord> JobService::Submit(const JobSpec& spec, Uploads upload
     (void)blobs_->RemoveJob(r.id);
     return stopping ? absl::UnavailableError("the server is shutting down")
                     : absl::ResourceExhaustedError("the job queue is full; try again later");
+  }
+  // The decoded input waits with the job while the waiting ones hold at most max_points points.
+  if (checked->decoded != nullptr && decoded_points_ + r.input_points <= options_.max_points) {
+    entry->decoded = std::move(checked->decoded);
+    decoded_points_ += r.input_points;
   }
   jobs_[r.id] = entry;
   queue_.push_back(entry);
@@ -288,6 +294,7 @@ absl::StatusOr<JobRecord> JobService::Cancel(const std::string& id) {
       return entry->record;
     }
     queue_.erase(q);
+    ReleaseDecoded(*entry);
   }
   Update(entry, [](JobRecord& r) {
     r.state = JobState::kCancelled;
@@ -413,24 +420,34 @@ void JobService::Shutdown() {
   workers_.clear();
 }
 
+std::shared_ptr<void> JobService::ReleaseDecoded(Entry& entry) {
+  if (entry.decoded != nullptr) decoded_points_ -= entry.record.input_points;
+  return std::move(entry.decoded);
+}
+
 void JobService::WorkerLoop() {
   for (;;) {
     std::shared_ptr<Entry> entry;
+    std::shared_ptr<void> decoded;
     {
       std::unique_lock lock(mutex_);
       work_available_.wait(lock, [&] { return shutting_down_ || !queue_.empty(); });
       if (shutting_down_) return;
       entry = queue_.front();
       queue_.pop_front();
+      decoded = ReleaseDecoded(*entry);
     }
-    RunJob(entry);
+    RunJob(entry, std::move(decoded));
   }
 }
 
-absl::StatusOr<Statistics> JobService::RunKind(const std::shared_ptr<Entry>& entry, BlobSink& sink) {
+absl::StatusOr<Statistics> JobService::RunKind(const std::shared_ptr<Entry>& entry, BlobSink& sink,
+                                               std::shared_ptr<void> decoded) {
   const JobRecord& record = entry->record;  // Only this worker changes spec and id.
   Uploads uploads;
   for (const auto& [slot, blob] : UploadFiles()) {
+    // A decoded input stands in for its upload; the others are read back.
+    if (decoded != nullptr && slot == kInputUpload) continue;
     if (!blobs_->Exists(record.id, blob)) continue;
     auto bytes = blobs_->Read(record.id, blob);
     if (!bytes.ok()) return bytes.status();
@@ -439,7 +456,7 @@ absl::StatusOr<Statistics> JobService::RunKind(const std::shared_ptr<Entry>& ent
   const JobKind* kind = KindOf(record.spec.method);
   if (kind == nullptr) return absl::FailedPreconditionError(core::StrCat("no method '", record.spec.method, "'"));
   Context ctx(*this, entry);
-  RunEnvironment env{sink, ctx, renderer_.get()};
+  RunEnvironment env{sink, ctx, renderer_.get(), std::move(decoded)};
   try {
     return kind->Run(record.spec, uploads, env);
   } catch (const std::bad_alloc&) {
@@ -449,7 +466,7 @@ absl::StatusOr<Statistics> JobService::RunKind(const std::shared_ptr<Entry>& ent
   }
 }
 
-void JobService::RunJob(const std::shared_ptr<Entry>& entry) {
+void JobService::RunJob(const std::shared_ptr<Entry>& entry, std::shared_ptr<void> decoded) {
   const std::string id = entry->record.id;
   Update(entry, [](JobRecord& r) {
     r.state = JobState::kRunning;
@@ -460,7 +477,7 @@ void JobService::RunJob(const std::shared_ptr<Entry>& entry) {
   spdlog::info("[job {}] started (attempt {})", id, entry->record.attempts);
   const auto start = std::chrono::steady_clock::now();
   BlobSink sink(*blobs_, id);
-  absl::StatusOr<Statistics> result = RunKind(entry, sink);
+  absl::StatusOr<Statistics> result = RunKind(entry, sink, std::move(decoded));
   const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   if (result.ok()) {
     Update(entry, [&](JobRecord& r) {

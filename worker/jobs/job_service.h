@@ -9,9 +9,11 @@
 //
 // Threading: a fixed pool of `workers` threads runs jobs from a bounded FIFO queue; every
 // public method is thread-safe. Store writes happen outside the service's lock, so reads
-// (Get, List, WaitForChange) never wait on the disk. Submit decodes the uploads once to check
-// them (~0.3 s per million points, on the caller's thread); Render draws on the caller's thread
-// with at most `max_renders` at once.
+// (Get, List, WaitForChange) never wait on the disk. Submit decodes the uploads to check them
+// (~0.3 s per million points, on the caller's thread) and keeps the decoded input for the run
+// while the queued jobs' decoded inputs hold at most `max_points` points (else, and after a
+// restart, the run decodes the stored upload again); Render draws on the caller's thread with at
+// most `max_renders` at once.
 #pragma once
 
 #include <atomic>
@@ -111,8 +113,11 @@ class JobService {
   class Context;
   explicit JobService(JobServiceOptions options);
   void WorkerLoop();
-  void RunJob(const std::shared_ptr<Entry>& entry);
-  absl::StatusOr<Statistics> RunKind(const std::shared_ptr<Entry>& entry, class BlobSink& sink);
+  void RunJob(const std::shared_ptr<Entry>& entry, std::shared_ptr<void> decoded);
+  // Takes the entry's decoded input out of the memory budget (mutex_ held).
+  std::shared_ptr<void> ReleaseDecoded(Entry& entry);
+  absl::StatusOr<Statistics> RunKind(const std::shared_ptr<Entry>& entry, class BlobSink& sink,
+                                     std::shared_ptr<void> decoded);
   // Applies `change` to the record under the lock, wakes watchers, then persists it.
   void Update(const std::shared_ptr<Entry>& entry, const std::function<void(JobRecord&)>& change, bool persist = true);
   void Persist(const std::shared_ptr<Entry>& entry, const JobRecord& copy);
@@ -131,6 +136,7 @@ class JobService {
   std::deque<std::shared_ptr<Entry>> queue_;
   std::vector<std::thread> workers_;
   bool shutting_down_ = false;
+  int64_t decoded_points_ = 0;  // Points of the decoded inputs queued jobs hold (mutex_).
 };
 
 }  // namespace lsqsurf::jobs

@@ -290,19 +290,25 @@ class SurfaceKind final : public JobKind {
     return out;
   }
 
-  absl::StatusOr<int64_t> CheckUploads(const JobSpec& spec, const Uploads& uploads,
-                                       const InputLimits& limits) const override {
+  absl::StatusOr<CheckedInput> CheckUploads(const JobSpec& spec, const Uploads& uploads,
+                                            const InputLimits& limits) const override {
     const SurfaceMethod* m = FindSurfaceMethod(spec.method);
     if (m == nullptr || m->normals(spec.params) == nullptr) return absl::InternalError("not a surface method");
     auto cloud = DecodeCloud(uploads);
     if (!cloud.ok()) return cloud.status();
     LSQSURF_RETURN_IF_ERROR(CheckCloud(*cloud, *m->normals(spec.params), limits));
-    return static_cast<int64_t>(cloud->size());
+    const auto points = static_cast<int64_t>(cloud->size());
+    return CheckedInput{points, std::make_shared<core::PointCloud>(*std::move(cloud))};
   }
 
   absl::StatusOr<Statistics> Run(const JobSpec& spec, const Uploads& uploads, RunEnvironment& env) const override {
-    auto cloud = DecodeCloud(uploads);
-    if (!cloud.ok()) return cloud.status();
+    absl::StatusOr<core::PointCloud> cloud = absl::UnknownError("");
+    if (env.decoded != nullptr) {
+      cloud = std::move(*std::static_pointer_cast<core::PointCloud>(env.decoded));  // Decoded at submission.
+    } else {
+      cloud = DecodeCloud(uploads);
+      if (!cloud.ok()) return cloud.status();
+    }
     auto result = ReconstructSurface(spec.method, spec.params, *std::move(cloud), env.context);
     if (!result.ok()) return result.status();
     auto encoded = EncodeResultMesh(result->mesh, spec.mesh_position_bits, &result->statistics);

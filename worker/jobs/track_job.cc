@@ -184,8 +184,8 @@ class TrackKind final : public JobKind {
              {kInputUpload, kVelocityUpload}}};
   }
 
-  absl::StatusOr<int64_t> CheckUploads(const JobSpec& spec, const Uploads& uploads,
-                                       const InputLimits& limits) const override {
+  absl::StatusOr<CheckedInput> CheckUploads(const JobSpec& spec, const Uploads& uploads,
+                                            const InputLimits& limits) const override {
     const TrackJobParams* p = spec.params.As<TrackJobParams>();
     if (p == nullptr) return absl::InternalError("not a track job");
     int64_t points = 0;
@@ -215,7 +215,7 @@ class TrackKind final : public JobKind {
     } else if (has_velocity) {
       return absl::InvalidArgumentError("a velocity grid was uploaded, but only field=uploaded uses one");
     }
-    return points;
+    return CheckedInput{points, nullptr};  // Interfaces and grids are small: decoded again to run.
   }
 
   absl::StatusOr<Statistics> Run(const JobSpec& spec, const Uploads& uploads, RunEnvironment& env) const override {

@@ -100,30 +100,19 @@ absl::StatusOr<IsosurfaceResult> ExtractIsosurface(const ImplicitFunction& field
   }
   const double seed_cells = static_cast<double>(frontier.size());
 
-  absl::flat_hash_map<Key, FieldValue> values;
+  internal::CornerValues corner_values;
   std::vector<Key> surface_cells;
-  std::vector<Key> pending;
-  std::vector<Vec3d> pending_positions;
-  std::vector<double> pending_values;
   while (!frontier.empty()) {
     stats.cells_visited += static_cast<int64_t>(frontier.size());
     if (stats.cells_visited > params.max_cells) {
       return absl::ResourceExhaustedError("the surface needs more than " + std::to_string(params.max_cells) +
                                           " grid cells; raise cell_size or the cell limit");
     }
-    pending.clear();
     for (Key cell : frontier) {
-      for (int c = 0; c < 8; ++c) {
-        const Key v = CornerKey(cell, c);
-        if (values.try_emplace(v).second) pending.push_back(v);
-      }
+      for (int c = 0; c < 8; ++c) corner_values.Need(CornerKey(cell, c));
     }
-    pending_positions.resize(pending.size());
-    pending_values.resize(pending.size());
-    for (size_t i = 0; i < pending.size(); ++i) pending_positions[i] = vertex_position(pending[i]);
-    LSQSURF_RETURN_IF_ERROR(field.ValueOnlyBatch(pending_positions, pending_values, &ctx));
-    for (size_t i = 0; i < pending.size(); ++i) values[pending[i]] = FieldValue{pending_values[i], false};
-    stats.field_evaluations += static_cast<int64_t>(pending.size());
+    LSQSURF_RETURN_IF_ERROR(corner_values.Evaluate(field, vertex_position, stats, ctx));
+    const auto& values = corner_values.values();
 
     std::vector<Key> next;
     for (Key cell : frontier) {
@@ -165,7 +154,7 @@ absl::StatusOr<IsosurfaceResult> ExtractIsosurface(const ImplicitFunction& field
           }
         }
       },
-      values, vertex_position, params.marching, stats, emit_ctx);
+      corner_values.values(), vertex_position, params.marching, stats, emit_ctx);
 }
 
 }  // namespace lsqsurf::extract

@@ -135,11 +135,10 @@ absl::StatusOr<IsosurfaceResult> ExtractIsosurfaceOnTree(const ImplicitFunction&
   // Bounds the memory of a batch (the tetrahedra of every leaf in it) on large first frontiers.
   constexpr size_t kLeavesPerBatch = 16384;
   std::vector<LeafWork> work(std::min(kLeavesPerBatch, frontier.size()));
-  absl::flat_hash_map<VertexKey, FieldValue> values;
+  internal::CornerValues corner_values;
+  const auto& values = corner_values.values();
+  const auto position = [&](internal::CornerKey k) { return tree.Position(k); };
   std::vector<TetKeys> crossed_tets;
-  std::vector<VertexKey> pending;
-  std::vector<Vec3d> pending_positions;
-  std::vector<double> pending_values;
   std::vector<OctreeCell> next;
   while (!frontier.empty()) {
     stats.cells_visited += static_cast<int64_t>(frontier.size());
@@ -166,19 +165,13 @@ absl::StatusOr<IsosurfaceResult> ExtractIsosurfaceOnTree(const ImplicitFunction&
             }
           },
           &ctx));
-      pending.clear();
       for (size_t i = 0; i < leaves.size(); ++i) {
         stats.tetrahedra += static_cast<int64_t>(work[i].tets.size());
         for (VertexKey k : work[i].corners) {
-          if (values.try_emplace(k).second) pending.push_back(k);
+          corner_values.Need(k);
         }
       }
-      pending_positions.resize(pending.size());
-      pending_values.resize(pending.size());
-      for (size_t i = 0; i < pending.size(); ++i) pending_positions[i] = tree.Position(pending[i]);
-      LSQSURF_RETURN_IF_ERROR(field.ValueOnlyBatch(pending_positions, pending_values, &ctx));
-      for (size_t i = 0; i < pending.size(); ++i) values[pending[i]] = FieldValue{pending_values[i], false};
-      stats.field_evaluations += static_cast<int64_t>(pending.size());
+      LSQSURF_RETURN_IF_ERROR(corner_values.Evaluate(field, position, stats, ctx));
       // Read-only on `values` and the tree, so the leaves are independent.
       LSQSURF_RETURN_IF_ERROR(core::ParallelFor(
           leaves.size(), 64,
@@ -211,7 +204,7 @@ absl::StatusOr<IsosurfaceResult> ExtractIsosurfaceOnTree(const ImplicitFunction&
       [&](const std::function<void(const internal::TetCorners&)>& visit) {
         for (const TetKeys& t : crossed_tets) visit(t);
       },
-      values, [&](internal::CornerKey k) { return tree.Position(k); }, marching, stats, emit_ctx);
+      values, position, marching, stats, emit_ctx);
 }
 
 }  // namespace lsqsurf::extract

@@ -292,6 +292,18 @@ void KeepTrusted(const std::vector<char>& face_trusted, bool normals, TriangleMe
 
 }  // namespace
 
+absl::Status CornerValues::Evaluate(const ImplicitFunction& field, const std::function<Vec3d(CornerKey)>& position,
+                                    IsosurfaceStats& stats, JobContext& ctx) {
+  pending_positions_.resize(pending_.size());
+  pending_values_.resize(pending_.size());
+  for (size_t i = 0; i < pending_.size(); ++i) pending_positions_[i] = position(pending_[i]);
+  LSQSURF_RETURN_IF_ERROR(field.ValueOnlyBatch(pending_positions_, pending_values_, &ctx));
+  for (size_t i = 0; i < pending_.size(); ++i) values_[pending_[i]] = FieldValue{pending_values_[i], false};
+  stats.field_evaluations += static_cast<int64_t>(pending_.size());
+  pending_.clear();
+  return absl::OkStatus();
+}
+
 absl::StatusOr<IsosurfaceResult> MarchTetrahedra(
     const ImplicitFunction& field,
     const std::function<void(const std::function<void(const TetCorners&)>&)>& for_each_tet,

@@ -12,6 +12,7 @@
 #include <array>
 #include <cstdint>
 #include <functional>
+#include <vector>
 
 #include "absl/container/flat_hash_map.h"
 #include "absl/status/statusor.h"
@@ -23,6 +24,26 @@ namespace lsqsurf::extract::internal {
 
 using CornerKey = uint64_t;
 using TetCorners = std::array<CornerKey, 4>;
+
+// Field values at lattice corners, filled in batches as a surface search discovers them (one
+// batched field call per batch: the engines evaluate batches in parallel).
+class CornerValues {
+ public:
+  // Queues the corner unless its value is known or already queued.
+  void Need(CornerKey key) {
+    if (values_.try_emplace(key).second) pending_.push_back(key);
+  }
+  // Evaluates the queued corners; counts them in `stats.field_evaluations`. Errors: kCancelled.
+  absl::Status Evaluate(const ImplicitFunction& field, const std::function<Vec3d(CornerKey)>& position,
+                        IsosurfaceStats& stats, JobContext& ctx);
+  const absl::flat_hash_map<CornerKey, FieldValue>& values() const { return values_; }
+
+ private:
+  absl::flat_hash_map<CornerKey, FieldValue> values_;
+  std::vector<CornerKey> pending_;
+  std::vector<Vec3d> pending_positions_;
+  std::vector<double> pending_values_;
+};
 
 // `for_each_tet(visit)` must call `visit` for every tetrahedron to examine; every corner must be
 // in `values`. Tetrahedra with a NaN corner or no sign change produce nothing. The result's

@@ -58,6 +58,14 @@ struct Element {
 };
 
 // Reads values from a binary or ascii body with bounds checks; every failure names where.
+// A value of type T from its bytes in native order (memcpy: `raw` need not be aligned).
+template <class T>
+double Load(const unsigned char* raw) {
+  T v;
+  std::memcpy(&v, raw, sizeof(T));
+  return static_cast<double>(v);
+}
+
 class BodyReader {
  public:
   BodyReader(std::string_view body, PlyFormat format, size_t body_offset, size_t first_line)
@@ -93,52 +101,14 @@ class BodyReader {
     const bool little = format_ == PlyFormat::kBinaryLittleEndian;
     if (little != (std::endian::native == std::endian::little)) std::reverse(raw, raw + n);
     switch (t) {
-      case Type::kInt8: {
-        int8_t v;
-        std::memcpy(&v, raw, 1);
-        out = v;
-        break;
-      }
-      case Type::kUint8: {
-        uint8_t v;
-        std::memcpy(&v, raw, 1);
-        out = v;
-        break;
-      }
-      case Type::kInt16: {
-        int16_t v;
-        std::memcpy(&v, raw, 2);
-        out = v;
-        break;
-      }
-      case Type::kUint16: {
-        uint16_t v;
-        std::memcpy(&v, raw, 2);
-        out = v;
-        break;
-      }
-      case Type::kInt32: {
-        int32_t v;
-        std::memcpy(&v, raw, 4);
-        out = v;
-        break;
-      }
-      case Type::kUint32: {
-        uint32_t v;
-        std::memcpy(&v, raw, 4);
-        out = v;
-        break;
-      }
-      case Type::kFloat32: {
-        float v;
-        std::memcpy(&v, raw, 4);
-        out = v;
-        break;
-      }
-      case Type::kFloat64: {
-        std::memcpy(&out, raw, 8);
-        break;
-      }
+      case Type::kInt8: out = Load<int8_t>(raw); break;
+      case Type::kUint8: out = Load<uint8_t>(raw); break;
+      case Type::kInt16: out = Load<int16_t>(raw); break;
+      case Type::kUint16: out = Load<uint16_t>(raw); break;
+      case Type::kInt32: out = Load<int32_t>(raw); break;
+      case Type::kUint32: out = Load<uint32_t>(raw); break;
+      case Type::kFloat32: out = Load<float>(raw); break;
+      case Type::kFloat64: out = Load<double>(raw); break;
     }
     return true;
   }

@@ -7,8 +7,9 @@
 #include <cctype>
 #include <fstream>
 #include <map>
-#include <regex>
 #include <set>
+#include <sstream>
+#include <tuple>
 
 #include "worker/jobs/method_registry.h"
 
@@ -199,35 +200,45 @@ TEST(Convert, ListedParametersDescribeTheirTables) {
 // The proto's comments state each field's default, "(default X)", and each enum's
 // "_UNSPECIFIED = 0;  // The default: NAME.": they must be the tables' defaults. Returns, per
 // message, field name -> the stated default.
+// The words of a proto line before its comment, and the comment.
+std::pair<std::vector<std::string>, std::string> SplitProtoLine(const std::string& line) {
+  const size_t slash = line.find("//");
+  std::istringstream code(line.substr(0, slash));
+  std::vector<std::string> words;
+  for (std::string w; code >> w;) words.push_back(w);
+  return {words, slash == std::string::npos ? "" : line.substr(slash + 2)};
+}
+
+// What follows `marker` in `comment` up to the first of `ends`, or empty.
+std::string After(const std::string& comment, const std::string& marker, const std::string& ends) {
+  const size_t at = comment.find(marker);
+  if (at == std::string::npos) return "";
+  const std::string rest = comment.substr(at + marker.size());
+  return rest.substr(0, rest.find_first_of(ends));
+}
+
 std::map<std::string, std::map<std::string, std::string>> StatedDefaults() {
   std::ifstream in(LSQSURF_SOURCE_DIR "/proto/lsqsurf/v1/reconstruction.proto");
   EXPECT_TRUE(in.good());
   std::map<std::string, std::map<std::string, std::string>> out;
-  std::vector<std::string> scopes;                  // Enclosing message and enum names.
-  std::map<std::string, std::string> enum_default;  // Enum type name -> stated default.
-  const std::regex open(R"(^\s*(message|enum)\s+(\w+)\s*\{)"), close(R"(^\s*\})");
-  const std::regex field(R"(^\s*optional\s+(\w+)\s+(\w+)\s*=\s*\d+;.*\(default ([^),]+))");
-  const std::regex unspecified(R"(^\s*\w+_UNSPECIFIED\s*=\s*0;.*The default: (\w+)\.)");
-  std::map<std::string, std::vector<std::pair<std::string, std::string>>> enum_fields;  // message -> (field, type)
-  const std::regex enum_field(R"(^\s*optional\s+(\w+)\s+(\w+)\s*=\s*\d+;)");
+  std::vector<std::string> scopes;                                             // Enclosing message and enum names.
+  std::map<std::string, std::string> enum_default;                             // Enum type -> its stated default.
+  std::vector<std::tuple<std::string, std::string, std::string>> enum_fields;  // Message, field, type.
   for (std::string line; std::getline(in, line);) {
-    std::smatch m;
-    if (std::regex_search(line, m, open)) {
-      scopes.push_back(m[2]);
-    } else if (std::regex_search(line, m, close) && !scopes.empty()) {
+    const auto [words, comment] = SplitProtoLine(line);
+    if (words.size() >= 3 && (words[0] == "message" || words[0] == "enum") && words[2] == "{") {
+      scopes.push_back(words[1]);
+    } else if (!words.empty() && words[0] == "}" && !scopes.empty()) {
       scopes.pop_back();
-    } else if (std::regex_search(line, m, unspecified) && !scopes.empty()) {
-      enum_default[scopes.back()] = m[1];
-    } else if (std::regex_search(line, m, field) && !scopes.empty()) {
-      out[scopes.back()][m[2]] = m[3];
-    } else if (std::regex_search(line, m, enum_field) && !scopes.empty()) {
-      enum_fields[scopes.back()].emplace_back(m[2], m[1]);
+    } else if (!scopes.empty() && !words.empty() && words[0].ends_with("_UNSPECIFIED")) {
+      if (auto d = After(comment, "The default: ", "."); !d.empty()) enum_default[scopes.back()] = d;
+    } else if (!scopes.empty() && words.size() >= 3 && words[0] == "optional") {
+      if (auto d = After(comment, "(default ", "),"); !d.empty()) out[scopes.back()][words[2]] = d;
+      enum_fields.emplace_back(scopes.back(), words[2], words[1]);
     }
   }
-  for (const auto& [message, fields] : enum_fields) {
-    for (const auto& [name, type] : fields) {
-      if (enum_default.contains(type)) out[message][name] = enum_default[type];
-    }
+  for (const auto& [message, field, type] : enum_fields) {
+    if (enum_default.contains(type)) out[message][field] = enum_default[type];
   }
   return out;
 }

@@ -2,9 +2,12 @@
 
 #include <spdlog/spdlog.h>
 
+#include <algorithm>
+#include <array>
 #include <chrono>
 #include <cmath>
 #include <functional>
+#include <limits>
 
 #include "worker/core/mesh_metrics.h"
 #include "worker/core/status.h"
@@ -391,15 +394,51 @@ absl::StatusOr<SurfaceResult> ReconstructSurface(const std::string& method, cons
   return result;
 }
 
+namespace {
+
+// Distinct positions after quantizing them as Draco does: each coordinate's offset from the box
+// minimum times (2^bits - 1) / (the box's largest extent), rounded, in float arithmetic.
+int64_t DistinctQuantized(const std::vector<core::Vec3f>& vertices, int bits) {
+  Eigen::Vector3f lo = Eigen::Vector3f::Constant(std::numeric_limits<float>::max());
+  Eigen::Vector3f hi = -lo;
+  for (const auto& v : vertices) lo = lo.cwiseMin(v), hi = hi.cwiseMax(v);
+  float range = (hi - lo).maxCoeff();
+  if (!(range > 0)) range = 1;
+  const float scale = static_cast<float>((uint32_t{1} << bits) - 1) / range;
+  std::vector<std::array<int32_t, 3>> keys(vertices.size());
+  for (size_t i = 0; i < vertices.size(); ++i) {
+    for (int c = 0; c < 3; ++c) {
+      keys[i][static_cast<size_t>(c)] = static_cast<int32_t>(std::floor((vertices[i][c] - lo[c]) * scale + 0.5f));
+    }
+  }
+  std::sort(keys.begin(), keys.end());
+  return std::unique(keys.begin(), keys.end()) - keys.begin();
+}
+
+// The fewest bits from 16 to 30 at which quantization keeps every distinct position apart
+// (30 when none does), by bisection on the simulated quantization.
+int ChoosePositionBits(const core::TriangleMesh& mesh, int64_t distinct) {
+  int lo = 16, hi = 30;
+  if (DistinctQuantized(mesh.vertices, lo) >= distinct) return lo;
+  while (hi - lo > 1) {
+    const int mid = (lo + hi) / 2;
+    (DistinctQuantized(mesh.vertices, mid) >= distinct ? hi : lo) = mid;
+  }
+  return hi;
+}
+
+}  // namespace
+
 absl::StatusOr<std::string> EncodeResultMesh(const core::TriangleMesh& mesh, int position_bits,
                                              Statistics* statistics) {
   const int64_t distinct = core::CountDistinctPositions(mesh.vertices);
   io::DracoOptions draco;
-  draco.position_bits = position_bits > 0 ? position_bits : 16;
+  draco.position_bits = position_bits > 0 ? position_bits : ChoosePositionBits(mesh, distinct);
   for (;;) {
     auto encoded = io::EncodeDracoMesh(mesh, draco);
     if (!encoded.ok()) return encoded.status();
-    // What the user will decode, merged by position: its topology is what the job reports.
+    // What the user will decode, merged by position: its topology is what the job reports. The
+    // check also covers a rounding the simulation missed (then one bit more is tried).
     auto delivered = io::DecodeDracoMesh(*encoded);
     if (!delivered.ok())
       return absl::InternalError(core::StrCat("the result mesh does not decode: ", delivered.status().message()));
@@ -414,7 +453,8 @@ absl::StatusOr<std::string> EncodeResultMesh(const core::TriangleMesh& mesh, int
       if (!kept) spdlog::warn("result mesh: distinct vertices share a position even at {} bits", draco.position_bits);
       return encoded;
     }
-    draco.position_bits = std::min(30, draco.position_bits + 2);
+    spdlog::info("result mesh: {} bits merge distinct vertices; trying one more", draco.position_bits);
+    draco.position_bits += 1;
   }
 }
 

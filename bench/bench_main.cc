@@ -303,6 +303,13 @@ void RunService(const BenchOptions& o, const BenchCase& c, const fs::path& work)
   const double seconds = Since(t_e2e);
   polling = false;
   poller.join();
+  if (o.show_statistics) {  // The timed job is the newest one.
+    auto listed = client::Client(server.address()).List(1);
+    if (listed.ok() && listed->jobs_size() > 0) {
+      for (const auto& st : listed->jobs(0).statistics())
+        std::printf("  service %s=%g\n", st.name().c_str(), st.value());
+    }
+  }
   const double peak = server.PeakMib();
   CaseResult r;
   if (rc != 0 || submitted.empty()) {

@@ -396,23 +396,27 @@ absl::StatusOr<SurfaceResult> ReconstructSurface(const std::string& method, cons
 
 namespace {
 
-// Distinct positions after quantizing them as Draco does: each coordinate's offset from the box
-// minimum times (2^bits - 1) / (the box's largest extent), rounded, in float arithmetic.
+// Distinct positions after Draco's quantization round trip, simulated in its float arithmetic:
+// q = floor((x - min) * (2^bits - 1) / range + 0.5) with `range` the box's largest extent, then
+// x' = q * (range / (2^bits - 1)) + min. Past ~23 bits the step falls below a float's resolution
+// at the coordinates, so distinct integers can decode to the same float: the round trip, not
+// the integers, decides what a client sees.
 int64_t DistinctQuantized(const std::vector<core::Vec3f>& vertices, int bits) {
   Eigen::Vector3f lo = Eigen::Vector3f::Constant(std::numeric_limits<float>::max());
   Eigen::Vector3f hi = -lo;
   for (const auto& v : vertices) lo = lo.cwiseMin(v), hi = hi.cwiseMax(v);
   float range = (hi - lo).maxCoeff();
   if (!(range > 0)) range = 1;
-  const float scale = static_cast<float>((uint32_t{1} << bits) - 1) / range;
-  std::vector<std::array<int32_t, 3>> keys(vertices.size());
+  const auto max_quantized = static_cast<float>((uint32_t{1} << bits) - 1);
+  const float inverse_delta = max_quantized / range, delta = range / max_quantized;
+  std::vector<core::Vec3f> delivered(vertices.size());
   for (size_t i = 0; i < vertices.size(); ++i) {
     for (int c = 0; c < 3; ++c) {
-      keys[i][static_cast<size_t>(c)] = static_cast<int32_t>(std::floor((vertices[i][c] - lo[c]) * scale + 0.5f));
+      const auto q = static_cast<int32_t>(std::floor((vertices[i][c] - lo[c]) * inverse_delta + 0.5f));
+      delivered[i][c] = static_cast<float>(q) * delta + lo[c];
     }
   }
-  std::sort(keys.begin(), keys.end());
-  return std::unique(keys.begin(), keys.end()) - keys.begin();
+  return core::CountDistinctPositions(delivered);
 }
 
 // The fewest bits from 16 to 30 at which quantization keeps every distinct position apart
@@ -431,6 +435,7 @@ int ChoosePositionBits(const core::TriangleMesh& mesh, int64_t distinct) {
 
 absl::StatusOr<std::string> EncodeResultMesh(const core::TriangleMesh& mesh, int position_bits,
                                              Statistics* statistics) {
+  const auto start = std::chrono::steady_clock::now();
   const int64_t distinct = core::CountDistinctPositions(mesh.vertices);
   io::DracoOptions draco;
   draco.position_bits = position_bits > 0 ? position_bits : ChoosePositionBits(mesh, distinct);
@@ -450,6 +455,7 @@ absl::StatusOr<std::string> EncodeResultMesh(const core::TriangleMesh& mesh, int
       AddStatistic(statistics, "non_manifold_edges", static_cast<double>(topo.non_manifold_edges));
       AddStatistic(statistics, "degenerate_faces", static_cast<double>(topo.degenerate_faces));
       AddStatistic(statistics, "components", static_cast<double>(topo.components));
+      AddStatistic(statistics, "encode_seconds", Seconds(start));
       if (!kept) spdlog::warn("result mesh: distinct vertices share a position even at {} bits", draco.position_bits);
       return encoded;
     }

@@ -1,9 +1,11 @@
 #include "worker/jobs/surface_job.h"
 
 #include <spdlog/spdlog.h>
+#include <tbb/parallel_sort.h>
 
 #include <algorithm>
 #include <array>
+#include <bit>
 #include <chrono>
 #include <cmath>
 #include <functional>
@@ -384,12 +386,9 @@ absl::StatusOr<SurfaceResult> ReconstructSurface(const std::string& method, cons
   if (result.mesh.faces.empty()) {
     return absl::FailedPreconditionError("no surface was found: the points may be too sparse for the chosen spacing");
   }
-  const core::MeshTopology topo = core::AnalyzeTopology(result.mesh);
-  stat("triangles", static_cast<double>(topo.faces));
-  stat("vertices", static_cast<double>(topo.vertices));
-  stat("boundary_edges", static_cast<double>(topo.boundary_edges));
-  stat("non_manifold_edges", static_cast<double>(topo.non_manifold_edges));
-  stat("components", static_cast<double>(topo.components));
+  // The topology statistics are the delivered mesh's (EncodeResultMesh).
+  stat("triangles", static_cast<double>(result.mesh.faces.size()));
+  stat("vertices", static_cast<double>(result.mesh.vertices.size()));
   stat("cells_visited", static_cast<double>(extracted->stats.cells_visited));
   return result;
 }
@@ -409,14 +408,16 @@ int64_t DistinctQuantized(const std::vector<core::Vec3f>& vertices, int bits) {
   if (!(range > 0)) range = 1;
   const auto max_quantized = static_cast<float>((uint32_t{1} << bits) - 1);
   const float inverse_delta = max_quantized / range, delta = range / max_quantized;
-  std::vector<core::Vec3f> delivered(vertices.size());
+  // Bit patterns of the decoded floats: equal patterns are equal positions (x' is never -0).
+  std::vector<std::array<uint32_t, 3>> delivered(vertices.size());
   for (size_t i = 0; i < vertices.size(); ++i) {
     for (int c = 0; c < 3; ++c) {
       const auto q = static_cast<int32_t>(std::floor((vertices[i][c] - lo[c]) * inverse_delta + 0.5f));
-      delivered[i][c] = static_cast<float>(q) * delta + lo[c];
+      delivered[i][static_cast<size_t>(c)] = std::bit_cast<uint32_t>(static_cast<float>(q) * delta + lo[c]);
     }
   }
-  return core::CountDistinctPositions(delivered);
+  tbb::parallel_sort(delivered.begin(), delivered.end());
+  return std::unique(delivered.begin(), delivered.end()) - delivered.begin();
 }
 
 // The fewest bits from 16 to 30 at which quantization keeps every distinct position apart
@@ -439,29 +440,30 @@ absl::StatusOr<std::string> EncodeResultMesh(const core::TriangleMesh& mesh, int
   const int64_t distinct = core::CountDistinctPositions(mesh.vertices);
   io::DracoOptions draco;
   draco.position_bits = position_bits > 0 ? position_bits : ChoosePositionBits(mesh, distinct);
-  for (;;) {
-    auto encoded = io::EncodeDracoMesh(mesh, draco);
-    if (!encoded.ok()) return encoded.status();
-    // What the user will decode, merged by position: its topology is what the job reports. The
-    // check also covers a rounding the simulation missed (then one bit more is tried).
+  auto encoded = io::EncodeDracoMesh(mesh, draco);
+  if (!encoded.ok()) return encoded.status();
+  // What a client decodes, merged by position, is what the statistics describe. When the round
+  // trip keeps every position of a mesh without coincident vertices apart, merging changes
+  // nothing and that is the engine's mesh itself; otherwise the bytes are decoded and merged.
+  core::MeshTopology topo;
+  const bool kept = DistinctQuantized(mesh.vertices, draco.position_bits) >= distinct;
+  if (kept && distinct == static_cast<int64_t>(mesh.vertices.size())) {
+    topo = core::AnalyzeTopology(mesh);
+  } else {
     auto delivered = io::DecodeDracoMesh(*encoded);
-    if (!delivered.ok())
+    if (!delivered.ok()) {
       return absl::InternalError(core::StrCat("the result mesh does not decode: ", delivered.status().message()));
-    const bool kept = core::CountDistinctPositions(delivered->vertices) >= distinct;
-    if (kept || position_bits > 0 || draco.position_bits >= 30) {
-      const core::MeshTopology topo = core::AnalyzeTopology(core::WeldByPosition(*delivered));
-      AddStatistic(statistics, "delivered_position_bits", draco.position_bits);
-      AddStatistic(statistics, "boundary_edges", static_cast<double>(topo.boundary_edges));
-      AddStatistic(statistics, "non_manifold_edges", static_cast<double>(topo.non_manifold_edges));
-      AddStatistic(statistics, "degenerate_faces", static_cast<double>(topo.degenerate_faces));
-      AddStatistic(statistics, "components", static_cast<double>(topo.components));
-      AddStatistic(statistics, "encode_seconds", Seconds(start));
-      if (!kept) spdlog::warn("result mesh: distinct vertices share a position even at {} bits", draco.position_bits);
-      return encoded;
     }
-    spdlog::info("result mesh: {} bits merge distinct vertices; trying one more", draco.position_bits);
-    draco.position_bits += 1;
+    topo = core::AnalyzeTopology(core::WeldByPosition(*delivered));
+    if (!kept) spdlog::warn("result mesh: distinct vertices share a position at {} bits", draco.position_bits);
   }
+  AddStatistic(statistics, "delivered_position_bits", draco.position_bits);
+  AddStatistic(statistics, "boundary_edges", static_cast<double>(topo.boundary_edges));
+  AddStatistic(statistics, "non_manifold_edges", static_cast<double>(topo.non_manifold_edges));
+  AddStatistic(statistics, "degenerate_faces", static_cast<double>(topo.degenerate_faces));
+  AddStatistic(statistics, "components", static_cast<double>(topo.components));
+  AddStatistic(statistics, "encode_seconds", Seconds(start));
+  return encoded;
 }
 
 }  // namespace lsqsurf::jobs

@@ -68,10 +68,12 @@ struct SurfaceResult {
 absl::StatusOr<SurfaceResult> ReconstructSurface(const std::string& method, const core::ParamSet& params,
                                                  core::PointCloud cloud, core::JobContext& ctx);
 
-// The Draco bytes of a result mesh at `position_bits` (0: the fewest bits, from 16 up to 30,
-// at which no two distinct vertices of the mesh share a quantized position, so the mesh merged
-// by position keeps its topology). Adds delivered_position_bits and the delivered mesh's
-// topology (merged by position) to `statistics`. Errors: those of the encoder.
+// The Draco bytes of a result mesh at `position_bits` (0: the fewest bits, 16 to 30, at which
+// Draco's quantization round trip keeps every distinct vertex position apart, so the decoded
+// mesh merged by position keeps the engine's topology). Adds delivered_position_bits,
+// encode_seconds and the topology of the mesh as a client decodes and merges it
+// (boundary_edges, non_manifold_edges, degenerate_faces, components) to `statistics`.
+// Errors: those of the encoder.
 absl::StatusOr<std::string> EncodeResultMesh(const core::TriangleMesh& mesh, int position_bits, Statistics* statistics);
 
 }  // namespace lsqsurf::jobs

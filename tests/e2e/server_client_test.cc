@@ -19,6 +19,7 @@
 #include "grpc/health/v1/health.grpc.pb.h"
 #include "lsqsurf/v1/reconstruction.grpc.pb.h"
 #include "stb_image.h"
+#include "tests/test_dir.h"
 #include "tests/test_shapes.h"
 #include "worker/core/mesh_metrics.h"
 #include "worker/io/files.h"
@@ -101,9 +102,7 @@ std::string Trim(std::string s) {
 class EndToEnd : public ::testing::Test {
  protected:
   void SetUp() override {
-    dir_ = fs::temp_directory_path() / ("lsqsurf-e2e-" + std::to_string(::getpid()) + "-" +
-                                        ::testing::UnitTest::GetInstance()->current_test_info()->name());
-    fs::remove_all(dir_);
+    dir_ = testing::FreshTestDir("lsqsurf-e2e");
     fs::create_directories(dir_);
   }
   void TearDown() override { fs::remove_all(dir_); }

@@ -10,6 +10,7 @@
 #include <mutex>
 
 #include "tests/latch_kind.h"
+#include "tests/test_dir.h"
 #include "tests/test_shapes.h"
 #include "worker/core/mesh_metrics.h"
 #include "worker/io/draco_codec.h"
@@ -44,9 +45,7 @@ Uploads Input(std::string bytes) { return {{kInputUpload, std::move(bytes)}}; }
 class JobServiceTest : public ::testing::Test {
  protected:
   void SetUp() override {
-    dir_ = std::filesystem::temp_directory_path() / ("lsqsurf-jobs-" + std::to_string(::getpid()) + "-" +
-                                                     ::testing::UnitTest::GetInstance()->current_test_info()->name());
-    std::filesystem::remove_all(dir_);
+    dir_ = testing::FreshTestDir("lsqsurf-jobs");
     options_.data_dir = dir_.string();
   }
   void TearDown() override {

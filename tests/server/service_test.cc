@@ -8,6 +8,7 @@
 #include "client/client.h"
 #include "server/reconstruction_service.h"
 #include "tests/latch_kind.h"
+#include "tests/test_dir.h"
 #include "tests/test_shapes.h"
 #include "worker/io/draco_codec.h"
 
@@ -17,9 +18,7 @@ namespace {
 class ServiceTest : public ::testing::Test {
  protected:
   void SetUp() override {
-    dir_ = std::filesystem::temp_directory_path() / ("lsqsurf-service-" + std::to_string(::getpid()) + "-" +
-                                                     ::testing::UnitTest::GetInstance()->current_test_info()->name());
-    std::filesystem::remove_all(dir_);
+    dir_ = testing::FreshTestDir("lsqsurf-service");
     options_.data_dir = dir_.string();
     options_.max_queue = 1;
     options_.max_points = 123456;

@@ -5,6 +5,7 @@
 #include <cctype>
 #include <cstdlib>
 
+#include "lsqsurf/v1/enum_names.h"
 #include "worker/core/strings.h"
 
 namespace lsqsurf::client {
@@ -23,30 +24,21 @@ std::string KnownMethods() {
   return known;
 }
 
-// "Interface" -> "INTERFACE_", as the server maps choices onto enum values.
-std::string EnumPrefix(const std::string& type_name) {
-  std::string out;
-  for (char c : type_name) {
-    if (std::isupper(static_cast<unsigned char>(c)) && !out.empty()) out += '_';
-    out += static_cast<char>(std::toupper(static_cast<unsigned char>(c)));
-  }
-  return out + "_";
-}
-
+// A choice by name ("gridlines"), as lsqsurf methods lists it, or by its full enum value name.
 absl::Status SetEnum(Message* m, const FieldDescriptor& f, std::string_view value) {
-  std::string upper;
-  for (char c : value) upper += static_cast<char>(std::toupper(static_cast<unsigned char>(c)));
   const auto& type = *f.enum_type();
-  const auto* e = type.FindValueByName(EnumPrefix(type.name()) + upper);
-  if (e == nullptr) e = type.FindValueByName(upper);
+  const auto* e = type.FindValueByName(v1::EnumValueName(type, value));
+  if (e == nullptr) {
+    std::string upper;
+    for (char c : value) upper += static_cast<char>(std::toupper(static_cast<unsigned char>(c)));
+    e = type.FindValueByName(upper);
+  }
   if (e == nullptr) {
     std::string names;
-    const std::string prefix = EnumPrefix(type.name());
     for (int i = 0; i < type.value_count(); ++i) {
-      std::string n = type.value(i)->name().substr(prefix.size());
-      if (n == "UNSPECIFIED") continue;
-      for (char& c : n) c = static_cast<char>(std::tolower(static_cast<unsigned char>(c)));
-      core::StrAppend(&names, names.empty() ? "" : ", ", n);
+      if (const std::string n = v1::ChoiceName(*type.value(i)); !n.empty()) {
+        core::StrAppend(&names, names.empty() ? "" : ", ", n);
+      }
     }
     return absl::InvalidArgumentError(StrCat(f.name(), "='", value, "' is not one of: ", names));
   }

@@ -39,7 +39,8 @@ int FailStatus(const char* what, const absl::Status& s) {
 }
 
 // View options shared by render, reconstruct --preview, submit --job-preview and track
-// --pictures. Options left out are not sent: the server's defaults apply.
+// --pictures. Options left out are not sent: the server's defaults apply. Defaults and ranges
+// are not repeated here: they are the tables' (docs/parameters.md, lsqsurf methods).
 struct ViewFlags {
   std::optional<int> size, samples;
   std::optional<double> azimuth, elevation, distance, fov;
@@ -47,18 +48,18 @@ struct ViewFlags {
   bool flat = false, wireframe = false, transparent = false;
 
   void AddTo(CLI::App* cmd) {
-    cmd->add_option("--size", size, "picture width and height in pixels, 16..4096 (default 1024)");
-    cmd->add_option("--up", up, "axis pointing up in the picture: x, y or z (default z; scans are often y)")
+    cmd->add_option("--size", size, "picture width and height in pixels");
+    cmd->add_option("--up", up, "axis pointing up in the picture: x, y or z (scans are often y)")
         ->check(CLI::IsMember({"x", "y", "z"}));
-    cmd->add_option("--azimuth", azimuth, "camera degrees about the up axis (default 35)");
-    cmd->add_option("--elevation", elevation, "camera degrees above the plane normal to the up axis (default 25)");
-    cmd->add_option("--distance", distance, "camera distance from the box centre (default: frame the model)");
-    cmd->add_option("--fov", fov, "vertical field of view in degrees (default 30)");
+    cmd->add_option("--azimuth", azimuth, "camera degrees about the up axis");
+    cmd->add_option("--elevation", elevation, "camera degrees above the plane normal to the up axis");
+    cmd->add_option("--distance", distance, "camera distance from the box centre (unset: frame the model)");
+    cmd->add_option("--fov", fov, "vertical field of view in degrees");
     cmd->add_option("--color", color, "per-vertex attribute to colour by, e.g. degree or depth (PU meshes)");
     cmd->add_flag("--flat", flat, "flat shading (one normal per triangle)");
     cmd->add_flag("--wireframe", wireframe, "draw the triangle edges");
     cmd->add_flag("--transparent", transparent, "transparent background");
-    cmd->add_option("--samples", samples, "MSAA samples per pixel: 1, 2, 4 or 8 (default 4)");
+    cmd->add_option("--samples", samples, "MSAA samples per pixel: 1, 2, 4 or 8");
   }
 
   v1::RenderOptions Options() const {
@@ -285,20 +286,18 @@ struct TrackCommand {
   ViewFlags view;
 
   void AddTo(CLI::App* track) {
-    track->add_option("--interface", interface,
-                      "zalesak | sphere | FILE (oriented cloud in the unit cube); default sphere");
+    track->add_option("--interface", interface, "zalesak | sphere | FILE (oriented cloud in the unit cube)");
     track->add_option("--field", field,
-                      "rotation (Zalesak) | deformation (Enright) | FILE (legacy VTK STRUCTURED_POINTS with VECTORS); "
-                      "default rotation");
-    track->add_option("--period", period, "period T of the deformation field (default 3)");
-    track->add_option("--h", h, "grid spacing; 1/h must be a whole number in 8..512 (default 1/128)");
-    track->add_option("--dt", dt, "time step (default 1)");
-    track->add_option("--steps", steps, "number of steps (default 100)");
-    track->add_option("--stride", stride, "write a frame every this many steps (default 10)");
+                      "rotation (Zalesak) | deformation (Enright) | FILE (legacy VTK STRUCTURED_POINTS with VECTORS)");
+    track->add_option("--period", period, "period T of the deformation field");
+    track->add_option("--h", h, "grid spacing; 1/h must be a whole number (the cells parameter)");
+    track->add_option("--dt", dt, "time step");
+    track->add_option("--steps", steps, "number of steps");
+    track->add_option("--stride", stride, "write a frame every this many steps");
     track
         ->add_option("--resampling", resampling,
-                     "markers (advected points kept, gaps filled; keeps thin sheets; the default) | gridlines (the "
-                     "seed's re-generation every step)")
+                     "markers (advected points kept, gaps filled; keeps thin sheets) | gridlines (the seed's "
+                     "re-generation every step)")
         ->check(CLI::IsMember({"markers", "gridlines"}));
     track->add_flag("--meshes", meshes, "also write a mesh of every frame and its volume (mesh_volume in stats.csv)");
     track->add_option("-o,--output", output, "folder for frame_NNNNN.drc, stats.csv and summary.txt")->required();
@@ -474,6 +473,7 @@ int List(const Globals& g, int limit) {
 
 int main(int argc, char** argv) {
   CLI::App app{"lsqsurf: client of the lsqsurfd reconstruction server"};
+  app.footer("Defaults and ranges of method parameters and view options: lsqsurf methods, or docs/parameters.md.");
   app.require_subcommand(1);
   Globals g;
   const char* env = std::getenv("LSQSURF_SERVER");

@@ -1,7 +1,6 @@
 #include "server/convert.h"
 
-#include <cctype>
-
+#include "lsqsurf/v1/enum_names.h"
 #include "worker/core/status.h"
 #include "worker/core/strings.h"
 #include "worker/jobs/method_registry.h"
@@ -9,31 +8,10 @@
 namespace lsqsurf::server {
 namespace {
 
-using google::protobuf::EnumDescriptor;
 using google::protobuf::EnumValueDescriptor;
 using google::protobuf::FieldDescriptor;
 using google::protobuf::Message;
 using google::protobuf::Reflection;
-
-// "UpAxis" -> "UP_AXIS_": the prefix of the enum's value names.
-std::string EnumPrefix(const EnumDescriptor& type) {
-  std::string out;
-  for (char c : type.name()) {
-    if (std::isupper(static_cast<unsigned char>(c)) && !out.empty()) out += '_';
-    out += static_cast<char>(std::toupper(static_cast<unsigned char>(c)));
-  }
-  return out + "_";
-}
-
-// The choice a value names, or empty for the _UNSPECIFIED value (the default).
-std::string ChoiceName(const EnumValueDescriptor& value) {
-  const std::string prefix = EnumPrefix(*value.type());
-  std::string name = value.name();
-  if (name.rfind(prefix, 0) == 0) name = name.substr(prefix.size());
-  if (name == "UNSPECIFIED") return "";
-  for (char& c : name) c = static_cast<char>(std::tolower(static_cast<unsigned char>(c)));
-  return name;
-}
 
 absl::Status FillField(const Message& message, const FieldDescriptor& f, core::ParamSet* params) {
   const Reflection& r = *message.GetReflection();
@@ -48,7 +26,7 @@ absl::Status FillField(const Message& message, const FieldDescriptor& f, core::P
     case FieldDescriptor::CPPTYPE_BOOL: return params->Set(name, r.GetBool(message, &f) ? 1 : 0);
     case FieldDescriptor::CPPTYPE_STRING: return params->SetText(name, r.GetString(message, &f));
     case FieldDescriptor::CPPTYPE_ENUM: {
-      const std::string choice = ChoiceName(*r.GetEnum(message, &f));
+      const std::string choice = v1::ChoiceName(*r.GetEnum(message, &f));
       return choice.empty() ? absl::OkStatus() : params->Parse(name, choice);
     }
     case FieldDescriptor::CPPTYPE_MESSAGE: break;
@@ -61,12 +39,6 @@ absl::Status FillField(const Message& message, const FieldDescriptor& f, core::P
 grpc::Status ToGrpcStatus(const absl::Status& status) {
   if (status.ok()) return grpc::Status::OK;
   return grpc::Status(static_cast<grpc::StatusCode>(status.code()), std::string(status.message()));
-}
-
-std::string EnumValueName(const EnumDescriptor& type, const std::string& choice) {
-  std::string out = EnumPrefix(type);
-  for (char c : choice) out += static_cast<char>(std::toupper(static_cast<unsigned char>(c)));
-  return out;
 }
 
 absl::Status FillParams(const Message& message, core::ParamSet* params) {
@@ -100,7 +72,7 @@ void ParamsToProto(const core::ParamSet& params, Message* message) {
       case FieldDescriptor::CPPTYPE_ENUM: {
         const core::ParamChoice* c = info.FindChoice(static_cast<int>(v));
         const EnumValueDescriptor* e =
-            c ? f->enum_type()->FindValueByName(EnumValueName(*f->enum_type(), c->name)) : nullptr;
+            c ? f->enum_type()->FindValueByName(v1::EnumValueName(*f->enum_type(), c->name)) : nullptr;
         if (e != nullptr) r.SetEnum(message, f, e);
         break;
       }

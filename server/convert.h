@@ -36,7 +36,4 @@ void ToProto(const jobs::JobRecord& record, v1::Job* out);
 void ToProto(const core::ParamInfo& info, v1::Parameter* out);
 v1::JobState ToProto(jobs::JobState state);
 
-// The enum value name a choice maps to, e.g. ("Interface", "uploaded") -> "INTERFACE_UPLOADED".
-std::string EnumValueName(const google::protobuf::EnumDescriptor& type, const std::string& choice);
-
 }  // namespace lsqsurf::server

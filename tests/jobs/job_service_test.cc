@@ -403,6 +403,23 @@ TEST_F(JobServiceTest, DatabasesFromEarlierVersionsStillOpen) {
   EXPECT_EQ(track->spec.params.Get("steps"), 20);
 }
 
+TEST_F(JobServiceTest, QueuedJobsWhoseSpecNoLongerFitsFailWithTheReason) {
+  {
+    auto store = SqliteJobStore::Open((std::filesystem::create_directories(dir_), dir_ / "jobs.db").string());
+    ASSERT_TRUE(store.ok());
+    JobRecord stale;
+    stale.id = "eeee";
+    stale.spec = Spec("iamls");
+    stale.spec.params.Mutable<IamlsJobParams>()->fit.epsilon = 9;  // As if the range had shrunk since.
+    stale.state = JobState::kQueued;
+    ASSERT_TRUE((*store)->Put(stale).ok());
+  }
+  JobService& s = Open();
+  const JobRecord r = *s.Get("eeee");
+  EXPECT_EQ(r.state, JobState::kFailed);
+  EXPECT_NE(r.error.find("epsilon=9"), std::string::npos) << r.error;
+}
+
 TEST_F(JobServiceTest, CrashedJobsRunAgainOnceThenFail) {
   // The records a killed server leaves behind: jobs marked running.
   std::filesystem::create_directories(dir_ / "jobs" / "aaaa");

@@ -11,6 +11,7 @@
 #include <sstream>
 #include <tuple>
 
+#include "lsqsurf/v1/enum_names.h"
 #include "worker/jobs/method_registry.h"
 
 namespace lsqsurf::server {
@@ -44,10 +45,10 @@ void ExpectMessageCarriesTable(const Descriptor& message, const std::vector<core
     EXPECT_TRUE(f->has_presence()) << what << "." << p.name << " must be optional";
     if (p.type != core::ParamType::kChoice) continue;
     EXPECT_NE(f->enum_type()->FindValueByNumber(0), nullptr);
-    EXPECT_EQ(f->enum_type()->FindValueByNumber(0)->name(), EnumValueName(*f->enum_type(), "unspecified"));
+    EXPECT_EQ(f->enum_type()->FindValueByNumber(0)->name(), v1::EnumValueName(*f->enum_type(), "unspecified"));
     EXPECT_EQ(f->enum_type()->value_count(), static_cast<int>(p.choices.size()) + 1) << what << "." << p.name;
     for (const auto& c : p.choices) {
-      EXPECT_NE(f->enum_type()->FindValueByName(EnumValueName(*f->enum_type(), c.name)), nullptr)
+      EXPECT_NE(f->enum_type()->FindValueByName(v1::EnumValueName(*f->enum_type(), c.name)), nullptr)
           << what << "." << p.name << " lacks " << c.name;
     }
   }
@@ -177,7 +178,7 @@ TEST(Convert, EveryJobStateHasItsOwnWireValue) {
     EXPECT_NE(wire, v1::JOB_STATE_UNSPECIFIED);
     EXPECT_TRUE(seen.insert(wire).second);
     // The display names agree too (the CLI prints the wire's, the logs the job layer's).
-    EXPECT_EQ(v1::JobState_Name(wire), EnumValueName(*v1::JobState_descriptor(), jobs::JobStateName(s)));
+    EXPECT_EQ(v1::JobState_Name(wire), v1::EnumValueName(*v1::JobState_descriptor(), jobs::JobStateName(s)));
   }
 }
 

@@ -28,17 +28,21 @@ class FileReader final : public BlobReader {
 
 }  // namespace
 
-absl::StatusOr<std::string> BlobStore::Read(const std::string& job_id, std::string_view name) const {
-  auto reader = Open(job_id, name);
-  if (!reader.ok()) return reader.status();
+absl::StatusOr<std::string> ReadAll(BlobReader& reader) {
   std::string all;
-  all.reserve(static_cast<size_t>((*reader)->size()));
+  all.reserve(static_cast<size_t>(reader.size()));
   for (;;) {
-    auto chunk = (*reader)->Next(size_t{1} << 22);
+    auto chunk = reader.Next(size_t{1} << 22);
     if (!chunk.ok()) return chunk.status();
     if (chunk->empty()) return all;
     all += *chunk;
   }
+}
+
+absl::StatusOr<std::string> BlobStore::Read(const std::string& job_id, std::string_view name) const {
+  auto reader = Open(job_id, name);
+  if (!reader.ok()) return reader.status();
+  return ReadAll(**reader);
 }
 
 absl::StatusOr<std::unique_ptr<LocalDirBlobStore>> LocalDirBlobStore::Open(std::string root) {

@@ -24,6 +24,9 @@ class BlobReader {
   virtual absl::StatusOr<std::string> Next(size_t max_bytes) = 0;
 };
 
+// The rest of the reader's blob. Errors: those of Next.
+absl::StatusOr<std::string> ReadAll(BlobReader& reader);
+
 class BlobStore {
  public:
   virtual ~BlobStore() = default;

@@ -46,9 +46,9 @@ class ArtifactSink {
   virtual absl::Status Write(std::string_view name, std::string_view bytes) = 0;
 };
 
-// What checking a job's uploads found: the input's size and, where the kind decoded it, the
-// decoded input (kind-specific), which the job service keeps for the run while memory allows,
-// so that an upload is decoded once.
+// What checking a job's uploads found: the input's size and, where the kind keeps it, the decoded
+// uploads (kind-specific, standing in for all of them), which the job service holds for the run
+// while memory allows, so that an upload is decoded once.
 struct CheckedInput {
   int64_t points = 0;
   std::shared_ptr<void> decoded;  // Null when nothing is kept.

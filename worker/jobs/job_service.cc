@@ -360,13 +360,9 @@ absl::StatusOr<RenderedPicture> JobService::Render(const std::string& id, const 
   } release{renders_};
   auto reader = OpenResult(id, name);
   if (!reader.ok()) return reader.status();
-  std::string bytes;
-  for (;;) {
-    auto chunk = (*reader)->Next(size_t{1} << 22);
-    if (!chunk.ok()) return chunk.status();
-    if (chunk->empty()) break;
-    bytes += *chunk;
-  }
+  auto read = ReadAll(**reader);
+  if (!read.ok()) return read.status();
+  const std::string& bytes = *read;
   auto geometry = io::PeekDracoGeometry(bytes);
   if (!geometry.ok()) {
     return absl::InvalidArgumentError(
@@ -445,9 +441,9 @@ absl::StatusOr<Statistics> JobService::RunKind(const std::shared_ptr<Entry>& ent
                                                std::shared_ptr<void> decoded) {
   const JobRecord& record = entry->record;  // Only this worker changes spec and id.
   Uploads uploads;
+  // A decoded input stands in for the uploads; without one they are read back.
   for (const auto& [slot, blob] : UploadFiles()) {
-    // A decoded input stands in for its upload; the others are read back.
-    if (decoded != nullptr && slot == kInputUpload) continue;
+    if (decoded != nullptr) break;
     if (!blobs_->Exists(record.id, blob)) continue;
     auto bytes = blobs_->Read(record.id, blob);
     if (!bytes.ok()) return bytes.status();

@@ -216,11 +216,12 @@ absl::StatusOr<std::vector<JobRecord>> SqliteJobStore::LoadAll() {
     JobRecord r;
     r.id = Column(st, 0);
     r.spec.method = Column(st, 1);
+    std::string unusable;  // Why the stored spec cannot run any more.
     if (auto params = DefaultParams(r.spec.method); params.ok()) {
       r.spec.params = *std::move(params);
-      if (absl::Status s = r.spec.params.Decode(Column(st, 2)); !s.ok()) r.error = std::string(s.message());
+      if (absl::Status s = r.spec.params.Decode(Column(st, 2)); !s.ok()) unusable = std::string(s.message());
     } else {
-      r.error = core::StrCat("this server has no method '", r.spec.method, "' any more");
+      unusable = core::StrCat("this server has no method '", r.spec.method, "' any more");
     }
     r.spec.mesh_position_bits = sqlite3_column_int(st, 3);
     r.state = static_cast<JobState>(std::clamp(sqlite3_column_int(st, 4), 0, 4));
@@ -239,7 +240,10 @@ absl::StatusOr<std::vector<JobRecord>> SqliteJobStore::LoadAll() {
     r.spec.preview = DecodePreview(Column(st, 14), Column(st, 15));
     r.interruptions = sqlite3_column_int(st, 16);
     // A stored spec that no longer decodes cannot run: it fails with the reason.
-    if (!r.error.empty() && !IsTerminal(r.state)) r.state = JobState::kFailed;
+    if (!unusable.empty() && !IsTerminal(r.state)) {
+      r.state = JobState::kFailed;
+      r.error = std::move(unusable);
+    }
     if (IsTerminal(r.state)) r.progress = r.state == JobState::kSucceeded ? 1.0 : 0.0;
     out.push_back(std::move(r));
   }

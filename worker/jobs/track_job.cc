@@ -5,6 +5,8 @@
 #include <chrono>
 #include <cmath>
 #include <cstdio>
+#include <limits>
+#include <memory>
 #include <optional>
 
 #include "worker/core/mesh_metrics.h"
@@ -188,58 +190,67 @@ class TrackKind final : public JobKind {
                                             const InputLimits& limits) const override {
     const TrackJobParams* p = spec.params.As<TrackJobParams>();
     if (p == nullptr) return absl::InternalError("not a track job");
-    int64_t points = 0;
-    const bool has_input = uploads.contains(kInputUpload) && !uploads.at(kInputUpload).empty();
-    if (p->interface == TrackInterface::kUploaded) {
-      auto cloud = DecodeInterface(uploads);
-      if (!cloud.ok()) return cloud.status();
-      if (cloud->empty()) return absl::InvalidArgumentError("the uploaded interface is empty");
-      if (static_cast<int64_t>(cloud->size()) > limits.max_points) {
-        return absl::ResourceExhaustedError(core::StrCat("the interface has ", cloud->size(),
-                                                         " points; this server accepts at most ", limits.max_points));
-      }
-      if (const int64_t bad = core::FindNonFinite(cloud->positions); bad >= 0) {
-        return absl::InvalidArgumentError(core::StrCat("point ", bad, " has a NaN or infinite coordinate"));
-      }
-      points = static_cast<int64_t>(cloud->size());
-    } else if (has_input) {
-      return absl::InvalidArgumentError("a cloud was uploaded, but interface is a named shape; set interface=uploaded");
-    }
-    const bool has_velocity = uploads.contains(kVelocityUpload) && !uploads.at(kVelocityUpload).empty();
-    if (p->field == TrackField::kUploaded) {
-      if (!has_velocity) {
-        return absl::InvalidArgumentError(
-            "field=uploaded tracks through an uploaded velocity grid, but none was uploaded");
-      }
-      if (auto grid = io::ParseVtkVectorGrid(uploads.at(kVelocityUpload), "velocity"); !grid.ok()) return grid.status();
-    } else if (has_velocity) {
-      return absl::InvalidArgumentError("a velocity grid was uploaded, but only field=uploaded uses one");
-    }
-    return CheckedInput{points, nullptr};  // Interfaces and grids are small: decoded again to run.
+    auto input = DecodeInput(*p, uploads, limits.max_points);
+    if (!input.ok()) return input.status();
+    const auto points = static_cast<int64_t>(input->interface ? input->interface->size() : 0);
+    return CheckedInput{points, std::make_shared<TrackInput>(*std::move(input))};
   }
 
   absl::StatusOr<Statistics> Run(const JobSpec& spec, const Uploads& uploads, RunEnvironment& env) const override {
     const TrackJobParams* p = spec.params.As<TrackJobParams>();
     if (p == nullptr) return absl::InternalError("not a track job");
     LSQSURF_RETURN_IF_ERROR(spec.params.Validate());
-    std::optional<core::PointCloud> cloud;
-    if (p->interface == TrackInterface::kUploaded) {
-      auto decoded = DecodeInterface(uploads);
-      if (!decoded.ok()) return decoded.status();
-      cloud = *std::move(decoded);
+    absl::StatusOr<TrackInput> input = absl::UnknownError("");
+    if (env.decoded != nullptr) {
+      input = std::move(*std::static_pointer_cast<TrackInput>(env.decoded));  // Decoded at submission.
+    } else {
+      input = DecodeInput(*p, uploads, std::numeric_limits<int64_t>::max());  // Accepted before a restart.
     }
-    std::optional<io::VectorGrid> grid;
-    if (p->field == TrackField::kUploaded) {
-      auto it = uploads.find(kVelocityUpload);
-      if (it == uploads.end()) return absl::InvalidArgumentError("field=uploaded needs an uploaded velocity grid");
-      auto parsed = io::ParseVtkVectorGrid(it->second, "velocity");
-      if (!parsed.ok()) return parsed.status();
-      grid = *std::move(parsed);
-    }
-    return Track(*p, spec.preview, cloud ? &*cloud : nullptr, grid ? &*grid : nullptr, env);
+    if (!input.ok()) return input.status();
+    return Track(*p, spec.preview, input->interface ? &*input->interface : nullptr,
+                 input->grid ? &*input->grid : nullptr, env);
   }
 
  private:
+  // The uploads a job's parameters call for, decoded and checked.
+  struct TrackInput {
+    std::optional<core::PointCloud> interface;  // interface=uploaded.
+    std::optional<io::VectorGrid> grid;         // field=uploaded.
+  };
+
+  static absl::StatusOr<TrackInput> DecodeInput(const TrackJobParams& p, const Uploads& uploads, int64_t max_points) {
+    TrackInput input;
+    const bool has_input = uploads.contains(kInputUpload) && !uploads.at(kInputUpload).empty();
+    if (p.interface == TrackInterface::kUploaded) {
+      auto cloud = DecodeInterface(uploads);
+      if (!cloud.ok()) return cloud.status();
+      if (cloud->empty()) return absl::InvalidArgumentError("the uploaded interface is empty");
+      if (static_cast<int64_t>(cloud->size()) > max_points) {
+        return absl::ResourceExhaustedError(
+            core::StrCat("the interface has ", cloud->size(), " points; this server accepts at most ", max_points));
+      }
+      if (const int64_t bad = core::FindNonFinite(cloud->positions); bad >= 0) {
+        return absl::InvalidArgumentError(core::StrCat("point ", bad, " has a NaN or infinite coordinate"));
+      }
+      input.interface = *std::move(cloud);
+    } else if (has_input) {
+      return absl::InvalidArgumentError("a cloud was uploaded, but interface is a named shape; set interface=uploaded");
+    }
+    const bool has_velocity = uploads.contains(kVelocityUpload) && !uploads.at(kVelocityUpload).empty();
+    if (p.field == TrackField::kUploaded) {
+      if (!has_velocity) {
+        return absl::InvalidArgumentError(
+            "field=uploaded tracks through an uploaded velocity grid, but none was uploaded");
+      }
+      auto grid = io::ParseVtkVectorGrid(uploads.at(kVelocityUpload), "velocity");
+      if (!grid.ok()) return grid.status();
+      input.grid = *std::move(grid);
+    } else if (has_velocity) {
+      return absl::InvalidArgumentError("a velocity grid was uploaded, but only field=uploaded uses one");
+    }
+    return input;
+  }
+
   static absl::StatusOr<core::PointCloud> DecodeInterface(const Uploads& uploads) {
     auto it = uploads.find(kInputUpload);
     if (it == uploads.end() || it->second.empty()) {

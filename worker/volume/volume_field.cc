@@ -1,0 +1,605 @@
+// Anisotropic iaMLS volume fields; see volume_field.h for the formulas.
+#include "worker/volume/volume_field.h"
+
+#include <fmt/format.h>
+
+#include <Eigen/Dense>
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <numbers>
+
+#include "worker/core/kd_tree.h"
+#include "worker/core/parallel.h"
+#include "worker/core/status.h"
+#include "worker/core/strings.h"
+
+namespace lsqsurf::volume {
+namespace {
+
+// The iteration is refused when I − A would amplify some error component by more than this per
+// step (a few steps at 1.05 are harmless; beyond it the error grows visibly).
+constexpr double kMaxSpectralRadius = 1.05;
+// Cross-validation: neighbourhoods, their size, the share of inner vertices held out.
+constexpr int kCvRegions = 4;
+constexpr size_t kCvRegionSize = 10'000;
+constexpr uint32_t kCvHoldOutModulus = 25;
+constexpr int kCvMaxIterations = 16;
+constexpr double kCvTolerance = 1.02;
+
+const std::array<double, 5> kEpsilonCandidates = {0.7, 0.85, 1.0, 1.2, 1.45};
+
+Eigen::Matrix3d FromSym(const Sym3& s) {
+  Eigen::Matrix3d m;
+  m << s[0], s[3], s[4], s[3], s[1], s[5], s[4], s[5], s[2];
+  return m;
+}
+
+// One generating function per vertex: centre, shape S = ε² M / H², weight ε³ V / (π^{3/2} H³).
+struct KernelRecord {
+  Vec3f center;
+  float weight;
+  std::array<float, 6> shape;  // xx, yy, zz, 2xy, 2xz, 2yz
+};
+
+// The kernels of a vertex set for one ε, and a uniform grid of their supports' bounding boxes.
+class Kernels {
+ public:
+  Kernels(std::span<const Vec3f> centers, std::span<const Sym3> metric, std::span<const float> volume,
+          const VolumeFieldParams& p, double eps) {
+    const size_t n = centers.size();
+    records_.resize(n);
+    cutoff2_ = static_cast<float>(p.cutoff * p.cutoff);
+    std::vector<Vec3f> extent(n);
+    const double eps3 = eps * eps * eps / std::pow(std::numbers::pi, 1.5);
+    for (size_t i = 0; i < n; ++i) {
+      const double v = std::max<double>(volume[i], 1e-30);
+      const double h = p.spacing > 0 ? p.spacing : p.spacing_scale * std::cbrt(v);
+      const Eigen::Matrix3d m = p.anisotropic ? FromSym(metric[i]) : Eigen::Matrix3d::Identity();
+      const Eigen::Matrix3d s = (eps * eps / (h * h)) * m;
+      KernelRecord& r = records_[i];
+      r.center = centers[i];
+      r.weight = static_cast<float>(eps3 * v / (h * h * h));
+      r.shape = {static_cast<float>(s(0, 0)),     static_cast<float>(s(1, 1)),     static_cast<float>(s(2, 2)),
+                 static_cast<float>(2 * s(0, 1)), static_cast<float>(2 * s(0, 2)), static_cast<float>(2 * s(1, 2))};
+      // The ellipsoid dᵀ S d ≤ c² reaches c √((S⁻¹)_aa) along axis a.
+      const Eigen::Matrix3d inv = s.inverse();
+      for (int a = 0; a < 3; ++a) extent[i][a] = static_cast<float>(p.cutoff * std::sqrt(inv(a, a)));
+    }
+    BuildGrid(extent);
+  }
+
+  size_t size() const { return records_.size(); }
+
+  // Calls f(i, Ψ_i(x)) for every kernel whose support holds x.
+  template <class F>
+  void ForEach(const Vec3d& x, F&& f) const {
+    std::array<int, 3> cell;
+    for (int a = 0; a < 3; ++a) {
+      const double t = (x[a] - origin_[a]) * inv_bin_[a];
+      if (!(t >= 0) || t >= bins_[a]) return;
+      cell[a] = static_cast<int>(t);
+    }
+    const size_t b = (static_cast<size_t>(cell[2]) * bins_[1] + cell[1]) * bins_[0] + cell[0];
+    const Vec3f xf = x.cast<float>();
+    for (uint32_t e = bin_start_[b]; e < bin_start_[b + 1]; ++e) {
+      const uint32_t i = bin_items_[e];
+      const KernelRecord& r = records_[i];
+      const float dx = xf[0] - r.center[0], dy = xf[1] - r.center[1], dz = xf[2] - r.center[2];
+      const auto& q = r.shape;
+      const float s =
+          q[0] * dx * dx + q[1] * dy * dy + q[2] * dz * dz + q[3] * dx * dy + q[4] * dx * dz + q[5] * dy * dz;
+      if (s >= cutoff2_) continue;
+      f(i, r.weight * (2.5f - s) * std::exp(-s));
+    }
+  }
+
+ private:
+  void BuildGrid(const std::vector<Vec3f>& extent) {
+    const size_t n = records_.size();
+    core::Box3 box;
+    for (size_t i = 0; i < n; ++i) {
+      box.extend((records_[i].center - extent[i]).cast<double>());
+      box.extend((records_[i].center + extent[i]).cast<double>());
+    }
+    // Bins of two thirds of the median reach: a support spans about 4 bins per axis and a query
+    // tests ~4.5 kernels for each one that reaches it.
+    std::array<double, 3> bin_size;
+    std::vector<float> e(n);
+    for (int a = 0; a < 3; ++a) {
+      for (size_t i = 0; i < n; ++i) e[i] = extent[i][a];
+      std::nth_element(e.begin(), e.begin() + static_cast<int64_t>(n / 2), e.end());
+      bin_size[a] = std::max(2.0 / 3.0 * e[n / 2], box.sizes()[a] / 2048.0);
+    }
+    // At most ~16M bins.
+    double count = 1;
+    for (int a = 0; a < 3; ++a) count *= std::ceil(box.sizes()[a] / bin_size[a] + 1e-9);
+    const double grow = count > 16e6 ? std::cbrt(count / 16e6) : 1.0;
+    origin_ = box.min();
+    for (int a = 0; a < 3; ++a) {
+      bins_[a] = std::max(1, static_cast<int>(std::ceil(box.sizes()[a] / (bin_size[a] * grow) + 1e-9)));
+      inv_bin_[a] = box.sizes()[a] > 0 ? bins_[a] / box.sizes()[a] : 0.0;
+    }
+    const size_t bin_count = static_cast<size_t>(bins_[0]) * bins_[1] * bins_[2];
+    bin_start_.assign(bin_count + 1, 0);
+    auto range = [&](size_t i, std::array<int, 3>& lo, std::array<int, 3>& hi) {
+      for (int a = 0; a < 3; ++a) {
+        lo[a] = std::clamp(static_cast<int>((records_[i].center[a] - extent[i][a] - origin_[a]) * inv_bin_[a]), 0,
+                           bins_[a] - 1);
+        hi[a] = std::clamp(static_cast<int>((records_[i].center[a] + extent[i][a] - origin_[a]) * inv_bin_[a]), 0,
+                           bins_[a] - 1);
+      }
+    };
+    for (int pass = 0; pass < 2; ++pass) {
+      std::vector<uint32_t> cursor;
+      if (pass == 1) {
+        for (size_t b = 0; b < bin_count; ++b) bin_start_[b + 1] += bin_start_[b];
+        bin_items_.resize(bin_start_[bin_count]);
+        cursor.assign(bin_start_.begin(), bin_start_.end() - 1);
+      }
+      std::array<int, 3> lo, hi;
+      for (size_t i = 0; i < n; ++i) {
+        range(i, lo, hi);
+        for (int k = lo[2]; k <= hi[2]; ++k) {
+          for (int j = lo[1]; j <= hi[1]; ++j) {
+            const size_t row = (static_cast<size_t>(k) * bins_[1] + j) * bins_[0];
+            for (int l = lo[0]; l <= hi[0]; ++l) {
+              if (pass == 0) {
+                ++bin_start_[row + l + 1];
+              } else {
+                bin_items_[cursor[row + l]++] = static_cast<uint32_t>(i);
+              }
+            }
+          }
+        }
+      }
+    }
+  }
+
+  std::vector<KernelRecord> records_;
+  float cutoff2_ = 9;
+  Vec3d origin_ = Vec3d::Zero();
+  Vec3d inv_bin_ = Vec3d::Zero();
+  std::array<int, 3> bins_ = {1, 1, 1};
+  std::vector<uint32_t> bin_start_;
+  std::vector<uint32_t> bin_items_;
+};
+
+// Rows of Ψ_i(x_k) for query points x_k (CSR, float values).
+struct KernelMatrix {
+  std::vector<uint64_t> row_start;
+  std::vector<uint32_t> column;
+  std::vector<float> value;
+
+  // out = A · in for `columns` interleaved columns (in: kernels × columns, out: rows × columns).
+  void Multiply(const std::vector<double>& in, int columns, std::vector<double>& out) const {
+    const size_t rows = row_start.size() - 1;
+    out.assign(rows * columns, 0.0);
+    (void)core::ParallelFor(rows, 2048, [&](size_t begin, size_t end) {
+      for (size_t k = begin; k < end; ++k) {
+        double* o = &out[k * columns];
+        for (uint64_t e = row_start[k]; e < row_start[k + 1]; ++e) {
+          const double v = value[e];
+          const double* x = &in[static_cast<size_t>(column[e]) * columns];
+          for (int c = 0; c < columns; ++c) o[c] += v * x[c];
+        }
+      }
+    });
+  }
+};
+
+// `normalized`: each row divided by its sum (Shepard normalisation of the quasi-interpolant).
+absl::StatusOr<KernelMatrix> BuildMatrix(const Kernels& kernels, std::span<const Vec3f> queries, bool normalized,
+                                         const core::JobContext* ctx) {
+  KernelMatrix a;
+  const size_t n = queries.size();
+  a.row_start.assign(n + 1, 0);
+  LSQSURF_RETURN_IF_ERROR(core::ParallelFor(
+      n, 1024,
+      [&](size_t begin, size_t end) {
+        for (size_t k = begin; k < end; ++k) {
+          uint64_t count = 0;
+          kernels.ForEach(queries[k].cast<double>(), [&](uint32_t, float) { ++count; });
+          a.row_start[k + 1] = count;
+        }
+      },
+      ctx));
+  for (size_t k = 0; k < n; ++k) a.row_start[k + 1] += a.row_start[k];
+  a.column.resize(a.row_start[n]);
+  a.value.resize(a.row_start[n]);
+  LSQSURF_RETURN_IF_ERROR(core::ParallelFor(
+      n, 1024,
+      [&](size_t begin, size_t end) {
+        for (size_t k = begin; k < end; ++k) {
+          const uint64_t first = a.row_start[k];
+          uint64_t e = first;
+          double sum = 0;
+          kernels.ForEach(queries[k].cast<double>(), [&](uint32_t i, float psi) {
+            a.column[e] = i;
+            a.value[e++] = psi;
+            sum += psi;
+          });
+          if (normalized && sum > 0) {
+            for (uint64_t q = first; q < e; ++q) a.value[q] = static_cast<float>(a.value[q] / sum);
+          }
+        }
+      },
+      ctx));
+  return a;
+}
+
+// The spectral radius of I − A by power steps: the growth rate of ‖(I − A)ᵏ v‖ over the last steps.
+double SpectralRadius(const KernelMatrix& a) {
+  const size_t n = a.row_start.size() - 1;
+  std::vector<double> v(n), av;
+  for (size_t k = 0; k < n; ++k) v[k] = std::sin(0.7 * static_cast<double>(k) + 0.3) + 0.1;
+  auto norm = [&] {
+    double s = 0;
+    for (double x : v) s += x * x;
+    return std::sqrt(s);
+  };
+  constexpr int kSteps = 30, kMeasured = 10;
+  double log_growth = 0;
+  for (int step = 0; step < kSteps; ++step) {
+    const double before = norm();
+    for (double& x : v) x /= before;
+    a.Multiply(v, 1, av);
+    for (size_t k = 0; k < n; ++k) v[k] -= av[k];
+    if (step >= kSteps - kMeasured) log_growth += std::log(std::max(norm(), 1e-300));
+  }
+  return std::exp(log_growth / kMeasured);
+}
+
+// Richardson iteration on interleaved columns: g ← g + (f − A g), `iterations` times.
+// `residuals`, when given, receives max |f − A g| of column 0 before each step and after the last.
+std::vector<double> Iterate(const KernelMatrix& a, const std::vector<double>& f, int columns, int iterations,
+                            std::vector<double>* residuals) {
+  std::vector<double> g = f, ag;
+  for (int it = 0; it <= iterations; ++it) {
+    if (residuals == nullptr && it == iterations) break;
+    a.Multiply(g, columns, ag);
+    double worst = 0;
+    for (size_t k = 0; k < f.size(); ++k) {
+      const double r = f[k] - ag[k];
+      if (k % columns == 0) worst = std::max(worst, std::abs(r));
+      if (it < iterations) g[k] += r;
+    }
+    if (residuals != nullptr) residuals->push_back(worst);
+  }
+  return g;
+}
+
+struct CvChoice {
+  double epsilon = 0;
+  int iterations = 0;
+  double rms = 0;
+  int points = 0;
+};
+
+// Leave-out cross-validation of (ε, iterations) on the first field; see volume_field.h.
+absl::StatusOr<CvChoice> CrossValidate(std::span<const Vec3f> positions, std::span<const float> values,
+                                       std::span<const Sym3> metric, std::span<const float> volume,
+                                       const VolumeFieldParams& p, const core::JobContext& ctx) {
+  const size_t n = positions.size();
+  // Neighbourhoods: the vertices nearest to a few spread-out centres (the positions are in
+  // Morton order, so evenly spaced indices are spread in space).
+  std::vector<uint32_t> subset;
+  std::vector<char> inner(n, 0);
+  if (n <= kCvRegions * kCvRegionSize) {
+    subset.resize(n);
+    for (size_t i = 0; i < n; ++i) subset[i] = static_cast<uint32_t>(i);
+    std::fill(inner.begin(), inner.end(), 1);
+  } else {
+    core::KdTree tree(positions);
+    std::vector<core::Neighbor> nn;
+    std::vector<char> taken(n, 0);
+    for (int r = 0; r < kCvRegions; ++r) {
+      const size_t centre = n * (2 * r + 1) / (2 * kCvRegions);
+      tree.Knn(positions[centre], kCvRegionSize, nn);
+      for (size_t q = 0; q < nn.size(); ++q) {
+        if (!taken[nn[q].index]) subset.push_back(nn[q].index);
+        taken[nn[q].index] = 1;
+        if (q < kCvRegionSize / 2) inner[nn[q].index] = 1;
+      }
+    }
+  }
+  std::vector<Vec3f> train_x, held_x;
+  std::vector<Sym3> train_m;
+  std::vector<float> train_v;
+  std::vector<double> train_f, held_f;
+  for (uint32_t i : subset) {
+    if (inner[i] && (i * 2654435761u >> 8) % kCvHoldOutModulus == 0) {
+      held_x.push_back(positions[i]);
+      held_f.push_back(values[i]);
+    } else {
+      train_x.push_back(positions[i]);
+      train_m.push_back(metric[i]);
+      train_v.push_back(volume[i]);
+      train_f.push_back(values[i]);
+    }
+  }
+  if (held_x.size() < 10) return CvChoice{};
+  // A held-out vertex's volume goes to its 8 nearest training vertices, so that the kernels
+  // still cover the gap it leaves.
+  {
+    core::KdTree train_tree(train_x);
+    std::vector<core::Neighbor> nn;
+    const std::vector<float> base = train_v;
+    for (size_t h = 0; h < held_x.size(); ++h) {
+      train_tree.Knn(held_x[h], 8, nn);
+      // The held-out vertex's own volume is not kept; its neighbours' mean stands in.
+      double share = 0;
+      for (const auto& q : nn) share += base[q.index];
+      share /= static_cast<double>(nn.size() * nn.size());
+      for (const auto& q : nn) train_v[q.index] += static_cast<float>(share);
+    }
+  }
+  std::vector<double> epsilons(kEpsilonCandidates.begin(), kEpsilonCandidates.end());
+  if (p.epsilon > 0) epsilons = {p.epsilon};
+  const int max_iterations = p.iterations >= 0 ? p.iterations : kCvMaxIterations;
+  struct Score {
+    double epsilon;
+    int iterations;
+    double rms;
+  };
+  std::vector<Score> scores;
+  for (double eps : epsilons) {
+    const Kernels kernels(train_x, train_m, train_v, p, eps);
+    LSQSURF_ASSIGN_OR_RETURN(KernelMatrix a, BuildMatrix(kernels, train_x, p.normalize, &ctx));
+    LSQSURF_ASSIGN_OR_RETURN(KernelMatrix b, BuildMatrix(kernels, held_x, p.normalize, &ctx));
+    std::vector<double> g = train_f, ag, pred;
+    double previous_residual = 1e300;
+    for (int it = 0; it <= max_iterations; ++it) {
+      b.Multiply(g, 1, pred);
+      double sum = 0;
+      for (size_t h = 0; h < held_f.size(); ++h) sum += (pred[h] - held_f[h]) * (pred[h] - held_f[h]);
+      if (p.iterations < 0 || it == p.iterations) {
+        scores.push_back({eps, it, std::sqrt(sum / static_cast<double>(held_f.size()))});
+      }
+      a.Multiply(g, 1, ag);
+      double residual = 0;
+      for (size_t k = 0; k < g.size(); ++k) {
+        residual += (train_f[k] - ag[k]) * (train_f[k] - ag[k]);
+        g[k] += train_f[k] - ag[k];
+      }
+      // A growing residual means this ε diverges here: stop scoring it.
+      if (residual > 1.5 * previous_residual) break;
+      previous_residual = residual;
+    }
+    if (ctx.IsCancelled()) return absl::CancelledError("cancelled by request");
+  }
+  double best = 1e300;
+  for (const Score& s : scores) best = std::min(best, s.rms);
+  CvChoice choice;
+  choice.points = static_cast<int>(held_x.size());
+  choice.epsilon = 0;
+  for (const Score& s : scores) {
+    if (s.rms > kCvTolerance * best) continue;
+    if (s.epsilon > choice.epsilon || (s.epsilon == choice.epsilon && s.iterations < choice.iterations)) {
+      choice.epsilon = s.epsilon;
+      choice.iterations = s.iterations;
+      choice.rms = s.rms;
+    }
+  }
+  return choice;
+}
+
+}  // namespace
+
+struct VolumeField::Impl {
+  std::vector<Vec3f> positions;               // Morton order.
+  std::vector<std::vector<float>> values;     // Per field, data values.
+  std::vector<std::vector<Vec3f>> gradients;  // Per field, least-squares gradients.
+  std::vector<float> spacing;                 // Mean star edge.
+  std::vector<std::vector<float>> g;          // Per field, accumulated value coefficients.
+  std::vector<std::vector<Vec3f>> big_g;      // Per field, accumulated gradient coefficients.
+  std::unique_ptr<Kernels> kernels;
+};
+
+const core::ParamTable<VolumeFieldParams>& VolumeFieldParamTable() {
+  static const auto* table = [] {
+    auto* t = new core::ParamTable<VolumeFieldParams>();
+    t->Real<&VolumeFieldParams::epsilon>("epsilon", 0, 2.5, "",
+                                         "kernel shape (larger = narrower, more detail); 0 = chosen by "
+                                         "cross-validation, else within [0.3, 2.5]")
+        .Integer<&VolumeFieldParams::iterations>("iterations", -1, 20, "",
+                                                 "residual-correction iterations; -1 = chosen by cross-validation")
+        .Real<&VolumeFieldParams::spacing>("spacing", 0, 1e30, "model units",
+                                           "kernel spacing H for every vertex; 0 = spacing_scale x the cube root of "
+                                           "the volume each vertex stands for")
+        .Real<&VolumeFieldParams::spacing_scale>("spacing_scale", 0.5, 4, "", "multiplier of the local spacing")
+        .Flag<&VolumeFieldParams::anisotropic>("anisotropic",
+                                               "kernels stretched like the mesh's cells (metric of each vertex's star)")
+        .Real<&VolumeFieldParams::max_anisotropy>("max_anisotropy", 1, 1000, "",
+                                                  "largest ratio of a kernel's axis lengths")
+        .Flag<&VolumeFieldParams::normalize>("normalize",
+                                             "divide by the kernel sum (exact constants on irregular meshes); "
+                                             "off = the seed's plain sum")
+        .Real<&VolumeFieldParams::cutoff>("cutoff", 2, 6, "", "kernel truncation at epsilon*r = cutoff")
+        .Choice<&VolumeFieldParams::gradient_weights>(
+            "gradient_weights",
+            {{"gaussian", static_cast<int>(GradientWeights::kGaussian), "exp(-d^2/h^2), h the star's mean edge"},
+             {"inverse_distance", static_cast<int>(GradientWeights::kInverseDistance), "1/d^2 (Mavriplis)"}},
+            "weights of the least-squares gradients")
+        .Integer<&VolumeFieldParams::neighbors>("neighbors", 6, 64, "",
+                                                "nearest neighbours forming a vertex's star when there are no cells")
+        .Real<&VolumeFieldParams::min_weight>("min_weight", 0.05, 1, "",
+                                              "point sets: the domain is where the kernel sum reaches this value")
+        .AddRule([](const VolumeFieldParams& p) {
+          if (p.epsilon != 0 && p.epsilon < 0.3) {
+            return absl::InvalidArgumentError(
+                core::StrCat("epsilon=", p.epsilon, " must be 0 (automatic) or within [0.3, 2.5]"));
+          }
+          return absl::OkStatus();
+        });
+    return t;
+  }();
+  return *table;
+}
+
+absl::Status Validate(const VolumeFieldParams& params) { return VolumeFieldParamTable().Validate(params); }
+
+VolumeField::Sample VolumeField::Evaluate(const Vec3d& x, int field) const {
+  Sample out;
+  double value = 0;
+  Vec3d gradient = Vec3d::Zero();
+  double weight = 0;
+  const auto& g = impl_->g[field];
+  const auto& big_g = impl_->big_g[field];
+  impl_->kernels->ForEach(x, [&](uint32_t i, float psi) {
+    weight += psi;
+    value += psi * g[i];
+    gradient += psi * big_g[i].cast<double>();
+  });
+  if (weight == 0) return out;
+  out.value = normalize_ ? value / weight : value;
+  out.gradient = normalize_ ? gradient / weight : gradient;
+  out.weight = weight;
+  return out;
+}
+
+bool VolumeField::InDomain(const Vec3d& x, double weight) const {
+  if (locator_ != nullptr) return locator_->Contains(x);
+  return weight >= min_weight_;
+}
+
+absl::Status VolumeField::EvaluateBatch(std::span<const Vec3d> xs, int field, std::span<Sample> out,
+                                        const core::JobContext* ctx) const {
+  return core::ParallelFor(
+      xs.size(), 512,
+      [&](size_t begin, size_t end) {
+        for (size_t k = begin; k < end; ++k) out[k] = Evaluate(xs[k], field);
+      },
+      ctx);
+}
+
+int VolumeField::FieldIndex(std::string_view name) const {
+  for (size_t f = 0; f < field_names_.size(); ++f) {
+    if (field_names_[f] == name) return static_cast<int>(f);
+  }
+  return -1;
+}
+
+std::span<const Vec3f> VolumeField::positions() const { return impl_->positions; }
+std::span<const float> VolumeField::data_values(int field) const { return impl_->values[field]; }
+std::span<const Vec3f> VolumeField::data_gradients(int field) const { return impl_->gradients[field]; }
+std::span<const float> VolumeField::data_spacing() const { return impl_->spacing; }
+
+absl::StatusOr<std::unique_ptr<VolumeField>> BuildVolumeField(const VolumeMesh& mesh,
+                                                              std::span<const std::string> field_names,
+                                                              const VolumeFieldParams& params, core::JobContext& ctx) {
+  const auto start = std::chrono::steady_clock::now();
+  LSQSURF_RETURN_IF_ERROR(Validate(params));
+  if (field_names.empty()) return absl::InvalidArgumentError("name at least one field to reconstruct");
+  std::vector<const VertexField*> fields;
+  for (const std::string& name : field_names) {
+    const VertexField* f = mesh.FindField(name);
+    if (f == nullptr || f->components != 1) {
+      return absl::InvalidArgumentError(
+          core::StrCat("the volume has no scalar field '", name, "'; its fields: ", DescribeFields(mesh)));
+    }
+    fields.push_back(f);
+  }
+  core::SubContext star_ctx(ctx, "gradients and metrics", 0.0, 0.2);
+  StarParams star_params;
+  star_params.weights = params.gradient_weights;
+  star_params.neighbors = params.neighbors;
+  star_params.max_anisotropy = params.max_anisotropy;
+  LSQSURF_ASSIGN_OR_RETURN(VertexStars stars, AnalyseStars(mesh, fields, star_params, star_ctx));
+
+  auto out = std::unique_ptr<VolumeField>(new VolumeField());
+  out->field_names_.assign(field_names.begin(), field_names.end());
+  out->min_weight_ = params.min_weight;
+  out->normalize_ = params.normalize;
+  if (mesh.has_cells()) out->locator_ = std::make_unique<CellLocator>(mesh);
+  VolumeFieldStats& st = out->stats_;
+  st.mean_star_size = stars.mean_star_size;
+  st.widened_stars = stars.widened_stars;
+  st.singular_stars = stars.singular_stars;
+
+  // Morton order: kernels close in space are close in memory.
+  const size_t n = mesh.vertex_count();
+  const std::vector<uint32_t> order = core::MortonOrder(mesh.positions);
+  auto impl = std::make_shared<VolumeField::Impl>();
+  std::vector<Sym3> metric(n);
+  std::vector<float> volume(n);
+  impl->positions.resize(n);
+  impl->spacing.resize(n);
+  impl->values.assign(fields.size(), std::vector<float>(n));
+  impl->gradients.assign(fields.size(), std::vector<Vec3f>(n));
+  for (size_t r = 0; r < n; ++r) {
+    const uint32_t i = order[r];
+    impl->positions[r] = mesh.positions[i];
+    out->bounds_.extend(mesh.positions[i].cast<double>());
+    metric[r] = stars.metric[i];
+    // A vertex no cell uses still needs a volume: its spacing cubed.
+    volume[r] = stars.volume[i] > 0 ? stars.volume[i] : std::pow(stars.mean_edge[i], 3.0f);
+    impl->spacing[r] = stars.mean_edge[i];
+    for (size_t f = 0; f < fields.size(); ++f) {
+      impl->values[f][r] = fields[f]->values[i];
+      impl->gradients[f][r] = stars.gradients[f][i];
+    }
+  }
+  {
+    std::vector<float> sorted = impl->spacing;
+    std::nth_element(sorted.begin(), sorted.begin() + static_cast<int64_t>(n / 2), sorted.end());
+    st.median_spacing = sorted[n / 2];
+  }
+
+  core::SubContext cv_ctx(ctx, "choosing epsilon and iterations", 0.2, 0.5);
+  double eps = params.epsilon;
+  int iterations = params.iterations;
+  if (eps == 0 || iterations < 0) {
+    LSQSURF_ASSIGN_OR_RETURN(CvChoice choice,
+                             CrossValidate(impl->positions, impl->values[0], metric, volume, params, cv_ctx));
+    st.chosen_by_cross_validation = true;
+    st.cross_validation_rms = choice.rms;
+    st.cross_validation_points = choice.points;
+    // Too few vertices to hold any out: the middle of the candidates.
+    if (eps == 0) eps = choice.epsilon > 0 ? choice.epsilon : 1.0;
+    if (iterations < 0) iterations = choice.epsilon > 0 ? choice.iterations : 3;
+  }
+  cv_ctx.Report(1.0);
+
+  core::SubContext fit_ctx(ctx, "iterating", 0.5, 1.0);
+  impl->kernels = std::make_unique<Kernels>(impl->positions, metric, volume, params, eps);
+  LSQSURF_ASSIGN_OR_RETURN(KernelMatrix a, BuildMatrix(*impl->kernels, impl->positions, params.normalize, &ctx));
+  st.kernels_per_vertex = static_cast<double>(a.row_start[n]) / static_cast<double>(n);
+  fit_ctx.Report(0.3);
+  if (iterations > 0) {
+    st.spectral_radius = SpectralRadius(a);
+    if (st.spectral_radius > kMaxSpectralRadius) {
+      return absl::InvalidArgumentError(fmt::format(
+          "epsilon={:.3g} with {} iterations diverges on this mesh (spectral radius of I - A {:.3g}, must stay below "
+          "{}); use a smaller epsilon, iterations=0, or epsilon=0 to let the server choose",
+          eps, iterations, st.spectral_radius, kMaxSpectralRadius));
+    }
+  }
+  fit_ctx.Report(0.6);
+  // Columns per field: the value and the three gradient components.
+  impl->g.resize(fields.size());
+  impl->big_g.resize(fields.size());
+  for (size_t f = 0; f < fields.size(); ++f) {
+    std::vector<double> data(n * 4);
+    for (size_t k = 0; k < n; ++k) {
+      data[k * 4] = impl->values[f][k];
+      for (int c = 0; c < 3; ++c) data[k * 4 + 1 + c] = impl->gradients[f][k][c];
+    }
+    const std::vector<double> coef = Iterate(a, data, 4, iterations, f == 0 ? &st.residuals : nullptr);
+    impl->g[f].resize(n);
+    impl->big_g[f].resize(n);
+    for (size_t k = 0; k < n; ++k) {
+      impl->g[f][k] = static_cast<float>(coef[k * 4]);
+      impl->big_g[f][k] = Vec3f(static_cast<float>(coef[k * 4 + 1]), static_cast<float>(coef[k * 4 + 2]),
+                                static_cast<float>(coef[k * 4 + 3]));
+    }
+    if (ctx.IsCancelled()) return absl::CancelledError("cancelled by request");
+  }
+  st.epsilon = eps;
+  st.iterations = iterations;
+  st.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  out->impl_ = std::move(impl);
+  return out;
+}
+
+}  // namespace lsqsurf::volume

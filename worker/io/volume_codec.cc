@@ -1,0 +1,147 @@
+#include "worker/io/volume_codec.h"
+
+#include <zlib.h>
+
+#include <cmath>
+
+#include "worker/core/status.h"
+#include "worker/core/strings.h"
+#include "worker/io/draco_codec.h"
+
+namespace lsqsurf::io {
+namespace {
+
+constexpr std::string_view kCellMagic = "LQC1";
+// The longest a cell can be in the payload: a type byte and 8 indices of at most 5 bytes each.
+constexpr uint64_t kMaxCellBytes = 1 + 8 * 5;
+
+void PutVarint(std::string& out, uint64_t v) {
+  while (v >= 0x80) {
+    out += static_cast<char>((v & 0x7f) | 0x80);
+    v >>= 7;
+  }
+  out += static_cast<char>(v);
+}
+
+bool GetVarint(std::string_view s, size_t& pos, uint64_t& v) {
+  v = 0;
+  for (int shift = 0; shift < 64 && pos < s.size(); shift += 7) {
+    const auto byte = static_cast<uint8_t>(s[pos++]);
+    v |= static_cast<uint64_t>(byte & 0x7f) << shift;
+    if ((byte & 0x80) == 0) return true;
+  }
+  return false;
+}
+
+}  // namespace
+
+absl::StatusOr<std::string> EncodeVolumeVertices(const volume::VolumeMesh& mesh, std::span<const std::string> fields,
+                                                 const VolumeCodecOptions& options) {
+  if (mesh.vertex_count() == 0) return absl::InvalidArgumentError("the volume has no vertices");
+  core::PointCloud cloud;
+  cloud.positions = mesh.positions;
+  for (const std::string& name : fields) {
+    const volume::VertexField* f = mesh.FindField(name);
+    if (f == nullptr || f->components != 1) {
+      return absl::InvalidArgumentError(
+          core::StrCat("the volume has no scalar field '", name, "'; its fields: ", volume::DescribeFields(mesh)));
+    }
+    for (size_t i = 0; i < f->values.size(); ++i) {
+      if (!std::isfinite(f->values[i])) {
+        return absl::InvalidArgumentError(core::StrCat("field '", name, "' is NaN or infinite at vertex ", i));
+      }
+    }
+    cloud.attributes.push_back({name, f->values});
+  }
+  DracoOptions draco;
+  draco.position_bits = options.position_bits;
+  draco.attribute_bits = options.value_bits;
+  draco.speed = 10;  // Sequential coding: the cells refer to the vertex order.
+  return EncodeDracoPointCloud(cloud, draco);
+}
+
+absl::Status DecodeVolumeVertices(std::string_view bytes, volume::VolumeMesh& mesh) {
+  LSQSURF_ASSIGN_OR_RETURN(core::PointCloud cloud, DecodeDracoPointCloud(bytes));
+  mesh.positions = std::move(cloud.positions);
+  mesh.fields.clear();
+  for (core::ScalarAttribute& a : cloud.attributes) mesh.fields.push_back({a.name, 1, std::move(a.values)});
+  return absl::OkStatus();
+}
+
+std::string EncodeCellStream(const volume::VolumeMesh& mesh) {
+  std::string payload;
+  PutVarint(payload, mesh.cell_count());
+  int64_t previous = 0;
+  for (size_t c = 0; c < mesh.cell_count(); ++c) {
+    payload += static_cast<char>(mesh.cell_types[c]);
+    for (uint32_t v : mesh.cell(c)) {
+      const int64_t delta = static_cast<int64_t>(v) - previous;
+      PutVarint(payload, (static_cast<uint64_t>(delta) << 1) ^ static_cast<uint64_t>(delta >> 63));
+      previous = v;
+    }
+  }
+  uLongf size = compressBound(static_cast<uLong>(payload.size()));
+  std::string packed(size, '\0');
+  compress2(reinterpret_cast<Bytef*>(packed.data()), &size, reinterpret_cast<const Bytef*>(payload.data()),
+            static_cast<uLong>(payload.size()), 6);
+  packed.resize(size);
+  std::string out(kCellMagic);
+  PutVarint(out, payload.size());
+  return out + packed;
+}
+
+absl::Status DecodeCellStream(std::string_view bytes, int64_t max_cells, volume::VolumeMesh& mesh) {
+  auto corrupt = [](std::string_view why) {
+    return absl::InvalidArgumentError(core::StrCat("the cell stream is corrupt: ", why));
+  };
+  if (!bytes.starts_with(kCellMagic)) return corrupt("it does not start with LQC1");
+  size_t pos = kCellMagic.size();
+  uint64_t payload_size = 0;
+  if (!GetVarint(bytes, pos, payload_size)) return corrupt("truncated header");
+  // Refuse before inflating: the declared size bounds the cell count from below.
+  if (payload_size > static_cast<uint64_t>(std::max<int64_t>(max_cells, 0)) * kMaxCellBytes + 10) {
+    return absl::ResourceExhaustedError(
+        core::StrCat("the cell stream declares ", payload_size, " bytes, more than ", max_cells, " cells can need"));
+  }
+  std::string payload(payload_size, '\0');
+  uLongf size = static_cast<uLongf>(payload_size);
+  const int rc = uncompress(reinterpret_cast<Bytef*>(payload.data()), &size,
+                            reinterpret_cast<const Bytef*>(bytes.data() + pos), static_cast<uLong>(bytes.size() - pos));
+  if (rc != Z_OK || size != payload_size) return corrupt(core::StrCat("zlib could not inflate it (code ", rc, ")"));
+  pos = 0;
+  uint64_t count = 0;
+  if (!GetVarint(payload, pos, count)) return corrupt("no cell count");
+  if (count > static_cast<uint64_t>(max_cells)) {
+    return absl::ResourceExhaustedError(
+        core::StrCat("the volume has ", count, " cells; this server accepts at most ", max_cells));
+  }
+  mesh.cell_types.clear();
+  mesh.cell_vertices.clear();
+  mesh.cell_offsets.assign(1, 0);
+  int64_t previous = 0;
+  for (uint64_t c = 0; c < count; ++c) {
+    if (pos >= payload.size()) return corrupt(core::StrCat("it ends at cell ", c, " of ", count));
+    const auto type = static_cast<uint8_t>(payload[pos++]);
+    const int n = volume::CellVertexCount(type);
+    if (n == 0) {
+      return absl::InvalidArgumentError(core::StrCat("cell ", c, " is a ", volume::CellTypeName(type),
+                                                     "; volume meshes may hold tetrahedra, hexahedra, wedges and "
+                                                     "pyramids only"));
+    }
+    for (int k = 0; k < n; ++k) {
+      uint64_t z = 0;
+      if (!GetVarint(payload, pos, z)) return corrupt(core::StrCat("it ends inside cell ", c));
+      const int64_t delta = static_cast<int64_t>(z >> 1) ^ -static_cast<int64_t>(z & 1);
+      previous += delta;
+      if (previous < 0 || previous > 0xffffffffLL) return corrupt(core::StrCat("cell ", c, " has a negative index"));
+      mesh.cell_vertices.push_back(static_cast<uint32_t>(previous));
+    }
+    mesh.cell_types.push_back(type);
+    mesh.cell_offsets.push_back(static_cast<uint32_t>(mesh.cell_vertices.size()));
+  }
+  if (pos != payload.size()) return corrupt("bytes follow the last cell");
+  if (count == 0) mesh.cell_offsets.clear();
+  return absl::OkStatus();
+}
+
+}  // namespace lsqsurf::io

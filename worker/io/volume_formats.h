@@ -1,0 +1,39 @@
+// worker/io/volume_formats.h — volume data files: legacy VTK, raw regular volumes, PLY points
+// with values.
+//
+// Legacy VTK (`.vtk`, ASCII or BINARY big-endian, file versions 2–5.1): datasets
+// UNSTRUCTURED_GRID (tetrahedra, hexahedra, wedges, pyramids; other cell types are refused by
+// name, voxels are reordered into hexahedra), STRUCTURED_GRID, STRUCTURED_POINTS and
+// RECTILINEAR_GRID (both become hexahedra); every POINT_DATA array (SCALARS with any number of
+// components, VECTORS, NORMALS, FIELD arrays) by name. CELL_DATA and other sections are skipped.
+// Parsers are strict: a malformed file yields kInvalidArgument naming the section and what was
+// expected; counts are checked against the bytes present before anything is allocated.
+#pragma once
+
+#include <string>
+#include <string_view>
+
+#include "absl/status/statusor.h"
+#include "worker/volume/volume_mesh.h"
+
+namespace lsqsurf::io {
+
+// `name` appears in error messages only.
+absl::StatusOr<volume::VolumeMesh> ParseLegacyVtk(std::string_view bytes, std::string_view name);
+
+// An UNSTRUCTURED_GRID file (version 4.2 layout) with every field as POINT_DATA.
+std::string EncodeLegacyVtk(const volume::VolumeMesh& mesh, bool binary);
+
+// A headerless regular volume, x fastest. `layout`: "NXxNYxNZ:TYPE[:SPACING]", TYPE one of
+// uint8, int8, uint16, int16, uint32, int32, float32, float64 (little-endian), SPACING one
+// number or "sx,sy,sz" (default 1). The field is named `field_name`.
+absl::StatusOr<volume::VolumeMesh> ParseRawVolume(std::string_view bytes, std::string_view layout,
+                                                  std::string_view field_name);
+
+// A PLY point set whose vertex properties other than x, y, z become fields (faces are ignored).
+absl::StatusOr<volume::VolumeMesh> ParsePlyVolume(std::string_view bytes, std::string_view name);
+
+// By extension: .vtk, .ply; raw volumes need their layout and go through ParseRawVolume.
+absl::StatusOr<volume::VolumeMesh> ReadVolumeFile(const std::string& path);
+
+}  // namespace lsqsurf::io

@@ -7,6 +7,9 @@
 
 #include "lsqsurf/v1/enum_names.h"
 #include "worker/core/strings.h"
+#include "worker/io/files.h"
+#include "worker/io/volume_codec.h"
+#include "worker/io/volume_formats.h"
 
 namespace lsqsurf::client {
 namespace {
@@ -159,7 +162,29 @@ Client::Client(const std::string& address) {
   stub_ = v1::Reconstruction::NewStub(grpc::CreateCustomChannel(address, grpc::InsecureChannelCredentials(), args));
 }
 
-absl::StatusOr<v1::Job> Client::Submit(const v1::JobSpec& spec, std::string_view input, std::string_view velocity) {
+absl::StatusOr<VolumeUpload> EncodeVolumeFile(const std::string& path, const std::string& raw_layout,
+                                              const std::vector<std::string>& fields) {
+  absl::StatusOr<volume::VolumeMesh> mesh = absl::UnknownError("");
+  if (raw_layout.empty()) {
+    mesh = io::ReadVolumeFile(path);
+  } else {
+    auto bytes = io::ReadFileBytes(path);
+    if (!bytes.ok()) return bytes.status();
+    mesh = io::ParseRawVolume(*bytes, raw_layout, fields.empty() ? "value" : fields[0]);
+  }
+  if (!mesh.ok()) return mesh.status();
+  VolumeUpload out;
+  auto vertices = io::EncodeVolumeVertices(*mesh, fields, {});
+  if (!vertices.ok()) return absl::InvalidArgumentError(core::StrCat(path, ": ", vertices.status().message()));
+  out.vertices = *std::move(vertices);
+  if (mesh->has_cells()) out.cells = io::EncodeCellStream(*mesh);
+  out.vertex_count = static_cast<int64_t>(mesh->vertex_count());
+  out.cell_count = static_cast<int64_t>(mesh->cell_count());
+  return out;
+}
+
+absl::StatusOr<v1::Job> Client::Submit(const v1::JobSpec& spec, std::string_view input, std::string_view velocity,
+                                       std::string_view cells) {
   grpc::ClientContext ctx;
   v1::Job job;
   auto writer = stub_->SubmitJob(&ctx, &job);
@@ -173,6 +198,10 @@ absl::StatusOr<v1::Job> Client::Submit(const v1::JobSpec& spec, std::string_view
   }
   for (size_t offset = 0; open && offset < velocity.size(); offset += kChunk) {
     request.set_velocity_chunk(std::string(velocity.substr(offset, kChunk)));
+    open = writer->Write(request);
+  }
+  for (size_t offset = 0; open && offset < cells.size(); offset += kChunk) {
+    request.set_cells_chunk(std::string(cells.substr(offset, kChunk)));
     open = writer->Write(request);
   }
   writer->WritesDone();

@@ -29,6 +29,18 @@ absl::Status SetParam(v1::JobSpec* spec, std::string_view name, std::string_view
 // "name=value" as given to --param.
 absl::Status SetParamAssignment(v1::JobSpec* spec, std::string_view assignment);
 
+// A volume file as the two uploads of a volume job (VolumeParams): the vertices with the named
+// fields as Draco, the cells as a stream. `raw_layout` non-empty reads `path` as a raw volume
+// ("NXxNYxNZ:TYPE[:SPACING]", its field named `fields[0]`). Errors: kInvalidArgument naming the
+// file and the problem (a missing field lists those present).
+struct VolumeUpload {
+  std::string vertices;
+  std::string cells;
+  int64_t vertex_count = 0, cell_count = 0;
+};
+absl::StatusOr<VolumeUpload> EncodeVolumeFile(const std::string& path, const std::string& raw_layout,
+                                              const std::vector<std::string>& fields);
+
 // Display names: "queued", "running", ...
 const char* StateName(v1::JobState state);
 bool IsTerminal(v1::JobState state);
@@ -39,7 +51,9 @@ class Client {
 
   // Uploads `input` (Draco bytes; may be empty for jobs that need none) and `velocity` (legacy
   // VTK; empty when not used) in 1 MiB chunks. Returns the accepted job.
-  absl::StatusOr<v1::Job> Submit(const v1::JobSpec& spec, std::string_view input, std::string_view velocity = {});
+  // `cells`: a volume's cell stream (VolumeParams).
+  absl::StatusOr<v1::Job> Submit(const v1::JobSpec& spec, std::string_view input, std::string_view velocity = {},
+                                 std::string_view cells = {});
   // Follows the job until it ends, calling `on_event` with every state; returns the final job.
   // Errors: the RPC's, or kAborted when the stream ended before the job did.
   absl::StatusOr<v1::Job> Watch(const std::string& id, const std::function<void(const v1::Job&)>& on_event = {});

@@ -94,7 +94,7 @@ struct JobFlags {
   int mesh_bits = 0;
 
   void AddTo(CLI::App* cmd) {
-    cmd->add_option("--method", method, "iamls | pu | ramls | apss (lsqsurf methods)")->capture_default_str();
+    cmd->add_option("--method", method, "iamls | pu | ramls | apss | volume (lsqsurf methods)")->capture_default_str();
     cmd->add_option("--param", params, "method parameter as name=value (repeatable; lsqsurf methods lists them)");
     cmd->add_option("--mesh-bits", mesh_bits, "Draco quantization of result positions (8..30; default: per mesh)");
   }
@@ -234,7 +234,36 @@ int RenderToFile(const Globals& g, const std::string& id, const std::string& nam
   return 0;
 }
 
-// reconstruct and submit.
+// What a job uploads: a cloud, or (method volume) a volume's vertices and cells.
+struct Upload {
+  std::string input, cells;
+};
+
+// Volume inputs: which fields travel and how a raw file is laid out.
+struct VolumeFlags {
+  std::string field, color_by, raw;
+
+  void AddTo(CLI::App* cmd) {
+    cmd->add_option("--field", field, "method volume: the scalar field to reconstruct");
+    cmd->add_option("--color-by", color_by, "method volume: a second field sampled on the isosurface");
+    cmd->add_option("--raw", raw, "method volume: read the input as a raw volume NXxNYxNZ:TYPE[:SPACING]");
+  }
+  // Sets the field parameters of a volume spec and encodes the file.
+  absl::StatusOr<Upload> Encode(const std::string& path, v1::JobSpec* spec) const {
+    if (field.empty()) return absl::InvalidArgumentError("method volume needs --field NAME");
+    std::vector<std::string> fields = {field};
+    spec->mutable_volume()->set_field(field);
+    if (!color_by.empty()) {
+      spec->mutable_volume()->set_color_by(color_by);
+      if (color_by != field) fields.push_back(color_by);
+    }
+    auto encoded = client::EncodeVolumeFile(path, raw, fields);
+    if (!encoded.ok()) return encoded.status();
+    return Upload{std::move(encoded->vertices), std::move(encoded->cells)};
+  }
+};
+
+// reconstruct, submit and volume.
 struct SurfaceCommand {
   std::string input;
   std::vector<std::string> outputs;
@@ -242,15 +271,29 @@ struct SurfaceCommand {
   bool job_preview = false;
   JobFlags job;
   ViewFlags view;
+  VolumeFlags volume;
+  std::vector<double> iso;
 
   int Run(const Globals& g, bool wait) const {
     auto spec = job.Spec();
     if (!spec.ok()) return Fail(std::string(spec.status().message()));
     if (job_preview) *spec->mutable_preview()->mutable_options() = view.Options();
-    auto bytes = CloudBytes(input);
-    if (!bytes.ok()) return Fail(std::string(bytes.status().message()));
+    absl::StatusOr<Upload> upload = absl::UnknownError("");
+    if (job.method == "volume") {
+      if (!iso.empty()) {
+        std::string text;
+        for (double v : iso) text += StrCat(text.empty() ? "" : ",", v);
+        spec->mutable_volume()->set_iso(text);
+      }
+      upload = volume.Encode(input, &*spec);
+    } else {
+      auto bytes = CloudBytes(input);
+      if (bytes.ok()) upload = Upload{*std::move(bytes), {}};
+      if (!bytes.ok()) upload = bytes.status();
+    }
+    if (!upload.ok()) return Fail(std::string(upload.status().message()));
     client::Client c(g.server);
-    auto accepted = c.Submit(*spec, *bytes);
+    auto accepted = c.Submit(*spec, upload->input, {}, upload->cells);
     if (!accepted.ok()) return FailStatus("submit", accepted.status());
     if (!wait) {
       std::printf("%s\n", accepted->id().c_str());
@@ -262,6 +305,11 @@ struct SurfaceCommand {
     }
     v1::Job done;
     if (int rc = Watch(g, accepted->id(), &done); rc != 0) return rc;
+    if (outputs.empty()) {  // A volume job kept for later renders and probes.
+      if (!g.quiet) PrintStatistics(done);
+      std::printf("%s\n", done.id().c_str());
+      return 0;
+    }
     auto mesh = c.Fetch(done.id(), "");
     if (!mesh.ok()) return FailStatus("fetch", mesh.status());
     for (const auto& path : outputs) {
@@ -492,9 +540,19 @@ int main(int argc, char** argv) {
   auto* submit = app.add_subcommand("submit", "upload a cloud and print the job id");
   submit->add_option("input", surface.input, "point cloud")->required();
   surface.job.AddTo(submit);
+  surface.volume.AddTo(submit);
   submit->add_flag("--job-preview", surface.job_preview,
                    "the job also draws preview.png into its results (view options below)");
   surface.view.AddTo(submit);
+
+  auto* volume = app.add_subcommand("volume", "upload a volume mesh with scalar fields, wait, and write isosurfaces");
+  volume->add_option("input", surface.input, "volume (.vtk legacy VTK, .ply points with values, raw with --raw)")
+      ->required();
+  surface.volume.AddTo(volume);
+  volume->add_option("--iso", surface.iso, "iso-value of the isosurface (repeatable)");
+  volume->add_option("-o,--output", surface.outputs, "isosurface mesh to write (.ply .obj .drc; needs --iso)");
+  volume->add_option("--param", surface.job.params, "volume parameter as name=value (lsqsurf methods)");
+  volume->add_option("--mesh-bits", surface.job.mesh_bits, "Draco quantization of result positions");
 
   std::string id, name, output, reference, candidate;
   std::vector<CLI::App*> id_commands;
@@ -531,6 +589,11 @@ int main(int argc, char** argv) {
   compare->add_option("--samples", samples, "samples per surface")->capture_default_str();
   CLI11_PARSE(app, argc, argv);
 
+  if (*volume) {
+    surface.job.method = "volume";
+    if (!surface.outputs.empty() && surface.iso.empty()) return Fail("-o writes an isosurface: give --iso VALUE");
+    return surface.Run(g, /*wait=*/true);
+  }
   if (*reconstruct || *submit) return surface.Run(g, /*wait=*/reconstruct->parsed());
   if (*track) return track_command.Run(g);
   if (*render) return RenderToFile(g, id, name, render_view.Options(), output);

@@ -31,6 +31,9 @@ int main(int argc, char** argv) {
   app.add_option("--max-points", options.max_points, "largest accepted cloud")
       ->capture_default_str()
       ->check(CLI::Range(int64_t{16}, int64_t{2'000'000'000}));
+  app.add_option("--max-cells", options.max_cells, "largest accepted volume mesh, in cells")
+      ->capture_default_str()
+      ->check(CLI::Range(int64_t{1}, int64_t{2'000'000'000}));
   app.add_option("--max-upload-mib", max_upload_mib, "largest accepted upload, MiB")
       ->capture_default_str()
       ->check(CLI::Range(int64_t{1}, int64_t{1} << 20));

@@ -45,8 +45,12 @@ grpc::Status ReconstructionService::Submit(grpc::ServerContext* context,
     if (message.has_spec()) {
       return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "only the first message may carry a spec");
     }
-    const bool is_velocity = message.has_velocity_chunk();
-    const std::string& chunk = is_velocity ? message.velocity_chunk() : message.input_chunk();
+    const char* slot = message.has_velocity_chunk() ? jobs::kVelocityUpload
+                       : message.has_cells_chunk()  ? jobs::kCellsUpload
+                                                    : jobs::kInputUpload;
+    const std::string& chunk = message.has_velocity_chunk() ? message.velocity_chunk()
+                               : message.has_cells_chunk()  ? message.cells_chunk()
+                                                            : message.input_chunk();
     if (chunk.size() > kMaxChunkBytes) {
       return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "upload chunks must be at most 1 MiB");
     }
@@ -55,7 +59,7 @@ grpc::Status ReconstructionService::Submit(grpc::ServerContext* context,
                           core::StrCat("the upload exceeds this server's limit of ", limit, " bytes"));
     }
     received += chunk.size();
-    uploads[is_velocity ? jobs::kVelocityUpload : jobs::kInputUpload] += chunk;
+    uploads[slot] += chunk;
   }
   if (context->IsCancelled()) return grpc::Status(grpc::StatusCode::CANCELLED, "upload cancelled");
   auto record = jobs_.Submit(*spec, std::move(uploads));
@@ -192,6 +196,7 @@ grpc::Status ReconstructionService::GetServerInfo(grpc::ServerContext*, const v1
     const jobs::JobServiceOptions& o = jobs_.options();
     response->set_version(LSQSURF_VERSION);
     response->set_max_points(o.max_points);
+    response->set_max_cells(o.max_cells);
     response->set_min_points(o.min_points);
     response->set_max_upload_bytes(o.max_input_bytes);
     response->set_max_chunk_bytes(static_cast<int64_t>(kMaxChunkBytes));

@@ -461,12 +461,13 @@ TEST_F(EndToEnd, RawApiStatusCodes) {
     grpc::ClientContext ctx;
     v1::ListMethodsResponse response;
     ASSERT_TRUE(stub->ListMethods(&ctx, {}, &response).ok());
-    ASSERT_EQ(response.methods_size(), 5);
+    ASSERT_EQ(response.methods_size(), 6);
     EXPECT_EQ(response.methods(0).name(), "iamls");
     EXPECT_EQ(response.methods(1).name(), "pu");
     EXPECT_EQ(response.methods(2).name(), "ramls");
     EXPECT_EQ(response.methods(3).name(), "apss");
     EXPECT_EQ(response.methods(4).name(), "track");
+    EXPECT_EQ(response.methods(5).name(), "volume");
   }
   EXPECT_EQ(Client(server.address(), "cancel " + id).code, 0);
 }

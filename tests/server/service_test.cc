@@ -11,6 +11,8 @@
 #include "tests/test_dir.h"
 #include "tests/test_shapes.h"
 #include "worker/io/draco_codec.h"
+#include "worker/io/volume_codec.h"
+#include "worker/volume/synthetic.h"
 
 namespace lsqsurf::server {
 namespace {
@@ -139,13 +141,69 @@ TEST_F(ServiceTest, MethodsListTheirParametersWithDefaults) {
   ASSERT_TRUE(methods.ok());
   std::vector<std::string> names;
   for (const auto& m : methods->methods()) names.push_back(m.name());
-  EXPECT_EQ(names, (std::vector<std::string>{"iamls", "pu", "ramls", "apss", "track"}));
+  EXPECT_EQ(names, (std::vector<std::string>{"iamls", "pu", "ramls", "apss", "track", "volume"}));
   for (const auto& m : methods->methods()) {
     EXPECT_GT(m.parameters_size(), 0) << m.name();
     for (const auto& p : m.parameters()) {
       EXPECT_FALSE(p.help().empty()) << m.name() << "." << p.name();
     }
   }
+}
+
+}  // namespace
+}  // namespace lsqsurf::server
+
+namespace lsqsurf::server {
+namespace {
+
+// A volume job end to end through the wire: the compressed uploads, the field, the isosurface.
+TEST_F(ServiceTest, AVolumeMeshBecomesAnIsosurfaceAndBadVolumesAreRefused) {
+  volume::VolumeMesh mesh = volume::JitteredTetMesh(core::Box3(core::Vec3d::Zero(), core::Vec3d::Ones()), 9, 0.3, 2);
+  volume::SampleField(mesh, volume::Franke3d());
+  const std::vector<std::string> fields = {"franke"};
+  auto vertices = io::EncodeVolumeVertices(mesh, fields, {});
+  ASSERT_TRUE(vertices.ok());
+  const std::string cells = io::EncodeCellStream(mesh);
+  v1::JobSpec spec;
+  spec.mutable_volume()->set_field("franke");
+  spec.mutable_volume()->set_iso("0.4");
+  auto job = client_->Submit(spec, *vertices, {}, cells);
+  ASSERT_TRUE(job.ok()) << job.status();
+  EXPECT_EQ(job->input_points(), static_cast<int64_t>(mesh.vertex_count()));
+  auto done = client_->Watch(job->id());
+  ASSERT_TRUE(done.ok()) << done.status();
+  ASSERT_EQ(done->state(), v1::JOB_STATE_SUCCEEDED) << done->error();
+  auto bytes = client_->Fetch(job->id(), "");
+  ASSERT_TRUE(bytes.ok());
+  auto surface = io::DecodeDracoMesh(*bytes);
+  ASSERT_TRUE(surface.ok());
+  EXPECT_GT(surface->faces.size(), 100u);
+  bool chosen = false;
+  for (const auto& s : done->statistics()) chosen |= s.name() == "epsilon_chosen_by_cross_validation" && s.value() == 1;
+  EXPECT_TRUE(chosen);
+
+  // A cell pointing past the vertices, a field that is not there, a missing cell stream's
+  // corruption: INVALID_ARGUMENT with the reason; too many cells: RESOURCE_EXHAUSTED.
+  volume::VolumeMesh broken = mesh;
+  broken.cell_vertices[5] = 100000;
+  auto out_of_range = client_->Submit(spec, *vertices, {}, io::EncodeCellStream(broken));
+  ASSERT_FALSE(out_of_range.ok());
+  EXPECT_EQ(out_of_range.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(out_of_range.status().message().find("refers to vertex 100000"), std::string::npos)
+      << out_of_range.status();
+  v1::JobSpec wrong_field = spec;
+  wrong_field.mutable_volume()->set_field("pressure");
+  auto missing = client_->Submit(wrong_field, *vertices, {}, cells);
+  ASSERT_FALSE(missing.ok());
+  EXPECT_NE(missing.status().message().find("franke (scalar)"), std::string::npos) << missing.status();
+  auto corrupt = client_->Submit(spec, *vertices, {}, cells.substr(0, cells.size() - 3));
+  EXPECT_EQ(corrupt.status().code(), absl::StatusCode::kInvalidArgument) << corrupt.status();
+  volume::VolumeMesh huge = volume::JitteredTetMesh(core::Box3(core::Vec3d::Zero(), core::Vec3d::Ones()), 60, 0, 2);
+  volume::SampleField(huge, volume::Franke3d());
+  auto huge_vertices = io::EncodeVolumeVertices(huge, fields, {});
+  ASSERT_TRUE(huge_vertices.ok());
+  auto too_many = client_->Submit(spec, *huge_vertices, {}, io::EncodeCellStream(huge));
+  EXPECT_EQ(too_many.status().code(), absl::StatusCode::kResourceExhausted) << too_many.status();
 }
 
 }  // namespace

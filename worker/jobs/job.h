@@ -37,6 +37,7 @@ struct JobSpec {
 using Uploads = std::map<std::string, std::string>;
 inline constexpr char kInputUpload[] = "input";
 inline constexpr char kVelocityUpload[] = "velocity";
+inline constexpr char kCellsUpload[] = "cells";  // Volume meshes: the cell stream (io/volume_codec.h).
 
 using Statistics = std::vector<std::pair<std::string, double>>;  // Name (units in it), value.
 

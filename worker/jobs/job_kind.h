@@ -36,6 +36,7 @@ struct MethodInfo {
 struct InputLimits {
   int64_t max_points = 20'000'000;
   int64_t min_points = 16;
+  int64_t max_cells = 100'000'000;  // Volume meshes.
 };
 
 // Stores a job's artifacts; each write is atomic and the name is recorded in order.

@@ -17,8 +17,8 @@ namespace {
 
 // Where each upload slot is kept in a job's folder (names kept from earlier versions).
 const std::map<std::string, std::string>& UploadFiles() {
-  static const auto* files =
-      new std::map<std::string, std::string>{{kInputUpload, "input.drc"}, {kVelocityUpload, "velocity.vtk"}};
+  static const auto* files = new std::map<std::string, std::string>{
+      {kInputUpload, "input.drc"}, {kVelocityUpload, "velocity.vtk"}, {kCellsUpload, "cells.lqc"}};
   return *files;
 }
 
@@ -183,7 +183,8 @@ absl::StatusOr<JobRecord> JobService::Submit(const JobSpec& spec, Uploads upload
     return absl::ResourceExhaustedError(
         core::StrCat("the upload has ", bytes, " bytes; this server accepts at most ", options_.max_input_bytes));
   }
-  auto checked = KindOf(spec.method)->CheckUploads(spec, uploads, {options_.max_points, options_.min_points});
+  auto checked =
+      KindOf(spec.method)->CheckUploads(spec, uploads, {options_.max_points, options_.min_points, options_.max_cells});
   if (!checked.ok()) return checked.status();
   {
     std::lock_guard lock(mutex_);

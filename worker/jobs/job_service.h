@@ -47,6 +47,7 @@ struct JobServiceOptions {
   int max_queue = 64;                          // Queued jobs beyond which Submit is refused.
   int64_t max_points = 20'000'000;             // Largest accepted cloud.
   int64_t min_points = 16;                     // Smallest accepted surface cloud.
+  int64_t max_cells = 100'000'000;             // Largest accepted volume mesh (its vertices count as points).
   int64_t max_input_bytes = int64_t{1} << 30;  // Largest accepted upload (all slots together).
   int max_attempts = 2;                        // Crashed starts before a job is failed.
   int max_renders = 2;                         // Render calls drawn at once; more get kResourceExhausted.

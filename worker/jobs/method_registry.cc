@@ -6,6 +6,7 @@
 #include "worker/core/strings.h"
 #include "worker/jobs/surface_job.h"
 #include "worker/jobs/track_job.h"
+#include "worker/jobs/volume_job.h"
 #include "worker/render/render.h"
 
 namespace lsqsurf::jobs {
@@ -13,7 +14,7 @@ namespace lsqsurf::jobs {
 const std::vector<MethodEntry>& Methods() {
   static const auto* methods = [] {
     auto* out = new std::vector<MethodEntry>();
-    for (const JobKind* kind : {&SurfaceJobKind(), &TrackJobKind()}) {
+    for (const JobKind* kind : {&SurfaceJobKind(), &TrackJobKind(), &VolumeJobKind()}) {
       for (MethodInfo& info : kind->Methods()) out->push_back({std::move(info), kind});
     }
     return out;

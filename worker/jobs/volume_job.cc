@@ -1,0 +1,170 @@
+#include "worker/jobs/volume_job.h"
+
+#include <charconv>
+#include <cmath>
+
+#include "worker/core/status.h"
+#include "worker/core/strings.h"
+#include "worker/io/volume_codec.h"
+#include "worker/jobs/surface_job.h"
+#include "worker/volume/volume_isosurface.h"
+
+namespace lsqsurf::jobs {
+namespace {
+
+constexpr char kMeshArtifact[] = "mesh.drc";
+
+const core::ParamTable<VolumeJobParams>& VolumeJobParamTable() {
+  static const auto* table = [] {
+    auto* t = new core::ParamTable<VolumeJobParams>();
+    t->Text<&VolumeJobParams::field>("field", "the scalar field to reconstruct (required)")
+        .Text<&VolumeJobParams::iso>("iso", "iso-values of the isosurface, separated by commas; empty = none")
+        .Text<&VolumeJobParams::color_by>("color_by", "a second field sampled on the isosurface, to colour by")
+        .Real<&VolumeJobParams::resolution>("resolution", 0.05, 2, "",
+                                            "finest extraction cube edge, share of the median vertex spacing")
+        .Include(&VolumeJobParams::fit, volume::VolumeFieldParamTable())
+        .AddRule([](const VolumeJobParams& p) {
+          if (p.field.empty()) return absl::InvalidArgumentError("name the scalar field to reconstruct (field=NAME)");
+          return ParseIsoValues(p.iso).status();
+        });
+    return t;
+  }();
+  return *table;
+}
+
+// Decodes the uploads into a volume (not yet validated).
+absl::StatusOr<volume::VolumeMesh> DecodeVolume(const Uploads& uploads, int64_t max_cells) {
+  auto it = uploads.find(kInputUpload);
+  if (it == uploads.end() || it->second.empty()) {
+    return absl::InvalidArgumentError("no vertices were uploaded (input: a Draco point cloud with the fields)");
+  }
+  volume::VolumeMesh mesh;
+  if (absl::Status s = io::DecodeVolumeVertices(it->second, mesh); !s.ok()) {
+    return absl::InvalidArgumentError(core::StrCat("input: ", s.message()));
+  }
+  if (auto cells = uploads.find(kCellsUpload); cells != uploads.end() && !cells->second.empty()) {
+    if (absl::Status s = io::DecodeCellStream(cells->second, max_cells, mesh); !s.ok()) {
+      return absl::Status(s.code(), core::StrCat("cells: ", s.message()));
+    }
+  }
+  return mesh;
+}
+
+class VolumeKind final : public JobKind {
+ public:
+  std::string_view name() const override { return "volume"; }
+
+  std::vector<MethodInfo> Methods() const override {
+    return {{"volume",
+             "Anisotropic iaMLS reconstruction of a scalar field on a volume mesh or point set (seed section 5); "
+             "isosurfaces with normals from the reconstructed gradient",
+             core::ParamSet(VolumeJobParamTable()),
+             {"iso"},
+             {kInputUpload, kCellsUpload}}};
+  }
+
+  absl::StatusOr<CheckedInput> CheckUploads(const JobSpec& spec, const Uploads& uploads,
+                                            const InputLimits& limits) const override {
+    const auto* p = spec.params.As<VolumeJobParams>();
+    if (p == nullptr) return absl::InternalError("not a volume method");
+    LSQSURF_ASSIGN_OR_RETURN(volume::VolumeMesh mesh, DecodeVolume(uploads, limits.max_cells));
+    LSQSURF_RETURN_IF_ERROR(volume::ValidateVolumeMesh(mesh, {limits.max_points, limits.max_cells}));
+    if (static_cast<int64_t>(mesh.vertex_count()) < limits.min_points) {
+      return absl::InvalidArgumentError(core::StrCat("the volume has only ", mesh.vertex_count(),
+                                                     " vertices; at least ", limits.min_points, " are needed"));
+    }
+    for (const std::string* name : {&p->field, &p->color_by}) {
+      if (name->empty()) continue;
+      const volume::VertexField* f = mesh.FindField(*name);
+      if (f == nullptr || f->components != 1) {
+        return absl::InvalidArgumentError(
+            core::StrCat("the upload has no scalar field '", *name, "'; its fields: ", volume::DescribeFields(mesh)));
+      }
+    }
+    const auto vertices = static_cast<int64_t>(mesh.vertex_count());
+    return CheckedInput{vertices, std::make_shared<volume::VolumeMesh>(std::move(mesh))};
+  }
+
+  absl::StatusOr<Statistics> Run(const JobSpec& spec, const Uploads& uploads, RunEnvironment& env) const override {
+    volume::VolumeMesh mesh;
+    if (env.decoded != nullptr) {
+      mesh = std::move(*std::static_pointer_cast<volume::VolumeMesh>(env.decoded));  // Checked at submission.
+    } else {
+      LSQSURF_ASSIGN_OR_RETURN(mesh, DecodeVolume(uploads, std::numeric_limits<int64_t>::max()));
+      LSQSURF_RETURN_IF_ERROR(
+          volume::ValidateVolumeMesh(mesh, {std::numeric_limits<int64_t>::max(), std::numeric_limits<int64_t>::max()}));
+    }
+    LSQSURF_ASSIGN_OR_RETURN(VolumeResult result, ReconstructVolume(spec.params, mesh, env.context));
+    if (!result.mesh.empty()) {
+      LSQSURF_ASSIGN_OR_RETURN(std::string encoded,
+                               EncodeResultMesh(result.mesh, spec.mesh_position_bits, &result.statistics));
+      LSQSURF_RETURN_IF_ERROR(env.sink.Write(kMeshArtifact, encoded));
+    }
+    return result.statistics;
+  }
+};
+
+}  // namespace
+
+absl::StatusOr<std::vector<double>> ParseIsoValues(std::string_view text) {
+  std::vector<double> out;
+  size_t pos = 0;
+  while (pos < text.size()) {
+    while (pos < text.size() && (text[pos] == ',' || text[pos] == ' ')) ++pos;
+    size_t end = pos;
+    while (end < text.size() && text[end] != ',' && text[end] != ' ') ++end;
+    if (end == pos) break;
+    double v = 0;
+    auto [p, ec] = std::from_chars(text.data() + pos, text.data() + end, v);
+    if (ec != std::errc() || p != text.data() + end || !std::isfinite(v)) {
+      return absl::InvalidArgumentError(
+          core::StrCat("iso: '", text.substr(pos, end - pos), "' is not a number (give values like 0.5,0.7)"));
+    }
+    out.push_back(v);
+    pos = end;
+  }
+  if (out.size() > 16) return absl::InvalidArgumentError("iso: at most 16 iso-values per job");
+  return out;
+}
+
+absl::StatusOr<VolumeResult> ReconstructVolume(const core::ParamSet& params, const volume::VolumeMesh& mesh,
+                                               core::JobContext& ctx) {
+  const auto* p = params.As<VolumeJobParams>();
+  if (p == nullptr) return absl::InternalError("not volume parameters");
+  std::vector<std::string> names = {p->field};
+  if (!p->color_by.empty() && p->color_by != p->field) names.push_back(p->color_by);
+  LSQSURF_ASSIGN_OR_RETURN(std::vector<double> levels, ParseIsoValues(p->iso));
+  core::SubContext fit_ctx(ctx, "reconstructing the field", 0.0, levels.empty() ? 1.0 : 0.6);
+  LSQSURF_ASSIGN_OR_RETURN(std::unique_ptr<volume::VolumeField> field,
+                           volume::BuildVolumeField(mesh, names, p->fit, fit_ctx));
+  const volume::VolumeFieldStats& st = field->stats();
+  VolumeResult result;
+  result.statistics = {{"vertices", static_cast<double>(mesh.vertex_count())},
+                       {"cells", static_cast<double>(mesh.cell_count())},
+                       {"epsilon", st.epsilon},
+                       {"iterations", st.iterations},
+                       {"epsilon_chosen_by_cross_validation", st.chosen_by_cross_validation ? 1.0 : 0.0},
+                       {"cross_validation_rms", st.cross_validation_rms},
+                       {"cross_validation_points", st.cross_validation_points},
+                       {"spectral_radius", st.spectral_radius},
+                       {"kernels_per_vertex", st.kernels_per_vertex},
+                       {"median_spacing", st.median_spacing},
+                       {"widened_stars", static_cast<double>(st.widened_stars)},
+                       {"field_seconds", st.seconds}};
+  if (levels.empty()) return result;
+  core::SubContext iso_ctx(ctx, "extracting isosurfaces", 0.6, 1.0);
+  volume::VolumeIsosurfaceParams iso;
+  iso.iso_values = levels;
+  iso.resolution = p->resolution;
+  iso.color_field = p->color_by.empty() ? -1 : field->FieldIndex(p->color_by);
+  LSQSURF_ASSIGN_OR_RETURN(result.mesh, volume::ExtractVolumeIsosurface(*field, iso, iso_ctx));
+  result.statistics.emplace_back("triangles", static_cast<double>(result.mesh.faces.size()));
+  return result;
+}
+
+const JobKind& VolumeJobKind() {
+  static const VolumeKind kind;
+  return kind;
+}
+
+}  // namespace lsqsurf::jobs

@@ -1,0 +1,42 @@
+// worker/jobs/volume_job.h — the volume job kind: a volume mesh or point set with scalar fields
+// in (uploads "input": a Draco point cloud of the vertices with one GENERIC attribute per field,
+// "cells": the connectivity stream of io/volume_codec.h, absent for point sets), the
+// reconstructed field's statistics and, for each requested iso-value, the isosurface out
+// (mesh.drc, normals from Q_∇f, the colour field as a vertex attribute).
+#pragma once
+
+#include <string>
+
+#include "absl/status/statusor.h"
+#include "worker/core/job_context.h"
+#include "worker/jobs/job_kind.h"
+#include "worker/volume/volume_field.h"
+#include "worker/volume/volume_mesh.h"
+
+namespace lsqsurf::jobs {
+
+struct VolumeJobParams {
+  std::string field;        // The scalar field to reconstruct; required.
+  std::string iso;          // Iso-values, separated by commas or spaces; empty = no isosurface.
+  std::string color_by;     // A second scalar field sampled on the isosurface; empty = none.
+  double resolution = 0.5;  // Finest extraction cube edge, share of the median vertex spacing.
+  volume::VolumeFieldParams fit;
+};
+
+const JobKind& VolumeJobKind();
+
+// The iso-values of a VolumeJobParams::iso text. Errors: kInvalidArgument naming the bad entry.
+absl::StatusOr<std::vector<double>> ParseIsoValues(std::string_view text);
+
+struct VolumeResult {
+  core::TriangleMesh mesh;  // Empty when no iso-value was asked for.
+  Statistics statistics;
+};
+
+// Reconstructs a validated volume with a `volume` method's parameters: the field, then the
+// isosurfaces. The service and the benchmark's direct mode both run this.
+// Errors: kInvalidArgument, kResourceExhausted, kCancelled.
+absl::StatusOr<VolumeResult> ReconstructVolume(const core::ParamSet& params, const volume::VolumeMesh& mesh,
+                                               core::JobContext& ctx);
+
+}  // namespace lsqsurf::jobs

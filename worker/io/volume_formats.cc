@@ -336,12 +336,14 @@ absl::Status AssembleCells(VtkCursor& c, const VtkContent& v, VolumeMesh& mesh) 
   for (size_t cell = 0; cell < n; ++cell) {
     size_t begin = 0, end = 0;
     if (v.cells_with_offsets) {
-      begin = static_cast<size_t>(std::max(0.0, v.offsets[cell]));
-      end = static_cast<size_t>(std::max(0.0, v.offsets[cell + 1]));
+      // Clamped before the cast: a hostile offset may be any double.
+      const double limit = static_cast<double>(v.cells.size()) + 1;
+      begin = static_cast<size_t>(std::clamp(v.offsets[cell], 0.0, limit));
+      end = static_cast<size_t>(std::clamp(v.offsets[cell + 1], 0.0, limit));
     } else {
       if (pos >= v.cells.size()) return c.Error(core::StrCat("CELLS ends before cell ", cell, " of ", n));
       begin = pos + 1;
-      end = begin + static_cast<size_t>(std::max(0.0, v.cells[pos]));
+      end = begin + static_cast<size_t>(std::clamp(v.cells[pos], 0.0, static_cast<double>(v.cells.size())));
       pos = end;
     }
     if (end < begin || end > v.cells.size()) {

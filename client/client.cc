@@ -178,8 +178,6 @@ absl::StatusOr<VolumeUpload> EncodeVolumeFile(const std::string& path, const std
   if (!vertices.ok()) return absl::InvalidArgumentError(core::StrCat(path, ": ", vertices.status().message()));
   out.vertices = *std::move(vertices);
   if (mesh->has_cells()) out.cells = io::EncodeCellStream(*mesh);
-  out.vertex_count = static_cast<int64_t>(mesh->vertex_count());
-  out.cell_count = static_cast<int64_t>(mesh->cell_count());
   return out;
 }
 

@@ -36,7 +36,6 @@ absl::Status SetParamAssignment(v1::JobSpec* spec, std::string_view assignment);
 struct VolumeUpload {
   std::string vertices;
   std::string cells;
-  int64_t vertex_count = 0, cell_count = 0;
 };
 absl::StatusOr<VolumeUpload> EncodeVolumeFile(const std::string& path, const std::string& raw_layout,
                                               const std::vector<std::string>& fields);

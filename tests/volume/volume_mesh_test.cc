@@ -70,8 +70,8 @@ TEST(VolumeMesh, RefusesCountsOverTheLimitsAsResourceExhausted) {
 }
 
 TEST(VolumeMesh, EveryCellTypeCutsIntoPositiveTetrahedraOfTheSameVolume) {
-  // A unit cube as one hexahedron, as two wedges, and as pyramids around its centre... here: a
-  // hexahedron and the two wedges that split it along a diagonal plane.
+  // A unit cube as one hexahedron and as the two wedges that split it along a diagonal plane;
+  // a square pyramid of height 1.
   VolumeMesh hex;
   hex.positions = {{0, 0, 0}, {1, 0, 0}, {1, 1, 0}, {0, 1, 0}, {0, 0, 1}, {1, 0, 1}, {1, 1, 1}, {0, 1, 1}};
   const std::array<uint32_t, 8> h = {0, 1, 2, 3, 4, 5, 6, 7};

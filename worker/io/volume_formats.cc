@@ -450,8 +450,9 @@ absl::StatusOr<VolumeMesh> ParseLegacyVtk(std::string_view bytes, std::string_vi
   }
   LSQSURF_RETURN_IF_ERROR(ReadSections(c, v, version5));
   LSQSURF_ASSIGN_OR_RETURN(VolumeMesh mesh, BuildMesh(c, v));
-  volume::VolumeLimits unlimited{std::numeric_limits<int64_t>::max(), std::numeric_limits<int64_t>::max()};
-  if (absl::Status s = volume::ValidateVolumeMesh(mesh, unlimited); !s.ok()) return c.Error(std::string(s.message()));
+  if (absl::Status s = volume::ValidateVolumeMesh(mesh, volume::kNoVolumeLimits); !s.ok()) {
+    return c.Error(std::string(s.message()));
+  }
   return mesh;
 }
 
@@ -477,19 +478,10 @@ void AppendBigEndian(std::string& out, T value) {
   out.append(bytes, sizeof(T));
 }
 
-void AppendValues(std::string& out, std::span<const float> values, bool binary) {
-  for (float x : values) {
-    if (binary) {
-      AppendBigEndian(out, x);
-    } else {
-      core::StrAppend(&out, x, "\n");
-    }
-  }
-  if (binary) out += '\n';
-}
-
-void AppendInts(std::string& out, std::span<const int32_t> values, bool binary) {
-  for (int32_t x : values) {
+// One number per line (ASCII) or big-endian binary followed by a newline.
+template <class T>
+void AppendValues(std::string& out, std::span<const T> values, bool binary) {
+  for (T x : values) {
     if (binary) {
       AppendBigEndian(out, x);
     } else {
@@ -507,7 +499,7 @@ std::string EncodeLegacyVtk(const VolumeMesh& mesh, bool binary) {
   std::vector<float> coords;
   coords.reserve(mesh.vertex_count() * 3);
   for (const Vec3f& p : mesh.positions) coords.insert(coords.end(), {p.x(), p.y(), p.z()});
-  AppendValues(out, coords, binary);
+  AppendValues<float>(out, coords, binary);
   std::vector<int32_t> cells;
   for (size_t c = 0; c < mesh.cell_count(); ++c) {
     const auto v = mesh.cell(c);
@@ -515,10 +507,10 @@ std::string EncodeLegacyVtk(const VolumeMesh& mesh, bool binary) {
     for (uint32_t i : v) cells.push_back(static_cast<int32_t>(i));
   }
   core::StrAppend(&out, "CELLS ", mesh.cell_count(), " ", cells.size(), "\n");
-  AppendInts(out, cells, binary);
+  AppendValues<int32_t>(out, cells, binary);
   core::StrAppend(&out, "CELL_TYPES ", mesh.cell_count(), "\n");
   std::vector<int32_t> types(mesh.cell_types.begin(), mesh.cell_types.end());
-  AppendInts(out, types, binary);
+  AppendValues<int32_t>(out, types, binary);
   if (!mesh.fields.empty()) core::StrAppend(&out, "POINT_DATA ", mesh.vertex_count(), "\n");
   for (const VertexField& f : mesh.fields) {
     if (f.components == 3) {
@@ -526,7 +518,7 @@ std::string EncodeLegacyVtk(const VolumeMesh& mesh, bool binary) {
     } else {
       core::StrAppend(&out, "SCALARS ", f.name, " float ", f.components, "\nLOOKUP_TABLE default\n");
     }
-    AppendValues(out, f.values, binary);
+    AppendValues<float>(out, f.values, binary);
   }
   return out;
 }

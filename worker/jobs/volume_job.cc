@@ -90,9 +90,8 @@ class VolumeKind final : public JobKind {
     if (env.decoded != nullptr) {
       mesh = std::move(*std::static_pointer_cast<volume::VolumeMesh>(env.decoded));  // Checked at submission.
     } else {
-      LSQSURF_ASSIGN_OR_RETURN(mesh, DecodeVolume(uploads, std::numeric_limits<int64_t>::max()));
-      LSQSURF_RETURN_IF_ERROR(
-          volume::ValidateVolumeMesh(mesh, {std::numeric_limits<int64_t>::max(), std::numeric_limits<int64_t>::max()}));
+      LSQSURF_ASSIGN_OR_RETURN(mesh, DecodeVolume(uploads, volume::kNoVolumeLimits.max_cells));
+      LSQSURF_RETURN_IF_ERROR(volume::ValidateVolumeMesh(mesh, volume::kNoVolumeLimits));
     }
     LSQSURF_ASSIGN_OR_RETURN(VolumeResult result, ReconstructVolume(spec.params, mesh, env.context));
     if (!result.mesh.empty()) {

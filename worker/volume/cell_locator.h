@@ -1,6 +1,6 @@
 // worker/volume/cell_locator.h — which cell of a volume mesh holds a point.
 //
-// The cells are cut into tetrahedra (see Tetrahedralize) and binned in a uniform grid by their
+// The cells are cut into tetrahedra (see Tetrahedralize) and binned in a BoxGrid by their
 // bounding boxes; a query tests the tetrahedra of one bin by barycentric coordinates. This
 // decides the data's domain (no isosurface and no probe value outside the cells) and gives the
 // piecewise-linear interpolant that the volume engine is measured against.
@@ -13,6 +13,7 @@
 #include <span>
 #include <vector>
 
+#include "worker/volume/box_grid.h"
 #include "worker/volume/volume_mesh.h"
 
 namespace lsqsurf::volume {
@@ -41,11 +42,7 @@ class CellLocator {
  private:
   std::vector<Vec3f> positions_;
   std::vector<std::array<uint32_t, 4>> tets_;
-  Vec3d origin_ = Vec3d::Zero();
-  Vec3d inv_bin_ = Vec3d::Zero();
-  std::array<int, 3> bins_ = {1, 1, 1};
-  std::vector<uint32_t> bin_start_;  // CSR: tets of bin b are bin_tets_[bin_start_[b] .. bin_start_[b + 1]).
-  std::vector<uint32_t> bin_tets_;
+  BoxGrid grid_;  // The tetrahedra by bounding box.
 };
 
 }  // namespace lsqsurf::volume

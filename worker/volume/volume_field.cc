@@ -13,6 +13,7 @@
 #include "worker/core/parallel.h"
 #include "worker/core/status.h"
 #include "worker/core/strings.h"
+#include "worker/volume/box_grid.h"
 
 namespace lsqsurf::volume {
 namespace {
@@ -74,16 +75,8 @@ class Kernels {
   // Calls f(i, Ψ_i(x)) for every kernel whose support holds x.
   template <class F>
   void ForEach(const Vec3d& x, F&& f) const {
-    std::array<int, 3> cell;
-    for (int a = 0; a < 3; ++a) {
-      const double t = (x[a] - origin_[a]) * inv_bin_[a];
-      if (!(t >= 0) || t >= bins_[a]) return;
-      cell[a] = static_cast<int>(t);
-    }
-    const size_t b = (static_cast<size_t>(cell[2]) * bins_[1] + cell[1]) * bins_[0] + cell[0];
     const Vec3f xf = x.cast<float>();
-    for (uint32_t e = bin_start_[b]; e < bin_start_[b + 1]; ++e) {
-      const uint32_t i = bin_items_[e];
+    for (const uint32_t i : grid_.At(x)) {
       const KernelRecord& r = records_[i];
       const float dx = xf[0] - r.center[0], dy = xf[1] - r.center[1], dz = xf[2] - r.center[2];
       const auto& q = r.shape;
@@ -97,72 +90,27 @@ class Kernels {
  private:
   void BuildGrid(const std::vector<Vec3f>& extent) {
     const size_t n = records_.size();
-    core::Box3 box;
-    for (size_t i = 0; i < n; ++i) {
-      box.extend((records_[i].center - extent[i]).cast<double>());
-      box.extend((records_[i].center + extent[i]).cast<double>());
-    }
+    auto support = [&](size_t i) {
+      return core::Box3((records_[i].center - extent[i]).cast<double>(),
+                        (records_[i].center + extent[i]).cast<double>());
+    };
+    core::Box3 bounds;
+    for (size_t i = 0; i < n; ++i) bounds.extend(support(i));
     // Bins of two thirds of the median reach: a support spans about 4 bins per axis and a query
-    // tests ~4.5 kernels for each one that reaches it.
-    std::array<double, 3> bin_size;
+    // tests ~4.5 kernels for each one that reaches it. At most ~16M bins.
+    Vec3d bin_size;
     std::vector<float> e(n);
     for (int a = 0; a < 3; ++a) {
       for (size_t i = 0; i < n; ++i) e[i] = extent[i][a];
       std::nth_element(e.begin(), e.begin() + static_cast<int64_t>(n / 2), e.end());
-      bin_size[a] = std::max(2.0 / 3.0 * e[n / 2], box.sizes()[a] / 2048.0);
+      bin_size[a] = std::max(2.0 / 3.0 * e[n / 2], bounds.sizes()[a] / 2048.0);
     }
-    // At most ~16M bins.
-    double count = 1;
-    for (int a = 0; a < 3; ++a) count *= std::ceil(box.sizes()[a] / bin_size[a] + 1e-9);
-    const double grow = count > 16e6 ? std::cbrt(count / 16e6) : 1.0;
-    origin_ = box.min();
-    for (int a = 0; a < 3; ++a) {
-      bins_[a] = std::max(1, static_cast<int>(std::ceil(box.sizes()[a] / (bin_size[a] * grow) + 1e-9)));
-      inv_bin_[a] = box.sizes()[a] > 0 ? bins_[a] / box.sizes()[a] : 0.0;
-    }
-    const size_t bin_count = static_cast<size_t>(bins_[0]) * bins_[1] * bins_[2];
-    bin_start_.assign(bin_count + 1, 0);
-    auto range = [&](size_t i, std::array<int, 3>& lo, std::array<int, 3>& hi) {
-      for (int a = 0; a < 3; ++a) {
-        lo[a] = std::clamp(static_cast<int>((records_[i].center[a] - extent[i][a] - origin_[a]) * inv_bin_[a]), 0,
-                           bins_[a] - 1);
-        hi[a] = std::clamp(static_cast<int>((records_[i].center[a] + extent[i][a] - origin_[a]) * inv_bin_[a]), 0,
-                           bins_[a] - 1);
-      }
-    };
-    for (int pass = 0; pass < 2; ++pass) {
-      std::vector<uint32_t> cursor;
-      if (pass == 1) {
-        for (size_t b = 0; b < bin_count; ++b) bin_start_[b + 1] += bin_start_[b];
-        bin_items_.resize(bin_start_[bin_count]);
-        cursor.assign(bin_start_.begin(), bin_start_.end() - 1);
-      }
-      std::array<int, 3> lo, hi;
-      for (size_t i = 0; i < n; ++i) {
-        range(i, lo, hi);
-        for (int k = lo[2]; k <= hi[2]; ++k) {
-          for (int j = lo[1]; j <= hi[1]; ++j) {
-            const size_t row = (static_cast<size_t>(k) * bins_[1] + j) * bins_[0];
-            for (int l = lo[0]; l <= hi[0]; ++l) {
-              if (pass == 0) {
-                ++bin_start_[row + l + 1];
-              } else {
-                bin_items_[cursor[row + l]++] = static_cast<uint32_t>(i);
-              }
-            }
-          }
-        }
-      }
-    }
+    grid_ = BoxGrid(bounds, bin_size, 16e6, n, support);
   }
 
   std::vector<KernelRecord> records_;
   float cutoff2_ = 9;
-  Vec3d origin_ = Vec3d::Zero();
-  Vec3d inv_bin_ = Vec3d::Zero();
-  std::array<int, 3> bins_ = {1, 1, 1};
-  std::vector<uint32_t> bin_start_;
-  std::vector<uint32_t> bin_items_;
+  BoxGrid grid_;
 };
 
 // Rows of Ψ_i(x_k) for query points x_k (CSR, float values).

@@ -70,6 +70,8 @@ struct VolumeLimits {
   int64_t max_vertices = 20'000'000;
   int64_t max_cells = 100'000'000;
 };
+// For data already accepted (a stored upload) and local files: only the checks of content.
+inline constexpr VolumeLimits kNoVolumeLimits{INT64_MAX, INT64_MAX};
 
 // Checks what an upload must satisfy before any engine sees it: counts within `limits`
 // (kResourceExhausted), finite positions and field values, supported cell types, indices within

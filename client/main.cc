@@ -324,6 +324,56 @@ struct SurfaceCommand {
   }
 };
 
+// probe: values of a finished volume job at points of an XYZ file, or on a grid.
+struct ProbeCommand {
+  std::string id, points, grid, field, output;
+
+  void AddTo(CLI::App* probe) {
+    probe->add_option("id", id, "id of a succeeded volume job")->required();
+    probe->add_option("points", points, "points to probe: an XYZ text file, one 'x y z' per line");
+    probe->add_option("--grid", grid, "resample on a grid NXxNYxNZ over the field's box instead (writes .vti)");
+    probe->add_option("--field", field, "the field to probe (default: the job's first)");
+    probe->add_option("-o,--output", output, "values.csv (points) or field.vti (grid)")->required();
+  }
+
+  int Run(const Globals& g) const {
+    if (points.empty() == grid.empty()) return Fail("give either a POINTS file or --grid NXxNYxNZ");
+    v1::JobSpec spec;
+    v1::ProbeParams& p = *spec.mutable_probe();
+    p.set_source(id);
+    if (!field.empty()) p.set_field(field);
+    if (!grid.empty()) p.set_grid(grid);
+    std::string upload;
+    if (!points.empty()) {
+      auto cloud = lsqsurf::io::ReadPointCloudFile(points);
+      if (!cloud.ok()) return Fail(std::string(cloud.status().message()));
+      cloud->normals.clear();
+      cloud->attributes.clear();
+      // Unquantized and in order: the rows of the answer follow the file's points.
+      lsqsurf::io::DracoOptions exact;
+      exact.position_bits = 0;
+      exact.speed = 10;
+      auto encoded = lsqsurf::io::EncodeDracoPointCloud(*cloud, exact);
+      if (!encoded.ok()) return Fail(StrCat(points, ": ", encoded.status().message()));
+      upload = *std::move(encoded);
+    }
+    client::Client c(g.server);
+    auto accepted = c.Submit(spec, upload);
+    if (!accepted.ok()) return FailStatus("probe", accepted.status());
+    v1::Job done;
+    if (int rc = Watch(g, accepted->id(), &done); rc != 0) return rc;
+    const std::string artifact = grid.empty() ? "values.csv" : "field.vti";
+    auto bytes = c.Fetch(done.id(), artifact);
+    if (!bytes.ok()) return FailStatus("fetch", bytes.status());
+    if (int rc = WriteResult(*bytes, artifact, output); rc != 0) return rc;
+    if (!g.quiet) {
+      PrintStatistics(done);
+      std::fprintf(stderr, "wrote %s\n", output.c_str());
+    }
+    return 0;
+  }
+};
+
 // track: every option the user leaves out keeps the server's default.
 struct TrackCommand {
   std::string interface, field, resampling, output;
@@ -554,6 +604,10 @@ int main(int argc, char** argv) {
   volume->add_option("--param", surface.job.params, "volume parameter as name=value (lsqsurf methods)");
   volume->add_option("--mesh-bits", surface.job.mesh_bits, "Draco quantization of result positions");
 
+  ProbeCommand probe_command;
+  auto* probe = app.add_subcommand("probe", "values of a finished volume job's field at points or on a grid");
+  probe_command.AddTo(probe);
+
   std::string id, name, output, reference, candidate;
   std::vector<CLI::App*> id_commands;
   for (const auto& [command, help] :
@@ -596,6 +650,7 @@ int main(int argc, char** argv) {
   }
   if (*reconstruct || *submit) return surface.Run(g, /*wait=*/reconstruct->parsed());
   if (*track) return track_command.Run(g);
+  if (*probe) return probe_command.Run(g);
   if (*render) return RenderToFile(g, id, name, render_view.Options(), output);
   for (CLI::App* command : id_commands) {
     if (*command) return JobCommand(g, command->get_name(), id);

@@ -23,6 +23,8 @@
 #include "tests/test_shapes.h"
 #include "worker/core/mesh_metrics.h"
 #include "worker/io/files.h"
+#include "worker/io/volume_formats.h"
+#include "worker/volume/synthetic.h"
 
 namespace lsqsurf {
 namespace {
@@ -379,6 +381,64 @@ TEST_F(EndToEnd, BadInputsGetClearErrorsAndTheServerKeepsServing) {
   EXPECT_EQ(ok.code, 0) << ok.output;
 }
 
+// A legacy VTK volume through the CLI: isosurface with a colour field, a job kept for probes,
+// probes at points of an XYZ file, and a broken file refused before anything is sent.
+TEST_F(EndToEnd, VolumeIsosurfaceAndProbesThroughTheCli) {
+  Server server;
+  ASSERT_NO_FATAL_FAILURE(server.Start(dir_ / "data"));
+  const volume::AnalyticField franke = volume::Franke3d();
+  volume::VolumeMesh mesh = volume::JitteredTetMesh(franke.domain, 11, 0.3, 4);
+  volume::SampleField(mesh, franke);
+  volume::SampleField(mesh, {"height", [](const core::Vec3d& x) { return x.z(); }, nullptr, franke.domain});
+  const std::string vtk = (dir_ / "flow.vtk").string();
+  ASSERT_TRUE(io::WriteFileAtomically(vtk, io::EncodeLegacyVtk(mesh, true)).ok());
+
+  const std::string iso = (dir_ / "iso.ply").string();
+  const ClientRun r =
+      Client(server.address(), "volume " + vtk + " --field franke --iso 0.35 --color-by height -o " + iso);
+  ASSERT_EQ(r.code, 0) << r.output;
+  auto surface = io::ReadMeshFile(iso);
+  ASSERT_TRUE(surface.ok()) << surface.status();
+  ASSERT_FALSE(surface->faces.empty());
+  ASSERT_EQ(surface->vertex_attributes.size(), 1u);
+  EXPECT_EQ(surface->vertex_attributes[0].name, "height");
+  for (size_t v = 0; v < surface->vertices.size(); ++v) {  // The colour field is z itself.
+    EXPECT_NEAR(surface->vertex_attributes[0].values[v], surface->vertices[v].z(), 2e-3);
+  }
+
+  const ClientRun submitted = Client(server.address(), "-q submit " + vtk + " --method volume --field franke");
+  ASSERT_EQ(submitted.code, 0) << submitted.output;
+  const std::string id = Trim(submitted.output);
+  EXPECT_EQ(id.find_first_of(" \n"), std::string::npos) << id;  // The id alone.
+  ASSERT_EQ(Client(server.address(), "-q watch " + id).code, 0);
+  const std::string points = (dir_ / "points.xyz").string();
+  ASSERT_TRUE(io::WriteFileAtomically(points, "0.5 0.5 0.5\n0.25 0.7 0.4\n3 3 3\n").ok());
+  const std::string csv = (dir_ / "values.csv").string();
+  const ClientRun probed = Client(server.address(), "-q probe " + id + " " + points + " -o " + csv);
+  ASSERT_EQ(probed.code, 0) << probed.output;
+  auto table = io::ReadFileBytes(csv);
+  ASSERT_TRUE(table.ok());
+  std::istringstream rows(*table);
+  std::string line;
+  std::getline(rows, line);
+  EXPECT_EQ(line, "x,y,z,value,gx,gy,gz");
+  std::getline(rows, line);
+  EXPECT_TRUE(line.starts_with("0.5,0.5,0.5,")) << line;
+  EXPECT_NEAR(std::stod(line.substr(12, line.find(',', 12) - 12)), franke.value({0.5, 0.5, 0.5}), 0.01) << line;
+  std::getline(rows, line);
+  EXPECT_TRUE(line.starts_with("0.25,0.7,0.4,")) << line;
+  std::getline(rows, line);
+  EXPECT_EQ(line, "3,3,3,,,,");
+
+  volume::VolumeMesh inverted = mesh;
+  std::swap(inverted.cell_vertices[0], inverted.cell_vertices[1]);
+  const std::string bad = (dir_ / "inverted.vtk").string();
+  ASSERT_TRUE(io::WriteFileAtomically(bad, io::EncodeLegacyVtk(inverted, false)).ok());
+  const ClientRun refused = Client(server.address(), "volume " + bad + " --field franke --iso 0.3 -o " + iso);
+  EXPECT_EQ(refused.code, 3) << refused.output;
+  EXPECT_NE(refused.output.find("cell 0 (tetrahedron) is inverted"), std::string::npos) << refused.output;
+}
+
 TEST_F(EndToEnd, CancelAndFullQueue) {
   Server server;
   ASSERT_NO_FATAL_FAILURE(server.Start(dir_ / "data", {"--workers", "1", "--max-queue", "1"}));
@@ -461,13 +521,14 @@ TEST_F(EndToEnd, RawApiStatusCodes) {
     grpc::ClientContext ctx;
     v1::ListMethodsResponse response;
     ASSERT_TRUE(stub->ListMethods(&ctx, {}, &response).ok());
-    ASSERT_EQ(response.methods_size(), 6);
+    ASSERT_EQ(response.methods_size(), 7);
     EXPECT_EQ(response.methods(0).name(), "iamls");
     EXPECT_EQ(response.methods(1).name(), "pu");
     EXPECT_EQ(response.methods(2).name(), "ramls");
     EXPECT_EQ(response.methods(3).name(), "apss");
     EXPECT_EQ(response.methods(4).name(), "track");
     EXPECT_EQ(response.methods(5).name(), "volume");
+    EXPECT_EQ(response.methods(6).name(), "probe");
   }
   EXPECT_EQ(Client(server.address(), "cancel " + id).code, 0);
 }

@@ -4,6 +4,7 @@
 #include <gtest/gtest.h>
 
 #include <filesystem>
+#include <sstream>
 
 #include "client/client.h"
 #include "server/reconstruction_service.h"
@@ -141,7 +142,7 @@ TEST_F(ServiceTest, MethodsListTheirParametersWithDefaults) {
   ASSERT_TRUE(methods.ok());
   std::vector<std::string> names;
   for (const auto& m : methods->methods()) names.push_back(m.name());
-  EXPECT_EQ(names, (std::vector<std::string>{"iamls", "pu", "ramls", "apss", "track", "volume"}));
+  EXPECT_EQ(names, (std::vector<std::string>{"iamls", "pu", "ramls", "apss", "track", "volume", "probe"}));
   for (const auto& m : methods->methods()) {
     EXPECT_GT(m.parameters_size(), 0) << m.name();
     for (const auto& p : m.parameters()) {
@@ -198,6 +199,61 @@ TEST_F(ServiceTest, AVolumeMeshBecomesAnIsosurfaceAndBadVolumesAreRefused) {
   EXPECT_NE(missing.status().message().find("franke (scalar)"), std::string::npos) << missing.status();
   auto corrupt = client_->Submit(spec, *vertices, {}, cells.substr(0, cells.size() - 3));
   EXPECT_EQ(corrupt.status().code(), absl::StatusCode::kInvalidArgument) << corrupt.status();
+  // Probes of the finished job: points (one outside the domain) and a grid.
+  v1::JobSpec probe;
+  probe.mutable_probe()->set_source(job->id());
+  core::PointCloud points;
+  points.positions = {{0.3f, 0.4f, 0.5f}, {0.6f, 0.5f, 0.45f}, {1.5f, 0.5f, 0.5f}};
+  io::DracoOptions exact;
+  exact.position_bits = 0;
+  exact.speed = 10;
+  auto probe_points = io::EncodeDracoPointCloud(points, exact);
+  ASSERT_TRUE(probe_points.ok());
+  auto probed = client_->Submit(probe, *probe_points);
+  ASSERT_TRUE(probed.ok()) << probed.status();
+  auto probe_done = client_->Watch(probed->id());
+  ASSERT_TRUE(probe_done.ok());
+  ASSERT_EQ(probe_done->state(), v1::JOB_STATE_SUCCEEDED) << probe_done->error();
+  auto csv = client_->Fetch(probed->id(), "values.csv");
+  ASSERT_TRUE(csv.ok());
+  std::istringstream rows(*csv);
+  std::string line;
+  std::getline(rows, line);
+  EXPECT_EQ(line, "x,y,z,value,gx,gy,gz");
+  for (const core::Vec3f& p : points.positions) {
+    ASSERT_TRUE(std::getline(rows, line));
+    double x, y, z;
+    char comma;
+    std::istringstream row(line);
+    row >> x >> comma >> y >> comma >> z >> comma;
+    EXPECT_NEAR(x, p.x(), 1e-6);
+    if (p.x() > 1) {
+      EXPECT_TRUE(line.ends_with(",,,,")) << line;  // Outside the cells: no value.
+      continue;
+    }
+    double value;
+    row >> value;
+    EXPECT_NEAR(value, volume::Franke3d().value(p.cast<double>()), 0.02) << line;  // A 9^3 mesh.
+  }
+  probe.mutable_probe()->set_grid("5x4x3");
+  auto grid_job = client_->Submit(probe, "");
+  ASSERT_TRUE(grid_job.ok()) << grid_job.status();
+  auto grid_done = client_->Watch(grid_job->id());
+  ASSERT_TRUE(grid_done.ok());
+  ASSERT_EQ(grid_done->state(), v1::JOB_STATE_SUCCEEDED) << grid_done->error();
+  auto vti = client_->Fetch(grid_job->id(), "field.vti");
+  ASSERT_TRUE(vti.ok());
+  EXPECT_NE(vti->find("WholeExtent=\"0 4 0 3 0 2\""), std::string::npos);
+  v1::JobSpec orphan;
+  orphan.mutable_probe()->set_source("no-such-job");
+  orphan.mutable_probe()->set_grid("4x4x4");
+  auto orphan_job = client_->Submit(orphan, "");
+  ASSERT_TRUE(orphan_job.ok());
+  auto orphan_done = client_->Watch(orphan_job->id());
+  ASSERT_TRUE(orphan_done.ok());
+  EXPECT_EQ(orphan_done->state(), v1::JOB_STATE_FAILED);
+  EXPECT_NE(orphan_done->error().find("no kept volume field"), std::string::npos) << orphan_done->error();
+
   volume::VolumeMesh huge = volume::JitteredTetMesh(core::Box3(core::Vec3d::Zero(), core::Vec3d::Ones()), 60, 0, 2);
   volume::SampleField(huge, volume::Franke3d());
   auto huge_vertices = io::EncodeVolumeVertices(huge, fields, {});

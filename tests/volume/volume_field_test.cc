@@ -159,6 +159,25 @@ TEST(VolumeField, StretchedGridNeedsTheAnisotropicMetric) {
   EXPECT_LT(e.rms, 0.5 * e.linear_rms);
 }
 
+TEST(VolumeField, ReproducesLinearFieldsOnIrregularMeshes) {
+  // The least-squares gradients of a linear field are exact, and each kernel carries the value
+  // plus the gradient's linear term: the field must come back to float precision.
+  const core::Box3 box(Vec3d::Zero(), Vec3d::Ones());
+  auto linear = [](const Vec3d& x) { return 1 + 2 * x.x() - x.y() + 0.5 * x.z(); };
+  const AnalyticField truth{"lin", linear, [](const Vec3d&) { return Vec3d(2, -1, 0.5); }, box};
+  VolumeMesh mesh = JitteredTetMesh(box, 11, 0.3, 8);
+  SampleField(mesh, truth);
+  auto field = Build(mesh, "lin");
+  ASSERT_NE(field, nullptr);
+  EXPECT_LT(RmsError(*field, truth, Shrunk(box, 0.1), 2000), 1e-5);
+  EXPECT_LT((field->Evaluate(Vec3d(0.4, 0.5, 0.6), 0).gradient - Vec3d(2, -1, 0.5)).norm(), 1e-4);
+  VolumeFieldParams plain;
+  plain.linear_terms = false;
+  auto without = Build(mesh, "lin", plain);
+  ASSERT_NE(without, nullptr);
+  EXPECT_GT(RmsError(*without, truth, Shrunk(box, 0.1), 2000), 1e-4);  // The term is what makes it exact.
+}
+
 TEST(VolumeField, RefusesADivergingSetting) {
   const AnalyticField franke = Franke3d();
   VolumeMesh mesh = JitteredTetMesh(franke.domain, 9, 0.2, 2);
@@ -183,6 +202,36 @@ TEST(VolumeField, NamesTheFieldsWhenOneIsMissing) {
   auto field = BuildVolumeField(mesh, names, {}, ctx);
   ASSERT_FALSE(field.ok());
   EXPECT_NE(field.status().message().find("franke (scalar)"), std::string::npos) << field.status();
+}
+
+}  // namespace
+}  // namespace lsqsurf::volume
+
+namespace lsqsurf::volume {
+namespace {
+
+TEST(VolumeField, StoredFieldEvaluatesExactlyAsTheOriginal) {
+  const AnalyticField franke = Franke3d();
+  VolumeMesh mesh = JitteredTetMesh(franke.domain, 9, 0.3, 6);
+  SampleField(mesh, franke);
+  auto field = Build(mesh, "franke");
+  ASSERT_NE(field, nullptr);
+  const std::string bytes = SerializeVolumeField(*field);
+  auto back = DeserializeVolumeField(bytes);
+  ASSERT_TRUE(back.ok()) << back.status();
+  EXPECT_EQ((*back)->field_names(), field->field_names());
+  EXPECT_EQ((*back)->stats().epsilon, field->stats().epsilon);
+  for (const Vec3d& x : {Vec3d(0.3, 0.4, 0.5), Vec3d(0.9, 0.1, 0.2), Vec3d(0.01, 0.99, 0.5)}) {
+    const auto a = field->Evaluate(x, 0), b = (*back)->Evaluate(x, 0);
+    EXPECT_EQ(a.value, b.value);
+    EXPECT_EQ(a.gradient, b.gradient);
+    EXPECT_EQ(field->InDomain(x, a.weight), (*back)->InDomain(x, b.weight));
+  }
+  EXPECT_FALSE((*back)->InDomain(Vec3d(1.2, 0.5, 0.5), 1.0));  // The cells came back too.
+  // Every truncation is refused, never read past.
+  for (size_t cut : {size_t{0}, size_t{5}, bytes.size() / 3, bytes.size() - 1}) {
+    EXPECT_EQ(DeserializeVolumeField(bytes.substr(0, cut)).status().code(), absl::StatusCode::kInvalidArgument);
+  }
 }
 
 }  // namespace

@@ -7,6 +7,7 @@
 #pragma once
 
 #include <cstdint>
+#include <functional>
 #include <memory>
 #include <string>
 #include <string_view>
@@ -62,6 +63,9 @@ struct RunEnvironment {
   // CheckUploads' `decoded` of this job when the service still holds it (not after a restart);
   // the kind may move from it.
   std::shared_ptr<void> decoded;
+  // A result of another, succeeded job (a kept precomputation). Errors: kNotFound (no such job
+  // or result), kFailedPrecondition (the job has not succeeded), kUnavailable.
+  std::function<absl::StatusOr<std::string>(const std::string& job_id, const std::string& name)> read_result;
 };
 
 class JobKind {

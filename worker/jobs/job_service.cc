@@ -453,7 +453,12 @@ absl::StatusOr<Statistics> JobService::RunKind(const std::shared_ptr<Entry>& ent
   const JobKind* kind = KindOf(record.spec.method);
   if (kind == nullptr) return absl::FailedPreconditionError(core::StrCat("no method '", record.spec.method, "'"));
   Context ctx(*this, entry);
-  RunEnvironment env{sink, ctx, renderer_.get(), std::move(decoded)};
+  RunEnvironment env{sink, ctx, renderer_.get(), std::move(decoded),
+                     [this](const std::string& id, const std::string& name) -> absl::StatusOr<std::string> {
+                       auto reader = OpenResult(id, name);
+                       if (!reader.ok()) return reader.status();
+                       return ReadAll(**reader);
+                     }};
   try {
     return kind->Run(record.spec, uploads, env);
   } catch (const std::bad_alloc&) {

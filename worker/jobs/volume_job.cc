@@ -99,6 +99,8 @@ class VolumeKind final : public JobKind {
                                EncodeResultMesh(result.mesh, spec.mesh_position_bits, &result.statistics));
       LSQSURF_RETURN_IF_ERROR(env.sink.Write(kMeshArtifact, encoded));
     }
+    env.context.ReportProgress("keeping the field", 0.99);
+    LSQSURF_RETURN_IF_ERROR(env.sink.Write(kVolumeFieldArtifact, volume::SerializeVolumeField(*result.field)));
     return result.statistics;
   }
 };
@@ -150,7 +152,10 @@ absl::StatusOr<VolumeResult> ReconstructVolume(const core::ParamSet& params, con
                        {"median_spacing", st.median_spacing},
                        {"widened_stars", static_cast<double>(st.widened_stars)},
                        {"field_seconds", st.seconds}};
-  if (levels.empty()) return result;
+  if (levels.empty()) {
+    result.field = std::move(field);
+    return result;
+  }
   core::SubContext iso_ctx(ctx, "extracting isosurfaces", 0.6, 1.0);
   volume::VolumeIsosurfaceParams iso;
   iso.iso_values = levels;
@@ -158,6 +163,7 @@ absl::StatusOr<VolumeResult> ReconstructVolume(const core::ParamSet& params, con
   iso.color_field = p->color_by.empty() ? -1 : field->FieldIndex(p->color_by);
   LSQSURF_ASSIGN_OR_RETURN(result.mesh, volume::ExtractVolumeIsosurface(*field, iso, iso_ctx));
   result.statistics.emplace_back("triangles", static_cast<double>(result.mesh.faces.size()));
+  result.field = std::move(field);
   return result;
 }
 

@@ -2,9 +2,11 @@
 // in (uploads "input": a Draco point cloud of the vertices with one GENERIC attribute per field,
 // "cells": the connectivity stream of io/volume_codec.h, absent for point sets), the
 // reconstructed field's statistics and, for each requested iso-value, the isosurface out
-// (mesh.drc, normals from Q_∇f, the colour field as a vertex attribute).
+// (mesh.drc, normals from Q_∇f, the colour field as a vertex attribute), and the precomputed
+// field kept (field.lqvf) for probe jobs.
 #pragma once
 
+#include <memory>
 #include <string>
 
 #include "absl/status/statusor.h"
@@ -31,7 +33,11 @@ absl::StatusOr<std::vector<double>> ParseIsoValues(std::string_view text);
 struct VolumeResult {
   core::TriangleMesh mesh;  // Empty when no iso-value was asked for.
   Statistics statistics;
+  std::unique_ptr<volume::VolumeField> field;  // Kept by the service for probes and renders.
 };
+
+// The artifact that keeps a volume job's precomputed field (SerializeVolumeField).
+inline constexpr char kVolumeFieldArtifact[] = "field.lqvf";
 
 // Reconstructs a validated volume with a `volume` method's parameters: the field, then the
 // isosurfaces. The service and the benchmark's direct mode both run this.

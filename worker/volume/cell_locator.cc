@@ -23,7 +23,10 @@ bool Barycentric(const Vec3d& x, const Vec3d& a, const Vec3d& b, const Vec3d& c,
 
 }  // namespace
 
-CellLocator::CellLocator(const VolumeMesh& mesh) : positions_(mesh.positions), tets_(Tetrahedralize(mesh)) {
+CellLocator::CellLocator(const VolumeMesh& mesh) : CellLocator(mesh.positions, Tetrahedralize(mesh)) {}
+
+CellLocator::CellLocator(std::vector<Vec3f> positions, std::vector<std::array<uint32_t, 4>> tets)
+    : positions_(std::move(positions)), tets_(std::move(tets)) {
   core::Box3 bounds;
   for (const Vec3f& p : positions_) bounds.extend(p.cast<double>());
   // About two tetrahedra per bin on average.

@@ -22,6 +22,8 @@ class CellLocator {
  public:
   // The mesh must have cells and be valid (ValidateVolumeMesh); its positions are copied.
   explicit CellLocator(const VolumeMesh& mesh);
+  // From tetrahedra already cut (Tetrahedralize), e.g. read back from a stored field.
+  CellLocator(std::vector<Vec3f> positions, std::vector<std::array<uint32_t, 4>> tets);
 
   struct Location {
     int64_t tet = -1;                    // Index into tets(); -1 outside every cell.

@@ -7,6 +7,7 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <cstring>
 #include <numbers>
 
 #include "worker/core/kd_tree.h"
@@ -51,7 +52,6 @@ class Kernels {
     const size_t n = centers.size();
     records_.resize(n);
     cutoff2_ = static_cast<float>(p.cutoff * p.cutoff);
-    std::vector<Vec3f> extent(n);
     const double eps3 = eps * eps * eps / std::pow(std::numbers::pi, 1.5);
     for (size_t i = 0; i < n; ++i) {
       const double v = std::max<double>(volume[i], 1e-30);
@@ -63,14 +63,17 @@ class Kernels {
       r.weight = static_cast<float>(eps3 * v / (h * h * h));
       r.shape = {static_cast<float>(s(0, 0)),     static_cast<float>(s(1, 1)),     static_cast<float>(s(2, 2)),
                  static_cast<float>(2 * s(0, 1)), static_cast<float>(2 * s(0, 2)), static_cast<float>(2 * s(1, 2))};
-      // The ellipsoid dᵀ S d ≤ c² reaches c √((S⁻¹)_aa) along axis a.
-      const Eigen::Matrix3d inv = s.inverse();
-      for (int a = 0; a < 3; ++a) extent[i][a] = static_cast<float>(p.cutoff * std::sqrt(inv(a, a)));
     }
-    BuildGrid(extent);
+    BuildGrid();
+  }
+  // Kernels read back from a stored field.
+  Kernels(std::vector<KernelRecord> records, float cutoff2) : records_(std::move(records)), cutoff2_(cutoff2) {
+    BuildGrid();
   }
 
   size_t size() const { return records_.size(); }
+  const std::vector<KernelRecord>& records() const { return records_; }
+  float cutoff2() const { return cutoff2_; }
 
   // Calls f(i, Ψ_i(x)) for every kernel whose support holds x.
   template <class F>
@@ -88,8 +91,17 @@ class Kernels {
   }
 
  private:
-  void BuildGrid(const std::vector<Vec3f>& extent) {
+  void BuildGrid() {
     const size_t n = records_.size();
+    // The ellipsoid dᵀ S d ≤ c² reaches c √((S⁻¹)_aa) along axis a.
+    std::vector<Vec3f> extent(n);
+    for (size_t i = 0; i < n; ++i) {
+      const auto& q = records_[i].shape;
+      Eigen::Matrix3d s;
+      s << q[0], q[3] / 2, q[4] / 2, q[3] / 2, q[1], q[5] / 2, q[4] / 2, q[5] / 2, q[2];
+      const Eigen::Matrix3d inv = s.inverse();
+      for (int a = 0; a < 3; ++a) extent[i][a] = std::sqrt(static_cast<float>(cutoff2_ * inv(a, a)));
+    }
     auto support = [&](size_t i) {
       return core::Box3((records_[i].center - extent[i]).cast<double>(),
                         (records_[i].center + extent[i]).cast<double>());
@@ -198,17 +210,37 @@ double SpectralRadius(const KernelMatrix& a) {
   return std::exp(log_growth / kMeasured);
 }
 
-// Richardson iteration on interleaved columns: g ← g + (f − A g), `iterations` times.
-// `residuals`, when given, receives max |f − A g| of column 0 before each step and after the last.
-std::vector<double> Iterate(const KernelMatrix& a, const std::vector<double>& f, int columns, int iterations,
-                            std::vector<double>* residuals) {
+// The linear terms of the value rows: s_k = Σ_i A_ki ∇f_i·(x_k − x_i), which the iteration
+// treats as fixed (see VolumeFieldParams::linear_terms).
+std::vector<double> LinearTerms(const KernelMatrix& a, std::span<const Vec3f> rows, std::span<const Vec3f> centers,
+                                std::span<const Vec3f> gradients) {
+  const size_t n = rows.size();
+  std::vector<double> s(n, 0.0);
+  (void)core::ParallelFor(n, 2048, [&](size_t begin, size_t end) {
+    for (size_t k = begin; k < end; ++k) {
+      double sum = 0;
+      for (uint64_t e = a.row_start[k]; e < a.row_start[k + 1]; ++e) {
+        const uint32_t i = a.column[e];
+        sum += a.value[e] * static_cast<double>(gradients[i].dot(rows[k] - centers[i]));
+      }
+      s[k] = sum;
+    }
+  });
+  return s;
+}
+
+// Richardson iteration on interleaved columns: g ← g + (f − A g − offset), `iterations` times
+// (`offset`: fixed terms of the rows, same layout as f, or null).
+// `residuals`, when given, receives max |f − A g − offset| of column 0 before each step and after the last.
+std::vector<double> Iterate(const KernelMatrix& a, const std::vector<double>& f, const std::vector<double>* offset,
+                            int columns, int iterations, std::vector<double>* residuals) {
   std::vector<double> g = f, ag;
   for (int it = 0; it <= iterations; ++it) {
     if (residuals == nullptr && it == iterations) break;
     a.Multiply(g, columns, ag);
     double worst = 0;
     for (size_t k = 0; k < f.size(); ++k) {
-      const double r = f[k] - ag[k];
+      const double r = f[k] - ag[k] - (offset != nullptr ? (*offset)[k] : 0.0);
       if (k % columns == 0) worst = std::max(worst, std::abs(r));
       if (it < iterations) g[k] += r;
     }
@@ -226,8 +258,9 @@ struct CvChoice {
 
 // Leave-out cross-validation of (ε, iterations) on the first field; see volume_field.h.
 absl::StatusOr<CvChoice> CrossValidate(std::span<const Vec3f> positions, std::span<const float> values,
-                                       std::span<const Sym3> metric, std::span<const float> volume,
-                                       const VolumeFieldParams& p, const core::JobContext& ctx) {
+                                       std::span<const Vec3f> gradients, std::span<const Sym3> metric,
+                                       std::span<const float> volume, const VolumeFieldParams& p,
+                                       const core::JobContext& ctx) {
   const size_t n = positions.size();
   // Neighbourhoods: the vertices nearest to a few spread-out centres (the positions are in
   // Morton order, so evenly spaced indices are spread in space).
@@ -251,7 +284,7 @@ absl::StatusOr<CvChoice> CrossValidate(std::span<const Vec3f> positions, std::sp
       }
     }
   }
-  std::vector<Vec3f> train_x, held_x;
+  std::vector<Vec3f> train_x, held_x, train_g;
   std::vector<Sym3> train_m;
   std::vector<float> train_v;
   std::vector<double> train_f, held_f;
@@ -261,6 +294,7 @@ absl::StatusOr<CvChoice> CrossValidate(std::span<const Vec3f> positions, std::sp
       held_f.push_back(values[i]);
     } else {
       train_x.push_back(positions[i]);
+      train_g.push_back(p.linear_terms ? gradients[i] : Vec3f::Zero());
       train_m.push_back(metric[i]);
       train_v.push_back(volume[i]);
       train_f.push_back(values[i]);
@@ -295,20 +329,25 @@ absl::StatusOr<CvChoice> CrossValidate(std::span<const Vec3f> positions, std::sp
     const Kernels kernels(train_x, train_m, train_v, p, eps);
     LSQSURF_ASSIGN_OR_RETURN(KernelMatrix a, BuildMatrix(kernels, train_x, p.normalize, &ctx));
     LSQSURF_ASSIGN_OR_RETURN(KernelMatrix b, BuildMatrix(kernels, held_x, p.normalize, &ctx));
+    const std::vector<double> train_s = LinearTerms(a, train_x, train_x, train_g);
+    const std::vector<double> held_s = LinearTerms(b, held_x, train_x, train_g);
     std::vector<double> g = train_f, ag, pred;
     double previous_residual = 1e300;
     for (int it = 0; it <= max_iterations; ++it) {
       b.Multiply(g, 1, pred);
       double sum = 0;
-      for (size_t h = 0; h < held_f.size(); ++h) sum += (pred[h] - held_f[h]) * (pred[h] - held_f[h]);
+      for (size_t h = 0; h < held_f.size(); ++h) {
+        sum += (pred[h] + held_s[h] - held_f[h]) * (pred[h] + held_s[h] - held_f[h]);
+      }
       if (p.iterations < 0 || it == p.iterations) {
         scores.push_back({eps, it, std::sqrt(sum / static_cast<double>(held_f.size()))});
       }
       a.Multiply(g, 1, ag);
       double residual = 0;
       for (size_t k = 0; k < g.size(); ++k) {
-        residual += (train_f[k] - ag[k]) * (train_f[k] - ag[k]);
-        g[k] += train_f[k] - ag[k];
+        const double r = train_f[k] - ag[k] - train_s[k];
+        residual += r * r;
+        g[k] += r;
       }
       // A growing residual means this ε diverges here: stop scoring it.
       if (residual > 1.5 * previous_residual) break;
@@ -363,6 +402,9 @@ const core::ParamTable<VolumeFieldParams>& VolumeFieldParamTable() {
         .Flag<&VolumeFieldParams::normalize>("normalize",
                                              "divide by the kernel sum (exact constants on irregular meshes); "
                                              "off = the seed's plain sum")
+        .Flag<&VolumeFieldParams::linear_terms>("linear_terms",
+                                                "each kernel carries its vertex's value plus its gradient's linear "
+                                                "term (exact linear fields on irregular meshes)")
         .Real<&VolumeFieldParams::cutoff>("cutoff", 2, 6, "", "kernel truncation at epsilon*r = cutoff")
         .Choice<&VolumeFieldParams::gradient_weights>(
             "gradient_weights",
@@ -394,9 +436,12 @@ VolumeField::Sample VolumeField::Evaluate(const Vec3d& x, int field) const {
   double weight = 0;
   const auto& g = impl_->g[field];
   const auto& big_g = impl_->big_g[field];
+  const auto& slope = impl_->gradients[field];
+  const auto& centre = impl_->positions;
+  const Vec3f xf = x.cast<float>();
   impl_->kernels->ForEach(x, [&](uint32_t i, float psi) {
     weight += psi;
-    value += psi * g[i];
+    value += psi * (linear_terms_ ? g[i] + slope[i].dot(xf - centre[i]) : g[i]);
     gradient += psi * big_g[i].cast<double>();
   });
   if (weight == 0) return out;
@@ -433,6 +478,36 @@ std::span<const float> VolumeField::data_values(int field) const { return impl_-
 std::span<const Vec3f> VolumeField::data_gradients(int field) const { return impl_->gradients[field]; }
 std::span<const float> VolumeField::data_spacing() const { return impl_->spacing; }
 
+namespace {
+
+// g and G of field f by the iteration, on four interleaved columns: the value and the three
+// gradient components.
+void AccumulateCoefficients(const KernelMatrix& a, VolumeField::Impl& impl, size_t f, bool linear_terms, int iterations,
+                            std::vector<double>* residuals) {
+  const size_t n = impl.positions.size();
+  std::vector<double> data(n * 4);
+  for (size_t k = 0; k < n; ++k) {
+    data[k * 4] = impl.values[f][k];
+    for (int c = 0; c < 3; ++c) data[k * 4 + 1 + c] = impl.gradients[f][k][c];
+  }
+  std::vector<double> offset;
+  if (linear_terms) {
+    const std::vector<double> s = LinearTerms(a, impl.positions, impl.positions, impl.gradients[f]);
+    offset.assign(n * 4, 0.0);
+    for (size_t k = 0; k < n; ++k) offset[k * 4] = s[k];
+  }
+  const std::vector<double> coef = Iterate(a, data, linear_terms ? &offset : nullptr, 4, iterations, residuals);
+  impl.g[f].resize(n);
+  impl.big_g[f].resize(n);
+  for (size_t k = 0; k < n; ++k) {
+    impl.g[f][k] = static_cast<float>(coef[k * 4]);
+    impl.big_g[f][k] = Vec3f(static_cast<float>(coef[k * 4 + 1]), static_cast<float>(coef[k * 4 + 2]),
+                             static_cast<float>(coef[k * 4 + 3]));
+  }
+}
+
+}  // namespace
+
 absl::StatusOr<std::unique_ptr<VolumeField>> BuildVolumeField(const VolumeMesh& mesh,
                                                               std::span<const std::string> field_names,
                                                               const VolumeFieldParams& params, core::JobContext& ctx) {
@@ -459,6 +534,7 @@ absl::StatusOr<std::unique_ptr<VolumeField>> BuildVolumeField(const VolumeMesh& 
   out->field_names_.assign(field_names.begin(), field_names.end());
   out->min_weight_ = params.min_weight;
   out->normalize_ = params.normalize;
+  out->linear_terms_ = params.linear_terms;
   if (mesh.has_cells()) out->locator_ = std::make_unique<CellLocator>(mesh);
   VolumeFieldStats& st = out->stats_;
   st.mean_star_size = stars.mean_star_size;
@@ -498,8 +574,8 @@ absl::StatusOr<std::unique_ptr<VolumeField>> BuildVolumeField(const VolumeMesh& 
   double eps = params.epsilon;
   int iterations = params.iterations;
   if (eps == 0 || iterations < 0) {
-    LSQSURF_ASSIGN_OR_RETURN(CvChoice choice,
-                             CrossValidate(impl->positions, impl->values[0], metric, volume, params, cv_ctx));
+    LSQSURF_ASSIGN_OR_RETURN(CvChoice choice, CrossValidate(impl->positions, impl->values[0], impl->gradients[0],
+                                                            metric, volume, params, cv_ctx));
     st.chosen_by_cross_validation = true;
     st.cross_validation_rms = choice.rms;
     st.cross_validation_points = choice.points;
@@ -524,28 +600,169 @@ absl::StatusOr<std::unique_ptr<VolumeField>> BuildVolumeField(const VolumeMesh& 
     }
   }
   fit_ctx.Report(0.6);
-  // Columns per field: the value and the three gradient components.
   impl->g.resize(fields.size());
   impl->big_g.resize(fields.size());
   for (size_t f = 0; f < fields.size(); ++f) {
-    std::vector<double> data(n * 4);
-    for (size_t k = 0; k < n; ++k) {
-      data[k * 4] = impl->values[f][k];
-      for (int c = 0; c < 3; ++c) data[k * 4 + 1 + c] = impl->gradients[f][k][c];
-    }
-    const std::vector<double> coef = Iterate(a, data, 4, iterations, f == 0 ? &st.residuals : nullptr);
-    impl->g[f].resize(n);
-    impl->big_g[f].resize(n);
-    for (size_t k = 0; k < n; ++k) {
-      impl->g[f][k] = static_cast<float>(coef[k * 4]);
-      impl->big_g[f][k] = Vec3f(static_cast<float>(coef[k * 4 + 1]), static_cast<float>(coef[k * 4 + 2]),
-                                static_cast<float>(coef[k * 4 + 3]));
-    }
+    AccumulateCoefficients(a, *impl, f, params.linear_terms, iterations, f == 0 ? &st.residuals : nullptr);
     if (ctx.IsCancelled()) return absl::CancelledError("cancelled by request");
   }
   st.epsilon = eps;
   st.iterations = iterations;
   st.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  out->impl_ = std::move(impl);
+  return out;
+}
+
+namespace {
+
+constexpr std::string_view kFieldMagic = "LQVF0001";
+
+// Appends arrays of trivially copyable values, each after its element count.
+class Writer {
+ public:
+  template <class T>
+  void Array(std::span<const T> values) {
+    Scalar<uint64_t>(values.size());
+    out_.append(reinterpret_cast<const char*>(values.data()), values.size_bytes());
+  }
+  template <class T>
+  void Scalar(T value) {
+    out_.append(reinterpret_cast<const char*>(&value), sizeof(T));
+  }
+  void Text(std::string_view s) { Array<char>(std::span<const char>(s.data(), s.size())); }
+  std::string Take() { return std::move(out_); }
+
+ private:
+  std::string out_;
+};
+
+class Reader {
+ public:
+  explicit Reader(std::string_view in) : in_(in) {}
+  template <class T>
+  bool Scalar(T& value) {
+    if (in_.size() - pos_ < sizeof(T)) return false;
+    std::memcpy(&value, in_.data() + pos_, sizeof(T));
+    pos_ += sizeof(T);
+    return true;
+  }
+  template <class T>
+  bool Array(std::vector<T>& values, uint64_t expected = UINT64_MAX) {
+    uint64_t count = 0;
+    if (!Scalar(count) || (expected != UINT64_MAX && count != expected)) return false;
+    if (count > (in_.size() - pos_) / sizeof(T)) return false;
+    values.resize(count);
+    // Eigen vectors and the kernel records are plain floats in memory.
+    std::memcpy(static_cast<void*>(values.data()), in_.data() + pos_, count * sizeof(T));
+    pos_ += count * sizeof(T);
+    return true;
+  }
+  bool Text(std::string& s) {
+    std::vector<char> chars;
+    if (!Array(chars)) return false;
+    s.assign(chars.begin(), chars.end());
+    return true;
+  }
+  bool AtEnd() const { return pos_ == in_.size(); }
+
+ private:
+  std::string_view in_;
+  size_t pos_ = 0;
+};
+
+}  // namespace
+
+std::string SerializeVolumeField(const VolumeField& field) {
+  const VolumeField::Impl& m = *field.impl_;
+  const VolumeFieldStats& st = field.stats_;
+  Writer w;
+  w.Array<char>(std::span<const char>(kFieldMagic.data(), kFieldMagic.size()));
+  w.Scalar<uint64_t>(field.field_names_.size());
+  for (const std::string& name : field.field_names_) w.Text(name);
+  w.Scalar(field.min_weight_);
+  w.Scalar<uint8_t>(field.normalize_);
+  w.Scalar<uint8_t>(field.linear_terms_);
+  for (double v : {st.epsilon, static_cast<double>(st.iterations), st.chosen_by_cross_validation ? 1.0 : 0.0,
+                   st.cross_validation_rms, static_cast<double>(st.cross_validation_points), st.spectral_radius,
+                   st.kernels_per_vertex, st.median_spacing, st.mean_star_size, st.seconds}) {
+    w.Scalar(v);
+  }
+  w.Scalar(m.kernels->cutoff2());
+  w.Array<KernelRecord>(m.kernels->records());
+  w.Array<Vec3f>(m.positions);
+  w.Array<float>(m.spacing);
+  for (size_t f = 0; f < field.field_names_.size(); ++f) {
+    w.Array<float>(m.values[f]);
+    w.Array<Vec3f>(m.gradients[f]);
+    w.Array<float>(m.g[f]);
+    w.Array<Vec3f>(m.big_g[f]);
+  }
+  const CellLocator* locator = field.locator_.get();
+  w.Array<Vec3f>(locator != nullptr ? locator->positions() : std::span<const Vec3f>());
+  w.Array<std::array<uint32_t, 4>>(locator != nullptr ? locator->tets() : std::span<const std::array<uint32_t, 4>>());
+  return w.Take();
+}
+
+absl::StatusOr<std::unique_ptr<VolumeField>> DeserializeVolumeField(std::string_view bytes) {
+  auto bad = [](std::string_view why) {
+    return absl::InvalidArgumentError(core::StrCat("the stored volume field is unreadable: ", why));
+  };
+  Reader r(bytes);
+  std::vector<char> magic;
+  if (!r.Array(magic) || std::string_view(magic.data(), magic.size()) != kFieldMagic) return bad("wrong header");
+  auto out = std::unique_ptr<VolumeField>(new VolumeField());
+  auto impl = std::make_shared<VolumeField::Impl>();
+  uint64_t fields = 0;
+  if (!r.Scalar(fields) || fields == 0 || fields > 64) return bad("field count");
+  out->field_names_.resize(fields);
+  for (std::string& name : out->field_names_) {
+    if (!r.Text(name)) return bad("field names");
+  }
+  uint8_t normalize = 0, linear = 0;
+  if (!r.Scalar(out->min_weight_) || !r.Scalar(normalize) || !r.Scalar(linear)) return bad("flags");
+  out->normalize_ = normalize != 0;
+  out->linear_terms_ = linear != 0;
+  std::array<double, 10> st{};
+  for (double& v : st) {
+    if (!r.Scalar(v)) return bad("statistics");
+  }
+  VolumeFieldStats& s = out->stats_;
+  s.epsilon = st[0];
+  s.iterations = static_cast<int>(st[1]);
+  s.chosen_by_cross_validation = st[2] != 0;
+  s.cross_validation_rms = st[3];
+  s.cross_validation_points = static_cast<int>(st[4]);
+  s.spectral_radius = st[5];
+  s.kernels_per_vertex = st[6];
+  s.median_spacing = st[7];
+  s.mean_star_size = st[8];
+  s.seconds = st[9];
+  float cutoff2 = 0;
+  std::vector<KernelRecord> records;
+  if (!r.Scalar(cutoff2) || !r.Array(records) || records.empty()) return bad("kernels");
+  const uint64_t n = records.size();
+  if (!r.Array(impl->positions, n) || !r.Array(impl->spacing, n)) return bad("vertices");
+  impl->values.resize(fields);
+  impl->gradients.resize(fields);
+  impl->g.resize(fields);
+  impl->big_g.resize(fields);
+  for (size_t f = 0; f < fields; ++f) {
+    if (!r.Array(impl->values[f], n) || !r.Array(impl->gradients[f], n) || !r.Array(impl->g[f], n) ||
+        !r.Array(impl->big_g[f], n)) {
+      return bad("coefficients");
+    }
+  }
+  std::vector<Vec3f> cell_positions;
+  std::vector<std::array<uint32_t, 4>> tets;
+  if (!r.Array(cell_positions) || !r.Array(tets) || !r.AtEnd()) return bad("cells");
+  for (const auto& t : tets) {
+    for (uint32_t v : t) {
+      if (v >= cell_positions.size()) return bad("a tetrahedron refers to a missing vertex");
+    }
+  }
+  for (const Vec3f& p : impl->positions) out->bounds_.extend(p.cast<double>());
+  if (!tets.empty()) out->locator_ = std::make_unique<CellLocator>(std::move(cell_positions), std::move(tets));
+  impl->kernels = std::make_unique<Kernels>(std::move(records), cutoff2);
   out->impl_ = std::move(impl);
   return out;
 }

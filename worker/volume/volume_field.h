@@ -57,6 +57,7 @@ struct VolumeFieldParams {
   bool anisotropic = true;     // Kernels in the star metrics; false = round kernels.
   double max_anisotropy = 20;  // Largest ratio of a kernel's axes, 1..1000.
   bool normalize = true;       // Q = Σ g_i Ψ_i / Σ Ψ_i (see above); false = the seed's plain sum.
+  bool linear_terms = true;    // Kernels carry g_i + ∇f_i·(x − x_i) (see above); false = g_i alone.
   double cutoff = 3;           // Kernels end at ε √s = cutoff, 2..6 (at 3 the tail holds ~0.3 % of the mass).
   GradientWeights gradient_weights = GradientWeights::kGaussian;
   int neighbors = 16;       // k of the nearest-neighbour stars of a point set, 6..64.
@@ -113,6 +114,8 @@ class VolumeField {
  private:
   friend absl::StatusOr<std::unique_ptr<VolumeField>> BuildVolumeField(const VolumeMesh&, std::span<const std::string>,
                                                                        const VolumeFieldParams&, core::JobContext&);
+  friend std::string SerializeVolumeField(const VolumeField&);
+  friend absl::StatusOr<std::unique_ptr<VolumeField>> DeserializeVolumeField(std::string_view);
   VolumeField() = default;
   std::shared_ptr<const Impl> impl_;
   std::unique_ptr<CellLocator> locator_;
@@ -121,6 +124,7 @@ class VolumeField {
   core::Box3 bounds_;
   double min_weight_ = 0.5;
   bool normalize_ = true;
+  bool linear_terms_ = true;
 };
 
 // Reconstructs the named scalar fields (all of them share the kernels; the first drives the
@@ -130,5 +134,12 @@ class VolumeField {
 absl::StatusOr<std::unique_ptr<VolumeField>> BuildVolumeField(const VolumeMesh& mesh,
                                                               std::span<const std::string> field_names,
                                                               const VolumeFieldParams& params, core::JobContext& ctx);
+
+// The precomputed field in a binary form that a later job reads back without recomputing it:
+// kernels, coefficients, data values and gradients, the domain's tetrahedra and the statistics
+// (native little-endian floats; about 90 bytes per vertex and field plus 28 per tetrahedron).
+std::string SerializeVolumeField(const VolumeField& field);
+// Errors: kInvalidArgument (not a stored field, truncated or inconsistent).
+absl::StatusOr<std::unique_ptr<VolumeField>> DeserializeVolumeField(std::string_view bytes);
 
 }  // namespace lsqsurf::volume

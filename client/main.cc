@@ -596,7 +596,9 @@ int main(int argc, char** argv) {
   surface.view.AddTo(submit);
 
   auto* volume = app.add_subcommand("volume", "upload a volume mesh with scalar fields, wait, and write isosurfaces");
-  volume->add_option("input", surface.input, "volume (.vtk legacy VTK, .ply points with values, raw with --raw)")
+  volume
+      ->add_option("input", surface.input,
+                   "volume (.vtk legacy VTK, .vtu VTK XML, .ply points with values, raw with --raw)")
       ->required();
   surface.volume.AddTo(volume);
   volume->add_option("--iso", surface.iso, "iso-value of the isosurface (repeatable)");

@@ -6,6 +6,7 @@
 #include <fstream>
 #include <sstream>
 
+#include "worker/io/files.h"
 #include "worker/io/volume_codec.h"
 #include "worker/volume/synthetic.h"
 
@@ -175,6 +176,65 @@ TEST(VolumeCodec, VerticesAndCellsRoundTripSmallerThanBinaryVtk) {
   EXPECT_EQ(DecodeCellStream(cells.substr(0, cells.size() / 2), 1'000'000, sink).code(),
             absl::StatusCode::kInvalidArgument);
   EXPECT_EQ(DecodeCellStream("LQC0", 10, sink).code(), absl::StatusCode::kInvalidArgument);
+}
+
+}  // namespace
+}  // namespace lsqsurf::io
+
+namespace lsqsurf::io {
+namespace {
+
+// Files written by VTK 9.1's own writers (tests/data/volume/make_fixtures.py): a hexahedron, a
+// pyramid, a tetrahedron and a wedge; temperature = 1 + x + 2y + 3z, velocity = (y, -x, z).
+void ExpectTheFixture(const std::string& file) {
+  SCOPED_TRACE(file);
+  auto mesh = ReadVolumeFile(std::string(LSQSURF_SOURCE_DIR "/tests/data/volume/") + file);
+  ASSERT_TRUE(mesh.ok()) << mesh.status();
+  EXPECT_EQ(mesh->vertex_count(), 15u);
+  EXPECT_EQ(mesh->cell_types, (std::vector<uint8_t>{12, 14, 10, 13}));
+  const volume::VertexField* t = mesh->FindField("temperature");
+  const volume::VertexField* v = mesh->FindField("velocity");
+  ASSERT_NE(t, nullptr);
+  ASSERT_NE(v, nullptr);
+  EXPECT_EQ(v->components, 3);
+  for (size_t i = 0; i < mesh->vertex_count(); ++i) {
+    const core::Vec3f& p = mesh->positions[i];
+    EXPECT_NEAR(t->values[i], 1 + p.x() + 2 * p.y() + 3 * p.z(), 1e-5);
+    EXPECT_NEAR(v->values[3 * i], p.y(), 1e-6);
+    EXPECT_NEAR(v->values[3 * i + 1], -p.x(), 1e-6);
+  }
+  EXPECT_EQ(mesh->cell(3)[0], 9u);  // The wedge, in VTK's order.
+}
+
+TEST(Vtu, ReadsEveryEncodingVtkWrites) {
+  for (const char* file : {"mixed-ascii.vtu", "mixed-binary.vtu", "mixed-binary-zlib.vtu", "mixed-appended-zlib.vtu",
+                           "mixed-appended-base64.vtu", "mixed-binary.vtk"}) {
+    ExpectTheFixture(file);
+  }
+}
+
+TEST(Vtu, RefusesDamagedFilesWithAReason) {
+  auto bytes = ReadFileBytes(LSQSURF_SOURCE_DIR "/tests/data/volume/mixed-appended-zlib.vtu");
+  ASSERT_TRUE(bytes.ok());
+  // Every truncation that loses data fails cleanly (no crash, no read past the end).
+  const size_t data_end = bytes->rfind("</AppendedData>");
+  for (size_t cut = 0; cut < data_end; cut += 97) {
+    auto r = ParseVtu(bytes->substr(0, cut), "cut.vtu");
+    EXPECT_FALSE(r.ok()) << cut;
+  }
+  std::string flipped = *bytes;
+  flipped[flipped.size() - 40] ^= 0x5a;  // Inside the last compressed block.
+  EXPECT_FALSE(ParseVtu(flipped, "flipped.vtu").ok());
+  auto ascii = ReadFileBytes(LSQSURF_SOURCE_DIR "/tests/data/volume/mixed-ascii.vtu");
+  ASSERT_TRUE(ascii.ok());
+  std::string polydata = *ascii;
+  polydata.replace(polydata.find("UnstructuredGrid"), 16, "PolyData");
+  EXPECT_NE(std::string(ParseVtu(polydata, "p.vtu").status().message()).find("not UnstructuredGrid"),
+            std::string::npos);
+  std::string bad_type = *ascii;
+  bad_type.replace(bad_type.find("          12 14 10 13"), 21, "          5 14 10 13");
+  EXPECT_NE(std::string(ParseVtu(bad_type, "t.vtu").status().message()).find("triangle"), std::string::npos)
+      << ParseVtu(bad_type, "t.vtu").status();
 }
 
 }  // namespace

@@ -1,5 +1,5 @@
-// worker/io/volume_formats.h — volume data files: legacy VTK, raw regular volumes, PLY points
-// with values.
+// worker/io/volume_formats.h — volume data files: legacy VTK, VTK XML unstructured grids, raw
+// regular volumes, PLY points with values.
 //
 // Legacy VTK (`.vtk`, ASCII or BINARY big-endian, file versions 2–5.1): datasets
 // UNSTRUCTURED_GRID (tetrahedra, hexahedra, wedges, pyramids; other cell types are refused by
@@ -30,10 +30,16 @@ std::string EncodeLegacyVtk(const volume::VolumeMesh& mesh, bool binary);
 absl::StatusOr<volume::VolumeMesh> ParseRawVolume(std::string_view bytes, std::string_view layout,
                                                   std::string_view field_name);
 
+// VTK XML unstructured grids (.vtu, what ParaView and most CFD/FEM codes write): every piece,
+// DataArrays in ascii, binary (base64) or appended (raw or base64) form, uncompressed or zlib
+// (vtkZLibDataCompressor), UInt32 or UInt64 headers, little-endian; point data by name; the
+// same cell types and checks as the legacy reader.
+absl::StatusOr<volume::VolumeMesh> ParseVtu(std::string_view bytes, std::string_view name);
+
 // A PLY point set whose vertex properties other than x, y, z become fields (faces are ignored).
 absl::StatusOr<volume::VolumeMesh> ParsePlyVolume(std::string_view bytes, std::string_view name);
 
-// By extension: .vtk, .ply; raw volumes need their layout and go through ParseRawVolume.
+// By extension: .vtk, .vtu, .ply; raw volumes need their layout and go through ParseRawVolume.
 absl::StatusOr<volume::VolumeMesh> ReadVolumeFile(const std::string& path);
 
 }  // namespace lsqsurf::io

@@ -15,6 +15,7 @@
 #include <cstdio>
 #include <random>
 
+#include "worker/io/files.h"
 #include "worker/io/volume_codec.h"
 #include "worker/io/volume_formats.h"
 #include "worker/volume/cell_locator.h"
@@ -183,6 +184,8 @@ int main(int argc, char** argv) {
   app.add_option("--n", n, "vertices per axis (points: n^3 of them)")->capture_default_str();
   app.add_option("--samples", samples, "error sample points")->capture_default_str();
   app.add_option("--probes", probes, "timed probe points")->capture_default_str();
+  std::string write;
+  app.add_option("--write", write, "also write each case's mesh as binary legacy VTK: PREFIX-CASE.vtk");
   volume::VolumeFieldParams params;
   app.add_option("--epsilon", params.epsilon, "kernel shape; 0 = cross-validation")->capture_default_str();
   app.add_option("--iterations", params.iterations, "-1 = cross-validation")->capture_default_str();
@@ -191,6 +194,13 @@ int main(int argc, char** argv) {
     Case c = MakeCase(name, n);
     std::printf("%s: %zu vertices, %zu cells\n", name.c_str(), c.mesh.vertex_count(), c.mesh.cell_count());
     ReportUpload(c);
+    if (!write.empty()) {
+      const std::string path = write + "-" + name + ".vtk";
+      if (absl::Status s = lsqsurf::io::WriteFileAtomically(path, lsqsurf::io::EncodeLegacyVtk(c.mesh, true));
+          !s.ok()) {
+        std::printf("  cannot write %s: %s\n", path.c_str(), std::string(s.message()).c_str());
+      }
+    }
     lsqsurf::core::LocalJobContext ctx;
     const std::vector<std::string> names = {c.field.name};
     const auto start = Clock::now();

@@ -3,6 +3,7 @@
 #include <unistd.h>
 
 #include <CLI/CLI.hpp>
+#include <chrono>
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
@@ -79,6 +80,50 @@ struct ViewFlags {
     if (transparent) view.set_transparent(true);
     if (samples) view.set_samples(*samples);
     return view;
+  }
+};
+
+// render --volume: how a volume job's field is drawn. Options left out keep the server's defaults.
+struct VolumeViewFlags {
+  bool volume = false;
+  std::optional<double> iso_ray, step;
+  std::optional<int> resolution;
+  std::string opacity, transfer;
+
+  void AddTo(CLI::App* cmd) {
+    cmd->add_flag("--volume", volume, "draw a volume job's field by direct volume rendering");
+    cmd->add_option("--iso-ray", iso_ray, "draw the isosurface of this value by ray casting instead");
+    cmd->add_option("--opacity", opacity, "opacity transfer function t:alpha,... (t over the colour range)");
+    cmd->add_option("--transfer", transfer, "file with the opacity points, one 't alpha' or 't:alpha' per line");
+    cmd->add_option("--resolution", resolution, "grid points along the longest side of the field's box");
+    cmd->add_option("--step", step, "ray step in grid cells");
+  }
+  bool Requested() const { return volume || iso_ray || !opacity.empty() || !transfer.empty(); }
+  absl::Status Apply(v1::RenderOptions* view) const {
+    std::string points = opacity;
+    if (!transfer.empty()) {
+      auto text = lsqsurf::io::ReadFileBytes(transfer);
+      if (!text.ok()) return text.status();
+      points.clear();
+      std::string line;
+      for (char c : *text + "\n") {
+        if (c != '\n') {
+          line += c == ' ' || c == '\t' ? ':' : c;
+          continue;
+        }
+        while (!line.empty() && (line.back() == ':' || line.back() == '\r')) line.pop_back();
+        if (!line.empty() && line[0] != '#') points += (points.empty() ? "" : ",") + line;
+        line.clear();
+      }
+    }
+    if (!points.empty()) view->set_opacity(points);
+    if (iso_ray) {
+      view->set_volume_mode(v1::RenderOptions::VOLUME_MODE_ISOSURFACE);
+      view->set_iso_value(*iso_ray);
+    }
+    if (resolution) view->set_volume_resolution(*resolution);
+    if (step) view->set_ray_step(*step);
+    return absl::OkStatus();
   }
 };
 
@@ -218,16 +263,26 @@ void PrintJob(const v1::Job& job) {
   for (const auto& r : job.results()) std::printf("result     %s\n", r.c_str());
 }
 
+// The result that keeps a volume job's field (drawn by `render --volume`).
+constexpr char kVolumeField[] = "field.lqvf";
+
 int RenderToFile(const Globals& g, const std::string& id, const std::string& name, const v1::RenderOptions& view,
                  const std::string& path) {
+  const auto start = std::chrono::steady_clock::now();
   auto response = client::Client(g.server).Render(id, name, view);
+  const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   if (!response.ok()) return FailStatus("render", response.status());
   if (absl::Status s = lsqsurf::io::WriteFileAtomically(path, response->png()); !s.ok())
     return Fail(std::string(s.message()));
   if (!g.quiet) {
-    std::fprintf(stderr, "wrote %s (%s", path.c_str(), response->renderer().c_str());
-    if (!view.color().empty()) {
-      std::fprintf(stderr, "; %s from %g to %g", view.color().c_str(), response->color_min(), response->color_max());
+    std::fprintf(stderr, "wrote %s in %.2f s (%s", path.c_str(), seconds, response->renderer().c_str());
+    if (!view.color().empty() || name == kVolumeField) {
+      std::fprintf(stderr, "; %s from %g to %g", view.color().empty() ? "values" : view.color().c_str(),
+                   response->color_min(), response->color_max());
+    }
+    if (name == kVolumeField) {
+      std::fprintf(stderr, "; sampled grid error RMS %.3g, max %.3g", response->grid_rms_error(),
+                   response->grid_max_error());
     }
     std::fprintf(stderr, ")\n");
   }
@@ -638,6 +693,8 @@ int main(int argc, char** argv) {
   render->add_option("-o,--output", output, "PNG file to write")->required();
   render->add_option("--name", name, "artifact name (default: the job's first result)");
   render_view.AddTo(render);
+  VolumeViewFlags volume_view;
+  volume_view.AddTo(render);
   size_t samples = 1'000'000;
   auto* compare = app.add_subcommand("compare", "Chamfer/Hausdorff distance and normal consistency");
   compare->add_option("reference", reference, "reference mesh")->required();
@@ -653,7 +710,14 @@ int main(int argc, char** argv) {
   if (*reconstruct || *submit) return surface.Run(g, /*wait=*/reconstruct->parsed());
   if (*track) return track_command.Run(g);
   if (*probe) return probe_command.Run(g);
-  if (*render) return RenderToFile(g, id, name, render_view.Options(), output);
+  if (*render) {
+    v1::RenderOptions options = render_view.Options();
+    if (volume_view.Requested()) {
+      if (absl::Status s = volume_view.Apply(&options); !s.ok()) return Fail(std::string(s.message()));
+      name = kVolumeField;
+    }
+    return RenderToFile(g, id, name, options, output);
+  }
   for (CLI::App* command : id_commands) {
     if (*command) return JobCommand(g, command->get_name(), id);
   }

@@ -172,6 +172,8 @@ grpc::Status ReconstructionService::Render(grpc::ServerContext*, const v1::Rende
     response->set_color_min(picture->color_min);
     response->set_color_max(picture->color_max);
     response->set_renderer(picture->renderer);
+    response->set_grid_rms_error(picture->grid_rms_error);
+    response->set_grid_max_error(picture->grid_max_error);
     return grpc::Status::OK;
   });
 }

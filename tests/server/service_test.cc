@@ -199,6 +199,20 @@ TEST_F(ServiceTest, AVolumeMeshBecomesAnIsosurfaceAndBadVolumesAreRefused) {
   EXPECT_NE(missing.status().message().find("franke (scalar)"), std::string::npos) << missing.status();
   auto corrupt = client_->Submit(spec, *vertices, {}, cells.substr(0, cells.size() - 3));
   EXPECT_EQ(corrupt.status().code(), absl::StatusCode::kInvalidArgument) << corrupt.status();
+  // A picture of the kept field, drawn by the CPU ray caster from a sampled grid whose error is
+  // reported.
+  v1::RenderOptions view;
+  view.set_width(64);
+  view.set_height(64);
+  auto frame = client_->Render(job->id(), "field.lqvf", view);
+  ASSERT_TRUE(frame.ok()) << frame.status();
+  EXPECT_EQ(frame->png().substr(1, 3), "PNG");
+  EXPECT_NE(frame->renderer().find("CPU ray caster"), std::string::npos) << frame->renderer();
+  EXPECT_GT(frame->grid_rms_error(), 0);
+  EXPECT_LT(frame->grid_max_error(), 0.05 * (frame->color_max() - frame->color_min()));
+  view.set_opacity("1:0,0:1");
+  EXPECT_EQ(client_->Render(job->id(), "field.lqvf", view).status().code(), absl::StatusCode::kInvalidArgument);
+
   // Probes of the finished job: points (one outside the domain) and a grid.
   v1::JobSpec probe;
   probe.mutable_probe()->set_source(job->id());

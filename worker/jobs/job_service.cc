@@ -10,6 +10,7 @@
 #include "worker/core/strings.h"
 #include "worker/io/draco_codec.h"
 #include "worker/jobs/method_registry.h"
+#include "worker/jobs/volume_job.h"
 #include "worker/render/render.h"
 
 namespace lsqsurf::jobs {
@@ -364,6 +365,7 @@ absl::StatusOr<RenderedPicture> JobService::Render(const std::string& id, const 
   auto read = ReadAll(**reader);
   if (!read.ok()) return read.status();
   const std::string& bytes = *read;
+  if (volume::IsStoredVolumeField(bytes)) return RenderVolumeField(id, bytes, *params);
   auto geometry = io::PeekDracoGeometry(bytes);
   if (!geometry.ok()) {
     return absl::InvalidArgumentError(
@@ -386,6 +388,34 @@ absl::StatusOr<RenderedPicture> JobService::Render(const std::string& id, const 
   auto png = render::EncodePng(*image);
   if (!png.ok()) return png.status();
   return RenderedPicture{*std::move(png), info.color_min, info.color_max, info.renderer};
+}
+
+absl::StatusOr<RenderedPicture> JobService::RenderVolumeField(const std::string& id, const std::string& bytes,
+                                                              const render::RenderParams& params) {
+  // The sampled grid of the last job drawn is kept: the frames of a turntable share it.
+  const std::string key = core::StrCat(id, "/", params.volume_resolution);
+  std::shared_ptr<const SampledVolume> sampled;
+  {
+    std::lock_guard lock(volume_mutex_);
+    if (volume_key_ == key) sampled = volume_grid_;
+  }
+  if (sampled == nullptr) {
+    auto field = volume::DeserializeVolumeField(bytes);
+    if (!field.ok()) return field.status();
+    auto grid = SampleVolumeForPicture(**field, params.volume_resolution);
+    if (!grid.ok()) return grid.status();
+    sampled = std::make_shared<const SampledVolume>(*std::move(grid));
+    std::lock_guard lock(volume_mutex_);
+    volume_key_ = key;
+    volume_grid_ = sampled;
+  }
+  render::RenderInfo info;
+  auto image = render::RaycastVolume(sampled->grid, params, &info);
+  if (!image.ok()) return image.status();
+  auto png = render::EncodePng(*image);
+  if (!png.ok()) return png.status();
+  return RenderedPicture{*std::move(png), info.color_min,     info.color_max,
+                         info.renderer,   sampled->rms_error, sampled->max_error};
 }
 
 bool JobService::CanRender() { return renderer_->Get().ok(); }

@@ -37,9 +37,12 @@
 
 namespace lsqsurf::render {
 class SharedRenderer;
-}
+struct RenderParams;
+}  // namespace lsqsurf::render
 
 namespace lsqsurf::jobs {
+
+struct SampledVolume;  // volume_job.h
 
 struct JobServiceOptions {
   std::string data_dir;                        // Holds jobs.db and one folder per job; created if missing.
@@ -60,8 +63,9 @@ struct JobServiceOptions {
 // A picture of a result.
 struct RenderedPicture {
   std::string png;
-  double color_min = 0, color_max = 0;  // The colour range used, when colouring.
-  std::string renderer;                 // The GL renderer that drew it.
+  double color_min = 0, color_max = 0;            // The colour range used, when colouring.
+  std::string renderer;                           // The GL renderer that drew it.
+  double grid_rms_error = 0, grid_max_error = 0;  // Volume fields: the sampled grid against the field.
 };
 
 class JobService {
@@ -123,6 +127,9 @@ class JobService {
   void Update(const std::shared_ptr<Entry>& entry, const std::function<void(JobRecord&)>& change, bool persist = true);
   void Persist(const std::shared_ptr<Entry>& entry, const JobRecord& copy);
   const JobKind* KindOf(const std::string& method) const;
+  // A picture of a volume job's stored field (the Render path for field.lqvf).
+  absl::StatusOr<RenderedPicture> RenderVolumeField(const std::string& id, const std::string& bytes,
+                                                    const render::RenderParams& params);
 
   JobServiceOptions options_;
   std::unique_ptr<render::SharedRenderer> renderer_;
@@ -130,6 +137,9 @@ class JobService {
   std::shared_ptr<BlobStore> blobs_;
   std::mutex store_mutex_;  // Orders store writes (never held with mutex_).
   std::atomic<int> renders_{0};
+  std::mutex volume_mutex_;  // Guards the two below: the last volume grid drawn and its key.
+  std::string volume_key_;
+  std::shared_ptr<const SampledVolume> volume_grid_;
   mutable std::mutex mutex_;
   mutable std::condition_variable changed_;  // Any job changed (watchers).
   std::condition_variable work_available_;   // Queue gained a job or shutdown began.

@@ -2,6 +2,7 @@
 
 #include <charconv>
 #include <cmath>
+#include <random>
 
 #include "worker/core/status.h"
 #include "worker/core/strings.h"
@@ -165,6 +166,49 @@ absl::StatusOr<VolumeResult> ReconstructVolume(const core::ParamSet& params, con
   result.statistics.emplace_back("triangles", static_cast<double>(result.mesh.faces.size()));
   result.field = std::move(field);
   return result;
+}
+
+absl::StatusOr<SampledVolume> SampleVolumeForPicture(const volume::VolumeField& field, int resolution,
+                                                     const core::JobContext* ctx) {
+  SampledVolume out;
+  render::VolumeGrid& g = out.grid;
+  const core::Box3& box = field.bounds();
+  const double h = std::max(box.sizes().maxCoeff(), 1e-30) / (resolution - 1);
+  for (int a = 0; a < 3; ++a) g.dims[a] = std::max(2, static_cast<int>(std::ceil(box.sizes()[a] / h)) + 1);
+  g.origin = box.min();
+  g.spacing = core::Vec3d::Constant(h);
+  std::vector<core::Vec3d> xs;
+  xs.reserve(static_cast<size_t>(g.dims[0]) * g.dims[1] * g.dims[2]);
+  for (int k = 0; k < g.dims[2]; ++k) {
+    for (int j = 0; j < g.dims[1]; ++j) {
+      for (int i = 0; i < g.dims[0]; ++i) xs.push_back(g.origin + h * core::Vec3d(i, j, k));
+    }
+  }
+  std::vector<volume::VolumeField::Sample> samples(xs.size());
+  LSQSURF_RETURN_IF_ERROR(field.EvaluateBatch(xs, 0, samples, ctx));
+  g.values.resize(xs.size());
+  g.gradients.resize(xs.size());
+  for (size_t i = 0; i < xs.size(); ++i) {
+    const bool inside = std::isfinite(samples[i].value) && field.InDomain(xs[i], samples[i].weight);
+    g.values[i] = inside ? static_cast<float>(samples[i].value) : std::numeric_limits<float>::quiet_NaN();
+    g.gradients[i] = samples[i].gradient.cast<float>();
+  }
+  // The grid's error where both it and the field are defined.
+  std::mt19937_64 rng(5);
+  std::uniform_real_distribution<double> unit(0, 1);
+  double sum = 0;
+  int counted = 0;
+  for (int tries = 0; tries < 20'000 && counted < 2'000; ++tries) {
+    const core::Vec3d x = box.min() + core::Vec3d(unit(rng), unit(rng), unit(rng)).cwiseProduct(box.sizes());
+    const double cached = render::GridValue(g, x);
+    if (!std::isfinite(cached)) continue;
+    const double exact = field.Evaluate(x, 0).value;
+    sum += (cached - exact) * (cached - exact);
+    out.max_error = std::max(out.max_error, std::abs(cached - exact));
+    ++counted;
+  }
+  out.rms_error = counted > 0 ? std::sqrt(sum / counted) : 0.0;
+  return out;
 }
 
 const JobKind& VolumeJobKind() {

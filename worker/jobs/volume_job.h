@@ -12,6 +12,7 @@
 #include "absl/status/statusor.h"
 #include "worker/core/job_context.h"
 #include "worker/jobs/job_kind.h"
+#include "worker/render/render.h"
 #include "worker/volume/volume_field.h"
 #include "worker/volume/volume_mesh.h"
 
@@ -35,6 +36,16 @@ struct VolumeResult {
   Statistics statistics;
   std::unique_ptr<volume::VolumeField> field;  // Kept by the service for probes and renders.
 };
+
+// A volume field sampled for pictures, and the sampled grid's error against the field.
+struct SampledVolume {
+  render::VolumeGrid grid;
+  double rms_error = 0, max_error = 0;  // Field units, at 2,000 random points inside the data.
+};
+// `resolution` grid points along the longest side of the field's box; NaN outside the data.
+// Errors: kCancelled.
+absl::StatusOr<SampledVolume> SampleVolumeForPicture(const volume::VolumeField& field, int resolution,
+                                                     const core::JobContext* ctx = nullptr);
 
 // The artifact that keeps a volume job's precomputed field (SerializeVolumeField).
 inline constexpr char kVolumeFieldArtifact[] = "field.lqvf";

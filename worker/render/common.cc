@@ -73,6 +73,21 @@ const core::ParamTable<RenderParams>& ViewParamTable() {
         .Flag<&RenderParams::wireframe>("wireframe", "dark triangle edges over the faces")
         .Flag<&RenderParams::transparent>("transparent", "transparent background")
         .Integer<&RenderParams::samples>("samples", 1, 8, "per pixel", "multisampling: 1, 2, 4 or 8")
+        .Choice<&RenderParams::volume_mode>(
+            "volume_mode",
+            {{"direct", static_cast<int>(VolumeMode::kDirect), "front-to-back compositing through the opacity"},
+             {"isosurface", static_cast<int>(VolumeMode::kIsosurface), "the first crossing of iso_value, shaded"}},
+            "volume fields: how the field is drawn")
+        .Text<&RenderParams::opacity>("opacity",
+                                      "volume fields: t:alpha points, t in [0, 1] over the colour range, alpha the "
+                                      "opacity one grid cell gathers")
+        .Real<&RenderParams::iso_value>("iso_value", -1e30, 1e30, "field units",
+                                        "volume fields: the level drawn "
+                                        "in isosurface mode")
+        .Integer<&RenderParams::volume_resolution>("volume_resolution", 16, 512, "grid points",
+                                                   "volume fields: samples along the longest side of the box")
+        .Real<&RenderParams::ray_step>("ray_step", 0.1, 2, "grid cells", "volume fields: ray-marching step")
+        .AddRule([](const RenderParams& p) { return ParseOpacity(p.opacity).status(); })
         .AddRule([](const RenderParams& p) {
           return p.samples == 1 || p.samples == 2 || p.samples == 4 || p.samples == 8
                      ? absl::OkStatus()

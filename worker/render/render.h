@@ -47,6 +47,10 @@ absl::StatusOr<UpAxis> ParseUpAxis(std::string_view name);
 
 enum class Shading { kSmooth, kFlat };
 
+// How a scalar field on a grid is drawn: direct volume rendering (front-to-back compositing of
+// the colour map and the opacity transfer function) or the first crossing of an iso-value.
+enum class VolumeMode { kDirect = 0, kIsosurface = 1 };
+
 struct RenderParams {
   int width = 1024, height = 1024;  // 16..kMaxImageSide.
   Camera camera;
@@ -63,6 +67,24 @@ struct RenderParams {
   double color_min = 0, color_max = 0;
   bool legend = true;     // A colour bar with its bounds, when colouring.
   double point_size = 0;  // Splat diameter in pixels for clouds; 0 = from the spacing.
+  // Volume fields only.
+  VolumeMode volume_mode = VolumeMode::kDirect;
+  // Opacity transfer function: "t:alpha" pairs separated by commas, t in [0, 1] over the colour
+  // range, alpha the opacity one grid cell of travel gathers at that value (linear between).
+  std::string opacity = "0:0,0.5:0.05,1:0.4";
+  double iso_value = 0;        // kIsosurface: the level.
+  int volume_resolution = 96;  // Grid points along the longest side of the field's box.
+  double ray_step = 0.5;       // Ray-marching step, in grid cells.
+};
+
+// A scalar field sampled on a regular grid (x fastest), with its gradient; NaN values mark
+// points outside the data's domain (rays pass them as empty space).
+struct VolumeGrid {
+  std::array<int, 3> dims = {0, 0, 0};
+  core::Vec3d origin = core::Vec3d::Zero();
+  core::Vec3d spacing = core::Vec3d::Ones();
+  std::vector<float> values;
+  std::vector<core::Vec3f> gradients;
 };
 
 // The view options users set (size, camera, colouring, shading): the one description of them,
@@ -87,6 +109,18 @@ struct RenderInfo {
   double color_min = 0, color_max = 0;
   std::string renderer;  // The GL renderer string, e.g. "llvmpipe (LLVM 15.0.6, 256 bits)".
 };
+
+// Draws `grid` with the camera, size, background and volume options of `params`, on the CPU
+// (all cores): rays through pixel centres, trilinear samples every `ray_step` cells, shading
+// by the interpolated gradient. The reference the GL path will be measured against.
+// Errors: kInvalidArgument (bad parameters or opacity text, an empty or inconsistent grid).
+absl::StatusOr<Image> RaycastVolume(const VolumeGrid& grid, const RenderParams& params, RenderInfo* info = nullptr);
+
+// The trilinear value of `grid` at x; NaN outside the grid or next to a point outside the data.
+double GridValue(const VolumeGrid& grid, const core::Vec3d& x);
+
+// The (t, alpha) points of an opacity text. Errors: kInvalidArgument naming the bad entry.
+absl::StatusOr<std::vector<std::array<double, 2>>> ParseOpacity(std::string_view text);
 
 class Renderer {
  public:

@@ -672,6 +672,10 @@ class Reader {
 
 }  // namespace
 
+bool IsStoredVolumeField(std::string_view bytes) {
+  return bytes.size() >= 8 + kFieldMagic.size() && bytes.substr(8, kFieldMagic.size()) == kFieldMagic;
+}
+
 std::string SerializeVolumeField(const VolumeField& field) {
   const VolumeField::Impl& m = *field.impl_;
   const VolumeFieldStats& st = field.stats_;

@@ -139,6 +139,8 @@ absl::StatusOr<std::unique_ptr<VolumeField>> BuildVolumeField(const VolumeMesh& 
 // kernels, coefficients, data values and gradients, the domain's tetrahedra and the statistics
 // (native little-endian floats; about 90 bytes per vertex and field plus 28 per tetrahedron).
 std::string SerializeVolumeField(const VolumeField& field);
+// Whether `bytes` begin like a stored field (no further check).
+bool IsStoredVolumeField(std::string_view bytes);
 // Errors: kInvalidArgument (not a stored field, truncated or inconsistent).
 absl::StatusOr<std::unique_ptr<VolumeField>> DeserializeVolumeField(std::string_view bytes);
 

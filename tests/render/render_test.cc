@@ -321,3 +321,60 @@ TEST_F(RenderTest, PngDecodesToTheSamePixels) {
 
 }  // namespace
 }  // namespace lsqsurf::render
+
+namespace lsqsurf::render {
+namespace {
+
+// The GL's volume ray casting draws what the CPU reference draws (same rays, samples and
+// compositing; the GL samples a 256-texel colour table and computes in single precision).
+TEST_F(RenderTest, VolumeShaderMatchesTheCpuReference) {
+  VolumeGrid grid;
+  const int n = 40;
+  grid.dims = {n, n, n};
+  grid.origin = core::Vec3d::Constant(-1);
+  grid.spacing = core::Vec3d::Constant(2.0 / (n - 1));
+  for (int k = 0; k < n; ++k) {
+    for (int j = 0; j < n; ++j) {
+      for (int i = 0; i < n; ++i) {
+        const core::Vec3d x = grid.origin + grid.spacing.cwiseProduct(core::Vec3d(i, j, k));
+        const bool inside = x.z() > -0.6;  // The bottom is outside the data.
+        grid.values.push_back(inside ? static_cast<float>(std::sin(3 * x.x()) * std::cos(2 * x.y()) + x.z())
+                                     : std::numeric_limits<float>::quiet_NaN());
+        grid.gradients.push_back(core::Vec3f(static_cast<float>(3 * std::cos(3 * x.x()) * std::cos(2 * x.y())),
+                                             static_cast<float>(-2 * std::sin(3 * x.x()) * std::sin(2 * x.y())), 1.0f));
+      }
+    }
+  }
+  for (const VolumeMode mode : {VolumeMode::kDirect, VolumeMode::kIsosurface}) {
+    RenderParams p;
+    p.width = p.height = 128;
+    p.volume_mode = mode;
+    p.iso_value = 0.3;
+    auto gpu = renderer_->RenderVolume(grid, p);
+    auto cpu = RaycastVolume(grid, p);
+    ASSERT_TRUE(gpu.ok()) << gpu.status();
+    ASSERT_TRUE(cpu.ok()) << cpu.status();
+    int drawn = 0;  // Pixels that are not the white background.
+    for (size_t i = 0; i < cpu->rgba.size(); i += 4) drawn += cpu->rgba[i] < 250 || cpu->rgba[i + 2] < 250;
+    int gpu_drawn = 0;
+    for (size_t i = 0; i < gpu->rgba.size(); i += 4) gpu_drawn += gpu->rgba[i] < 250 || gpu->rgba[i + 2] < 250;
+    EXPECT_GT(drawn, 128 * 128 / 10);
+    EXPECT_NEAR(gpu_drawn, drawn, drawn / 100);
+    std::vector<int> differences;
+    double sum = 0;
+    for (size_t i = 0; i < cpu->rgba.size(); ++i) {
+      const int d = std::abs(static_cast<int>(cpu->rgba[i]) - static_cast<int>(gpu->rgba[i]));
+      differences.push_back(d);
+      sum += d;
+    }
+    std::sort(differences.begin(), differences.end());
+    const double mean = sum / static_cast<double>(differences.size());
+    std::printf("mode %d: mean difference %.3f, 99th percentile %d\n", static_cast<int>(mode), mean,
+                differences[differences.size() * 99 / 100]);
+    EXPECT_LT(mean, 1.5);
+    EXPECT_LE(differences[differences.size() * 99 / 100], 16);
+  }
+}
+
+}  // namespace
+}  // namespace lsqsurf::render

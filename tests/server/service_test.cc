@@ -207,7 +207,7 @@ TEST_F(ServiceTest, AVolumeMeshBecomesAnIsosurfaceAndBadVolumesAreRefused) {
   auto frame = client_->Render(job->id(), "field.lqvf", view);
   ASSERT_TRUE(frame.ok()) << frame.status();
   EXPECT_EQ(frame->png().substr(1, 3), "PNG");
-  EXPECT_NE(frame->renderer().find("CPU ray caster"), std::string::npos) << frame->renderer();
+  EXPECT_FALSE(frame->renderer().empty());
   EXPECT_GT(frame->grid_rms_error(), 0);
   EXPECT_LT(frame->grid_max_error(), 0.05 * (frame->color_max() - frame->color_min()));
   view.set_opacity("1:0,0:1");

@@ -409,8 +409,15 @@ absl::StatusOr<RenderedPicture> JobService::RenderVolumeField(const std::string&
     volume_key_ = key;
     volume_grid_ = sampled;
   }
+  // The GL's shader on a GPU; on Mesa's software rasterizer (or without a GL) the C++ ray
+  // caster, which draws the same picture twice as fast there (measured: 0.24 s against 0.53 s
+  // for 512² frames of the 384k-tetrahedra Marschner–Lobb mesh).
   render::RenderInfo info;
-  auto image = render::RaycastVolume(sampled->grid, params, &info);
+  auto renderer = renderer_->Get();
+  const bool gpu = renderer.ok() && (*renderer)->description().find("llvmpipe") == std::string::npos &&
+                   (*renderer)->description().find("softpipe") == std::string::npos;
+  auto image = gpu ? (*renderer)->RenderVolume(sampled->grid, params, &info)
+                   : render::RaycastVolume(sampled->grid, params, &info);
   if (!image.ok()) return image.status();
   auto png = render::EncodePng(*image);
   if (!png.ok()) return png.status();

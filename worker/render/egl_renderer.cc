@@ -128,6 +128,91 @@ void main() {
 )";
 
 constexpr int kColorMapTexels = 256;
+constexpr int kMaxOpacityPoints = 16;
+
+// Volume ray casting: one full-screen triangle; each fragment marches its ray through a 3-D
+// texture of (value, gradient) exactly as RaycastVolume does on the CPU (render.h).
+constexpr char kVolumeVertex[] = R"(#version 450 core
+void main() {
+  vec2 corner = vec2(float((gl_VertexID << 1) & 2), float(gl_VertexID & 2));
+  gl_Position = vec4(corner * 2.0 - 1.0, 0.0, 1.0);
+}
+)";
+
+constexpr char kVolumeFragment[] = R"(#version 450 core
+uniform sampler3D field;
+uniform sampler2D colormap;
+uniform mat4 inverse_view_projection;
+uniform vec2 viewport;
+uniform vec3 box_min, box_max, dims;
+uniform float step, step_cells, lo, span, iso, specular, back_alpha;
+uniform int mode, opacity_count;
+uniform float opacity_t[16], opacity_a[16];
+uniform vec3 background, base_color;
+out vec4 fragment;
+
+vec4 at(vec3 x) {
+  vec3 t = (x - box_min) / (box_max - box_min);
+  if (any(lessThan(t, vec3(0.0))) || any(greaterThan(t, vec3(1.0)))) return vec4(0.0 / 0.0);
+  return texture(field, (t * (dims - 1.0) + 0.5) / dims);
+}
+float opacity(float t) {
+  if (t <= opacity_t[0]) return opacity_a[0];
+  for (int k = 1; k < opacity_count; ++k) {
+    if (t <= opacity_t[k]) {
+      float u = (t - opacity_t[k - 1]) / max(opacity_t[k] - opacity_t[k - 1], 1e-12);
+      return mix(opacity_a[k - 1], opacity_a[k], u);
+    }
+  }
+  return opacity_a[opacity_count - 1];
+}
+float diffuse(vec3 g, vec3 dir) { float n = length(g); return n > 0.0 ? abs(dot(g, dir)) / n : 1.0; }
+bool finite(float v) { return !isnan(v) && !isinf(v); }
+
+void main() {
+  vec2 ndc = gl_FragCoord.xy / viewport * 2.0 - 1.0;
+  vec4 a = inverse_view_projection * vec4(ndc, -1.0, 1.0), b = inverse_view_projection * vec4(ndc, 1.0, 1.0);
+  vec3 from = a.xyz / a.w, dir = normalize(b.xyz / b.w - from);
+  vec3 u0 = (box_min - from) / dir, u1 = (box_max - from) / dir;
+  vec3 near = min(u0, u1), far = max(u0, u1);
+  float t0 = max(max(max(near.x, near.y), near.z), 0.0), t1 = min(min(far.x, far.y), far.z);
+  vec3 color = vec3(0.0);
+  float alpha = 0.0;
+  vec4 previous = vec4(0.0 / 0.0);
+  for (float t = t0; t <= t1 && alpha < 0.995; t += step) {
+    vec4 s = at(from + t * dir);
+    if (mode == 1) {
+      if (finite(s.x) && finite(previous.x) && ((s.x >= iso) != (previous.x >= iso))) {
+        float ta = t - step, tb = t, fa = previous.x - iso;
+        vec4 hit = s;
+        for (int it = 0; it < 8; ++it) {
+          float tm = 0.5 * (ta + tb);
+          vec4 m = at(from + tm * dir);
+          if (!finite(m.x)) break;
+          hit = m;
+          if ((m.x - iso < 0.0) == (fa < 0.0)) { ta = tm; fa = m.x - iso; } else { tb = tm; }
+        }
+        float d = diffuse(hit.yzw, dir);
+        color = base_color * (0.18 + 0.82 * d) + vec3(specular * pow(d, 48.0));
+        alpha = 1.0;
+        break;
+      }
+      previous = s;
+      continue;
+    }
+    if (!finite(s.x)) continue;
+    float u = clamp((s.x - lo) / span, 0.0, 1.0);
+    float a_cell = opacity(u);
+    if (a_cell <= 0.0) continue;
+    float a_step = 1.0 - pow(1.0 - min(a_cell, 0.999999), step_cells);
+    vec3 c = texture(colormap, vec2(u * (255.0 / 256.0) + 0.5 / 256.0, 0.5)).rgb;
+    float light = 0.35 + 0.65 * diffuse(s.yzw, dir);
+    color += (1.0 - alpha) * a_step * light * c;
+    alpha += (1.0 - alpha) * a_step;
+  }
+  fragment = vec4(color + (1.0 - alpha) * back_alpha * background, back_alpha > 0.0 ? 1.0 : alpha);
+}
+)";
 
 // Geometry handed to the GL: positions, optional normals and scalars, optional triangles, and
 // what the caller's thread worked out about them (the render thread only draws).
@@ -175,6 +260,27 @@ class EglRenderer final : public Renderer {
     auto scalars = FindScalars(cloud.attributes, params.color_attribute);
     if (!scalars.ok()) return scalars.status();
     return Enqueue({cloud.positions, cloud.normals, *scalars, {}}, params, info);
+  }
+
+  absl::StatusOr<Image> RenderVolume(const VolumeGrid& grid, const RenderParams& params, RenderInfo* info) override {
+    LSQSURF_RETURN_IF_ERROR(Validate(params));
+    const size_t count = static_cast<size_t>(grid.dims[0]) * grid.dims[1] * grid.dims[2];
+    if (grid.dims[0] < 2 || grid.dims[1] < 2 || grid.dims[2] < 2 || grid.values.size() != count ||
+        grid.gradients.size() != count) {
+      return absl::InvalidArgumentError("the volume grid is empty or its arrays do not match its size");
+    }
+    LSQSURF_ASSIGN_OR_RETURN(auto opacity, ParseOpacity(params.opacity));
+    if (opacity.size() > static_cast<size_t>(kMaxOpacityPoints)) {
+      return absl::InvalidArgumentError(core::StrCat("opacity: at most ", kMaxOpacityPoints, " points"));
+    }
+    // Texels of (value, gradient), interleaved on the calling thread.
+    std::vector<float> texels(4 * count);
+    for (size_t i = 0; i < count; ++i) {
+      texels[4 * i] = grid.values[i];
+      for (int c = 0; c < 3; ++c) texels[4 * i + 1 + c] = grid.gradients[i][c];
+    }
+    const auto range = internal::VolumeColorRange(grid, params);
+    return Run([&] { return DrawVolume(grid, texels, opacity, range, params, info); });
   }
 
   std::string description() const override { return description_; }
@@ -360,6 +466,9 @@ class EglRenderer final : public Renderer {
     auto overlay = Compile(kOverlayVertex, kOverlayFragment);
     if (!overlay.ok()) return overlay.status();
     overlay_program_ = *overlay;
+    auto volume = Compile(kVolumeVertex, kVolumeFragment);
+    if (!volume.ok()) return volume.status();
+    volume_program_ = *volume;
     std::vector<float> table(3 * kColorMapTexels);
     for (int i = 0; i < kColorMapTexels; ++i) {
       const auto rgb = ColorMap(static_cast<double>(i) / (kColorMapTexels - 1));
@@ -380,6 +489,7 @@ class EglRenderer final : public Renderer {
     if (display_ == EGL_NO_DISPLAY) return;
     if (surface_program_) gl_.DeleteProgram(surface_program_);
     if (overlay_program_) gl_.DeleteProgram(overlay_program_);
+    if (volume_program_) gl_.DeleteProgram(volume_program_);
     if (colormap_) gl_.DeleteTextures(1, &colormap_);
     eglMakeCurrent(display_, EGL_NO_SURFACE, EGL_NO_SURFACE, EGL_NO_CONTEXT);
     eglDestroyContext(display_, context_);
@@ -585,6 +695,94 @@ class EglRenderer final : public Renderer {
     return image;
   }
 
+  // Render-thread only.
+  absl::StatusOr<Image> DrawVolume(const VolumeGrid& g, const std::vector<float>& texels,
+                                   const std::vector<std::array<double, 2>>& opacity, std::pair<double, double> range,
+                                   const RenderParams& p, RenderInfo* info) {
+    const int w = p.width, h = p.height;
+    auto targets = MakeTargets(w, h, 1);
+    if (!targets.ok()) return targets.status();
+    GLuint texture = 0, vao = 0;
+    gl_.GenTextures(1, &texture);
+    gl_.ActiveTexture(GL_TEXTURE1);
+    gl_.BindTexture(GL_TEXTURE_3D, texture);
+    gl_.TexImage3D(GL_TEXTURE_3D, 0, GL_RGBA32F, g.dims[0], g.dims[1], g.dims[2], 0, GL_RGBA, GL_FLOAT, texels.data());
+    for (GLenum wrap : {GL_TEXTURE_WRAP_S, GL_TEXTURE_WRAP_T, GL_TEXTURE_WRAP_R}) {
+      gl_.TexParameteri(GL_TEXTURE_3D, wrap, GL_CLAMP_TO_EDGE);
+    }
+    gl_.TexParameteri(GL_TEXTURE_3D, GL_TEXTURE_MIN_FILTER, GL_LINEAR);
+    gl_.TexParameteri(GL_TEXTURE_3D, GL_TEXTURE_MAG_FILTER, GL_LINEAR);
+    GLenum error = gl_.GetError();
+    Image image;
+    if (error == GL_NO_ERROR) {
+      gl_.BindFramebuffer(GL_FRAMEBUFFER, targets->fbo[0]);
+      gl_.Viewport(0, 0, w, h);
+      gl_.Disable(GL_DEPTH_TEST);
+      const core::Box3 box(
+          g.origin,
+          g.origin + (core::Vec3d(g.dims[0], g.dims[1], g.dims[2]) - core::Vec3d::Ones()).cwiseProduct(g.spacing));
+      SetVolumeUniforms(g, box, opacity, range, p);
+      gl_.GenVertexArrays(1, &vao);
+      gl_.BindVertexArray(vao);
+      gl_.DrawArrays(GL_TRIANGLES, 0, 3);
+      image = ReadBack(*targets, w, h, &error);
+      gl_.BindVertexArray(0);
+      gl_.DeleteVertexArrays(1, &vao);
+      gl_.Enable(GL_DEPTH_TEST);
+    }
+    gl_.DeleteTextures(1, &texture);
+    gl_.ActiveTexture(GL_TEXTURE0);
+    ReleaseTargets(*targets);
+    if (error == GL_OUT_OF_MEMORY) {
+      return absl::ResourceExhaustedError("the volume grid does not fit in the GL's memory; lower the resolution");
+    }
+    if (error != GL_NO_ERROR) return absl::InternalError(core::StrCat("GL error 0x", std::to_string(error)));
+    if (info) {
+      info->color_min = range.first;
+      info->color_max = range.second;
+      info->renderer = renderer_;
+    }
+    return image;
+  }
+
+  void SetVolumeUniforms(const VolumeGrid& g, const core::Box3& box, const std::vector<std::array<double, 2>>& opacity,
+                         std::pair<double, double> range, const RenderParams& p) {
+    const GLuint prog = volume_program_;
+    gl_.UseProgram(prog);
+    auto uniform = [&](const char* name) { return gl_.GetUniformLocation(prog, name); };
+    const View view = MakeView(box, p);
+    const Eigen::Matrix4f inverse = (view.projection * view.model_view).inverse();
+    gl_.UniformMatrix4fv(uniform("inverse_view_projection"), 1, GL_FALSE, inverse.data());
+    gl_.Uniform2f(uniform("viewport"), static_cast<float>(p.width), static_cast<float>(p.height));
+    const Eigen::Vector3f lo = box.min().cast<float>(), hi = box.max().cast<float>();
+    gl_.Uniform3f(uniform("box_min"), lo.x(), lo.y(), lo.z());
+    gl_.Uniform3f(uniform("box_max"), hi.x(), hi.y(), hi.z());
+    gl_.Uniform3f(uniform("dims"), static_cast<float>(g.dims[0]), static_cast<float>(g.dims[1]),
+                  static_cast<float>(g.dims[2]));
+    gl_.Uniform1f(uniform("step"), static_cast<float>(p.ray_step * g.spacing.minCoeff()));
+    gl_.Uniform1f(uniform("step_cells"), static_cast<float>(p.ray_step));
+    gl_.Uniform1f(uniform("lo"), static_cast<float>(range.first));
+    gl_.Uniform1f(uniform("span"), static_cast<float>(range.second > range.first ? range.second - range.first : 1.0));
+    gl_.Uniform1f(uniform("iso"), static_cast<float>(p.iso_value));
+    gl_.Uniform1f(uniform("specular"), static_cast<float>(p.specular));
+    gl_.Uniform1f(uniform("back_alpha"), p.transparent ? 0.0f : 1.0f);
+    gl_.Uniform1i(uniform("mode"), p.volume_mode == VolumeMode::kIsosurface ? 1 : 0);
+    std::array<float, kMaxOpacityPoints> t{}, a{};
+    for (size_t k = 0; k < opacity.size(); ++k) {
+      t[k] = static_cast<float>(opacity[k][0]);
+      a[k] = static_cast<float>(opacity[k][1]);
+    }
+    gl_.Uniform1i(uniform("opacity_count"), static_cast<GLint>(opacity.size()));
+    gl_.Uniform1fv(uniform("opacity_t"), kMaxOpacityPoints, t.data());
+    gl_.Uniform1fv(uniform("opacity_a"), kMaxOpacityPoints, a.data());
+    gl_.Uniform3f(uniform("background"), p.background[0], p.background[1], p.background[2]);
+    gl_.Uniform3f(uniform("base_color"), p.base_color[0], p.base_color[1], p.base_color[2]);
+    gl_.Uniform1i(uniform("field"), 1);
+    gl_.ActiveTexture(GL_TEXTURE0);
+    gl_.BindTexture(GL_TEXTURE_2D, colormap_);
+    gl_.Uniform1i(uniform("colormap"), 0);
+  }
+
   // A vertical colour bar at the right edge, maximum on top, with its bounds printed beside it.
   void DrawLegend(int w, int h, double lo, double hi) {
     const float x0 = static_cast<float>(w) - std::max(24.0f, 0.035f * static_cast<float>(w)) - 8.0f;
@@ -634,7 +832,7 @@ class EglRenderer final : public Renderer {
   internal::GlApi gl_;
   EGLDisplay display_ = EGL_NO_DISPLAY;
   EGLContext context_ = EGL_NO_CONTEXT;
-  GLuint surface_program_ = 0, overlay_program_ = 0, colormap_ = 0;
+  GLuint surface_program_ = 0, overlay_program_ = 0, volume_program_ = 0, colormap_ = 0;
   std::string renderer_, description_;
 
   std::thread thread_;

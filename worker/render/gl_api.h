@@ -38,7 +38,7 @@ namespace lsqsurf::render::internal {
   X(Uniform3f, UNIFORM3F) X(UniformMatrix4fv, UNIFORMMATRIX4FV) X(UseProgram, USEPROGRAM) \
   X(VertexAttrib1f, VERTEXATTRIB1F) X(VertexAttribPointer, VERTEXATTRIBPOINTER)           \
   X(Viewport, VIEWPORT) X(DepthFunc, DEPTHFUNC) X(BlendFunc, BLENDFUNC)          \
-  X(CullFace, CULLFACE) X(FrontFace, FRONTFACE)
+  X(CullFace, CULLFACE) X(FrontFace, FRONTFACE) X(TexImage3D, TEXIMAGE3D) X(Uniform1fv, UNIFORM1FV)
 // clang-format on
 
 struct GlApi {

@@ -131,6 +131,11 @@ class Renderer {
                                            RenderInfo* info = nullptr) = 0;
   virtual absl::StatusOr<Image> RenderPoints(const core::PointCloud& cloud, const RenderParams& params,
                                              RenderInfo* info = nullptr) = 0;
+  // The picture RaycastVolume draws, ray-cast in a fragment shader over 3-D textures of the
+  // grid's values and gradients. Errors: those of RaycastVolume, kResourceExhausted (the grid
+  // does not fit in the GL's memory).
+  virtual absl::StatusOr<Image> RenderVolume(const VolumeGrid& grid, const RenderParams& params,
+                                             RenderInfo* info = nullptr) = 0;
   virtual std::string description() const = 0;  // Backend, EGL platform and GL renderer.
 };
 

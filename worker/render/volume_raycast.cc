@@ -65,6 +65,19 @@ double Diffuse(const Vec3d& gradient, const Vec3d& dir) {
 
 }  // namespace
 
+namespace internal {
+
+std::pair<double, double> VolumeColorRange(const VolumeGrid& grid, const RenderParams& p) {
+  if (p.color_min != p.color_max) return {p.color_min, p.color_max};
+  double lo = std::numeric_limits<double>::infinity(), hi = -lo;
+  for (float v : grid.values) {
+    if (std::isfinite(v)) lo = std::min<double>(lo, v), hi = std::max<double>(hi, v);
+  }
+  return lo <= hi ? std::pair{lo, hi} : std::pair{0.0, 0.0};
+}
+
+}  // namespace internal
+
 double GridValue(const VolumeGrid& grid, const core::Vec3d& x) { return At(grid, x).value; }
 
 absl::StatusOr<std::vector<std::array<double, 2>>> ParseOpacity(std::string_view text) {
@@ -102,15 +115,7 @@ absl::StatusOr<Image> RaycastVolume(const VolumeGrid& g, const RenderParams& p, 
   LSQSURF_ASSIGN_OR_RETURN(auto opacity, ParseOpacity(p.opacity));
   const core::Box3 box(g.origin,
                        g.origin + (Vec3d(g.dims[0], g.dims[1], g.dims[2]) - Vec3d::Ones()).cwiseProduct(g.spacing));
-  double lo = p.color_min, hi = p.color_max;
-  if (lo == hi) {
-    lo = std::numeric_limits<double>::infinity();
-    hi = -lo;
-    for (float v : g.values) {
-      if (std::isfinite(v)) lo = std::min<double>(lo, v), hi = std::max<double>(hi, v);
-    }
-    if (!(lo <= hi)) lo = hi = 0;
-  }
+  const auto [lo, hi] = internal::VolumeColorRange(g, p);
   const double span = hi > lo ? hi - lo : 1.0;
   const internal::View view = internal::MakeView(box, p);
   const Eigen::Matrix4d inverse = (view.projection.cast<double>() * view.model_view.cast<double>()).inverse();

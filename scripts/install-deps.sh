@@ -20,7 +20,8 @@ for option in "$@"; do
   case "$option" in
     --with-poisson) packages+=(libopen3d-dev) ;;
     --with-openvdb) packages+=(libopenvdb-dev libboost-dev) ;;  # OpenVDB's headers include Boost's.
-    *) echo "install-deps: unknown option $option (--with-poisson, --with-openvdb)" >&2; exit 2 ;;
+    --with-vtk) packages+=(python3-vtk9 python3-numpy xvfb) ;;  # bench/vtk_volume_reference.py
+    *) echo "install-deps: unknown option $option (--with-poisson, --with-openvdb, --with-vtk)" >&2; exit 2 ;;
   esac
 done
 

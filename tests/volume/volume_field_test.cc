@@ -6,6 +6,7 @@
 #include <random>
 
 #include "worker/volume/cell_locator.h"
+#include "worker/volume/kernels.h"
 #include "worker/volume/synthetic.h"
 
 namespace lsqsurf::volume {
@@ -231,6 +232,64 @@ TEST(VolumeField, StoredFieldEvaluatesExactlyAsTheOriginal) {
   // Every truncation is refused, never read past.
   for (size_t cut : {size_t{0}, size_t{5}, bytes.size() / 3, bytes.size() - 1}) {
     EXPECT_EQ(DeserializeVolumeField(bytes.substr(0, cut)).status().code(), absl::StatusCode::kInvalidArgument);
+  }
+}
+
+}  // namespace
+}  // namespace lsqsurf::volume
+
+namespace lsqsurf::volume {
+namespace {
+
+TEST(VolumeKernels, InlineExponentialMatchesTheLibrary) {
+  for (float s = 0; s <= 12; s += 1e-3f) {
+    ASSERT_NEAR(ExpOfMinus(s), std::exp(-static_cast<double>(s)), 1.2e-6 * std::exp(-static_cast<double>(s))) << s;
+  }
+}
+
+TEST(VolumeKernels, BatchEvaluationAgreesWithSinglePoints) {
+  // Stretched cells give kernels 10:1 and more, the case where the batch path's bound on which
+  // kernels can reach a group of points is loosest; points also fall outside and on the border.
+  const AnalyticField franke = Franke3d();
+  for (const bool stretched : {false, true}) {
+    VolumeMesh mesh = stretched ? StretchedCurvilinearGrid(franke.domain, 14, 14, 24, 1.15)
+                                : JitteredTetMesh(franke.domain, 13, 0.3, 5);
+    SampleField(mesh, franke);
+    auto field = Build(mesh, "franke");
+    ASSERT_NE(field, nullptr);
+    std::mt19937_64 rng(3);
+    std::uniform_real_distribution<double> coordinate(-0.1, 1.1);
+    std::vector<Vec3d> xs(20'000);
+    for (Vec3d& x : xs) x = Vec3d(coordinate(rng), coordinate(rng), coordinate(rng));
+    xs[0] = Vec3d(std::nan(""), 0.5, 0.5);
+    xs[1] = field->bounds().max();
+    xs[2] = field->bounds().min();
+    std::vector<VolumeField::Sample> batch(xs.size());
+    ASSERT_TRUE(field->EvaluateBatch(xs, 0, batch).ok());
+    // Ψ jumps by 6.5 e^{-9} ≈ 8e-4 of its weight at the cutoff, so a point where some kernel's
+    // s is within rounding of it may count that kernel on one path only: rare, and small. A kernel
+    // wrongly left out of a group would cost up to 2.5 times its weight.
+    int reached = 0, rounding_differences = 0;
+    for (size_t k = 0; k < xs.size(); ++k) {
+      const VolumeField::Sample one = field->Evaluate(xs[k], 0);
+      const double weight_difference = std::abs(batch[k].weight - one.weight);
+      ASSERT_LT(weight_difference, 1e-3) << k;
+      if (weight_difference > 1e-5) {
+        ++rounding_differences;
+        continue;
+      }
+      if (one.weight == 0) continue;
+      // The sums agree everywhere; normalised values only where the weight is not tiny (at the
+      // support's rim a 1e-7 difference in the sum is divided by 1e-3).
+      ASSERT_NEAR(batch[k].value * batch[k].weight, one.value * one.weight, 1e-5) << k;
+      if (one.weight < 0.1) continue;
+      ++reached;
+      ASSERT_NEAR(batch[k].value, one.value, 1e-5) << k;
+      ASSERT_LT((batch[k].gradient - one.gradient).norm(), 1e-4 * (1 + one.gradient.norm())) << k;
+    }
+    EXPECT_LT(rounding_differences, 40);
+    EXPECT_GT(reached, 10'000);
+    EXPECT_TRUE(std::isnan(batch[0].value));
   }
 }
 

@@ -39,9 +39,11 @@ class ImplicitFunction {
   // need for corner signs and root refinement). Default: Value(x).value.
   virtual double ValueOnly(const Vec3d& x) const { return Value(x).value; }
 
-  // ValueOnly at many points, in parallel. `out.size()` must equal `xs.size()`.
+  // ValueOnly at many points, in parallel. `out.size()` must equal `xs.size()`. Default: ValueOnly
+  // at each; a method with a faster batch path overrides it.
   // Errors: kCancelled when `ctx` is cancelled.
-  absl::Status ValueOnlyBatch(std::span<const Vec3d> xs, std::span<double> out, const JobContext* ctx = nullptr) const;
+  virtual absl::Status ValueOnlyBatch(std::span<const Vec3d> xs, std::span<double> out,
+                                      const JobContext* ctx = nullptr) const;
 };
 
 // The root of F on the segment a → b, where F(a) = fa and F(b) = fb have opposite signs, as the

@@ -57,8 +57,19 @@ std::span<const uint32_t> BoxGrid::At(const core::Vec3d& x, double slack) const 
     if (!(t >= -slack) || t > bins_[a] + slack) return {};
     cell[a] = std::clamp(static_cast<int>(t), 0, bins_[a] - 1);
   }
-  const size_t b = (static_cast<size_t>(cell[2]) * bins_[1] + cell[1]) * bins_[0] + cell[0];
-  return {items_.data() + start_[b], start_[b + 1] - start_[b]};
+  return Items((static_cast<int64_t>(cell[2]) * bins_[1] + cell[1]) * bins_[0] + cell[0]);
+}
+
+int64_t BoxGrid::Locate(const core::Vec3d& x, core::Vec3d* within) const {
+  if (start_.empty()) return -1;
+  std::array<int, 3> cell;
+  for (int a = 0; a < 3; ++a) {
+    const double t = (x[a] - origin_[a]) * inv_bin_[a];
+    if (!(t >= 0) || t > bins_[a]) return -1;
+    cell[a] = std::min(static_cast<int>(t), bins_[a] - 1);
+    if (within != nullptr) (*within)[a] = std::clamp(t - cell[a], 0.0, 1.0 - 1e-9);
+  }
+  return (static_cast<int64_t>(cell[2]) * bins_[1] + cell[1]) * bins_[0] + cell[0];
 }
 
 }  // namespace lsqsurf::volume

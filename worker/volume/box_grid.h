@@ -24,6 +24,11 @@ class BoxGrid {
   // The boxes whose bins hold x; empty outside the grid (a margin of `slack` bins counts as
   // inside, clamped to the border bins).
   std::span<const uint32_t> At(const core::Vec3d& x, double slack = 0) const;
+  // The bin that holds x (−1 outside the grid) and, in `within`, where in that bin ([0, 1)³).
+  int64_t Locate(const core::Vec3d& x, core::Vec3d* within = nullptr) const;
+  std::span<const uint32_t> Items(int64_t bin) const {
+    return {items_.data() + start_[bin], start_[bin + 1] - start_[bin]};
+  }
 
  private:
   core::Vec3d origin_ = core::Vec3d::Zero();

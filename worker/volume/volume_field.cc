@@ -14,7 +14,7 @@
 #include "worker/core/parallel.h"
 #include "worker/core/status.h"
 #include "worker/core/strings.h"
-#include "worker/volume/box_grid.h"
+#include "worker/volume/kernels.h"
 
 namespace lsqsurf::volume {
 namespace {
@@ -30,100 +30,6 @@ constexpr int kCvMaxIterations = 16;
 constexpr double kCvTolerance = 1.02;
 
 const std::array<double, 5> kEpsilonCandidates = {0.7, 0.85, 1.0, 1.2, 1.45};
-
-Eigen::Matrix3d FromSym(const Sym3& s) {
-  Eigen::Matrix3d m;
-  m << s[0], s[3], s[4], s[3], s[1], s[5], s[4], s[5], s[2];
-  return m;
-}
-
-// One generating function per vertex: centre, shape S = ε² M / H², weight ε³ V / (π^{3/2} H³).
-struct KernelRecord {
-  Vec3f center;
-  float weight;
-  std::array<float, 6> shape;  // xx, yy, zz, 2xy, 2xz, 2yz
-};
-
-// The kernels of a vertex set for one ε, and a uniform grid of their supports' bounding boxes.
-class Kernels {
- public:
-  Kernels(std::span<const Vec3f> centers, std::span<const Sym3> metric, std::span<const float> volume,
-          const VolumeFieldParams& p, double eps) {
-    const size_t n = centers.size();
-    records_.resize(n);
-    cutoff2_ = static_cast<float>(p.cutoff * p.cutoff);
-    const double eps3 = eps * eps * eps / std::pow(std::numbers::pi, 1.5);
-    for (size_t i = 0; i < n; ++i) {
-      const double v = std::max<double>(volume[i], 1e-30);
-      const double h = p.spacing > 0 ? p.spacing : p.spacing_scale * std::cbrt(v);
-      const Eigen::Matrix3d m = p.anisotropic ? FromSym(metric[i]) : Eigen::Matrix3d::Identity();
-      const Eigen::Matrix3d s = (eps * eps / (h * h)) * m;
-      KernelRecord& r = records_[i];
-      r.center = centers[i];
-      r.weight = static_cast<float>(eps3 * v / (h * h * h));
-      r.shape = {static_cast<float>(s(0, 0)),     static_cast<float>(s(1, 1)),     static_cast<float>(s(2, 2)),
-                 static_cast<float>(2 * s(0, 1)), static_cast<float>(2 * s(0, 2)), static_cast<float>(2 * s(1, 2))};
-    }
-    BuildGrid();
-  }
-  // Kernels read back from a stored field.
-  Kernels(std::vector<KernelRecord> records, float cutoff2) : records_(std::move(records)), cutoff2_(cutoff2) {
-    BuildGrid();
-  }
-
-  size_t size() const { return records_.size(); }
-  const std::vector<KernelRecord>& records() const { return records_; }
-  float cutoff2() const { return cutoff2_; }
-
-  // Calls f(i, Ψ_i(x)) for every kernel whose support holds x.
-  template <class F>
-  void ForEach(const Vec3d& x, F&& f) const {
-    const Vec3f xf = x.cast<float>();
-    for (const uint32_t i : grid_.At(x)) {
-      const KernelRecord& r = records_[i];
-      const float dx = xf[0] - r.center[0], dy = xf[1] - r.center[1], dz = xf[2] - r.center[2];
-      const auto& q = r.shape;
-      const float s =
-          q[0] * dx * dx + q[1] * dy * dy + q[2] * dz * dz + q[3] * dx * dy + q[4] * dx * dz + q[5] * dy * dz;
-      if (s >= cutoff2_) continue;
-      f(i, r.weight * (2.5f - s) * std::exp(-s));
-    }
-  }
-
- private:
-  void BuildGrid() {
-    const size_t n = records_.size();
-    // The ellipsoid dᵀ S d ≤ c² reaches c √((S⁻¹)_aa) along axis a.
-    std::vector<Vec3f> extent(n);
-    for (size_t i = 0; i < n; ++i) {
-      const auto& q = records_[i].shape;
-      Eigen::Matrix3d s;
-      s << q[0], q[3] / 2, q[4] / 2, q[3] / 2, q[1], q[5] / 2, q[4] / 2, q[5] / 2, q[2];
-      const Eigen::Matrix3d inv = s.inverse();
-      for (int a = 0; a < 3; ++a) extent[i][a] = std::sqrt(static_cast<float>(cutoff2_ * inv(a, a)));
-    }
-    auto support = [&](size_t i) {
-      return core::Box3((records_[i].center - extent[i]).cast<double>(),
-                        (records_[i].center + extent[i]).cast<double>());
-    };
-    core::Box3 bounds;
-    for (size_t i = 0; i < n; ++i) bounds.extend(support(i));
-    // Bins of two thirds of the median reach: a support spans about 4 bins per axis and a query
-    // tests ~4.5 kernels for each one that reaches it. At most ~16M bins.
-    Vec3d bin_size;
-    std::vector<float> e(n);
-    for (int a = 0; a < 3; ++a) {
-      for (size_t i = 0; i < n; ++i) e[i] = extent[i][a];
-      std::nth_element(e.begin(), e.begin() + static_cast<int64_t>(n / 2), e.end());
-      bin_size[a] = std::max(2.0 / 3.0 * e[n / 2], bounds.sizes()[a] / 2048.0);
-    }
-    grid_ = BoxGrid(bounds, bin_size, 16e6, n, support);
-  }
-
-  std::vector<KernelRecord> records_;
-  float cutoff2_ = 9;
-  BoxGrid grid_;
-};
 
 // Rows of Ψ_i(x_k) for query points x_k (CSR, float values).
 struct KernelMatrix {
@@ -159,7 +65,7 @@ absl::StatusOr<KernelMatrix> BuildMatrix(const Kernels& kernels, std::span<const
       [&](size_t begin, size_t end) {
         for (size_t k = begin; k < end; ++k) {
           uint64_t count = 0;
-          kernels.ForEach(queries[k].cast<double>(), [&](uint32_t, float) { ++count; });
+          kernels.ForEach(queries[k].cast<double>(), [&](uint32_t, float, const Vec3f&) { ++count; });
           a.row_start[k + 1] = count;
         }
       },
@@ -174,7 +80,7 @@ absl::StatusOr<KernelMatrix> BuildMatrix(const Kernels& kernels, std::span<const
           const uint64_t first = a.row_start[k];
           uint64_t e = first;
           double sum = 0;
-          kernels.ForEach(queries[k].cast<double>(), [&](uint32_t i, float psi) {
+          kernels.ForEach(queries[k].cast<double>(), [&](uint32_t i, float psi, const Vec3f&) {
             a.column[e] = i;
             a.value[e++] = psi;
             sum += psi;
@@ -381,6 +287,17 @@ struct VolumeField::Impl {
   std::vector<std::vector<float>> g;          // Per field, accumulated value coefficients.
   std::vector<std::vector<Vec3f>> big_g;      // Per field, accumulated gradient coefficients.
   std::unique_ptr<Kernels> kernels;
+  std::vector<std::vector<KernelCoefficients>> packed;  // Per field: g_i, ∇f_i (or 0), G_i.
+
+  void Pack(bool linear_terms) {
+    packed.resize(g.size());
+    for (size_t f = 0; f < g.size(); ++f) {
+      packed[f].resize(g[f].size());
+      for (size_t i = 0; i < g[f].size(); ++i) {
+        packed[f][i] = {g[f][i], linear_terms ? gradients[f][i] : Vec3f::Zero(), big_g[f][i], 0.0f};
+      }
+    }
+  }
 };
 
 const core::ParamTable<VolumeFieldParams>& VolumeFieldParamTable() {
@@ -429,26 +346,17 @@ const core::ParamTable<VolumeFieldParams>& VolumeFieldParamTable() {
 
 absl::Status Validate(const VolumeFieldParams& params) { return VolumeFieldParamTable().Validate(params); }
 
-VolumeField::Sample VolumeField::Evaluate(const Vec3d& x, int field) const {
+VolumeField::Sample VolumeField::ToSample(const KernelSum& sum) const {
   Sample out;
-  double value = 0;
-  Vec3d gradient = Vec3d::Zero();
-  double weight = 0;
-  const auto& g = impl_->g[field];
-  const auto& big_g = impl_->big_g[field];
-  const auto& slope = impl_->gradients[field];
-  const auto& centre = impl_->positions;
-  const Vec3f xf = x.cast<float>();
-  impl_->kernels->ForEach(x, [&](uint32_t i, float psi) {
-    weight += psi;
-    value += psi * (linear_terms_ ? g[i] + slope[i].dot(xf - centre[i]) : g[i]);
-    gradient += psi * big_g[i].cast<double>();
-  });
-  if (weight == 0) return out;
-  out.value = normalize_ ? value / weight : value;
-  out.gradient = normalize_ ? gradient / weight : gradient;
-  out.weight = weight;
+  if (sum.weight == 0) return out;
+  out.value = normalize_ ? sum.value / sum.weight : sum.value;
+  out.gradient = normalize_ ? Vec3d(sum.gradient / sum.weight) : sum.gradient;
+  out.weight = sum.weight;
   return out;
+}
+
+VolumeField::Sample VolumeField::Evaluate(const Vec3d& x, int field) const {
+  return ToSample(impl_->kernels->Sum(x, impl_->packed[field]));
 }
 
 bool VolumeField::InDomain(const Vec3d& x, double weight) const {
@@ -458,12 +366,10 @@ bool VolumeField::InDomain(const Vec3d& x, double weight) const {
 
 absl::Status VolumeField::EvaluateBatch(std::span<const Vec3d> xs, int field, std::span<Sample> out,
                                         const core::JobContext* ctx) const {
-  return core::ParallelFor(
-      xs.size(), 512,
-      [&](size_t begin, size_t end) {
-        for (size_t k = begin; k < end; ++k) out[k] = Evaluate(xs[k], field);
-      },
-      ctx);
+  std::vector<KernelSum> sums(xs.size());
+  LSQSURF_RETURN_IF_ERROR(impl_->kernels->SumBatch(xs, impl_->packed[field], sums, ctx));
+  for (size_t k = 0; k < xs.size(); ++k) out[k] = ToSample(sums[k]);
+  return absl::OkStatus();
 }
 
 int VolumeField::FieldIndex(std::string_view name) const {
@@ -609,6 +515,7 @@ absl::StatusOr<std::unique_ptr<VolumeField>> BuildVolumeField(const VolumeMesh& 
   st.epsilon = eps;
   st.iterations = iterations;
   st.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  impl->Pack(params.linear_terms);
   out->impl_ = std::move(impl);
   return out;
 }
@@ -767,6 +674,7 @@ absl::StatusOr<std::unique_ptr<VolumeField>> DeserializeVolumeField(std::string_
   for (const Vec3f& p : impl->positions) out->bounds_.extend(p.cast<double>());
   if (!tets.empty()) out->locator_ = std::make_unique<CellLocator>(std::move(cell_positions), std::move(tets));
   impl->kernels = std::make_unique<Kernels>(std::move(records), cutoff2);
+  impl->Pack(out->linear_terms_);
   out->impl_ = std::move(impl);
   return out;
 }

@@ -90,6 +90,8 @@ struct VolumeFieldStats {
   double seconds = 0;
 };
 
+struct KernelSum;
+
 class VolumeField {
  public:
   struct Sample {
@@ -119,6 +121,7 @@ class VolumeField {
   struct Impl;
 
  private:
+  Sample ToSample(const KernelSum& sum) const;
   friend absl::StatusOr<std::unique_ptr<VolumeField>> BuildVolumeField(const VolumeMesh&, std::span<const std::string>,
                                                                        const VolumeFieldParams&, core::JobContext&);
   friend std::string SerializeVolumeField(const VolumeField&);

@@ -25,6 +25,13 @@ class LevelFunction final : public core::ImplicitFunction {
     return {s.value - iso_, s.gradient, std::isfinite(s.value) && field_.InDomain(x, s.weight)};
   }
   double ValueOnly(const Vec3d& x) const override { return field_.Evaluate(x, index_).value - iso_; }
+  absl::Status ValueOnlyBatch(std::span<const Vec3d> xs, std::span<double> out,
+                              const core::JobContext* ctx) const override {
+    std::vector<VolumeField::Sample> samples(xs.size());
+    LSQSURF_RETURN_IF_ERROR(field_.EvaluateBatch(xs, index_, samples, ctx));
+    for (size_t k = 0; k < xs.size(); ++k) out[k] = samples[k].value - iso_;
+    return absl::OkStatus();
+  }
 
  private:
   const VolumeField& field_;

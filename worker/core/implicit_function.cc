@@ -19,21 +19,29 @@ absl::Status ImplicitFunction::ValueOnlyBatch(std::span<const Vec3d> xs, std::sp
 double RefineRootOnSegment(const ImplicitFunction& field, const Vec3d& a, const Vec3d& b, double fa, double fb,
                            int steps) {
   const bool a_negative = fa < 0;
+  // Past `steps`, up to kExtraRootSteps more while |F| is above a millionth of the end values'
+  // spread: smooth fields are done by then, but a root next to a kink (a crease, a CSG seam)
+  // converges more slowly and would leave the vertex visibly off the surface.
+  constexpr int kExtraRootSteps = 8;
+  const double tolerance = 1e-6 * std::abs(fa - fb);
   double ta = 0, tb = 1, t = fa / (fa - fb);
   int side = 0;
-  for (int step = 0; step < steps; ++step) {
+  for (int step = 0; step < (steps > 0 ? steps + kExtraRootSteps : 0); ++step) {
     const double f = field.ValueOnly(a + t * (b - a));
     if (std::isnan(f) || f == 0.0) break;
+    // Anderson–Björck: when one end is kept twice, its value is scaled by 1 − f/f_replaced
+    // (0.5 where that is not positive), which converges faster than halving it (Illinois).
     if ((f < 0) == a_negative) {
+      if (side == -1) fb *= 1 - f / fa > 0 ? 1 - f / fa : 0.5;
       ta = t, fa = f;
-      if (side == -1) fb *= 0.5;
       side = -1;
     } else {
+      if (side == 1) fa *= 1 - f / fb > 0 ? 1 - f / fb : 0.5;
       tb = t, fb = f;
-      if (side == 1) fa *= 0.5;
       side = 1;
     }
     t = ta - fa * (tb - ta) / (fb - fa);
+    if (step + 1 >= steps && std::abs(f) <= tolerance) break;
   }
   return t;
 }

@@ -55,6 +55,9 @@ std::array<int, 4> FaceCorners(int face) {
 }  // namespace
 
 absl::Status Validate(const MarchingOptions& options) {
+  if (!(options.crease_angle >= 0 && options.crease_angle <= 90)) {
+    return absl::InvalidArgumentError("crease_angle must be between 0 and 90 degrees");
+  }
   if (options.refine_steps < 0 || options.refine_steps > 20) {
     return absl::InvalidArgumentError("refine_steps must be between 0 and 20");
   }

@@ -41,6 +41,8 @@ struct MarchingOptions {
   int max_patch_triangles = 64;  // Untrusted clusters up to this size enclosed by trusted surface are kept
                                  // (pinholes), trusted ones cut off by untrusted surface are dropped
                                  // (specks); 0 = neither.
+  double crease_angle = 0;       // Degrees, 0..90: an edge whose end normals differ by more is split on the
+                                 // crease it crosses (creases.h); 0 = off.
 };
 
 absl::Status Validate(const MarchingOptions& options);
@@ -61,6 +63,8 @@ struct IsosurfaceStats {
   int64_t crossings = 0;           // Output vertices.
   int64_t rejected_polygons = 0;   // Triangles dropped because a root lay where F is undefined.
   int64_t restored_triangles = 0;  // Untrusted triangles kept as parts of small pinhole patches.
+  int64_t crease_vertices = 0;     // Edges split where they cross a crease.
+  int64_t crease_corners = 0;      // Triangles split around a corner.
 };
 
 struct IsosurfaceResult {

@@ -6,6 +6,7 @@
 #include "absl/container/flat_hash_set.h"
 #include "worker/core/parallel.h"
 #include "worker/core/status.h"
+#include "worker/extract/creases.h"
 
 namespace lsqsurf::extract::internal {
 namespace {
@@ -211,7 +212,8 @@ absl::Status RefineCrossings(const ImplicitFunction& field, const std::vector<Cr
                              const std::function<Vec3d(CornerKey)>& position, const MarchingOptions& params,
                              TriangleMesh& mesh, std::vector<char>& valid, JobContext& ctx) {
   mesh.vertices.resize(crossings.size());
-  if (params.vertex_normals) mesh.normals.resize(crossings.size());
+  const bool normals = params.vertex_normals || params.crease_angle > 0;  // Creases need them.
+  if (normals) mesh.normals.resize(crossings.size());
   valid.assign(crossings.size(), 0);
   return core::ParallelFor(
       crossings.size(), 256,
@@ -229,7 +231,7 @@ absl::Status RefineCrossings(const ImplicitFunction& field, const std::vector<Cr
           // extension of F across a hole in the data) is no surface: drop what uses it.
           const FieldGradient g = field.ValueAndGradient(x);
           valid[i] = g.defined;
-          if (params.vertex_normals) {
+          if (normals) {
             const double len = g.gradient.norm();
             mesh.normals[i] =
                 len > 0 ? Vec3f((g.gradient / len).cast<float>()) : Vec3f((b - a).normalized().cast<float>());
@@ -327,8 +329,15 @@ absl::StatusOr<IsosurfaceResult> MarchTetrahedra(
   stats.rejected_polygons -= stats.restored_triangles;
   stats.rejected_polygons +=
       DropCutOffSpecks(mesh.faces, face_trusted, mesh.vertices.size(), params.max_patch_triangles);
-  KeepTrusted(face_trusted, params.vertex_normals, mesh);
+  KeepTrusted(face_trusted, !mesh.normals.empty(), mesh);
   stats.crossings = static_cast<int64_t>(mesh.vertices.size());
+  if (params.crease_angle > 0) {
+    CreaseCounts creases;
+    LSQSURF_RETURN_IF_ERROR(SharpenCreases(field, params.crease_angle, mesh, creases, ctx));
+    stats.crease_vertices = creases.crease_vertices;
+    stats.crease_corners = creases.corners;
+    if (!params.vertex_normals) mesh.normals.clear();
+  }
   ctx.ReportProgress("", 1.0);
   return result;
 }

@@ -168,6 +168,8 @@ void PuStatistics(const pu::PuStats& s, const StatFn& stat) {
     stat(core::StrCat("fits_degree_", d), static_cast<double>(s.fits_per_degree[d]));
   }
   stat("fits_quadric", static_cast<double>(s.quadric_fits));
+  stat("fits_sharp_edge", static_cast<double>(s.sharp_edges));
+  stat("fits_sharp_corner", static_cast<double>(s.sharp_corners));
   stat("fits_above_threshold", static_cast<double>(s.unmet_threshold));
   for (size_t d = 0; d < s.leaves_per_depth.size(); ++d) {
     if (s.leaves_per_depth[d] > 0) stat(core::StrCat("leaves_depth_", d), static_cast<double>(s.leaves_per_depth[d]));
@@ -186,6 +188,8 @@ absl::StatusOr<extract::IsosurfaceResult> RunPu(const PuJobParams& p, const core
   if (extracted.ok()) {
     stat("extract_seconds", Seconds(start));
     stat("tetrahedra", static_cast<double>(extracted->stats.tetrahedra));
+    stat("crease_vertices", static_cast<double>(extracted->stats.crease_vertices));
+    stat("crease_corners", static_cast<double>(extracted->stats.crease_corners));
   }
   return extracted;
 }
@@ -224,7 +228,7 @@ const std::vector<SurfaceMethod>& SurfaceMethods() {
       MakeMethod("pu",
                  "twofold adaptive partition-of-unity implicit (seed §2): orthogonal-polynomial fits of adaptive "
                  "degree on an adaptive octree, extracted on its J1a tetrahedra",
-                 PuTable(), RunPu, {"depth", "degree"}),
+                 PuTable(), RunPu, {"depth", "degree", "feature"}),
       MakeMethod("ramls",
                  "robust algebraic MLS surface (seed §3): closed-form normal-driven sphere fits, extracted on J1a "
                  "tetrahedra",

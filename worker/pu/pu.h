@@ -55,6 +55,12 @@ struct PuParams {
   // data (median residual of local quadratic fits), 0 declares the data exact. Where σ exceeds
   // error_threshold, the threshold becomes 3σ and min_points at least 80.
   double noise_level = -1;
+  // Sharp features (METHODS §1.7): where a cell's smooth fit fails and two of its normals are
+  // more than sharp_angle degrees apart (5..90; MPU's 0.9 cosine), the normals are clustered
+  // into 2 (edge) or 3–4 (corner) sheets combined by max/min. Off on noisy data (σ above
+  // error_threshold), whose normals split into false clusters.
+  bool sharp = true;
+  double sharp_angle = 25.84;
 };
 
 // The one description of every PuParams field (range, unit, meaning); Validate() checks it.
@@ -64,6 +70,8 @@ absl::Status Validate(const PuParams& params);
 struct PuStats {
   std::array<int64_t, 5> fits_per_degree{};  // Height fits of degree 0..4.
   int64_t quadric_fits = 0;                  // General-quadric fallbacks.
+  int64_t sharp_edges = 0;                   // Two-sheet fits.
+  int64_t sharp_corners = 0;                 // Three- and four-sheet fits.
   std::vector<int64_t> leaves_per_depth;     // All leaves, with or without a fit.
   std::vector<int64_t> fits_per_depth;
   int64_t cells_examined = 0;   // Every cell the adaptive loop looked at.
@@ -82,6 +90,7 @@ struct PuStats {
 struct FitLabel {
   int depth = -1;
   int degree = -1;
+  int feature = 0;  // 0 smooth, 1 edge, 2 corner.
 };
 
 struct PuExtractParams;
@@ -120,11 +129,13 @@ struct PuExtractParams {
   // tetrahedra, so its leaves can be several times larger than the cubes of a Kuhn grid.
   double cell_size = 5.0;
   int64_t max_leaves = 20'000'000;
-  extract::MarchingOptions marching;
-  bool label_vertices = true;  // Adds the vertex attributes "depth" and "degree".
+  // Edges split on creases where their end normals differ by more than 30°: the sharp fits make
+  // creases, and this puts the mesh's edges on them.
+  extract::MarchingOptions marching{.crease_angle = 30};
+  bool label_vertices = true;  // Adds the vertex attributes "depth", "degree" and "feature".
 };
 
-// The user-facing fields of PuExtractParams: cell_size and refine_steps.
+// The user-facing fields of PuExtractParams: cell_size, refine_steps and crease_angle.
 const core::ParamTable<PuExtractParams>& PuExtractParamTable();
 
 // The zero set of F on J1a tetrahedra: the fitting tree down to `cell_size`, refined to at least

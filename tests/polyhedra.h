@@ -1,0 +1,163 @@
+// tests/polyhedra.h — exact convex polyhedra for the crease tests: fields, samples, distances.
+#pragma once
+
+#include <Eigen/Geometry>
+#include <algorithm>
+#include <cmath>
+#include <random>
+#include <utility>
+#include <vector>
+
+#include "worker/core/geometry.h"
+#include "worker/core/implicit_function.h"
+
+namespace lsqsurf::testing {
+
+using core::FieldGradient;
+using core::FieldValue;
+using core::TriangleMesh;
+using core::Vec3d;
+using core::Vec3f;
+
+// max_k (n_k·y − offset_k) over planes, in a frame turned so that nothing lines up with the grid:
+// a convex polyhedron, exact distance inside and a lower bound outside.
+class TurnedPolyhedron : public core::ImplicitFunction {
+ public:
+  TurnedPolyhedron(std::vector<Vec3d> normals, double offset)
+      : normals_(std::move(normals)),
+        offset_(offset),
+        rotation_(Eigen::AngleAxisd(0.37, Vec3d(1, 2, 3).normalized()).toRotationMatrix()) {}
+
+  FieldValue Value(const Vec3d& x) const override { return {Evaluate(x, nullptr), true}; }
+  FieldGradient ValueAndGradient(const Vec3d& x) const override {
+    Vec3d g = Vec3d::Zero();
+    const double v = Evaluate(x, &g);
+    return {v, g, true};
+  }
+  // World coordinates of a point given in the polyhedron's own frame.
+  Vec3d World(const Vec3d& local) const { return rotation_ * local + kCentre; }
+
+  // Points evenly spread over the faces (all of equal area here), with exact normals: points of
+  // a box projected onto a random face's plane, kept where that face is the surface.
+  core::PointCloud Sample(size_t count, uint64_t seed = 9) const {
+    core::PointCloud cloud;
+    std::mt19937_64 rng(seed);
+    std::uniform_real_distribution<double> coordinate(-1, 1);
+    std::uniform_int_distribution<size_t> face(0, normals_.size() - 1);
+    while (cloud.positions.size() < count) {
+      const Vec3d& n = normals_[face(rng)];
+      Vec3d y(coordinate(rng), coordinate(rng), coordinate(rng));
+      y -= (n.dot(y) - offset_) * n;
+      bool on_face = true;
+      for (const Vec3d& m : normals_) on_face &= m.dot(y) - offset_ <= 1e-12;
+      if (!on_face) continue;
+      cloud.positions.push_back(World(y).cast<float>());
+      cloud.normals.push_back((rotation_ * n).cast<float>());
+    }
+    return cloud;
+  }
+
+ private:
+  static inline const Vec3d kCentre{0.013, -0.021, 0.008};
+  double Evaluate(const Vec3d& x, Vec3d* gradient) const {
+    const Vec3d y = rotation_.transpose() * (x - kCentre);
+    double best = -1e300;
+    for (const Vec3d& n : normals_) {
+      const double v = n.dot(y) - offset_;
+      if (v > best) {
+        best = v;
+        if (gradient) *gradient = rotation_ * n;
+      }
+    }
+    return best;
+  }
+  std::vector<Vec3d> normals_;
+  double offset_;
+  Eigen::Matrix3d rotation_;
+};
+
+inline TurnedPolyhedron Cube() {  // Edge 1.
+  return TurnedPolyhedron(
+      {Vec3d::UnitX(), -Vec3d::UnitX(), Vec3d::UnitY(), -Vec3d::UnitY(), Vec3d::UnitZ(), -Vec3d::UnitZ()}, 0.5);
+}
+
+inline TurnedPolyhedron Octahedron() {  // Corners at distance 0.6 on the axes.
+  std::vector<Vec3d> normals;
+  for (int s = 0; s < 8; ++s) normals.push_back(Vec3d(s & 1 ? -1 : 1, s & 2 ? -1 : 1, s & 4 ? -1 : 1) / std::sqrt(3.0));
+  return TurnedPolyhedron(normals, 0.6 / std::sqrt(3.0));
+}
+
+inline double PointTriangleDistance(const Vec3d& p, const Vec3d& a, const Vec3d& b, const Vec3d& c) {
+  // Closest point by the regions of the triangle (Ericson, Real-Time Collision Detection 5.1.5).
+  const Vec3d ab = b - a, ac = c - a, ap = p - a;
+  const double d1 = ab.dot(ap), d2 = ac.dot(ap);
+  if (d1 <= 0 && d2 <= 0) return (p - a).norm();
+  const Vec3d bp = p - b;
+  const double d3 = ab.dot(bp), d4 = ac.dot(bp);
+  if (d3 >= 0 && d4 <= d3) return (p - b).norm();
+  const double vc = d1 * d4 - d3 * d2;
+  if (vc <= 0 && d1 >= 0 && d3 <= 0) return (p - (a + d1 / (d1 - d3) * ab)).norm();
+  const Vec3d cp = p - c;
+  const double d5 = ab.dot(cp), d6 = ac.dot(cp);
+  if (d6 >= 0 && d5 <= d6) return (p - c).norm();
+  const double vb = d5 * d2 - d1 * d6;
+  if (vb <= 0 && d2 >= 0 && d6 <= 0) return (p - (a + d2 / (d2 - d6) * ac)).norm();
+  const double va = d3 * d6 - d5 * d4;
+  if (va <= 0 && (d4 - d3) >= 0 && (d5 - d6) >= 0) {
+    return (p - (b + (d4 - d3) / ((d4 - d3) + (d5 - d6)) * (c - b))).norm();
+  }
+  const double denom = 1 / (va + vb + vc);
+  return (p - (a + ab * vb * denom + ac * vc * denom)).norm();
+}
+
+// The largest distance from points along the true edges to the mesh.
+inline double EdgeDistance(const TriangleMesh& mesh, const TurnedPolyhedron& shape,
+                           const std::vector<std::pair<Vec3d, Vec3d>>& edges) {
+  double worst = 0;
+  for (const auto& [a, b] : edges) {
+    for (int k = 1; k < 20; ++k) {
+      const Vec3d p = shape.World(a + (b - a) * (k / 20.0));
+      double nearest = 1e300;
+      for (const auto& f : mesh.faces) {
+        nearest = std::min(
+            nearest, PointTriangleDistance(p, mesh.vertices[f[0]].cast<double>(), mesh.vertices[f[1]].cast<double>(),
+                                           mesh.vertices[f[2]].cast<double>()));
+      }
+      worst = std::max(worst, nearest);
+    }
+  }
+  return worst;
+}
+
+inline std::vector<std::pair<Vec3d, Vec3d>> CubeEdges() {
+  std::vector<std::pair<Vec3d, Vec3d>> edges;
+  for (int axis = 0; axis < 3; ++axis) {
+    for (int s = 0; s < 4; ++s) {
+      Vec3d a, b;
+      const int u = (axis + 1) % 3, v = (axis + 2) % 3;
+      a[axis] = -0.5, b[axis] = 0.5;
+      a[u] = b[u] = s & 1 ? 0.5 : -0.5;
+      a[v] = b[v] = s & 2 ? 0.5 : -0.5;
+      edges.push_back({a, b});
+    }
+  }
+  return edges;
+}
+
+inline std::vector<std::pair<Vec3d, Vec3d>> OctahedronEdges() {
+  std::vector<std::pair<Vec3d, Vec3d>> edges;
+  for (int a = 0; a < 3; ++a) {
+    for (int b = a + 1; b < 3; ++b) {
+      for (double sa : {-0.6, 0.6}) {
+        for (double sb : {-0.6, 0.6}) {
+          Vec3d p = Vec3d::Zero(), q = Vec3d::Zero();
+          p[a] = sa, q[b] = sb;
+          edges.push_back({p, q});
+        }
+      }
+    }
+  }
+  return edges;
+}
+
+}  // namespace lsqsurf::testing

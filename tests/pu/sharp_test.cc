@@ -1,0 +1,122 @@
+// Sharp edges and corners of PU surfaces, on exactly sampled polyhedra.
+#include <gtest/gtest.h>
+
+#include <algorithm>
+#include <array>
+#include <cstdio>
+
+#include "tests/polyhedra.h"
+#include "tests/test_shapes.h"
+#include "worker/core/mesh_metrics.h"
+#include "worker/pu/pu.h"
+#include "worker/pu/sharp_fit.h"
+
+namespace lsqsurf::pu {
+namespace {
+
+using testing::TurnedPolyhedron;
+
+struct Measured {
+  double surface = 0;  // Largest |F| of the true shape at an output vertex.
+  double edges = 0;    // Largest distance from the true edges to the mesh.
+  double volume = 0;
+  core::MeshTopology topology;
+  core::TriangleMesh mesh;
+};
+
+Measured Reconstruct(const TurnedPolyhedron& shape, const std::vector<std::pair<Vec3d, Vec3d>>& edges,
+                     const core::PointCloud& cloud, bool sharp) {
+  PuParams fit;
+  fit.sharp = sharp;
+  auto f = testing::BuildOrFail(&BuildPu, cloud, fit);
+  Measured m;
+  if (!f) return m;
+  PuExtractParams extract;
+  if (!sharp) extract.marching.crease_angle = 0;
+  core::LocalJobContext ctx;
+  auto r = Extract(*f, extract, ctx);
+  EXPECT_TRUE(r.ok()) << r.status();
+  if (!r.ok()) return m;
+  m.mesh = std::move(r->mesh);
+  for (const auto& v : m.mesh.vertices) m.surface = std::max(m.surface, std::abs(shape.Value(v.cast<double>()).value));
+  m.edges = testing::EdgeDistance(m.mesh, shape, edges);
+  m.volume = core::EnclosedVolume(m.mesh);
+  m.topology = core::AnalyzeTopology(m.mesh);
+  std::printf("  sharp=%d: edges %zu/%zu fits; surface %.3g, edge distance %.3g, volume %.6f, %zu triangles\n", sharp,
+              static_cast<size_t>(f->stats().sharp_edges), static_cast<size_t>(f->stats().sharp_corners), m.surface,
+              m.edges, m.volume, m.mesh.faces.size());
+  return m;
+}
+
+void ExpectClosedSphere(const Measured& m) {
+  EXPECT_TRUE(m.topology.watertight());
+  EXPECT_TRUE(m.topology.consistently_oriented());
+  EXPECT_EQ(m.topology.components, 1);
+  EXPECT_EQ(m.topology.euler_characteristic(), 2);
+  EXPECT_TRUE(core::AnalyzeTopology(core::WeldByPosition(m.mesh)).watertight());
+}
+
+TEST(PuSharp, CubeEdgesAndCornersStaySharp) {
+  const TurnedPolyhedron cube = testing::Cube();
+  const core::PointCloud cloud = cube.Sample(40'000);
+  const Measured sharp = Reconstruct(cube, testing::CubeEdges(), cloud, true);
+  const Measured smooth = Reconstruct(cube, testing::CubeEdges(), cloud, false);
+  ExpectClosedSphere(sharp);
+  ExpectClosedSphere(smooth);
+  EXPECT_LT(sharp.edges, 0.25 * smooth.edges);
+  EXPECT_LT(sharp.surface, 0.2 * smooth.surface);
+  EXPECT_NEAR(sharp.volume, 1.0, 1e-4);
+  // The vertices say which kind of fit made them: edges and corners both appear.
+  std::array<int, 3> kinds{};
+  for (const auto& attribute : sharp.mesh.vertex_attributes) {
+    if (attribute.name != "feature") continue;
+    for (float v : attribute.values) ++kinds[static_cast<size_t>(std::clamp(static_cast<int>(v), 0, 2))];
+  }
+  EXPECT_GT(kinds[1], 100);
+  EXPECT_GT(kinds[2], 8);
+}
+
+TEST(PuSharp, OctahedronEdgesAndFourSheetCorners) {
+  const TurnedPolyhedron octahedron = testing::Octahedron();
+  const core::PointCloud cloud = octahedron.Sample(30'000);
+  const Measured sharp = Reconstruct(octahedron, testing::OctahedronEdges(), cloud, true);
+  const Measured smooth = Reconstruct(octahedron, testing::OctahedronEdges(), cloud, false);
+  ExpectClosedSphere(sharp);
+  EXPECT_LT(sharp.edges, 0.25 * smooth.edges);
+  EXPECT_LT(sharp.surface, 0.2 * smooth.surface);
+  const double exact = 4.0 / 3.0 * 0.6 * 0.6 * 0.6;
+  EXPECT_NEAR(sharp.volume / exact, 1.0, 1e-3);
+}
+
+TEST(PuSharp, SheetsCombineByConvexity) {
+  // Two half-planes meeting at a right angle along the z axis, normals outward: a convex edge
+  // (max) and, with the normals turned inward, a concave one (min).
+  std::vector<Vec3d> points, normals;
+  std::vector<double> weights;
+  for (int i = -6; i <= 6; ++i) {
+    for (int j = 1; j <= 6; ++j) {
+      points.push_back(Vec3d(-0.02 * j, 0, 0.02 * i));  // On y = 0, x < 0.
+      normals.push_back(Vec3d(0, 1, 0));
+      points.push_back(Vec3d(0, -0.02 * j, 0.02 * i));  // On x = 0, y < 0.
+      normals.push_back(Vec3d(1, 0, 0));
+    }
+  }
+  weights.assign(points.size(), 1.0);
+  OrthogonalFitter fitter;
+  auto convex = FitSharp(points, normals, weights, 0.2, {}, fitter);
+  ASSERT_TRUE(convex.has_value());
+  EXPECT_EQ(convex->feature, Feature::kEdge);
+  EXPECT_NEAR(convex->Evaluate(Vec3d(0.05, 0.05, 0), nullptr), 0.05, 1e-9);     // Outside, by the nearer plane.
+  EXPECT_NEAR(convex->Evaluate(Vec3d(-0.05, -0.03, 0), nullptr), -0.03, 1e-9);  // Inside the quadrant.
+  for (Vec3d& n : normals) n = -n;
+  auto concave = FitSharp(points, normals, weights, 0.2, {}, fitter);
+  ASSERT_TRUE(concave.has_value());
+  EXPECT_NEAR(concave->Evaluate(Vec3d(0.05, 0.05, 0), nullptr), -0.05, 1e-9);
+  EXPECT_NEAR(concave->Evaluate(Vec3d(-0.05, -0.03, 0), nullptr), 0.03, 1e-9);
+  // Parallel normals: no edge.
+  for (Vec3d& n : normals) n = Vec3d::UnitZ();
+  EXPECT_FALSE(FitSharp(points, normals, weights, 0.2, {}, fitter).has_value());
+}
+
+}  // namespace
+}  // namespace lsqsurf::pu

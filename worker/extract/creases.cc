@@ -1,0 +1,194 @@
+#include "worker/extract/creases.h"
+
+#include <Eigen/LU>
+#include <algorithm>
+#include <array>
+#include <cmath>
+#include <numbers>
+#include <vector>
+
+#include "absl/container/flat_hash_map.h"
+#include "absl/container/flat_hash_set.h"
+#include "worker/core/parallel.h"
+#include "worker/core/status.h"
+
+namespace lsqsurf::extract::internal {
+namespace {
+
+using core::Vec3d;
+using core::Vec3f;
+
+// A crease point must lie within this share of its edge's length of F = 0, project onto the
+// middle of the edge (away from the ends by this share), and lie within half the edge's length
+// of it.
+constexpr double kMaxResidualShare = 0.02;
+constexpr double kEndMargin = 0.02;
+constexpr double kMaxOffsetShare = 0.5;
+
+uint64_t EdgeKey(uint32_t a, uint32_t b) { return (uint64_t{std::min(a, b)} << 32) | std::max(a, b); }
+
+// The point of the line where the planes (a, na) and (b, nb) meet that is nearest the midpoint
+// of a–b, or NaN when it is not a crease point of F.
+Vec3d CreasePoint(const core::ImplicitFunction& field, const Vec3d& a, const Vec3d& na, const Vec3d& b,
+                  const Vec3d& nb) {
+  const Vec3d none = Vec3d::Constant(std::numeric_limits<double>::quiet_NaN());
+  const Vec3d m = 0.5 * (a + b);
+  // x = m + s na + t nb with na·(x − a) = 0 and nb·(x − b) = 0.
+  const double c = na.dot(nb);
+  const double det = 1 - c * c;
+  if (!(det > 1e-6)) return none;
+  const double ra = na.dot(a - m), rb = nb.dot(b - m);
+  const double s = (ra - c * rb) / det, t = (rb - c * ra) / det;
+  const Vec3d x = m + s * na + t * nb;
+  const Vec3d edge = b - a;
+  const double length = edge.norm();
+  const double along = (x - a).dot(edge) / (length * length);
+  if (!(along > kEndMargin && along < 1 - kEndMargin)) return none;
+  if ((x - (a + along * edge)).norm() > kMaxOffsetShare * length) return none;
+  const core::FieldValue f = field.Value(x);
+  if (!f.defined || !(std::abs(f.value) <= kMaxResidualShare * length)) return none;
+  return x;
+}
+
+// Where the tangent planes of a triangle's three corners meet, if that is a corner of F near
+// the triangle; else the mean of `fallback`.
+Vec3d CornerPoint(const core::ImplicitFunction& field, const std::array<Vec3d, 3>& p, const std::array<Vec3d, 3>& n,
+                  const std::array<Vec3d, 3>& fallback) {
+  const Vec3d mean = (fallback[0] + fallback[1] + fallback[2]) / 3;
+  Eigen::Matrix3d m;
+  m << n[0].transpose(), n[1].transpose(), n[2].transpose();
+  const Vec3d rhs(n[0].dot(p[0]), n[1].dot(p[1]), n[2].dot(p[2]));
+  const Eigen::FullPivLU<Eigen::Matrix3d> lu(m);
+  if (lu.rank() < 3 || std::abs(lu.determinant()) < 0.05) return mean;
+  const Vec3d x = lu.solve(rhs);
+  double size = 0;
+  for (int i = 0; i < 3; ++i)
+    size = std::max(size, (p[static_cast<size_t>(i)] - p[static_cast<size_t>((i + 1) % 3)]).norm());
+  if (!x.allFinite() || (x - mean).norm() > size) return mean;
+  const core::FieldValue f = field.Value(x);
+  return f.defined && std::abs(f.value) <= kMaxResidualShare * size ? x : mean;
+}
+
+}  // namespace
+
+absl::Status SharpenCreases(const core::ImplicitFunction& field, double crease_angle, core::TriangleMesh& mesh,
+                            CreaseCounts& counts, core::JobContext& ctx) {
+  const double cos_crease = std::cos(crease_angle * std::numbers::pi / 180);
+  // The edges whose ends disagree, each once.
+  absl::flat_hash_map<uint64_t, uint32_t> split;  // Edge → its crease vertex (UINT32_MAX: none).
+  absl::flat_hash_set<uint64_t> near_edges;       // Every edge of a triangle with a candidate.
+  std::vector<uint64_t> candidates;
+  for (const core::Triangle& t : mesh.faces) {
+    bool any = false;
+    for (size_t i = 0; i < 3; ++i) {
+      const uint32_t a = t[i], b = t[(i + 1) % 3];
+      if (mesh.normals[a].dot(mesh.normals[b]) >= cos_crease) continue;
+      any = true;
+      if (split.try_emplace(EdgeKey(a, b), UINT32_MAX).second) candidates.push_back(EdgeKey(a, b));
+    }
+    if (any) {
+      for (size_t i = 0; i < 3; ++i) near_edges.insert(EdgeKey(t[i], t[(i + 1) % 3]));
+    }
+  }
+  if (candidates.empty()) return absl::OkStatus();
+  std::vector<Vec3d> points(candidates.size());
+  LSQSURF_RETURN_IF_ERROR(core::ParallelFor(
+      candidates.size(), 256,
+      [&](size_t begin, size_t end) {
+        for (size_t k = begin; k < end; ++k) {
+          const auto a = static_cast<uint32_t>(candidates[k] >> 32), b = static_cast<uint32_t>(candidates[k]);
+          points[k] = CreasePoint(field, mesh.vertices[a].cast<double>(), mesh.normals[a].cast<double>(),
+                                  mesh.vertices[b].cast<double>(), mesh.normals[b].cast<double>());
+        }
+      },
+      &ctx));
+  // Two edges of one triangle can meet the crease at the same point (a crease along a grid axis
+  // seen from the edges a–b and a–c): they share one vertex, and the sliver between them goes.
+  absl::flat_hash_map<uint32_t, std::vector<uint32_t>> candidates_at;  // Vertex → its candidates.
+  for (uint32_t k = 0; k < candidates.size(); ++k) {
+    if (!points[k].allFinite()) continue;
+    candidates_at[static_cast<uint32_t>(candidates[k] >> 32)].push_back(k);
+    candidates_at[static_cast<uint32_t>(candidates[k])].push_back(k);
+  }
+  auto other_end = [](uint64_t edge, uint32_t v) {
+    return static_cast<uint32_t>(edge >> 32) == v ? static_cast<uint32_t>(edge) : static_cast<uint32_t>(edge >> 32);
+  };
+  std::vector<uint32_t> twin(candidates.size(), UINT32_MAX);
+  for (uint32_t k = 0; k < candidates.size(); ++k) {
+    if (!points[k].allFinite()) continue;
+    const auto a = static_cast<uint32_t>(candidates[k] >> 32), b = static_cast<uint32_t>(candidates[k]);
+    const double tolerance = 1e-5 * (mesh.vertices[a] - mesh.vertices[b]).norm();
+    for (const uint32_t v : {a, b}) {
+      for (const uint32_t j : candidates_at[v]) {
+        if (j >= k || twin[k] != UINT32_MAX) continue;
+        if (!near_edges.contains(EdgeKey(other_end(candidates[k], v), other_end(candidates[j], v)))) continue;
+        if ((points[k] - points[j]).norm() <= tolerance) twin[k] = twin[j] != UINT32_MAX ? twin[j] : j;
+      }
+    }
+  }
+  for (size_t k = 0; k < candidates.size(); ++k) {
+    if (!points[k].allFinite() || twin[k] != UINT32_MAX) continue;
+    const auto a = static_cast<uint32_t>(candidates[k] >> 32), b = static_cast<uint32_t>(candidates[k]);
+    split[candidates[k]] = static_cast<uint32_t>(mesh.vertices.size());
+    mesh.vertices.push_back(points[k].cast<float>());
+    const Vec3f n = mesh.normals[a] + mesh.normals[b];
+    mesh.normals.push_back(n.norm() > 0 ? Vec3f(n.normalized()) : mesh.normals[a]);
+    ++counts.crease_vertices;
+  }
+  for (size_t k = 0; k < candidates.size(); ++k) {
+    if (twin[k] != UINT32_MAX) split[candidates[k]] = split[candidates[twin[k]]];
+  }
+  std::vector<core::Triangle> faces;
+  faces.reserve(mesh.faces.size() + 2 * static_cast<size_t>(counts.crease_vertices));
+  auto v3 = [&](uint32_t v) { return Vec3d(mesh.vertices[v].cast<double>()); };
+  for (const core::Triangle& t : mesh.faces) {
+    std::array<uint32_t, 3> s;  // s[i]: the crease vertex on edge t[i]–t[i+1].
+    int count = 0;
+    for (size_t i = 0; i < 3; ++i) {
+      const auto it = split.find(EdgeKey(t[i], t[(i + 1) % 3]));
+      s[i] = it == split.end() ? UINT32_MAX : it->second;
+      count += s[i] != UINT32_MAX;
+    }
+    if (count == 0) {
+      faces.push_back(t);
+    } else if (count == 1) {
+      const size_t i = s[0] != UINT32_MAX ? 0 : s[1] != UINT32_MAX ? 1 : 2;
+      const uint32_t u = t[i], v = t[(i + 1) % 3], w = t[(i + 2) % 3];
+      faces.push_back({u, s[i], w});
+      faces.push_back({s[i], v, w});
+    } else if (count == 2) {
+      // Rotate so that the unsplit edge is t[2]–t[0]: the crease runs s[0]–s[1], around t[1].
+      const size_t j = s[0] == UINT32_MAX ? 1 : s[1] == UINT32_MAX ? 2 : 0;
+      const uint32_t v0 = t[j], v1 = t[(j + 1) % 3], v2 = t[(j + 2) % 3];
+      const uint32_t s0 = s[j], s1 = s[(j + 1) % 3];
+      faces.push_back({s0, v1, s1});
+      if ((v3(v0) - v3(s1)).squaredNorm() <= (v3(s0) - v3(v2)).squaredNorm()) {
+        faces.push_back({v0, s0, s1});
+        faces.push_back({v0, s1, v2});
+      } else {
+        faces.push_back({v0, s0, v2});
+        faces.push_back({s0, s1, v2});
+      }
+    } else {
+      const std::array<Vec3d, 3> p = {v3(t[0]), v3(t[1]), v3(t[2])};
+      const std::array<Vec3d, 3> n = {mesh.normals[t[0]].cast<double>(), mesh.normals[t[1]].cast<double>(),
+                                      mesh.normals[t[2]].cast<double>()};
+      const Vec3d corner = CornerPoint(field, p, n, {v3(s[0]), v3(s[1]), v3(s[2])});
+      const auto q = static_cast<uint32_t>(mesh.vertices.size());
+      mesh.vertices.push_back(corner.cast<float>());
+      const Vec3f nq = mesh.normals[t[0]] + mesh.normals[t[1]] + mesh.normals[t[2]];
+      mesh.normals.push_back(nq.norm() > 0 ? Vec3f(nq.normalized()) : mesh.normals[t[0]]);
+      ++counts.corners;
+      for (size_t i = 0; i < 3; ++i) {
+        faces.push_back({t[i], s[i], q});
+        faces.push_back({s[i], t[(i + 1) % 3], q});
+      }
+    }
+  }
+  // Triangles between two edges that share their crease vertex have collapsed.
+  std::erase_if(faces, [](const core::Triangle& t) { return t[0] == t[1] || t[1] == t[2] || t[2] == t[0]; });
+  mesh.faces = std::move(faces);
+  return absl::OkStatus();
+}
+
+}  // namespace lsqsurf::extract::internal

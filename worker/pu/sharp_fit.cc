@@ -1,0 +1,179 @@
+#include "worker/pu/sharp_fit.h"
+
+#include <algorithm>
+#include <cmath>
+#include <numbers>
+#include <vector>
+
+namespace lsqsurf::pu {
+namespace {
+
+// A sheet needs twice its terms in points: a quadric height from 12, a tilted plane from 6;
+// fewer make the plane through the cluster's centroid with its mean normal.
+constexpr int kQuadraticPoints = 12;
+constexpr int kPlanePoints = 6;
+
+// One cluster's sheet over its own weighted tangent plane.
+Sheet FitSheet(std::span<const Vec3d> points, std::span<const Vec3d> normals, std::span<const double> weights,
+               std::span<const uint32_t> members, double scale, OrthogonalFitter& fitter) {
+  Sheet s;
+  Vec3d centroid = Vec3d::Zero(), normal = Vec3d::Zero();
+  double total = 0;
+  int weighted = 0;
+  for (uint32_t i : members) {
+    centroid += weights[i] * points[i];
+    normal += weights[i] * normals[i];
+    total += weights[i];
+    weighted += weights[i] > 0;
+  }
+  s.origin = centroid / total;
+  s.normal = normal.normalized();
+  s.tangent_u = s.normal.unitOrthogonal();
+  s.tangent_v = s.normal.cross(s.tangent_u);
+  s.scale = scale;
+  if (weighted < kPlanePoints) return s;
+  std::vector<double> u, v, w, wt;
+  for (uint32_t i : members) {
+    const Vec3d d = points[i] - s.origin;
+    u.push_back(s.tangent_u.dot(d) / scale);
+    v.push_back(s.tangent_v.dot(d) / scale);
+    w.push_back(s.normal.dot(d));
+    wt.push_back(weights[i]);
+  }
+  fitter.Reset(u, v, w, wt);
+  if (fitter.RaiseDegree() && weighted >= kQuadraticPoints) fitter.RaiseDegree();
+  s.height = fitter.polynomial();
+  return s;
+}
+
+// MPU's test: the solid is convex between sheets a and b when the angle from a's centroid offset
+// to a's normal plus the one from the opposite offset to b's normal stays below π.
+bool Convex(const Sheet& a, const Sheet& b) {
+  const Vec3d v = a.origin - b.origin;
+  if (!(v.norm() > 0)) return true;
+  auto angle = [](const Vec3d& p, const Vec3d& q) {
+    return std::acos(std::clamp(p.normalized().dot(q.normalized()), -1.0, 1.0));
+  };
+  return angle(v, a.normal) + angle(-v, b.normal) < std::numbers::pi;
+}
+
+// The closest pair of directions among the normals: indices with the smallest dot product.
+std::pair<uint32_t, uint32_t> WidestPair(std::span<const Vec3d> normals, std::span<const uint32_t> members,
+                                         double& smallest) {
+  smallest = 2;
+  std::pair<uint32_t, uint32_t> best{members[0], members[0]};
+  for (size_t i = 0; i < members.size(); ++i) {
+    for (size_t j = i + 1; j < members.size(); ++j) {
+      const double d = normals[members[i]].dot(normals[members[j]]);
+      if (d < smallest) smallest = d, best = {members[i], members[j]};
+    }
+  }
+  return best;
+}
+
+}  // namespace
+
+double Sheet::Evaluate(const Vec3d& x, Vec3d* gradient) const {
+  const Vec3d d = x - origin;
+  double h, hu, hv;
+  height.Evaluate(tangent_u.dot(d) / scale, tangent_v.dot(d) / scale, h, hu, hv);
+  if (gradient) *gradient = normal - (hu * tangent_u + hv * tangent_v) / scale;
+  return normal.dot(d) - h;
+}
+
+double SharpFit::Evaluate(const Vec3d& x, Vec3d* gradient) const {
+  double value = sheets[0].Evaluate(x, gradient);
+  Vec3d g;
+  for (int k = 1; k < count; ++k) {
+    const double f = sheets[static_cast<size_t>(k)].Evaluate(x, gradient ? &g : nullptr);
+    if (take_max[static_cast<size_t>(k - 1)] ? f > value : f < value) {
+      value = f;
+      if (gradient) *gradient = g;
+    }
+  }
+  return value;
+}
+
+std::optional<SharpFit> FitSharp(std::span<const Vec3d> points, std::span<const Vec3d> normals,
+                                 std::span<const double> weights, double scale, const SharpParams& params,
+                                 OrthogonalFitter& fitter) {
+  std::vector<uint32_t> members;
+  for (uint32_t i = 0; i < points.size(); ++i) {
+    if (weights[i] > 0) members.push_back(i);
+  }
+  if (members.size() < 2) return std::nullopt;
+  double smallest = 2;
+  const auto [a, b] = WidestPair(normals, members, smallest);
+  if (smallest >= params.edge_cos) return std::nullopt;
+  const Vec3d na = normals[a], nb = normals[b];
+  const Vec3d e = na.cross(nb);  // Not normalised, as in MPU: a wide pair tests stricter.
+  double spread = 0;
+  for (uint32_t i : members) spread = std::max(spread, std::abs(e.dot(normals[i])));
+  SharpFit fit;
+  std::array<std::vector<uint32_t>, 4> groups;
+  if (spread < params.corner_share) {
+    fit.feature = Feature::kEdge;
+    for (uint32_t i : members) groups[normals[i].dot(na) > normals[i].dot(nb) ? 0 : 1].push_back(i);
+    fit.count = 2;
+  } else {
+    fit.feature = Feature::kCorner;
+    const Vec3d n3 = e.normalized();
+    for (uint32_t i : members) {
+      const double da = normals[i].dot(na), db = normals[i].dot(nb), dc = std::abs(normals[i].dot(n3));
+      groups[dc > std::max(da, db) ? 2 : da > db ? 0 : 1].push_back(i);
+    }
+    fit.count = 3;
+    // The third cluster may itself hold an edge: a four-sheet corner.
+    if (groups[2].size() >= 2) {
+      double third_smallest = 2;
+      const auto [c, d] = WidestPair(normals, groups[2], third_smallest);
+      if (third_smallest < params.edge_cos) {
+        std::vector<uint32_t> third = std::move(groups[2]);
+        groups[2].clear();
+        for (uint32_t i : third) groups[normals[i].dot(normals[c]) > normals[i].dot(normals[d]) ? 2 : 3].push_back(i);
+        fit.count = 4;
+      }
+    }
+  }
+  for (int k = 0; k < fit.count; ++k) {
+    if (groups[static_cast<size_t>(k)].empty()) return std::nullopt;
+    fit.sheets[static_cast<size_t>(k)] =
+        FitSheet(points, normals, weights, groups[static_cast<size_t>(k)], scale, fitter);
+  }
+  auto convex = [&](int i, int j) {
+    return Convex(fit.sheets[static_cast<size_t>(i)], fit.sheets[static_cast<size_t>(j)]);
+  };
+  if (fit.count == 2) {
+    fit.take_max[0] = convex(0, 1);
+    return fit;
+  }
+  // All pairs alike: one operation throughout.
+  bool all_convex = true, all_concave = true;
+  for (int i = 0; i < fit.count; ++i) {
+    for (int j = i + 1; j < fit.count; ++j) {
+      all_convex &= convex(i, j);
+      all_concave &= !convex(i, j);
+    }
+  }
+  if (all_convex || all_concave) {
+    fit.take_max = {all_convex, all_convex, all_convex};
+    return fit;
+  }
+  if (fit.count == 4) return std::nullopt;  // Mixed four-sheet corners: MPU gives up too.
+  // A saddle corner: the sheet k that relates alike to the other two goes last,
+  // f = op_k(op_ij(f_i, f_j), f_k).
+  for (int k = 0; k < 3; ++k) {
+    const int i = (k + 1) % 3, j = (k + 2) % 3;
+    if (convex(i, k) == convex(j, k) && convex(i, k) != convex(i, j)) {
+      const std::array<Sheet, 4> sheets = fit.sheets;
+      fit.sheets[0] = sheets[static_cast<size_t>(i)];
+      fit.sheets[1] = sheets[static_cast<size_t>(j)];
+      fit.sheets[2] = sheets[static_cast<size_t>(k)];
+      fit.take_max = {convex(i, j), convex(i, k), false};
+      return fit;
+    }
+  }
+  return std::nullopt;
+}
+
+}  // namespace lsqsurf::pu

@@ -52,6 +52,7 @@ struct CaseResult {
   double peak_mib = 0;
   int64_t triangles = 0;
   double chamfer = 0, hausdorff = 0, normal_consistency = 0, far_fraction = 0;
+  double min_angle_p1 = 0;  // Degrees: 1 % of the triangles have a smaller smallest angle.
   bool watertight = false;
   int64_t components = 0, boundary_edges = 0;
   std::string error;
@@ -59,8 +60,8 @@ struct CaseResult {
 
 std::string Serialize(const CaseResult& r) {
   return core::StrCat(r.seconds, " ", r.triangles, " ", r.chamfer, " ", r.hausdorff, " ", r.normal_consistency, " ",
-                      r.far_fraction, " ", r.watertight ? 1 : 0, " ", r.components, " ", r.boundary_edges, "\n",
-                      r.error);
+                      r.far_fraction, " ", r.watertight ? 1 : 0, " ", r.components, " ", r.boundary_edges, " ",
+                      r.min_angle_p1, "\n", r.error);
 }
 
 CaseResult Deserialize(const std::string& s) {
@@ -68,7 +69,7 @@ CaseResult Deserialize(const std::string& s) {
   std::istringstream in(s);
   int wt = 0;
   in >> r.seconds >> r.triangles >> r.chamfer >> r.hausdorff >> r.normal_consistency >> r.far_fraction >> wt >>
-      r.components >> r.boundary_edges;
+      r.components >> r.boundary_edges >> r.min_angle_p1;
   r.watertight = wt != 0;
   std::getline(in, r.error);
   std::getline(in, r.error);
@@ -108,6 +109,7 @@ void Measure(const core::TriangleMesh& truth, const core::TriangleMesh& mesh, si
   r.watertight = t.watertight();
   r.components = t.components;
   r.boundary_edges = t.boundary_edges;
+  r.min_angle_p1 = core::MeasureTriangleQuality(mesh).min_angle_p1;
   core::LocalJobContext ctx;
   core::CompareParams p;
   p.samples = samples;
@@ -165,10 +167,10 @@ void Print(const BenchCase& c, const char* mode, const CaseResult& r) {
   if (!r.error.empty()) {
     std::printf("%-15s %8zu %6.4f %-7s failed: %s\n", c.model.c_str(), c.points, c.noise, mode, r.error.c_str());
   } else {
-    std::printf("%-15s %8zu %6.4f %-7s %8.2f %9.0f %10lld %10.3e %10.3e %7.4f %6s %6lld %10.3e\n", c.model.c_str(),
-                c.points, c.noise, mode, r.seconds, r.peak_mib, static_cast<long long>(r.triangles), r.chamfer,
-                r.hausdorff, r.normal_consistency, r.watertight ? "yes" : "no", static_cast<long long>(r.components),
-                r.far_fraction);
+    std::printf("%-15s %8zu %6.4f %-7s %8.2f %9.0f %10lld %10.3e %10.3e %7.4f %6s %6lld %10.3e %9.1f\n",
+                c.model.c_str(), c.points, c.noise, mode, r.seconds, r.peak_mib, static_cast<long long>(r.triangles),
+                r.chamfer, r.hausdorff, r.normal_consistency, r.watertight ? "yes" : "no",
+                static_cast<long long>(r.components), r.far_fraction, r.min_angle_p1);
   }
   std::fflush(stdout);
 }
@@ -390,8 +392,9 @@ int main(int argc, char** argv) {
 
   const fs::path work = fs::temp_directory_path() / ("lsqsurf-bench-" + std::to_string(::getpid()));
   fs::create_directories(work);
-  std::printf("%-15s %8s %6s %-7s %8s %9s %10s %10s %10s %7s %6s %6s %10s\n", "model", "points", "noise", "mode",
-              "wall_s", "peak_MiB", "triangles", "chamfer", "hausdorff", "normals", "closed", "comps", "far>1e-3");
+  std::printf("%-15s %8s %6s %-7s %8s %9s %10s %10s %10s %7s %6s %6s %10s %9s\n", "model", "points", "noise", "mode",
+              "wall_s", "peak_MiB", "triangles", "chamfer", "hausdorff", "normals", "closed", "comps", "far>1e-3",
+              "angle_p1");
   for (const auto& model : o.models) {
     auto truth = io::ReadMeshFile((fs::path(o.data_dir) / (model + ".obj")).string());
     if (!truth.ok()) {

@@ -38,6 +38,9 @@ class ImplicitFunction {
   // F's value alone, skipping the `defined` decision where that costs extra (what extractors
   // need for corner signs and root refinement). Default: Value(x).value.
   virtual double ValueOnly(const Vec3d& x) const { return Value(x).value; }
+  // F and ∇F likewise without the `defined` decision (then reported true): for moving vertices
+  // that already lie on trusted surface. Default: ValueAndGradient(x).
+  virtual FieldGradient ValueAndGradientOnly(const Vec3d& x) const { return ValueAndGradient(x); }
 
   // ValueOnly at many points, in parallel. `out.size()` must equal `xs.size()`. Default: ValueOnly
   // at each; a method with a faster batch path overrides it.

@@ -2,6 +2,9 @@
 
 #include <algorithm>
 #include <cassert>
+#include <cmath>
+#include <limits>
+#include <numbers>
 #include <numeric>
 #include <tuple>
 
@@ -112,6 +115,42 @@ double SurfaceArea(const TriangleMesh& mesh) {
     area += 0.5 * (mesh.vertices[f[1]].cast<double>() - a).cross(mesh.vertices[f[2]].cast<double>() - a).norm();
   }
   return area;
+}
+
+TriangleQuality MeasureTriangleQuality(const TriangleMesh& mesh) {
+  TriangleQuality q;
+  if (mesh.faces.empty()) return q;
+  std::vector<double> min_angles, aspect;
+  min_angles.reserve(mesh.faces.size());
+  aspect.reserve(mesh.faces.size());
+  for (const Triangle& f : mesh.faces) {
+    const std::array<Vec3d, 3> p = {mesh.vertices[f[0]].cast<double>(), mesh.vertices[f[1]].cast<double>(),
+                                    mesh.vertices[f[2]].cast<double>()};
+    std::array<double, 3> edge;  // edge[i] is opposite p[i].
+    for (size_t i = 0; i < 3; ++i) edge[i] = (p[(i + 1) % 3] - p[(i + 2) % 3]).norm();
+    const double area = 0.5 * (p[1] - p[0]).cross(p[2] - p[0]).norm();
+    double smallest = 180;
+    for (size_t i = 0; i < 3; ++i) {
+      const Vec3d u = p[(i + 1) % 3] - p[i], v = p[(i + 2) % 3] - p[i];
+      smallest = std::min(smallest, std::atan2(u.cross(v).norm(), u.dot(v)) * 180 / std::numbers::pi);
+    }
+    min_angles.push_back(smallest);
+    const double longest = std::max({edge[0], edge[1], edge[2]});
+    aspect.push_back(area > 0 ? longest * (edge[0] + edge[1] + edge[2]) / (4 * std::sqrt(3.0) * area)
+                              : std::numeric_limits<double>::infinity());
+    const auto bin = static_cast<size_t>(std::clamp(static_cast<int>(smallest / TriangleQuality::kBinDegrees), 0,
+                                                    static_cast<int>(q.min_angle_histogram.size()) - 1));
+    ++q.min_angle_histogram[bin];
+  }
+  auto quantile = [](std::vector<double>& v, double share) {
+    const auto k = static_cast<int64_t>(share * static_cast<double>(v.size() - 1));
+    std::nth_element(v.begin(), v.begin() + k, v.end());
+    return v[static_cast<size_t>(k)];
+  };
+  q.min_angle_p1 = quantile(min_angles, 0.01);
+  q.min_angle_median = quantile(min_angles, 0.5);
+  q.aspect_ratio_p99 = quantile(aspect, 0.99);
+  return q;
 }
 
 }  // namespace lsqsurf::core

@@ -1,6 +1,7 @@
 // worker/core/mesh_metrics.h — topology and volume checks of triangle meshes.
 #pragma once
 
+#include <array>
 #include <cstdint>
 
 #include "worker/core/geometry.h"
@@ -40,5 +41,16 @@ double EnclosedVolume(const TriangleMesh& mesh);
 
 // Total surface area.
 double SurfaceArea(const TriangleMesh& mesh);
+
+// The shape of the triangles: their smallest angles and aspect ratios (longest edge × perimeter /
+// (4√3 × area): 1 for an equilateral triangle, infinite for a degenerate one).
+struct TriangleQuality {
+  static constexpr int kBinDegrees = 5;
+  std::array<int64_t, 12> min_angle_histogram{};  // Faces whose smallest angle is in [5k, 5k + 5) degrees.
+  double min_angle_p1 = 0;                        // 1st percentile of the smallest angle, degrees.
+  double min_angle_median = 0;
+  double aspect_ratio_p99 = 0;  // 99th percentile.
+};
+TriangleQuality MeasureTriangleQuality(const TriangleMesh& mesh);
 
 }  // namespace lsqsurf::core

@@ -55,6 +55,12 @@ std::array<int, 4> FaceCorners(int face) {
 }  // namespace
 
 absl::Status Validate(const MarchingOptions& options) {
+  if (options.relax_steps < 0 || options.relax_steps > 10) {
+    return absl::InvalidArgumentError("relax_steps must be between 0 and 10");
+  }
+  if (!(options.snap_share >= 0 && options.snap_share <= 0.45)) {
+    return absl::InvalidArgumentError("snap_share must be between 0 and 0.45");
+  }
   if (!(options.crease_angle >= 0 && options.crease_angle <= 90)) {
     return absl::InvalidArgumentError("crease_angle must be between 0 and 90 degrees");
   }

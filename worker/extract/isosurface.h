@@ -43,6 +43,9 @@ struct MarchingOptions {
                                  // (specks); 0 = neither.
   double crease_angle = 0;       // Degrees, 0..90: an edge whose end normals differ by more is split on the
                                  // crease it crosses (creases.h); 0 = off.
+  double snap_share = 0;         // 0..0.45: a grid corner the surface passes within this share of an edge from
+                                 // is moved onto the surface before marching (no slivers there); 0 = off.
+  int relax_steps = 0;           // 0..10: steps of tangential relaxation on the surface after marching (relax.h).
 };
 
 absl::Status Validate(const MarchingOptions& options);
@@ -65,6 +68,8 @@ struct IsosurfaceStats {
   int64_t restored_triangles = 0;  // Untrusted triangles kept as parts of small pinhole patches.
   int64_t crease_vertices = 0;     // Edges split where they cross a crease.
   int64_t crease_corners = 0;      // Triangles split around a corner.
+  int64_t snapped_corners = 0;     // Grid corners moved onto the surface.
+  int64_t relaxed_vertices = 0;    // Vertices moved by the relaxation.
 };
 
 struct IsosurfaceResult {

@@ -2,11 +2,13 @@
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
 
 #include "absl/container/flat_hash_set.h"
 #include "worker/core/parallel.h"
 #include "worker/core/status.h"
 #include "worker/extract/creases.h"
+#include "worker/extract/relax.h"
 
 namespace lsqsurf::extract::internal {
 namespace {
@@ -154,6 +156,10 @@ struct PolygonSoup {
   absl::flat_hash_map<std::pair<CornerKey, CornerKey>, uint32_t> edge_index;
   std::vector<Crossing> crossings;
   std::vector<std::array<uint32_t, 4>> polygons;  // [3] == UINT32_MAX for a triangle.
+  // Corners moved onto the surface (SnapCorners): they keep their side, so every tetrahedron
+  // keeps its signs, and every crossing on their edges is the corner itself (a crossing keyed by
+  // the corner twice).
+  const absl::flat_hash_map<CornerKey, Vec3d>* snapped = nullptr;
 
   void Add(const TetCorners& tet, const absl::flat_hash_map<CornerKey, FieldValue>& values,
            const std::function<Vec3d(CornerKey)>& position) {
@@ -174,7 +180,9 @@ struct PolygonSoup {
     for (size_t i = 0; i < 4; ++i) p[i] = position(tet[i]);
     auto at = [](auto& array, int i) -> auto& { return array[static_cast<size_t>(i)]; };
     auto edge = [&](int a, int b) {  // a inside, b outside
-      const CornerKey ka = at(tet, a), kb = at(tet, b);
+      CornerKey ka = at(tet, a), kb = at(tet, b);
+      if (snapped != nullptr && snapped->contains(kb)) ka = kb;
+      if (snapped != nullptr && snapped->contains(ka)) kb = ka;
       auto [it, inserted] = edge_index.try_emplace(std::minmax(ka, kb), static_cast<uint32_t>(crossings.size()));
       if (inserted) crossings.push_back({ka, kb, at(corner, a).value, at(corner, b).value});
       return it->second;
@@ -198,11 +206,14 @@ struct PolygonSoup {
     const Vec3d p0 = mid(ring[0]), p1 = mid(ring[1]), p2 = mid(ring[2]);
     const bool flip = (p1 - p0).cross(p2 - p0).dot(outward) < 0;
     std::array<uint32_t, 4> poly{UINT32_MAX, UINT32_MAX, UINT32_MAX, UINT32_MAX};
+    int size = 0;
     for (int i = 0; i < ring_size; ++i) {
       const auto& e = at(ring, flip ? ring_size - 1 - i : i);
-      at(poly, i) = edge(e.first, e.second);
+      const uint32_t c = edge(e.first, e.second);
+      // A snapped corner ends several ring edges: it enters the polygon once.
+      if (size == 0 || (at(poly, size - 1) != c && (i < ring_size - 1 || poly[0] != c))) at(poly, size++) = c;
     }
-    polygons.push_back(poly);
+    if (size >= 3) polygons.push_back(poly);
   }
 };
 
@@ -212,7 +223,8 @@ absl::Status RefineCrossings(const ImplicitFunction& field, const std::vector<Cr
                              const std::function<Vec3d(CornerKey)>& position, const MarchingOptions& params,
                              TriangleMesh& mesh, std::vector<char>& valid, JobContext& ctx) {
   mesh.vertices.resize(crossings.size());
-  const bool normals = params.vertex_normals || params.crease_angle > 0;  // Creases need them.
+  // Creases and relaxation need them.
+  const bool normals = params.vertex_normals || params.crease_angle > 0 || params.relax_steps > 0;
   if (normals) mesh.normals.resize(crossings.size());
   valid.assign(crossings.size(), 0);
   return core::ParallelFor(
@@ -221,11 +233,14 @@ absl::Status RefineCrossings(const ImplicitFunction& field, const std::vector<Cr
         for (size_t i = begin; i < end; ++i) {
           const Crossing& c = crossings[i];
           const Vec3d a = position(c.inside_vertex), b = position(c.outside_vertex);
-          double t = core::RefineRootOnSegment(field, a, b, c.inside_value, c.outside_value, params.refine_steps);
-          // Keep vertices strictly inside their edge: coincident vertices would make
-          // zero-area triangles that some decoders drop.
-          t = std::clamp(t, 1e-4, 1.0 - 1e-4);
-          const Vec3d x = a + t * (b - a);
+          Vec3d x = b;  // A snapped corner is its own crossing.
+          if (c.inside_vertex != c.outside_vertex) {
+            double t = core::RefineRootOnSegment(field, a, b, c.inside_value, c.outside_value, params.refine_steps);
+            // Keep vertices strictly inside their edge: coincident vertices would make
+            // zero-area triangles that some decoders drop.
+            t = std::clamp(t, 1e-4, 1.0 - 1e-4);
+            x = a + t * (b - a);
+          }
           mesh.vertices[i] = x.cast<float>();
           // A root where F is not trustworthy (e.g. an iaMLS ghost sheet, or a sign-only
           // extension of F across a hole in the data) is no surface: drop what uses it.
@@ -306,6 +321,118 @@ absl::Status CornerValues::Evaluate(const ImplicitFunction& field, const std::fu
   return absl::OkStatus();
 }
 
+// Mesh enhancement (METHODS §1.9, after Dietrich et al.'s edge transformations): marching puts
+// a vertex near every corner that the surface passes close to, and the triangles there are
+// slivers. Such a corner (a crossing within `share` of an incident crossed edge from it) is moved
+// onto the surface by Newton steps along ∇F instead, where that moves it less than `share` of its
+// shortest edge and flips or flattens none of its tetrahedra; the crossings on its edges then
+// merge into it. It keeps its sign, so every tetrahedron keeps its sign pattern: the surface
+// followers' choice of tetrahedra stays right. Returns the moved corners and their positions.
+absl::flat_hash_map<CornerKey, Vec3d> SnapCorners(
+    const ImplicitFunction& field,
+    const std::function<void(const std::function<void(const TetCorners&)>&)>& for_each_tet,
+    const absl::flat_hash_map<CornerKey, FieldValue>& values, const std::function<Vec3d(CornerKey)>& position,
+    double share, JobContext& ctx) {
+  struct Near {
+    double share = 1;                                           // Of the nearest crossing along an incident edge.
+    double shortest = std::numeric_limits<double>::infinity();  // Incident edge of a crossed tetrahedron.
+  };
+  absl::flat_hash_map<CornerKey, Near> near;
+  for_each_tet([&](const TetCorners& tet) {
+    std::array<double, 4> f;
+    bool negative = false, positive = false;
+    for (size_t i = 0; i < 4; ++i) {
+      f[i] = values.at(tet[i]).value;  // Sign-only values: `defined` is decided at the roots.
+      if (std::isnan(f[i])) return;
+      (f[i] < 0 ? negative : positive) = true;
+    }
+    if (!negative || !positive) return;
+    std::array<Vec3d, 4> p;
+    std::array<Near*, 4> entry;
+    for (size_t i = 0; i < 4; ++i) near.try_emplace(tet[i]);
+    for (size_t i = 0; i < 4; ++i) {
+      p[i] = position(tet[i]);
+      entry[i] = &near.at(tet[i]);  // Taken after every insertion: a rehash would move them.
+    }
+    for (size_t i = 0; i < 4; ++i) {
+      for (size_t j = i + 1; j < 4; ++j) {
+        const double length = (p[i] - p[j]).norm();
+        Near& a = *entry[i];
+        Near& b = *entry[j];
+        a.shortest = std::min(a.shortest, length);
+        b.shortest = std::min(b.shortest, length);
+        if ((f[i] < 0) == (f[j] < 0)) continue;
+        const double t = f[i] / (f[i] - f[j]);
+        a.share = std::min(a.share, t);
+        b.share = std::min(b.share, 1 - t);
+      }
+    }
+  });
+  std::vector<std::pair<CornerKey, Vec3d>> moves;
+  for (const auto& [key, n] : near) {
+    if (n.share < share) moves.push_back({key, Vec3d::Zero()});
+  }
+  std::vector<char> accepted(moves.size(), 0);
+  (void)core::ParallelFor(
+      moves.size(), 256,
+      [&](size_t begin, size_t end) {
+        for (size_t k = begin; k < end; ++k) {
+          const Vec3d start = position(moves[k].first);
+          Vec3d x = start;
+          FieldGradient g;
+          for (int step = 0; step < 3; ++step) {
+            g = field.ValueAndGradient(x);
+            const double slope2 = g.gradient.squaredNorm();
+            if (!g.defined || !(slope2 > 0)) break;
+            x -= (g.value / slope2) * g.gradient;
+          }
+          g = field.ValueAndGradient(x);
+          moves[k].second = x;
+          accepted[k] = g.defined && (x - start).norm() < share * near.at(moves[k].first).shortest &&
+                        std::abs(g.value) < 1e-3 * share * near.at(moves[k].first).shortest;
+        }
+      },
+      &ctx);
+  absl::flat_hash_map<CornerKey, Vec3d> snapped;
+  for (size_t k = 0; k < moves.size(); ++k) {
+    if (accepted[k]) snapped.emplace(moves[k].first, moves[k].second);
+  }
+  // No tetrahedron may turn over or flatten (below a tenth of its volume): its moved corners stay.
+  // A crossed edge keeps at most one moved end (the nearer to its crossing), which its crossing
+  // then is.
+  for (int pass = 0; pass < 3 && !snapped.empty(); ++pass) {
+    std::vector<CornerKey> undo;
+    for_each_tet([&](const TetCorners& tet) {
+      for (size_t i = 0; i < 4; ++i) {
+        for (size_t j = i + 1; j < 4; ++j) {
+          if ((values.at(tet[i]).value < 0) == (values.at(tet[j]).value < 0)) continue;
+          if (!snapped.contains(tet[i]) || !snapped.contains(tet[j])) continue;
+          undo.push_back(near.at(tet[i]).share > near.at(tet[j]).share ? tet[i] : tet[j]);
+        }
+      }
+      std::array<Vec3d, 4> before, after;
+      bool moved = false;
+      for (size_t i = 0; i < 4; ++i) {
+        before[i] = position(tet[i]);
+        const auto it = snapped.find(tet[i]);
+        moved |= it != snapped.end();
+        after[i] = it != snapped.end() ? it->second : before[i];
+      }
+      if (!moved) return;
+      auto volume = [](const std::array<Vec3d, 4>& q) { return (q[1] - q[0]).cross(q[2] - q[0]).dot(q[3] - q[0]); };
+      const double v0 = volume(before), v1 = volume(after);
+      if (v1 * v0 <= 0 || std::abs(v1) < 0.1 * std::abs(v0)) {
+        for (CornerKey k : tet) {
+          if (snapped.contains(k)) undo.push_back(k);
+        }
+      }
+    });
+    if (undo.empty()) break;
+    for (CornerKey k : undo) snapped.erase(k);
+  }
+  return snapped;
+}
+
 absl::StatusOr<IsosurfaceResult> MarchTetrahedra(
     const ImplicitFunction& field,
     const std::function<void(const std::function<void(const TetCorners&)>&)>& for_each_tet,
@@ -314,15 +441,25 @@ absl::StatusOr<IsosurfaceResult> MarchTetrahedra(
   IsosurfaceResult result;
   result.stats = tracking;
   IsosurfaceStats& stats = result.stats;
+  absl::flat_hash_map<CornerKey, Vec3d> snapped;
+  if (params.snap_share > 0) {
+    snapped = SnapCorners(field, for_each_tet, values, position, params.snap_share, ctx);
+    stats.snapped_corners = static_cast<int64_t>(snapped.size());
+  }
+  const std::function<Vec3d(CornerKey)> moved_position = [&](CornerKey k) {
+    const auto it = snapped.find(k);
+    return it != snapped.end() ? it->second : position(k);
+  };
   PolygonSoup soup;
+  soup.snapped = &snapped;
   for_each_tet([&](const TetCorners& tet) {
     ++stats.tetrahedra;
-    soup.Add(tet, values, position);
+    soup.Add(tet, values, moved_position);
   });
   LSQSURF_RETURN_IF_ERROR(ctx.CheckCancelled());
   TriangleMesh& mesh = result.mesh;
   std::vector<char> valid;
-  LSQSURF_RETURN_IF_ERROR(RefineCrossings(field, soup.crossings, position, params, mesh, valid, ctx));
+  LSQSURF_RETURN_IF_ERROR(RefineCrossings(field, soup.crossings, moved_position, params, mesh, valid, ctx));
   std::vector<char> face_trusted;
   Triangulate(soup.polygons, valid, mesh, face_trusted, stats);
   stats.restored_triangles = RestoreSmallPatches(mesh.faces, face_trusted, params.max_patch_triangles);
@@ -336,8 +473,12 @@ absl::StatusOr<IsosurfaceResult> MarchTetrahedra(
     LSQSURF_RETURN_IF_ERROR(SharpenCreases(field, params.crease_angle, mesh, creases, ctx));
     stats.crease_vertices = creases.crease_vertices;
     stats.crease_corners = creases.corners;
-    if (!params.vertex_normals) mesh.normals.clear();
   }
+  if (params.relax_steps > 0) {
+    LSQSURF_RETURN_IF_ERROR(RelaxTangentially(field, params.relax_steps, static_cast<uint32_t>(stats.crossings), mesh,
+                                              stats.relaxed_vertices, ctx));
+  }
+  if (!params.vertex_normals) mesh.normals.clear();
   ctx.ReportProgress("", 1.0);
   return result;
 }

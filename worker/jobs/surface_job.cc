@@ -190,6 +190,8 @@ absl::StatusOr<extract::IsosurfaceResult> RunPu(const PuJobParams& p, const core
     stat("tetrahedra", static_cast<double>(extracted->stats.tetrahedra));
     stat("crease_vertices", static_cast<double>(extracted->stats.crease_vertices));
     stat("crease_corners", static_cast<double>(extracted->stats.crease_corners));
+    stat("snapped_corners", static_cast<double>(extracted->stats.snapped_corners));
+    stat("relaxed_vertices", static_cast<double>(extracted->stats.relaxed_vertices));
   }
   return extracted;
 }
@@ -394,6 +396,10 @@ absl::StatusOr<SurfaceResult> ReconstructSurface(const std::string& method, cons
   stat("triangles", static_cast<double>(result.mesh.faces.size()));
   stat("vertices", static_cast<double>(result.mesh.vertices.size()));
   stat("cells_visited", static_cast<double>(extracted->stats.cells_visited));
+  const core::TriangleQuality quality = core::MeasureTriangleQuality(result.mesh);
+  stat("min_angle_p1", quality.min_angle_p1);
+  stat("min_angle_median", quality.min_angle_median);
+  stat("aspect_ratio_p99", quality.aspect_ratio_p99);
   return result;
 }
 

@@ -667,7 +667,33 @@ const core::ParamTable<PuExtractParams>& PuExtractParamTable() {
              "the surface; 0 = off",
              {}},
             [](const PuExtractParams& p) { return p.marching.crease_angle; },
-            [](PuExtractParams& p, double v) { p.marching.crease_angle = v; });
+            [](PuExtractParams& p, double v) { p.marching.crease_angle = v; })
+        .Custom(
+            {"snap_share",
+             core::ParamType::kReal,
+             0,
+             {},
+             0,
+             0.45,
+             "",
+             "mesh enhancement: a J1a corner that the surface passes within this share of an edge from is "
+             "moved onto the surface before extraction, so that no slivers form there; 0 = off",
+             {}},
+            [](const PuExtractParams& p) { return p.marching.snap_share; },
+            [](PuExtractParams& p, double v) { p.marching.snap_share = v; })
+        .Custom(
+            {"relax_steps",
+             core::ParamType::kInteger,
+             0,
+             {},
+             0,
+             10,
+             "steps",
+             "mesh enhancement: steps of tangential relaxation on the surface after extraction (vertices on "
+             "creases and borders stay); 0 = off",
+             {}},
+            [](const PuExtractParams& p) { return static_cast<double>(p.marching.relax_steps); },
+            [](PuExtractParams& p, double v) { p.marching.relax_steps = static_cast<int>(v); });
     return t;
   }();
   return *table;
@@ -684,6 +710,12 @@ core::FieldValue PuFunction::Value(const Vec3d& x) const {
 double PuFunction::ValueOnly(const Vec3d& x) const { return impl_->Evaluate(x, false, false).value; }
 
 core::FieldGradient PuFunction::ValueAndGradient(const Vec3d& x) const { return impl_->Evaluate(x, true); }
+
+core::FieldGradient PuFunction::ValueAndGradientOnly(const Vec3d& x) const {
+  core::FieldGradient g = impl_->Evaluate(x, true, false);
+  g.defined = std::isfinite(g.value);
+  return g;
+}
 
 FitLabel PuFunction::DominantFit(const Vec3d& x) const {
   FitLabel label;

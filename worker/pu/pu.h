@@ -100,7 +100,8 @@ class PuFunction final : public core::ImplicitFunction {
   ~PuFunction() override;
   core::FieldValue Value(const core::Vec3d& x) const override;
   core::FieldGradient ValueAndGradient(const core::Vec3d& x) const override;
-  double ValueOnly(const core::Vec3d& x) const override;  // Skips the coverage query.
+  double ValueOnly(const core::Vec3d& x) const override;                          // Skips the coverage query.
+  core::FieldGradient ValueAndGradientOnly(const core::Vec3d& x) const override;  // Likewise.
   FitLabel DominantFit(const core::Vec3d& x) const;
 
   const PuStats& stats() const { return stats_; }
@@ -129,9 +130,10 @@ struct PuExtractParams {
   // tetrahedra, so its leaves can be several times larger than the cubes of a Kuhn grid.
   double cell_size = 5.0;
   int64_t max_leaves = 20'000'000;
-  // Edges split on creases where their end normals differ by more than 30°: the sharp fits make
-  // creases, and this puts the mesh's edges on them.
-  extract::MarchingOptions marching{.crease_angle = 30};
+  // Edges split on creases where their end normals differ by more than 30° (the sharp fits make
+  // creases, and this puts the mesh's edges on them), then 4 steps of tangential relaxation on
+  // the surface (bunny 100k: 1st percentile of the smallest angle 1° -> 21°, Chamfer 1.5 % lower).
+  extract::MarchingOptions marching{.crease_angle = 30, .relax_steps = 4};
   bool label_vertices = true;  // Adds the vertex attributes "depth", "degree" and "feature".
 };
 

@@ -1,0 +1,143 @@
+#include "worker/extract/relax.h"
+
+#include <algorithm>
+#include <cmath>
+#include <numbers>
+#include <vector>
+
+#include "absl/container/flat_hash_map.h"
+#include "worker/core/parallel.h"
+#include "worker/core/status.h"
+
+namespace lsqsurf::extract::internal {
+namespace {
+
+using core::Vec3d;
+using core::Vec3f;
+
+// Share of the way to the neighbours' mean taken per step.
+constexpr double kStepShare = 0.5;
+// A tangential move that ends farther than this share of the mean edge from F = 0 is not made
+// (the surface bends too much there for one Newton step).
+constexpr double kMaxOffsetShare = 0.1;
+// A move is not made where the normal would turn by more than about 25° (onto another sheet).
+constexpr double kSameSheetCos = 0.9;
+// Only vertices of triangles whose smallest angle is below this move.
+constexpr double kGoodAngleDegrees = 25;
+
+}  // namespace
+
+absl::Status RelaxTangentially(const core::ImplicitFunction& field, int steps, uint32_t first_fixed,
+                               core::TriangleMesh& mesh, int64_t& moves, core::JobContext& ctx) {
+  const size_t n = mesh.vertices.size();
+  // Vertex → incident faces (compressed rows), and the border: edges with one face.
+  std::vector<uint32_t> start(n + 1, 0), incident(3 * mesh.faces.size());
+  for (const core::Triangle& t : mesh.faces) {
+    for (uint32_t v : t) ++start[v + 1];
+  }
+  for (size_t v = 0; v < n; ++v) start[v + 1] += start[v];
+  {
+    std::vector<uint32_t> cursor(start.begin(), start.end() - 1);
+    for (uint32_t f = 0; f < mesh.faces.size(); ++f) {
+      for (uint32_t v : mesh.faces[f]) incident[cursor[v]++] = f;
+    }
+  }
+  std::vector<char> fixed(n, 0);
+  for (size_t v = first_fixed; v < n; ++v) fixed[v] = 1;
+  // Vertices on a crease that was not split (an edge between two marching vertices whose normals
+  // differ by more than about 25°): one that lies on the crease line would slide off it.
+  for (const core::Triangle& t : mesh.faces) {
+    for (size_t i = 0; i < 3; ++i) {
+      const uint32_t a = t[i], b = t[(i + 1) % 3];
+      if (a < first_fixed && b < first_fixed && mesh.normals[a].dot(mesh.normals[b]) < kSameSheetCos) {
+        fixed[a] = fixed[b] = 1;
+      }
+    }
+  }
+  {
+    absl::flat_hash_map<uint64_t, int> edge_faces;
+    for (const core::Triangle& t : mesh.faces) {
+      for (size_t i = 0; i < 3; ++i) {
+        const uint32_t a = t[i], b = t[(i + 1) % 3];
+        ++edge_faces[(uint64_t{std::min(a, b)} << 32) | std::max(a, b)];
+      }
+    }
+    for (const auto& [edge, count] : edge_faces) {
+      if (count != 2) fixed[edge >> 32] = fixed[static_cast<uint32_t>(edge)] = 1;
+    }
+  }
+  std::vector<Vec3f> next(mesh.vertices), next_normals(mesh.normals);
+  std::vector<char> moved(n, 0);
+  std::vector<char> needs(n);
+  const double good_cos = std::cos(kGoodAngleDegrees * std::numbers::pi / 180);
+  for (int step = 0; step < steps; ++step) {
+    // The vertices of poorly shaped triangles: an angle of less than kGoodAngleDegrees.
+    std::fill(needs.begin(), needs.end(), 0);
+    for (const core::Triangle& t : mesh.faces) {
+      for (size_t i = 0; i < 3; ++i) {
+        const Vec3f u = mesh.vertices[t[(i + 1) % 3]] - mesh.vertices[t[i]];
+        const Vec3f w = mesh.vertices[t[(i + 2) % 3]] - mesh.vertices[t[i]];
+        if (u.dot(w) > good_cos * u.norm() * w.norm()) needs[t[0]] = needs[t[1]] = needs[t[2]] = 1;
+      }
+    }
+    LSQSURF_RETURN_IF_ERROR(core::ParallelFor(
+        n, 512,
+        [&](size_t begin, size_t end) {
+          for (size_t v = begin; v < end; ++v) {
+            next[v] = mesh.vertices[v];
+            next_normals[v] = mesh.normals[v];
+            if (fixed[v] || !needs[v] || start[v] == start[v + 1]) continue;
+            const Vec3d p = mesh.vertices[v].cast<double>(), normal = mesh.normals[v].cast<double>();
+            Vec3d mean = Vec3d::Zero();
+            double edge = 0;
+            int count = 0;
+            for (uint32_t k = start[v]; k < start[v + 1]; ++k) {
+              for (uint32_t w : mesh.faces[incident[k]]) {
+                if (w == v) continue;
+                mean += mesh.vertices[w].cast<double>();
+                edge += (mesh.vertices[w].cast<double>() - p).norm();
+                ++count;
+              }
+            }
+            mean /= count;
+            edge /= count;
+            Vec3d delta = kStepShare * (mean - p);
+            delta -= normal.dot(delta) * normal;
+            Vec3d x = p + delta;
+            // One Newton step back onto F = 0: the tangential move leaves x within a small share
+            // of an edge of the surface, where one step leaves an error of second order.
+            const core::FieldGradient g = field.ValueAndGradientOnly(x);
+            const double slope2 = g.gradient.squaredNorm();
+            if (!g.defined || !(slope2 > 0) || !(std::abs(g.value) <= kMaxOffsetShare * edge)) continue;
+            // A vertex beside a crease must stay on its side of it: no move where ∇F turns.
+            if (g.gradient.dot(normal) < kSameSheetCos * std::sqrt(slope2)) continue;
+            x -= (g.value / slope2) * g.gradient;
+            // None of its triangles may turn over.
+            bool folds = false;
+            for (uint32_t k = start[v]; k < start[v + 1] && !folds; ++k) {
+              const core::Triangle& t = mesh.faces[incident[k]];
+              std::array<Vec3d, 3> q, q_new;
+              for (size_t i = 0; i < 3; ++i) {
+                q[i] = mesh.vertices[t[i]].cast<double>();
+                q_new[i] = t[i] == v ? x : q[i];
+              }
+              const Vec3d before = (q[1] - q[0]).cross(q[2] - q[0]),
+                          after = (q_new[1] - q_new[0]).cross(q_new[2] - q_new[0]);
+              folds = before.dot(after) <= 0;
+            }
+            if (folds) continue;
+            next[v] = x.cast<float>();
+            next_normals[v] = g.gradient.normalized().cast<float>();
+            moved[v] = 1;
+          }
+        },
+        &ctx));
+    std::swap(mesh.vertices, next);
+    std::swap(mesh.normals, next_normals);
+  }
+  moves = 0;
+  for (char m : moved) moves += m;
+  return absl::OkStatus();
+}
+
+}  // namespace lsqsurf::extract::internal

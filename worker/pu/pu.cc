@@ -8,6 +8,7 @@
 #include <limits>
 #include <mutex>
 #include <optional>
+#include <type_traits>
 
 #include "worker/core/kd_tree.h"
 #include "worker/core/parallel.h"
@@ -637,63 +638,46 @@ const core::ParamTable<PuParams>& PuParamTable() {
 
 absl::Status Validate(const PuParams& p) { return PuParamTable().Validate(p); }
 
+// One MarchingOptions field as a parameter of PuExtractParams (reached through `marching`).
+template <auto kField>
+void AddMarchingOption(core::ParamTable<PuExtractParams>& t, const char* name, double min, double max, const char* unit,
+                       const char* help) {
+  using T = std::remove_cvref_t<decltype(extract::MarchingOptions{}.*kField)>;
+  t.Custom(
+      {name,
+       std::is_integral_v<T> ? core::ParamType::kInteger : core::ParamType::kReal,
+       0,
+       {},
+       min,
+       max,
+       unit,
+       help,
+       {}},
+      [](const PuExtractParams& p) { return static_cast<double>(p.marching.*kField); },
+      [](PuExtractParams& p, double v) { p.marching.*kField = static_cast<T>(v); });
+}
+
 const core::ParamTable<PuExtractParams>& PuExtractParamTable() {
   static const auto* table = [] {
+    using extract::MarchingOptions;
     auto* t = new core::ParamTable<PuExtractParams>();
     t->Real<&PuExtractParams::cell_size>("cell_size", 0.25, 64, "mean point spacings",
                                          "smallest extraction cell at the surface (rounded to an octree level); cells "
-                                         "near the data are up to 4x larger where the fits allowed larger cells")
-        .Custom(
-            {"refine_steps",
-             core::ParamType::kInteger,
-             0,
-             {},
-             0,
-             20,
-             "steps",
-             "root-refinement steps per crossing edge",
-             {}},
-            [](const PuExtractParams& p) { return static_cast<double>(p.marching.refine_steps); },
-            [](PuExtractParams& p, double v) { p.marching.refine_steps = static_cast<int>(v); })
-        .Custom(
-            {"crease_angle",
-             core::ParamType::kReal,
-             0,
-             {},
-             0,
-             90,
-             "degrees",
-             "an output edge whose end normals differ by more is split where it crosses a crease or corner of "
-             "the surface; 0 = off",
-             {}},
-            [](const PuExtractParams& p) { return p.marching.crease_angle; },
-            [](PuExtractParams& p, double v) { p.marching.crease_angle = v; })
-        .Custom(
-            {"snap_share",
-             core::ParamType::kReal,
-             0,
-             {},
-             0,
-             0.45,
-             "",
-             "mesh enhancement: a J1a corner that the surface passes within this share of an edge from is "
-             "moved onto the surface before extraction, so that no slivers form there; 0 = off",
-             {}},
-            [](const PuExtractParams& p) { return p.marching.snap_share; },
-            [](PuExtractParams& p, double v) { p.marching.snap_share = v; })
-        .Custom(
-            {"relax_steps",
-             core::ParamType::kInteger,
-             0,
-             {},
-             0,
-             10,
-             "steps",
-             "mesh enhancement: steps of tangential relaxation on the surface after extraction (vertices on "
-             "creases and borders stay); 0 = off",
-             {}},
-            [](const PuExtractParams& p) { return static_cast<double>(p.marching.relax_steps); },
-            [](PuExtractParams& p, double v) { p.marching.relax_steps = static_cast<int>(v); });
+                                         "near the data are up to 4x larger where the fits allowed larger cells");
+    AddMarchingOption<&MarchingOptions::refine_steps>(*t, "refine_steps", 0, 20, "steps",
+                                                      "root-refinement steps per crossing edge");
+    AddMarchingOption<&MarchingOptions::crease_angle>(
+        *t, "crease_angle", 0, 90, "degrees",
+        "an output edge whose end normals differ by more is split where it crosses a crease or corner of the "
+        "surface; 0 = off");
+    AddMarchingOption<&MarchingOptions::snap_share>(
+        *t, "snap_share", 0, 0.45, "",
+        "mesh enhancement: a J1a corner that the surface passes within this share of an edge from is moved onto "
+        "the surface before extraction, so that no slivers form there; 0 = off");
+    AddMarchingOption<&MarchingOptions::relax_steps>(
+        *t, "relax_steps", 0, 10, "steps",
+        "mesh enhancement: steps of tangential relaxation on the surface after extraction (vertices on creases and "
+        "borders stay); 0 = off");
     return t;
   }();
   return *table;

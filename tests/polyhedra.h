@@ -10,6 +10,7 @@
 
 #include "worker/core/geometry.h"
 #include "worker/core/implicit_function.h"
+#include "worker/core/surface_distance.h"
 
 namespace lsqsurf::testing {
 
@@ -87,43 +88,14 @@ inline TurnedPolyhedron Octahedron() {  // Corners at distance 0.6 on the axes.
   return TurnedPolyhedron(normals, 0.6 / std::sqrt(3.0));
 }
 
-inline double PointTriangleDistance(const Vec3d& p, const Vec3d& a, const Vec3d& b, const Vec3d& c) {
-  // Closest point by the regions of the triangle (Ericson, Real-Time Collision Detection 5.1.5).
-  const Vec3d ab = b - a, ac = c - a, ap = p - a;
-  const double d1 = ab.dot(ap), d2 = ac.dot(ap);
-  if (d1 <= 0 && d2 <= 0) return (p - a).norm();
-  const Vec3d bp = p - b;
-  const double d3 = ab.dot(bp), d4 = ac.dot(bp);
-  if (d3 >= 0 && d4 <= d3) return (p - b).norm();
-  const double vc = d1 * d4 - d3 * d2;
-  if (vc <= 0 && d1 >= 0 && d3 <= 0) return (p - (a + d1 / (d1 - d3) * ab)).norm();
-  const Vec3d cp = p - c;
-  const double d5 = ab.dot(cp), d6 = ac.dot(cp);
-  if (d6 >= 0 && d5 <= d6) return (p - c).norm();
-  const double vb = d5 * d2 - d1 * d6;
-  if (vb <= 0 && d2 >= 0 && d6 <= 0) return (p - (a + d2 / (d2 - d6) * ac)).norm();
-  const double va = d3 * d6 - d5 * d4;
-  if (va <= 0 && (d4 - d3) >= 0 && (d5 - d6) >= 0) {
-    return (p - (b + (d4 - d3) / ((d4 - d3) + (d5 - d6)) * (c - b))).norm();
-  }
-  const double denom = 1 / (va + vb + vc);
-  return (p - (a + ab * vb * denom + ac * vc * denom)).norm();
-}
-
 // The largest distance from points along the true edges to the mesh.
 inline double EdgeDistance(const TriangleMesh& mesh, const TurnedPolyhedron& shape,
                            const std::vector<std::pair<Vec3d, Vec3d>>& edges) {
+  const core::TriangleTree tree(mesh);
   double worst = 0;
   for (const auto& [a, b] : edges) {
     for (int k = 1; k < 20; ++k) {
-      const Vec3d p = shape.World(a + (b - a) * (k / 20.0));
-      double nearest = 1e300;
-      for (const auto& f : mesh.faces) {
-        nearest = std::min(
-            nearest, PointTriangleDistance(p, mesh.vertices[f[0]].cast<double>(), mesh.vertices[f[1]].cast<double>(),
-                                           mesh.vertices[f[2]].cast<double>()));
-      }
-      worst = std::max(worst, nearest);
+      worst = std::max(worst, std::sqrt(tree.Closest(shape.World(a + (b - a) * (k / 20.0))).distance2));
     }
   }
   return worst;

@@ -97,12 +97,6 @@ TEST(VolumeField, FrankeOnJitteredTetrahedraBeatsLinearInterpolation) {
   EXPECT_LT(st.spectral_radius, 1.05);
 }
 
-}  // namespace
-}  // namespace lsqsurf::volume
-
-namespace lsqsurf::volume {
-namespace {
-
 TEST(VolumeField, ScatteredPointsWithoutCells) {
   const AnalyticField franke = Franke3d();
   VolumeMesh points = ScatteredPoints(franke.domain, 15000, 3);
@@ -205,12 +199,6 @@ TEST(VolumeField, NamesTheFieldsWhenOneIsMissing) {
   EXPECT_NE(field.status().message().find("franke (scalar)"), std::string::npos) << field.status();
 }
 
-}  // namespace
-}  // namespace lsqsurf::volume
-
-namespace lsqsurf::volume {
-namespace {
-
 TEST(VolumeField, StoredFieldEvaluatesExactlyAsTheOriginal) {
   const AnalyticField franke = Franke3d();
   VolumeMesh mesh = JitteredTetMesh(franke.domain, 9, 0.3, 6);
@@ -234,12 +222,6 @@ TEST(VolumeField, StoredFieldEvaluatesExactlyAsTheOriginal) {
     EXPECT_EQ(DeserializeVolumeField(bytes.substr(0, cut)).status().code(), absl::StatusCode::kInvalidArgument);
   }
 }
-
-}  // namespace
-}  // namespace lsqsurf::volume
-
-namespace lsqsurf::volume {
-namespace {
 
 TEST(VolumeKernels, InlineExponentialMatchesTheLibrary) {
   for (float s = 0; s <= 12; s += 1e-3f) {

@@ -11,6 +11,7 @@
 #include "absl/container/flat_hash_set.h"
 #include "worker/core/parallel.h"
 #include "worker/core/status.h"
+#include "worker/extract/marching_tets.h"
 
 namespace lsqsurf::extract::internal {
 namespace {
@@ -28,8 +29,6 @@ constexpr double kMaxResidualShare = 0.1;
 constexpr double kMaxCornerResidualShare = 0.02;
 constexpr double kEndMargin = 0.02;
 constexpr double kMaxOffsetShare = 0.5;
-
-uint64_t EdgeKey(uint32_t a, uint32_t b) { return (uint64_t{std::min(a, b)} << 32) | std::max(a, b); }
 
 // The point of the line where the planes (a, na) and (b, nb) meet that is nearest the midpoint
 // of a–b, or NaN when it is not a crease point of F.

@@ -7,7 +7,7 @@
 // main diagonal; every cube uses the same diagonal direction, so neighbouring cubes share their
 // face triangulations and marching tetrahedra yields a crack-free, edge-manifold, consistently
 // oriented surface with no ambiguous cases. Crossings are keyed by the grid edge, so triangles
-// share vertices; their positions are refined on F along the edge (Illinois regula falsi).
+// share vertices; their positions are refined on F along the edge (regula falsi).
 // Tetrahedra with a corner where F is unknown (NaN) produce nothing, and triangles with a root
 // where F is not `defined` are dropped (the ghost-sheet and hole guard), unless they form a
 // small patch inside trusted surface (see `MarchingOptions::max_patch_triangles`).

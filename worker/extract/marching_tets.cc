@@ -68,8 +68,6 @@ class FaceClusters {
   absl::flat_hash_map<uint32_t, int> size_;
 };
 
-uint64_t EdgeKey(uint32_t a, uint32_t b) { return (uint64_t{std::min(a, b)} << 32) | std::max(a, b); }
-
 // Marks as trusted again every edge-connected cluster of untrusted triangles with at most
 // `max_size` members whose whole border is shared with trusted triangles: such pinholes lie on
 // the real surface where the field's confidence dips for a moment (a gap in random sampling),
@@ -217,8 +215,8 @@ struct PolygonSoup {
   }
 };
 
-// Root refinement on the true F along each crossing edge (Illinois variant of regula falsi:
-// superlinear, and it never leaves the bracket). `valid` marks the roots where F is defined.
+// Root refinement on the true F along each crossing edge (core::RefineRootOnSegment: regula
+// falsi, superlinear, never leaving the bracket). `valid` marks the roots where F is defined.
 absl::Status RefineCrossings(const ImplicitFunction& field, const std::vector<Crossing>& crossings,
                              const std::function<Vec3d(CornerKey)>& position, const MarchingOptions& params,
                              TriangleMesh& mesh, std::vector<char>& valid, JobContext& ctx) {

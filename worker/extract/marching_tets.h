@@ -2,13 +2,14 @@
 //
 // Input: tetrahedra named by the keys of their corners, the field value at every corner, and
 // the position of a key. Crossings are keyed by the unordered corner pair, so neighbouring
-// tetrahedra share output vertices; each root is refined on F along its edge (Illinois regula
-// falsi); triangles are oriented from F < 0 to F >= 0 using the corner positions. Roots where F
+// tetrahedra share output vertices; each root is refined on F along its edge (regula falsi,
+// core::RefineRootOnSegment); triangles are oriented from F < 0 to F >= 0 using the corner positions. Roots where F
 // is not `defined` make their triangles untrusted: those are dropped unless they form a small
 // edge-connected patch (a pinhole) inside trusted surface; conversely, small clusters of trusted
 // triangles that the dropped ones cut off from the rest (specks) are dropped too.
 #pragma once
 
+#include <algorithm>
 #include <array>
 #include <cstdint>
 #include <functional>
@@ -24,6 +25,9 @@ namespace lsqsurf::extract::internal {
 
 using CornerKey = uint64_t;
 using TetCorners = std::array<CornerKey, 4>;
+
+// An undirected mesh edge as one key: the smaller vertex index in the high half.
+inline uint64_t EdgeKey(uint32_t a, uint32_t b) { return (uint64_t{std::min(a, b)} << 32) | std::max(a, b); }
 
 // Field values at lattice corners, filled in batches as a surface search discovers them (one
 // batched field call per batch: the engines evaluate batches in parallel).

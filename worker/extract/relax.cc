@@ -8,6 +8,7 @@
 #include "absl/container/flat_hash_map.h"
 #include "worker/core/parallel.h"
 #include "worker/core/status.h"
+#include "worker/extract/marching_tets.h"
 
 namespace lsqsurf::extract::internal {
 namespace {
@@ -59,7 +60,7 @@ absl::Status RelaxTangentially(const core::ImplicitFunction& field, int steps, u
     for (const core::Triangle& t : mesh.faces) {
       for (size_t i = 0; i < 3; ++i) {
         const uint32_t a = t[i], b = t[(i + 1) % 3];
-        ++edge_faces[(uint64_t{std::min(a, b)} << 32) | std::max(a, b)];
+        ++edge_faces[EdgeKey(a, b)];
       }
     }
     for (const auto& [edge, count] : edge_faces) {

@@ -25,8 +25,8 @@ using core::Vec3d;
 using core::Vec3f;
 
 constexpr double kRadius = 0.15;
-// Root refinement on a grid edge: Illinois steps (superlinear; 8 bring the bracket far below
-// 1e-6 h on smooth fronts).
+// Root refinement on a grid edge: regula-falsi steps (core::RefineRootOnSegment; superlinear, 8
+// bring the bracket far below 1e-6 h on smooth fronts).
 constexpr int kRootSteps = 8;
 // The grid nodes sampled around each point: its cell widened by one cell on every side, so that
 // a crossing in a cell the surface only clips is still found.

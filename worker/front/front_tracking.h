@@ -13,7 +13,7 @@
 //       fitting error, and a sheet's two faces are never fitted together.
 //     * gridlines (the seed's): the function is sampled at the background-grid nodes near the
 //       points (spacing h); every grid edge whose ends have opposite signs gives a new point (the
-//       root on the edge, Illinois regula falsi, with the fitted sphere's normal); new points
+//       root on the edge, by regula falsi, with the fitted sphere's normal); new points
 //       closer than h/2 to an already kept one are dropped. The whole front is replaced.
 // The enclosed volume comes from the z-edges: along each z gridline the crossings alternate
 // between entering (F goes from + to −) and leaving, and V = h² Σ (z_leave − z_enter).

@@ -132,7 +132,7 @@ struct PuExtractParams {
   int64_t max_leaves = 20'000'000;
   // Edges split on creases where their end normals differ by more than 30° (the sharp fits make
   // creases, and this puts the mesh's edges on them), then 4 steps of tangential relaxation on
-  // the surface (bunny 100k: 1st percentile of the smallest angle 1° -> 21°, Chamfer 1.5 % lower).
+  // the surface (bunny 100k: 1st percentile of the smallest angle 1° -> 21°, Chamfer 2 % lower).
   extract::MarchingOptions marching{.crease_angle = 30, .relax_steps = 4};
   bool label_vertices = true;  // Adds the vertex attributes "depth", "degree" and "feature".
 };

@@ -50,23 +50,19 @@ BoxGrid::BoxGrid(const core::Box3& bounds, const core::Vec3d& bin_size, double m
 }
 
 std::span<const uint32_t> BoxGrid::At(const core::Vec3d& x, double slack) const {
-  if (start_.empty()) return {};
-  std::array<int, 3> cell;
-  for (int a = 0; a < 3; ++a) {
-    const double t = (x[a] - origin_[a]) * inv_bin_[a];
-    if (!(t >= -slack) || t > bins_[a] + slack) return {};
-    cell[a] = std::clamp(static_cast<int>(t), 0, bins_[a] - 1);
-  }
-  return Items((static_cast<int64_t>(cell[2]) * bins_[1] + cell[1]) * bins_[0] + cell[0]);
+  const int64_t bin = Bin(x, slack, nullptr);
+  return bin < 0 ? std::span<const uint32_t>() : Items(bin);
 }
 
-int64_t BoxGrid::Locate(const core::Vec3d& x, core::Vec3d* within) const {
+int64_t BoxGrid::Locate(const core::Vec3d& x, core::Vec3d* within) const { return Bin(x, 0, within); }
+
+int64_t BoxGrid::Bin(const core::Vec3d& x, double slack, core::Vec3d* within) const {
   if (start_.empty()) return -1;
   std::array<int, 3> cell;
   for (int a = 0; a < 3; ++a) {
     const double t = (x[a] - origin_[a]) * inv_bin_[a];
-    if (!(t >= 0) || t > bins_[a]) return -1;
-    cell[a] = std::min(static_cast<int>(t), bins_[a] - 1);
+    if (!(t >= -slack) || t > bins_[a] + slack) return -1;
+    cell[a] = std::clamp(static_cast<int>(t), 0, bins_[a] - 1);
     if (within != nullptr) (*within)[a] = std::clamp(t - cell[a], 0.0, 1.0 - 1e-9);
   }
   return (static_cast<int64_t>(cell[2]) * bins_[1] + cell[1]) * bins_[0] + cell[0];

@@ -31,6 +31,9 @@ class BoxGrid {
   }
 
  private:
+  // At and Locate: the bin of x, a margin of `slack` bins counting as inside; −1 outside.
+  int64_t Bin(const core::Vec3d& x, double slack, core::Vec3d* within) const;
+
   core::Vec3d origin_ = core::Vec3d::Zero();
   core::Vec3d inv_bin_ = core::Vec3d::Zero();
   std::array<int, 3> bins_ = {1, 1, 1};

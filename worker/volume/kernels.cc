@@ -1,3 +1,8 @@
+// The vector helpers here (and TwoToThe from the header, instantiated on vectors only here) are
+// internal to this file, so the warning that their calling convention differs between the AVX
+// clone and the rest does not apply.
+#pragma GCC diagnostic ignored "-Wpsabi"
+
 #include "worker/volume/kernels.h"
 
 #include <tbb/parallel_sort.h>
@@ -22,10 +27,6 @@ Eigen::Matrix3d ShapeMatrix(const std::array<float, 6>& q) {
 // Points are summed in groups of at most this many that share a grid bin.
 constexpr size_t kGroupSize = 64;
 
-// The vector helpers below are internal to this file, so the warning that their calling
-// convention differs between the AVX clone and the rest does not apply.
-#pragma GCC diagnostic ignored "-Wpsabi"
-
 // Eight floats, one per kernel, in the compiler's vector extension: two SSE registers on any
 // x86-64, one AVX register in the clone built for CPUs that have it.
 using Lanes = float __attribute__((vector_size(32)));
@@ -46,15 +47,8 @@ Lanes Load(const float* p) {
 Lanes ExpOfMinusLanes(Lanes s) {
   const Lanes t = s * 1.44269504f;
   const IntLanes k = __builtin_convertvector(t + 0.5f, IntLanes);  // Truncation is floor here.
-  const Lanes r = __builtin_convertvector(k, Lanes) - t;
-  Lanes p = r * 1.5403530e-4f + 1.3333558e-3f;
-  p = p * r + 9.6181291e-3f;
-  p = p * r + 5.5504109e-2f;
-  p = p * r + 2.4022651e-1f;
-  p = p * r + 6.9314718e-1f;
-  p = p * r + 1.0f;
   const IntLanes bits = (127 - k) << 23;
-  return p * std::bit_cast<Lanes>(bits);
+  return TwoToThe(__builtin_convertvector(k, Lanes) - t) * std::bit_cast<Lanes>(bits);
 }
 
 #if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
@@ -221,10 +215,7 @@ absl::Status Kernels::SumBatch(std::span<const Vec3d> xs, std::span<const Kernel
           reach.clear();
           for (const uint32_t i : grid_.Items(bin[keyed[begin].second])) {
             const KernelRecord& r = records_[i];
-            const Vec3f d = (origin - r.center.cast<double>()).cast<float>();
-            const auto& q = r.shape;
-            const float s = q[0] * d[0] * d[0] + q[1] * d[1] * d[1] + q[2] * d[2] * d[2] + q[3] * d[0] * d[1] +
-                            q[4] * d[0] * d[2] + q[5] * d[1] * d[2];
+            const float s = r.Form((origin - r.center.cast<double>()).cast<float>());
             if (std::sqrt(s) < cutoff + reach_scale_[i] * radius) reach.push_back(i);
           }
           const size_t stride = (reach.size() + kLanes - 1) / kLanes * kLanes;

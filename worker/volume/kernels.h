@@ -22,22 +22,25 @@ namespace lsqsurf::volume {
 using core::Vec3d;
 using core::Vec3f;
 
-// e^{-s} for 0 ≤ s ≤ 12 (beyond the cutoff) to a relative 1e-6, inline: evaluations spend most
-// of their time here, and the library call neither inlines nor vectorises.
-// e^{-s} = 2^{-t}, t = s log₂e = k − r with k the nearest integer: exponent bits times 2^r,
-// r ∈ [−½, ½], by its Taylor polynomial of degree 6.
-inline float ExpOfMinus(float s) {
-  const float t = s * 1.44269504f;
-  const float k = std::floor(t + 0.5f);
-  const float r = k - t;
-  float p = 1.5403530e-4f;
-  p = p * r + 1.3333558e-3f;
+// 2^r for r ∈ [−½, ½] by its Taylor polynomial of degree 6: for a float, or for the batch
+// path's vector of floats.
+template <class T>
+inline T TwoToThe(T r) {
+  T p = r * 1.5403530e-4f + 1.3333558e-3f;
   p = p * r + 9.6181291e-3f;
   p = p * r + 5.5504109e-2f;
   p = p * r + 2.4022651e-1f;
   p = p * r + 6.9314718e-1f;
-  p = p * r + 1.0f;
-  return p * std::bit_cast<float>((127 - static_cast<int32_t>(k)) << 23);
+  return p * r + 1.0f;
+}
+
+// e^{-s} for 0 ≤ s ≤ 12 (beyond the cutoff) to a relative 1e-6, inline: evaluations spend most
+// of their time here, and the library call neither inlines nor vectorises.
+// e^{-s} = 2^{-t}, t = s log₂e = k − r with k the nearest integer: exponent bits times 2^r.
+inline float ExpOfMinus(float s) {
+  const float t = s * 1.44269504f;
+  const float k = std::floor(t + 0.5f);
+  return TwoToThe(k - t) * std::bit_cast<float>((127 - static_cast<int32_t>(k)) << 23);
 }
 
 // One generating function: Ψ(x) = weight (5/2 − s) e^{−s}, s = dᵀ S d, d = x − center, for
@@ -46,6 +49,12 @@ struct KernelRecord {
   Vec3f center;
   float weight;
   std::array<float, 6> shape;  // S: xx, yy, zz, 2xy, 2xz, 2yz
+
+  float Form(const Vec3f& d) const {  // dᵀ S d.
+    const auto& q = shape;
+    return q[0] * d[0] * d[0] + q[1] * d[1] * d[1] + q[2] * d[2] * d[2] + q[3] * d[0] * d[1] + q[4] * d[0] * d[2] +
+           q[5] * d[1] * d[2];
+  }
 };
 
 // What a sum reads of each kernel besides its shape: the value term g + slope·(x − center)
@@ -83,9 +92,7 @@ class Kernels {
     for (const uint32_t i : grid_.At(x)) {
       const KernelRecord& r = records_[i];
       const Vec3f d = xf - r.center;
-      const auto& q = r.shape;
-      const float s = q[0] * d[0] * d[0] + q[1] * d[1] * d[1] + q[2] * d[2] * d[2] + q[3] * d[0] * d[1] +
-                      q[4] * d[0] * d[2] + q[5] * d[1] * d[2];
+      const float s = r.Form(d);
       if (s >= cutoff2_) continue;
       f(i, r.weight * (2.5f - s) * ExpOfMinus(s), d);
     }

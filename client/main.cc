@@ -328,10 +328,12 @@ struct SurfaceCommand {
   ViewFlags view;
   VolumeFlags volume;
   std::vector<double> iso;
+  std::string csg_expression;  // Method csg: the solid (no upload).
 
   int Run(const Globals& g, bool wait) const {
     auto spec = job.Spec();
     if (!spec.ok()) return Fail(std::string(spec.status().message()));
+    if (job.method == "csg") spec->mutable_csg()->set_expression(csg_expression);
     if (job_preview) *spec->mutable_preview()->mutable_options() = view.Options();
     absl::StatusOr<Upload> upload = absl::UnknownError("");
     if (job.method == "volume") {
@@ -378,6 +380,20 @@ struct SurfaceCommand {
     return 0;
   }
 };
+
+// csg: a solid from an expression, run through the surface command's upload-free path.
+CLI::App* AddCsgCommand(CLI::App& app, SurfaceCommand& surface) {
+  auto* csg = app.add_subcommand("csg", "combine primitives and kept PU results into one solid, wait, write the mesh");
+  csg->add_option("expression", surface.csg_expression,
+                  "the solid, e.g. 'difference(job:ID, sphere(c=0.1,0.2,0.3 r=0.05))' (README: CSG)")
+      ->required();
+  csg->add_option("-o,--output", surface.outputs, "mesh to write (.ply .obj .drc); repeat for several")->required();
+  csg->add_option("--param", surface.job.params, "csg parameter as name=value, e.g. cell_size=0.002");
+  csg->add_option("--mesh-bits", surface.job.mesh_bits, "Draco quantization of result positions");
+  csg->add_option("--preview", surface.preview, "also render the mesh to this PNG file (view options below)");
+  surface.view.AddTo(csg);
+  return csg;
+}
 
 // probe: values of a finished volume job at points of an XYZ file, or on a grid.
 struct ProbeCommand {
@@ -661,6 +677,8 @@ int main(int argc, char** argv) {
   volume->add_option("--param", surface.job.params, "volume parameter as name=value (lsqsurf methods)");
   volume->add_option("--mesh-bits", surface.job.mesh_bits, "Draco quantization of result positions");
 
+  CLI::App* csg = AddCsgCommand(app, surface);
+
   ProbeCommand probe_command;
   auto* probe = app.add_subcommand("probe", "values of a finished volume job's field at points or on a grid");
   probe_command.AddTo(probe);
@@ -708,6 +726,10 @@ int main(int argc, char** argv) {
     return surface.Run(g, /*wait=*/true);
   }
   if (*reconstruct || *submit) return surface.Run(g, /*wait=*/reconstruct->parsed());
+  if (*csg) {
+    surface.job.method = "csg";
+    return surface.Run(g, /*wait=*/true);
+  }
   if (*track) return track_command.Run(g);
   if (*probe) return probe_command.Run(g);
   if (*render) {

@@ -12,6 +12,7 @@
 #include <cstdio>
 #include <filesystem>
 #include <map>
+#include <numbers>
 #include <sstream>
 #include <thread>
 
@@ -195,6 +196,29 @@ TEST_F(EndToEnd, PuMeshCarriesDepthAndDegreeToThePly) {
   EXPECT_LE(ranges["depth"].second, 18.0f);
   EXPECT_GE(ranges["degree"].first, 0.0f);
   EXPECT_LE(ranges["degree"].second, 5.0f);
+}
+
+// A PU job keeps its function; `lsqsurf csg` halves it with a plane by reference.
+TEST_F(EndToEnd, CsgCutsAKeptPuResultThroughTheCli) {
+  Server server;
+  ASSERT_NO_FATAL_FAILURE(server.Start(dir_ / "data"));
+  const std::string in = WriteCloud("sphere.ply", testing::SphereCloud(8000));
+  const ClientRun submitted = Client(server.address(), "submit " + in + " --method pu");
+  ASSERT_EQ(submitted.code, 0) << submitted.output;
+  const std::string id = Trim(submitted.output);
+  ASSERT_EQ(Client(server.address(), "watch " + id).code, 0);
+  const std::string out = (dir_ / "half.ply").string();
+  const ClientRun r = Client(server.address(), "csg 'intersection(job:" + id + ", plane(p=0,0,0 n=0,0,1))' -o " + out);
+  ASSERT_EQ(r.code, 0) << r.output;
+  auto mesh = io::ReadMeshFile(out);
+  ASSERT_TRUE(mesh.ok()) << mesh.status();
+  const core::MeshTopology topology = core::AnalyzeTopology(core::WeldByPosition(*mesh));
+  EXPECT_TRUE(topology.watertight());
+  EXPECT_EQ(topology.components, 1);
+  EXPECT_NEAR(core::EnclosedVolume(*mesh), 2 * std::numbers::pi / 3, 0.02);
+  const ClientRun bad = Client(server.address(), "csg 'union(job:" + id + ")' -o " + out);
+  EXPECT_EQ(bad.code, 1) << bad.output;
+  EXPECT_NE(bad.output.find("at least 2 operands"), std::string::npos) << bad.output;
 }
 
 // Pictures: a preview written by reconstruct, an on-demand render coloured by the PU degree,
@@ -521,14 +545,15 @@ TEST_F(EndToEnd, RawApiStatusCodes) {
     grpc::ClientContext ctx;
     v1::ListMethodsResponse response;
     ASSERT_TRUE(stub->ListMethods(&ctx, {}, &response).ok());
-    ASSERT_EQ(response.methods_size(), 7);
+    ASSERT_EQ(response.methods_size(), 8);
     EXPECT_EQ(response.methods(0).name(), "iamls");
     EXPECT_EQ(response.methods(1).name(), "pu");
     EXPECT_EQ(response.methods(2).name(), "ramls");
     EXPECT_EQ(response.methods(3).name(), "apss");
-    EXPECT_EQ(response.methods(4).name(), "track");
-    EXPECT_EQ(response.methods(5).name(), "volume");
-    EXPECT_EQ(response.methods(6).name(), "probe");
+    EXPECT_EQ(response.methods(4).name(), "csg");
+    EXPECT_EQ(response.methods(5).name(), "track");
+    EXPECT_EQ(response.methods(6).name(), "volume");
+    EXPECT_EQ(response.methods(7).name(), "probe");
   }
   EXPECT_EQ(Client(server.address(), "cancel " + id).code, 0);
 }

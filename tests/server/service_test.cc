@@ -3,6 +3,8 @@
 #include <grpcpp/grpcpp.h>
 #include <gtest/gtest.h>
 
+#include <algorithm>
+#include <cmath>
 #include <filesystem>
 #include <sstream>
 
@@ -11,6 +13,7 @@
 #include "tests/latch_kind.h"
 #include "tests/test_dir.h"
 #include "tests/test_shapes.h"
+#include "worker/core/mesh_metrics.h"
 #include "worker/io/draco_codec.h"
 #include "worker/io/volume_codec.h"
 #include "worker/volume/synthetic.h"
@@ -142,7 +145,7 @@ TEST_F(ServiceTest, MethodsListTheirParametersWithDefaults) {
   ASSERT_TRUE(methods.ok());
   std::vector<std::string> names;
   for (const auto& m : methods->methods()) names.push_back(m.name());
-  EXPECT_EQ(names, (std::vector<std::string>{"iamls", "pu", "ramls", "apss", "track", "volume", "probe"}));
+  EXPECT_EQ(names, (std::vector<std::string>{"iamls", "pu", "ramls", "apss", "csg", "track", "volume", "probe"}));
   for (const auto& m : methods->methods()) {
     EXPECT_GT(m.parameters_size(), 0) << m.name();
     for (const auto& p : m.parameters()) {
@@ -274,6 +277,55 @@ TEST_F(ServiceTest, AVolumeMeshBecomesAnIsosurfaceAndBadVolumesAreRefused) {
   ASSERT_TRUE(huge_vertices.ok());
   auto too_many = client_->Submit(spec, *huge_vertices, {}, io::EncodeCellStream(huge));
   EXPECT_EQ(too_many.status().code(), absl::StatusCode::kResourceExhausted) << too_many.status();
+}
+
+// A PU job keeps its function; a csg job cuts it with a box by reference, without an upload, and
+// the result is the closed half ball. Bad expressions and references are refused with reasons.
+TEST_F(ServiceTest, CsgCombinesAKeptPuResultWithPrimitives) {
+  auto ball = io::EncodeDracoPointCloud(testing::SphereCloud(20'000), {});
+  ASSERT_TRUE(ball.ok());
+  v1::JobSpec pu;
+  pu.mutable_pu();
+  auto fitted = client_->Submit(pu, *ball);
+  ASSERT_TRUE(fitted.ok()) << fitted.status();
+  auto fitted_done = client_->Watch(fitted->id());
+  ASSERT_TRUE(fitted_done.ok());
+  ASSERT_EQ(fitted_done->state(), v1::JOB_STATE_SUCCEEDED) << fitted_done->error();
+  EXPECT_NE(std::find(fitted_done->results().begin(), fitted_done->results().end(), "function.lqpu"),
+            fitted_done->results().end());
+
+  v1::JobSpec cut;
+  cut.mutable_csg()->set_expression("difference(job:" + fitted->id() + " box(min=0,-2,-2 max=2,2,2))");
+  auto job = client_->Submit(cut, "");
+  ASSERT_TRUE(job.ok()) << job.status();
+  auto done = client_->Watch(job->id());
+  ASSERT_TRUE(done.ok());
+  ASSERT_EQ(done->state(), v1::JOB_STATE_SUCCEEDED) << done->error();
+  auto bytes = client_->Fetch(job->id(), "");
+  ASSERT_TRUE(bytes.ok());
+  auto mesh = io::DecodeDracoMesh(*bytes);  // Another decoder's view: merged by position.
+  ASSERT_TRUE(mesh.ok());
+  const core::MeshTopology topology = core::AnalyzeTopology(core::WeldByPosition(*mesh));
+  EXPECT_TRUE(topology.watertight());
+  EXPECT_EQ(topology.components, 1);
+  EXPECT_NEAR(core::EnclosedVolume(*mesh), 2 * M_PI / 3, 0.01);
+
+  v1::JobSpec malformed;
+  malformed.mutable_csg()->set_expression("difference(job:x sphre(r=1))");
+  auto refused = client_->Submit(malformed, "");
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(refused.status().message().find("column 18"), std::string::npos) << refused.status();
+  v1::JobSpec with_upload = cut;
+  EXPECT_EQ(client_->Submit(with_upload, input_).status().code(), absl::StatusCode::kInvalidArgument);
+
+  v1::JobSpec orphan;
+  orphan.mutable_csg()->set_expression("union(job:no-such-job sphere(r=1))");
+  auto orphan_job = client_->Submit(orphan, "");
+  ASSERT_TRUE(orphan_job.ok()) << orphan_job.status();
+  auto orphan_done = client_->Watch(orphan_job->id());
+  ASSERT_TRUE(orphan_done.ok());
+  EXPECT_EQ(orphan_done->state(), v1::JOB_STATE_FAILED);
+  EXPECT_NE(orphan_done->error().find("job:no-such-job"), std::string::npos) << orphan_done->error();
 }
 
 }  // namespace

@@ -4,6 +4,7 @@
 #include <algorithm>
 #include <array>
 #include <cmath>
+#include <limits>
 #include <numbers>
 #include <vector>
 
@@ -30,11 +31,28 @@ constexpr double kMaxCornerResidualShare = 0.02;
 constexpr double kEndMargin = 0.02;
 constexpr double kMaxOffsetShare = 0.5;
 
+// An end of an edge that lies this close to the crease (share of the edge) is moved onto it.
+constexpr double kMaxSnapShare = 0.15;
+
+struct CreaseHit {
+  Vec3d point = Vec3d::Constant(std::numeric_limits<double>::quiet_NaN());  // The split point, or NaN.
+  int snap_end = -1;                                                        // 0 (a) or 1 (b): move it...
+  Vec3d snap_to = Vec3d::Zero();                                            // ...onto this crease point.
+};
+
+bool OnSurface(const core::ImplicitFunction& field, const Vec3d& x, double tolerance) {
+  const core::FieldValue f = field.Value(x);
+  return f.defined && std::abs(f.value) <= tolerance;
+}
+
 // The point of the line where the planes (a, na) and (b, nb) meet that is nearest the midpoint
-// of a–b, or NaN when it is not a crease point of F.
-Vec3d CreasePoint(const core::ImplicitFunction& field, const Vec3d& a, const Vec3d& na, const Vec3d& b,
-                  const Vec3d& nb) {
-  const Vec3d none = Vec3d::Constant(std::numeric_limits<double>::quiet_NaN());
+// of a–b, when it is a crease point of F inside the edge. Where the line passes next to an end
+// instead, that end's nearest point on the line, so that the end can be moved onto the crease
+// (a split there would make a sliver, and without either the crease would miss by up to the
+// margin).
+CreaseHit CreasePoint(const core::ImplicitFunction& field, const Vec3d& a, const Vec3d& na, const Vec3d& b,
+                      const Vec3d& nb) {
+  const CreaseHit none;
   const Vec3d m = 0.5 * (a + b);
   // x = m + s na + t nb with na·(x − a) = 0 and nb·(x − b) = 0.
   const double c = na.dot(nb);
@@ -46,11 +64,22 @@ Vec3d CreasePoint(const core::ImplicitFunction& field, const Vec3d& a, const Vec
   const Vec3d edge = b - a;
   const double length = edge.norm();
   const double along = (x - a).dot(edge) / (length * length);
-  if (!(along > kEndMargin && along < 1 - kEndMargin)) return none;
+  if (!(along > kEndMargin && along < 1 - kEndMargin)) {
+    if (!(along > -kEndMargin && along < 1 + kEndMargin)) return none;
+    const int end = along <= 0.5 ? 0 : 1;
+    const Vec3d e = end == 0 ? a : b;
+    const Vec3d direction = na.cross(nb).normalized();
+    const Vec3d p = x + direction * (e - x).dot(direction);
+    if (!((p - e).norm() <= kMaxSnapShare * length) || !OnSurface(field, p, kMaxResidualShare * length)) return none;
+    CreaseHit hit;
+    hit.snap_end = end, hit.snap_to = p;
+    return hit;
+  }
   if ((x - (a + along * edge)).norm() > kMaxOffsetShare * length) return none;
-  const core::FieldValue f = field.Value(x);
-  if (!f.defined || !(std::abs(f.value) <= kMaxResidualShare * length)) return none;
-  return x;
+  if (!OnSurface(field, x, kMaxResidualShare * length)) return none;
+  CreaseHit hit;
+  hit.point = x;
+  return hit;
 }
 
 // Where the tangent planes of a triangle's three corners meet, if that is a corner of F near
@@ -72,75 +101,59 @@ Vec3d CornerPoint(const core::ImplicitFunction& field, const std::array<Vec3d, 3
   return f.defined && std::abs(f.value) <= kMaxCornerResidualShare * size ? x : mean;
 }
 
-}  // namespace
-
-absl::Status SharpenCreases(const core::ImplicitFunction& field, double crease_angle, core::TriangleMesh& mesh,
-                            CreaseCounts& counts, core::JobContext& ctx) {
-  const double cos_crease = std::cos(crease_angle * std::numbers::pi / 180);
-  // The edges whose ends disagree, each once.
-  absl::flat_hash_map<uint64_t, uint32_t> split;  // Edge → its crease vertex (UINT32_MAX: none).
-  absl::flat_hash_set<uint64_t> near_edges;       // Every edge of a triangle with a candidate.
-  std::vector<uint64_t> candidates;
-  for (const core::Triangle& t : mesh.faces) {
-    bool any = false;
-    for (size_t i = 0; i < 3; ++i) {
-      const uint32_t a = t[i], b = t[(i + 1) % 3];
-      if (mesh.normals[a].dot(mesh.normals[b]) >= cos_crease) continue;
-      any = true;
-      if (split.try_emplace(EdgeKey(a, b), UINT32_MAX).second) candidates.push_back(EdgeKey(a, b));
-    }
-    if (any) {
-      for (size_t i = 0; i < 3; ++i) near_edges.insert(EdgeKey(t[i], t[(i + 1) % 3]));
-    }
+// Moves each edge end that a crease passes next to onto its nearest crease point (the closest
+// of its edges' hits), unless that turns one of its triangles over.
+void SnapEndsOntoCreases(std::span<const uint64_t> candidates, std::span<const CreaseHit> hits,
+                         core::TriangleMesh& mesh, CreaseCounts& counts) {
+  absl::flat_hash_map<uint32_t, Vec3d> target;
+  for (size_t k = 0; k < candidates.size(); ++k) {
+    if (hits[k].snap_end < 0) continue;
+    const auto v = static_cast<uint32_t>(hits[k].snap_end == 0 ? candidates[k] >> 32 : candidates[k] & 0xffffffffu);
+    const Vec3d from = mesh.vertices[v].cast<double>();
+    auto [it, fresh] = target.emplace(v, hits[k].snap_to);
+    if (!fresh && (hits[k].snap_to - from).squaredNorm() < (it->second - from).squaredNorm())
+      it->second = hits[k].snap_to;
   }
-  if (candidates.empty()) return absl::OkStatus();
-  std::vector<Vec3d> points(candidates.size());
-  LSQSURF_RETURN_IF_ERROR(core::ParallelFor(
-      candidates.size(), 256,
-      [&](size_t begin, size_t end) {
-        for (size_t k = begin; k < end; ++k) {
-          const auto a = static_cast<uint32_t>(candidates[k] >> 32), b = static_cast<uint32_t>(candidates[k]);
-          points[k] = CreasePoint(field, mesh.vertices[a].cast<double>(), mesh.normals[a].cast<double>(),
-                                  mesh.vertices[b].cast<double>(), mesh.normals[b].cast<double>());
+  if (target.empty()) return;
+  absl::flat_hash_map<uint32_t, Vec3f> old_position;
+  for (const auto& [v, p] : target) {
+    old_position[v] = mesh.vertices[v];
+    mesh.vertices[v] = p.cast<float>();
+  }
+  // A move that turns a triangle (its normal more than 90° from before) is undone; undoing one
+  // can turn a triangle checked before, hence a few passes.
+  for (bool undone = true; undone;) {
+    undone = false;
+    for (const core::Triangle& t : mesh.faces) {
+      bool moved = false;
+      for (uint32_t v : t) moved = moved || old_position.contains(v);
+      if (!moved) continue;
+      auto old_at = [&](uint32_t v) {
+        auto it = old_position.find(v);
+        return (it == old_position.end() ? mesh.vertices[v] : it->second).cast<double>();
+      };
+      auto now_at = [&](uint32_t v) { return mesh.vertices[v].cast<double>(); };
+      const Vec3d n_old = (old_at(t[1]) - old_at(t[0])).cross(old_at(t[2]) - old_at(t[0]));
+      const Vec3d n_new = (now_at(t[1]) - now_at(t[0])).cross(now_at(t[2]) - now_at(t[0]));
+      if (n_old.dot(n_new) > 0) continue;
+      for (uint32_t v : t) {
+        if (auto it = old_position.find(v); it != old_position.end() && mesh.vertices[v] != it->second) {
+          mesh.vertices[v] = it->second;
+          undone = true;
         }
-      },
-      &ctx));
-  // Two edges of one triangle can meet the crease at the same point (a crease along a grid axis
-  // seen from the edges a–b and a–c): they share one vertex, and the sliver between them goes.
-  absl::flat_hash_map<uint32_t, std::vector<uint32_t>> candidates_at;  // Vertex → its candidates.
-  for (uint32_t k = 0; k < candidates.size(); ++k) {
-    if (!points[k].allFinite()) continue;
-    candidates_at[static_cast<uint32_t>(candidates[k] >> 32)].push_back(k);
-    candidates_at[static_cast<uint32_t>(candidates[k])].push_back(k);
-  }
-  auto other_end = [](uint64_t edge, uint32_t v) {
-    return static_cast<uint32_t>(edge >> 32) == v ? static_cast<uint32_t>(edge) : static_cast<uint32_t>(edge >> 32);
-  };
-  std::vector<uint32_t> twin(candidates.size(), UINT32_MAX);
-  for (uint32_t k = 0; k < candidates.size(); ++k) {
-    if (!points[k].allFinite()) continue;
-    const auto a = static_cast<uint32_t>(candidates[k] >> 32), b = static_cast<uint32_t>(candidates[k]);
-    const double tolerance = 1e-5 * (mesh.vertices[a] - mesh.vertices[b]).norm();
-    for (const uint32_t v : {a, b}) {
-      for (const uint32_t j : candidates_at[v]) {
-        if (j >= k || twin[k] != UINT32_MAX) continue;
-        if (!near_edges.contains(EdgeKey(other_end(candidates[k], v), other_end(candidates[j], v)))) continue;
-        if ((points[k] - points[j]).norm() <= tolerance) twin[k] = twin[j] != UINT32_MAX ? twin[j] : j;
       }
     }
   }
-  for (size_t k = 0; k < candidates.size(); ++k) {
-    if (!points[k].allFinite() || twin[k] != UINT32_MAX) continue;
-    const auto a = static_cast<uint32_t>(candidates[k] >> 32), b = static_cast<uint32_t>(candidates[k]);
-    split[candidates[k]] = static_cast<uint32_t>(mesh.vertices.size());
-    mesh.vertices.push_back(points[k].cast<float>());
-    const Vec3f n = mesh.normals[a] + mesh.normals[b];
-    mesh.normals.push_back(n.norm() > 0 ? Vec3f(n.normalized()) : mesh.normals[a]);
-    ++counts.crease_vertices;
-  }
-  for (size_t k = 0; k < candidates.size(); ++k) {
-    if (twin[k] != UINT32_MAX) split[candidates[k]] = split[candidates[twin[k]]];
-  }
+  for (const auto& [v, p] : old_position) counts.snapped_vertices += mesh.vertices[v] != p;
+}
+
+// The faces of `mesh` with their split edges (`split`: edge → crease vertex) cut along the
+// creases; a triangle with three splits gets a corner vertex, shared with the triangles that find
+// the same position (`vertex_at`: new vertices by position).
+std::vector<core::Triangle> SplitFaces(const core::ImplicitFunction& field,
+                                       const absl::flat_hash_map<uint64_t, uint32_t>& split,
+                                       absl::flat_hash_map<std::array<float, 3>, uint32_t>& vertex_at,
+                                       core::TriangleMesh& mesh, CreaseCounts& counts) {
   std::vector<core::Triangle> faces;
   faces.reserve(mesh.faces.size() + 2 * static_cast<size_t>(counts.crease_vertices));
   auto v3 = [&](uint32_t v) { return Vec3d(mesh.vertices[v].cast<double>()); };
@@ -176,12 +189,18 @@ absl::Status SharpenCreases(const core::ImplicitFunction& field, double crease_a
       const std::array<Vec3d, 3> p = {v3(t[0]), v3(t[1]), v3(t[2])};
       const std::array<Vec3d, 3> n = {mesh.normals[t[0]].cast<double>(), mesh.normals[t[1]].cast<double>(),
                                       mesh.normals[t[2]].cast<double>()};
-      const Vec3d corner = CornerPoint(field, p, n, {v3(s[0]), v3(s[1]), v3(s[2])});
-      const auto q = static_cast<uint32_t>(mesh.vertices.size());
-      mesh.vertices.push_back(corner.cast<float>());
-      const Vec3f nq = mesh.normals[t[0]] + mesh.normals[t[1]] + mesh.normals[t[2]];
-      mesh.normals.push_back(nq.norm() > 0 ? Vec3f(nq.normalized()) : mesh.normals[t[0]]);
-      ++counts.corners;
+      const Vec3f corner = CornerPoint(field, p, n, {v3(s[0]), v3(s[1]), v3(s[2])}).cast<float>();
+      // Neighbouring triangles around one true corner (of an exact solid) find the same point:
+      // they share one vertex there, and the faces that fold onto each other go below.
+      auto [at, fresh] = vertex_at.emplace(std::array<float, 3>{corner.x(), corner.y(), corner.z()},
+                                           static_cast<uint32_t>(mesh.vertices.size()));
+      const uint32_t q = at->second;
+      if (fresh) {
+        mesh.vertices.push_back(corner);
+        const Vec3f nq = mesh.normals[t[0]] + mesh.normals[t[1]] + mesh.normals[t[2]];
+        mesh.normals.push_back(nq.norm() > 0 ? Vec3f(nq.normalized()) : mesh.normals[t[0]]);
+        ++counts.corners;
+      }
       for (size_t i = 0; i < 3; ++i) {
         faces.push_back({t[i], s[i], q});
         faces.push_back({s[i], t[(i + 1) % 3], q});
@@ -190,7 +209,114 @@ absl::Status SharpenCreases(const core::ImplicitFunction& field, double crease_a
   }
   // Triangles between two edges that share their crease vertex have collapsed.
   std::erase_if(faces, [](const core::Triangle& t) { return t[0] == t[1] || t[1] == t[2] || t[2] == t[0]; });
-  mesh.faces = std::move(faces);
+  // Two triangles on the same three vertices (from fans around one shared new vertex) enclose
+  // nothing: both go, which keeps every edge with two faces.
+  if (!vertex_at.empty()) {
+    absl::flat_hash_map<std::array<uint32_t, 3>, uint32_t> seen;
+    std::vector<char> drop(faces.size(), 0);
+    for (uint32_t f = 0; f < faces.size(); ++f) {
+      std::array<uint32_t, 3> key = faces[f];
+      std::sort(key.begin(), key.end());
+      auto [it, fresh] = seen.emplace(key, f);
+      if (fresh) continue;
+      if (it->second != UINT32_MAX) {
+        drop[it->second] = drop[f] = 1;
+        it->second = UINT32_MAX;
+      } else {
+        it->second = f;
+      }
+    }
+    size_t kept = 0;
+    for (size_t f = 0; f < faces.size(); ++f) {
+      if (!drop[f]) faces[kept++] = faces[f];
+    }
+    faces.resize(kept);
+  }
+  return faces;
+}
+
+}  // namespace
+
+absl::Status SharpenCreases(const core::ImplicitFunction& field, double crease_angle, core::TriangleMesh& mesh,
+                            CreaseCounts& counts, core::JobContext& ctx) {
+  const double cos_crease = std::cos(crease_angle * std::numbers::pi / 180);
+  // The edges whose ends disagree, each once.
+  absl::flat_hash_map<uint64_t, uint32_t> split;  // Edge → its crease vertex (UINT32_MAX: none).
+  absl::flat_hash_set<uint64_t> near_edges;       // Every edge of a triangle with a candidate.
+  std::vector<uint64_t> candidates;
+  for (const core::Triangle& t : mesh.faces) {
+    bool any = false;
+    for (size_t i = 0; i < 3; ++i) {
+      const uint32_t a = t[i], b = t[(i + 1) % 3];
+      if (mesh.normals[a].dot(mesh.normals[b]) >= cos_crease) continue;
+      any = true;
+      if (split.try_emplace(EdgeKey(a, b), UINT32_MAX).second) candidates.push_back(EdgeKey(a, b));
+    }
+    if (any) {
+      for (size_t i = 0; i < 3; ++i) near_edges.insert(EdgeKey(t[i], t[(i + 1) % 3]));
+    }
+  }
+  if (candidates.empty()) return absl::OkStatus();
+  std::vector<Vec3d> points(candidates.size());
+  std::vector<CreaseHit> hits(candidates.size());
+  LSQSURF_RETURN_IF_ERROR(core::ParallelFor(
+      candidates.size(), 256,
+      [&](size_t begin, size_t end) {
+        for (size_t k = begin; k < end; ++k) {
+          const auto a = static_cast<uint32_t>(candidates[k] >> 32), b = static_cast<uint32_t>(candidates[k]);
+          hits[k] = CreasePoint(field, mesh.vertices[a].cast<double>(), mesh.normals[a].cast<double>(),
+                                mesh.vertices[b].cast<double>(), mesh.normals[b].cast<double>());
+          points[k] = hits[k].point;
+        }
+      },
+      &ctx));
+  SnapEndsOntoCreases(candidates, hits, mesh, counts);
+  // Two edges of one triangle can meet the crease at the same point (a crease along a grid axis
+  // seen from the edges a–b and a–c): they share one vertex, and the sliver between them goes.
+  absl::flat_hash_map<uint32_t, std::vector<uint32_t>> candidates_at;  // Vertex → its candidates.
+  for (uint32_t k = 0; k < candidates.size(); ++k) {
+    if (!points[k].allFinite()) continue;
+    candidates_at[static_cast<uint32_t>(candidates[k] >> 32)].push_back(k);
+    candidates_at[static_cast<uint32_t>(candidates[k])].push_back(k);
+  }
+  auto other_end = [](uint64_t edge, uint32_t v) {
+    return static_cast<uint32_t>(edge >> 32) == v ? static_cast<uint32_t>(edge) : static_cast<uint32_t>(edge >> 32);
+  };
+  std::vector<uint32_t> twin(candidates.size(), UINT32_MAX);
+  for (uint32_t k = 0; k < candidates.size(); ++k) {
+    if (!points[k].allFinite()) continue;
+    const auto a = static_cast<uint32_t>(candidates[k] >> 32), b = static_cast<uint32_t>(candidates[k]);
+    const double tolerance = 1e-5 * (mesh.vertices[a] - mesh.vertices[b]).norm();
+    for (const uint32_t v : {a, b}) {
+      for (const uint32_t j : candidates_at[v]) {
+        if (j >= k || twin[k] != UINT32_MAX) continue;
+        if (!near_edges.contains(EdgeKey(other_end(candidates[k], v), other_end(candidates[j], v)))) continue;
+        if ((points[k] - points[j]).norm() <= tolerance) twin[k] = twin[j] != UINT32_MAX ? twin[j] : j;
+      }
+    }
+  }
+  // New vertices by position. A crease point that lands on the float position of another one
+  // (edges placed symmetrically about an exact solid's crease) leaves its edge unsplit: two
+  // vertices there would merge in any weld by position, and one shared vertex can pinch.
+  absl::flat_hash_map<std::array<float, 3>, uint32_t> vertex_at;
+  for (size_t k = 0; k < candidates.size(); ++k) {
+    if (!points[k].allFinite() || twin[k] != UINT32_MAX) continue;
+    const auto a = static_cast<uint32_t>(candidates[k] >> 32), b = static_cast<uint32_t>(candidates[k]);
+    const Vec3f point = points[k].cast<float>();
+    if (!vertex_at.emplace(std::array<float, 3>{point.x(), point.y(), point.z()}, mesh.vertices.size()).second) {
+      points[k] = Vec3d::Constant(std::numeric_limits<double>::quiet_NaN());
+      continue;
+    }
+    split[candidates[k]] = static_cast<uint32_t>(mesh.vertices.size());
+    mesh.vertices.push_back(point);
+    const Vec3f n = mesh.normals[a] + mesh.normals[b];
+    mesh.normals.push_back(n.norm() > 0 ? Vec3f(n.normalized()) : mesh.normals[a]);
+    ++counts.crease_vertices;
+  }
+  for (size_t k = 0; k < candidates.size(); ++k) {
+    if (twin[k] != UINT32_MAX && points[twin[k]].allFinite()) split[candidates[k]] = split[candidates[twin[k]]];
+  }
+  mesh.faces = SplitFaces(field, split, vertex_at, mesh, counts);
   return absl::OkStatus();
 }
 

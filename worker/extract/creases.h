@@ -21,8 +21,9 @@
 namespace lsqsurf::extract::internal {
 
 struct CreaseCounts {
-  int64_t crease_vertices = 0;  // Edge splits on creases.
-  int64_t corners = 0;          // Vertices where three tangent planes meet.
+  int64_t crease_vertices = 0;   // Edge splits on creases.
+  int64_t corners = 0;           // Vertices where three tangent planes meet.
+  int64_t snapped_vertices = 0;  // Edge ends moved onto a crease that passes next to them.
 };
 
 // `mesh` must have unit normals (∇F) at its vertices; the new vertices get the mean of their

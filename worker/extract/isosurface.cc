@@ -54,21 +54,29 @@ std::array<int, 4> FaceCorners(int face) {
 
 }  // namespace
 
-absl::Status Validate(const MarchingOptions& options) {
-  if (options.relax_steps < 0 || options.relax_steps > 10) {
-    return absl::InvalidArgumentError("relax_steps must be between 0 and 10");
-  }
-  if (!(options.snap_share >= 0 && options.snap_share <= 0.45)) {
-    return absl::InvalidArgumentError("snap_share must be between 0 and 0.45");
-  }
-  if (!(options.crease_angle >= 0 && options.crease_angle <= 90)) {
-    return absl::InvalidArgumentError("crease_angle must be between 0 and 90 degrees");
-  }
-  if (options.refine_steps < 0 || options.refine_steps > 20) {
-    return absl::InvalidArgumentError("refine_steps must be between 0 and 20");
-  }
-  return absl::OkStatus();
+const core::ParamTable<MarchingOptions>& MarchingParamTable() {
+  static const auto* table = [] {
+    auto* t = new core::ParamTable<MarchingOptions>();
+    t->Integer<&MarchingOptions::refine_steps>("refine_steps", 0, 20, "steps",
+                                               "root-refinement steps per crossing edge")
+        .Real<&MarchingOptions::crease_angle>(
+            "crease_angle", 0, 90, "degrees",
+            "an output edge whose end normals differ by more is split where it crosses a crease or corner of the "
+            "surface; 0 = off")
+        .Real<&MarchingOptions::snap_share>(
+            "snap_share", 0, 0.45, "",
+            "mesh enhancement: a J1a corner that the surface passes within this share of an edge from is moved onto "
+            "the surface before extraction, so that no slivers form there; 0 = off")
+        .Integer<&MarchingOptions::relax_steps>(
+            "relax_steps", 0, 10, "steps",
+            "mesh enhancement: steps of tangential relaxation on the surface after extraction (vertices on creases "
+            "and borders stay); 0 = off");
+    return t;
+  }();
+  return *table;
 }
+
+absl::Status Validate(const MarchingOptions& options) { return MarchingParamTable().Validate(options); }
 
 absl::Status Validate(const IsosurfaceParams& params) {
   if (!(params.cell_size > 0.0) || !std::isfinite(params.cell_size)) {

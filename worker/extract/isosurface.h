@@ -20,6 +20,7 @@
 #include "worker/core/geometry.h"
 #include "worker/core/implicit_function.h"
 #include "worker/core/job_context.h"
+#include "worker/core/params.h"
 
 namespace lsqsurf::extract {
 
@@ -50,6 +51,10 @@ struct MarchingOptions {
 
 absl::Status Validate(const MarchingOptions& options);
 
+// The user-facing options (refine_steps, crease_angle, snap_share, relax_steps), for the tables of
+// the methods that expose them.
+const core::ParamTable<MarchingOptions>& MarchingParamTable();
+
 struct IsosurfaceParams {
   double cell_size = 0.0;          // Cube edge length in model units; must be > 0.
   int64_t max_cells = 60'000'000;  // Visited cubes before failing with kResourceExhausted.
@@ -68,6 +73,7 @@ struct IsosurfaceStats {
   int64_t restored_triangles = 0;  // Untrusted triangles kept as parts of small pinhole patches.
   int64_t crease_vertices = 0;     // Edges split where they cross a crease.
   int64_t crease_corners = 0;      // Triangles split around a corner.
+  int64_t crease_snapped = 0;      // Vertices moved onto a crease that passed next to them.
   int64_t snapped_corners = 0;     // Grid corners moved onto the surface.
   int64_t relaxed_vertices = 0;    // Vertices moved by the relaxation.
 };

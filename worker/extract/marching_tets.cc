@@ -471,6 +471,7 @@ absl::StatusOr<IsosurfaceResult> MarchTetrahedra(
     LSQSURF_RETURN_IF_ERROR(SharpenCreases(field, params.crease_angle, mesh, creases, ctx));
     stats.crease_vertices = creases.crease_vertices;
     stats.crease_corners = creases.corners;
+    stats.crease_snapped = creases.snapped_vertices;
   }
   if (params.relax_steps > 0) {
     LSQSURF_RETURN_IF_ERROR(RelaxTangentially(field, params.relax_steps, static_cast<uint32_t>(stats.crossings), mesh,

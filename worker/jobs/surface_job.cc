@@ -82,7 +82,10 @@ const core::ParamTable<PuJobParams>& PuTable() {
     auto* t = new core::ParamTable<PuJobParams>();
     t->Include(&PuJobParams::fit, pu::PuParamTable())
         .Include(&PuJobParams::extract, pu::PuExtractParamTable())
-        .Include(&PuJobParams::normals, NormalsTable());
+        .Include(&PuJobParams::normals, NormalsTable())
+        .Flag<&PuJobParams::keep_function>("keep_function",
+                                           "keep the fitted function with the results (function.lqpu) so that csg "
+                                           "and edit jobs can use it without refitting; about 40 bytes per point");
     return t;
   }();
   return *table;
@@ -123,9 +126,10 @@ absl::StatusOr<extract::IsosurfaceResult> ExtractShared(const core::ImplicitFunc
 }
 
 using StatFn = std::function<void(std::string, double)>;
+using KeepFn = std::function<void(std::string, std::string)>;  // An artifact to store beside the mesh.
 
 absl::StatusOr<extract::IsosurfaceResult> RunIamls(const IamlsJobParams& p, const core::PointCloud& cloud,
-                                                   core::JobContext& ctx, const StatFn& stat) {
+                                                   core::JobContext& ctx, const StatFn& stat, const KeepFn&) {
   const auto start = std::chrono::steady_clock::now();
   core::SubContext build_ctx(ctx, "building iaMLS", 0.0, 0.3);
   auto field = mls::BuildIamls(cloud, p.fit, build_ctx);
@@ -144,7 +148,7 @@ absl::StatusOr<extract::IsosurfaceResult> RunIamls(const IamlsJobParams& p, cons
 
 template <mls::AlgebraicFit kFit>
 absl::StatusOr<extract::IsosurfaceResult> RunAlgebraic(const AlgebraicJobParams<kFit>& p, const core::PointCloud& cloud,
-                                                       core::JobContext& ctx, const StatFn& stat) {
+                                                       core::JobContext& ctx, const StatFn& stat, const KeepFn&) {
   core::SubContext build_ctx(ctx, "indexing points", 0.0, 0.05);
   auto field = mls::BuildAlgebraicMls(cloud, p.fit, build_ctx);
   if (!field.ok()) return field.status();
@@ -177,7 +181,7 @@ void PuStatistics(const pu::PuStats& s, const StatFn& stat) {
 }
 
 absl::StatusOr<extract::IsosurfaceResult> RunPu(const PuJobParams& p, const core::PointCloud& cloud,
-                                                core::JobContext& ctx, const StatFn& stat) {
+                                                core::JobContext& ctx, const StatFn& stat, const KeepFn& keep) {
   core::SubContext build_ctx(ctx, "fitting", 0.0, 0.4);
   auto field = pu::BuildPu(cloud, p.fit, build_ctx);
   if (!field.ok()) return field.status();
@@ -192,6 +196,13 @@ absl::StatusOr<extract::IsosurfaceResult> RunPu(const PuJobParams& p, const core
     stat("crease_corners", static_cast<double>(extracted->stats.crease_corners));
     stat("snapped_corners", static_cast<double>(extracted->stats.snapped_corners));
     stat("relaxed_vertices", static_cast<double>(extracted->stats.relaxed_vertices));
+    if (p.keep_function) {
+      const auto keep_start = std::chrono::steady_clock::now();
+      std::string bytes = pu::SerializePu(**field);
+      stat("function_bytes", static_cast<double>(bytes.size()));
+      keep(kPuFunctionArtifact, std::move(bytes));
+      stat("keep_seconds", Seconds(keep_start));
+    }
   }
   return extracted;
 }
@@ -200,7 +211,7 @@ absl::StatusOr<extract::IsosurfaceResult> RunPu(const PuJobParams& p, const core
 struct SurfaceMethod {
   MethodInfo info;
   std::function<absl::StatusOr<extract::IsosurfaceResult>(const core::ParamSet&, const core::PointCloud&,
-                                                          core::JobContext&, const StatFn&)>
+                                                          core::JobContext&, const StatFn&, const KeepFn&)>
       run;
   std::function<const NormalsParams*(const core::ParamSet&)> normals;
 };
@@ -210,11 +221,11 @@ SurfaceMethod MakeMethod(std::string name, std::string description, const core::
                          std::vector<std::string> attributes = {}) {
   SurfaceMethod m;
   m.info = {std::move(name), std::move(description), core::ParamSet(table), std::move(attributes), {kInputUpload}};
-  m.run = [run](const core::ParamSet& params, const core::PointCloud& cloud, core::JobContext& ctx,
-                const StatFn& stat) -> absl::StatusOr<extract::IsosurfaceResult> {
+  m.run = [run](const core::ParamSet& params, const core::PointCloud& cloud, core::JobContext& ctx, const StatFn& stat,
+                const KeepFn& keep) -> absl::StatusOr<extract::IsosurfaceResult> {
     const P* p = params.As<P>();
     if (p == nullptr) return absl::InternalError("parameters of another method");
-    return run(*p, cloud, ctx, stat);
+    return run(*p, cloud, ctx, stat, keep);
   };
   m.normals = [](const core::ParamSet& params) -> const NormalsParams* {
     const P* p = params.As<P>();
@@ -322,35 +333,41 @@ class SurfaceKind final : public JobKind {
     }
     auto result = ReconstructSurface(spec.method, spec.params, *std::move(cloud), env.context);
     if (!result.ok()) return result.status();
-    auto encoded = EncodeResultMesh(result->mesh, spec.mesh_position_bits, &result->statistics);
-    if (!encoded.ok()) return encoded.status();
-    LSQSURF_RETURN_IF_ERROR(env.sink.Write(kMeshArtifact, *encoded));
-    if (spec.preview.enabled) {
-      env.context.ReportProgress("drawing the preview", 0.99);
-      // A picture that cannot be drawn does not cost the user the mesh: counted, logged.
-      const absl::Status p = DrawPreview(result->mesh, spec.preview, env);
-      if (!p.ok()) {
-        spdlog::warn("preview failed: {}", p.message());
-        result->statistics.emplace_back("preview_failures", 1);
-      }
-    }
+    LSQSURF_RETURN_IF_ERROR(DeliverMesh(result->mesh, spec, env, &result->statistics));
+    for (const auto& [name, bytes] : result->kept) LSQSURF_RETURN_IF_ERROR(env.sink.Write(name, bytes));
     return std::move(result->statistics);
-  }
-
- private:
-  static absl::Status DrawPreview(const core::TriangleMesh& mesh, const PreviewSpec& preview, RunEnvironment& env) {
-    if (env.renderer == nullptr) return absl::UnavailableError("no renderer");
-    auto renderer = env.renderer->Get();
-    if (!renderer.ok()) return renderer.status();
-    const auto* view = preview.view.As<render::RenderParams>();
-    if (view == nullptr) return absl::InternalError("preview without view options");
-    auto png = PicturePng(**renderer, mesh, *view);
-    if (!png.ok()) return png.status();
-    return env.sink.Write(kPreviewArtifact, *png);
   }
 };
 
+absl::Status DrawPreview(const core::TriangleMesh& mesh, const PreviewSpec& preview, RunEnvironment& env) {
+  if (env.renderer == nullptr) return absl::UnavailableError("no renderer");
+  auto renderer = env.renderer->Get();
+  if (!renderer.ok()) return renderer.status();
+  const auto* view = preview.view.As<render::RenderParams>();
+  if (view == nullptr) return absl::InternalError("preview without view options");
+  auto png = PicturePng(**renderer, mesh, *view);
+  if (!png.ok()) return png.status();
+  return env.sink.Write(kPreviewArtifact, *png);
+}
+
 }  // namespace
+
+absl::Status DeliverMesh(const core::TriangleMesh& mesh, const JobSpec& spec, RunEnvironment& env,
+                         Statistics* statistics) {
+  auto encoded = EncodeResultMesh(mesh, spec.mesh_position_bits, statistics);
+  if (!encoded.ok()) return encoded.status();
+  LSQSURF_RETURN_IF_ERROR(env.sink.Write(kMeshArtifact, *encoded));
+  if (spec.preview.enabled) {
+    env.context.ReportProgress("drawing the preview", 0.99);
+    // A picture that cannot be drawn does not cost the user the mesh: counted, logged.
+    const absl::Status p = DrawPreview(mesh, spec.preview, env);
+    if (!p.ok()) {
+      spdlog::warn("preview failed: {}", p.message());
+      statistics->emplace_back("preview_failures", 1);
+    }
+  }
+  return absl::OkStatus();
+}
 
 const JobKind& SurfaceJobKind() {
   static const SurfaceKind kind;
@@ -386,21 +403,28 @@ absl::StatusOr<SurfaceResult> ReconstructSurface(const std::string& method, cons
   }
 
   core::SubContext engine_ctx(ctx, method, normals_share, 1.0);
-  auto extracted = m->run(params, cloud, engine_ctx, stat);
+  auto keep = [&](std::string name, std::string bytes) { result.kept.emplace_back(std::move(name), std::move(bytes)); };
+  auto extracted = m->run(params, cloud, engine_ctx, stat, keep);
   if (!extracted.ok()) return extracted.status();
   result.mesh = std::move(extracted->mesh);
   if (result.mesh.faces.empty()) {
     return absl::FailedPreconditionError("no surface was found: the points may be too sparse for the chosen spacing");
   }
+  AddMeshStatistics(result.mesh, extracted->stats, &result.statistics);
+  return result;
+}
+
+void AddMeshStatistics(const core::TriangleMesh& mesh, const extract::IsosurfaceStats& extraction,
+                       Statistics* statistics) {
+  auto stat = [&](std::string name, double value) { statistics->emplace_back(std::move(name), value); };
   // The topology statistics are the delivered mesh's (EncodeResultMesh).
-  stat("triangles", static_cast<double>(result.mesh.faces.size()));
-  stat("vertices", static_cast<double>(result.mesh.vertices.size()));
-  stat("cells_visited", static_cast<double>(extracted->stats.cells_visited));
-  const core::TriangleQuality quality = core::MeasureTriangleQuality(result.mesh);
+  stat("triangles", static_cast<double>(mesh.faces.size()));
+  stat("vertices", static_cast<double>(mesh.vertices.size()));
+  stat("cells_visited", static_cast<double>(extraction.cells_visited));
+  const core::TriangleQuality quality = core::MeasureTriangleQuality(mesh);
   stat("min_angle_p1", quality.min_angle_p1);
   stat("min_angle_median", quality.min_angle_median);
   stat("aspect_ratio_p99", quality.aspect_ratio_p99);
-  return result;
 }
 
 namespace {

@@ -8,11 +8,14 @@
 #pragma once
 
 #include <string>
+#include <utility>
+#include <vector>
 
 #include "absl/status/statusor.h"
 #include "worker/core/geometry.h"
 #include "worker/core/job_context.h"
 #include "worker/core/normals.h"
+#include "worker/extract/isosurface.h"
 #include "worker/jobs/job_kind.h"
 #include "worker/mls/algebraic_mls.h"
 #include "worker/mls/iamls.h"
@@ -52,13 +55,18 @@ struct PuJobParams {
   pu::PuParams fit;
   pu::PuExtractParams extract;
   NormalsParams normals;
+  bool keep_function = true;  // Store the fitted function (kPuFunctionArtifact) for csg and edit jobs.
 };
+
+// The artifact that keeps a PU job's fitted function (pu::SerializePu).
+inline constexpr char kPuFunctionArtifact[] = "function.lqpu";
 
 const JobKind& SurfaceJobKind();
 
 struct SurfaceResult {
   core::TriangleMesh mesh;
   Statistics statistics;
+  std::vector<std::pair<std::string, std::string>> kept;  // Artifacts beside the mesh: name, bytes.
 };
 
 // Reconstructs a cloud with a method's validated parameters (`params` from the method's
@@ -75,5 +83,16 @@ absl::StatusOr<SurfaceResult> ReconstructSurface(const std::string& method, cons
 // (boundary_edges, non_manifold_edges, degenerate_faces, components) to `statistics`.
 // Errors: those of the encoder.
 absl::StatusOr<std::string> EncodeResultMesh(const core::TriangleMesh& mesh, int position_bits, Statistics* statistics);
+
+// Size, extraction work and triangle quality (smallest-angle 1st percentile and median, aspect
+// ratio 99th percentile) of a result mesh, appended to `statistics`.
+void AddMeshStatistics(const core::TriangleMesh& mesh, const extract::IsosurfaceStats& extraction,
+                       Statistics* statistics);
+
+// Writes a job's result mesh (mesh.drc, EncodeResultMesh at spec.mesh_position_bits, first among
+// the results) and the preview the spec asks for; a preview that cannot be drawn is counted in
+// `statistics` (preview_failures), not an error. Errors: the encoder's, kUnavailable (storage).
+absl::Status DeliverMesh(const core::TriangleMesh& mesh, const JobSpec& spec, RunEnvironment& env,
+                         Statistics* statistics);
 
 }  // namespace lsqsurf::jobs

@@ -10,6 +10,7 @@
 #include <optional>
 #include <type_traits>
 
+#include "worker/core/binary.h"
 #include "worker/core/kd_tree.h"
 #include "worker/core/parallel.h"
 #include "worker/core/status.h"
@@ -104,6 +105,8 @@ double Theta(double s2) {
 
 struct PuFunction::Impl {
   std::vector<Vec3f> positions;
+  std::vector<Vec3f> normals;        // Kept for refits of local edits.
+  PuParams params;                   // The effective parameters of the fits (after the noise adjustment).
   std::vector<float> local_spacing;  // Per point: distance to its kSpacingNeighbors-th neighbour.
   std::unique_ptr<core::KdTree> kd_tree;
   Vec3d origin = Vec3d::Zero();
@@ -638,46 +641,13 @@ const core::ParamTable<PuParams>& PuParamTable() {
 
 absl::Status Validate(const PuParams& p) { return PuParamTable().Validate(p); }
 
-// One MarchingOptions field as a parameter of PuExtractParams (reached through `marching`).
-template <auto kField>
-void AddMarchingOption(core::ParamTable<PuExtractParams>& t, const char* name, double min, double max, const char* unit,
-                       const char* help) {
-  using T = std::remove_cvref_t<decltype(extract::MarchingOptions{}.*kField)>;
-  t.Custom(
-      {name,
-       std::is_integral_v<T> ? core::ParamType::kInteger : core::ParamType::kReal,
-       0,
-       {},
-       min,
-       max,
-       unit,
-       help,
-       {}},
-      [](const PuExtractParams& p) { return static_cast<double>(p.marching.*kField); },
-      [](PuExtractParams& p, double v) { p.marching.*kField = static_cast<T>(v); });
-}
-
 const core::ParamTable<PuExtractParams>& PuExtractParamTable() {
   static const auto* table = [] {
-    using extract::MarchingOptions;
     auto* t = new core::ParamTable<PuExtractParams>();
     t->Real<&PuExtractParams::cell_size>("cell_size", 0.25, 64, "mean point spacings",
                                          "smallest extraction cell at the surface (rounded to an octree level); cells "
                                          "near the data are up to 4x larger where the fits allowed larger cells");
-    AddMarchingOption<&MarchingOptions::refine_steps>(*t, "refine_steps", 0, 20, "steps",
-                                                      "root-refinement steps per crossing edge");
-    AddMarchingOption<&MarchingOptions::crease_angle>(
-        *t, "crease_angle", 0, 90, "degrees",
-        "an output edge whose end normals differ by more is split where it crosses a crease or corner of the "
-        "surface; 0 = off");
-    AddMarchingOption<&MarchingOptions::snap_share>(
-        *t, "snap_share", 0, 0.45, "",
-        "mesh enhancement: a J1a corner that the surface passes within this share of an edge from is moved onto "
-        "the surface before extraction, so that no slivers form there; 0 = off");
-    AddMarchingOption<&MarchingOptions::relax_steps>(
-        *t, "relax_steps", 0, 10, "steps",
-        "mesh enhancement: steps of tangential relaxation on the surface after extraction (vertices on creases and "
-        "borders stay); 0 = off");
+    t->Include(&PuExtractParams::marching, extract::MarchingParamTable());
     return t;
   }();
   return *table;
@@ -890,6 +860,7 @@ absl::StatusOr<std::unique_ptr<PuFunction>> BuildPu(const core::PointCloud& clou
   PuFunction::Impl& impl = *function->impl_;
   PuStats& stats = function->stats_;
   impl.positions = cloud.positions;
+  impl.normals = cloud.normals;
   impl.kd_tree = std::make_unique<core::KdTree>(impl.positions);
   impl.coverage_check = params.coverage_check;
   impl.coverage_factor = params.coverage_factor;
@@ -902,6 +873,7 @@ absl::StatusOr<std::unique_ptr<PuFunction>> BuildPu(const core::PointCloud& clou
   impl.origin = box.center() - Vec3d::Constant(impl.root_edge / 2);
   stats.root_edge = impl.root_edge;
   const PuParams effective = NoiseAwareParams(impl, cloud.normals, params, diagonal, stats);
+  impl.params = effective;
   const BuildContext bc{effective,
                         impl,
                         cloud.normals,
@@ -983,6 +955,111 @@ absl::StatusOr<extract::IsosurfaceResult> Extract(const PuFunction& function, co
   mesh.vertex_attributes.push_back(std::move(degree_attribute));
   mesh.vertex_attributes.push_back(std::move(feature_attribute));
   return result;
+}
+
+std::span<const Vec3f> PuFunction::points() const { return impl_->positions; }
+
+namespace {
+
+constexpr std::string_view kPuMagic = "LQPU0001";
+
+// Structure checks of a read function: every index in range, so that evaluation cannot leave
+// its arrays whatever the bytes were.
+bool Consistent(const PuFunction::Impl& m) {
+  const size_t nodes = m.nodes.size();
+  if (nodes == 0 || m.fits.empty() || !(m.root_edge > 0) || !m.origin.allFinite()) return false;
+  if (m.normals.size() != m.positions.size()) return false;
+  if (m.coverage_check && m.local_spacing.size() != m.positions.size()) return false;
+  for (size_t i = 0; i < nodes; ++i) {
+    const Node& n = m.nodes[i];
+    if (n.level < 0 || n.level > 30) return false;
+    if (n.first_child >= 0 &&
+        (static_cast<size_t>(n.first_child) <= i || static_cast<size_t>(n.first_child) + 8 > nodes))
+      return false;
+    if (n.fit >= 0 && static_cast<size_t>(n.fit) >= m.fits.size()) return false;
+  }
+  for (const LocalFit& f : m.fits) {
+    if (f.degree < 0 || f.degree > kMaxDegree || !(f.support_radius > 0) || !(f.scale > 0)) return false;
+    if (f.sharp >= 0 && static_cast<size_t>(f.sharp) >= m.sharp_fits.size()) return false;
+  }
+  for (const SharpFit& f : m.sharp_fits) {
+    if (f.count < 2 || f.count > 4) return false;
+    for (int k = 0; k < f.count; ++k) {
+      if (f.sheets[static_cast<size_t>(k)].height.degree < 0 || f.sheets[static_cast<size_t>(k)].height.degree > 2)
+        return false;
+    }
+  }
+  if (m.influence_offsets.size() != nodes + 1 || m.influence_offsets.front() != 0 ||
+      m.influence_offsets.back() != m.influence.size())
+    return false;
+  for (size_t i = 0; i < nodes; ++i) {
+    if (m.influence_offsets[i] > m.influence_offsets[i + 1]) return false;
+  }
+  for (uint32_t f : m.influence) {
+    if (f >= m.fits.size()) return false;
+  }
+  return true;
+}
+
+}  // namespace
+
+std::string SerializePu(const PuFunction& function) {
+  const PuFunction::Impl& m = *function.impl_;
+  const PuStats& st = function.stats_;
+  core::BinaryWriter w;
+  w.Array<char>(std::span<const char>(kPuMagic.data(), kPuMagic.size()));
+  w.Scalar(m.params);
+  w.Scalar<uint8_t>(m.coverage_check);
+  w.Scalar(m.coverage_factor);
+  w.Scalar(m.origin.x()), w.Scalar(m.origin.y()), w.Scalar(m.origin.z());
+  w.Scalar(m.root_edge);
+  w.Scalar(m.deepest_level);
+  for (double v : {st.root_edge, st.mean_spacing, st.noise_estimate, st.error_threshold}) w.Scalar(v);
+  w.Scalar(st.min_points);
+  w.Array<Vec3f>(m.positions);
+  w.Array<Vec3f>(m.normals);
+  w.Array<float>(m.local_spacing);
+  w.Array<Node>(m.nodes);
+  w.Array<LocalFit>(m.fits);
+  w.Array<SharpFit>(m.sharp_fits);
+  w.Array<uint32_t>(m.influence_offsets);
+  w.Array<uint32_t>(m.influence);
+  return w.Take();
+}
+
+bool IsStoredPu(std::string_view bytes) {
+  return bytes.size() >= 8 + kPuMagic.size() && bytes.substr(8, kPuMagic.size()) == kPuMagic;
+}
+
+absl::StatusOr<std::unique_ptr<PuFunction>> DeserializePu(std::string_view bytes) {
+  auto bad = [](std::string_view why) {
+    return absl::InvalidArgumentError(core::StrCat("the stored PU function is unreadable: ", why));
+  };
+  core::BinaryReader r(bytes);
+  std::vector<char> magic;
+  if (!r.Array(magic) || std::string_view(magic.data(), magic.size()) != kPuMagic) return bad("wrong header");
+  std::unique_ptr<PuFunction> function(new PuFunction());
+  PuFunction::Impl& m = *function->impl_;
+  PuStats& st = function->stats_;
+  uint8_t coverage = 0;
+  if (!r.Scalar(m.params) || !r.Scalar(coverage) || !r.Scalar(m.coverage_factor) || !r.Scalar(m.origin.x()) ||
+      !r.Scalar(m.origin.y()) || !r.Scalar(m.origin.z()) || !r.Scalar(m.root_edge) || !r.Scalar(m.deepest_level) ||
+      !r.Scalar(st.root_edge) || !r.Scalar(st.mean_spacing) || !r.Scalar(st.noise_estimate) ||
+      !r.Scalar(st.error_threshold) || !r.Scalar(st.min_points)) {
+    return bad("header fields");
+  }
+  m.coverage_check = coverage != 0;
+  if (!r.Array(m.positions) || m.positions.size() < 4 || !r.Array(m.normals, m.positions.size()) ||
+      !r.Array(m.local_spacing)) {
+    return bad("points");
+  }
+  if (!r.Array(m.nodes) || !r.Array(m.fits) || !r.Array(m.sharp_fits) || !r.Array(m.influence_offsets) ||
+      !r.Array(m.influence) || !r.AtEnd()) {
+    return bad("fits");
+  }
+  if (!Consistent(m)) return bad("inconsistent structure");
+  m.kd_tree = std::make_unique<core::KdTree>(m.positions);
+  return function;
 }
 
 }  // namespace lsqsurf::pu

@@ -28,6 +28,9 @@
 #include <array>
 #include <cstdint>
 #include <memory>
+#include <span>
+#include <string>
+#include <string_view>
 #include <vector>
 
 #include "absl/status/statusor.h"
@@ -103,6 +106,8 @@ class PuFunction final : public core::ImplicitFunction {
   double ValueOnly(const core::Vec3d& x) const override;                          // Skips the coverage query.
   core::FieldGradient ValueAndGradientOnly(const core::Vec3d& x) const override;  // Likewise.
   FitLabel DominantFit(const core::Vec3d& x) const;
+  // The input points (where extraction starts and what coverage is measured against).
+  std::span<const core::Vec3f> points() const;
 
   const PuStats& stats() const { return stats_; }
 
@@ -113,6 +118,8 @@ class PuFunction final : public core::ImplicitFunction {
                                                              core::JobContext&);
   friend absl::StatusOr<extract::IsosurfaceResult> Extract(const PuFunction&, const PuExtractParams&,
                                                            core::JobContext&);
+  friend std::string SerializePu(const PuFunction&);
+  friend absl::StatusOr<std::unique_ptr<PuFunction>> DeserializePu(std::string_view);
   PuFunction();
   std::unique_ptr<Impl> impl_;
   PuStats stats_;
@@ -145,5 +152,14 @@ const core::ParamTable<PuExtractParams>& PuExtractParamTable();
 // kResourceExhausted, kCancelled.
 absl::StatusOr<extract::IsosurfaceResult> Extract(const PuFunction& function, const PuExtractParams& params,
                                                   core::JobContext& ctx);
+
+// A built function as bytes, kept with a job's results so that later jobs (CSG, local edits)
+// use it without refitting: the points with their normals and spacings, the fitting tree, the
+// fits and the support index (about 40 bytes per point plus 200 per fit). DeserializePu checks
+// every index and rebuilds the point index. Errors: kInvalidArgument (not a stored PU function,
+// truncated or inconsistent).
+std::string SerializePu(const PuFunction& function);
+absl::StatusOr<std::unique_ptr<PuFunction>> DeserializePu(std::string_view bytes);
+bool IsStoredPu(std::string_view bytes);  // The bytes start like SerializePu's.
 
 }  // namespace lsqsurf::pu

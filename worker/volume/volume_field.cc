@@ -10,6 +10,7 @@
 #include <cstring>
 #include <numbers>
 
+#include "worker/core/binary.h"
 #include "worker/core/kd_tree.h"
 #include "worker/core/parallel.h"
 #include "worker/core/status.h"
@@ -520,64 +521,7 @@ absl::StatusOr<std::unique_ptr<VolumeField>> BuildVolumeField(const VolumeMesh& 
   return out;
 }
 
-namespace {
-
 constexpr std::string_view kFieldMagic = "LQVF0001";
-
-// Appends arrays of trivially copyable values, each after its element count.
-class Writer {
- public:
-  template <class T>
-  void Array(std::span<const T> values) {
-    Scalar<uint64_t>(values.size());
-    out_.append(reinterpret_cast<const char*>(values.data()), values.size_bytes());
-  }
-  template <class T>
-  void Scalar(T value) {
-    out_.append(reinterpret_cast<const char*>(&value), sizeof(T));
-  }
-  void Text(std::string_view s) { Array<char>(std::span<const char>(s.data(), s.size())); }
-  std::string Take() { return std::move(out_); }
-
- private:
-  std::string out_;
-};
-
-class Reader {
- public:
-  explicit Reader(std::string_view in) : in_(in) {}
-  template <class T>
-  bool Scalar(T& value) {
-    if (in_.size() - pos_ < sizeof(T)) return false;
-    std::memcpy(&value, in_.data() + pos_, sizeof(T));
-    pos_ += sizeof(T);
-    return true;
-  }
-  template <class T>
-  bool Array(std::vector<T>& values, uint64_t expected = UINT64_MAX) {
-    uint64_t count = 0;
-    if (!Scalar(count) || (expected != UINT64_MAX && count != expected)) return false;
-    if (count > (in_.size() - pos_) / sizeof(T)) return false;
-    values.resize(count);
-    // Eigen vectors and the kernel records are plain floats in memory.
-    std::memcpy(static_cast<void*>(values.data()), in_.data() + pos_, count * sizeof(T));
-    pos_ += count * sizeof(T);
-    return true;
-  }
-  bool Text(std::string& s) {
-    std::vector<char> chars;
-    if (!Array(chars)) return false;
-    s.assign(chars.begin(), chars.end());
-    return true;
-  }
-  bool AtEnd() const { return pos_ == in_.size(); }
-
- private:
-  std::string_view in_;
-  size_t pos_ = 0;
-};
-
-}  // namespace
 
 bool IsStoredVolumeField(std::string_view bytes) {
   return bytes.size() >= 8 + kFieldMagic.size() && bytes.substr(8, kFieldMagic.size()) == kFieldMagic;
@@ -586,7 +530,7 @@ bool IsStoredVolumeField(std::string_view bytes) {
 std::string SerializeVolumeField(const VolumeField& field) {
   const VolumeField::Impl& m = *field.impl_;
   const VolumeFieldStats& st = field.stats_;
-  Writer w;
+  core::BinaryWriter w;
   w.Array<char>(std::span<const char>(kFieldMagic.data(), kFieldMagic.size()));
   w.Scalar<uint64_t>(field.field_names_.size());
   for (const std::string& name : field.field_names_) w.Text(name);
@@ -618,7 +562,7 @@ absl::StatusOr<std::unique_ptr<VolumeField>> DeserializeVolumeField(std::string_
   auto bad = [](std::string_view why) {
     return absl::InvalidArgumentError(core::StrCat("the stored volume field is unreadable: ", why));
   };
-  Reader r(bytes);
+  core::BinaryReader r(bytes);
   std::vector<char> magic;
   if (!r.Array(magic) || std::string_view(magic.data(), magic.size()) != kFieldMagic) return bad("wrong header");
   auto out = std::unique_ptr<VolumeField>(new VolumeField());

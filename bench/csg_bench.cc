@@ -1,0 +1,128 @@
+// lsqsurf-csg-bench — CSG of kept PU results against extracting one of them alone.
+//
+// Two clouds of one shared model (different samples, the second turned and shifted by a share of
+// the model's size) are fitted with PU defaults; the first is extracted alone (the baseline),
+// both functions go through their stored byte form, and the csg engine extracts their union and
+// the first minus a sphere. Prints time, triangles, topology as delivered (merged by position)
+// and the peak RSS of the whole run.
+#include <sys/resource.h>
+
+#include <CLI/CLI.hpp>
+#include <chrono>
+#include <cstdio>
+#include <filesystem>
+
+#include "worker/core/mesh_metrics.h"
+#include "worker/core/sampling.h"
+#include "worker/core/strings.h"
+#include "worker/csg/csg.h"
+#include "worker/io/files.h"
+#include "worker/pu/pu.h"
+
+namespace {
+
+using namespace lsqsurf;
+using Clock = std::chrono::steady_clock;
+
+double Since(Clock::time_point t) { return std::chrono::duration<double>(Clock::now() - t).count(); }
+
+double PeakMiB() {
+  rusage usage{};
+  getrusage(RUSAGE_SELF, &usage);
+  return static_cast<double>(usage.ru_maxrss) / 1024.0;
+}
+
+void Report(const char* what, double seconds, const core::TriangleMesh& mesh) {
+  const core::MeshTopology t = core::AnalyzeTopology(core::WeldByPosition(mesh));
+  std::printf("%-28s %8.2f s %10zu triangles  closed=%d comps=%lld  peak %.0f MiB\n", what, seconds, mesh.faces.size(),
+              t.watertight() ? 1 : 0, static_cast<long long>(t.components), PeakMiB());
+}
+
+absl::StatusOr<csg::Operand> AsOperand(const pu::PuFunction& function) {
+  const auto start = Clock::now();
+  const std::string bytes = pu::SerializePu(function);
+  auto back = pu::DeserializePu(bytes);
+  if (!back.ok()) return back.status();
+  std::printf("%-28s %8.2f s %10.1f MiB stored\n", "store + load function", Since(start),
+              static_cast<double>(bytes.size()) / (1 << 20));
+  csg::Operand operand;
+  operand.surface_points.assign((*back)->points().begin(), (*back)->points().end());
+  operand.bounds = core::BoundingBox(operand.surface_points);
+  operand.cell_size = pu::PuExtractParams{}.cell_size * (*back)->stats().mean_spacing;
+  operand.function = std::shared_ptr<const core::ImplicitFunction>(std::move(*back));
+  return operand;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  CLI::App app{"CSG of kept PU results against extracting one alone"};
+  std::string data_dir = "../shared/data/meshes", model = "spot";
+  size_t points = 1'000'000;
+  double shift = 0.3;
+  app.add_option("--data", data_dir, "folder with <model>.obj")->capture_default_str();
+  app.add_option("--model", model, "model name")->capture_default_str();
+  app.add_option("--points", points, "points per cloud")->capture_default_str();
+  app.add_option("--shift", shift, "second operand's shift, share of the model's largest side")->capture_default_str();
+  CLI11_PARSE(app, argc, argv);
+
+  auto truth = io::ReadMeshFile((std::filesystem::path(data_dir) / (model + ".obj")).string());
+  if (!truth.ok()) {
+    std::fprintf(stderr, "%s\n", truth.status().ToString().c_str());
+    return 1;
+  }
+  const core::Box3 box = core::BoundingBox(truth->vertices);
+  const double side = box.sizes().maxCoeff();
+  core::LocalJobContext ctx;
+  std::vector<std::unique_ptr<pu::PuFunction>> fitted;
+  for (uint64_t seed : {1234u, 4321u}) {
+    const auto start = Clock::now();
+    auto f = pu::BuildPu(core::SampleCloud(*truth, points, seed), pu::PuParams{}, ctx);
+    if (!f.ok()) {
+      std::fprintf(stderr, "%s\n", f.status().ToString().c_str());
+      return 1;
+    }
+    std::printf("%-28s %8.2f s\n", core::StrCat("fit ", points, " points").c_str(), Since(start));
+    fitted.push_back(*std::move(f));
+  }
+  {
+    const auto start = Clock::now();
+    auto alone = pu::Extract(*fitted[0], pu::PuExtractParams{}, ctx);
+    if (!alone.ok()) return 1;
+    Report("extract one alone (pu)", Since(start), alone->mesh);
+  }
+  std::vector<csg::Operand> operands;
+  for (const auto& f : fitted) {
+    auto operand = AsOperand(*f);
+    if (!operand.ok()) return 1;
+    operands.push_back(*std::move(operand));
+  }
+  fitted.clear();
+  const auto resolve = [&](const std::string& id) -> absl::StatusOr<csg::Operand> {
+    return operands[id == "a" ? 0 : 1];
+  };
+  const core::Vec3d c = box.center();
+  const std::vector<std::pair<std::string, std::string>> cases = {
+      {"union(a, turned+shifted b)",
+       core::StrCat("union(job:a rotate(axis=0,1,0 deg=40 c=", c.x(), ",", c.y(), ",", c.z(), " translate(t=",
+                    shift * side, ",0,0 job:b)))")},
+      {"a minus sphere",
+       core::StrCat("difference(job:a sphere(c=", c.x() + 0.3 * side, ",", c.y(), ",", c.z(), " r=", 0.25 * side,
+                    "))")},
+  };
+  for (const auto& [name, text] : cases) {
+    auto root = csg::ParseCsg(text);
+    if (!root.ok()) return 1;
+    const auto start = Clock::now();
+    auto function = csg::BuildCsg(*root, resolve);
+    if (!function.ok()) return 1;
+    csg::CsgStats stats;
+    auto mesh = csg::ExtractCsg(**function, csg::CsgParams{}, ctx, &stats);
+    if (!mesh.ok()) {
+      std::fprintf(stderr, "%s\n", mesh.status().ToString().c_str());
+      return 1;
+    }
+    Report(name.c_str(), Since(start), mesh->mesh);
+  }
+  return 0;
+}

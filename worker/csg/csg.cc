@@ -1,0 +1,546 @@
+#include "worker/csg/csg.h"
+
+#include <Eigen/Geometry>
+#include <algorithm>
+#include <cmath>
+#include <limits>
+
+#include "absl/container/flat_hash_map.h"
+#include "absl/container/flat_hash_set.h"
+#include "worker/core/parallel.h"
+#include "worker/core/status.h"
+#include "worker/core/strings.h"
+#include "worker/extract/j1a_isosurface.h"
+
+namespace lsqsurf::csg {
+namespace {
+
+using core::Box3;
+using core::FieldGradient;
+using Mat3d = Eigen::Matrix3d;
+using core::Vec3d;
+using core::Vec3f;
+
+constexpr double kInf = std::numeric_limits<double>::infinity();
+
+// A similarity from world to a leaf's own coordinates: y = linear · x + offset, with
+// linear = Rᵀ / scale; the leaf's world value is scale · f(y) (a distance stays a distance)
+// and its world gradient R · ∇f(y).
+struct Similarity {
+  Mat3d rotation = Mat3d::Identity();
+  Vec3d translation = Vec3d::Zero();  // World position of the leaf's origin.
+  double scale = 1;
+
+  Vec3d ToLocal(const Vec3d& x) const { return rotation.transpose() * (x - translation) / scale; }
+  Vec3d ToWorld(const Vec3d& y) const { return rotation * (scale * y) + translation; }
+  // Applies `inner` first, then this: the composition this ∘ inner.
+  Similarity Then(const Similarity& inner) const {
+    return {rotation * inner.rotation, ToWorld(inner.translation), scale * inner.scale};
+  }
+};
+
+// Exact signed distances of the primitives in their own coordinates, with gradients.
+double BoxDistance(const Vec3d& lo, const Vec3d& hi, const Vec3d& y, Vec3d* g) {
+  const Vec3d c = (lo + hi) / 2, half = (hi - lo) / 2;
+  const Vec3d d = y - c;
+  const Vec3d q = d.cwiseAbs() - half;
+  const Vec3d outside = q.cwiseMax(0.0);
+  const double out_norm = outside.norm();
+  if (out_norm > 0) {
+    if (g) *g = (outside.array() * d.array().sign()).matrix() / out_norm;
+    return out_norm;
+  }
+  int axis = 0;
+  q.maxCoeff(&axis);
+  if (g) *g = Vec3d::Unit(axis) * (d[axis] < 0 ? -1.0 : 1.0);
+  return q[axis];
+}
+
+// 2D box distance of (radial, axial) excesses: exact for capped cylinders.
+double CappedDistance(double radial, double axial, double* d_radial, double* d_axial) {
+  const double ro = std::max(radial, 0.0), ao = std::max(axial, 0.0);
+  const double out = std::hypot(ro, ao);
+  if (out > 0) {
+    *d_radial = ro / out, *d_axial = ao / out;
+    return out;
+  }
+  const bool radial_wins = radial > axial;
+  *d_radial = radial_wins ? 1 : 0, *d_axial = radial_wins ? 0 : 1;
+  return std::max(radial, axial);
+}
+
+Vec3d AnyPerpendicular(const Vec3d& n) {
+  const Vec3d t = std::abs(n.x()) < 0.9 ? Vec3d::UnitX() : Vec3d::UnitY();
+  return n.cross(t).normalized();
+}
+
+struct Eval {
+  double value = 0;
+  Vec3d gradient = Vec3d::Zero();
+  bool defined = true;
+  int operand = -1;
+};
+
+}  // namespace
+
+struct CsgFunction::Impl {
+  struct Node {
+    NodeKind kind = NodeKind::kUnion;
+    std::vector<int> children;  // Operations.
+    // Leaves: the world → own similarity and the primitive's data in its own coordinates.
+    Similarity to_world;
+    Vec3d a = Vec3d::Zero(), b = Vec3d::Zero(), axis = Vec3d::UnitZ();
+    double r = 0, major = 0;
+    const Operand* job = nullptr;
+    Box3 cull;  // Jobs: outside this world box F is margin + the distance to it.
+    double margin = 0;
+    int operand = -1;
+    Box3 bounds;  // World box holding the node's surface (empty box for none, all space for planes).
+    bool unbounded = false;
+  };
+  std::vector<Node> nodes;  // nodes[0] is the root.
+  std::vector<std::unique_ptr<Operand>> jobs;
+  std::vector<int> leaves;  // Node of each operand.
+  Box3 bounds;
+
+  // Leaf value in world units at world x.
+  Eval Leaf(const Node& n, const Vec3d& x, bool gradient, bool decide_defined) const {
+    Eval e;
+    e.operand = n.operand;
+    if (n.job != nullptr && !n.cull.contains(x)) {
+      const Vec3d nearest = x.cwiseMax(n.cull.min()).cwiseMin(n.cull.max());
+      const double d = (x - nearest).norm();
+      e.value = n.margin + d;
+      if (gradient && d > 0) e.gradient = (x - nearest) / d;
+      return e;
+    }
+    const Vec3d y = n.to_world.ToLocal(x);
+    Vec3d g = Vec3d::Zero();
+    Vec3d* gp = gradient ? &g : nullptr;
+    double v = 0;
+    switch (n.kind) {
+      case NodeKind::kSphere: {
+        const Vec3d d = y - n.a;
+        const double len = d.norm();
+        v = len - n.r;
+        if (gp && len > 0) g = d / len;
+        break;
+      }
+      case NodeKind::kBox: v = BoxDistance(n.a, n.b, y, gp); break;
+      case NodeKind::kCylinder: {
+        const Vec3d ab = n.b - n.a;
+        const double length = ab.norm();
+        const Vec3d u = ab / length;
+        const Vec3d d = y - n.a;
+        const double t = d.dot(u);
+        const Vec3d radial = d - t * u;
+        const double rho = radial.norm();
+        double dr = 0, da = 0;
+        v = CappedDistance(rho - n.r, std::abs(t - length / 2) - length / 2, &dr, &da);
+        if (gp) {
+          const Vec3d radial_dir = rho > 0 ? Vec3d(radial / rho) : AnyPerpendicular(u);
+          g = dr * radial_dir + da * (t >= length / 2 ? 1.0 : -1.0) * u;
+        }
+        break;
+      }
+      case NodeKind::kTorus: {
+        const Vec3d d = y - n.a;
+        const double h = d.dot(n.axis);
+        const Vec3d p = d - h * n.axis;
+        const double rho = p.norm();
+        const Vec3d ring_dir = rho > 0 ? Vec3d(p / rho) : AnyPerpendicular(n.axis);
+        const Vec3d to_tube = (rho - n.major) * ring_dir + h * n.axis;
+        const double len = to_tube.norm();
+        v = len - n.r;
+        if (gp && len > 0) g = to_tube / len;
+        break;
+      }
+      case NodeKind::kPlane: {
+        v = n.axis.dot(y - n.a);
+        g = n.axis;
+        break;
+      }
+      case NodeKind::kJob: {
+        const core::ImplicitFunction& f = *n.job->function;
+        if (gradient) {
+          const FieldGradient fg = decide_defined ? f.ValueAndGradient(y) : f.ValueAndGradientOnly(y);
+          v = fg.value, g = fg.gradient, e.defined = fg.defined;
+        } else if (decide_defined) {
+          const core::FieldValue fv = f.Value(y);
+          v = fv.value, e.defined = fv.defined;
+        } else {
+          v = f.ValueOnly(y);
+        }
+        // Outside its fitted region a PU function has no value: the solid is empty there.
+        if (std::isnan(v)) v = n.margin, g = Vec3d::Zero(), e.defined = false;
+        break;
+      }
+      default: break;
+    }
+    e.value = n.to_world.scale * v;
+    if (gradient) e.gradient = n.to_world.rotation * g;
+    return e;
+  }
+
+  Eval Evaluate(int index, const Vec3d& x, bool gradient, bool decide_defined) const {
+    const Node& n = nodes[static_cast<size_t>(index)];
+    if (n.kind != NodeKind::kUnion && n.kind != NodeKind::kIntersection && n.kind != NodeKind::kDifference) {
+      return Leaf(n, x, gradient, decide_defined);
+    }
+    Eval best;
+    for (size_t k = 0; k < n.children.size(); ++k) {
+      Eval e = Evaluate(n.children[k], x, gradient, decide_defined);
+      if (n.kind == NodeKind::kDifference && k > 0) e.value = -e.value, e.gradient = -e.gradient;
+      const bool take = k == 0 || (n.kind == NodeKind::kUnion ? e.value < best.value : e.value > best.value);
+      if (take) best = e;
+    }
+    return best;
+  }
+
+  // Builds node `index` (and below) from `src` under the similarity `outer`.
+  absl::Status Add(const CsgNode& src, const Similarity& outer, const OperandResolver& resolve,
+                   absl::flat_hash_map<std::string, int>& job_index) {
+    switch (src.kind) {
+      case NodeKind::kTranslate: {
+        Similarity t;
+        t.translation = src.Vector("t");
+        return Add(src.children[0], outer.Then(t), resolve, job_index);
+      }
+      case NodeKind::kRotate: {
+        const Vec3d c = src.Vector("c");
+        Similarity r;
+        r.rotation = Eigen::AngleAxisd(src.Number("deg") * M_PI / 180.0, src.Vector("axis").normalized()).matrix();
+        r.translation = c - r.rotation * c;  // About c.
+        return Add(src.children[0], outer.Then(r), resolve, job_index);
+      }
+      case NodeKind::kScale: {
+        const Vec3d c = src.Vector("c");
+        Similarity s;
+        s.scale = src.Number("s");
+        s.translation = c - s.scale * c;
+        return Add(src.children[0], outer.Then(s), resolve, job_index);
+      }
+      default: break;
+    }
+    const int index = static_cast<int>(nodes.size());
+    nodes.emplace_back();
+    nodes.back().kind = src.kind;
+    if (src.kind == NodeKind::kUnion || src.kind == NodeKind::kIntersection || src.kind == NodeKind::kDifference) {
+      std::vector<int> children;
+      for (const CsgNode& c : src.children) {
+        children.push_back(static_cast<int>(nodes.size()));
+        LSQSURF_RETURN_IF_ERROR(Add(c, outer, resolve, job_index));
+      }
+      Node& n = nodes[static_cast<size_t>(index)];
+      n.children = children;
+      CombineBounds(n);
+      return absl::OkStatus();
+    }
+    Node leaf;
+    leaf.kind = src.kind;
+    leaf.to_world = outer;
+    leaf.operand = static_cast<int>(leaves.size());
+    Box3 own;  // In the leaf's own coordinates.
+    switch (src.kind) {
+      case NodeKind::kSphere:
+        leaf.a = src.Vector("c"), leaf.r = src.Number("r");
+        own = Box3(leaf.a - Vec3d::Constant(leaf.r), leaf.a + Vec3d::Constant(leaf.r));
+        break;
+      case NodeKind::kBox:
+        leaf.a = src.Vector("min"), leaf.b = src.Vector("max");
+        own = Box3(leaf.a, leaf.b);
+        break;
+      case NodeKind::kCylinder:
+        leaf.a = src.Vector("a"), leaf.b = src.Vector("b"), leaf.r = src.Number("r");
+        own =
+            Box3(leaf.a.cwiseMin(leaf.b) - Vec3d::Constant(leaf.r), leaf.a.cwiseMax(leaf.b) + Vec3d::Constant(leaf.r));
+        break;
+      case NodeKind::kTorus:
+        leaf.a = src.Vector("c"), leaf.axis = src.Vector("axis").normalized();
+        leaf.major = src.Number("R"), leaf.r = src.Number("r");
+        own = Box3(leaf.a - Vec3d::Constant(leaf.major + leaf.r), leaf.a + Vec3d::Constant(leaf.major + leaf.r));
+        break;
+      case NodeKind::kPlane:
+        leaf.a = src.Vector("p"), leaf.axis = src.Vector("n").normalized();
+        leaf.unbounded = true;
+        break;
+      case NodeKind::kJob: {
+        auto it = job_index.find(src.job_id);
+        if (it == job_index.end()) {
+          auto operand = resolve(src.job_id);
+          if (!operand.ok()) {
+            return absl::Status(operand.status().code(),
+                                core::StrCat("job:", src.job_id, ": ", operand.status().message()));
+          }
+          it = job_index.emplace(src.job_id, static_cast<int>(jobs.size())).first;
+          jobs.push_back(std::make_unique<Operand>(*std::move(operand)));
+        }
+        leaf.job = jobs[static_cast<size_t>(it->second)].get();
+        // The cull box: the operand's box with two of its cells of margin, in world units.
+        leaf.margin = 2 * leaf.job->cell_size * outer.scale;
+        own = leaf.job->bounds;
+        own.extend(own.min() - Vec3d::Constant(2 * leaf.job->cell_size));
+        own.extend(own.max() + Vec3d::Constant(2 * leaf.job->cell_size));
+        break;
+      }
+      default: return absl::InternalError("unexpected csg node");
+    }
+    if (!leaf.unbounded) {
+      for (int corner = 0; corner < 8; ++corner) {
+        const Vec3d y((corner & 1) ? own.max().x() : own.min().x(), (corner & 2) ? own.max().y() : own.min().y(),
+                      (corner & 4) ? own.max().z() : own.min().z());
+        leaf.bounds.extend(outer.ToWorld(y));
+      }
+    }
+    leaf.cull = leaf.bounds;
+    nodes[static_cast<size_t>(index)] = leaf;
+    leaves.push_back(index);
+    return absl::OkStatus();
+  }
+
+  // A union holds its operands' boxes, an intersection their overlap, a difference its first.
+  void CombineBounds(Node& n) const {
+    bool first = true;
+    for (size_t k = 0; k < n.children.size(); ++k) {
+      const Node& c = nodes[static_cast<size_t>(n.children[k])];
+      if (n.kind == NodeKind::kDifference && k > 0) break;
+      if (first) {
+        n.bounds = c.bounds, n.unbounded = c.unbounded, first = false;
+        continue;
+      }
+      if (n.kind == NodeKind::kUnion) {
+        n.unbounded = n.unbounded || c.unbounded;
+        n.bounds.extend(c.bounds);
+      } else if (n.unbounded) {
+        n.bounds = c.bounds, n.unbounded = c.unbounded;
+      } else if (!c.unbounded) {
+        n.bounds = n.bounds.intersection(c.bounds);
+      }
+    }
+  }
+};
+
+CsgFunction::CsgFunction() : impl_(std::make_unique<Impl>()) {}
+CsgFunction::~CsgFunction() = default;
+
+core::FieldValue CsgFunction::Value(const Vec3d& x) const {
+  const Eval e = impl_->Evaluate(0, x, false, true);
+  return {e.value, e.defined};
+}
+
+core::FieldGradient CsgFunction::ValueAndGradient(const Vec3d& x) const {
+  const Eval e = impl_->Evaluate(0, x, true, true);
+  return {e.value, e.gradient, e.defined};
+}
+
+double CsgFunction::ValueOnly(const Vec3d& x) const { return impl_->Evaluate(0, x, false, false).value; }
+
+core::FieldGradient CsgFunction::ValueAndGradientOnly(const Vec3d& x) const {
+  const Eval e = impl_->Evaluate(0, x, true, false);
+  return {e.value, e.gradient, std::isfinite(e.value)};
+}
+
+int CsgFunction::ActiveOperand(const Vec3d& x) const { return impl_->Evaluate(0, x, false, false).operand; }
+int CsgFunction::operand_count() const { return static_cast<int>(impl_->leaves.size()); }
+const Box3& CsgFunction::bounds() const { return impl_->bounds; }
+
+absl::Status Validate(const CsgParams& params) {
+  if (!(params.cell_size >= 0) || !std::isfinite(params.cell_size)) {
+    return absl::InvalidArgumentError("cell_size must be 0 (automatic) or a positive length");
+  }
+  if (params.max_leaves < 1) return absl::InvalidArgumentError("max_leaves must be positive");
+  return extract::Validate(params.marching);
+}
+
+absl::StatusOr<std::unique_ptr<CsgFunction>> BuildCsg(const CsgNode& root, const OperandResolver& resolve) {
+  std::unique_ptr<CsgFunction> out(new CsgFunction());
+  CsgFunction::Impl& m = *out->impl_;
+  absl::flat_hash_map<std::string, int> job_index;
+  LSQSURF_RETURN_IF_ERROR(m.Add(root, Similarity{}, resolve, job_index));
+  const CsgFunction::Impl::Node& top = m.nodes[0];
+  if (top.unbounded) {
+    return absl::InvalidArgumentError(
+        "the csg solid is unbounded (a plane's half-space reaches infinity): intersect it with a bounded solid");
+  }
+  if (top.bounds.isEmpty()) return absl::InvalidArgumentError("the csg solid is empty: its operands do not overlap");
+  m.bounds = top.bounds;
+  return out;
+}
+
+namespace {
+
+// Finest-level cell centres near a primitive leaf's surface: descends an octree over `root`
+// and skips every cell whose centre is farther from the surface than its half-diagonal (the
+// leaf value is an exact world distance, so no surface can pass there).
+void PrimitiveSeeds(const CsgFunction::Impl& m, const CsgFunction::Impl::Node& leaf, const Box3& root, int depth,
+                    std::vector<Vec3f>& out) {
+  struct Cell {
+    Vec3d lo;
+    int level;
+  };
+  const double edge = root.sizes().x();
+  std::vector<Cell> stack{{root.min(), 0}};
+  while (!stack.empty()) {
+    const Cell c = stack.back();
+    stack.pop_back();
+    const double size = std::ldexp(edge, -c.level);
+    const Vec3d centre = c.lo + Vec3d::Constant(size / 2);
+    const double half_diagonal = size * std::sqrt(3.0) / 2;
+    if (std::abs(m.Leaf(leaf, centre, false, false).value) > half_diagonal * 1.0001) continue;
+    if (c.level == depth) {
+      out.push_back(centre.cast<float>());
+      continue;
+    }
+    for (int k = 0; k < 8; ++k) {
+      stack.push_back(
+          {c.lo + Vec3d((k & 1) ? size / 2 : 0, (k & 2) ? size / 2 : 0, (k & 4) ? size / 2 : 0), c.level + 1});
+    }
+  }
+}
+
+}  // namespace
+
+// Seeds of the extraction: points near the combined surface, one per finest cell; `fine_seeds`
+// those that need the finest cells.
+absl::Status FindSeeds(const CsgFunction& function, const CsgFunction::Impl& m, const Box3& root, int depth,
+                       double cell, std::vector<Vec3f>& seeds, std::vector<Vec3f>& fine_seeds, core::JobContext& ctx) {
+  // Candidates near each operand's own surface; `curved` marks those that need the finest cells
+  // (flat faces are exact on coarse tetrahedra).
+  std::vector<Vec3f> candidates;
+  std::vector<char> curved;
+  for (int index : m.leaves) {
+    const auto& leaf = m.nodes[static_cast<size_t>(index)];
+    if (leaf.job == nullptr) {
+      PrimitiveSeeds(m, leaf, root, depth, candidates);
+    } else {
+      for (const Vec3f& p : leaf.job->surface_points) {
+        const Vec3d x = leaf.to_world.ToWorld(p.cast<double>());
+        if (m.bounds.contains(x)) candidates.push_back(x.cast<float>());
+      }
+    }
+    const bool flat = leaf.kind == NodeKind::kBox || leaf.kind == NodeKind::kPlane;
+    curved.resize(candidates.size(), flat ? 0 : 1);
+  }
+  LSQSURF_RETURN_IF_ERROR(ctx.CheckCancelled());
+  // One candidate per finest cell, then only those near the combined surface.
+  absl::flat_hash_map<std::array<int32_t, 3>, uint32_t> cells;
+  std::vector<Vec3f> distinct;
+  std::vector<char> distinct_curved;
+  for (size_t i = 0; i < candidates.size(); ++i) {
+    const Vec3d g = (candidates[i].cast<double>() - root.min()) / cell;
+    const std::array<int32_t, 3> key{static_cast<int32_t>(std::floor(g.x())), static_cast<int32_t>(std::floor(g.y())),
+                                     static_cast<int32_t>(std::floor(g.z()))};
+    auto [it, fresh] = cells.emplace(key, static_cast<uint32_t>(distinct.size()));
+    if (fresh) {
+      distinct.push_back(candidates[i]);
+      distinct_curved.push_back(curved[i]);
+    } else {
+      distinct_curved[it->second] |= curved[i];
+    }
+  }
+  candidates.clear();
+  cells.clear();
+  // Kept: near the combined surface. Fine: curved there, or where two operands meet (the
+  // intersection curves and an operand's own creases need the finest cells to be placed well).
+  std::vector<char> state(distinct.size());  // 0 dropped, 1 coarse, 2 fine.
+  LSQSURF_RETURN_IF_ERROR(core::ParallelFor(
+      distinct.size(), 1024,
+      [&](size_t b, size_t e) {
+        for (size_t i = b; i < e; ++i) {
+          const Vec3d x = distinct[i].cast<double>();
+          if (!(std::abs(function.ValueOnly(x)) <= 2 * cell)) continue;
+          int near = 0;
+          for (int index : m.leaves) {
+            near += std::abs(m.Leaf(m.nodes[static_cast<size_t>(index)], x, false, false).value) <= 2 * cell;
+          }
+          state[i] = distinct_curved[i] != 0 || near >= 2 ? 2 : 1;
+        }
+      },
+      &ctx));
+  for (size_t i = 0; i < distinct.size(); ++i) {
+    if (state[i] >= 1) seeds.push_back(distinct[i]);
+    if (state[i] == 2) fine_seeds.push_back(distinct[i]);
+  }
+  distinct.clear();
+  return absl::OkStatus();
+}
+
+absl::StatusOr<extract::IsosurfaceResult> ExtractCsg(const CsgFunction& function, const CsgParams& params,
+                                                     core::JobContext& ctx, CsgStats* stats) {
+  LSQSURF_RETURN_IF_ERROR(Validate(params));
+  const CsgFunction::Impl& m = *function.impl_;
+  double cell = params.cell_size;
+  if (cell == 0) {
+    cell = m.bounds.sizes().maxCoeff() / 256;
+    bool from_jobs = false;
+    for (int index : m.leaves) {
+      const auto& leaf = m.nodes[static_cast<size_t>(index)];
+      if (leaf.job == nullptr) continue;
+      const double own = leaf.job->cell_size * leaf.to_world.scale;
+      cell = from_jobs ? std::min(cell, own) : own;
+      from_jobs = true;
+    }
+  }
+  if (!(cell > 0)) return absl::InvalidArgumentError("the solid has no extent to size cells by");
+  // The seeds' cube: the solid's box with margin, at a power-of-two multiple of the cell.
+  const double extent = m.bounds.sizes().maxCoeff() + 4 * cell;
+  const int depth = static_cast<int>(std::ceil(std::log2(extent / cell)));
+  if (depth > extract::AdaptiveOctree::kMaxDepth) {
+    return absl::InvalidArgumentError(
+        core::StrCat("cell_size ", cell, " is too small for a solid of extent ", m.bounds.sizes().maxCoeff()));
+  }
+  const double side = std::ldexp(cell, depth);
+  const Box3 root(m.bounds.center() - Vec3d::Constant(side / 2), m.bounds.center() + Vec3d::Constant(side / 2));
+
+  ctx.ReportProgress("finding the surface", 0.0);
+  std::vector<Vec3f> seeds, fine_seeds;
+  LSQSURF_RETURN_IF_ERROR(FindSeeds(function, m, root, depth, cell, seeds, fine_seeds, ctx));
+  if (stats != nullptr) stats->seeds = static_cast<int64_t>(seeds.size()), stats->cell_size = cell;
+  if (seeds.empty()) return absl::FailedPreconditionError("the csg solid is empty: no surface passes its box");
+  // The tree: two levels coarser than the cell along the whole surface, the finest where
+  // needed, 2:1 balanced.
+  const int band_level = std::max(1, depth - 2);
+  extract::AdaptiveOctree tree(root, depth);
+  extract::SurfaceBand band = extract::MarkSurfaceBand(tree, seeds, band_level);
+  const extract::SurfaceBand fine = extract::MarkSurfaceBand(tree, fine_seeds, depth);
+  tree.Refine([&](const extract::OctreeCell& c) {
+    const uint64_t key = extract::CellKey(c);
+    return band.ancestors.contains(key) || fine.ancestors.contains(key);
+  });
+  tree.Balance();
+  LSQSURF_RETURN_IF_ERROR(ctx.CheckCancelled());
+  band = {};
+  // Extraction starts at the finest cells of the seeds (it maps them to the leaves holding them).
+  absl::flat_hash_set<uint64_t> start_keys;
+  const double finest = tree.CellEdge(depth);
+  const auto finest_index = [&](double v) {
+    return static_cast<uint32_t>(
+        std::clamp<int64_t>(static_cast<int64_t>(std::floor(v)), 0, (int64_t{1} << depth) - 1));
+  };
+  for (const Vec3f& p : seeds) {
+    const Vec3d g = (p.cast<double>() - tree.origin()) / finest;
+    start_keys.insert(extract::CellKey({depth, finest_index(g.x()), finest_index(g.y()), finest_index(g.z())}));
+  }
+  std::vector<extract::OctreeCell> start;
+  start.reserve(start_keys.size());
+  for (uint64_t key : start_keys) start.push_back(extract::CellFromKey(key));
+  core::SubContext extract_ctx(ctx, "extracting surface", 0.05, 0.97);
+  auto result =
+      extract::ExtractIsosurfaceOnTree(function, tree, start, params.max_leaves, params.marching, extract_ctx);
+  if (!result.ok()) return result;
+  core::TriangleMesh& mesh = result->mesh;
+  if (mesh.faces.empty()) return absl::FailedPreconditionError("the csg solid is empty: no surface was found");
+  core::ScalarAttribute operand{"operand", std::vector<float>(mesh.vertices.size())};
+  LSQSURF_RETURN_IF_ERROR(core::ParallelFor(
+      mesh.vertices.size(), 1024,
+      [&](size_t b, size_t e) {
+        for (size_t i = b; i < e; ++i) {
+          operand.values[i] = static_cast<float>(function.ActiveOperand(mesh.vertices[i].cast<double>()));
+        }
+      },
+      &ctx));
+  mesh.vertex_attributes.push_back(std::move(operand));
+  return result;
+}
+
+}  // namespace lsqsurf::csg

@@ -1,0 +1,94 @@
+// worker/csg/csg.h — Boolean combinations of implicit solids, extracted as one closed mesh.
+//
+// Every operand is an implicit function, negative inside: the analytic primitives are exact
+// signed distances, a job reference is a kept PU function (seed §2). Union is the minimum,
+// intersection the maximum, difference max(a, −b): the classic R-function-free CSG of implicit
+// solids, whose zero set is the boundary of the combined solid, with creases where operands
+// meet. The gradient is the active operand's, so the extractor's crease splitting
+// (extract/creases.h) puts the mesh's edges on the intersection curves.
+//
+// Extraction runs on J1a tetrahedra refined only where the combined surface passes: near each
+// operand's own surface (its points for a PU function, a Lipschitz-bounded octree descent for a
+// primitive), keeping the places where the combined function is near zero, so the work follows
+// the result's area, not the operands'.
+#pragma once
+
+#include <functional>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "worker/core/geometry.h"
+#include "worker/core/implicit_function.h"
+#include "worker/core/job_context.h"
+#include "worker/csg/expression.h"
+#include "worker/extract/isosurface.h"
+
+namespace lsqsurf::csg {
+
+// A solid that a `job:ID` stands for. The function is negative inside and must stay alive as
+// long as the CsgFunction built on it (shared ownership).
+struct Operand {
+  std::shared_ptr<const core::ImplicitFunction> function;
+  core::Box3 bounds;                        // Holds the whole surface; outside it the solid is empty.
+  std::vector<core::Vec3f> surface_points;  // Points on or next to its surface (the fitted cloud).
+  double cell_size = 0;                     // The finest extraction leaf it was made with, model units.
+};
+
+// Resolves a job id to its operand. Errors: whatever the caller reports (kNotFound,
+// kFailedPrecondition, ...), passed on with the id.
+using OperandResolver = std::function<absl::StatusOr<Operand>(const std::string& job_id)>;
+
+struct CsgParams {
+  // Edge of the finest extraction leaves in model units; 0 = the finest of the referenced
+  // jobs' own, or 1/256 of the solid's longest side when none is referenced.
+  double cell_size = 0;
+  int64_t max_leaves = 20'000'000;
+  // Edges are split on the intersection curves (and on the operands' own creases), then relaxed
+  // tangentially: crisp curves and no slivers along them.
+  extract::MarchingOptions marching{.crease_angle = 30, .relax_steps = 4};
+};
+
+absl::Status Validate(const CsgParams& params);
+
+struct CsgStats {
+  int64_t seeds = 0;  // Starting points kept near the combined surface.
+  double cell_size = 0;
+};
+
+// F of an expression. Thread-safe to evaluate concurrently.
+class CsgFunction final : public core::ImplicitFunction {
+ public:
+  ~CsgFunction() override;
+  core::FieldValue Value(const core::Vec3d& x) const override;
+  core::FieldGradient ValueAndGradient(const core::Vec3d& x) const override;
+  double ValueOnly(const core::Vec3d& x) const override;
+  core::FieldGradient ValueAndGradientOnly(const core::Vec3d& x) const override;
+
+  // Index of the operand (primitive or job, in order of appearance) that decides F at x.
+  int ActiveOperand(const core::Vec3d& x) const;
+  int operand_count() const;
+  const core::Box3& bounds() const;  // Of the solid; finite.
+
+  struct Impl;
+
+ private:
+  friend absl::StatusOr<std::unique_ptr<CsgFunction>> BuildCsg(const CsgNode&, const OperandResolver&);
+  friend absl::StatusOr<extract::IsosurfaceResult> ExtractCsg(const CsgFunction&, const CsgParams&, core::JobContext&,
+                                                              CsgStats*);
+  CsgFunction();
+  std::unique_ptr<Impl> impl_;
+};
+
+// Errors: kInvalidArgument (an unbounded solid, e.g. a lone plane, or an empty intersection of
+// bounds), and the resolver's errors.
+absl::StatusOr<std::unique_ptr<CsgFunction>> BuildCsg(const CsgNode& root, const OperandResolver& resolve);
+
+// The boundary of the solid, with the per-vertex attribute "operand" (ActiveOperand).
+// Errors: kInvalidArgument, kResourceExhausted (more than max_leaves), kFailedPrecondition (an
+// empty solid), kCancelled.
+absl::StatusOr<extract::IsosurfaceResult> ExtractCsg(const CsgFunction& function, const CsgParams& params,
+                                                     core::JobContext& ctx, CsgStats* stats = nullptr);
+
+}  // namespace lsqsurf::csg

@@ -1,0 +1,134 @@
+#include "worker/jobs/csg_job.h"
+
+#include <chrono>
+
+#include "worker/core/status.h"
+#include "worker/core/strings.h"
+#include "worker/jobs/surface_job.h"
+#include "worker/pu/pu.h"
+
+namespace lsqsurf::jobs {
+namespace {
+
+const core::ParamTable<csg::CsgParams>& CsgExtractTable() {
+  static const auto* table = [] {
+    auto* t = new core::ParamTable<csg::CsgParams>();
+    t->Real<&csg::CsgParams::cell_size>("cell_size", 0, 1e12, "model units",
+                                        "edge of the finest extraction cells at the surface; 0 = the finest of the "
+                                        "referenced jobs' own, or 1/256 of the solid's longest side")
+        .Include(&csg::CsgParams::marching, extract::MarchingParamTable());
+    return t;
+  }();
+  return *table;
+}
+
+const core::ParamTable<CsgJobParams>& CsgJobParamTable() {
+  static const auto* table = [] {
+    auto* t = new core::ParamTable<CsgJobParams>();
+    t->Text<&CsgJobParams::expression>(
+         "expression",
+         "the solid, e.g. difference(job:ID, sphere(c=0.1,0.2,0.3 r=0.05)): union, intersection, difference of "
+         "sphere, box, cylinder, torus, plane, translate, rotate, scale and job:ID (a succeeded pu job); see the "
+         "README (required)")
+        .Include(&CsgJobParams::extract, CsgExtractTable())
+        .AddRule([](const CsgJobParams& p) {
+          if (p.expression.empty()) return absl::InvalidArgumentError("give the solid as expression=...");
+          return csg::ParseCsg(p.expression).status();
+        });
+    return t;
+  }();
+  return *table;
+}
+
+double Seconds(std::chrono::steady_clock::time_point since) {
+  return std::chrono::duration<double>(std::chrono::steady_clock::now() - since).count();
+}
+
+// A kept PU function as an operand: its points bound the surface and start the extraction.
+absl::StatusOr<csg::Operand> LoadPuOperand(const std::string& id, RunEnvironment& env) {
+  auto stored = env.read_result ? env.read_result(id, kPuFunctionArtifact)
+                                : absl::StatusOr<std::string>(absl::UnavailableError("no job store"));
+  if (!stored.ok()) {
+    if (stored.status().code() == absl::StatusCode::kNotFound) {
+      return absl::FailedPreconditionError(
+          core::StrCat("no kept PU function (", stored.status().message(),
+                       "); refer to a succeeded job of method pu run with keep_function=true"));
+    }
+    return stored.status();
+  }
+  auto function = pu::DeserializePu(*stored);
+  if (!function.ok()) return function.status();
+  csg::Operand operand;
+  const std::span<const core::Vec3f> points = (*function)->points();
+  operand.surface_points.assign(points.begin(), points.end());
+  operand.bounds = core::BoundingBox(points);
+  // The cell a default PU extraction uses there (PuExtractParams::cell_size spacings).
+  operand.cell_size = pu::PuExtractParams{}.cell_size * (*function)->stats().mean_spacing;
+  operand.function = std::shared_ptr<const core::ImplicitFunction>(std::move(*function));
+  return operand;
+}
+
+class CsgKind final : public JobKind {
+ public:
+  std::string_view name() const override { return "csg"; }
+
+  std::vector<MethodInfo> Methods() const override {
+    return {{"csg",
+             "Boolean combination (union, intersection, difference) of analytic primitives and kept PU results, "
+             "extracted as one closed mesh with crisp intersection curves",
+             core::ParamSet(CsgJobParamTable()),
+             {"operand"},
+             {}}};
+  }
+
+  absl::StatusOr<CheckedInput> CheckUploads(const JobSpec& spec, const Uploads& uploads,
+                                            const InputLimits&) const override {
+    if (spec.params.As<CsgJobParams>() == nullptr) return absl::InternalError("not a csg job");
+    for (const auto& [slot, bytes] : uploads) {
+      if (!bytes.empty()) {
+        return absl::InvalidArgumentError(
+            core::StrCat("a csg job takes no upload (got '", slot, "'); its expression names every operand"));
+      }
+    }
+    return CheckedInput{0, nullptr};
+  }
+
+  absl::StatusOr<Statistics> Run(const JobSpec& spec, const Uploads&, RunEnvironment& env) const override {
+    const auto* p = spec.params.As<CsgJobParams>();
+    if (p == nullptr) return absl::InternalError("not a csg job");
+    LSQSURF_ASSIGN_OR_RETURN(csg::CsgNode root, csg::ParseCsg(p->expression));
+    Statistics stats;
+    auto stat = [&](std::string name, double value) { stats.emplace_back(std::move(name), value); };
+    const auto load_start = std::chrono::steady_clock::now();
+    env.context.ReportProgress("reading the operands", 0.0);
+    auto function = csg::BuildCsg(
+        root, [&](const std::string& id) -> absl::StatusOr<csg::Operand> { return LoadPuOperand(id, env); });
+    if (!function.ok()) return function.status();
+    stat("operands", (*function)->operand_count());
+    stat("jobs_referenced", static_cast<double>(csg::ReferencedJobs(root).size()));
+    stat("load_seconds", Seconds(load_start));
+    const auto extract_start = std::chrono::steady_clock::now();
+    core::SubContext extract_ctx(env.context, "extracting the solid", 0.1, 0.97);
+    csg::CsgStats csg_stats;
+    auto extracted = csg::ExtractCsg(**function, p->extract, extract_ctx, &csg_stats);
+    if (!extracted.ok()) return extracted.status();
+    stat("extract_seconds", Seconds(extract_start));
+    stat("cell_size", csg_stats.cell_size);
+    stat("seeds", static_cast<double>(csg_stats.seeds));
+    stat("crease_vertices", static_cast<double>(extracted->stats.crease_vertices));
+    stat("crease_corners", static_cast<double>(extracted->stats.crease_corners));
+    stat("relaxed_vertices", static_cast<double>(extracted->stats.relaxed_vertices));
+    AddMeshStatistics(extracted->mesh, extracted->stats, &stats);
+    LSQSURF_RETURN_IF_ERROR(DeliverMesh(extracted->mesh, spec, env, &stats));
+    return stats;
+  }
+};
+
+}  // namespace
+
+const JobKind& CsgJobKind() {
+  static const CsgKind kind;
+  return kind;
+}
+
+}  // namespace lsqsurf::jobs

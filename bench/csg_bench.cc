@@ -17,6 +17,7 @@
 #include "worker/core/strings.h"
 #include "worker/csg/csg.h"
 #include "worker/io/files.h"
+#include "worker/jobs/csg_job.h"
 #include "worker/pu/pu.h"
 
 namespace {
@@ -34,8 +35,9 @@ double PeakMiB() {
 
 void Report(const char* what, double seconds, const core::TriangleMesh& mesh) {
   const core::MeshTopology t = core::AnalyzeTopology(core::WeldByPosition(mesh));
-  std::printf("%-28s %8.2f s %10zu triangles  closed=%d comps=%lld  peak %.0f MiB\n", what, seconds, mesh.faces.size(),
-              t.watertight() ? 1 : 0, static_cast<long long>(t.components), PeakMiB());
+  std::printf("%-28s %8.2f s %10zu triangles  boundary=%lld non-manifold=%lld comps=%lld  peak %.0f MiB\n", what,
+              seconds, mesh.faces.size(), static_cast<long long>(t.boundary_edges),
+              static_cast<long long>(t.non_manifold_edges), static_cast<long long>(t.components), PeakMiB());
 }
 
 absl::StatusOr<csg::Operand> AsOperand(const pu::PuFunction& function) {
@@ -45,12 +47,7 @@ absl::StatusOr<csg::Operand> AsOperand(const pu::PuFunction& function) {
   if (!back.ok()) return back.status();
   std::printf("%-28s %8.2f s %10.1f MiB stored\n", "store + load function", Since(start),
               static_cast<double>(bytes.size()) / (1 << 20));
-  csg::Operand operand;
-  operand.surface_points.assign((*back)->points().begin(), (*back)->points().end());
-  operand.bounds = core::BoundingBox(operand.surface_points);
-  operand.cell_size = pu::PuExtractParams{}.cell_size * (*back)->stats().mean_spacing;
-  operand.function = std::shared_ptr<const core::ImplicitFunction>(std::move(*back));
-  return operand;
+  return jobs::MakePuOperand(*std::move(back));
 }
 
 }  // namespace
@@ -59,11 +56,16 @@ int main(int argc, char** argv) {
   CLI::App app{"CSG of kept PU results against extracting one alone"};
   std::string data_dir = "../shared/data/meshes", model = "spot";
   size_t points = 1'000'000;
-  double shift = 0.3;
+  double shift = 0.3, turn = 0;
+  double crease_angle = csg::CsgParams{}.marching.crease_angle;
+  int relax_steps = csg::CsgParams{}.marching.relax_steps;
   app.add_option("--data", data_dir, "folder with <model>.obj")->capture_default_str();
   app.add_option("--model", model, "model name")->capture_default_str();
   app.add_option("--points", points, "points per cloud")->capture_default_str();
   app.add_option("--shift", shift, "second operand's shift, share of the model's largest side")->capture_default_str();
+  app.add_option("--turn", turn, "second operand's turn about y, degrees")->capture_default_str();
+  app.add_option("--crease-angle", crease_angle, "csg crease_angle")->capture_default_str();
+  app.add_option("--relax-steps", relax_steps, "csg relax_steps")->capture_default_str();
   CLI11_PARSE(app, argc, argv);
 
   auto truth = io::ReadMeshFile((std::filesystem::path(data_dir) / (model + ".obj")).string());
@@ -94,7 +96,10 @@ int main(int argc, char** argv) {
   std::vector<csg::Operand> operands;
   for (const auto& f : fitted) {
     auto operand = AsOperand(*f);
-    if (!operand.ok()) return 1;
+    if (!operand.ok()) {
+      std::fprintf(stderr, "%s\n", operand.status().ToString().c_str());
+      return 1;
+    }
     operands.push_back(*std::move(operand));
   }
   fitted.clear();
@@ -103,21 +108,25 @@ int main(int argc, char** argv) {
   };
   const core::Vec3d c = box.center();
   const std::vector<std::pair<std::string, std::string>> cases = {
-      {"union(a, turned+shifted b)",
-       core::StrCat("union(job:a rotate(axis=0,1,0 deg=40 c=", c.x(), ",", c.y(), ",", c.z(), " translate(t=",
-                    shift * side, ",0,0 job:b)))")},
-      {"a minus sphere",
-       core::StrCat("difference(job:a sphere(c=", c.x() + 0.3 * side, ",", c.y(), ",", c.z(), " r=", 0.25 * side,
-                    "))")},
+      {"union(a, turned+shifted b)", core::StrCat("union(job:a rotate(axis=0,1,0 deg=", turn, " c=", c.x(), ",", c.y(),
+                                                  ",", c.z(), " translate(t=", shift * side, ",0,0 job:b)))")},
+      {"a minus sphere", core::StrCat("difference(job:a sphere(c=", c.x() + 0.3 * side, ",", c.y(), ",", c.z(),
+                                      " r=", 0.25 * side, "))")},
   };
   for (const auto& [name, text] : cases) {
     auto root = csg::ParseCsg(text);
     if (!root.ok()) return 1;
     const auto start = Clock::now();
     auto function = csg::BuildCsg(*root, resolve);
-    if (!function.ok()) return 1;
+    if (!function.ok()) {
+      std::fprintf(stderr, "%s\n", function.status().ToString().c_str());
+      return 1;
+    }
     csg::CsgStats stats;
-    auto mesh = csg::ExtractCsg(**function, csg::CsgParams{}, ctx, &stats);
+    csg::CsgParams params;
+    params.marching.crease_angle = crease_angle;
+    params.marching.relax_steps = relax_steps;
+    auto mesh = csg::ExtractCsg(**function, params, ctx, &stats);
     if (!mesh.ok()) {
       std::fprintf(stderr, "%s\n", mesh.status().ToString().c_str());
       return 1;

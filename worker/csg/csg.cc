@@ -162,7 +162,10 @@ struct CsgFunction::Impl {
       }
       case NodeKind::kJob: {
         const core::ImplicitFunction& f = *n.job->function;
-        if (gradient) {
+        if (n.job->robust_value) {
+          const FieldGradient fg = n.job->robust_value(y, gradient);
+          v = fg.value, g = fg.gradient, e.defined = fg.defined;
+        } else if (gradient) {
           const FieldGradient fg = decide_defined ? f.ValueAndGradient(y) : f.ValueAndGradientOnly(y);
           v = fg.value, g = fg.gradient, e.defined = fg.defined;
         } else if (decide_defined) {
@@ -412,14 +415,18 @@ absl::Status FindSeeds(const CsgFunction& function, const CsgFunction::Impl& m, 
     const auto& leaf = m.nodes[static_cast<size_t>(index)];
     if (leaf.job == nullptr) {
       PrimitiveSeeds(m, leaf, root, depth, candidates);
-    } else {
-      for (const Vec3f& p : leaf.job->surface_points) {
-        const Vec3d x = leaf.to_world.ToWorld(p.cast<double>());
-        if (m.bounds.contains(x)) candidates.push_back(x.cast<float>());
-      }
+      const bool flat = leaf.kind == NodeKind::kBox || leaf.kind == NodeKind::kPlane;
+      curved.resize(candidates.size(), flat ? 0 : 1);
+      continue;
     }
-    const bool flat = leaf.kind == NodeKind::kBox || leaf.kind == NodeKind::kPlane;
-    curved.resize(candidates.size(), flat ? 0 : 1);
+    const double own_cell = cell / leaf.to_world.scale;
+    for (const Vec3f& p : leaf.job->surface_points) {
+      const Vec3d x = leaf.to_world.ToWorld(p.cast<double>());
+      if (!m.bounds.contains(x)) continue;
+      candidates.push_back(x.cast<float>());
+      const auto& fine = leaf.job->wants_fine_cells;
+      curved.push_back(!fine || fine(p.cast<double>(), own_cell) ? 1 : 0);
+    }
   }
   LSQSURF_RETURN_IF_ERROR(ctx.CheckCancelled());
   // One candidate per finest cell, then only those near the combined surface.

@@ -34,6 +34,12 @@ struct Operand {
   core::Box3 bounds;                        // Holds the whole surface; outside it the solid is empty.
   std::vector<core::Vec3f> surface_points;  // Points on or next to its surface (the fitted cloud).
   double cell_size = 0;                     // The finest extraction leaf it was made with, model units.
+  // Whether extraction at a point (own coordinates) needs cells of the given edge rather than 4×
+  // larger ones; unset: everywhere.
+  std::function<bool(const core::Vec3d&, double)> wants_fine_cells;
+  // F (own coordinates) with a trustworthy sign everywhere, `defined` where surface may be
+  // placed; unset: the function's own Value, whose sign away from the data may be arbitrary.
+  std::function<core::FieldGradient(const core::Vec3d&, bool with_gradient)> robust_value;
 };
 
 // Resolves a job id to its operand. Errors: whatever the caller reports (kNotFound,

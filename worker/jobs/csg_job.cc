@@ -58,14 +58,7 @@ absl::StatusOr<csg::Operand> LoadPuOperand(const std::string& id, RunEnvironment
   }
   auto function = pu::DeserializePu(*stored);
   if (!function.ok()) return function.status();
-  csg::Operand operand;
-  const std::span<const core::Vec3f> points = (*function)->points();
-  operand.surface_points.assign(points.begin(), points.end());
-  operand.bounds = core::BoundingBox(points);
-  // The cell a default PU extraction uses there (PuExtractParams::cell_size spacings).
-  operand.cell_size = pu::PuExtractParams{}.cell_size * (*function)->stats().mean_spacing;
-  operand.function = std::shared_ptr<const core::ImplicitFunction>(std::move(*function));
-  return operand;
+  return MakePuOperand(*std::move(function));
 }
 
 class CsgKind final : public JobKind {
@@ -125,6 +118,22 @@ class CsgKind final : public JobKind {
 };
 
 }  // namespace
+
+csg::Operand MakePuOperand(std::shared_ptr<const pu::PuFunction> function) {
+  csg::Operand operand;
+  const std::span<const core::Vec3f> points = function->points();
+  operand.surface_points.assign(points.begin(), points.end());
+  operand.bounds = core::BoundingBox(points);
+  operand.cell_size = pu::FinestExtractionCell(*function, pu::PuExtractParams{});
+  operand.wants_fine_cells = [function](const core::Vec3d& x, double cell) {
+    return function->WantsFineCells(x, cell);
+  };
+  operand.robust_value = [function](const core::Vec3d& x, bool gradient) {
+    return function->ValueOrDataSide(x, gradient);
+  };
+  operand.function = std::move(function);
+  return operand;
+}
 
 const JobKind& CsgJobKind() {
   static const CsgKind kind;

@@ -7,10 +7,12 @@
 // "operand": which primitive or job (in order of appearance) the surface comes from there.
 #pragma once
 
+#include <memory>
 #include <string>
 
 #include "worker/csg/csg.h"
 #include "worker/jobs/job_kind.h"
+#include "worker/pu/pu.h"
 
 namespace lsqsurf::jobs {
 
@@ -20,5 +22,9 @@ struct CsgJobParams {
 };
 
 const JobKind& CsgJobKind();
+
+// A PU function as a csg operand: its points start the extraction, its fitting tree says where
+// cells must be fine, and its default extraction cell sets the automatic cell size.
+csg::Operand MakePuOperand(std::shared_ptr<const pu::PuFunction> function);
 
 }  // namespace lsqsurf::jobs

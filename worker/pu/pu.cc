@@ -5,6 +5,7 @@
 #include <bit>
 #include <chrono>
 #include <cmath>
+#include <cstring>
 #include <limits>
 #include <mutex>
 #include <optional>
@@ -844,6 +845,16 @@ absl::Status IndexInfluence(PuFunction::Impl& impl, core::JobContext& ctx) {
   for (const auto& chunk : pairs_per_chunk) {
     for (const auto& [leaf, fit] : chunk) impl.influence[leaf_counts[leaf]++] = fit;
   }
+  // In fit order, so that sums (and a rebuilt index) do not depend on the threads' timing.
+  LSQSURF_RETURN_IF_ERROR(core::ParallelFor(
+      impl.nodes.size(), 4096,
+      [&](size_t b, size_t e) {
+        for (size_t leaf = b; leaf < e; ++leaf) {
+          std::sort(impl.influence.begin() + impl.influence_offsets[leaf],
+                    impl.influence.begin() + impl.influence_offsets[leaf + 1]);
+        }
+      },
+      &ctx));
   return absl::OkStatus();
 }
 
@@ -890,6 +901,20 @@ absl::StatusOr<std::unique_ptr<PuFunction>> BuildPu(const core::PointCloud& clou
   return function;
 }
 
+namespace {
+
+int ExtractionDepth(double root_edge, double target) {
+  return std::clamp(static_cast<int>(std::lround(std::log2(root_edge / target))), 2,
+                    extract::AdaptiveOctree::kMaxDepth);
+}
+
+}  // namespace
+
+double FinestExtractionCell(const PuFunction& function, const PuExtractParams& params) {
+  const double root_edge = function.stats().root_edge;
+  return std::ldexp(root_edge, -ExtractionDepth(root_edge, params.cell_size * function.stats().mean_spacing));
+}
+
 absl::StatusOr<extract::IsosurfaceResult> Extract(const PuFunction& function, const PuExtractParams& params,
                                                   core::JobContext& ctx) {
   if (!(params.cell_size > 0) || !std::isfinite(params.cell_size)) {
@@ -901,8 +926,7 @@ absl::StatusOr<extract::IsosurfaceResult> Extract(const PuFunction& function, co
   // The finest extraction level comes from `cell_size`; around the data the tree is refined to
   // at least two levels above it, and in between it follows the fitting tree: where the fits
   // needed small cells the surface gets small tetrahedra too.
-  const int depth = std::clamp(static_cast<int>(std::lround(std::log2(impl.root_edge / target))), 2,
-                               extract::AdaptiveOctree::kMaxDepth);
+  const int depth = ExtractionDepth(impl.root_edge, target);
   const int band_level = depth - 2;
   core::SubContext build_ctx(ctx, "building the J1a tree", 0.0, 0.1);
   extract::AdaptiveOctree tree(core::Box3(impl.origin, impl.origin + Vec3d::Constant(impl.root_edge)), depth);
@@ -959,9 +983,37 @@ absl::StatusOr<extract::IsosurfaceResult> Extract(const PuFunction& function, co
 
 std::span<const Vec3f> PuFunction::points() const { return impl_->positions; }
 
+core::FieldGradient PuFunction::ValueOrDataSide(const Vec3d& x, bool with_gradient) const {
+  const Impl& m = *impl_;
+  const core::Neighbor nearest = m.kd_tree->Nearest(x.cast<float>());
+  const double reach = m.coverage_check ? m.coverage_factor * m.local_spacing[nearest.index] : 0;
+  if (!m.coverage_check || nearest.distance2 <= reach * reach) {
+    core::FieldGradient g = m.Evaluate(x, with_gradient, false);
+    g.defined = std::isfinite(g.value);
+    return g;
+  }
+  const Vec3d d = x - m.positions[nearest.index].cast<double>();
+  const double side = d.dot(m.normals[nearest.index].cast<double>()) >= 0 ? 1.0 : -1.0;
+  const double length = d.norm();
+  core::FieldGradient g;
+  g.value = side * length;
+  if (with_gradient && length > 0) g.gradient = side * d / length;
+  return g;
+}
+
+bool PuFunction::WantsFineCells(const Vec3d& x, double cell) const {
+  const int32_t leaf = impl_->LeafAt(x);
+  if (leaf < 0) return false;
+  const Node& node = impl_->nodes[static_cast<size_t>(leaf)];
+  if (impl_->Edge(node.level) < 4 * cell * 0.999) return true;
+  if (node.fit < 0) return false;
+  const LocalFit& fit = impl_->fits[static_cast<size_t>(node.fit)];
+  return fit.degree >= 2 || fit.feature != Feature::kSmooth;
+}
+
 namespace {
 
-constexpr std::string_view kPuMagic = "LQPU0001";
+constexpr std::string_view kPuMagic = "LQPU0002";
 
 // Structure checks of a read function: every index in range, so that evaluation cannot leave
 // its arrays whatever the bytes were.
@@ -979,24 +1031,65 @@ bool Consistent(const PuFunction::Impl& m) {
     if (n.fit >= 0 && static_cast<size_t>(n.fit) >= m.fits.size()) return false;
   }
   for (const LocalFit& f : m.fits) {
-    if (f.degree < 0 || f.degree > kMaxDegree || !(f.support_radius > 0) || !(f.scale > 0)) return false;
+    const int highest = f.quadric ? kQuadricLabel : kMaxDegree;
+    if (f.degree < 0 || f.degree > highest || !(f.support_radius > 0) || !(f.scale > 0)) return false;
     if (f.sharp >= 0 && static_cast<size_t>(f.sharp) >= m.sharp_fits.size()) return false;
   }
   for (const SharpFit& f : m.sharp_fits) {
     if (f.count < 2 || f.count > 4) return false;
+    // Read as bytes: a stored flag other than 0 or 1 is not a bool.
+    std::array<uint8_t, sizeof(f.take_max)> flags;
+    std::memcpy(flags.data(), f.take_max.data(), sizeof(f.take_max));
+    for (uint8_t flag : flags) {
+      if (flag > 1) return false;
+    }
     for (int k = 0; k < f.count; ++k) {
       if (f.sheets[static_cast<size_t>(k)].height.degree < 0 || f.sheets[static_cast<size_t>(k)].height.degree > 2)
         return false;
     }
   }
-  if (m.influence_offsets.size() != nodes + 1 || m.influence_offsets.front() != 0 ||
-      m.influence_offsets.back() != m.influence.size())
-    return false;
-  for (size_t i = 0; i < nodes; ++i) {
-    if (m.influence_offsets[i] > m.influence_offsets[i + 1]) return false;
+  return true;
+}
+
+// A fit as bytes: its frame and only the coefficients its degree uses (most fits are of degree
+// 1–2, so this stores about half of the fixed-size record).
+int StoredTerms(const LocalFit& f) { return f.quadric ? 10 : TermCount(f.degree); }
+
+void WriteFits(std::span<const LocalFit> fits, core::BinaryWriter& w) {
+  w.Scalar<uint64_t>(fits.size());
+  for (const LocalFit& f : fits) {
+    for (const Vec3d* v : {&f.centre, &f.origin, &f.tangent_u, &f.tangent_v, &f.normal}) {
+      w.Scalar(v->x()), w.Scalar(v->y()), w.Scalar(v->z());
+    }
+    w.Scalar(f.support_radius), w.Scalar(f.scale);
+    w.Scalar(f.degree), w.Scalar(f.depth), w.Scalar<uint8_t>(f.quadric), w.Scalar(f.feature), w.Scalar(f.sharp);
+    const int terms = std::clamp(StoredTerms(f), 0, kMaxTerms);
+    for (int k = 0; k < terms; ++k) w.Scalar(f.coefficients[static_cast<size_t>(k)]);
   }
-  for (uint32_t f : m.influence) {
-    if (f >= m.fits.size()) return false;
+}
+
+bool ReadFits(core::BinaryReader& r, std::vector<LocalFit>& fits) {
+  uint64_t count = 0;
+  if (!r.Scalar(count) || count > (uint64_t{1} << 32)) return false;
+  fits.clear();
+  fits.reserve(static_cast<size_t>(std::min<uint64_t>(count, 1 << 24)));
+  for (uint64_t i = 0; i < count; ++i) {
+    LocalFit f;
+    for (Vec3d* v : {&f.centre, &f.origin, &f.tangent_u, &f.tangent_v, &f.normal}) {
+      if (!r.Scalar(v->x()) || !r.Scalar(v->y()) || !r.Scalar(v->z())) return false;
+    }
+    uint8_t quadric = 0;
+    if (!r.Scalar(f.support_radius) || !r.Scalar(f.scale) || !r.Scalar(f.degree) || !r.Scalar(f.depth) ||
+        !r.Scalar(quadric) || !r.Scalar(f.feature) || !r.Scalar(f.sharp)) {
+      return false;
+    }
+    f.quadric = quadric != 0;
+    const int terms = StoredTerms(f);
+    if (terms < 0 || terms > kMaxTerms) return false;
+    for (int k = 0; k < terms; ++k) {
+      if (!r.Scalar(f.coefficients[static_cast<size_t>(k)])) return false;
+    }
+    fits.push_back(f);
   }
   return true;
 }
@@ -1020,10 +1113,8 @@ std::string SerializePu(const PuFunction& function) {
   w.Array<Vec3f>(m.normals);
   w.Array<float>(m.local_spacing);
   w.Array<Node>(m.nodes);
-  w.Array<LocalFit>(m.fits);
+  WriteFits(m.fits, w);
   w.Array<SharpFit>(m.sharp_fits);
-  w.Array<uint32_t>(m.influence_offsets);
-  w.Array<uint32_t>(m.influence);
   return w.Take();
 }
 
@@ -1053,12 +1144,11 @@ absl::StatusOr<std::unique_ptr<PuFunction>> DeserializePu(std::string_view bytes
       !r.Array(m.local_spacing)) {
     return bad("points");
   }
-  if (!r.Array(m.nodes) || !r.Array(m.fits) || !r.Array(m.sharp_fits) || !r.Array(m.influence_offsets) ||
-      !r.Array(m.influence) || !r.AtEnd()) {
-    return bad("fits");
-  }
+  if (!r.Array(m.nodes) || !ReadFits(r, m.fits) || !r.Array(m.sharp_fits) || !r.AtEnd()) return bad("fits");
   if (!Consistent(m)) return bad("inconsistent structure");
   m.kd_tree = std::make_unique<core::KdTree>(m.positions);
+  core::LocalJobContext ctx;
+  LSQSURF_RETURN_IF_ERROR(IndexInfluence(m, ctx));
   return function;
 }
 

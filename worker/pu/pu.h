@@ -108,6 +108,14 @@ class PuFunction final : public core::ImplicitFunction {
   FitLabel DominantFit(const core::Vec3d& x) const;
   // The input points (where extraction starts and what coverage is measured against).
   std::span<const core::Vec3f> points() const;
+  // F where the data covers x (`defined`); elsewhere the distance to the nearest point, signed by
+  // the side of its normal, with `defined` false: a sign that holds far from the data, where a
+  // fit's extrapolation may not (what Boolean combinations need: there the other operand's
+  // surface decides). One nearest-point query per call.
+  core::FieldGradient ValueOrDataSide(const core::Vec3d& x, bool with_gradient) const;
+  // Whether extraction near x wants cells of edge `cell` rather than 4× larger ones: where the
+  // fitting tree is finer than that or the fit is curved (Extract's own rule).
+  bool WantsFineCells(const core::Vec3d& x, double cell) const;
 
   const PuStats& stats() const { return stats_; }
 
@@ -146,6 +154,9 @@ struct PuExtractParams {
 
 // The user-facing fields of PuExtractParams: cell_size, refine_steps and crease_angle.
 const core::ParamTable<PuExtractParams>& PuExtractParamTable();
+
+// The edge of Extract's finest leaves: `cell_size` spacings rounded to a level of the octree.
+double FinestExtractionCell(const PuFunction& function, const PuExtractParams& params);
 
 // The zero set of F on J1a tetrahedra: the fitting tree down to `cell_size`, refined to at least
 // 4 × `cell_size` around the data and 2:1 balanced, so cells grow away from the surface. Errors: kInvalidArgument,

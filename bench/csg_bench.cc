@@ -1,14 +1,17 @@
-// lsqsurf-csg-bench — CSG of kept PU results against extracting one of them alone.
+// lsqsurf-csg-bench — CSG and local edits of kept PU results against extracting one alone.
 //
 // Two clouds of one shared model (different samples, the second turned and shifted by a share of
 // the model's size) are fitted with PU defaults; the first is extracted alone (the baseline),
 // both functions go through their stored byte form, and the csg engine extracts their union and
-// the first minus a sphere. Prints time, triangles, topology as delivered (merged by position)
+// the first minus a sphere; a local edit (degree 1 in a ball holding 1 % of the points) is timed
+// against the fit and extraction it replaces. Prints time, triangles, topology as delivered (merged by position)
 // and the peak RSS of the whole run.
 #include <sys/resource.h>
 
 #include <CLI/CLI.hpp>
+#include <algorithm>
 #include <chrono>
+#include <cmath>
 #include <cstdio>
 #include <filesystem>
 
@@ -92,6 +95,29 @@ int main(int argc, char** argv) {
     auto alone = pu::Extract(*fitted[0], pu::PuExtractParams{}, ctx);
     if (!alone.ok()) return 1;
     Report("extract one alone (pu)", Since(start), alone->mesh);
+  }
+  {
+    // A local edit of a ball holding about 1 % of the points, against fitting and extracting anew.
+    const core::Vec3f& p = fitted[0]->points()[fitted[0]->points().size() / 2];
+    std::vector<float> d2;
+    for (const core::Vec3f& q : fitted[0]->points()) d2.push_back((q - p).squaredNorm());
+    std::nth_element(d2.begin(), d2.begin() + static_cast<long>(d2.size() / 100), d2.end());
+    pu::PuEdit edit;
+    edit.centre = p.cast<double>();
+    edit.radius = std::sqrt(static_cast<double>(d2[d2.size() / 100]));
+    const auto start = Clock::now();
+    pu::PuEditStats stats;
+    auto edited = pu::EditPu(*fitted[0], edit, ctx, &stats);
+    if (!edited.ok()) {
+      std::fprintf(stderr, "%s\n", edited.status().ToString().c_str());
+      return 1;
+    }
+    const double edit_seconds = Since(start);
+    auto mesh = pu::Extract(**edited, pu::PuExtractParams{}, ctx);
+    if (!mesh.ok()) return 1;
+    std::printf("%-28s %8.2f s (%lld fits replaced)\n", "edit 1 % ball: fits", edit_seconds,
+                static_cast<long long>(stats.fits_replaced));
+    Report("edit 1 % ball: fits + extract", Since(start), mesh->mesh);
   }
   std::vector<csg::Operand> operands;
   for (const auto& f : fitted) {

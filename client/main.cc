@@ -329,11 +329,56 @@ struct SurfaceCommand {
   VolumeFlags volume;
   std::vector<double> iso;
   std::string csg_expression;  // Method csg: the solid (no upload).
+  struct EditFlags {
+    std::string source, ball, set, refit;
+    bool remove = false;
+  } edit;  // Method edit.
+
+  // Fills EditParams from `lsqsurf edit ID --ball x,y,z,r --set degree=N | --refit error_threshold=E | --remove`.
+  absl::Status ApplyEdit(v1::JobSpec* spec) const {
+    v1::EditParams& p = *spec->mutable_edit();
+    p.set_source(edit.source);
+    std::vector<double> ball;
+    std::string item;
+    for (char c : edit.ball + ",") {
+      if (c != ',') {
+        item += c;
+        continue;
+      }
+      char* end = nullptr;
+      const double v = std::strtod(item.c_str(), &end);
+      if (item.empty() || end != item.c_str() + item.size() || !std::isfinite(v)) {
+        return absl::InvalidArgumentError(StrCat("--ball '", edit.ball, "': expected x,y,z,r"));
+      }
+      ball.push_back(v);
+      item.clear();
+    }
+    if (ball.size() != 4) return absl::InvalidArgumentError(StrCat("--ball '", edit.ball, "': expected x,y,z,r"));
+    p.set_center_x(ball[0]), p.set_center_y(ball[1]), p.set_center_z(ball[2]), p.set_radius(ball[3]);
+    const int actions = (edit.set.empty() ? 0 : 1) + (edit.refit.empty() ? 0 : 1) + (edit.remove ? 1 : 0);
+    if (actions != 1)
+      return absl::InvalidArgumentError("give one of --set degree=N, --refit error_threshold=E, --remove");
+    if (edit.remove) {
+      p.set_action(v1::EditParams::ACTION_REMOVE);
+      return absl::OkStatus();
+    }
+    const bool set = !edit.set.empty();
+    p.set_action(set ? v1::EditParams::ACTION_SET_DEGREE : v1::EditParams::ACTION_REFIT);
+    const std::string& assignment = set ? edit.set : edit.refit;
+    const std::string expected = set ? "degree" : "error_threshold";
+    if (assignment.rfind(expected + "=", 0) != 0) {
+      return absl::InvalidArgumentError(StrCat("--", set ? "set" : "refit", " takes ", expected, "=VALUE"));
+    }
+    return client::SetParamAssignment(spec, assignment);
+  }
 
   int Run(const Globals& g, bool wait) const {
     auto spec = job.Spec();
     if (!spec.ok()) return Fail(std::string(spec.status().message()));
     if (job.method == "csg") spec->mutable_csg()->set_expression(csg_expression);
+    if (job.method == "edit") {
+      if (absl::Status s = ApplyEdit(&*spec); !s.ok()) return Fail(std::string(s.message()));
+    }
     if (job_preview) *spec->mutable_preview()->mutable_options() = view.Options();
     absl::StatusOr<Upload> upload = absl::UnknownError("");
     if (job.method == "volume") {
@@ -393,6 +438,21 @@ CLI::App* AddCsgCommand(CLI::App& app, SurfaceCommand& surface) {
   csg->add_option("--preview", surface.preview, "also render the mesh to this PNG file (view options below)");
   surface.view.AddTo(csg);
   return csg;
+}
+
+// edit: a local edit of a kept PU function, as a new result.
+CLI::App* AddEditCommand(CLI::App& app, SurfaceCommand& surface) {
+  auto* edit = app.add_subcommand("edit", "edit a pu job's kept function in a ball, wait, write the edited mesh");
+  edit->add_option("id", surface.edit.source, "id of a succeeded pu (or edit) job")->required();
+  edit->add_option("--ball", surface.edit.ball, "the ball x,y,z,r in model units")->required();
+  edit->add_option("--set", surface.edit.set, "degree=N: refit the local fits in the ball at degree N (0..4)");
+  edit->add_option("--refit", surface.edit.refit, "error_threshold=E: grow their cells again under E");
+  edit->add_flag("--remove", surface.edit.remove, "drop the points and fits in the ball (a hole)");
+  edit->add_option("-o,--output", surface.outputs, "mesh to write (.ply .obj .drc); repeat for several")->required();
+  edit->add_option("--param", surface.job.params, "extraction parameter as name=value, e.g. cell_size=4");
+  edit->add_option("--preview", surface.preview, "also render the mesh to this PNG file (view options below)");
+  surface.view.AddTo(edit);
+  return edit;
 }
 
 // probe: values of a finished volume job at points of an XYZ file, or on a grid.
@@ -678,6 +738,7 @@ int main(int argc, char** argv) {
   volume->add_option("--mesh-bits", surface.job.mesh_bits, "Draco quantization of result positions");
 
   CLI::App* csg = AddCsgCommand(app, surface);
+  CLI::App* edit = AddEditCommand(app, surface);
 
   ProbeCommand probe_command;
   auto* probe = app.add_subcommand("probe", "values of a finished volume job's field at points or on a grid");
@@ -726,8 +787,8 @@ int main(int argc, char** argv) {
     return surface.Run(g, /*wait=*/true);
   }
   if (*reconstruct || *submit) return surface.Run(g, /*wait=*/reconstruct->parsed());
-  if (*csg) {
-    surface.job.method = "csg";
+  if (*csg || *edit) {
+    surface.job.method = *csg ? "csg" : "edit";
     return surface.Run(g, /*wait=*/true);
   }
   if (*track) return track_command.Run(g);

@@ -198,8 +198,9 @@ TEST_F(EndToEnd, PuMeshCarriesDepthAndDegreeToThePly) {
   EXPECT_LE(ranges["degree"].second, 5.0f);
 }
 
-// A PU job keeps its function; `lsqsurf csg` halves it with a plane by reference.
-TEST_F(EndToEnd, CsgCutsAKeptPuResultThroughTheCli) {
+// A PU job keeps its function; `lsqsurf csg` halves it with a plane by reference and `lsqsurf
+// edit` changes it in a ball.
+TEST_F(EndToEnd, CsgAndEditOfAKeptPuResultThroughTheCli) {
   Server server;
   ASSERT_NO_FATAL_FAILURE(server.Start(dir_ / "data"));
   const std::string in = WriteCloud("sphere.ply", testing::SphereCloud(8000));
@@ -219,6 +220,18 @@ TEST_F(EndToEnd, CsgCutsAKeptPuResultThroughTheCli) {
   const ClientRun bad = Client(server.address(), "csg 'union(job:" + id + ")' -o " + out);
   EXPECT_EQ(bad.code, 1) << bad.output;
   EXPECT_NE(bad.output.find("at least 2 operands"), std::string::npos) << bad.output;
+
+  // A local edit of the same kept function: planar fits in a ball, still one closed surface.
+  const std::string edited = (dir_ / "edited.ply").string();
+  const ClientRun e = Client(server.address(), "edit " + id + " --ball 1,0,0,0.3 --set degree=1 -o " + edited);
+  ASSERT_EQ(e.code, 0) << e.output;
+  auto edited_mesh = io::ReadMeshFile(edited);
+  ASSERT_TRUE(edited_mesh.ok()) << edited_mesh.status();
+  EXPECT_TRUE(core::AnalyzeTopology(core::WeldByPosition(*edited_mesh)).watertight());
+  const ClientRun two =
+      Client(server.address(), "edit " + id + " --ball 1,0,0,0.3 --set degree=1 --remove -o " + edited);
+  EXPECT_EQ(two.code, 3) << two.output;
+  EXPECT_NE(two.output.find("give one of"), std::string::npos) << two.output;
 }
 
 // Pictures: a preview written by reconstruct, an on-demand render coloured by the PU degree,
@@ -545,15 +558,16 @@ TEST_F(EndToEnd, RawApiStatusCodes) {
     grpc::ClientContext ctx;
     v1::ListMethodsResponse response;
     ASSERT_TRUE(stub->ListMethods(&ctx, {}, &response).ok());
-    ASSERT_EQ(response.methods_size(), 8);
+    ASSERT_EQ(response.methods_size(), 9);
     EXPECT_EQ(response.methods(0).name(), "iamls");
     EXPECT_EQ(response.methods(1).name(), "pu");
     EXPECT_EQ(response.methods(2).name(), "ramls");
     EXPECT_EQ(response.methods(3).name(), "apss");
     EXPECT_EQ(response.methods(4).name(), "csg");
-    EXPECT_EQ(response.methods(5).name(), "track");
-    EXPECT_EQ(response.methods(6).name(), "volume");
-    EXPECT_EQ(response.methods(7).name(), "probe");
+    EXPECT_EQ(response.methods(5).name(), "edit");
+    EXPECT_EQ(response.methods(6).name(), "track");
+    EXPECT_EQ(response.methods(7).name(), "volume");
+    EXPECT_EQ(response.methods(8).name(), "probe");
   }
   EXPECT_EQ(Client(server.address(), "cancel " + id).code, 0);
 }

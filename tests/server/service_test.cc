@@ -6,6 +6,7 @@
 #include <algorithm>
 #include <cmath>
 #include <filesystem>
+#include <map>
 #include <sstream>
 
 #include "client/client.h"
@@ -145,7 +146,8 @@ TEST_F(ServiceTest, MethodsListTheirParametersWithDefaults) {
   ASSERT_TRUE(methods.ok());
   std::vector<std::string> names;
   for (const auto& m : methods->methods()) names.push_back(m.name());
-  EXPECT_EQ(names, (std::vector<std::string>{"iamls", "pu", "ramls", "apss", "csg", "track", "volume", "probe"}));
+  EXPECT_EQ(names,
+            (std::vector<std::string>{"iamls", "pu", "ramls", "apss", "csg", "edit", "track", "volume", "probe"}));
   for (const auto& m : methods->methods()) {
     EXPECT_GT(m.parameters_size(), 0) << m.name();
     for (const auto& p : m.parameters()) {
@@ -281,7 +283,7 @@ TEST_F(ServiceTest, AVolumeMeshBecomesAnIsosurfaceAndBadVolumesAreRefused) {
 
 // A PU job keeps its function; a csg job cuts it with a box by reference, without an upload, and
 // the result is the closed half ball. Bad expressions and references are refused with reasons.
-TEST_F(ServiceTest, CsgCombinesAKeptPuResultWithPrimitives) {
+TEST_F(ServiceTest, CsgAndEditReuseAKeptPuResult) {
   auto ball = io::EncodeDracoPointCloud(testing::SphereCloud(20'000), {});
   ASSERT_TRUE(ball.ok());
   v1::JobSpec pu;
@@ -309,6 +311,50 @@ TEST_F(ServiceTest, CsgCombinesAKeptPuResultWithPrimitives) {
   EXPECT_TRUE(topology.watertight());
   EXPECT_EQ(topology.components, 1);
   EXPECT_NEAR(core::EnclosedVolume(*mesh), 2 * M_PI / 3, 0.01);
+  // The smallest-angle histogram: twelve 5° bins that share out every face.
+  double shares = 0;
+  int bins = 0;
+  for (const auto& s : done->statistics()) {
+    if (s.name().rfind("min_angle_share_", 0) != 0) continue;
+    ++bins;
+    EXPECT_GE(s.value(), 0.0);
+    shares += s.value();
+  }
+  EXPECT_EQ(bins, 12);
+  EXPECT_NEAR(shares, 1.0, 1e-9);
+
+  // A local edit of the same kept function: a new job, closed, and editable again.
+  v1::JobSpec edit;
+  edit.mutable_edit()->set_source(fitted->id());
+  edit.mutable_edit()->set_center_x(1.0);
+  edit.mutable_edit()->set_radius(0.2);
+  edit.mutable_edit()->set_degree(1);
+  auto edited = client_->Submit(edit, "");
+  ASSERT_TRUE(edited.ok()) << edited.status();
+  auto edited_done = client_->Watch(edited->id());
+  ASSERT_TRUE(edited_done.ok());
+  ASSERT_EQ(edited_done->state(), v1::JOB_STATE_SUCCEEDED) << edited_done->error();
+  std::map<std::string, double> edit_stats;
+  for (const auto& s : edited_done->statistics()) edit_stats[s.name()] = s.value();
+  EXPECT_GT(edit_stats["fits_replaced"], 0);
+  EXPECT_GT(edit_stats["edit_reach"], 0.2);
+  EXPECT_EQ(edit_stats["boundary_edges"], 0);
+  EXPECT_EQ(edit_stats["components"], 1);
+  edit.mutable_edit()->set_source(edited->id());
+  edit.mutable_edit()->set_action(v1::EditParams::ACTION_REMOVE);
+  edit.mutable_edit()->set_radius(0.4);
+  auto removed = client_->Submit(edit, "");
+  ASSERT_TRUE(removed.ok()) << removed.status();
+  auto removed_done = client_->Watch(removed->id());
+  ASSERT_TRUE(removed_done.ok());
+  ASSERT_EQ(removed_done->state(), v1::JOB_STATE_SUCCEEDED) << removed_done->error();
+  std::map<std::string, double> removed_stats;
+  for (const auto& s : removed_done->statistics()) removed_stats[s.name()] = s.value();
+  EXPECT_GT(removed_stats["points_removed"], 0);
+  EXPECT_GT(removed_stats["boundary_edges"], 0);  // The hole.
+  v1::JobSpec no_ball;
+  no_ball.mutable_edit()->set_source(fitted->id());
+  EXPECT_EQ(client_->Submit(no_ball, "").status().code(), absl::StatusCode::kInvalidArgument);
 
   v1::JobSpec malformed;
   malformed.mutable_csg()->set_expression("difference(job:x sphre(r=1))");

@@ -5,6 +5,7 @@
 #include "worker/core/status.h"
 #include "worker/core/strings.h"
 #include "worker/jobs/csg_job.h"
+#include "worker/jobs/edit_job.h"
 #include "worker/jobs/probe_job.h"
 #include "worker/jobs/surface_job.h"
 #include "worker/jobs/track_job.h"
@@ -16,7 +17,8 @@ namespace lsqsurf::jobs {
 const std::vector<MethodEntry>& Methods() {
   static const auto* methods = [] {
     auto* out = new std::vector<MethodEntry>();
-    for (const JobKind* kind : {&SurfaceJobKind(), &CsgJobKind(), &TrackJobKind(), &VolumeJobKind(), &ProbeJobKind()}) {
+    for (const JobKind* kind :
+         {&SurfaceJobKind(), &CsgJobKind(), &EditJobKind(), &TrackJobKind(), &VolumeJobKind(), &ProbeJobKind()}) {
       for (MethodInfo& info : kind->Methods()) out->push_back({std::move(info), kind});
     }
     return out;

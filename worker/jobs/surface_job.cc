@@ -425,6 +425,13 @@ void AddMeshStatistics(const core::TriangleMesh& mesh, const extract::Isosurface
   stat("min_angle_p1", quality.min_angle_p1);
   stat("min_angle_median", quality.min_angle_median);
   stat("aspect_ratio_p99", quality.aspect_ratio_p99);
+  // The smallest-angle histogram as shares of the faces, one statistic per 5° bin.
+  const double faces = std::max<double>(1, static_cast<double>(mesh.faces.size()));
+  for (size_t bin = 0; bin < quality.min_angle_histogram.size(); ++bin) {
+    const int from = static_cast<int>(bin) * core::TriangleQuality::kBinDegrees;
+    stat(core::StrCat("min_angle_share_", from, "_", from + core::TriangleQuality::kBinDegrees),
+         static_cast<double>(quality.min_angle_histogram[bin]) / faces);
+  }
 }
 
 namespace {

@@ -85,7 +85,8 @@ absl::StatusOr<SurfaceResult> ReconstructSurface(const std::string& method, cons
 absl::StatusOr<std::string> EncodeResultMesh(const core::TriangleMesh& mesh, int position_bits, Statistics* statistics);
 
 // Size, extraction work and triangle quality (smallest-angle 1st percentile and median, aspect
-// ratio 99th percentile) of a result mesh, appended to `statistics`.
+// ratio 99th percentile, and the share of faces per 5° bin of the smallest angle,
+// min_angle_share_0_5 … min_angle_share_55_60) of a result mesh, appended to `statistics`.
 void AddMeshStatistics(const core::TriangleMesh& mesh, const extract::IsosurfaceStats& extraction,
                        Statistics* statistics);
 

@@ -215,6 +215,13 @@ struct PuFunction::Impl {
 namespace {
 
 struct BuildContext {
+  BuildContext(const PuParams& p, const PuFunction::Impl& m, std::span<const Vec3f> n, double bound)
+      : params(p),
+        impl(m),
+        normals(n),
+        error_bound(bound),
+        cos_max_angle(std::cos(p.max_normal_angle * M_PI / 180.0)),
+        sharp{std::cos(p.sharp_angle * M_PI / 180.0), SharpParams{}.corner_share} {}
   const PuParams& params;
   const PuFunction::Impl& impl;
   std::span<const Vec3f> normals;
@@ -733,18 +740,14 @@ PuParams NoiseAwareParams(const PuFunction::Impl& impl, std::span<const Vec3f> n
   return effective;
 }
 
-// The fitting tree, level by level: every cell of a level is fitted in parallel, then split or
-// kept (with its fit) in order, so the tree does not depend on the thread count.
-absl::Status GrowFittingTree(const BuildContext& bc, PuFunction::Impl& impl, size_t points, int max_depth,
-                             PuStats& stats, core::JobContext& ctx) {
-  std::vector<uint32_t> order(points);
-  for (uint32_t i = 0; i < order.size(); ++i) order[i] = i;
-  std::vector<std::array<uint32_t, 2>> ranges{{0, static_cast<uint32_t>(order.size())}};
-  impl.nodes.push_back(Node{});
-  std::vector<int32_t> current{0};
-  stats.leaves_per_depth.assign(static_cast<size_t>(max_depth) + 1, 0);
-  stats.fits_per_depth.assign(static_cast<size_t>(max_depth) + 1, 0);
-  for (int level = 0; !current.empty(); ++level) {
+// The fitting tree below the `current` leaves, level by level: every cell of a level is fitted in
+// parallel, then split or kept (with its fit) in order, so the tree does not depend on the thread
+// count. `ranges[node]` is the node's slice of `order` (the indices of the points in its cube);
+// `stats` per-depth vectors must hold max_depth + 1 entries.
+absl::Status GrowSubtrees(const BuildContext& bc, PuFunction::Impl& impl, std::vector<uint32_t>& order,
+                          std::vector<std::array<uint32_t, 2>>& ranges, std::vector<int32_t> current, int max_depth,
+                          PuStats& stats, core::JobContext& ctx) {
+  for (int level = 0; !current.empty(); ++level) {  // `level`: steps below the start nodes.
     core::SubContext level_ctx(ctx, core::StrCat("fitting level ", level), static_cast<double>(level) / (max_depth + 1),
                                static_cast<double>(level + 1) / (max_depth + 1));
     std::vector<CellOutcome> outcomes(current.size());
@@ -770,19 +773,21 @@ absl::Status GrowFittingTree(const BuildContext& bc, PuFunction::Impl& impl, siz
         }
         const Node parent = impl.nodes[index];
         impl.nodes[index].first_child = static_cast<int32_t>(impl.nodes.size());
+        impl.nodes[index].fit = -1;
         for (uint32_t k = 0; k < 8; ++k) {
           next.push_back(static_cast<int32_t>(impl.nodes.size()));
           impl.nodes.push_back(Node{2 * parent.x + (k & 1), 2 * parent.y + ((k >> 1) & 1),
-                                    2 * parent.z + ((k >> 2) & 1), level + 1, -1, -1});
+                                    2 * parent.z + ((k >> 2) & 1), parent.level + 1, -1, -1});
           ranges.push_back({o.child_ranges[k], o.child_ranges[k + 1]});
         }
         continue;
       }
-      ++stats.leaves_per_depth[static_cast<size_t>(level)];
-      impl.deepest_level = std::max(impl.deepest_level, level);
+      const int depth = impl.nodes[index].level;
+      ++stats.leaves_per_depth[static_cast<size_t>(depth)];
+      impl.deepest_level = std::max(impl.deepest_level, depth);
       if (!o.has_fit) continue;
       impl.nodes[index].fit = static_cast<int32_t>(impl.fits.size());
-      ++stats.fits_per_depth[static_cast<size_t>(level)];
+      ++stats.fits_per_depth[static_cast<size_t>(depth)];
       if (o.sharp) {
         o.fit.sharp = static_cast<int32_t>(impl.sharp_fits.size());
         impl.sharp_fits.push_back(*o.sharp);
@@ -798,6 +803,17 @@ absl::Status GrowFittingTree(const BuildContext& bc, PuFunction::Impl& impl, siz
     current = std::move(next);
   }
   return absl::OkStatus();
+}
+
+absl::Status GrowFittingTree(const BuildContext& bc, PuFunction::Impl& impl, size_t points, int max_depth,
+                             PuStats& stats, core::JobContext& ctx) {
+  std::vector<uint32_t> order(points);
+  for (uint32_t i = 0; i < order.size(); ++i) order[i] = i;
+  std::vector<std::array<uint32_t, 2>> ranges{{0, static_cast<uint32_t>(order.size())}};
+  impl.nodes.push_back(Node{});
+  stats.leaves_per_depth.assign(static_cast<size_t>(max_depth) + 1, 0);
+  stats.fits_per_depth.assign(static_cast<size_t>(max_depth) + 1, 0);
+  return GrowSubtrees(bc, impl, order, ranges, {0}, max_depth, stats, ctx);
 }
 
 // Leaf → fits whose support meets it, so that an evaluation visits one short list.
@@ -885,12 +901,7 @@ absl::StatusOr<std::unique_ptr<PuFunction>> BuildPu(const core::PointCloud& clou
   stats.root_edge = impl.root_edge;
   const PuParams effective = NoiseAwareParams(impl, cloud.normals, params, diagonal, stats);
   impl.params = effective;
-  const BuildContext bc{effective,
-                        impl,
-                        cloud.normals,
-                        effective.error_threshold * diagonal,
-                        std::cos(params.max_normal_angle * M_PI / 180.0),
-                        SharpParams{std::cos(params.sharp_angle * M_PI / 180.0), SharpParams{}.corner_share}};
+  const BuildContext bc(effective, impl, cloud.normals, effective.error_threshold * diagonal);
   LSQSURF_RETURN_IF_ERROR(GrowFittingTree(bc, impl, cloud.size(), params.max_depth, stats, ctx));
   stats.fit_seconds = Seconds(start);
   const auto index_start = std::chrono::steady_clock::now();
@@ -1150,6 +1161,157 @@ absl::StatusOr<std::unique_ptr<PuFunction>> DeserializePu(std::string_view bytes
   core::LocalJobContext ctx;
   LSQSURF_RETURN_IF_ERROR(IndexInfluence(m, ctx));
   return function;
+}
+
+namespace {
+
+// Drops the fits no node refers to, keeping the others in their order (so that the support
+// lists of untouched leaves, sorted by index, sum in the same order as before).
+void CompactFits(PuFunction::Impl& m) {
+  std::vector<int32_t> new_index(m.fits.size(), -1);
+  for (const Node& n : m.nodes) {
+    if (n.fit >= 0 && n.first_child < 0) new_index[static_cast<size_t>(n.fit)] = 0;
+  }
+  std::vector<LocalFit> kept;
+  for (size_t f = 0; f < m.fits.size(); ++f) {
+    if (new_index[f] < 0) continue;
+    new_index[f] = static_cast<int32_t>(kept.size());
+    kept.push_back(m.fits[f]);
+  }
+  for (Node& n : m.nodes) {
+    if (n.fit >= 0) n.fit = n.first_child < 0 ? new_index[static_cast<size_t>(n.fit)] : -1;
+  }
+  m.fits = std::move(kept);
+}
+
+absl::Status CheckEdit(const PuEdit& edit) {
+  if (!edit.centre.allFinite() || !(edit.radius > 0) || !std::isfinite(edit.radius)) {
+    return absl::InvalidArgumentError("the edit needs a ball: a finite centre and a positive radius");
+  }
+  if (edit.action == PuEditAction::kSetDegree && (edit.degree < 0 || edit.degree > kMaxDegree)) {
+    return absl::InvalidArgumentError(core::StrCat("degree ", edit.degree, " must be within [0, ", kMaxDegree, "]"));
+  }
+  if (edit.action == PuEditAction::kRefit && !(edit.error_threshold >= 1e-6 && edit.error_threshold <= 0.1)) {
+    return absl::InvalidArgumentError(
+        core::StrCat("error_threshold ", edit.error_threshold, " must be within [1e-06, 0.1]"));
+  }
+  return absl::OkStatus();
+}
+
+// The indices of the points inside a node's cube (the split rule's half-open octants).
+void PointsInCube(const PuFunction::Impl& m, const Node& n, std::vector<core::Neighbor>& scratch,
+                  std::vector<uint32_t>& out) {
+  const double edge = m.Edge(n.level);
+  const Vec3d lo = m.origin + Vec3d(n.x, n.y, n.z) * edge, hi = lo + Vec3d::Constant(edge);
+  m.kd_tree->Radius(((lo + hi) / 2).cast<float>(), static_cast<float>(edge * kSqrt3 / 2 * 1.001), scratch);
+  for (const core::Neighbor& p : scratch) {
+    const Vec3d x = m.positions[p.index].cast<double>();
+    if ((x.array() >= lo.array()).all() && (x.array() < hi.array()).all()) out.push_back(p.index);
+  }
+}
+
+}  // namespace
+
+absl::StatusOr<std::unique_ptr<PuFunction>> EditPu(const PuFunction& base, const PuEdit& edit, core::JobContext& ctx,
+                                                   PuEditStats* stats) {
+  LSQSURF_RETURN_IF_ERROR(CheckEdit(edit));
+  const PuFunction::Impl& b = *base.impl_;
+  std::unique_ptr<PuFunction> out(new PuFunction());
+  PuFunction::Impl& m = *out->impl_;
+  out->stats_ = base.stats_;
+  m.params = b.params, m.origin = b.origin, m.root_edge = b.root_edge, m.deepest_level = b.deepest_level;
+  m.coverage_check = b.coverage_check, m.coverage_factor = b.coverage_factor;
+  m.nodes = b.nodes, m.fits = b.fits, m.sharp_fits = b.sharp_fits;
+  PuEditStats local;
+  // The leaves whose fit's support meets the ball.
+  std::vector<int32_t> touched;
+  for (size_t i = 0; i < m.nodes.size(); ++i) {
+    const Node& n = m.nodes[i];
+    if (n.first_child >= 0 || n.fit < 0) continue;
+    const LocalFit& f = m.fits[static_cast<size_t>(n.fit)];
+    const double gap = (f.centre - edit.centre).norm();
+    if (gap >= f.support_radius + edit.radius) continue;
+    touched.push_back(static_cast<int32_t>(i));
+    local.reach = std::max(local.reach, gap + f.support_radius);
+  }
+  if (touched.empty()) return absl::FailedPreconditionError("no local fit meets the ball: nothing to edit there");
+  local.fits_replaced = static_cast<int64_t>(touched.size());
+  if (edit.action == PuEditAction::kRemove) {
+    const double r2 = edit.radius * edit.radius;
+    for (size_t i = 0; i < b.positions.size(); ++i) {
+      if ((b.positions[i].cast<double>() - edit.centre).squaredNorm() < r2) {
+        ++local.points_removed;
+        continue;
+      }
+      m.positions.push_back(b.positions[i]);
+      m.normals.push_back(b.normals[i]);
+      if (!b.local_spacing.empty()) m.local_spacing.push_back(b.local_spacing[i]);
+    }
+    if (m.positions.size() < 4) return absl::FailedPreconditionError("the ball holds nearly every point");
+    for (int32_t node : touched) {
+      Node& n = m.nodes[static_cast<size_t>(node)];
+      if ((m.fits[static_cast<size_t>(n.fit)].centre - edit.centre).norm() < edit.radius) n.fit = -1;
+    }
+  } else {
+    m.positions = b.positions, m.normals = b.normals, m.local_spacing = b.local_spacing;
+  }
+  m.kd_tree = std::make_unique<core::KdTree>(m.positions);
+  const double diagonal = core::Diagonal(core::BoundingBox(m.positions));
+  PuParams params = m.params;
+  params.sharp = false;  // An edited region is made smooth; its creases stay where they were fitted.
+  double bound = params.error_threshold * diagonal;
+  if (edit.action == PuEditAction::kSetDegree) {
+    params.max_degree = edit.degree;
+    params.max_depth = 0;  // No cell splits: each keeps its place in the tree.
+    bound = 0;             // The highest degree the points determine, up to `degree`.
+  } else if (edit.action == PuEditAction::kRefit) {
+    params.error_threshold = edit.error_threshold;
+    bound = edit.error_threshold * diagonal;
+  }
+  const BuildContext bc(params, m, m.normals, bound);
+  if (edit.action == PuEditAction::kSetDegree) {
+    std::vector<CellOutcome> outcomes(touched.size());
+    LSQSURF_RETURN_IF_ERROR(core::ParallelFor(
+        touched.size(), 8,
+        [&](size_t begin, size_t end) {
+          thread_local Scratch scratch;
+          for (size_t i = begin; i < end; ++i) {
+            outcomes[i] = ProcessCell(bc, m.nodes[static_cast<size_t>(touched[i])], {}, 0, scratch);
+          }
+        },
+        &ctx));
+    for (size_t i = 0; i < touched.size(); ++i) {
+      Node& n = m.nodes[static_cast<size_t>(touched[i])];
+      if (!outcomes[i].has_fit) {
+        n.fit = -1;
+        continue;
+      }
+      outcomes[i].fit.sharp = -1;
+      outcomes[i].fit.feature = Feature::kSmooth;
+      m.fits[static_cast<size_t>(n.fit)] = outcomes[i].fit;
+    }
+  } else if (edit.action == PuEditAction::kRefit) {
+    std::vector<uint32_t> order;
+    std::vector<std::array<uint32_t, 2>> ranges(m.nodes.size(), {0, 0});
+    std::vector<core::Neighbor> scratch;
+    for (int32_t node : touched) {
+      Node& n = m.nodes[static_cast<size_t>(node)];
+      n.fit = -1;
+      const auto begin = static_cast<uint32_t>(order.size());
+      PointsInCube(m, n, scratch, order);
+      ranges[static_cast<size_t>(node)] = {begin, static_cast<uint32_t>(order.size())};
+    }
+    PuStats grown;
+    grown.leaves_per_depth.assign(static_cast<size_t>(params.max_depth) + 1, 0);
+    grown.fits_per_depth.assign(static_cast<size_t>(params.max_depth) + 1, 0);
+    LSQSURF_RETURN_IF_ERROR(GrowSubtrees(bc, m, order, ranges, touched, params.max_depth, grown, ctx));
+  }
+  CompactFits(m);
+  if (m.fits.empty()) return absl::FailedPreconditionError("the edit leaves no local fit");
+  LSQSURF_RETURN_IF_ERROR(IndexInfluence(m, ctx));
+  local.fits_after = static_cast<int64_t>(m.fits.size());
+  if (stats != nullptr) *stats = local;
+  return out;
 }
 
 }  // namespace lsqsurf::pu

@@ -127,6 +127,8 @@ class PuFunction final : public core::ImplicitFunction {
   friend absl::StatusOr<extract::IsosurfaceResult> Extract(const PuFunction&, const PuExtractParams&,
                                                            core::JobContext&);
   friend std::string SerializePu(const PuFunction&);
+  friend absl::StatusOr<std::unique_ptr<PuFunction>> EditPu(const PuFunction&, const struct PuEdit&, core::JobContext&,
+                                                            struct PuEditStats*);
   friend absl::StatusOr<std::unique_ptr<PuFunction>> DeserializePu(std::string_view);
   PuFunction();
   std::unique_ptr<Impl> impl_;
@@ -163,6 +165,34 @@ double FinestExtractionCell(const PuFunction& function, const PuExtractParams& p
 // kResourceExhausted, kCancelled.
 absl::StatusOr<extract::IsosurfaceResult> Extract(const PuFunction& function, const PuExtractParams& params,
                                                   core::JobContext& ctx);
+
+// A local edit of a built function (METHODS §1.10): the fits whose support meets a ball are
+// replaced, nothing else; F is unchanged, to the last bit, wherever none of their supports reaches.
+enum class PuEditAction {
+  kSetDegree,  // Refit them at `degree` (0..4; at most what their points determine), smooth.
+  kRefit,      // Grow their cells again under `error_threshold` (splits where it fails).
+  kRemove,     // Drop the points inside the ball and the fits centred there: a hole.
+};
+
+struct PuEdit {
+  core::Vec3d centre = core::Vec3d::Zero();  // Of the ball, model units.
+  double radius = 0;                         // > 0, model units.
+  PuEditAction action = PuEditAction::kSetDegree;
+  int degree = 1;                 // kSetDegree.
+  double error_threshold = 1e-4;  // kRefit: share of the bounding-box diagonal, 1e-6..0.1.
+};
+
+struct PuEditStats {
+  int64_t fits_replaced = 0;   // Fits whose support met the ball.
+  int64_t fits_after = 0;      // Fits of the edited function.
+  int64_t points_removed = 0;  // kRemove.
+  double reach = 0;            // Outside the ball about `centre` of this radius F is unchanged.
+};
+
+// Errors: kInvalidArgument (a bad ball or value), kFailedPrecondition (no fit meets the ball),
+// kCancelled. Cost: the replaced fits, a copy of the function and a rebuild of its indexes.
+absl::StatusOr<std::unique_ptr<PuFunction>> EditPu(const PuFunction& base, const PuEdit& edit, core::JobContext& ctx,
+                                                   PuEditStats* stats = nullptr);
 
 // A built function as bytes, kept with a job's results so that later jobs (CSG, local edits)
 // use it without refitting: the points with their normals and spacings, the fitting tree, the

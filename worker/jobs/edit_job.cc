@@ -1,0 +1,118 @@
+#include "worker/jobs/edit_job.h"
+
+#include <chrono>
+
+#include "worker/core/status.h"
+#include "worker/core/strings.h"
+#include "worker/jobs/surface_job.h"
+
+namespace lsqsurf::jobs {
+namespace {
+
+const core::ParamTable<EditJobParams>& EditJobParamTable() {
+  static const auto* table = [] {
+    auto* t = new core::ParamTable<EditJobParams>();
+    t->Text<&EditJobParams::source>("source", "id of a succeeded pu or edit job with a kept function (required)")
+        .Real<&EditJobParams::center_x>("center_x", -1e12, 1e12, "model units", "x of the ball's centre")
+        .Real<&EditJobParams::center_y>("center_y", -1e12, 1e12, "model units", "y of the ball's centre")
+        .Real<&EditJobParams::center_z>("center_z", -1e12, 1e12, "model units", "z of the ball's centre")
+        .Real<&EditJobParams::radius>("radius", 0, 1e12, "model units", "the ball's radius (required)")
+        .Choice<&EditJobParams::action>(
+            "action",
+            {{"set_degree", static_cast<int>(pu::PuEditAction::kSetDegree),
+              "refit the local fits meeting the ball at `degree`"},
+             {"refit", static_cast<int>(pu::PuEditAction::kRefit), "grow their cells again under `error_threshold`"},
+             {"remove", static_cast<int>(pu::PuEditAction::kRemove),
+              "drop the points in the ball and the fits centred there (a hole)"}},
+            "what the edit does")
+        .Integer<&EditJobParams::degree>("degree", 0, 4, "", "set_degree: the polynomial degree")
+        .Real<&EditJobParams::error_threshold>("error_threshold", 1e-6, 0.1, "diagonal",
+                                               "refit: the largest Taubin distance accepted")
+        .Include(&EditJobParams::extract, pu::PuExtractParamTable())
+        .AddRule([](const EditJobParams& p) {
+          if (p.source.empty()) return absl::InvalidArgumentError("name the job to edit (source=ID)");
+          if (!(p.radius > 0)) return absl::InvalidArgumentError("give the ball's radius (radius > 0)");
+          return absl::OkStatus();
+        });
+    return t;
+  }();
+  return *table;
+}
+
+double Seconds(std::chrono::steady_clock::time_point since) {
+  return std::chrono::duration<double>(std::chrono::steady_clock::now() - since).count();
+}
+
+class EditKind final : public JobKind {
+ public:
+  std::string_view name() const override { return "edit"; }
+
+  std::vector<MethodInfo> Methods() const override {
+    return {{"edit",
+             "Local edit of a kept PU function in a ball (set the degree, refit finer, or remove), and the edited "
+             "surface as a new result",
+             core::ParamSet(EditJobParamTable()),
+             {"depth", "degree", "feature"},
+             {}}};
+  }
+
+  // No upload slots are listed, so the job service refuses any upload before this.
+  absl::StatusOr<CheckedInput> CheckUploads(const JobSpec& spec, const Uploads&, const InputLimits&) const override {
+    if (spec.params.As<EditJobParams>() == nullptr) return absl::InternalError("not an edit job");
+    return CheckedInput{0, nullptr};
+  }
+
+  absl::StatusOr<Statistics> Run(const JobSpec& spec, const Uploads&, RunEnvironment& env) const override {
+    const auto* p = spec.params.As<EditJobParams>();
+    if (p == nullptr) return absl::InternalError("not an edit job");
+    Statistics stats;
+    auto stat = [&](std::string name, double value) { stats.emplace_back(std::move(name), value); };
+    auto start = std::chrono::steady_clock::now();
+    env.context.ReportProgress("reading the function", 0.0);
+    auto stored = env.read_result ? env.read_result(p->source, kPuFunctionArtifact)
+                                  : absl::StatusOr<std::string>(absl::UnavailableError("no job store"));
+    if (!stored.ok()) {
+      return absl::FailedPreconditionError(core::StrCat("source job ", p->source, " has no kept PU function (",
+                                                        stored.status().message(),
+                                                        "); edit a succeeded pu job run with keep_function=true"));
+    }
+    LSQSURF_ASSIGN_OR_RETURN(std::unique_ptr<pu::PuFunction> base, pu::DeserializePu(*stored));
+    stored = std::string();
+    stat("load_seconds", Seconds(start));
+    start = std::chrono::steady_clock::now();
+    pu::PuEdit edit;
+    edit.centre = core::Vec3d(p->center_x, p->center_y, p->center_z);
+    edit.radius = p->radius;
+    edit.action = p->action;
+    edit.degree = p->degree;
+    edit.error_threshold = p->error_threshold;
+    pu::PuEditStats edit_stats;
+    core::SubContext edit_ctx(env.context, "editing the fits", 0.05, 0.2);
+    auto edited = pu::EditPu(*base, edit, edit_ctx, &edit_stats);
+    if (!edited.ok()) return edited.status();
+    base.reset();
+    stat("edit_seconds", Seconds(start));
+    stat("fits_replaced", static_cast<double>(edit_stats.fits_replaced));
+    stat("fits_after", static_cast<double>(edit_stats.fits_after));
+    stat("points_removed", static_cast<double>(edit_stats.points_removed));
+    stat("edit_reach", edit_stats.reach);
+    start = std::chrono::steady_clock::now();
+    core::SubContext extract_ctx(env.context, "extracting surface", 0.2, 0.95);
+    auto extracted = pu::Extract(**edited, p->extract, extract_ctx);
+    if (!extracted.ok()) return extracted.status();
+    stat("extract_seconds", Seconds(start));
+    AddMeshStatistics(extracted->mesh, extracted->stats, &stats);
+    LSQSURF_RETURN_IF_ERROR(DeliverMesh(extracted->mesh, spec, env, &stats));
+    LSQSURF_RETURN_IF_ERROR(env.sink.Write(kPuFunctionArtifact, pu::SerializePu(**edited)));
+    return stats;
+  }
+};
+
+}  // namespace
+
+const JobKind& EditJobKind() {
+  static const EditKind kind;
+  return kind;
+}
+
+}  // namespace lsqsurf::jobs

@@ -6,12 +6,18 @@
 #pragma once
 
 #include <atomic>
+#include <chrono>
 #include <string>
 #include <string_view>
 
 #include "absl/status/status.h"
 
 namespace lsqsurf::core {
+
+// Wall-clock seconds since `start`, for the timings in job statistics.
+inline double SecondsSince(std::chrono::steady_clock::time_point start) {
+  return std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+}
 
 // Implementations must be thread-safe: parallel loops report from several threads.
 class JobContext {

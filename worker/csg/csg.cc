@@ -104,7 +104,7 @@ struct CsgFunction::Impl {
   Box3 bounds;
 
   // Leaf value in world units at world x.
-  Eval Leaf(const Node& n, const Vec3d& x, bool gradient, bool decide_defined) const {
+  Eval Leaf(const Node& n, const Vec3d& x, bool gradient) const {
     Eval e;
     e.operand = n.operand;
     if (n.job != nullptr && !n.cull.contains(x)) {
@@ -161,19 +161,8 @@ struct CsgFunction::Impl {
         break;
       }
       case NodeKind::kJob: {
-        const core::ImplicitFunction& f = *n.job->function;
-        if (n.job->robust_value) {
-          const FieldGradient fg = n.job->robust_value(y, gradient);
-          v = fg.value, g = fg.gradient, e.defined = fg.defined;
-        } else if (gradient) {
-          const FieldGradient fg = decide_defined ? f.ValueAndGradient(y) : f.ValueAndGradientOnly(y);
-          v = fg.value, g = fg.gradient, e.defined = fg.defined;
-        } else if (decide_defined) {
-          const core::FieldValue fv = f.Value(y);
-          v = fv.value, e.defined = fv.defined;
-        } else {
-          v = f.ValueOnly(y);
-        }
+        const FieldGradient fg = n.job->value(y, gradient);
+        v = fg.value, g = fg.gradient, e.defined = fg.defined;
         // Outside its fitted region a PU function has no value: the solid is empty there.
         if (std::isnan(v)) v = n.margin, g = Vec3d::Zero(), e.defined = false;
         break;
@@ -185,14 +174,14 @@ struct CsgFunction::Impl {
     return e;
   }
 
-  Eval Evaluate(int index, const Vec3d& x, bool gradient, bool decide_defined) const {
+  Eval Evaluate(int index, const Vec3d& x, bool gradient) const {
     const Node& n = nodes[static_cast<size_t>(index)];
     if (n.kind != NodeKind::kUnion && n.kind != NodeKind::kIntersection && n.kind != NodeKind::kDifference) {
-      return Leaf(n, x, gradient, decide_defined);
+      return Leaf(n, x, gradient);
     }
     Eval best;
     for (size_t k = 0; k < n.children.size(); ++k) {
-      Eval e = Evaluate(n.children[k], x, gradient, decide_defined);
+      Eval e = Evaluate(n.children[k], x, gradient);
       if (n.kind == NodeKind::kDifference && k > 0) e.value = -e.value, e.gradient = -e.gradient;
       const bool take = k == 0 || (n.kind == NodeKind::kUnion ? e.value < best.value : e.value > best.value);
       if (take) best = e;
@@ -271,6 +260,7 @@ struct CsgFunction::Impl {
         auto it = job_index.find(src.job_id);
         if (it == job_index.end()) {
           auto operand = resolve(src.job_id);
+          if (operand.ok() && !operand->value) operand = absl::InternalError("an operand without a value");
           if (!operand.ok()) {
             return absl::Status(operand.status().code(),
                                 core::StrCat("job:", src.job_id, ": ", operand.status().message()));
@@ -327,23 +317,21 @@ CsgFunction::CsgFunction() : impl_(std::make_unique<Impl>()) {}
 CsgFunction::~CsgFunction() = default;
 
 core::FieldValue CsgFunction::Value(const Vec3d& x) const {
-  const Eval e = impl_->Evaluate(0, x, false, true);
+  const Eval e = impl_->Evaluate(0, x, false);
   return {e.value, e.defined};
 }
 
 core::FieldGradient CsgFunction::ValueAndGradient(const Vec3d& x) const {
-  const Eval e = impl_->Evaluate(0, x, true, true);
+  const Eval e = impl_->Evaluate(0, x, true);
   return {e.value, e.gradient, e.defined};
 }
 
-double CsgFunction::ValueOnly(const Vec3d& x) const { return impl_->Evaluate(0, x, false, false).value; }
-
 core::FieldGradient CsgFunction::ValueAndGradientOnly(const Vec3d& x) const {
-  const Eval e = impl_->Evaluate(0, x, true, false);
+  const Eval e = impl_->Evaluate(0, x, true);
   return {e.value, e.gradient, std::isfinite(e.value)};
 }
 
-int CsgFunction::ActiveOperand(const Vec3d& x) const { return impl_->Evaluate(0, x, false, false).operand; }
+int CsgFunction::ActiveOperand(const Vec3d& x) const { return impl_->Evaluate(0, x, false).operand; }
 int CsgFunction::operand_count() const { return static_cast<int>(impl_->leaves.size()); }
 const Box3& CsgFunction::bounds() const { return impl_->bounds; }
 
@@ -389,7 +377,7 @@ void PrimitiveSeeds(const CsgFunction::Impl& m, const CsgFunction::Impl::Node& l
     const double size = std::ldexp(edge, -c.level);
     const Vec3d centre = c.lo + Vec3d::Constant(size / 2);
     const double half_diagonal = size * std::sqrt(3.0) / 2;
-    if (std::abs(m.Leaf(leaf, centre, false, false).value) > half_diagonal * 1.0001) continue;
+    if (std::abs(m.Leaf(leaf, centre, false).value) > half_diagonal * 1.0001) continue;
     if (c.level == depth) {
       out.push_back(centre.cast<float>());
       continue;
@@ -458,7 +446,7 @@ absl::Status FindSeeds(const CsgFunction& function, const CsgFunction::Impl& m, 
           if (!(std::abs(function.ValueOnly(x)) <= 2 * cell)) continue;
           int near = 0;
           for (int index : m.leaves) {
-            near += std::abs(m.Leaf(m.nodes[static_cast<size_t>(index)], x, false, false).value) <= 2 * cell;
+            near += std::abs(m.Leaf(m.nodes[static_cast<size_t>(index)], x, false).value) <= 2 * cell;
           }
           state[i] = distinct_curved[i] != 0 || near >= 2 ? 2 : 1;
         }

@@ -27,19 +27,17 @@
 
 namespace lsqsurf::csg {
 
-// A solid that a `job:ID` stands for. The function is negative inside and must stay alive as
-// long as the CsgFunction built on it (shared ownership).
+// A solid that a `job:ID` stands for, negative inside; its callbacks own what they evaluate.
 struct Operand {
-  std::shared_ptr<const core::ImplicitFunction> function;
+  // F (own coordinates) with a trustworthy sign everywhere, `defined` where surface may be
+  // placed (a fit's own value far from its data may have either sign). Required.
+  std::function<core::FieldGradient(const core::Vec3d&, bool with_gradient)> value;
   core::Box3 bounds;                        // Holds the whole surface; outside it the solid is empty.
   std::vector<core::Vec3f> surface_points;  // Points on or next to its surface (the fitted cloud).
   double cell_size = 0;                     // The finest extraction leaf it was made with, model units.
   // Whether extraction at a point (own coordinates) needs cells of the given edge rather than 4×
   // larger ones; unset: everywhere.
   std::function<bool(const core::Vec3d&, double)> wants_fine_cells;
-  // F (own coordinates) with a trustworthy sign everywhere, `defined` where surface may be
-  // placed; unset: the function's own Value, whose sign away from the data may be arbitrary.
-  std::function<core::FieldGradient(const core::Vec3d&, bool with_gradient)> robust_value;
 };
 
 // Resolves a job id to its operand. Errors: whatever the caller reports (kNotFound,
@@ -69,7 +67,6 @@ class CsgFunction final : public core::ImplicitFunction {
   ~CsgFunction() override;
   core::FieldValue Value(const core::Vec3d& x) const override;
   core::FieldGradient ValueAndGradient(const core::Vec3d& x) const override;
-  double ValueOnly(const core::Vec3d& x) const override;
   core::FieldGradient ValueAndGradientOnly(const core::Vec3d& x) const override;
 
   // Index of the operand (primitive or job, in order of appearance) that decides F at x.

@@ -40,27 +40,6 @@ const core::ParamTable<CsgJobParams>& CsgJobParamTable() {
   return *table;
 }
 
-double Seconds(std::chrono::steady_clock::time_point since) {
-  return std::chrono::duration<double>(std::chrono::steady_clock::now() - since).count();
-}
-
-// A kept PU function as an operand: its points bound the surface and start the extraction.
-absl::StatusOr<csg::Operand> LoadPuOperand(const std::string& id, RunEnvironment& env) {
-  auto stored = env.read_result ? env.read_result(id, kPuFunctionArtifact)
-                                : absl::StatusOr<std::string>(absl::UnavailableError("no job store"));
-  if (!stored.ok()) {
-    if (stored.status().code() == absl::StatusCode::kNotFound) {
-      return absl::FailedPreconditionError(
-          core::StrCat("no kept PU function (", stored.status().message(),
-                       "); refer to a succeeded job of method pu run with keep_function=true"));
-    }
-    return stored.status();
-  }
-  auto function = pu::DeserializePu(*stored);
-  if (!function.ok()) return function.status();
-  return MakePuOperand(*std::move(function));
-}
-
 class CsgKind final : public JobKind {
  public:
   std::string_view name() const override { return "csg"; }
@@ -88,18 +67,21 @@ class CsgKind final : public JobKind {
     auto stat = [&](std::string name, double value) { stats.emplace_back(std::move(name), value); };
     const auto load_start = std::chrono::steady_clock::now();
     env.context.ReportProgress("reading the operands", 0.0);
-    auto function = csg::BuildCsg(
-        root, [&](const std::string& id) -> absl::StatusOr<csg::Operand> { return LoadPuOperand(id, env); });
+    auto function = csg::BuildCsg(root, [&](const std::string& id) -> absl::StatusOr<csg::Operand> {
+      auto kept = ReadKeptPuFunction(env, id);
+      if (!kept.ok()) return kept.status();
+      return MakePuOperand(*std::move(kept));
+    });
     if (!function.ok()) return function.status();
     stat("operands", (*function)->operand_count());
     stat("jobs_referenced", static_cast<double>(csg::ReferencedJobs(root).size()));
-    stat("load_seconds", Seconds(load_start));
+    stat("load_seconds", core::SecondsSince(load_start));
     const auto extract_start = std::chrono::steady_clock::now();
     core::SubContext extract_ctx(env.context, "extracting the solid", 0.1, 0.97);
     csg::CsgStats csg_stats;
     auto extracted = csg::ExtractCsg(**function, p->extract, extract_ctx, &csg_stats);
     if (!extracted.ok()) return extracted.status();
-    stat("extract_seconds", Seconds(extract_start));
+    stat("extract_seconds", core::SecondsSince(extract_start));
     stat("cell_size", csg_stats.cell_size);
     stat("seeds", static_cast<double>(csg_stats.seeds));
     stat("crease_vertices", static_cast<double>(extracted->stats.crease_vertices));
@@ -122,10 +104,7 @@ csg::Operand MakePuOperand(std::shared_ptr<const pu::PuFunction> function) {
   operand.wants_fine_cells = [function](const core::Vec3d& x, double cell) {
     return function->WantsFineCells(x, cell);
   };
-  operand.robust_value = [function](const core::Vec3d& x, bool gradient) {
-    return function->ValueOrDataSide(x, gradient);
-  };
-  operand.function = std::move(function);
+  operand.value = [function](const core::Vec3d& x, bool gradient) { return function->ValueOrDataSide(x, gradient); };
   return operand;
 }
 

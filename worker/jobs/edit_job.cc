@@ -39,10 +39,6 @@ const core::ParamTable<EditJobParams>& EditJobParamTable() {
   return *table;
 }
 
-double Seconds(std::chrono::steady_clock::time_point since) {
-  return std::chrono::duration<double>(std::chrono::steady_clock::now() - since).count();
-}
-
 class EditKind final : public JobKind {
  public:
   std::string_view name() const override { return "edit"; }
@@ -69,16 +65,10 @@ class EditKind final : public JobKind {
     auto stat = [&](std::string name, double value) { stats.emplace_back(std::move(name), value); };
     auto start = std::chrono::steady_clock::now();
     env.context.ReportProgress("reading the function", 0.0);
-    auto stored = env.read_result ? env.read_result(p->source, kPuFunctionArtifact)
-                                  : absl::StatusOr<std::string>(absl::UnavailableError("no job store"));
-    if (!stored.ok()) {
-      return absl::FailedPreconditionError(core::StrCat("source job ", p->source, " has no kept PU function (",
-                                                        stored.status().message(),
-                                                        "); edit a succeeded pu job run with keep_function=true"));
-    }
-    LSQSURF_ASSIGN_OR_RETURN(std::unique_ptr<pu::PuFunction> base, pu::DeserializePu(*stored));
-    stored = std::string();
-    stat("load_seconds", Seconds(start));
+    auto base = ReadKeptPuFunction(env, p->source);
+    if (!base.ok())
+      return absl::Status(base.status().code(), core::StrCat("source job ", p->source, ": ", base.status().message()));
+    stat("load_seconds", core::SecondsSince(start));
     start = std::chrono::steady_clock::now();
     pu::PuEdit edit;
     edit.centre = core::Vec3d(p->center_x, p->center_y, p->center_z);
@@ -88,10 +78,10 @@ class EditKind final : public JobKind {
     edit.error_threshold = p->error_threshold;
     pu::PuEditStats edit_stats;
     core::SubContext edit_ctx(env.context, "editing the fits", 0.05, 0.2);
-    auto edited = pu::EditPu(*base, edit, edit_ctx, &edit_stats);
+    auto edited = pu::EditPu(**base, edit, edit_ctx, &edit_stats);
     if (!edited.ok()) return edited.status();
-    base.reset();
-    stat("edit_seconds", Seconds(start));
+    base->reset();
+    stat("edit_seconds", core::SecondsSince(start));
     stat("fits_replaced", static_cast<double>(edit_stats.fits_replaced));
     stat("fits_after", static_cast<double>(edit_stats.fits_after));
     stat("points_removed", static_cast<double>(edit_stats.points_removed));
@@ -100,7 +90,7 @@ class EditKind final : public JobKind {
     core::SubContext extract_ctx(env.context, "extracting surface", 0.2, 0.95);
     auto extracted = pu::Extract(**edited, p->extract, extract_ctx);
     if (!extracted.ok()) return extracted.status();
-    stat("extract_seconds", Seconds(start));
+    stat("extract_seconds", core::SecondsSince(start));
     AddMeshStatistics(extracted->mesh, extracted->stats, &stats);
     LSQSURF_RETURN_IF_ERROR(DeliverMesh(extracted->mesh, spec, env, &stats));
     LSQSURF_RETURN_IF_ERROR(env.sink.Write(kPuFunctionArtifact, pu::SerializePu(**edited)));

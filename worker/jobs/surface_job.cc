@@ -91,10 +91,6 @@ const core::ParamTable<PuJobParams>& PuTable() {
   return *table;
 }
 
-double Seconds(std::chrono::steady_clock::time_point since) {
-  return std::chrono::duration<double>(std::chrono::steady_clock::now() - since).count();
-}
-
 void AddStatistic(Statistics* stats, std::string name, double value) {
   for (auto& [n, v] : *stats) {
     if (n == name) {
@@ -134,7 +130,7 @@ absl::StatusOr<extract::IsosurfaceResult> RunIamls(const IamlsJobParams& p, cons
   core::SubContext build_ctx(ctx, "building iaMLS", 0.0, 0.3);
   auto field = mls::BuildIamls(cloud, p.fit, build_ctx);
   if (!field.ok()) return field.status();
-  stat("fit_seconds", Seconds(start));
+  stat("fit_seconds", core::SecondsSince(start));
   stat("spacing", (*field)->spacing());
   stat("largest_eigenvalue", (*field)->stats().largest_eigenvalue);
   if (!(*field)->stats().residuals.empty()) stat("final_residual_over_h", (*field)->stats().residuals.back());
@@ -142,7 +138,7 @@ absl::StatusOr<extract::IsosurfaceResult> RunIamls(const IamlsJobParams& p, cons
   core::SubContext extract_ctx(ctx, "extracting surface", 0.3, 1.0);
   auto extracted =
       ExtractShared(**field, cloud, {p.cell_size * (*field)->spacing(), p.refine_steps, p.extractor}, extract_ctx);
-  if (extracted.ok()) stat("extract_seconds", Seconds(extract_start));
+  if (extracted.ok()) stat("extract_seconds", core::SecondsSince(extract_start));
   return extracted;
 }
 
@@ -157,7 +153,7 @@ absl::StatusOr<extract::IsosurfaceResult> RunAlgebraic(const AlgebraicJobParams<
   core::SubContext extract_ctx(ctx, "extracting surface", 0.05, 1.0);
   auto extracted = ExtractShared(
       **field, cloud, {p.cell_size * (*field)->spacing(), p.refine_steps, SurfaceExtractor::kJ1a}, extract_ctx);
-  if (extracted.ok()) stat("extract_seconds", Seconds(start));
+  if (extracted.ok()) stat("extract_seconds", core::SecondsSince(start));
   return extracted;
 }
 
@@ -190,7 +186,7 @@ absl::StatusOr<extract::IsosurfaceResult> RunPu(const PuJobParams& p, const core
   core::SubContext extract_ctx(ctx, "extracting surface", 0.4, 1.0);
   auto extracted = pu::Extract(**field, p.extract, extract_ctx);
   if (extracted.ok()) {
-    stat("extract_seconds", Seconds(start));
+    stat("extract_seconds", core::SecondsSince(start));
     stat("tetrahedra", static_cast<double>(extracted->stats.tetrahedra));
     stat("crease_vertices", static_cast<double>(extracted->stats.crease_vertices));
     stat("crease_corners", static_cast<double>(extracted->stats.crease_corners));
@@ -201,7 +197,7 @@ absl::StatusOr<extract::IsosurfaceResult> RunPu(const PuJobParams& p, const core
       std::string bytes = pu::SerializePu(**field);
       stat("function_bytes", static_cast<double>(bytes.size()));
       keep(kPuFunctionArtifact, std::move(bytes));
-      stat("keep_seconds", Seconds(keep_start));
+      stat("keep_seconds", core::SecondsSince(keep_start));
     }
   }
   return extracted;
@@ -352,6 +348,18 @@ absl::Status DrawPreview(const core::TriangleMesh& mesh, const PreviewSpec& prev
 
 }  // namespace
 
+absl::StatusOr<std::unique_ptr<pu::PuFunction>> ReadKeptPuFunction(RunEnvironment& env, const std::string& job_id) {
+  auto stored = env.read_result ? env.read_result(job_id, kPuFunctionArtifact)
+                                : absl::StatusOr<std::string>(absl::UnavailableError("no job store"));
+  if (!stored.ok()) {
+    const absl::StatusCode code = stored.status().code();
+    if (code != absl::StatusCode::kNotFound && code != absl::StatusCode::kFailedPrecondition) return stored.status();
+    return absl::FailedPreconditionError(core::StrCat("no kept PU function (", stored.status().message(),
+                                                      "); use a succeeded pu or edit job run with keep_function=true"));
+  }
+  return pu::DeserializePu(*stored);
+}
+
 absl::Status DeliverMesh(const core::TriangleMesh& mesh, const JobSpec& spec, RunEnvironment& env,
                          Statistics* statistics) {
   auto encoded = EncodeResultMesh(mesh, spec.mesh_position_bits, statistics);
@@ -399,7 +407,7 @@ absl::StatusOr<SurfaceResult> ReconstructSurface(const std::string& method, cons
     auto estimated = core::EstimateNormals(cloud.positions, np, sub);
     if (!estimated.ok()) return estimated.status();
     cloud.normals = *std::move(estimated);
-    stat("normals_seconds", Seconds(start));
+    stat("normals_seconds", core::SecondsSince(start));
   }
 
   core::SubContext engine_ctx(ctx, method, normals_share, 1.0);
@@ -503,7 +511,7 @@ absl::StatusOr<std::string> EncodeResultMesh(const core::TriangleMesh& mesh, int
   AddStatistic(statistics, "non_manifold_edges", static_cast<double>(topo.non_manifold_edges));
   AddStatistic(statistics, "degenerate_faces", static_cast<double>(topo.degenerate_faces));
   AddStatistic(statistics, "components", static_cast<double>(topo.components));
-  AddStatistic(statistics, "encode_seconds", Seconds(start));
+  AddStatistic(statistics, "encode_seconds", core::SecondsSince(start));
   return encoded;
 }
 

@@ -7,6 +7,7 @@
 // the one shared extractor given the method's hints (the others).
 #pragma once
 
+#include <memory>
 #include <string>
 #include <utility>
 #include <vector>
@@ -60,6 +61,11 @@ struct PuJobParams {
 
 // The artifact that keeps a PU job's fitted function (pu::SerializePu).
 inline constexpr char kPuFunctionArtifact[] = "function.lqpu";
+
+// The kept function of job `job_id` (csg and edit jobs read their operands through this).
+// Errors: kFailedPrecondition (no such job, not succeeded, or nothing kept, with what to do),
+// kInvalidArgument (unreadable), kUnavailable.
+absl::StatusOr<std::unique_ptr<pu::PuFunction>> ReadKeptPuFunction(RunEnvironment& env, const std::string& job_id);
 
 const JobKind& SurfaceJobKind();
 

@@ -603,10 +603,6 @@ NoiseEstimate EstimateNoise(const PuFunction::Impl& impl, std::span<const Vec3f>
   return estimate;
 }
 
-double Seconds(std::chrono::steady_clock::time_point since) {
-  return std::chrono::duration<double>(std::chrono::steady_clock::now() - since).count();
-}
-
 }  // namespace
 
 const core::ParamTable<PuParams>& PuParamTable() {
@@ -903,10 +899,10 @@ absl::StatusOr<std::unique_ptr<PuFunction>> BuildPu(const core::PointCloud& clou
   impl.params = effective;
   const BuildContext bc(effective, impl, cloud.normals, effective.error_threshold * diagonal);
   LSQSURF_RETURN_IF_ERROR(GrowFittingTree(bc, impl, cloud.size(), params.max_depth, stats, ctx));
-  stats.fit_seconds = Seconds(start);
+  stats.fit_seconds = core::SecondsSince(start);
   const auto index_start = std::chrono::steady_clock::now();
   LSQSURF_RETURN_IF_ERROR(IndexInfluence(impl, ctx));
-  stats.index_seconds = Seconds(index_start);
+  stats.index_seconds = core::SecondsSince(index_start);
   LSQSURF_RETURN_IF_ERROR(ctx.CheckCancelled());
   if (impl.fits.empty()) return absl::FailedPreconditionError("no local fit could be made");
   return function;

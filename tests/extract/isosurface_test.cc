@@ -181,5 +181,72 @@ TEST(J1aIsosurface, FollowsTheSurfaceIntoCoarseLeaves) {
   EXPECT_LT(below * 4, above);
 }
 
+TEST(J1aIsosurface, ChordEstimateFollowsTheCurvature) {
+  // On a sphere of radius r the flat chords of cells of edge e stray by κ ℓ² / 8 with κ = 1/r and
+  // ℓ = e / 2 (the estimate's typical J1a triangle edge); on a plane by nothing.
+  for (const double r : {0.5, 1.0, 2.0}) {
+    const testing::SphereField sphere(r);
+    for (const double e : {0.02, 0.1}) {
+      const double expected = (1 / r) * (e / 2) * (e / 2) / 8;
+      // From a point off the surface: the estimate measures at the nearest surface point.
+      EXPECT_NEAR(EstimateChordError(sphere, Vec3d(0.3, -0.2, r + 0.4 * e).normalized() * (r + 0.4 * e), e), expected,
+                  0.02 * expected)
+          << "r=" << r << " e=" << e;
+    }
+  }
+  struct Plane : ImplicitFunction {
+    FieldValue Value(const Vec3d& x) const override { return {x.dot(Vec3d(1, 2, 2)) / 3, true}; }
+    FieldGradient ValueAndGradient(const Vec3d& x) const override { return {Value(x).value, Vec3d(1, 2, 2) / 3, true}; }
+  };
+  EXPECT_NEAR(EstimateChordError(Plane{}, Vec3d(0.1, 0.2, 0.3), 0.1), 0.0, 1e-12);
+  // Where ∇F vanishes nothing can be said: split.
+  EXPECT_TRUE(std::isinf(EstimateChordError(testing::SphereField(1.0), Vec3d::Zero(), 0.1)));
+}
+
+TEST(J1aIsosurface, RefinesTheBandOnlyUntilTheChordsAreCloseEnough) {
+  const testing::SphereField sphere(1.0);
+  const PointCloud seeds = testing::SphereCloud(20000);
+  constexpr int kCoarse = 4, kFinest = 7;
+  AdaptiveOctree tree(Box3(Vec3d::Constant(-1.5), Vec3d::Constant(1.5)), kFinest);
+  const SurfaceBand coarse = MarkSurfaceBand(tree, seeds.positions, kCoarse);
+  const SurfaceBand fine = MarkSurfaceBand(tree, seeds.positions, kFinest);
+  // Edges 3/32 (chord 2.7e-4, split), 3/64 (6.9e-5, kept) and 3/128 on the unit sphere.
+  const double bound = 2e-4;
+  LocalJobContext ctx;
+  ASSERT_TRUE(RefineSurfaceBand(
+                  tree, coarse, kCoarse, fine,
+                  [&](const OctreeCell& c) {
+                    return EstimateChordError(sphere, tree.CellCentre(c), tree.CellEdge(c.level)) > bound;
+                  },
+                  ctx)
+                  .ok());
+  tree.Balance();
+  std::map<int, int> leaves_per_level;
+  for (const OctreeCell& c : tree.Leaves()) {
+    if (std::abs(tree.CellCentre(c).norm() - 1) < tree.CellEdge(c.level)) ++leaves_per_level[c.level];
+  }
+  EXPECT_EQ(leaves_per_level.count(kFinest), 0u);
+  EXPECT_EQ(leaves_per_level.count(kCoarse), 0u);
+  EXPECT_GT(leaves_per_level[kFinest - 1], 1000);
+  std::vector<OctreeCell> start;
+  for (uint64_t key : fine.occupied) start.push_back(CellFromKey(key));
+  auto r = ExtractIsosurfaceOnTree(sphere, tree, start, 10'000'000, MarchingOptions{}, ctx);
+  ASSERT_TRUE(r.ok()) << r.status();
+  EXPECT_TRUE(AnalyzeTopology(r->mesh).watertight());
+  // What the bound promises: the triangles' centroids stray by less (the estimate at the kept
+  // level is 6.9e-5: the mean stray is about half of it, the largest about twice).
+  double sum = 0, worst = 0;
+  for (const Triangle& t : r->mesh.faces) {
+    const Vec3d c = (r->mesh.vertices[t[0]] + r->mesh.vertices[t[1]] + r->mesh.vertices[t[2]]).cast<double>() / 3;
+    const double stray = std::abs(c.norm() - 1);
+    sum += stray;
+    worst = std::max(worst, stray);
+  }
+  const double mean = sum / static_cast<double>(r->mesh.faces.size());
+  EXPECT_LT(mean, bound / 2);
+  EXPECT_LT(worst, bound);
+  std::printf("chord bound %.1e: mean stray %.2e, largest %.2e\n", bound, mean, worst);
+}
+
 }  // namespace
 }  // namespace lsqsurf::extract

@@ -396,31 +396,31 @@ void PrimitiveSeeds(const CsgFunction::Impl& m, const CsgFunction::Impl::Node& l
 absl::Status FindSeeds(const CsgFunction& function, const CsgFunction::Impl& m, const Box3& root, int depth,
                        double cell, std::vector<Vec3f>& seeds, std::vector<Vec3f>& fine_seeds, core::JobContext& ctx) {
   // Candidates near each operand's own surface; `curved` marks those that need the finest cells
-  // (flat faces are exact on coarse tetrahedra).
+  // (flat faces are exact on coarse tetrahedra), or for a job's points the leaf that decides.
+  constexpr int32_t kFlat = -2, kCurved = -1;
   std::vector<Vec3f> candidates;
-  std::vector<char> curved;
+  std::vector<int32_t> curved;
   for (int index : m.leaves) {
     const auto& leaf = m.nodes[static_cast<size_t>(index)];
     if (leaf.job == nullptr) {
       PrimitiveSeeds(m, leaf, root, depth, candidates);
       const bool flat = leaf.kind == NodeKind::kBox || leaf.kind == NodeKind::kPlane;
-      curved.resize(candidates.size(), flat ? 0 : 1);
+      curved.resize(candidates.size(), flat ? kFlat : kCurved);
       continue;
     }
-    const double own_cell = cell / leaf.to_world.scale;
+    const int32_t decides = leaf.job->wants_fine_cells ? index : kCurved;
     for (const Vec3f& p : leaf.job->surface_points) {
       const Vec3d x = leaf.to_world.ToWorld(p.cast<double>());
       if (!m.bounds.contains(x)) continue;
       candidates.push_back(x.cast<float>());
-      const auto& fine = leaf.job->wants_fine_cells;
-      curved.push_back(!fine || fine(p.cast<double>(), own_cell) ? 1 : 0);
+      curved.push_back(decides);
     }
   }
   LSQSURF_RETURN_IF_ERROR(ctx.CheckCancelled());
   // One candidate per finest cell, then only those near the combined surface.
   absl::flat_hash_map<std::array<int32_t, 3>, uint32_t> cells;
   std::vector<Vec3f> distinct;
-  std::vector<char> distinct_curved;
+  std::vector<int32_t> distinct_curved;
   for (size_t i = 0; i < candidates.size(); ++i) {
     const Vec3d g = (candidates[i].cast<double>() - root.min()) / cell;
     const std::array<int32_t, 3> key{static_cast<int32_t>(std::floor(g.x())), static_cast<int32_t>(std::floor(g.y())),
@@ -429,12 +429,20 @@ absl::Status FindSeeds(const CsgFunction& function, const CsgFunction::Impl& m, 
     if (fresh) {
       distinct.push_back(candidates[i]);
       distinct_curved.push_back(curved[i]);
-    } else {
-      distinct_curved[it->second] |= curved[i];
+    } else if (int32_t& d = distinct_curved[it->second]; d == kFlat || (d >= 0 && curved[i] == kCurved)) {
+      d = curved[i];
     }
   }
   candidates.clear();
   cells.clear();
+  // A job's own rule where one of its points came first (in its own coordinates).
+  const auto needs_fine = [&](size_t i) {
+    const int32_t d = distinct_curved[i];
+    if (d < 0) return d == kCurved;
+    const auto& leaf = m.nodes[static_cast<size_t>(d)];
+    const Vec3d own = leaf.to_world.ToLocal(distinct[i].cast<double>());
+    return leaf.job->wants_fine_cells(own, cell / leaf.to_world.scale);
+  };
   // Kept: near the combined surface. Fine: curved there, or where two operands meet (the
   // intersection curves and an operand's own creases need the finest cells to be placed well).
   std::vector<char> state(distinct.size());  // 0 dropped, 1 coarse, 2 fine.
@@ -448,7 +456,7 @@ absl::Status FindSeeds(const CsgFunction& function, const CsgFunction::Impl& m, 
           for (int index : m.leaves) {
             near += std::abs(m.Leaf(m.nodes[static_cast<size_t>(index)], x, false).value) <= 2 * cell;
           }
-          state[i] = distinct_curved[i] != 0 || near >= 2 ? 2 : 1;
+          state[i] = near >= 2 || needs_fine(i) ? 2 : 1;
         }
       },
       &ctx));

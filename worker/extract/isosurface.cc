@@ -103,8 +103,7 @@ absl::StatusOr<IsosurfaceResult> ExtractIsosurface(const ImplicitFunction& field
     return Vec3d(origin + h * Vec3d(static_cast<double>(x), static_cast<double>(y), static_cast<double>(z)));
   };
 
-  IsosurfaceResult result;
-  IsosurfaceStats& stats = result.stats;
+  IsosurfaceStats stats;
   core::SubContext track_ctx(ctx, "tracking surface", 0.0, 0.75);
 
   absl::flat_hash_set<Key> visited;
@@ -161,8 +160,8 @@ absl::StatusOr<IsosurfaceResult> ExtractIsosurface(const ImplicitFunction& field
   stats.tetrahedra = static_cast<int64_t>(surface_cells.size() * kTets.size());
   LSQSURF_RETURN_IF_ERROR(ctx.CheckCancelled());
 
-  core::SubContext emit_ctx(ctx, "extracting triangles", 0.75, 1.0);
-  return internal::MarchTetrahedra(
+  core::SubContext emit_ctx(ctx, "extracting triangles", 0.75, 0.9);
+  auto marched = internal::MarchTetrahedra(
       field,
       [&](const std::function<void(const internal::TetCorners&)>& visit) {
         for (Key cell : surface_cells) {
@@ -172,6 +171,12 @@ absl::StatusOr<IsosurfaceResult> ExtractIsosurface(const ImplicitFunction& field
         }
       },
       corner_values.values(), vertex_position, params.marching, stats, emit_ctx);
+  if (!marched.ok()) return marched;
+  corner_values = {};
+  surface_cells = {};
+  core::SubContext finish_ctx(ctx, "finishing the surface", 0.9, 1.0);
+  LSQSURF_RETURN_IF_ERROR(internal::FinishSurface(field, params.marching, *marched, finish_ctx));
+  return marched;
 }
 
 }  // namespace lsqsurf::extract

@@ -76,6 +76,12 @@ struct IsosurfaceStats {
   int64_t crease_snapped = 0;      // Vertices moved onto a crease that passed next to them.
   int64_t snapped_corners = 0;     // Grid corners moved onto the surface.
   int64_t relaxed_vertices = 0;    // Vertices moved by the relaxation.
+  // Wall time of the stages, seconds.
+  double tree_seconds = 0;      // Building an adaptive tree (J1a extractors).
+  double tracking_seconds = 0;  // Following the surface: corner values and sign tests.
+  double marching_seconds = 0;  // Crossings, root refinement, triangles, patch clean-up.
+  double crease_seconds = 0;
+  double relax_seconds = 0;
 };
 
 struct IsosurfaceResult {

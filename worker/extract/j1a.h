@@ -70,6 +70,9 @@ class AdaptiveOctree {
   uint32_t CellUnits(int level) const { return 2u << (max_depth_ - level); }
   // Edge length of a cell of `level`, in model units.
   double CellEdge(int level) const { return unit_ * CellUnits(level); }
+  Vec3d CellCentre(const OctreeCell& c) const {
+    return origin_ + CellEdge(c.level) * Vec3d(c.x + 0.5, c.y + 0.5, c.z + 0.5);
+  }
   // The model-space position of a vertex key.
   Vec3d Position(VertexKey key) const;
   const Vec3d& origin() const { return origin_; }

@@ -1,7 +1,9 @@
 #include "worker/extract/j1a_isosurface.h"
 
 #include <algorithm>
+#include <chrono>
 #include <cmath>
+#include <limits>
 
 #include "absl/container/flat_hash_set.h"
 #include "worker/core/parallel.h"
@@ -40,6 +42,71 @@ SurfaceBand MarkSurfaceBand(const AdaptiveOctree& tree, std::span<const Vec3f> p
   return band;
 }
 
+double EstimateChordError(const ImplicitFunction& field, const Vec3d& centre, double edge) {
+  constexpr double kInfinite = std::numeric_limits<double>::infinity();
+  // J1a tetrahedra have edges of 0.5 to 0.87 cell edges; the triangles cut from them are shorter.
+  constexpr double kChordShare = 0.5;
+  const FieldGradient at_centre = field.ValueAndGradientOnly(centre);
+  const double g2 = at_centre.gradient.squaredNorm();
+  if (!std::isfinite(at_centre.value) || !(g2 > 0) || !std::isfinite(g2)) return kInfinite;
+  // One Newton step towards the surface, at most a cell edge.
+  Vec3d step = -at_centre.value * at_centre.gradient / g2;
+  if (const double length = step.norm(); length > edge) step *= edge / length;
+  const Vec3d p = centre + step;
+  const Vec3d normal = at_centre.gradient / std::sqrt(g2);
+  const Vec3d u = normal.unitOrthogonal(), v = normal.cross(u);
+  const double half = edge / 2;
+  double turn = 0;
+  for (const Vec3d& t : {u, v}) {
+    const Vec3d a = field.ValueAndGradientOnly(p + half * t).gradient;
+    const Vec3d b = field.ValueAndGradientOnly(p - half * t).gradient;
+    const double na = a.norm(), nb = b.norm();
+    if (!(na > 0 && nb > 0) || !std::isfinite(na * nb)) return kInfinite;
+    turn = std::max(turn, std::acos(std::clamp(a.dot(b) / (na * nb), -1.0, 1.0)));
+  }
+  const double curvature = turn / edge;
+  const double chord = kChordShare * edge;
+  return curvature * chord * chord / 8;
+}
+
+absl::Status RefineSurfaceBand(AdaptiveOctree& tree, const SurfaceBand& coarse, int coarse_level,
+                               const SurfaceBand& fine, const std::function<bool(const OctreeCell&)>& wants_finer,
+                               JobContext& ctx) {
+  // Decide level by level, in parallel: the decisions are the expensive part (field
+  // evaluations); the tree itself is then split serially.
+  absl::flat_hash_set<uint64_t> split;
+  std::vector<OctreeCell> level_cells;
+  for (uint64_t key : fine.ancestors) {
+    if (const OctreeCell c = CellFromKey(key); c.level == coarse_level) level_cells.push_back(c);
+  }
+  std::vector<char> decision;
+  while (!level_cells.empty()) {
+    decision.assign(level_cells.size(), 0);
+    LSQSURF_RETURN_IF_ERROR(core::ParallelFor(
+        level_cells.size(), 64,
+        [&](size_t b, size_t e) {
+          for (size_t i = b; i < e; ++i) decision[i] = wants_finer(level_cells[i]) ? 1 : 0;
+        },
+        &ctx));
+    std::vector<OctreeCell> next;
+    for (size_t i = 0; i < level_cells.size(); ++i) {
+      if (!decision[i]) continue;
+      const OctreeCell& c = level_cells[i];
+      split.insert(CellKey(c));
+      for (uint32_t k = 0; k < 8; ++k) {
+        const OctreeCell child{c.level + 1, 2 * c.x + (k & 1), 2 * c.y + ((k >> 1) & 1), 2 * c.z + ((k >> 2) & 1)};
+        if (fine.ancestors.contains(CellKey(child))) next.push_back(child);
+      }
+    }
+    level_cells = std::move(next);
+  }
+  tree.Refine([&](const OctreeCell& c) {
+    const uint64_t key = CellKey(c);
+    return (c.level < coarse_level && coarse.ancestors.contains(key)) || split.contains(key);
+  });
+  return absl::OkStatus();
+}
+
 absl::StatusOr<IsosurfaceResult> ExtractIsosurfaceJ1a(const ImplicitFunction& field, std::span<const Vec3f> seeds,
                                                       const J1aIsosurfaceParams& params, JobContext& ctx) {
   if (!(params.cell_size > 0) || !std::isfinite(params.cell_size)) {
@@ -75,7 +142,8 @@ namespace {
 
 struct LeafWork {
   std::vector<TetKeys> tets;          // All tetrahedra; after the sign test, the crossed ones.
-  std::vector<VertexKey> corners;     // Distinct corners.
+  std::vector<VertexKey> corners;     // Distinct corners, sorted.
+  std::vector<uint8_t> corner_signs;  // Per corner: 1 negative, 2 not negative, 0 unknown (NaN).
   std::vector<OctreeCell> neighbors;  // Leaves touching a crossed leaf.
 };
 
@@ -84,15 +152,21 @@ struct LeafWork {
 void KeepCrossedTetrahedra(const AdaptiveOctree& tree, const absl::flat_hash_map<VertexKey, FieldValue>& values,
                            const OctreeCell& leaf, LeafWork& w) {
   w.neighbors.clear();
+  // One lookup in the shared map per distinct corner; the tetrahedra then read the leaf's own
+  // sorted list (a few dozen entries, in cache).
+  w.corner_signs.resize(w.corners.size());
+  for (size_t i = 0; i < w.corners.size(); ++i) {
+    const double v = values.find(w.corners[i])->second.value;
+    w.corner_signs[i] = std::isnan(v) ? 0 : (v < 0 ? 1 : 2);
+  }
   size_t kept = 0;
   for (const TetKeys& t : w.tets) {
-    bool neg = false, pos = false;
+    uint8_t signs = 0;
     for (VertexKey k : t) {
-      const double v = values.find(k)->second.value;
-      if (std::isnan(v)) continue;
-      (v < 0 ? neg : pos) = true;
+      signs |= w.corner_signs[static_cast<size_t>(std::lower_bound(w.corners.begin(), w.corners.end(), k) -
+                                                  w.corners.begin())];
     }
-    if (neg && pos) w.tets[kept++] = t;
+    if (signs == 3) w.tets[kept++] = t;
   }
   w.tets.resize(kept);
   if (kept == 0) return;
@@ -124,6 +198,7 @@ absl::StatusOr<IsosurfaceResult> ExtractIsosurfaceOnTree(const ImplicitFunction&
   // Follow the surface from leaf to leaf, a batch of leaves at a time: the tetrahedra and
   // neighbours of a leaf are found in parallel, only the shared vertex cache is filled serially.
   core::SubContext track_ctx(ctx, "tracking surface", 0.0, 0.75);
+  const auto tracking_start = std::chrono::steady_clock::now();
   IsosurfaceStats stats;
   absl::flat_hash_set<uint64_t> visited;
   std::vector<OctreeCell> frontier;
@@ -197,14 +272,21 @@ absl::StatusOr<IsosurfaceResult> ExtractIsosurfaceOnTree(const ImplicitFunction&
   work = {};
   visited = {};
   LSQSURF_RETURN_IF_ERROR(ctx.CheckCancelled());
+  stats.tracking_seconds = core::SecondsSince(tracking_start);
 
-  core::SubContext emit_ctx(ctx, "extracting triangles", 0.75, 1.0);
-  return internal::MarchTetrahedra(
+  core::SubContext emit_ctx(ctx, "extracting triangles", 0.75, 0.9);
+  auto result = internal::MarchTetrahedra(
       field,
       [&](const std::function<void(const internal::TetCorners&)>& visit) {
         for (const TetKeys& t : crossed_tets) visit(t);
       },
       values, position, marching, stats, emit_ctx);
+  if (!result.ok()) return result;
+  corner_values = {};
+  crossed_tets = {};
+  core::SubContext finish_ctx(ctx, "finishing the surface", 0.9, 1.0);
+  LSQSURF_RETURN_IF_ERROR(internal::FinishSurface(field, marching, *result, finish_ctx));
+  return result;
 }
 
 }  // namespace lsqsurf::extract

@@ -9,6 +9,7 @@
 #pragma once
 
 #include <cstdint>
+#include <functional>
 #include <span>
 
 #include "absl/container/flat_hash_set.h"
@@ -40,6 +41,19 @@ struct SurfaceBand {
   absl::flat_hash_set<uint64_t> ancestors;
 };
 SurfaceBand MarkSurfaceBand(const AdaptiveOctree& tree, std::span<const Vec3f> points, int level);
+
+// How far the flat triangles cut from cells of edge `edge` near `centre` would stray from {F = 0}:
+// κ ℓ² / 8 for chords of length ℓ (the J1a triangles' typical edge) over a surface of curvature κ,
+// κ measured as the turn of ∇F between points half an edge apart on either side of the surface
+// point nearest `centre` (5 gradient evaluations). Infinite where ∇F vanishes or is not finite.
+double EstimateChordError(const ImplicitFunction& field, const Vec3d& centre, double edge);
+
+// Splits every ancestor of the `coarse` band's cells, then, from the coarse band's level down,
+// the cells of `fine.ancestors` for which `wants_finer(cell)` holds (the cells of one level are
+// decided in parallel). The tree is not balanced yet. Errors: kCancelled.
+absl::Status RefineSurfaceBand(AdaptiveOctree& tree, const SurfaceBand& coarse, int coarse_level,
+                               const SurfaceBand& fine, const std::function<bool(const OctreeCell&)>& wants_finer,
+                               JobContext& ctx);
 
 // Extraction on a caller-built, 2:1-balanced tree: follows the surface from the `start` leaves
 // across every leaf that touches a crossed one. Errors: kInvalidArgument (no start leaves),

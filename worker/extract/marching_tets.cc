@@ -1,6 +1,7 @@
 #include "worker/extract/marching_tets.h"
 
 #include <algorithm>
+#include <chrono>
 #include <cmath>
 #include <limits>
 
@@ -439,6 +440,7 @@ absl::StatusOr<IsosurfaceResult> MarchTetrahedra(
   IsosurfaceResult result;
   result.stats = tracking;
   IsosurfaceStats& stats = result.stats;
+  auto stage_start = std::chrono::steady_clock::now();
   absl::flat_hash_map<CornerKey, Vec3d> snapped;
   if (params.snap_share > 0) {
     snapped = SnapCorners(field, for_each_tet, values, position, params.snap_share, ctx);
@@ -466,6 +468,16 @@ absl::StatusOr<IsosurfaceResult> MarchTetrahedra(
       DropCutOffSpecks(mesh.faces, face_trusted, mesh.vertices.size(), params.max_patch_triangles);
   KeepTrusted(face_trusted, !mesh.normals.empty(), mesh);
   stats.crossings = static_cast<int64_t>(mesh.vertices.size());
+  stats.marching_seconds = core::SecondsSince(stage_start);
+  ctx.ReportProgress("", 1.0);
+  return result;
+}
+
+absl::Status FinishSurface(const ImplicitFunction& field, const MarchingOptions& params, IsosurfaceResult& result,
+                           JobContext& ctx) {
+  IsosurfaceStats& stats = result.stats;
+  TriangleMesh& mesh = result.mesh;
+  auto stage_start = std::chrono::steady_clock::now();
   if (params.crease_angle > 0) {
     CreaseCounts creases;
     LSQSURF_RETURN_IF_ERROR(SharpenCreases(field, params.crease_angle, mesh, creases, ctx));
@@ -473,13 +485,15 @@ absl::StatusOr<IsosurfaceResult> MarchTetrahedra(
     stats.crease_corners = creases.corners;
     stats.crease_snapped = creases.snapped_vertices;
   }
+  stats.crease_seconds = core::SecondsSince(stage_start);
+  stage_start = std::chrono::steady_clock::now();
   if (params.relax_steps > 0) {
     LSQSURF_RETURN_IF_ERROR(RelaxTangentially(field, params.relax_steps, static_cast<uint32_t>(stats.crossings), mesh,
                                               stats.relaxed_vertices, ctx));
   }
+  stats.relax_seconds = core::SecondsSince(stage_start);
   if (!params.vertex_normals) mesh.normals.clear();
-  ctx.ReportProgress("", 1.0);
-  return result;
+  return absl::OkStatus();
 }
 
 }  // namespace lsqsurf::extract::internal

@@ -52,11 +52,17 @@ class CornerValues {
 // `for_each_tet(visit)` must call `visit` for every tetrahedron to examine; every corner must be
 // in `values`. Tetrahedra with a NaN corner or no sign change produce nothing. The result's
 // statistics are `tracking` (what the caller's surface search counted) plus `crossings`,
-// `rejected_polygons` and `restored_triangles`. Errors: kCancelled.
+// `rejected_polygons` and `restored_triangles`. Creases and relaxation are FinishSurface's, so
+// that callers free their search structures first. Errors: kCancelled.
 absl::StatusOr<IsosurfaceResult> MarchTetrahedra(
     const ImplicitFunction& field,
     const std::function<void(const std::function<void(const TetCorners&)>&)>& for_each_tet,
     const absl::flat_hash_map<CornerKey, FieldValue>& values, const std::function<Vec3d(CornerKey)>& position,
     const MarchingOptions& params, const IsosurfaceStats& tracking, JobContext& ctx);
+
+// Splits edges on creases and relaxes the marched mesh as `params` ask; drops the vertex normals
+// unless they are wanted. Errors: kCancelled.
+absl::Status FinishSurface(const ImplicitFunction& field, const MarchingOptions& params, IsosurfaceResult& result,
+                           JobContext& ctx);
 
 }  // namespace lsqsurf::extract::internal

@@ -5,7 +5,6 @@
 #include <numbers>
 #include <vector>
 
-#include "absl/container/flat_hash_map.h"
 #include "worker/core/parallel.h"
 #include "worker/core/status.h"
 #include "worker/extract/marching_tets.h"
@@ -26,6 +25,50 @@ constexpr double kSameSheetCos = 0.9;
 // Only vertices of triangles whose smallest angle is below this move.
 constexpr double kGoodAngleDegrees = 25;
 
+// The vertices that stay where they are: from `first_fixed` on (crease splits), on an unsplit
+// crease, and on a border.
+absl::Status MarkFixedVertices(const core::TriangleMesh& mesh, const std::vector<uint32_t>& start,
+                               const std::vector<uint32_t>& incident, uint32_t first_fixed, std::vector<char>& fixed,
+                               core::JobContext& ctx) {
+  const size_t n = mesh.vertices.size();
+  fixed.assign(n, 0);
+  for (size_t v = first_fixed; v < n; ++v) fixed[v] = 1;
+  // Vertices on a crease that was not split (an edge between two marching vertices whose normals
+  // differ by more than about 25°): one that lies on the crease line would slide off it.
+  for (const core::Triangle& t : mesh.faces) {
+    for (size_t i = 0; i < 3; ++i) {
+      const uint32_t a = t[i], b = t[(i + 1) % 3];
+      if (a < first_fixed && b < first_fixed && mesh.normals[a].dot(mesh.normals[b]) < kSameSheetCos) {
+        fixed[a] = fixed[b] = 1;
+      }
+    }
+  }
+  // Vertices on an edge without exactly two faces (a border): each vertex counts the other ends
+  // of its faces' edges through it, every edge appearing once per face.
+  LSQSURF_RETURN_IF_ERROR(core::ParallelFor(
+      n, 4096,
+      [&](size_t begin, size_t end) {
+        std::vector<uint32_t> ends;
+        for (size_t v = begin; v < end; ++v) {
+          ends.clear();
+          for (uint32_t k = start[v]; k < start[v + 1]; ++k) {
+            for (uint32_t w : mesh.faces[incident[k]]) {
+              if (w != v) ends.push_back(w);
+            }
+          }
+          std::sort(ends.begin(), ends.end());
+          for (size_t i = 0; i < ends.size() && !fixed[v];) {
+            size_t j = i;
+            while (j < ends.size() && ends[j] == ends[i]) ++j;
+            if (j - i != 2) fixed[v] = 1;
+            i = j;
+          }
+        }
+      },
+      &ctx));
+  return absl::OkStatus();
+}
+
 }  // namespace
 
 absl::Status RelaxTangentially(const core::ImplicitFunction& field, int steps, uint32_t first_fixed,
@@ -43,51 +86,38 @@ absl::Status RelaxTangentially(const core::ImplicitFunction& field, int steps, u
       for (uint32_t v : mesh.faces[f]) incident[cursor[v]++] = f;
     }
   }
-  std::vector<char> fixed(n, 0);
-  for (size_t v = first_fixed; v < n; ++v) fixed[v] = 1;
-  // Vertices on a crease that was not split (an edge between two marching vertices whose normals
-  // differ by more than about 25°): one that lies on the crease line would slide off it.
-  for (const core::Triangle& t : mesh.faces) {
-    for (size_t i = 0; i < 3; ++i) {
-      const uint32_t a = t[i], b = t[(i + 1) % 3];
-      if (a < first_fixed && b < first_fixed && mesh.normals[a].dot(mesh.normals[b]) < kSameSheetCos) {
-        fixed[a] = fixed[b] = 1;
-      }
-    }
-  }
-  {
-    absl::flat_hash_map<uint64_t, int> edge_faces;
-    for (const core::Triangle& t : mesh.faces) {
-      for (size_t i = 0; i < 3; ++i) {
-        const uint32_t a = t[i], b = t[(i + 1) % 3];
-        ++edge_faces[EdgeKey(a, b)];
-      }
-    }
-    for (const auto& [edge, count] : edge_faces) {
-      if (count != 2) fixed[edge >> 32] = fixed[static_cast<uint32_t>(edge)] = 1;
-    }
-  }
+  std::vector<char> fixed;
+  LSQSURF_RETURN_IF_ERROR(MarkFixedVertices(mesh, start, incident, first_fixed, fixed, ctx));
   std::vector<Vec3f> next(mesh.vertices), next_normals(mesh.normals);
   std::vector<char> moved(n, 0);
-  std::vector<char> needs(n);
+  std::vector<char> poor(mesh.faces.size());
   const double good_cos = std::cos(kGoodAngleDegrees * std::numbers::pi / 180);
   for (int step = 0; step < steps; ++step) {
-    // The vertices of poorly shaped triangles: an angle of less than kGoodAngleDegrees.
-    std::fill(needs.begin(), needs.end(), 0);
-    for (const core::Triangle& t : mesh.faces) {
-      for (size_t i = 0; i < 3; ++i) {
-        const Vec3f u = mesh.vertices[t[(i + 1) % 3]] - mesh.vertices[t[i]];
-        const Vec3f w = mesh.vertices[t[(i + 2) % 3]] - mesh.vertices[t[i]];
-        if (u.dot(w) > good_cos * u.norm() * w.norm()) needs[t[0]] = needs[t[1]] = needs[t[2]] = 1;
-      }
-    }
+    // Poorly shaped triangles: an angle of less than kGoodAngleDegrees. Their vertices move.
+    LSQSURF_RETURN_IF_ERROR(core::ParallelFor(
+        mesh.faces.size(), 4096,
+        [&](size_t begin, size_t end) {
+          for (size_t f = begin; f < end; ++f) {
+            const core::Triangle& t = mesh.faces[f];
+            poor[f] = 0;
+            for (size_t i = 0; i < 3; ++i) {
+              const Vec3f u = mesh.vertices[t[(i + 1) % 3]] - mesh.vertices[t[i]];
+              const Vec3f w = mesh.vertices[t[(i + 2) % 3]] - mesh.vertices[t[i]];
+              if (u.dot(w) > good_cos * u.norm() * w.norm()) poor[f] = 1;
+            }
+          }
+        },
+        &ctx));
     LSQSURF_RETURN_IF_ERROR(core::ParallelFor(
         n, 512,
         [&](size_t begin, size_t end) {
           for (size_t v = begin; v < end; ++v) {
             next[v] = mesh.vertices[v];
             next_normals[v] = mesh.normals[v];
-            if (fixed[v] || !needs[v] || start[v] == start[v + 1]) continue;
+            if (fixed[v] || start[v] == start[v + 1]) continue;
+            bool needs = false;
+            for (uint32_t k = start[v]; k < start[v + 1] && !needs; ++k) needs = poor[incident[k]] != 0;
+            if (!needs) continue;
             const Vec3d p = mesh.vertices[v].cast<double>(), normal = mesh.normals[v].cast<double>();
             Vec3d mean = Vec3d::Zero();
             double edge = 0;

@@ -159,6 +159,7 @@ absl::StatusOr<extract::IsosurfaceResult> RunAlgebraic(const AlgebraicJobParams<
 
 void PuStatistics(const pu::PuStats& s, const StatFn& stat) {
   stat("fit_seconds", s.fit_seconds);
+  stat("spacing_seconds", s.spacing_seconds);
   stat("index_seconds", s.index_seconds);
   stat("mean_spacing", s.mean_spacing);
   stat("noise_level", s.noise_estimate);
@@ -429,6 +430,11 @@ void AddMeshStatistics(const core::TriangleMesh& mesh, const extract::Isosurface
   stat("triangles", static_cast<double>(mesh.faces.size()));
   stat("vertices", static_cast<double>(mesh.vertices.size()));
   stat("cells_visited", static_cast<double>(extraction.cells_visited));
+  if (extraction.tree_seconds > 0) stat("tree_seconds", extraction.tree_seconds);
+  stat("tracking_seconds", extraction.tracking_seconds);
+  stat("marching_seconds", extraction.marching_seconds);
+  if (extraction.crease_seconds > 0) stat("crease_seconds", extraction.crease_seconds);
+  if (extraction.relax_seconds > 0) stat("relax_seconds", extraction.relax_seconds);
   const core::TriangleQuality quality = core::MeasureTriangleQuality(mesh);
   stat("min_angle_p1", quality.min_angle_p1);
   stat("min_angle_median", quality.min_angle_median);

@@ -43,7 +43,7 @@
 namespace lsqsurf::pu {
 
 struct PuParams {
-  double error_threshold = 3e-4;  // ε0: largest Taubin distance accepted in a leaf, as a share of
+  double error_threshold = 2e-4;  // ε0: largest Taubin distance accepted in a leaf, as a share of
                                   // the bounding-box diagonal, 1e-6..0.1. Noisy scans need about
                                   // the noise amplitude.
   int max_depth = 12;             // Octree levels below the root cube, 1..18.
@@ -79,13 +79,14 @@ struct PuStats {
   std::vector<int64_t> fits_per_depth;
   int64_t cells_examined = 0;   // Every cell the adaptive loop looked at.
   int64_t unmet_threshold = 0;  // Fits kept at the depth limit above the threshold.
-  double fit_seconds = 0;
-  double index_seconds = 0;    // Building the leaf → support lists.
-  double root_edge = 0;        // Model units.
-  double mean_spacing = 0;     // Mean nearest-neighbour distance of the input.
-  double noise_estimate = 0;   // Scan noise σ used (estimated or given), share of the diagonal.
-  double error_threshold = 0;  // The threshold and minimum points actually used
-  int min_points = 0;          // (after the noise adjustment).
+  double fit_seconds = 0;       // Everything below, up to the index.
+  double spacing_seconds = 0;   // Point index and spacing measurement, within fit_seconds.
+  double index_seconds = 0;     // Building the leaf → support lists.
+  double root_edge = 0;         // Model units.
+  double mean_spacing = 0;      // Mean nearest-neighbour distance of the input.
+  double noise_estimate = 0;    // Scan noise σ used (estimated or given), share of the diagonal.
+  double error_threshold = 0;   // The threshold and minimum points actually used
+  int min_points = 0;           // (after the noise adjustment).
 };
 
 // Which local fit dominates at a point: the J1a depth and polynomial degree shown as colours
@@ -113,9 +114,10 @@ class PuFunction final : public core::ImplicitFunction {
   // fit's extrapolation may not (what Boolean combinations need: there the other operand's
   // surface decides). One nearest-point query per call.
   core::FieldGradient ValueOrDataSide(const core::Vec3d& x, bool with_gradient) const;
-  // Whether extraction near x wants cells of edge `cell` rather than 4× larger ones: where the
-  // fitting tree is finer than that or the fit is curved (Extract's own rule).
-  bool WantsFineCells(const core::Vec3d& x, double cell) const;
+  // Whether extraction near x wants cells of edge `cell` rather than larger ones: where a sharp
+  // fit makes a crease, or flat triangles of twice that size would stray from F = 0 by more than
+  // `chord_bound` (model units; Extract's own rule).
+  bool WantsFineCells(const core::Vec3d& x, double cell, double chord_bound) const;
 
   const PuStats& stats() const { return stats_; }
 
@@ -143,9 +145,14 @@ absl::StatusOr<std::unique_ptr<PuFunction>> BuildPu(const core::PointCloud& clou
 struct PuExtractParams {
   // Smallest edge of the J1a leaves the surface crosses, in units of the mean point spacing,
   // rounded to the nearest octree level (so within 0.71–1.41 × this). Leaves near the data are
-  // at most 4× larger; in between they follow the fitting tree. J1a cuts a cube into 48
-  // tetrahedra, so its leaves can be several times larger than the cubes of a Kuhn grid.
+  // at most 8× larger; in between `chord_error` decides. J1a cuts a cube into 48 tetrahedra, so
+  // its leaves can be several times larger than the cubes of a Kuhn grid.
   double cell_size = 5.0;
+  // Largest stray of the flat triangles from F = 0 accepted before a cell is split towards
+  // `cell_size`, as a share of the bounding-box diagonal (estimated from F's curvature per cell;
+  // see extract::EstimateChordError). So the output resolution follows the shape's detail rather
+  // than the point count. 0 = the finest cells wherever the data is.
+  double chord_error = 2e-5;
   int64_t max_leaves = 20'000'000;
   // Edges split on creases where their end normals differ by more than 30° (the sharp fits make
   // creases, and this puts the mesh's edges on them), then 4 steps of tangential relaxation on
@@ -160,9 +167,9 @@ const core::ParamTable<PuExtractParams>& PuExtractParamTable();
 // The edge of Extract's finest leaves: `cell_size` spacings rounded to a level of the octree.
 double FinestExtractionCell(const PuFunction& function, const PuExtractParams& params);
 
-// The zero set of F on J1a tetrahedra: the fitting tree down to `cell_size`, refined to at least
-// 4 × `cell_size` around the data and 2:1 balanced, so cells grow away from the surface. Errors: kInvalidArgument,
-// kResourceExhausted, kCancelled.
+// The zero set of F on J1a tetrahedra: cells of 8 × `cell_size` around the data, split towards
+// `cell_size` where the surface is curved (`chord_error`) or creased, 2:1 balanced, so cells grow
+// away from the surface. Errors: kInvalidArgument, kResourceExhausted, kCancelled.
 absl::StatusOr<extract::IsosurfaceResult> Extract(const PuFunction& function, const PuExtractParams& params,
                                                   core::JobContext& ctx);
 

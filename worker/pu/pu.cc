@@ -138,20 +138,6 @@ struct PuFunction::Impl {
     return index;
   }
 
-  // The node at `cell`, or the leaf above it where the tree stops sooner.
-  int32_t DeepestNodeAt(const extract::OctreeCell& cell) const {
-    int32_t index = 0;
-    for (int l = 1; l <= cell.level; ++l) {
-      const Node& n = nodes[static_cast<size_t>(index)];
-      if (n.first_child < 0) return index;
-      const int shift = cell.level - l;
-      const int octant =
-          static_cast<int>(((cell.x >> shift) & 1) | (((cell.y >> shift) & 1) << 1) | (((cell.z >> shift) & 1) << 2));
-      index = n.first_child + octant;
-    }
-    return index;
-  }
-
   double EvaluateFit(const LocalFit& fit, const Vec3d& x, Vec3d* gradient) const {
     return fit.sharp >= 0 ? sharp_fits[static_cast<size_t>(fit.sharp)].Evaluate(x, gradient)
                           : fit.Evaluate(x, gradient);

@@ -3,7 +3,8 @@
 // F(x) = Σ θ_i(x) f_i(x) / Σ θ_i(x), θ_i(x) = (1 − s²)⁴ with s = ‖x − c_i‖ / R_i, over the
 // leaves of an octree. R_i = `support_factor` × the leaf's diagonal. Each f_i is a local fit:
 // a height function over the leaf's weighted tangent plane, in orthogonal polynomials of
-// degree 0–4 (see orthogonal_fit.h), or a general quadric where no height field exists.
+// degree 0–4 (see orthogonal_fit.h), or a quadric where no height field exists (an algebraic
+// sphere, or a general quadric where that fits the points far better).
 // Adaptivity is twofold: a leaf first raises its degree until the largest Taubin distance
 // |f|/|∇f| at its points is below the threshold, and is split only when degree `max_degree`
 // still fails. The leaves are the cubes of a J1a triangulation, on which the zero set is
@@ -72,7 +73,7 @@ absl::Status Validate(const PuParams& params);
 
 struct PuStats {
   std::array<int64_t, 5> fits_per_degree{};  // Height fits of degree 0..4.
-  int64_t quadric_fits = 0;                  // General-quadric fallbacks.
+  int64_t quadric_fits = 0;                  // Quadric (sphere or general) fallbacks.
   int64_t sharp_edges = 0;                   // Two-sheet fits.
   int64_t sharp_corners = 0;                 // Three- and four-sheet fits.
   std::vector<int64_t> leaves_per_depth;     // All leaves, with or without a fit.

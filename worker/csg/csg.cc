@@ -396,7 +396,7 @@ void PrimitiveSeeds(const CsgFunction::Impl& m, const CsgFunction::Impl::Node& l
 absl::Status FindSeeds(const CsgFunction& function, const CsgFunction::Impl& m, const Box3& root, int depth,
                        double cell, std::vector<Vec3f>& seeds, std::vector<Vec3f>& fine_seeds, core::JobContext& ctx) {
   // Candidates near each operand's own surface; `curved` marks those that need the finest cells
-  // (flat faces are exact on coarse tetrahedra), or for a job's points the leaf that decides.
+  // whatever the curvature, or for a job's points the leaf that decides (its creases).
   constexpr int32_t kFlat = -2, kCurved = -1;
   std::vector<Vec3f> candidates;
   std::vector<int32_t> curved;
@@ -404,8 +404,7 @@ absl::Status FindSeeds(const CsgFunction& function, const CsgFunction::Impl& m, 
     const auto& leaf = m.nodes[static_cast<size_t>(index)];
     if (leaf.job == nullptr) {
       PrimitiveSeeds(m, leaf, root, depth, candidates);
-      const bool flat = leaf.kind == NodeKind::kBox || leaf.kind == NodeKind::kPlane;
-      curved.resize(candidates.size(), flat ? kFlat : kCurved);
+      curved.resize(candidates.size(), kFlat);  // Their curvature is the chord rule's.
       continue;
     }
     const int32_t decides = leaf.job->wants_fine_cells ? index : kCurved;
@@ -500,16 +499,22 @@ absl::StatusOr<extract::IsosurfaceResult> ExtractCsg(const CsgFunction& function
   LSQSURF_RETURN_IF_ERROR(FindSeeds(function, m, root, depth, cell, seeds, fine_seeds, ctx));
   if (stats != nullptr) stats->seeds = static_cast<int64_t>(seeds.size()), stats->cell_size = cell;
   if (seeds.empty()) return absl::FailedPreconditionError("the csg solid is empty: no surface passes its box");
-  // The tree: two levels coarser than the cell along the whole surface, the finest where
-  // needed, 2:1 balanced.
-  const int band_level = std::max(1, depth - 2);
+  // The tree: three levels coarser than the cell along the whole surface, split towards the cell
+  // where the combined surface curves (chord_error), along intersection curves and creases, 2:1
+  // balanced.
+  const int band_level = std::max(1, depth - 3);
   extract::AdaptiveOctree tree(root, depth);
   extract::SurfaceBand band = extract::MarkSurfaceBand(tree, seeds, band_level);
-  const extract::SurfaceBand fine = extract::MarkSurfaceBand(tree, fine_seeds, depth);
-  tree.Refine([&](const extract::OctreeCell& c) {
-    const uint64_t key = extract::CellKey(c);
-    return band.ancestors.contains(key) || fine.ancestors.contains(key);
-  });
+  const extract::SurfaceBand near_data = extract::MarkSurfaceBand(tree, seeds, depth);
+  const extract::SurfaceBand forced = extract::MarkSurfaceBand(tree, fine_seeds, depth);
+  const double chord_bound = params.chord_error * core::Diagonal(m.bounds);
+  LSQSURF_RETURN_IF_ERROR(extract::RefineSurfaceBand(
+      tree, band, band_level, near_data,
+      [&](const extract::OctreeCell& c) {
+        return forced.ancestors.contains(extract::CellKey(c)) ||
+               extract::EstimateChordError(function, tree.CellCentre(c), tree.CellEdge(c.level)) > chord_bound;
+      },
+      ctx));
   tree.Balance();
   LSQSURF_RETURN_IF_ERROR(ctx.CheckCancelled());
   band = {};

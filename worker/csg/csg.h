@@ -35,8 +35,8 @@ struct Operand {
   core::Box3 bounds;                        // Holds the whole surface; outside it the solid is empty.
   std::vector<core::Vec3f> surface_points;  // Points on or next to its surface (the fitted cloud).
   double cell_size = 0;                     // The finest extraction leaf it was made with, model units.
-  // Whether extraction at a point (own coordinates) needs cells of the given edge rather than 4×
-  // larger ones; unset: everywhere.
+  // Whether extraction at a point (own coordinates) needs cells of the given edge whatever the
+  // curvature (its creases); unset: everywhere.
   std::function<bool(const core::Vec3d&, double)> wants_fine_cells;
 };
 
@@ -48,6 +48,10 @@ struct CsgParams {
   // Edge of the finest extraction leaves in model units; 0 = the finest of the referenced
   // jobs' own, or 1/256 of the solid's longest side when none is referenced.
   double cell_size = 0;
+  // Cells are split towards cell_size where flat triangles would stray farther than this share
+  // of the solid's diagonal (as PuExtractParams::chord_error), and always along intersection
+  // curves and a PU operand's creases.
+  double chord_error = 2e-5;
   int64_t max_leaves = 20'000'000;
   // Edges are split on the intersection curves (and on the operands' own creases), then relaxed
   // tangentially: crisp curves and no slivers along them.

@@ -1,6 +1,7 @@
 #include "worker/jobs/csg_job.h"
 
 #include <chrono>
+#include <limits>
 
 #include "worker/core/status.h"
 #include "worker/core/strings.h"
@@ -101,9 +102,9 @@ csg::Operand MakePuOperand(std::shared_ptr<const pu::PuFunction> function) {
   operand.surface_points.assign(points.begin(), points.end());
   operand.bounds = core::BoundingBox(points);
   operand.cell_size = pu::FinestExtractionCell(*function, pu::PuExtractParams{});
-  const double chord_bound = pu::PuExtractParams{}.chord_error * core::Diagonal(operand.bounds);
-  operand.wants_fine_cells = [function, chord_bound](const core::Vec3d& x, double cell) {
-    return function->WantsFineCells(x, cell, chord_bound);
+  // Only its creases: the csg extraction measures the curvature of the combined surface itself.
+  operand.wants_fine_cells = [function](const core::Vec3d& x, double cell) {
+    return function->WantsFineCells(x, cell, std::numeric_limits<double>::infinity());
   };
   operand.value = [function](const core::Vec3d& x, bool gradient) { return function->ValueOrDataSide(x, gradient); };
   return operand;

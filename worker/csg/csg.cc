@@ -395,31 +395,31 @@ void PrimitiveSeeds(const CsgFunction::Impl& m, const CsgFunction::Impl::Node& l
 // those that need the finest cells.
 absl::Status FindSeeds(const CsgFunction& function, const CsgFunction::Impl& m, const Box3& root, int depth,
                        double cell, std::vector<Vec3f>& seeds, std::vector<Vec3f>& fine_seeds, core::JobContext& ctx) {
-  // Candidates near each operand's own surface; `curved` marks those that need the finest cells
+  // Candidates near each operand's own surface; `crease` marks those that need the finest cells
   // whatever the curvature, or for a job's points the leaf that decides (its creases).
-  constexpr int32_t kFlat = -2, kCurved = -1;
+  constexpr int32_t kNoCrease = -2, kCrease = -1;
   std::vector<Vec3f> candidates;
-  std::vector<int32_t> curved;
+  std::vector<int32_t> crease;
   for (int index : m.leaves) {
     const auto& leaf = m.nodes[static_cast<size_t>(index)];
     if (leaf.job == nullptr) {
       PrimitiveSeeds(m, leaf, root, depth, candidates);
-      curved.resize(candidates.size(), kFlat);  // Their curvature is the chord rule's.
+      crease.resize(candidates.size(), kNoCrease);  // Their curvature is the chord rule's.
       continue;
     }
-    const int32_t decides = leaf.job->wants_fine_cells ? index : kCurved;
+    const int32_t decides = leaf.job->near_crease ? index : kCrease;
     for (const Vec3f& p : leaf.job->surface_points) {
       const Vec3d x = leaf.to_world.ToWorld(p.cast<double>());
       if (!m.bounds.contains(x)) continue;
       candidates.push_back(x.cast<float>());
-      curved.push_back(decides);
+      crease.push_back(decides);
     }
   }
   LSQSURF_RETURN_IF_ERROR(ctx.CheckCancelled());
   // One candidate per finest cell, then only those near the combined surface.
   absl::flat_hash_map<std::array<int32_t, 3>, uint32_t> cells;
   std::vector<Vec3f> distinct;
-  std::vector<int32_t> distinct_curved;
+  std::vector<int32_t> distinct_crease;
   for (size_t i = 0; i < candidates.size(); ++i) {
     const Vec3d g = (candidates[i].cast<double>() - root.min()) / cell;
     const std::array<int32_t, 3> key{static_cast<int32_t>(std::floor(g.x())), static_cast<int32_t>(std::floor(g.y())),
@@ -427,23 +427,23 @@ absl::Status FindSeeds(const CsgFunction& function, const CsgFunction::Impl& m, 
     auto [it, fresh] = cells.emplace(key, static_cast<uint32_t>(distinct.size()));
     if (fresh) {
       distinct.push_back(candidates[i]);
-      distinct_curved.push_back(curved[i]);
-    } else if (int32_t& d = distinct_curved[it->second]; d == kFlat || (d >= 0 && curved[i] == kCurved)) {
-      d = curved[i];
+      distinct_crease.push_back(crease[i]);
+    } else if (int32_t& d = distinct_crease[it->second]; d == kNoCrease || (d >= 0 && crease[i] == kCrease)) {
+      d = crease[i];
     }
   }
   candidates.clear();
   cells.clear();
   // A job's own rule where one of its points came first (in its own coordinates).
   const auto needs_fine = [&](size_t i) {
-    const int32_t d = distinct_curved[i];
-    if (d < 0) return d == kCurved;
+    const int32_t d = distinct_crease[i];
+    if (d < 0) return d == kCrease;
     const auto& leaf = m.nodes[static_cast<size_t>(d)];
-    const Vec3d own = leaf.to_world.ToLocal(distinct[i].cast<double>());
-    return leaf.job->wants_fine_cells(own, cell / leaf.to_world.scale);
+    return leaf.job->near_crease(leaf.to_world.ToLocal(distinct[i].cast<double>()));
   };
-  // Kept: near the combined surface. Fine: curved there, or where two operands meet (the
-  // intersection curves and an operand's own creases need the finest cells to be placed well).
+  // Kept: near the combined surface. Fine: at an operand's crease, or where two operands meet (the
+  // intersection curves and creases need the finest cells to be placed well; curvature is
+  // decided later, on the combined surface).
   std::vector<char> state(distinct.size());  // 0 dropped, 1 coarse, 2 fine.
   LSQSURF_RETURN_IF_ERROR(core::ParallelFor(
       distinct.size(), 1024,

@@ -35,9 +35,9 @@ struct Operand {
   core::Box3 bounds;                        // Holds the whole surface; outside it the solid is empty.
   std::vector<core::Vec3f> surface_points;  // Points on or next to its surface (the fitted cloud).
   double cell_size = 0;                     // The finest extraction leaf it was made with, model units.
-  // Whether extraction at a point (own coordinates) needs cells of the given edge whatever the
-  // curvature (its creases); unset: everywhere.
-  std::function<bool(const core::Vec3d&, double)> wants_fine_cells;
+  // Whether a point (own coordinates) lies at one of its creases, where extraction needs the
+  // finest cells whatever the curvature; unset: everywhere.
+  std::function<bool(const core::Vec3d&)> near_crease;
 };
 
 // Resolves a job id to its operand. Errors: whatever the caller reports (kNotFound,
@@ -51,7 +51,7 @@ struct CsgParams {
   // Cells are split towards cell_size where flat triangles would stray farther than this share
   // of the solid's diagonal (as PuExtractParams::chord_error), and always along intersection
   // curves and a PU operand's creases.
-  double chord_error = 2e-5;
+  double chord_error = extract::kDefaultChordError;
   int64_t max_leaves = 20'000'000;
   // Edges are split on the intersection curves (and on the operands' own creases), then relaxed
   // tangentially: crisp curves and no slivers along them.

@@ -51,6 +51,11 @@ struct MarchingOptions {
 
 absl::Status Validate(const MarchingOptions& options);
 
+// The chord error (see EstimateChordError in j1a_isosurface.h) the adaptive extractors accept by
+// default, as a share of the bounding-box diagonal (spot 1M: 38 % fewer triangles than the finest
+// cells everywhere, Chamfer within 1 %).
+inline constexpr double kDefaultChordError = 2e-5;
+
 // The user-facing options (refine_steps, crease_angle, snap_share, relax_steps), for the tables of
 // the methods that expose them.
 const core::ParamTable<MarchingOptions>& MarchingParamTable();

@@ -1,7 +1,6 @@
 #include "worker/jobs/csg_job.h"
 
 #include <chrono>
-#include <limits>
 
 #include "worker/core/status.h"
 #include "worker/core/strings.h"
@@ -103,9 +102,7 @@ csg::Operand MakePuOperand(std::shared_ptr<const pu::PuFunction> function) {
   operand.bounds = core::BoundingBox(points);
   operand.cell_size = pu::FinestExtractionCell(*function, pu::PuExtractParams{});
   // Only its creases: the csg extraction measures the curvature of the combined surface itself.
-  operand.wants_fine_cells = [function](const core::Vec3d& x, double cell) {
-    return function->WantsFineCells(x, cell, std::numeric_limits<double>::infinity());
-  };
+  operand.near_crease = [function](const core::Vec3d& x) { return function->NearCrease(x); };
   operand.value = [function](const core::Vec3d& x, bool gradient) { return function->ValueOrDataSide(x, gradient); };
   return operand;
 }

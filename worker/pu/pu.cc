@@ -1062,10 +1062,10 @@ core::FieldGradient PuFunction::ValueOrDataSide(const Vec3d& x, bool with_gradie
   return g;
 }
 
-bool PuFunction::WantsFineCells(const Vec3d& x, double cell, double chord_bound) const {
+bool PuFunction::NearCrease(const Vec3d& x) const {
   bool crease = false;
   impl_->ForEachSupport(x, [&](const LocalFit& fit, double) { crease |= fit.feature != Feature::kSmooth; });
-  return crease || extract::EstimateChordError(*this, x, 2 * cell) > chord_bound;
+  return crease;
 }
 
 namespace {

@@ -115,10 +115,9 @@ class PuFunction final : public core::ImplicitFunction {
   // fit's extrapolation may not (what Boolean combinations need: there the other operand's
   // surface decides). One nearest-point query per call.
   core::FieldGradient ValueOrDataSide(const core::Vec3d& x, bool with_gradient) const;
-  // Whether extraction near x wants cells of edge `cell` rather than larger ones: where a sharp
-  // fit makes a crease, or flat triangles of twice that size would stray from F = 0 by more than
-  // `chord_bound` (model units; Extract's own rule).
-  bool WantsFineCells(const core::Vec3d& x, double cell, double chord_bound) const;
+  // Whether a sharp fit's support holds x (there F makes a crease, which Extract places in its
+  // finest cells).
+  bool NearCrease(const core::Vec3d& x) const;
 
   const PuStats& stats() const { return stats_; }
 
@@ -153,7 +152,7 @@ struct PuExtractParams {
   // `cell_size`, as a share of the bounding-box diagonal (estimated from F's curvature per cell;
   // see extract::EstimateChordError). So the output resolution follows the shape's detail rather
   // than the point count. 0 = the finest cells wherever the data is.
-  double chord_error = 2e-5;
+  double chord_error = extract::kDefaultChordError;
   int64_t max_leaves = 20'000'000;
   // Edges split on creases where their end normals differ by more than 30° (the sharp fits make
   // creases, and this puts the mesh's edges on them), then 4 steps of tangential relaxation on

@@ -53,6 +53,44 @@ absl::StatusOr<csg::Operand> AsOperand(const pu::PuFunction& function) {
   return jobs::MakePuOperand(*std::move(back));
 }
 
+// A local edit of a ball holding about 1 % of the points: the edit of the fits, the local
+// re-extraction and, for comparison, the whole extraction of the edited function.
+bool BenchLocalEdit(const pu::PuFunction& function, const pu::KeptSurface& kept, core::LocalJobContext& ctx) {
+  // A local edit of a ball holding about 1 % of the points, against fitting and extracting anew.
+  const core::Vec3f& p = function.points()[function.points().size() / 2];
+  std::vector<float> d2;
+  for (const core::Vec3f& q : function.points()) d2.push_back((q - p).squaredNorm());
+  std::nth_element(d2.begin(), d2.begin() + static_cast<long>(d2.size() / 100), d2.end());
+  pu::PuEdit edit;
+  edit.centre = p.cast<double>();
+  edit.radius = std::sqrt(static_cast<double>(d2[d2.size() / 100]));
+  const auto start = Clock::now();
+  pu::PuEditStats stats;
+  auto edited = pu::EditPu(function, edit, ctx, &stats);
+  if (!edited.ok()) {
+    std::fprintf(stderr, "%s\n", edited.status().ToString().c_str());
+    return false;
+  }
+  const double edit_seconds = Since(start);
+  std::printf("%-28s %8.2f s (%lld fits replaced)\n", "edit 1 % ball: fits", edit_seconds,
+              static_cast<long long>(stats.fits_replaced));
+  const auto local_start = Clock::now();
+  auto local = pu::ExtractEdited(function, **edited, stats, kept, pu::PuExtractParams{}, ctx);
+  if (!local.ok()) {
+    std::fprintf(stderr, "%s\n", local.status().ToString().c_str());
+    return false;
+  }
+  std::printf("%-28s %8.2f s (%lld faces replaced, %lld seam edges)\n", "edit 1 % ball: local extract",
+              Since(local_start), static_cast<long long>(local->stats.replaced_faces),
+              static_cast<long long>(local->stats.seam_edges));
+  Report("edit 1 % ball: fits + local", Since(start), local->mesh);
+  const auto whole_start = Clock::now();
+  auto whole = pu::Extract(**edited, pu::PuExtractParams{}, ctx);
+  if (!whole.ok()) return false;
+  Report("edit 1 % ball: whole extract", Since(whole_start), whole->mesh);
+  return true;
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -80,6 +118,7 @@ int main(int argc, char** argv) {
   const double side = box.sizes().maxCoeff();
   core::LocalJobContext ctx;
   std::vector<std::unique_ptr<pu::PuFunction>> fitted;
+  double fit_seconds = 0;
   for (uint64_t seed : {1234u, 4321u}) {
     const auto start = Clock::now();
     auto f = pu::BuildPu(core::SampleCloud(*truth, points, seed), pu::PuParams{}, ctx);
@@ -88,37 +127,22 @@ int main(int argc, char** argv) {
       return 1;
     }
     std::printf("%-28s %8.2f s\n", core::StrCat("fit ", points, " points").c_str(), Since(start));
+    if (fitted.empty()) fit_seconds = Since(start);
     fitted.push_back(*std::move(f));
   }
+  pu::KeptSurface kept;
   {
     const auto start = Clock::now();
-    auto alone = pu::Extract(*fitted[0], pu::PuExtractParams{}, ctx);
+    pu::PuExtractParams traced;
+    traced.marching.trace = true;  // As the service extracts what it keeps.
+    auto alone = pu::Extract(*fitted[0], traced, ctx);
     if (!alone.ok()) return 1;
-    Report("extract one alone (pu)", Since(start), alone->mesh);
+    const double seconds = Since(start);
+    Report("extract one alone (pu)", seconds, alone->mesh);
+    std::printf("%-28s %8.2f s\n", "fit + extract (recompute)", fit_seconds + seconds);
+    kept = {std::move(alone->mesh), std::move(alone->trace), traced};
   }
-  {
-    // A local edit of a ball holding about 1 % of the points, against fitting and extracting anew.
-    const core::Vec3f& p = fitted[0]->points()[fitted[0]->points().size() / 2];
-    std::vector<float> d2;
-    for (const core::Vec3f& q : fitted[0]->points()) d2.push_back((q - p).squaredNorm());
-    std::nth_element(d2.begin(), d2.begin() + static_cast<long>(d2.size() / 100), d2.end());
-    pu::PuEdit edit;
-    edit.centre = p.cast<double>();
-    edit.radius = std::sqrt(static_cast<double>(d2[d2.size() / 100]));
-    const auto start = Clock::now();
-    pu::PuEditStats stats;
-    auto edited = pu::EditPu(*fitted[0], edit, ctx, &stats);
-    if (!edited.ok()) {
-      std::fprintf(stderr, "%s\n", edited.status().ToString().c_str());
-      return 1;
-    }
-    const double edit_seconds = Since(start);
-    auto mesh = pu::Extract(**edited, pu::PuExtractParams{}, ctx);
-    if (!mesh.ok()) return 1;
-    std::printf("%-28s %8.2f s (%lld fits replaced)\n", "edit 1 % ball: fits", edit_seconds,
-                static_cast<long long>(stats.fits_replaced));
-    Report("edit 1 % ball: fits + extract", Since(start), mesh->mesh);
-  }
+  if (!BenchLocalEdit(*fitted[0], kept, ctx)) return 1;
   std::vector<csg::Operand> operands;
   for (const auto& f : fitted) {
     auto operand = AsOperand(*f);

@@ -5,6 +5,7 @@
 #include <cmath>
 #include <random>
 
+#include "absl/container/flat_hash_set.h"
 #include "tests/test_shapes.h"
 #include "worker/core/mesh_metrics.h"
 #include "worker/pu/pu.h"
@@ -127,6 +128,124 @@ TEST(PuEdit, RemovingOpensAHoleWhereTheBallWas) {
   EXPECT_EQ(EditPu(*f.base, edit, f.ctx).status().code(), absl::StatusCode::kFailedPrecondition);
   edit.radius = -1;
   EXPECT_EQ(EditPu(*f.base, edit, f.ctx).status().code(), absl::StatusCode::kInvalidArgument);
+}
+
+// The surface of the base function, traced and kept (as the service keeps it beside the function).
+KeptSurface KeepSurface(const PuFunction& f) {
+  core::LocalJobContext ctx;
+  PuExtractParams params;
+  params.marching.trace = true;
+  auto r = Extract(f, params, ctx);
+  EXPECT_TRUE(r.ok()) << r.status();
+  KeptSurface kept;
+  if (!r.ok()) return kept;
+  kept.mesh = std::move(r->mesh);
+  kept.trace = std::move(r->trace);
+  kept.params = params;
+  // Through the stored form, as an edit job reads it.
+  auto read = DeserializeSurface(SerializeSurface(kept.mesh, kept.trace, kept.params));
+  EXPECT_TRUE(read.ok()) << read.status();
+  return read.ok() ? *std::move(read) : kept;
+}
+
+// Re-extracting only near the edit: the kept mesh's vertices beyond the changed ball stay to the
+// last bit, the join is as closed as a whole extraction of the edited function, the new part lies
+// on the edited surface, and the volume agrees with the whole extraction's.
+void ExpectLocalMatchesWhole(const PuFunction& base, const PuEdit& edit, bool closed) {
+  core::LocalJobContext ctx;
+  const KeptSurface kept = KeepSurface(base);
+  PuEditStats stats;
+  auto edited = EditPu(base, edit, ctx, &stats);
+  ASSERT_TRUE(edited.ok()) << edited.status();
+  auto local = ExtractEdited(base, **edited, stats, kept, PuExtractParams{}, ctx);
+  ASSERT_TRUE(local.ok()) << local.status();
+  auto whole = Extract(**edited, PuExtractParams{}, ctx);
+  ASSERT_TRUE(whole.ok()) << whole.status();
+  const core::MeshTopology t = core::AnalyzeTopology(core::WeldByPosition(local->mesh));
+  const core::MeshTopology w = core::AnalyzeTopology(core::WeldByPosition(whole->mesh));
+  EXPECT_EQ(t.non_manifold_edges, 0);
+  EXPECT_EQ(t.components, w.components);
+  if (closed) {
+    EXPECT_TRUE(t.watertight());
+    EXPECT_EQ(t.euler_characteristic(), w.euler_characteristic());
+    EXPECT_NEAR(core::EnclosedVolume(local->mesh), core::EnclosedVolume(whole->mesh),
+                2e-4 * std::abs(core::EnclosedVolume(whole->mesh)));
+  } else {
+    EXPECT_GT(t.boundary_edges, 0);
+    EXPECT_NEAR(static_cast<double>(t.boundary_edges), static_cast<double>(w.boundary_edges),
+                0.2 * static_cast<double>(w.boundary_edges));
+  }
+  EXPECT_EQ(local->trace.vertex_edges.size(), local->mesh.vertices.size());
+  EXPECT_EQ(local->trace.face_cells.size(), local->mesh.faces.size());
+  // Kept vertices far from the edit are all still there, unmoved.
+  absl::flat_hash_set<std::array<float, 3>> positions;
+  for (const core::Vec3f& v : local->mesh.vertices) positions.insert({v.x(), v.y(), v.z()});
+  int far = 0, kept_far = 0;
+  for (const core::Vec3f& v : kept.mesh.vertices) {
+    if ((v.cast<double>() - edit.centre).norm() < stats.reach + 0.15) continue;
+    ++far;
+    kept_far += positions.contains({v.x(), v.y(), v.z()});
+  }
+  EXPECT_GT(far, 1000);
+  EXPECT_EQ(kept_far, far);
+  // Near the edit the vertices lie on the edited surface (within a thousandth of the torus' size).
+  int near = 0;
+  for (const core::Vec3f& v : local->mesh.vertices) {
+    if ((v.cast<double>() - edit.centre).norm() > stats.reach) continue;
+    ++near;
+    const core::FieldGradient g = (*edited)->ValueAndGradient(v.cast<double>());
+    EXPECT_LT(std::abs(g.value) / std::max(g.gradient.norm(), 1e-12), 1e-3) << v.transpose();
+  }
+  EXPECT_GT(near, 50);
+  EXPECT_LT(local->mesh.faces.size(), whole->mesh.faces.size() * 11 / 10);
+  EXPECT_GT(local->stats.seam_edges, 20);
+  EXPECT_GT(local->stats.replaced_faces, 100);
+  std::printf("replaced %lld faces by %lld along %lld seam edges (whole: %zu faces, local: %zu)\n",
+              static_cast<long long>(local->stats.replaced_faces), static_cast<long long>(local->stats.crossings),
+              static_cast<long long>(local->stats.seam_edges), whole->mesh.faces.size(), local->mesh.faces.size());
+}
+
+TEST(PuEdit, LocalReExtractionJoinsTheKeptMesh) {
+  Fixture f;
+  ASSERT_NE(f.base, nullptr);
+  PuEdit edit;
+  edit.centre = Vec3d(1.3, 0, 0);
+  edit.radius = 0.15;
+  edit.degree = 1;
+  ExpectLocalMatchesWhole(*f.base, edit, true);
+  edit.action = PuEditAction::kRefit;
+  edit.centre = Vec3d(0, 0.7, 0);
+  edit.radius = 0.1;
+  edit.error_threshold = 1e-5;
+  ExpectLocalMatchesWhole(*f.base, edit, true);
+  edit.action = PuEditAction::kRemove;
+  edit.centre = Vec3d(0, -1.3, 0);
+  edit.radius = 0.12;
+  ExpectLocalMatchesWhole(*f.base, edit, false);
+}
+
+TEST(PuEdit, LocalReExtractionRefusesOtherParameters) {
+  Fixture f;
+  ASSERT_NE(f.base, nullptr);
+  const KeptSurface kept = KeepSurface(*f.base);
+  PuEdit edit;
+  edit.centre = Vec3d(1.3, 0, 0);
+  edit.radius = 0.15;
+  PuEditStats stats;
+  auto edited = EditPu(*f.base, edit, f.ctx, &stats);
+  ASSERT_TRUE(edited.ok()) << edited.status();
+  PuExtractParams other;
+  other.cell_size = 3;
+  EXPECT_EQ(ExtractEdited(*f.base, **edited, stats, kept, other, f.ctx).status().code(),
+            absl::StatusCode::kFailedPrecondition);
+  // A trace that does not fit its mesh is refused too, not trusted.
+  KeptSurface broken = kept;
+  broken.trace.face_cells.pop_back();
+  EXPECT_EQ(ExtractEdited(*f.base, **edited, stats, broken, PuExtractParams{}, f.ctx).status().code(),
+            absl::StatusCode::kFailedPrecondition);
+  std::string bytes = SerializeSurface(kept.mesh, kept.trace, kept.params);
+  bytes.resize(bytes.size() / 2);
+  EXPECT_EQ(DeserializeSurface(bytes).status().code(), absl::StatusCode::kInvalidArgument);
 }
 
 }  // namespace

@@ -150,14 +150,17 @@ void SnapEndsOntoCreases(std::span<const uint64_t> candidates, std::span<const C
 // The faces of `mesh` with their split edges (`split`: edge → crease vertex) cut along the
 // creases; a triangle with three splits gets a corner vertex, shared with the triangles that find
 // the same position (`vertex_at`: new vertices by position).
+// `cells` (when given) holds a value per face, which its pieces inherit.
 std::vector<core::Triangle> SplitFaces(const core::ImplicitFunction& field,
                                        const absl::flat_hash_map<uint64_t, uint32_t>& split,
                                        absl::flat_hash_map<std::array<float, 3>, uint32_t>& vertex_at,
-                                       core::TriangleMesh& mesh, CreaseCounts& counts) {
+                                       core::TriangleMesh& mesh, CreaseCounts& counts, std::vector<uint64_t>* cells) {
   std::vector<core::Triangle> faces;
   faces.reserve(mesh.faces.size() + 2 * static_cast<size_t>(counts.crease_vertices));
+  std::vector<uint64_t> piece_cells;
   auto v3 = [&](uint32_t v) { return Vec3d(mesh.vertices[v].cast<double>()); };
-  for (const core::Triangle& t : mesh.faces) {
+  for (size_t source = 0; source < mesh.faces.size(); ++source) {
+    const core::Triangle& t = mesh.faces[source];
     std::array<uint32_t, 3> s;  // s[i]: the crease vertex on edge t[i]–t[i+1].
     int count = 0;
     for (size_t i = 0; i < 3; ++i) {
@@ -206,15 +209,20 @@ std::vector<core::Triangle> SplitFaces(const core::ImplicitFunction& field,
         faces.push_back({s[i], t[(i + 1) % 3], q});
       }
     }
+    if (cells != nullptr) piece_cells.resize(faces.size(), (*cells)[source]);
   }
+  std::vector<char> drop(faces.size(), 0);
   // Triangles between two edges that share their crease vertex have collapsed.
-  std::erase_if(faces, [](const core::Triangle& t) { return t[0] == t[1] || t[1] == t[2] || t[2] == t[0]; });
+  for (size_t f = 0; f < faces.size(); ++f) {
+    const core::Triangle& t = faces[f];
+    drop[f] = t[0] == t[1] || t[1] == t[2] || t[2] == t[0];
+  }
   // Two triangles on the same three vertices (from fans around one shared new vertex) enclose
   // nothing: both go, which keeps every edge with two faces.
   if (!vertex_at.empty()) {
     absl::flat_hash_map<std::array<uint32_t, 3>, uint32_t> seen;
-    std::vector<char> drop(faces.size(), 0);
     for (uint32_t f = 0; f < faces.size(); ++f) {
+      if (drop[f]) continue;
       std::array<uint32_t, 3> key = faces[f];
       std::sort(key.begin(), key.end());
       auto [it, fresh] = seen.emplace(key, f);
@@ -226,11 +234,17 @@ std::vector<core::Triangle> SplitFaces(const core::ImplicitFunction& field,
         it->second = f;
       }
     }
-    size_t kept = 0;
-    for (size_t f = 0; f < faces.size(); ++f) {
-      if (!drop[f]) faces[kept++] = faces[f];
-    }
-    faces.resize(kept);
+  }
+  size_t kept = 0;
+  for (size_t f = 0; f < faces.size(); ++f) {
+    if (drop[f]) continue;
+    if (cells != nullptr) piece_cells[kept] = piece_cells[f];
+    faces[kept++] = faces[f];
+  }
+  faces.resize(kept);
+  if (cells != nullptr) {
+    piece_cells.resize(kept);
+    *cells = std::move(piece_cells);
   }
   return faces;
 }
@@ -238,7 +252,8 @@ std::vector<core::Triangle> SplitFaces(const core::ImplicitFunction& field,
 }  // namespace
 
 absl::Status SharpenCreases(const core::ImplicitFunction& field, double crease_angle, core::TriangleMesh& mesh,
-                            CreaseCounts& counts, core::JobContext& ctx) {
+                            CreaseCounts& counts, core::JobContext& ctx, std::span<const char> fixed,
+                            std::vector<uint64_t>* face_cells) {
   const double cos_crease = std::cos(crease_angle * std::numbers::pi / 180);
   // The edges whose ends disagree, each once.
   absl::flat_hash_map<uint64_t, uint32_t> split;  // Edge → its crease vertex (UINT32_MAX: none).
@@ -249,6 +264,7 @@ absl::Status SharpenCreases(const core::ImplicitFunction& field, double crease_a
     for (size_t i = 0; i < 3; ++i) {
       const uint32_t a = t[i], b = t[(i + 1) % 3];
       if (mesh.normals[a].dot(mesh.normals[b]) >= cos_crease) continue;
+      if (!fixed.empty() && (fixed[a] || fixed[b])) continue;
       any = true;
       if (split.try_emplace(EdgeKey(a, b), UINT32_MAX).second) candidates.push_back(EdgeKey(a, b));
     }
@@ -316,7 +332,7 @@ absl::Status SharpenCreases(const core::ImplicitFunction& field, double crease_a
   for (size_t k = 0; k < candidates.size(); ++k) {
     if (twin[k] != UINT32_MAX && points[twin[k]].allFinite()) split[candidates[k]] = split[candidates[twin[k]]];
   }
-  mesh.faces = SplitFaces(field, split, vertex_at, mesh, counts);
+  mesh.faces = SplitFaces(field, split, vertex_at, mesh, counts, face_cells);
   return absl::OkStatus();
 }
 

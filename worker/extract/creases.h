@@ -12,6 +12,8 @@
 #pragma once
 
 #include <cstdint>
+#include <span>
+#include <vector>
 
 #include "absl/status/status.h"
 #include "worker/core/geometry.h"
@@ -27,8 +29,11 @@ struct CreaseCounts {
 };
 
 // `mesh` must have unit normals (∇F) at its vertices; the new vertices get the mean of their
-// edge's two. `crease_angle` in degrees, > 0. Errors: kCancelled.
+// edge's two. `crease_angle` in degrees, > 0. An edge with an end marked in `fixed` (empty, or
+// one flag per vertex) is left as it is. `face_cells`, when given, holds a value per face, which
+// the pieces of a split face inherit. Errors: kCancelled.
 absl::Status SharpenCreases(const core::ImplicitFunction& field, double crease_angle, core::TriangleMesh& mesh,
-                            CreaseCounts& counts, core::JobContext& ctx);
+                            CreaseCounts& counts, core::JobContext& ctx, std::span<const char> fixed = {},
+                            std::vector<uint64_t>* face_cells = nullptr);
 
 }  // namespace lsqsurf::extract::internal

@@ -163,10 +163,11 @@ absl::StatusOr<IsosurfaceResult> ExtractIsosurface(const ImplicitFunction& field
   core::SubContext emit_ctx(ctx, "extracting triangles", 0.75, 0.9);
   auto marched = internal::MarchTetrahedra(
       field,
-      [&](const std::function<void(const internal::TetCorners&)>& visit) {
+      [&](const internal::TetVisitor& visit) {
         for (Key cell : surface_cells) {
           for (const auto& tet : kTets) {
-            visit({CornerKey(cell, tet[0]), CornerKey(cell, tet[1]), CornerKey(cell, tet[2]), CornerKey(cell, tet[3])});
+            visit({CornerKey(cell, tet[0]), CornerKey(cell, tet[1]), CornerKey(cell, tet[2]), CornerKey(cell, tet[3])},
+                  static_cast<uint64_t>(cell));
           }
         }
       },

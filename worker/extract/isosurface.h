@@ -15,6 +15,7 @@
 
 #include <cstdint>
 #include <span>
+#include <vector>
 
 #include "absl/status/statusor.h"
 #include "worker/core/geometry.h"
@@ -47,6 +48,7 @@ struct MarchingOptions {
   double snap_share = 0;         // 0..0.45: a grid corner the surface passes within this share of an edge from
                                  // is moved onto the surface before marching (no slivers there); 0 = off.
   int relax_steps = 0;           // 0..10: steps of tangential relaxation on the surface after marching (relax.h).
+  bool trace = false;            // Fill IsosurfaceResult::trace (not a user parameter).
 };
 
 absl::Status Validate(const MarchingOptions& options);
@@ -81,6 +83,8 @@ struct IsosurfaceStats {
   int64_t crease_snapped = 0;      // Vertices moved onto a crease that passed next to them.
   int64_t snapped_corners = 0;     // Grid corners moved onto the surface.
   int64_t relaxed_vertices = 0;    // Vertices moved by the relaxation.
+  int64_t replaced_faces = 0;      // Kept faces a local re-extraction replaced (PatchJoin).
+  int64_t seam_edges = 0;          // Kept edges the patch was joined along.
   // Wall time of the stages, seconds.
   double tree_seconds = 0;      // Building an adaptive tree (J1a extractors).
   double tracking_seconds = 0;  // Following the surface: corner values and sign tests.
@@ -89,9 +93,20 @@ struct IsosurfaceStats {
   double relax_seconds = 0;
 };
 
+// Where the parts of an extracted mesh came from, so that a later extraction can replace some of
+// them and join its own triangles to the rest exactly (see stitch.h).
+struct SurfaceTrace {
+  // Per vertex: a hash of the lattice edge the vertex was marched on (never 0), or 0 for a
+  // vertex added afterwards (a crease or corner point).
+  std::vector<uint64_t> vertex_edges;
+  // Per face: the cell whose tetrahedron made it (the extractor's cell key).
+  std::vector<uint64_t> face_cells;
+};
+
 struct IsosurfaceResult {
   TriangleMesh mesh;
   IsosurfaceStats stats;
+  SurfaceTrace trace;  // Empty unless MarchingOptions::trace.
 };
 
 // Extracts {F = 0} near `seeds` (normally the input points: extraction starts in their cubes).

@@ -214,6 +214,7 @@ absl::StatusOr<IsosurfaceResult> ExtractIsosurfaceOnTree(const ImplicitFunction&
   const auto& values = corner_values.values();
   const auto position = [&](internal::CornerKey k) { return tree.Position(k); };
   std::vector<TetKeys> crossed_tets;
+  std::vector<uint64_t> crossed_cells;  // The leaf of each, when tracing.
   std::vector<OctreeCell> next;
   while (!frontier.empty()) {
     stats.cells_visited += static_cast<int64_t>(frontier.size());
@@ -259,6 +260,7 @@ absl::StatusOr<IsosurfaceResult> ExtractIsosurfaceOnTree(const ImplicitFunction&
         if (w.tets.empty()) continue;
         ++stats.surface_cells;
         crossed_tets.insert(crossed_tets.end(), w.tets.begin(), w.tets.end());
+        if (marching.trace) crossed_cells.resize(crossed_tets.size(), CellKey(leaves[i]));
         for (const OctreeCell& c : w.neighbors) {
           if (visited.insert(CellKey(c)).second) next.push_back(c);
         }
@@ -277,16 +279,47 @@ absl::StatusOr<IsosurfaceResult> ExtractIsosurfaceOnTree(const ImplicitFunction&
   core::SubContext emit_ctx(ctx, "extracting triangles", 0.75, 0.9);
   auto result = internal::MarchTetrahedra(
       field,
-      [&](const std::function<void(const internal::TetCorners&)>& visit) {
-        for (const TetKeys& t : crossed_tets) visit(t);
+      [&](const internal::TetVisitor& visit) {
+        for (size_t t = 0; t < crossed_tets.size(); ++t) visit(crossed_tets[t], marching.trace ? crossed_cells[t] : 0);
       },
       values, position, marching, stats, emit_ctx);
   if (!result.ok()) return result;
   corner_values = {};
   crossed_tets = {};
+  crossed_cells = {};
   core::SubContext finish_ctx(ctx, "finishing the surface", 0.9, 1.0);
   LSQSURF_RETURN_IF_ERROR(internal::FinishSurface(field, marching, *result, finish_ctx));
   return result;
+}
+
+absl::StatusOr<IsosurfaceResult> MarchLeaves(const ImplicitFunction& field, const AdaptiveOctree& tree,
+                                             std::span<const OctreeCell> leaves, const MarchingOptions& marching,
+                                             JobContext& ctx) {
+  LSQSURF_RETURN_IF_ERROR(Validate(marching));
+  const auto tracking_start = std::chrono::steady_clock::now();
+  IsosurfaceStats stats;
+  std::vector<TetKeys> tets;
+  std::vector<uint64_t> tet_cells;
+  for (const OctreeCell& leaf : leaves) {
+    AppendJ1aTetrahedra(tree, leaf, tets);
+    tet_cells.resize(tets.size(), CellKey(leaf));
+  }
+  internal::CornerValues corner_values;
+  for (const TetKeys& t : tets) {
+    for (VertexKey k : t) corner_values.Need(k);
+  }
+  const auto position = [&](internal::CornerKey k) { return tree.Position(k); };
+  LSQSURF_RETURN_IF_ERROR(corner_values.Evaluate(field, position, stats, ctx));
+  stats.cells_visited = static_cast<int64_t>(leaves.size());
+  stats.tracking_seconds = core::SecondsSince(tracking_start);
+  MarchingOptions traced = marching;
+  traced.trace = true;
+  return internal::MarchTetrahedra(
+      field,
+      [&](const internal::TetVisitor& visit) {
+        for (size_t t = 0; t < tets.size(); ++t) visit(tets[t], tet_cells[t]);
+      },
+      corner_values.values(), position, traced, stats, ctx);
 }
 
 }  // namespace lsqsurf::extract

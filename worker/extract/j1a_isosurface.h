@@ -62,4 +62,11 @@ absl::StatusOr<IsosurfaceResult> ExtractIsosurfaceOnTree(const ImplicitFunction&
                                                          std::span<const OctreeCell> start, int64_t max_leaves,
                                                          const MarchingOptions& marching, JobContext& ctx);
 
+// Marching tetrahedra on every tetrahedron of `leaves` (leaves of a balanced tree), traced (each
+// face names its leaf by CellKey), not finished: no creases, no relaxation (PatchJoin comes first).
+// Errors: kCancelled.
+absl::StatusOr<IsosurfaceResult> MarchLeaves(const ImplicitFunction& field, const AdaptiveOctree& tree,
+                                             std::span<const OctreeCell> leaves, const MarchingOptions& marching,
+                                             JobContext& ctx);
+
 }  // namespace lsqsurf::extract

@@ -155,12 +155,13 @@ struct PolygonSoup {
   absl::flat_hash_map<std::pair<CornerKey, CornerKey>, uint32_t> edge_index;
   std::vector<Crossing> crossings;
   std::vector<std::array<uint32_t, 4>> polygons;  // [3] == UINT32_MAX for a triangle.
+  std::vector<uint64_t> polygon_cells;            // Where each polygon's tetrahedron lies.
   // Corners moved onto the surface (SnapCorners): they keep their side, so every tetrahedron
   // keeps its signs, and every crossing on their edges is the corner itself (a crossing keyed by
   // the corner twice).
   const absl::flat_hash_map<CornerKey, Vec3d>* snapped = nullptr;
 
-  void Add(const TetCorners& tet, const absl::flat_hash_map<CornerKey, FieldValue>& values,
+  void Add(const TetCorners& tet, uint64_t cell, const absl::flat_hash_map<CornerKey, FieldValue>& values,
            const std::function<Vec3d(CornerKey)>& position) {
     std::array<FieldValue, 4> corner;
     std::array<int, 4> inside{}, outside{};
@@ -212,7 +213,10 @@ struct PolygonSoup {
       // A snapped corner ends several ring edges: it enters the polygon once.
       if (size == 0 || (at(poly, size - 1) != c && (i < ring_size - 1 || poly[0] != c))) at(poly, size++) = c;
     }
-    if (size >= 3) polygons.push_back(poly);
+    if (size >= 3) {
+      polygons.push_back(poly);
+      polygon_cells.push_back(cell);
+    }
   }
 };
 
@@ -256,12 +260,14 @@ absl::Status RefineCrossings(const ImplicitFunction& field, const std::vector<Cr
 }
 
 // Triangles of the polygons (quads split along the shorter diagonal), each marked trusted when
-// every vertex is valid.
-void Triangulate(const std::vector<std::array<uint32_t, 4>>& polygons, const std::vector<char>& valid,
-                 TriangleMesh& mesh, std::vector<char>& face_trusted, IsosurfaceStats& stats) {
+// every vertex is valid; `face_cells` (when tracing) gets each triangle's polygon's cell.
+void Triangulate(const PolygonSoup& soup, const std::vector<char>& valid, TriangleMesh& mesh,
+                 std::vector<char>& face_trusted, std::vector<uint64_t>* face_cells, IsosurfaceStats& stats) {
+  const auto& polygons = soup.polygons;
   mesh.faces.reserve(polygons.size() * 3 / 2);
   face_trusted.reserve(polygons.size() * 3 / 2);
-  for (const auto& p : polygons) {
+  for (size_t k = 0; k < polygons.size(); ++k) {
+    const auto& p = polygons[k];
     const bool trusted = valid[p[0]] && valid[p[1]] && valid[p[2]] && (p[3] == UINT32_MAX || valid[p[3]]);
     const size_t before = mesh.faces.size();
     if (p[3] == UINT32_MAX) {
@@ -278,19 +284,26 @@ void Triangulate(const std::vector<std::array<uint32_t, 4>>& polygons, const std
       }
     }
     face_trusted.resize(mesh.faces.size(), trusted);
+    if (face_cells != nullptr) face_cells->resize(mesh.faces.size(), soup.polygon_cells[k]);
     if (!trusted) stats.rejected_polygons += static_cast<int64_t>(mesh.faces.size() - before);
   }
 }
 
-// Keeps the trusted faces and the vertices they use, renumbered in first-use order.
-void KeepTrusted(const std::vector<char>& face_trusted, bool normals, TriangleMesh& mesh) {
+// Keeps the trusted faces and the vertices they use, renumbered in first-use order (and the
+// trace's entries with them, when there is one).
+void KeepTrusted(const std::vector<char>& face_trusted, bool normals, TriangleMesh& mesh, SurfaceTrace& trace) {
+  const bool traced = !trace.face_cells.empty();
   size_t kept_faces = 0;
   for (size_t f = 0; f < mesh.faces.size(); ++f) {
-    if (face_trusted[f]) mesh.faces[kept_faces++] = mesh.faces[f];
+    if (!face_trusted[f]) continue;
+    if (traced) trace.face_cells[kept_faces] = trace.face_cells[f];
+    mesh.faces[kept_faces++] = mesh.faces[f];
   }
   mesh.faces.resize(kept_faces);
+  if (traced) trace.face_cells.resize(kept_faces);
   std::vector<uint32_t> remap(mesh.vertices.size(), UINT32_MAX);
   std::vector<Vec3f> kept_vertices, kept_normals;
+  std::vector<uint64_t> kept_edges;
   kept_vertices.reserve(mesh.vertices.size());
   for (auto& f : mesh.faces) {
     for (uint32_t& v : f) {
@@ -298,12 +311,14 @@ void KeepTrusted(const std::vector<char>& face_trusted, bool normals, TriangleMe
         remap[v] = static_cast<uint32_t>(kept_vertices.size());
         kept_vertices.push_back(mesh.vertices[v]);
         if (normals) kept_normals.push_back(mesh.normals[v]);
+        if (traced) kept_edges.push_back(trace.vertex_edges[v]);
       }
       v = remap[v];
     }
   }
   mesh.vertices = std::move(kept_vertices);
   mesh.normals = std::move(kept_normals);
+  trace.vertex_edges = std::move(kept_edges);
 }
 
 }  // namespace
@@ -327,17 +342,17 @@ absl::Status CornerValues::Evaluate(const ImplicitFunction& field, const std::fu
 // shortest edge and flips or flattens none of its tetrahedra; the crossings on its edges then
 // merge into it. It keeps its sign, so every tetrahedron keeps its sign pattern: the surface
 // followers' choice of tetrahedra stays right. Returns the moved corners and their positions.
-absl::flat_hash_map<CornerKey, Vec3d> SnapCorners(
-    const ImplicitFunction& field,
-    const std::function<void(const std::function<void(const TetCorners&)>&)>& for_each_tet,
-    const absl::flat_hash_map<CornerKey, FieldValue>& values, const std::function<Vec3d(CornerKey)>& position,
-    double share, JobContext& ctx) {
+absl::flat_hash_map<CornerKey, Vec3d> SnapCorners(const ImplicitFunction& field,
+                                                  const std::function<void(const TetVisitor&)>& for_each_tet,
+                                                  const absl::flat_hash_map<CornerKey, FieldValue>& values,
+                                                  const std::function<Vec3d(CornerKey)>& position, double share,
+                                                  JobContext& ctx) {
   struct Near {
     double share = 1;                                           // Of the nearest crossing along an incident edge.
     double shortest = std::numeric_limits<double>::infinity();  // Incident edge of a crossed tetrahedron.
   };
   absl::flat_hash_map<CornerKey, Near> near;
-  for_each_tet([&](const TetCorners& tet) {
+  for_each_tet([&](const TetCorners& tet, uint64_t) {
     std::array<double, 4> f;
     bool negative = false, positive = false;
     for (size_t i = 0; i < 4; ++i) {
@@ -401,7 +416,7 @@ absl::flat_hash_map<CornerKey, Vec3d> SnapCorners(
   // then is.
   for (int pass = 0; pass < 3 && !snapped.empty(); ++pass) {
     std::vector<CornerKey> undo;
-    for_each_tet([&](const TetCorners& tet) {
+    for_each_tet([&](const TetCorners& tet, uint64_t) {
       for (size_t i = 0; i < 4; ++i) {
         for (size_t j = i + 1; j < 4; ++j) {
           if ((values.at(tet[i]).value < 0) == (values.at(tet[j]).value < 0)) continue;
@@ -432,11 +447,22 @@ absl::flat_hash_map<CornerKey, Vec3d> SnapCorners(
   return snapped;
 }
 
-absl::StatusOr<IsosurfaceResult> MarchTetrahedra(
-    const ImplicitFunction& field,
-    const std::function<void(const std::function<void(const TetCorners&)>&)>& for_each_tet,
-    const absl::flat_hash_map<CornerKey, FieldValue>& values, const std::function<Vec3d(CornerKey)>& position,
-    const MarchingOptions& params, const IsosurfaceStats& tracking, JobContext& ctx) {
+uint64_t LatticeEdgeHash(CornerKey a, CornerKey b) {
+  if (a > b) std::swap(a, b);
+  // splitmix64's finaliser over both keys: distinct edges collide with probability ~2^-64.
+  uint64_t h = a * 0x9E3779B97F4A7C15ull + b;
+  h = (h ^ (h >> 30)) * 0xBF58476D1CE4E5B9ull;
+  h = (h ^ (h >> 27)) * 0x94D049BB133111EBull;
+  h ^= h >> 31;
+  return h == 0 ? 1 : h;
+}
+
+absl::StatusOr<IsosurfaceResult> MarchTetrahedra(const ImplicitFunction& field,
+                                                 const std::function<void(const TetVisitor&)>& for_each_tet,
+                                                 const absl::flat_hash_map<CornerKey, FieldValue>& values,
+                                                 const std::function<Vec3d(CornerKey)>& position,
+                                                 const MarchingOptions& params, const IsosurfaceStats& tracking,
+                                                 JobContext& ctx) {
   IsosurfaceResult result;
   result.stats = tracking;
   IsosurfaceStats& stats = result.stats;
@@ -452,21 +478,28 @@ absl::StatusOr<IsosurfaceResult> MarchTetrahedra(
   };
   PolygonSoup soup;
   soup.snapped = &snapped;
-  for_each_tet([&](const TetCorners& tet) {
+  for_each_tet([&](const TetCorners& tet, uint64_t cell) {
     ++stats.tetrahedra;
-    soup.Add(tet, values, moved_position);
+    soup.Add(tet, cell, values, moved_position);
   });
   LSQSURF_RETURN_IF_ERROR(ctx.CheckCancelled());
   TriangleMesh& mesh = result.mesh;
   std::vector<char> valid;
   LSQSURF_RETURN_IF_ERROR(RefineCrossings(field, soup.crossings, moved_position, params, mesh, valid, ctx));
+  SurfaceTrace& trace = result.trace;
+  if (params.trace) {
+    trace.vertex_edges.resize(soup.crossings.size());
+    for (size_t i = 0; i < soup.crossings.size(); ++i) {
+      trace.vertex_edges[i] = LatticeEdgeHash(soup.crossings[i].inside_vertex, soup.crossings[i].outside_vertex);
+    }
+  }
   std::vector<char> face_trusted;
-  Triangulate(soup.polygons, valid, mesh, face_trusted, stats);
+  Triangulate(soup, valid, mesh, face_trusted, params.trace ? &trace.face_cells : nullptr, stats);
   stats.restored_triangles = RestoreSmallPatches(mesh.faces, face_trusted, params.max_patch_triangles);
   stats.rejected_polygons -= stats.restored_triangles;
   stats.rejected_polygons +=
       DropCutOffSpecks(mesh.faces, face_trusted, mesh.vertices.size(), params.max_patch_triangles);
-  KeepTrusted(face_trusted, !mesh.normals.empty(), mesh);
+  KeepTrusted(face_trusted, !mesh.normals.empty(), mesh, trace);
   stats.crossings = static_cast<int64_t>(mesh.vertices.size());
   stats.marching_seconds = core::SecondsSince(stage_start);
   ctx.ReportProgress("", 1.0);
@@ -474,13 +507,16 @@ absl::StatusOr<IsosurfaceResult> MarchTetrahedra(
 }
 
 absl::Status FinishSurface(const ImplicitFunction& field, const MarchingOptions& params, IsosurfaceResult& result,
-                           JobContext& ctx) {
+                           JobContext& ctx, std::span<const char> fixed) {
   IsosurfaceStats& stats = result.stats;
   TriangleMesh& mesh = result.mesh;
   auto stage_start = std::chrono::steady_clock::now();
   if (params.crease_angle > 0) {
     CreaseCounts creases;
-    LSQSURF_RETURN_IF_ERROR(SharpenCreases(field, params.crease_angle, mesh, creases, ctx));
+    const bool traced = !result.trace.face_cells.empty();
+    LSQSURF_RETURN_IF_ERROR(SharpenCreases(field, params.crease_angle, mesh, creases, ctx, fixed,
+                                           traced ? &result.trace.face_cells : nullptr));
+    if (traced) result.trace.vertex_edges.resize(mesh.vertices.size(), 0);
     stats.crease_vertices = creases.crease_vertices;
     stats.crease_corners = creases.corners;
     stats.crease_snapped = creases.snapped_vertices;

@@ -13,6 +13,7 @@
 #include <array>
 #include <cstdint>
 #include <functional>
+#include <span>
 #include <vector>
 
 #include "absl/container/flat_hash_map.h"
@@ -49,20 +50,26 @@ class CornerValues {
   std::vector<double> pending_values_;
 };
 
-// `for_each_tet(visit)` must call `visit` for every tetrahedron to examine; every corner must be
-// in `values`. Tetrahedra with a NaN corner or no sign change produce nothing. The result's
-// statistics are `tracking` (what the caller's surface search counted) plus `crossings`,
-// `rejected_polygons` and `restored_triangles`. Creases and relaxation are FinishSurface's, so
-// that callers free their search structures first. Errors: kCancelled.
-absl::StatusOr<IsosurfaceResult> MarchTetrahedra(
-    const ImplicitFunction& field,
-    const std::function<void(const std::function<void(const TetCorners&)>&)>& for_each_tet,
-    const absl::flat_hash_map<CornerKey, FieldValue>& values, const std::function<Vec3d(CornerKey)>& position,
-    const MarchingOptions& params, const IsosurfaceStats& tracking, JobContext& ctx);
+// `for_each_tet(visit)` must call `visit(tet, cell)` for every tetrahedron to examine, `cell`
+// naming where it lies (what the trace records per face); every corner must be in `values`. Tetrahedra with a NaN
+// corner or no sign change produce nothing. The result's statistics are `tracking` (what the caller's surface search
+// counted) plus `crossings`, `rejected_polygons` and `restored_triangles`. Creases and relaxation are FinishSurface's,
+// so that callers free their search structures first. Errors: kCancelled.
+using TetVisitor = std::function<void(const TetCorners&, uint64_t cell)>;
+absl::StatusOr<IsosurfaceResult> MarchTetrahedra(const ImplicitFunction& field,
+                                                 const std::function<void(const TetVisitor&)>& for_each_tet,
+                                                 const absl::flat_hash_map<CornerKey, FieldValue>& values,
+                                                 const std::function<Vec3d(CornerKey)>& position,
+                                                 const MarchingOptions& params, const IsosurfaceStats& tracking,
+                                                 JobContext& ctx);
 
 // Splits edges on creases and relaxes the marched mesh as `params` ask; drops the vertex normals
-// unless they are wanted. Errors: kCancelled.
+// unless they are wanted. Vertices marked in `fixed` (when given, one flag per vertex) neither
+// move nor end a split edge: the border where a patch joins a kept mesh. Errors: kCancelled.
 absl::Status FinishSurface(const ImplicitFunction& field, const MarchingOptions& params, IsosurfaceResult& result,
-                           JobContext& ctx);
+                           JobContext& ctx, std::span<const char> fixed = {});
+
+// The trace's name of the lattice edge between two corners (order-free, never 0).
+uint64_t LatticeEdgeHash(CornerKey a, CornerKey b);
 
 }  // namespace lsqsurf::extract::internal

@@ -1,5 +1,7 @@
 #include "worker/jobs/edit_job.h"
 
+#include <spdlog/spdlog.h>
+
 #include <chrono>
 
 #include "worker/core/status.h"
@@ -37,6 +39,25 @@ const core::ParamTable<EditJobParams>& EditJobParamTable() {
     return t;
   }();
   return *table;
+}
+
+// The edited surface from the source's kept one, re-extracted only near the edit.
+// kFailedPrecondition where that cannot be done (nothing kept, other parameters, no exact join).
+absl::StatusOr<extract::IsosurfaceResult> ExtractNearEdit(const pu::PuFunction& before, const pu::PuFunction& after,
+                                                          const pu::PuEditStats& edit_stats,
+                                                          const pu::PuExtractParams& params, const std::string& source,
+                                                          RunEnvironment& env, core::JobContext& ctx) {
+  if (!env.read_result) return absl::FailedPreconditionError("no job store");
+  auto stored = env.read_result(source, kPuSurfaceArtifact);
+  if (!stored.ok()) {
+    const absl::StatusCode code = stored.status().code();
+    if (code != absl::StatusCode::kNotFound && code != absl::StatusCode::kFailedPrecondition) return stored.status();
+    return absl::FailedPreconditionError("the source job kept no surface");
+  }
+  auto kept = pu::DeserializeSurface(*stored);
+  stored->clear();
+  if (!kept.ok()) return absl::FailedPreconditionError(kept.status().message());
+  return pu::ExtractEdited(before, after, edit_stats, *kept, params, ctx);
 }
 
 class EditKind final : public JobKind {
@@ -80,7 +101,6 @@ class EditKind final : public JobKind {
     core::SubContext edit_ctx(env.context, "editing the fits", 0.05, 0.2);
     auto edited = pu::EditPu(**base, edit, edit_ctx, &edit_stats);
     if (!edited.ok()) return edited.status();
-    base->reset();
     stat("edit_seconds", core::SecondsSince(start));
     stat("fits_replaced", static_cast<double>(edit_stats.fits_replaced));
     stat("fits_after", static_cast<double>(edit_stats.fits_after));
@@ -88,12 +108,26 @@ class EditKind final : public JobKind {
     stat("edit_reach", edit_stats.reach);
     start = std::chrono::steady_clock::now();
     core::SubContext extract_ctx(env.context, "extracting surface", 0.2, 0.95);
-    auto extracted = pu::Extract(**edited, p->extract, extract_ctx);
-    if (!extracted.ok()) return extracted.status();
+    pu::PuExtractParams extract = p->extract;
+    extract.marching.trace = true;
+    auto extracted = ExtractNearEdit(**base, **edited, edit_stats, extract, p->source, env, extract_ctx);
+    base->reset();
+    const bool local = extracted.ok();
+    if (!local) {
+      if (extracted.status().code() != absl::StatusCode::kFailedPrecondition) return extracted.status();
+      spdlog::info("edit of {}: the whole surface is extracted ({})", p->source, extracted.status().message());
+      extracted = pu::Extract(**edited, extract, extract_ctx);
+      if (!extracted.ok()) return extracted.status();
+    }
     stat("extract_seconds", core::SecondsSince(start));
+    stat("local_extraction", local ? 1 : 0);
+    stat("replaced_faces", static_cast<double>(extracted->stats.replaced_faces));
+    stat("seam_edges", static_cast<double>(extracted->stats.seam_edges));
     AddMeshStatistics(extracted->mesh, extracted->stats, &stats);
     LSQSURF_RETURN_IF_ERROR(DeliverMesh(extracted->mesh, spec, env, &stats));
     LSQSURF_RETURN_IF_ERROR(env.sink.Write(kPuFunctionArtifact, pu::SerializePu(**edited)));
+    LSQSURF_RETURN_IF_ERROR(
+        env.sink.Write(kPuSurfaceArtifact, pu::SerializeSurface(extracted->mesh, extracted->trace, extract)));
     return stats;
   }
 };

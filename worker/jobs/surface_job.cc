@@ -185,7 +185,9 @@ absl::StatusOr<extract::IsosurfaceResult> RunPu(const PuJobParams& p, const core
   PuStatistics((*field)->stats(), stat);
   const auto start = std::chrono::steady_clock::now();
   core::SubContext extract_ctx(ctx, "extracting surface", 0.4, 1.0);
-  auto extracted = pu::Extract(**field, p.extract, extract_ctx);
+  pu::PuExtractParams extract = p.extract;
+  extract.marching.trace = p.keep_function;  // Local edits re-extract only what they change.
+  auto extracted = pu::Extract(**field, extract, extract_ctx);
   if (extracted.ok()) {
     stat("extract_seconds", core::SecondsSince(start));
     stat("tetrahedra", static_cast<double>(extracted->stats.tetrahedra));
@@ -198,6 +200,10 @@ absl::StatusOr<extract::IsosurfaceResult> RunPu(const PuJobParams& p, const core
       std::string bytes = pu::SerializePu(**field);
       stat("function_bytes", static_cast<double>(bytes.size()));
       keep(kPuFunctionArtifact, std::move(bytes));
+      bytes = pu::SerializeSurface(extracted->mesh, extracted->trace, extract);
+      extracted->trace = {};
+      stat("surface_bytes", static_cast<double>(bytes.size()));
+      keep(kPuSurfaceArtifact, std::move(bytes));
       stat("keep_seconds", core::SecondsSince(keep_start));
     }
   }

@@ -56,11 +56,15 @@ struct PuJobParams {
   pu::PuParams fit;
   pu::PuExtractParams extract;
   NormalsParams normals;
-  bool keep_function = true;  // Store the fitted function (kPuFunctionArtifact) for csg and edit jobs.
+  bool keep_function = true;  // Store the fitted function (kPuFunctionArtifact) and the traced surface
+                              // (kPuSurfaceArtifact) for csg and edit jobs.
 };
 
 // The artifact that keeps a PU job's fitted function (pu::SerializePu).
 inline constexpr char kPuFunctionArtifact[] = "function.lqpu";
+// Beside it, the traced surface extracted from it (pu::SerializeSurface), which an edit job
+// changes only near the edit (pu::ExtractEdited).
+inline constexpr char kPuSurfaceArtifact[] = "surface.lqsf";
 
 // The kept function of job `job_id` (csg and edit jobs read their operands through this).
 // Errors: kFailedPrecondition (no such job, not succeeded, or nothing kept, with what to do),

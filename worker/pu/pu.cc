@@ -18,6 +18,8 @@
 #include "worker/core/strings.h"
 #include "worker/extract/j1a.h"
 #include "worker/extract/j1a_isosurface.h"
+#include "worker/extract/marching_tets.h"
+#include "worker/extract/stitch.h"
 #include "worker/pu/orthogonal_fit.h"
 #include "worker/pu/sharp_fit.h"
 
@@ -948,10 +950,15 @@ int ExtractionDepth(double root_edge, double target) {
 // The extraction cells of levels [from, to) that a sharp fit's support meets: creases go to the
 // finest cells, where the crease splitting places them (their curvature is not a chord's).
 absl::flat_hash_set<uint64_t> CellsNearSharpFits(const PuFunction::Impl& impl, const extract::AdaptiveOctree& tree,
-                                                 int from, int to) {
+                                                 int from, int to, const core::Box3* region) {
   absl::flat_hash_set<uint64_t> cells;
   for (const LocalFit& fit : impl.fits) {
     if (fit.feature == Feature::kSmooth) continue;
+    const Vec3d reach = Vec3d::Constant(fit.support_radius);
+    if (region != nullptr && (((fit.centre + reach).array() < region->min().array()).any() ||
+                              ((fit.centre - reach).array() > region->max().array()).any())) {
+      continue;
+    }
     for (int level = from; level < to; ++level) {
       const double edge = tree.CellEdge(level);
       const int64_t n = int64_t{1} << level;
@@ -969,59 +976,64 @@ absl::flat_hash_set<uint64_t> CellsNearSharpFits(const PuFunction::Impl& impl, c
   return cells;
 }
 
-}  // namespace
+// Extract's J1a tree (2:1 balanced) and the finest cells that hold points (where tracking starts).
+struct ExtractionTree {
+  explicit ExtractionTree(const core::Box3& root, int depth) : tree(root, depth) {}
+  extract::AdaptiveOctree tree;
+  std::vector<extract::OctreeCell> start;
+  int band_level = 0;
+};
 
-double FinestExtractionCell(const PuFunction& function, const PuExtractParams& params) {
-  const double root_edge = function.stats().root_edge;
-  return std::ldexp(root_edge, -ExtractionDepth(root_edge, params.cell_size * function.stats().mean_spacing));
-}
-
-absl::StatusOr<extract::IsosurfaceResult> Extract(const PuFunction& function, const PuExtractParams& params,
-                                                  core::JobContext& ctx) {
+// The finest extraction level comes from `cell_size`; around the data the tree is refined to at
+// least kCoarseExtractionLevels levels above it, and finer where flat triangles would stray from
+// the surface by more than `chord_error`, or where a sharp fit makes a crease. With `region`, only
+// the points and sharp fits in that box are looked at: inside it, away from its sides by a few
+// coarse cells, the tree is the whole one's (every decision is local).
+absl::StatusOr<std::unique_ptr<ExtractionTree>> BuildExtractionTree(const PuFunction& function,
+                                                                    const PuFunction::Impl& impl,
+                                                                    const PuExtractParams& params,
+                                                                    const core::Box3* region, core::JobContext& ctx) {
   if (!(params.cell_size > 0) || !std::isfinite(params.cell_size)) {
     return absl::InvalidArgumentError("cell_size must be a positive number");
   }
-  const PuFunction::Impl& impl = *function.impl_;
   const double target = params.cell_size * function.stats().mean_spacing;
   if (!(target > 0)) return absl::InvalidArgumentError("the points have no spacing to size cells by");
-  // The finest extraction level comes from `cell_size`; around the data the tree is refined to
-  // at least kCoarseExtractionLevels levels above it, and finer where flat triangles would stray from the surface by
-  // more than `chord_error`, or where a sharp fit makes a crease.
   const int depth = ExtractionDepth(impl.root_edge, target);
-  const int band_level = std::max(1, depth - kCoarseExtractionLevels);
-  core::SubContext build_ctx(ctx, "building the J1a tree", 0.0, 0.1);
-  const auto tree_start = std::chrono::steady_clock::now();
-  extract::AdaptiveOctree tree(core::Box3(impl.origin, impl.origin + Vec3d::Constant(impl.root_edge)), depth);
-  extract::SurfaceBand band = extract::MarkSurfaceBand(tree, impl.positions, band_level);
-  extract::SurfaceBand fine_band = extract::MarkSurfaceBand(tree, impl.positions, depth);
+  auto built =
+      std::make_unique<ExtractionTree>(core::Box3(impl.origin, impl.origin + Vec3d::Constant(impl.root_edge)), depth);
+  extract::AdaptiveOctree& tree = built->tree;
+  built->band_level = std::max(1, depth - kCoarseExtractionLevels);
+  std::vector<Vec3f> local_points;
+  std::span<const Vec3f> points = impl.positions;
+  if (region != nullptr) {
+    for (const Vec3f& p : impl.positions) {
+      if (region->contains(p.cast<double>())) local_points.push_back(p);
+    }
+    points = local_points;
+  }
+  extract::SurfaceBand band = extract::MarkSurfaceBand(tree, points, built->band_level);
+  extract::SurfaceBand fine_band = extract::MarkSurfaceBand(tree, points, depth);
   band.occupied.clear();
   const double chord_bound = params.chord_error * core::Diagonal(core::BoundingBox(impl.positions));
-  const absl::flat_hash_set<uint64_t> crease_cells = CellsNearSharpFits(impl, tree, band_level, depth);
+  const absl::flat_hash_set<uint64_t> crease_cells = CellsNearSharpFits(impl, tree, built->band_level, depth, region);
   LSQSURF_RETURN_IF_ERROR(extract::RefineSurfaceBand(
-      tree, band, band_level, fine_band,
+      tree, band, built->band_level, fine_band,
       [&](const extract::OctreeCell& c) {
         if (crease_cells.contains(extract::CellKey(c))) return true;
         return extract::EstimateChordError(function, tree.CellCentre(c), tree.CellEdge(c.level)) > chord_bound;
       },
-      build_ctx));
+      ctx));
   band.ancestors.clear();
   fine_band.ancestors.clear();
   tree.Balance();
   LSQSURF_RETURN_IF_ERROR(ctx.CheckCancelled());
-  // Start at the finest cells that hold points (the extractor maps them to their leaves).
-  std::vector<extract::OctreeCell> start;
-  start.reserve(fine_band.occupied.size());
-  for (uint64_t key : fine_band.occupied) start.push_back(extract::CellFromKey(key));
-  fine_band.occupied.clear();
-  core::SubContext extract_ctx(ctx, "extracting surface", 0.1, 0.95);
-  // Only sharp fits make creases; without them there is nothing to split edges on.
-  extract::MarchingOptions marching = params.marching;
-  if (impl.sharp_fits.empty()) marching.crease_angle = 0;
-  const double tree_seconds = core::SecondsSince(tree_start);
-  auto result = extract::ExtractIsosurfaceOnTree(function, tree, start, params.max_leaves, marching, extract_ctx);
-  if (result.ok()) result->stats.tree_seconds = tree_seconds;
-  if (!result.ok() || !params.label_vertices) return result;
-  core::TriangleMesh& mesh = result->mesh;
+  built->start.reserve(fine_band.occupied.size());
+  for (uint64_t key : fine_band.occupied) built->start.push_back(extract::CellFromKey(key));
+  return built;
+}
+
+// Adds the vertex attributes "depth", "degree" and "feature" (the dominant fit's) to `mesh`.
+absl::Status LabelVertices(const PuFunction& function, core::TriangleMesh& mesh, core::JobContext& ctx) {
   core::ScalarAttribute depth_attribute{"depth", std::vector<float>(mesh.vertices.size())};
   core::ScalarAttribute degree_attribute{"degree", std::vector<float>(mesh.vertices.size())};
   core::ScalarAttribute feature_attribute{"feature", std::vector<float>(mesh.vertices.size())};
@@ -1039,6 +1051,138 @@ absl::StatusOr<extract::IsosurfaceResult> Extract(const PuFunction& function, co
   mesh.vertex_attributes.push_back(std::move(depth_attribute));
   mesh.vertex_attributes.push_back(std::move(degree_attribute));
   mesh.vertex_attributes.push_back(std::move(feature_attribute));
+  return absl::OkStatus();
+}
+
+// The leaves of `tree` whose cube meets one of the balls: a descent from the root that carries the
+// balls meeting each cell.
+std::vector<extract::OctreeCell> LeavesMeetingBalls(const extract::AdaptiveOctree& tree,
+                                                    std::span<const PuEditStats::Ball> balls) {
+  auto meets = [&](const extract::OctreeCell& c, const PuEditStats::Ball& ball) {
+    const double edge = tree.CellEdge(c.level);
+    const Vec3d lo = tree.origin() + edge * Vec3d(c.x, c.y, c.z);
+    const Vec3d nearest = ball.centre.cwiseMax(lo).cwiseMin(lo + Vec3d::Constant(edge));
+    return (nearest - ball.centre).squaredNorm() <= ball.radius * ball.radius;
+  };
+  std::vector<extract::OctreeCell> leaves;
+  std::vector<std::pair<extract::OctreeCell, std::vector<uint32_t>>> stack;
+  std::vector<uint32_t> all(balls.size());
+  for (uint32_t i = 0; i < all.size(); ++i) all[i] = i;
+  stack.push_back({extract::OctreeCell{}, std::move(all)});
+  while (!stack.empty()) {
+    auto [cell, near] = std::move(stack.back());
+    stack.pop_back();
+    std::erase_if(near, [&](uint32_t i) { return !meets(cell, balls[i]); });
+    if (near.empty()) continue;
+    if (!tree.IsSubdivided(cell)) {
+      if (tree.IsLeaf(cell)) leaves.push_back(cell);
+      continue;
+    }
+    for (uint32_t k = 0; k < 8; ++k) {
+      stack.push_back(
+          {{cell.level + 1, 2 * cell.x + (k & 1), 2 * cell.y + ((k >> 1) & 1), 2 * cell.z + (k >> 2)}, near});
+    }
+  }
+  return leaves;
+}
+
+bool SameExtraction(const PuExtractParams& a, const PuExtractParams& b) {
+  const extract::MarchingOptions &x = a.marching, &y = b.marching;
+  return a.cell_size == b.cell_size && a.chord_error == b.chord_error && a.label_vertices == b.label_vertices &&
+         x.refine_steps == y.refine_steps && x.max_patch_triangles == y.max_patch_triangles &&
+         x.crease_angle == y.crease_angle && x.snap_share == y.snap_share && x.relax_steps == y.relax_steps &&
+         x.vertex_normals == y.vertex_normals;
+}
+
+// Only sharp fits make creases; without them there is nothing to split edges on.
+extract::MarchingOptions MarchingFor(const PuFunction::Impl& impl, const PuExtractParams& params) {
+  extract::MarchingOptions marching = params.marching;
+  if (impl.sharp_fits.empty()) marching.crease_angle = 0;
+  return marching;
+}
+
+}  // namespace
+
+double FinestExtractionCell(const PuFunction& function, const PuExtractParams& params) {
+  const double root_edge = function.stats().root_edge;
+  return std::ldexp(root_edge, -ExtractionDepth(root_edge, params.cell_size * function.stats().mean_spacing));
+}
+
+absl::StatusOr<extract::IsosurfaceResult> Extract(const PuFunction& function, const PuExtractParams& params,
+                                                  core::JobContext& ctx) {
+  const PuFunction::Impl& impl = *function.impl_;
+  core::SubContext build_ctx(ctx, "building the J1a tree", 0.0, 0.1);
+  const auto tree_start = std::chrono::steady_clock::now();
+  auto built = BuildExtractionTree(function, impl, params, nullptr, build_ctx);
+  if (!built.ok()) return built.status();
+  const double tree_seconds = core::SecondsSince(tree_start);
+  core::SubContext extract_ctx(ctx, "extracting surface", 0.1, 0.95);
+  auto result = extract::ExtractIsosurfaceOnTree(function, (*built)->tree, (*built)->start, params.max_leaves,
+                                                 MarchingFor(impl, params), extract_ctx);
+  built->reset();
+  if (result.ok()) result->stats.tree_seconds = tree_seconds;
+  if (!result.ok() || !params.label_vertices) return result;
+  LSQSURF_RETURN_IF_ERROR(LabelVertices(function, result->mesh, ctx));
+  return result;
+}
+
+absl::StatusOr<extract::IsosurfaceResult> ExtractEdited(const PuFunction& before, const PuFunction& after,
+                                                        const PuEditStats& edit_stats, const KeptSurface& kept,
+                                                        const PuExtractParams& requested, core::JobContext& ctx) {
+  const PuExtractParams& params = kept.params;
+  if (!SameExtraction(params, requested)) {
+    return absl::FailedPreconditionError("the kept surface was extracted with other parameters");
+  }
+  // A snapped corner's place depends on every tetrahedron around it, some beyond the patch.
+  if (params.marching.snap_share > 0) {
+    return absl::FailedPreconditionError("a kept surface with snapped corners is extracted whole");
+  }
+  const PuFunction::Impl& b = *before.impl_;
+  if (edit_stats.changed.empty()) return absl::FailedPreconditionError("the edit names no changed region");
+  const auto tree_start = std::chrono::steady_clock::now();
+  core::Box3 changed;
+  for (const PuEditStats::Ball& ball : edit_stats.changed) {
+    changed.extend(ball.centre - Vec3d::Constant(ball.radius));
+    changed.extend(ball.centre + Vec3d::Constant(ball.radius));
+  }
+  const double target = params.cell_size * before.stats().mean_spacing;
+  const int band_level = std::max(1, ExtractionDepth(b.root_edge, target) - kCoarseExtractionLevels);
+  // Balancing and the band's neighbours reach about two coarse cells; four keep the tree exact.
+  const Vec3d margin = Vec3d::Constant(4 * std::ldexp(b.root_edge, -band_level));
+  const core::Box3 region(changed.min() - margin, changed.max() + margin);
+  core::SubContext build_ctx(ctx, "building the J1a tree near the edit", 0.0, 0.2);
+  auto built = BuildExtractionTree(before, b, params, &region, build_ctx);
+  if (!built.ok()) return built.status();
+  const extract::AdaptiveOctree& tree = (*built)->tree;
+  std::vector<extract::OctreeCell> leaves = LeavesMeetingBalls(tree, edit_stats.changed);
+  absl::flat_hash_set<uint64_t> cells;
+  for (const extract::OctreeCell& c : leaves) cells.insert(extract::CellKey(c));
+  // Every kept face near the change must come from a leaf of this tree (else the tree is not the
+  // one the kept surface was made on, and the join would not be exact).
+  for (uint64_t key : kept.trace.face_cells) {
+    if (cells.contains(key)) continue;
+    const extract::OctreeCell c = extract::CellFromKey(key);
+    if (changed.contains(tree.CellCentre(c)) && !tree.IsLeaf(c)) {
+      return absl::FailedPreconditionError("the kept surface was made on another tree");
+    }
+  }
+  const double tree_seconds = core::SecondsSince(tree_start);
+  core::SubContext march_ctx(ctx, "extracting the edited part", 0.2, 0.8);
+  const extract::MarchingOptions marching = MarchingFor(*after.impl_, params);
+  auto patch = extract::MarchLeaves(after, tree, leaves, marching, march_ctx);
+  if (!patch.ok()) return patch.status();
+  built->reset();
+  auto join = extract::PatchJoin::Prepare(kept.mesh, kept.trace, cells, *patch);
+  if (!join.ok()) return join.status();
+  core::SubContext finish_ctx(ctx, "finishing the edited part", 0.8, 0.95);
+  LSQSURF_RETURN_IF_ERROR(extract::internal::FinishSurface(after, marching, *patch, finish_ctx, join->fixed()));
+  if (!kept.mesh.vertex_attributes.empty()) LSQSURF_RETURN_IF_ERROR(LabelVertices(after, patch->mesh, ctx));
+  extract::IsosurfaceResult result;
+  result.stats = patch->stats;
+  result.stats.tree_seconds = tree_seconds;
+  result.stats.replaced_faces = join->removed_faces();
+  result.stats.seam_edges = join->seam_edges();
+  result.mesh = join->Merge(kept.mesh, kept.trace, *patch, result.trace);
   return result;
 }
 
@@ -1279,14 +1423,17 @@ absl::StatusOr<std::unique_ptr<PuFunction>> EditPu(const PuFunction& base, const
     if (gap >= f.support_radius + edit.radius) continue;
     touched.push_back(static_cast<int32_t>(i));
     local.reach = std::max(local.reach, gap + f.support_radius);
+    local.changed.push_back({f.centre, f.support_radius});
   }
   if (touched.empty()) return absl::FailedPreconditionError("no local fit meets the ball: nothing to edit there");
   local.fits_replaced = static_cast<int64_t>(touched.size());
   if (edit.action == PuEditAction::kRemove) {
     const double r2 = edit.radius * edit.radius;
+    double removed_spacing = 0;
     for (size_t i = 0; i < b.positions.size(); ++i) {
       if ((b.positions[i].cast<double>() - edit.centre).squaredNorm() < r2) {
         ++local.points_removed;
+        if (!b.local_spacing.empty()) removed_spacing = std::max<double>(removed_spacing, b.local_spacing[i]);
         continue;
       }
       m.positions.push_back(b.positions[i]);
@@ -1294,6 +1441,8 @@ absl::StatusOr<std::unique_ptr<PuFunction>> EditPu(const PuFunction& base, const
       if (!b.local_spacing.empty()) m.local_spacing.push_back(b.local_spacing[i]);
     }
     if (m.positions.size() < 4) return absl::FailedPreconditionError("the ball holds nearly every point");
+    // Coverage changes where a removed point was the nearest.
+    if (m.coverage_check) local.changed.push_back({edit.centre, edit.radius + m.coverage_factor * removed_spacing});
     for (int32_t node : touched) {
       Node& n = m.nodes[static_cast<size_t>(node)];
       if ((m.fits[static_cast<size_t>(n.fit)].centre - edit.centre).norm() < edit.radius) n.fit = -1;
@@ -1354,10 +1503,97 @@ absl::StatusOr<std::unique_ptr<PuFunction>> EditPu(const PuFunction& base, const
   }
   CompactFits(m);
   if (m.fits.empty()) return absl::FailedPreconditionError("the edit leaves no local fit");
+  // The new fits' supports (a refit's may reach past the ones they replace).
+  std::vector<int32_t> stack(touched.begin(), touched.end());
+  while (!stack.empty()) {
+    const Node& n = m.nodes[static_cast<size_t>(stack.back())];
+    stack.pop_back();
+    if (n.first_child >= 0) {
+      for (int32_t c = 0; c < 8; ++c) stack.push_back(n.first_child + c);
+    } else if (n.fit >= 0) {
+      const LocalFit& f = m.fits[static_cast<size_t>(n.fit)];
+      local.changed.push_back({f.centre, f.support_radius});
+      local.reach = std::max(local.reach, (f.centre - edit.centre).norm() + f.support_radius);
+    }
+  }
   LSQSURF_RETURN_IF_ERROR(IndexInfluence(m, ctx));
   local.fits_after = static_cast<int64_t>(m.fits.size());
   if (stats != nullptr) *stats = local;
   return out;
+}
+
+namespace {
+
+constexpr std::string_view kSurfaceMagic = "LQSF0001";
+
+// The extraction parameters a kept surface records, field by field (no padding bytes stored).
+void WriteExtractParams(const PuExtractParams& p, core::BinaryWriter& w) {
+  w.Scalar(p.cell_size), w.Scalar(p.chord_error), w.Scalar(p.max_leaves), w.Scalar<uint8_t>(p.label_vertices);
+  const extract::MarchingOptions& m = p.marching;
+  w.Scalar(m.refine_steps), w.Scalar<uint8_t>(m.vertex_normals), w.Scalar(m.max_patch_triangles);
+  w.Scalar(m.crease_angle), w.Scalar(m.snap_share), w.Scalar(m.relax_steps);
+}
+
+bool ReadExtractParams(core::BinaryReader& r, PuExtractParams& p) {
+  uint8_t label = 0, normals = 0;
+  extract::MarchingOptions& m = p.marching;
+  const bool ok = r.Scalar(p.cell_size) && r.Scalar(p.chord_error) && r.Scalar(p.max_leaves) && r.Scalar(label) &&
+                  r.Scalar(m.refine_steps) && r.Scalar(normals) && r.Scalar(m.max_patch_triangles) &&
+                  r.Scalar(m.crease_angle) && r.Scalar(m.snap_share) && r.Scalar(m.relax_steps);
+  p.label_vertices = label != 0;
+  m.vertex_normals = normals != 0;
+  return ok && label <= 1 && normals <= 1;
+}
+
+}  // namespace
+
+std::string SerializeSurface(const core::TriangleMesh& mesh, const extract::SurfaceTrace& trace,
+                             const PuExtractParams& params) {
+  core::BinaryWriter w;
+  w.Array<char>(std::span<const char>(kSurfaceMagic.data(), kSurfaceMagic.size()));
+  WriteExtractParams(params, w);
+  w.Array<Vec3f>(mesh.vertices);
+  w.Array<Vec3f>(mesh.normals);
+  w.Array<core::Triangle>(mesh.faces);
+  w.Scalar<uint64_t>(mesh.vertex_attributes.size());
+  for (const core::ScalarAttribute& a : mesh.vertex_attributes) {
+    w.Text(a.name);
+    w.Array<float>(a.values);
+  }
+  w.Array<uint64_t>(trace.vertex_edges);
+  w.Array<uint64_t>(trace.face_cells);
+  return w.Take();
+}
+
+absl::StatusOr<KeptSurface> DeserializeSurface(std::string_view bytes) {
+  auto bad = [](std::string_view why) {
+    return absl::InvalidArgumentError(core::StrCat("the kept surface is unreadable: ", why));
+  };
+  core::BinaryReader r(bytes);
+  std::vector<char> magic;
+  if (!r.Array(magic) || std::string_view(magic.data(), magic.size()) != kSurfaceMagic) return bad("wrong header");
+  KeptSurface surface;
+  core::TriangleMesh& mesh = surface.mesh;
+  if (!ReadExtractParams(r, surface.params)) return bad("parameters");
+  uint64_t attributes = 0;
+  if (!r.Array(mesh.vertices) || !r.Array(mesh.normals) || !r.Array(mesh.faces) || !r.Scalar(attributes) ||
+      attributes > 16) {
+    return bad("mesh");
+  }
+  const size_t n = mesh.vertices.size();
+  if (!mesh.normals.empty() && mesh.normals.size() != n) return bad("normals");
+  for (uint64_t k = 0; k < attributes; ++k) {
+    core::ScalarAttribute a;
+    if (!r.Text(a.name) || !r.Array(a.values, n)) return bad("attributes");
+    mesh.vertex_attributes.push_back(std::move(a));
+  }
+  if (!r.Array(surface.trace.vertex_edges, n) || !r.Array(surface.trace.face_cells, mesh.faces.size()) || !r.AtEnd()) {
+    return bad("trace");
+  }
+  for (const core::Triangle& t : mesh.faces) {
+    if (t[0] >= n || t[1] >= n || t[2] >= n) return bad("a face index out of range");
+  }
+  return surface;
 }
 
 }  // namespace lsqsurf::pu

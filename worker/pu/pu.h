@@ -132,6 +132,9 @@ class PuFunction final : public core::ImplicitFunction {
   friend absl::StatusOr<std::unique_ptr<PuFunction>> EditPu(const PuFunction&, const struct PuEdit&, core::JobContext&,
                                                             struct PuEditStats*);
   friend absl::StatusOr<std::unique_ptr<PuFunction>> DeserializePu(std::string_view);
+  friend absl::StatusOr<extract::IsosurfaceResult> ExtractEdited(const PuFunction&, const PuFunction&,
+                                                                 const struct PuEditStats&, const struct KeptSurface&,
+                                                                 const PuExtractParams&, core::JobContext&);
   PuFunction();
   std::unique_ptr<Impl> impl_;
   PuStats stats_;
@@ -194,12 +197,41 @@ struct PuEditStats {
   int64_t fits_after = 0;      // Fits of the edited function.
   int64_t points_removed = 0;  // kRemove.
   double reach = 0;            // Outside the ball about `centre` of this radius F is unchanged.
+  // F, and where it is defined, differ only inside these balls (the replaced and the new fits'
+  // supports, and where removed points gave coverage): what ExtractEdited re-extracts.
+  struct Ball {
+    core::Vec3d centre;
+    double radius;
+  };
+  std::vector<Ball> changed;
 };
 
 // Errors: kInvalidArgument (a bad ball or value), kFailedPrecondition (no fit meets the ball),
 // kCancelled. Cost: the replaced fits, a copy of the function and a rebuild of its indexes.
 absl::StatusOr<std::unique_ptr<PuFunction>> EditPu(const PuFunction& base, const PuEdit& edit, core::JobContext& ctx,
                                                    PuEditStats* stats = nullptr);
+
+// A surface Extract made with `params.marching.trace` on, kept beside its function so that an
+// edit of the function can re-extract only what changed (ExtractEdited).
+struct KeptSurface {
+  core::TriangleMesh mesh;
+  extract::SurfaceTrace trace;
+  PuExtractParams params;
+};
+std::string SerializeSurface(const core::TriangleMesh& mesh, const extract::SurfaceTrace& trace,
+                             const PuExtractParams& params);
+// Errors: kInvalidArgument (not a kept surface, truncated or inconsistent).
+absl::StatusOr<KeptSurface> DeserializeSurface(std::string_view bytes);
+
+// The surface of `after` = EditPu(before, edit, &stats) from `kept`, the surface of `before`:
+// only the J1a leaves that meet `stats.changed` (the union of the edited supports) are marched
+// again, on `after` and the tree Extract built for `before`, and joined to the rest of the kept
+// mesh (extract::PatchJoin), which stays as it was. The result carries its trace, for the next
+// edit. Errors: kFailedPrecondition where the patch cannot be joined exactly or `params` differ
+// from the kept surface's (Extract(after) is then the way), kCancelled.
+absl::StatusOr<extract::IsosurfaceResult> ExtractEdited(const PuFunction& before, const PuFunction& after,
+                                                        const PuEditStats& stats, const KeptSurface& kept,
+                                                        const PuExtractParams& params, core::JobContext& ctx);
 
 // A built function as bytes, kept with a job's results so that later jobs (CSG, local edits)
 // use it without refitting: the points with their normals and spacings, the fitting tree, the

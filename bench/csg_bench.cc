@@ -140,6 +140,8 @@ int main(int argc, char** argv) {
     const double seconds = Since(start);
     Report("extract one alone (pu)", seconds, alone->mesh);
     std::printf("%-28s %8.2f s\n", "fit + extract (recompute)", fit_seconds + seconds);
+    std::printf("%-28s %8.1f MiB\n", "kept surface (traced)",
+                static_cast<double>(pu::SerializeSurface(alone->mesh, alone->trace, traced).size()) / (1 << 20));
     kept = {std::move(alone->mesh), std::move(alone->trace), traced};
   }
   if (!BenchLocalEdit(*fitted[0], kept, ctx)) return 1;

@@ -71,11 +71,14 @@ absl::StatusOr<PatchJoin> PatchJoin::Prepare(const TriangleMesh& kept, const Sur
   absl::flat_hash_map<uint64_t, uint32_t> by_edge;
   for (const auto& [from, ends] : next) {
     hole_edges += static_cast<int64_t>(ends.size());
-    for (const uint32_t v : {from, ends[0]}) {
-      const uint64_t name = kept_trace.vertex_edges[v];
-      if (name == 0) continue;
-      if (const auto [it, fresh] = by_edge.emplace(name, v); !fresh && it->second != v) {
-        return Refuse("two border vertices on one lattice edge");
+    // The ends too: where the kept mesh had a border of its own, a hole edge can end there.
+    for (const uint32_t v : ends) {
+      for (const uint32_t w : {from, v}) {
+        const uint64_t name = kept_trace.vertex_edges[w];
+        if (name == 0) continue;
+        if (const auto [it, fresh] = by_edge.emplace(name, w); !fresh && it->second != w) {
+          return Refuse("two border vertices on one lattice edge");
+        }
       }
     }
   }

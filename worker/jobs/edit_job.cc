@@ -47,13 +47,8 @@ absl::StatusOr<extract::IsosurfaceResult> ExtractNearEdit(const pu::PuFunction& 
                                                           const pu::PuEditStats& edit_stats,
                                                           const pu::PuExtractParams& params, const std::string& source,
                                                           RunEnvironment& env, core::JobContext& ctx) {
-  if (!env.read_result) return absl::FailedPreconditionError("no job store");
-  auto stored = env.read_result(source, kPuSurfaceArtifact);
-  if (!stored.ok()) {
-    const absl::StatusCode code = stored.status().code();
-    if (code != absl::StatusCode::kNotFound && code != absl::StatusCode::kFailedPrecondition) return stored.status();
-    return absl::FailedPreconditionError("the source job kept no surface");
-  }
+  auto stored = ReadKeptArtifact(env, source, kPuSurfaceArtifact);
+  if (!stored.ok()) return stored.status();
   auto kept = pu::DeserializeSurface(*stored);
   stored->clear();
   if (!kept.ok()) return absl::FailedPreconditionError(kept.status().message());

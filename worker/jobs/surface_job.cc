@@ -355,15 +355,22 @@ absl::Status DrawPreview(const core::TriangleMesh& mesh, const PreviewSpec& prev
 
 }  // namespace
 
-absl::StatusOr<std::unique_ptr<pu::PuFunction>> ReadKeptPuFunction(RunEnvironment& env, const std::string& job_id) {
-  auto stored = env.read_result ? env.read_result(job_id, kPuFunctionArtifact)
+absl::StatusOr<std::string> ReadKeptArtifact(RunEnvironment& env, const std::string& job_id, std::string_view name) {
+  auto stored = env.read_result ? env.read_result(job_id, std::string(name))
                                 : absl::StatusOr<std::string>(absl::UnavailableError("no job store"));
-  if (!stored.ok()) {
-    const absl::StatusCode code = stored.status().code();
-    if (code != absl::StatusCode::kNotFound && code != absl::StatusCode::kFailedPrecondition) return stored.status();
+  if (stored.ok()) return stored;
+  const absl::StatusCode code = stored.status().code();
+  if (code != absl::StatusCode::kNotFound && code != absl::StatusCode::kFailedPrecondition) return stored.status();
+  return absl::FailedPreconditionError(stored.status().message());
+}
+
+absl::StatusOr<std::unique_ptr<pu::PuFunction>> ReadKeptPuFunction(RunEnvironment& env, const std::string& job_id) {
+  auto stored = ReadKeptArtifact(env, job_id, kPuFunctionArtifact);
+  if (stored.status().code() == absl::StatusCode::kFailedPrecondition) {
     return absl::FailedPreconditionError(core::StrCat("no kept PU function (", stored.status().message(),
                                                       "); use a succeeded pu or edit job run with keep_function=true"));
   }
+  if (!stored.ok()) return stored.status();
   return pu::DeserializePu(*stored);
 }
 

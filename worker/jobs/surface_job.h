@@ -66,6 +66,10 @@ inline constexpr char kPuFunctionArtifact[] = "function.lqpu";
 // changes only near the edit (pu::ExtractEdited).
 inline constexpr char kPuSurfaceArtifact[] = "surface.lqsf";
 
+// An artifact job `job_id` kept. Errors: kFailedPrecondition (no such job, not succeeded, or no
+// such artifact), others of the store.
+absl::StatusOr<std::string> ReadKeptArtifact(RunEnvironment& env, const std::string& job_id, std::string_view name);
+
 // The kept function of job `job_id` (csg and edit jobs read their operands through this).
 // Errors: kFailedPrecondition (no such job, not succeeded, or nothing kept, with what to do),
 // kInvalidArgument (unreadable), kUnavailable.

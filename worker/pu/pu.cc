@@ -981,8 +981,22 @@ struct ExtractionTree {
   explicit ExtractionTree(const core::Box3& root, int depth) : tree(root, depth) {}
   extract::AdaptiveOctree tree;
   std::vector<extract::OctreeCell> start;
-  int band_level = 0;
 };
+
+// Extract's finest level (from `cell_size`) and the coarsest it allows around the data.
+struct ExtractionLevels {
+  int finest = 0;
+  int band = 0;
+};
+absl::StatusOr<ExtractionLevels> LevelsFor(const PuFunction& function, const PuExtractParams& params) {
+  if (!(params.cell_size > 0) || !std::isfinite(params.cell_size)) {
+    return absl::InvalidArgumentError("cell_size must be a positive number");
+  }
+  const double target = params.cell_size * function.stats().mean_spacing;
+  if (!(target > 0)) return absl::InvalidArgumentError("the points have no spacing to size cells by");
+  const int finest = ExtractionDepth(function.stats().root_edge, target);
+  return ExtractionLevels{finest, std::max(1, finest - kCoarseExtractionLevels)};
+}
 
 // The finest extraction level comes from `cell_size`; around the data the tree is refined to at
 // least kCoarseExtractionLevels levels above it, and finer where flat triangles would stray from
@@ -993,16 +1007,12 @@ absl::StatusOr<std::unique_ptr<ExtractionTree>> BuildExtractionTree(const PuFunc
                                                                     const PuFunction::Impl& impl,
                                                                     const PuExtractParams& params,
                                                                     const core::Box3* region, core::JobContext& ctx) {
-  if (!(params.cell_size > 0) || !std::isfinite(params.cell_size)) {
-    return absl::InvalidArgumentError("cell_size must be a positive number");
-  }
-  const double target = params.cell_size * function.stats().mean_spacing;
-  if (!(target > 0)) return absl::InvalidArgumentError("the points have no spacing to size cells by");
-  const int depth = ExtractionDepth(impl.root_edge, target);
+  const auto levels = LevelsFor(function, params);
+  if (!levels.ok()) return levels.status();
+  const int depth = levels->finest, band_level = levels->band;
   auto built =
       std::make_unique<ExtractionTree>(core::Box3(impl.origin, impl.origin + Vec3d::Constant(impl.root_edge)), depth);
   extract::AdaptiveOctree& tree = built->tree;
-  built->band_level = std::max(1, depth - kCoarseExtractionLevels);
   std::vector<Vec3f> local_points;
   std::span<const Vec3f> points = impl.positions;
   if (region != nullptr) {
@@ -1011,13 +1021,13 @@ absl::StatusOr<std::unique_ptr<ExtractionTree>> BuildExtractionTree(const PuFunc
     }
     points = local_points;
   }
-  extract::SurfaceBand band = extract::MarkSurfaceBand(tree, points, built->band_level);
+  extract::SurfaceBand band = extract::MarkSurfaceBand(tree, points, band_level);
   extract::SurfaceBand fine_band = extract::MarkSurfaceBand(tree, points, depth);
   band.occupied.clear();
   const double chord_bound = params.chord_error * core::Diagonal(core::BoundingBox(impl.positions));
-  const absl::flat_hash_set<uint64_t> crease_cells = CellsNearSharpFits(impl, tree, built->band_level, depth, region);
+  const absl::flat_hash_set<uint64_t> crease_cells = CellsNearSharpFits(impl, tree, band_level, depth, region);
   LSQSURF_RETURN_IF_ERROR(extract::RefineSurfaceBand(
-      tree, band, built->band_level, fine_band,
+      tree, band, band_level, fine_band,
       [&](const extract::OctreeCell& c) {
         if (crease_cells.contains(extract::CellKey(c))) return true;
         return extract::EstimateChordError(function, tree.CellCentre(c), tree.CellEdge(c.level)) > chord_bound;
@@ -1145,10 +1155,10 @@ absl::StatusOr<extract::IsosurfaceResult> ExtractEdited(const PuFunction& before
     changed.extend(ball.centre - Vec3d::Constant(ball.radius));
     changed.extend(ball.centre + Vec3d::Constant(ball.radius));
   }
-  const double target = params.cell_size * before.stats().mean_spacing;
-  const int band_level = std::max(1, ExtractionDepth(b.root_edge, target) - kCoarseExtractionLevels);
+  const auto levels = LevelsFor(before, params);
+  if (!levels.ok()) return levels.status();
   // Balancing and the band's neighbours reach about two coarse cells; four keep the tree exact.
-  const Vec3d margin = Vec3d::Constant(4 * std::ldexp(b.root_edge, -band_level));
+  const Vec3d margin = Vec3d::Constant(4 * std::ldexp(b.root_edge, -levels->band));
   const core::Box3 region(changed.min() - margin, changed.max() + margin);
   core::SubContext build_ctx(ctx, "building the J1a tree near the edit", 0.0, 0.2);
   auto built = BuildExtractionTree(before, b, params, &region, build_ctx);

@@ -55,7 +55,7 @@ absl::StatusOr<csg::Operand> AsOperand(const pu::PuFunction& function) {
 
 // A local edit of a ball holding about 1 % of the points: the edit of the fits, the local
 // re-extraction and, for comparison, the whole extraction of the edited function.
-bool BenchLocalEdit(const pu::PuFunction& function, const pu::KeptSurface& kept, core::LocalJobContext& ctx) {
+bool BenchLocalEdit(const pu::PuFunction& function, pu::KeptSurface kept, core::LocalJobContext& ctx) {
   // A local edit of a ball holding about 1 % of the points, against fitting and extracting anew.
   const core::Vec3f& p = function.points()[function.points().size() / 2];
   std::vector<float> d2;
@@ -75,7 +75,7 @@ bool BenchLocalEdit(const pu::PuFunction& function, const pu::KeptSurface& kept,
   std::printf("%-28s %8.2f s (%lld fits replaced)\n", "edit 1 % ball: fits", edit_seconds,
               static_cast<long long>(stats.fits_replaced));
   const auto local_start = Clock::now();
-  auto local = pu::ExtractEdited(function, **edited, stats, kept, pu::PuExtractParams{}, ctx);
+  auto local = pu::ExtractEdited(function, **edited, stats, std::move(kept), pu::PuExtractParams{}, ctx);
   if (!local.ok()) {
     std::fprintf(stderr, "%s\n", local.status().ToString().c_str());
     return false;
@@ -107,6 +107,8 @@ int main(int argc, char** argv) {
   app.add_option("--turn", turn, "second operand's turn about y, degrees")->capture_default_str();
   app.add_option("--crease-angle", crease_angle, "csg crease_angle")->capture_default_str();
   app.add_option("--relax-steps", relax_steps, "csg relax_steps")->capture_default_str();
+  bool edit_only = false;
+  app.add_flag("--edit-only", edit_only, "time the local edit only, not the CSG cases");
   CLI11_PARSE(app, argc, argv);
 
   auto truth = io::ReadMeshFile((std::filesystem::path(data_dir) / (model + ".obj")).string());
@@ -120,6 +122,7 @@ int main(int argc, char** argv) {
   std::vector<std::unique_ptr<pu::PuFunction>> fitted;
   double fit_seconds = 0;
   for (uint64_t seed : {1234u, 4321u}) {
+    if (edit_only && !fitted.empty()) break;
     const auto start = Clock::now();
     auto f = pu::BuildPu(core::SampleCloud(*truth, points, seed), pu::PuParams{}, ctx);
     if (!f.ok()) {
@@ -144,7 +147,8 @@ int main(int argc, char** argv) {
                 static_cast<double>(pu::SerializeSurface(alone->mesh, alone->trace, traced).size()) / (1 << 20));
     kept = {std::move(alone->mesh), std::move(alone->trace), traced};
   }
-  if (!BenchLocalEdit(*fitted[0], kept, ctx)) return 1;
+  if (!BenchLocalEdit(*fitted[0], std::move(kept), ctx)) return 1;
+  if (edit_only) return 0;
   std::vector<csg::Operand> operands;
   for (const auto& f : fitted) {
     auto operand = AsOperand(*f);

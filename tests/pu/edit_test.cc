@@ -46,6 +46,23 @@ int CountChanged(const PuFunction& a, const PuFunction& b, const Vec3d& centre, 
   return changed;
 }
 
+// An edit updates the support index only where it changed; the function read back from its
+// bytes has the index built anew. The two must evaluate alike everywhere, to the last bit.
+void ExpectSameAsRebuiltIndex(const PuFunction& edited) {
+  auto rebuilt = DeserializePu(SerializePu(edited));
+  ASSERT_TRUE(rebuilt.ok()) << rebuilt.status();
+  std::mt19937_64 rng(5);
+  std::uniform_real_distribution<double> u(-1.4, 1.4);
+  int differ = 0;
+  for (int i = 0; i < 20'000; ++i) {
+    const Vec3d x(u(rng), u(rng), u(rng) * 0.35);
+    const core::FieldGradient a = edited.ValueAndGradient(x), b = (*rebuilt)->ValueAndGradient(x);
+    differ += !((a.value == b.value || (std::isnan(a.value) && std::isnan(b.value))) && a.gradient == b.gradient &&
+                a.defined == b.defined);
+  }
+  EXPECT_EQ(differ, 0);
+}
+
 core::MeshTopology Topology(const PuFunction& f, core::TriangleMesh* mesh = nullptr) {
   core::LocalJobContext ctx;
   auto r = Extract(f, PuExtractParams{}, ctx);
@@ -72,6 +89,7 @@ TEST(PuEdit, LoweringTheDegreeInABallChangesNothingOutsideIt) {
   for (int64_t n : s.fits_per_degree) fits += n;
   EXPECT_EQ(stats.fits_after, fits);
   EXPECT_GT(CountChanged(*f.base, **edited, edit.centre, stats.reach), 100);
+  ExpectSameAsRebuiltIndex(**edited);
   // Inside the ball every fit is now planar, and the surface is still one closed torus.
   core::TriangleMesh mesh;
   const core::MeshTopology t = Topology(**edited, &mesh);
@@ -105,6 +123,14 @@ TEST(PuEdit, RefittingSplitsCellsOnlyInTheBall) {
   EXPECT_GT(stats.fits_after, fits);
   EXPECT_GT(CountChanged(*f.base, **edited, edit.centre, stats.reach), 0);
   EXPECT_TRUE(Topology(**edited).watertight());
+  ExpectSameAsRebuiltIndex(**edited);
+  // A second edit overlapping the first, of the edited function (its split cells included).
+  edit.action = PuEditAction::kSetDegree;
+  edit.degree = 2;
+  edit.centre = Vec3d(0.05, 0.75, 0);
+  auto again = EditPu(**edited, edit, f.ctx);
+  ASSERT_TRUE(again.ok()) << again.status();
+  ExpectSameAsRebuiltIndex(**again);
 }
 
 TEST(PuEdit, RemovingOpensAHoleWhereTheBallWas) {
@@ -118,6 +144,7 @@ TEST(PuEdit, RemovingOpensAHoleWhereTheBallWas) {
   auto edited = EditPu(*f.base, edit, f.ctx, &stats);
   ASSERT_TRUE(edited.ok()) << edited.status();
   EXPECT_GT(stats.points_removed, 100);
+  ExpectSameAsRebuiltIndex(**edited);
   core::TriangleMesh mesh;
   const core::MeshTopology t = Topology(**edited, &mesh);
   EXPECT_GT(t.boundary_edges, 0);  // The hole.

@@ -51,10 +51,14 @@ bool AdaptiveOctree::IsSubdivided(const OctreeCell& c) const {
 }
 
 const OctreeCell* AdaptiveOctree::LeafContaining(const OctreeCell& c) const {
+  // Children are made eight at a time, so the first cell that exists on the way up is the leaf
+  // holding `c`, or `c` itself subdivided (then no leaf holds it: return at once, not at the root).
   for (int l = c.level; l >= 0; --l) {
     const int shift = c.level - l;
-    auto it = leaves_.find(CellKey({l, c.x >> shift, c.y >> shift, c.z >> shift}));
-    if (it != leaves_.end()) return &it->second;
+    const uint64_t key = CellKey({l, c.x >> shift, c.y >> shift, c.z >> shift});
+    const auto it = cells_.find(key);
+    if (it == cells_.end()) continue;
+    return it->second ? &leaves_.find(key)->second : nullptr;
   }
   return nullptr;
 }
@@ -91,23 +95,31 @@ void AdaptiveOctree::Balance() {
   while (!work.empty()) {
     const OctreeCell c = work.back();
     work.pop_back();
-    if (!IsLeaf(c) || c.level < 2) continue;
-    for (int dz = -1; dz <= 1; ++dz)
-      for (int dy = -1; dy <= 1; ++dy)
-        for (int dx = -1; dx <= 1; ++dx) {
-          const int64_t x = int64_t{c.x} + dx, y = int64_t{c.y} + dy, z = int64_t{c.z} + dz;
-          if ((dx | dy | dz) == 0 || !InRange(c.level, x, y, z)) continue;
-          const OctreeCell* n =
-              LeafContaining({c.level, static_cast<uint32_t>(x), static_cast<uint32_t>(y), static_cast<uint32_t>(z)});
-          if (n == nullptr || n->level >= c.level - 1) continue;
-          const OctreeCell coarse = *n;
-          Split(coarse);
-          for (uint32_t i = 0; i < 8; ++i) {
-            work.push_back({coarse.level + 1, 2 * coarse.x + (i & 1), 2 * coarse.y + ((i >> 1) & 1),
-                            2 * coarse.z + ((i >> 2) & 1)});
-          }
-          work.push_back(c);  // Its other neighbours may still be too coarse.
-        }
+    if (c.level < 2 || !IsLeaf(c)) continue;
+    // The 26 neighbours of `c` lie in the 2×2×2 block of cells one level up that holds its
+    // parent: a neighbour's leaf is too coarse exactly where that block's cell does not exist.
+    const int up = c.level - 1;
+    const std::array<uint32_t, 3> parent = {c.x >> 1, c.y >> 1, c.z >> 1};
+    const std::array<uint32_t, 3> odd = {c.x & 1, c.y & 1, c.z & 1};
+    for (uint32_t corner = 1; corner < 8; ++corner) {
+      std::array<int64_t, 3> q{};
+      for (int axis = 0; axis < 3; ++axis) {
+        const int64_t step = (corner >> axis) & 1 ? (odd[axis] ? 1 : -1) : 0;
+        q[axis] = int64_t{parent[axis]} + step;
+      }
+      if (!InRange(up, q[0], q[1], q[2])) continue;
+      const OctreeCell block{up, static_cast<uint32_t>(q[0]), static_cast<uint32_t>(q[1]), static_cast<uint32_t>(q[2])};
+      if (cells_.contains(CellKey(block))) continue;
+      const OctreeCell* n = LeafContaining(block);
+      if (n == nullptr) continue;
+      const OctreeCell coarse = *n;
+      Split(coarse);
+      for (uint32_t i = 0; i < 8; ++i) {
+        work.push_back(
+            {coarse.level + 1, 2 * coarse.x + (i & 1), 2 * coarse.y + ((i >> 1) & 1), 2 * coarse.z + ((i >> 2) & 1)});
+      }
+      work.push_back(c);  // Its other neighbours may still be too coarse.
+    }
   }
 }
 

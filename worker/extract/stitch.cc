@@ -171,42 +171,48 @@ absl::StatusOr<PatchJoin> PatchJoin::Prepare(const TriangleMesh& kept, const Sur
   return join;
 }
 
-TriangleMesh PatchJoin::Merge(const TriangleMesh& kept, const SurfaceTrace& kept_trace, const IsosurfaceResult& patch,
+TriangleMesh PatchJoin::Merge(TriangleMesh kept, SurfaceTrace kept_trace, const IsosurfaceResult& patch,
                               SurfaceTrace& trace) const {
   const TriangleMesh& pm = patch.mesh;
-  TriangleMesh out;
-  const bool normals = !kept.normals.empty() && !pm.normals.empty();
-  trace = {};
-  out.vertex_attributes.reserve(kept.vertex_attributes.size());
+  TriangleMesh out = std::move(kept);
+  trace = std::move(kept_trace);
+  const bool normals = !out.normals.empty() && !pm.normals.empty();
+  if (!normals) out.normals.clear();
+  // The kept vertices that remaining faces use keep their order, moved down in place.
+  std::vector<char> used(out.vertices.size(), 0);
+  for (size_t f = 0; f < out.faces.size(); ++f) {
+    if (!removed_[f]) used[out.faces[f][0]] = used[out.faces[f][1]] = used[out.faces[f][2]] = 1;
+  }
+  std::vector<uint32_t> from_kept(out.vertices.size(), UINT32_MAX);
+  uint32_t count = 0;
+  for (size_t v = 0; v < out.vertices.size(); ++v) {
+    if (!used[v]) continue;
+    out.vertices[count] = out.vertices[v];
+    if (normals) out.normals[count] = out.normals[v];
+    trace.vertex_edges[count] = trace.vertex_edges[v];
+    for (core::ScalarAttribute& a : out.vertex_attributes) a.values[count] = a.values[v];
+    from_kept[v] = count++;
+  }
+  out.vertices.resize(count);
+  if (normals) out.normals.resize(count);
+  trace.vertex_edges.resize(count);
+  for (core::ScalarAttribute& a : out.vertex_attributes) a.values.resize(count);
+  size_t faces = 0;
+  for (size_t f = 0; f < out.faces.size(); ++f) {
+    if (removed_[f]) continue;
+    for (uint32_t k = 0; k < 3; ++k) out.faces[faces][k] = from_kept[out.faces[f][k]];
+    trace.face_cells[faces++] = trace.face_cells[f];
+  }
+  out.faces.resize(faces);
+  trace.face_cells.resize(faces);
+  // The patch's vertices: the seam's are kept ones, the rest are appended.
   std::vector<const core::ScalarAttribute*> patch_attributes;
-  for (const core::ScalarAttribute& a : kept.vertex_attributes) {
-    out.vertex_attributes.push_back({a.name, {}});
+  for (const core::ScalarAttribute& a : out.vertex_attributes) {
     const core::ScalarAttribute* match = nullptr;
     for (const core::ScalarAttribute& b : pm.vertex_attributes) {
       if (b.name == a.name) match = &b;
     }
     patch_attributes.push_back(match);
-  }
-  auto add_vertex = [&](const Vec3f& p, const Vec3f* n, uint64_t edge, auto attribute) {
-    out.vertices.push_back(p);
-    if (normals) out.normals.push_back(*n);
-    trace.vertex_edges.push_back(edge);
-    for (size_t i = 0; i < out.vertex_attributes.size(); ++i) out.vertex_attributes[i].values.push_back(attribute(i));
-    return static_cast<uint32_t>(out.vertices.size() - 1);
-  };
-  std::vector<uint32_t> from_kept(kept.vertices.size(), UINT32_MAX);
-  for (size_t f = 0; f < kept.faces.size(); ++f) {
-    if (removed_[f]) continue;
-    Triangle t = kept.faces[f];
-    for (uint32_t& v : t) {
-      if (from_kept[v] == UINT32_MAX) {
-        from_kept[v] = add_vertex(kept.vertices[v], normals ? &kept.normals[v] : nullptr, kept_trace.vertex_edges[v],
-                                  [&](size_t i) { return kept.vertex_attributes[i].values[v]; });
-      }
-      v = from_kept[v];
-    }
-    out.faces.push_back(t);
-    trace.face_cells.push_back(kept_trace.face_cells[f]);
   }
   std::vector<uint32_t> from_patch(pm.vertices.size(), UINT32_MAX);
   for (size_t v = 0; v < pm.vertices.size(); ++v) {
@@ -215,8 +221,13 @@ TriangleMesh PatchJoin::Merge(const TriangleMesh& kept, const SurfaceTrace& kept
       from_patch[v] = from_kept[k];
       continue;
     }
-    from_patch[v] = add_vertex(pm.vertices[v], normals ? &pm.normals[v] : nullptr, patch.trace.vertex_edges[v],
-                               [&](size_t i) { return patch_attributes[i] ? patch_attributes[i]->values[v] : 0.0f; });
+    from_patch[v] = static_cast<uint32_t>(out.vertices.size());
+    out.vertices.push_back(pm.vertices[v]);
+    if (normals) out.normals.push_back(pm.normals[v]);
+    trace.vertex_edges.push_back(patch.trace.vertex_edges[v]);
+    for (size_t i = 0; i < out.vertex_attributes.size(); ++i) {
+      out.vertex_attributes[i].values.push_back(patch_attributes[i] ? patch_attributes[i]->values[v] : 0.0f);
+    }
   }
   for (size_t f = 0; f < pm.faces.size(); ++f) {
     Triangle t = pm.faces[f];

@@ -36,9 +36,10 @@ class PatchJoin {
   int64_t seam_edges() const { return seam_edges_; }
 
   // The kept mesh without the replaced faces, joined to the finished `patch` (creases and
-  // relaxation may have added vertices after the seam's; the vertex attributes are joined by name
-  // and must exist on both sides). Fills `trace` for the result.
-  TriangleMesh Merge(const TriangleMesh& kept, const SurfaceTrace& kept_trace, const IsosurfaceResult& patch,
+  // relaxation may have added vertices after the seam's; the vertex attributes are joined by name,
+  // a kept one the patch lacks reads 0 there). Fills `trace` for the result. Works in place on
+  // `kept`, the mesh Prepare saw (move it in; the remaining kept vertices keep their order).
+  TriangleMesh Merge(TriangleMesh kept, SurfaceTrace kept_trace, const IsosurfaceResult& patch,
                      SurfaceTrace& trace) const;
 
  private:

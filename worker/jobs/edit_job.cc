@@ -52,7 +52,7 @@ absl::StatusOr<extract::IsosurfaceResult> ExtractNearEdit(const pu::PuFunction& 
   auto kept = pu::DeserializeSurface(*stored);
   stored->clear();
   if (!kept.ok()) return absl::FailedPreconditionError(kept.status().message());
-  return pu::ExtractEdited(before, after, edit_stats, *kept, params, ctx);
+  return pu::ExtractEdited(before, after, edit_stats, *std::move(kept), params, ctx);
 }
 
 class EditKind final : public JobKind {

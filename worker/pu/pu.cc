@@ -106,12 +106,18 @@ double Theta(double s2) {
 
 }  // namespace
 
-struct PuFunction::Impl {
+// The input points and what derives from them alone. An edit that keeps the points (set_degree,
+// refit) shares them with the function it edits, so it rebuilds no point index.
+struct PointData {
   std::vector<Vec3f> positions;
   std::vector<Vec3f> normals;        // Kept for refits of local edits.
-  PuParams params;                   // The effective parameters of the fits (after the noise adjustment).
   std::vector<float> local_spacing;  // Per point: distance to its kSpacingNeighbors-th neighbour.
   std::unique_ptr<core::KdTree> kd_tree;
+};
+
+struct PuFunction::Impl {
+  std::shared_ptr<PointData> cloud = std::make_shared<PointData>();  // Not changed once built.
+  PuParams params;  // The effective parameters of the fits (after the noise adjustment).
   Vec3d origin = Vec3d::Zero();
   double root_edge = 1;
   int deepest_level = 0;
@@ -192,8 +198,8 @@ struct PuFunction::Impl {
       out.gradient = (sum_grad_value * sum_theta - sum_value * sum_grad_theta) / (sum_theta * sum_theta);
     out.defined = true;
     if (coverage_check && decide_defined) {
-      const core::Neighbor nearest = kd_tree->Nearest(x.cast<float>());
-      const double reach = coverage_factor * local_spacing[nearest.index];
+      const core::Neighbor nearest = cloud->kd_tree->Nearest(x.cast<float>());
+      const double reach = coverage_factor * cloud->local_spacing[nearest.index];
       out.defined = nearest.distance2 <= reach * reach;
     }
     return out;
@@ -258,7 +264,7 @@ void FitQuadric(const BuildContext& bc, std::span<const core::Neighbor> points, 
   };
   for (size_t j = 0; j < points.size(); ++j) {
     if (weights[j] <= 0) continue;
-    const Vec3d p = bc.impl.positions[points[j].index].cast<double>();
+    const Vec3d p = bc.impl.cloud->positions[points[j].index].cast<double>();
     const Vec3d n = bc.normals[points[j].index].cast<double>();
     const Vec3d y = (p - fit.origin) / fit.scale;
     add_row(y, 0, weights[j]);
@@ -285,7 +291,7 @@ void FitQuadric(const BuildContext& bc, std::span<const core::Neighbor> points, 
     for (size_t j = 0; j < points.size(); ++j) {
       if (weights[j] <= 0) continue;
       Vec3d gradient;
-      const double value = fit.Evaluate(bc.impl.positions[points[j].index].cast<double>(), &gradient);
+      const double value = fit.Evaluate(bc.impl.cloud->positions[points[j].index].cast<double>(), &gradient);
       worst = std::max(worst, std::abs(value) / std::max(gradient.norm(), 1e-300));
     }
     return worst;
@@ -400,7 +406,7 @@ std::optional<SharpOutcome> TrySharp(const BuildContext& bc, double fit_radius, 
   s.points.resize(n);
   s.normals.resize(n);
   for (size_t j = 0; j < n; ++j) {
-    s.points[j] = bc.impl.positions[s.neighbors[j].index].cast<double>();
+    s.points[j] = bc.impl.cloud->positions[s.neighbors[j].index].cast<double>();
     s.normals[j] = bc.normals[s.neighbors[j].index].cast<double>();
   }
   std::optional<SharpFit> fit = FitSharp(s.points, s.normals, s.weight, fit_radius, bc.sharp, s.fitter);
@@ -445,22 +451,22 @@ CellOutcome ProcessCell(const BuildContext& bc, const Node& node, std::span<uint
   const double support = params.support_factor * kSqrt3 * impl.Edge(node.level);
   auto split = [&] {
     out.split = true;
-    PartitionOctants(inside, impl.positions, centre, out.child_ranges, begin);
+    PartitionOctants(inside, impl.cloud->positions, centre, out.child_ranges, begin);
     return out;
   };
   if (inside.size() > kMaxPointsToFit && node.level < params.max_depth) return split();
 
   const Vec3f query = centre.cast<float>();
-  impl.kd_tree->Radius(query, static_cast<float>(support), s.neighbors);
+  impl.cloud->kd_tree->Radius(query, static_cast<float>(support), s.neighbors);
   // Splitting helps only while the support holds enough points; past that the fitting ball
   // has to grow, and smaller cells would see the same points.
   const bool can_split = node.level < params.max_depth && s.neighbors.size() >= static_cast<size_t>(params.min_points);
   double fit_radius = support;
   if (s.neighbors.size() < static_cast<size_t>(params.min_points)) {
-    impl.kd_tree->Knn(query, static_cast<size_t>(params.min_points), s.neighbors);
+    impl.cloud->kd_tree->Knn(query, static_cast<size_t>(params.min_points), s.neighbors);
     fit_radius =
         std::min(kMaxRadiusGrowth * support, 1.05 * std::sqrt(static_cast<double>(s.neighbors.back().distance2)));
-    impl.kd_tree->Radius(query, static_cast<float>(fit_radius), s.neighbors);
+    impl.cloud->kd_tree->Radius(query, static_cast<float>(fit_radius), s.neighbors);
   }
   const size_t n = s.neighbors.size();
   s.weight.resize(n);
@@ -474,7 +480,7 @@ CellOutcome ProcessCell(const BuildContext& bc, const Node& node, std::span<uint
     s.in_support[j] = d2 <= support * support;
     weighted += s.weight[j] > 0;
     weight_sum += s.weight[j];
-    centroid += s.weight[j] * impl.positions[s.neighbors[j].index].cast<double>();
+    centroid += s.weight[j] * impl.cloud->positions[s.neighbors[j].index].cast<double>();
     normal_sum += s.weight[j] * bc.normals[s.neighbors[j].index].cast<double>();
   }
   if (!(weight_sum > 0)) return out;
@@ -510,7 +516,7 @@ CellOutcome ProcessCell(const BuildContext& bc, const Node& node, std::span<uint
   const double uc = fit.tangent_u.dot(centre_offset) / fit.scale, vc = fit.tangent_v.dot(centre_offset) / fit.scale;
   unsigned sectors = 0;
   for (size_t j = 0; j < n; ++j) {
-    const Vec3d d = impl.positions[s.neighbors[j].index].cast<double>() - fit.origin;
+    const Vec3d d = impl.cloud->positions[s.neighbors[j].index].cast<double>() - fit.origin;
     s.u[j] = fit.tangent_u.dot(d) / fit.scale;
     s.v[j] = fit.tangent_v.dot(d) / fit.scale;
     s.w[j] = fit.normal.dot(d);
@@ -566,7 +572,7 @@ struct NoiseEstimate {
 NoiseEstimate EstimateNoise(const PuFunction::Impl& impl, std::span<const Vec3f> normals, double known_sigma) {
   NoiseEstimate estimate;
   if (known_sigma >= 0) estimate.sigma = known_sigma;
-  const size_t n = impl.positions.size();
+  const size_t n = impl.cloud->positions.size();
   if (n < kNoiseNeighbors) return estimate;
   const size_t stride = std::max<size_t>(1, n / kNoiseSamples);
   const size_t samples = (n + stride - 1) / stride;
@@ -583,9 +589,9 @@ NoiseEstimate EstimateNoise(const PuFunction::Impl& impl, std::span<const Vec3f>
       std::vector<double> u, v, w, weight;
       OrthogonalFitter fitter;
       for (size_t i = b; i < e; ++i) {
-        const Vec3f& p = impl.positions[i * stride];
-        impl.kd_tree->Knn(p, kNoiseNeighbors, near);
-        if (ball * ball > near.back().distance2) impl.kd_tree->Radius(p, static_cast<float>(ball), near);
+        const Vec3f& p = impl.cloud->positions[i * stride];
+        impl.cloud->kd_tree->Knn(p, kNoiseNeighbors, near);
+        if (ball * ball > near.back().distance2) impl.cloud->kd_tree->Radius(p, static_cast<float>(ball), near);
         counts[i] = static_cast<double>(near.size());
         if (known_sigma >= 0) continue;
         const size_t step = std::max<size_t>(1, near.size() / kNoiseMaxFitPoints);
@@ -601,7 +607,7 @@ NoiseEstimate EstimateNoise(const PuFunction::Impl& impl, std::span<const Vec3f>
         const Vec3d tu = normal.unitOrthogonal(), tv = normal.cross(tu);
         u.clear(), v.clear(), w.clear();
         for (size_t j = 0; j < near.size(); j += step) {
-          const Vec3d d = (impl.positions[near[j].index] - p).cast<double>();
+          const Vec3d d = (impl.cloud->positions[near[j].index] - p).cast<double>();
           u.push_back(tu.dot(d) / radius), v.push_back(tv.dot(d) / radius), w.push_back(normal.dot(d));
         }
         weight.assign(u.size(), 1.0);
@@ -713,18 +719,18 @@ namespace {
 // the local spacing (kept for evaluation) and the nearest distance (averaged for the stats).
 absl::Status MeasureSpacing(PuFunction::Impl& impl, bool coverage_check, PuStats& stats, core::JobContext& ctx) {
   if (!coverage_check) {
-    stats.mean_spacing = core::MeanNearestNeighborDistance(*impl.kd_tree);
+    stats.mean_spacing = core::MeanNearestNeighborDistance(*impl.cloud->kd_tree);
     return absl::OkStatus();
   }
-  impl.local_spacing.resize(impl.positions.size());
-  std::vector<float> nearest(impl.positions.size());
+  impl.cloud->local_spacing.resize(impl.cloud->positions.size());
+  std::vector<float> nearest(impl.cloud->positions.size());
   LSQSURF_RETURN_IF_ERROR(core::ParallelFor(
-      impl.positions.size(), 2048,
+      impl.cloud->positions.size(), 2048,
       [&](size_t b, size_t e) {
         std::vector<core::Neighbor> knn;
         for (size_t i = b; i < e; ++i) {
-          impl.kd_tree->Knn(impl.positions[i], kSpacingNeighbors + 1, knn);
-          impl.local_spacing[i] = std::sqrt(knn.back().distance2);
+          impl.cloud->kd_tree->Knn(impl.cloud->positions[i], kSpacingNeighbors + 1, knn);
+          impl.cloud->local_spacing[i] = std::sqrt(knn.back().distance2);
           nearest[i] = std::sqrt(knn[1].distance2);
         }
       },
@@ -832,26 +838,33 @@ absl::Status GrowFittingTree(const BuildContext& bc, PuFunction::Impl& impl, siz
   return GrowSubtrees(bc, impl, order, ranges, {0}, max_depth, stats, ctx);
 }
 
+// Whether a fit's support meets a node's cube: the one test behind the influence lists.
+bool SupportMeetsCube(const PuFunction::Impl& impl, const LocalFit& fit, const Node& n) {
+  const Vec3d lo = impl.origin + Vec3d(n.x, n.y, n.z) * impl.Edge(n.level);
+  const Vec3d hi = lo + Vec3d::Constant(impl.Edge(n.level));
+  const Vec3d nearest = fit.centre.cwiseMax(lo).cwiseMin(hi);
+  return (nearest - fit.centre).squaredNorm() < fit.support_radius * fit.support_radius;
+}
+
+// Calls emit(leaf) for every leaf of the tree whose cube the fit's support meets.
+template <typename Emit>
+void ForEachLeafInSupport(const PuFunction::Impl& impl, const LocalFit& fit, Emit&& emit) {
+  std::vector<int32_t> stack{0};
+  while (!stack.empty()) {
+    const int32_t id = stack.back();
+    const Node& n = impl.nodes[static_cast<size_t>(id)];
+    stack.pop_back();
+    if (!SupportMeetsCube(impl, fit, n)) continue;
+    if (n.first_child < 0) {
+      emit(id);
+    } else {
+      for (int k = 0; k < 8; ++k) stack.push_back(n.first_child + k);
+    }
+  }
+}
+
 // Leaf → fits whose support meets it, so that an evaluation visits one short list.
 absl::Status IndexInfluence(PuFunction::Impl& impl, core::JobContext& ctx) {
-  auto for_each_leaf_in_ball = [&](const LocalFit& fit, auto&& emit) {
-    std::vector<int32_t> stack{0};
-    const double r2 = fit.support_radius * fit.support_radius;
-    while (!stack.empty()) {
-      const Node& n = impl.nodes[static_cast<size_t>(stack.back())];
-      const int32_t id = stack.back();
-      stack.pop_back();
-      const Vec3d lo = impl.origin + Vec3d(n.x, n.y, n.z) * impl.Edge(n.level);
-      const Vec3d hi = lo + Vec3d::Constant(impl.Edge(n.level));
-      const Vec3d nearest = fit.centre.cwiseMax(lo).cwiseMin(hi);
-      if ((nearest - fit.centre).squaredNorm() >= r2) continue;
-      if (n.first_child < 0) {
-        emit(id);
-      } else {
-        for (int k = 0; k < 8; ++k) stack.push_back(n.first_child + k);
-      }
-    }
-  };
   std::vector<uint32_t> leaf_counts(impl.nodes.size() + 1, 0);
   std::vector<std::vector<std::pair<uint32_t, uint32_t>>> pairs_per_chunk;
   std::mutex chunks_mutex;
@@ -860,7 +873,7 @@ absl::Status IndexInfluence(PuFunction::Impl& impl, core::JobContext& ctx) {
       [&](size_t b, size_t e) {
         std::vector<std::pair<uint32_t, uint32_t>> pairs;
         for (size_t f = b; f < e; ++f) {
-          for_each_leaf_in_ball(impl.fits[f], [&](int32_t leaf) {
+          ForEachLeafInSupport(impl, impl.fits[f], [&](int32_t leaf) {
             pairs.emplace_back(static_cast<uint32_t>(leaf), static_cast<uint32_t>(f));
           });
         }
@@ -890,6 +903,103 @@ absl::Status IndexInfluence(PuFunction::Impl& impl, core::JobContext& ctx) {
   return absl::OkStatus();
 }
 
+// IndexInfluence for an edit, without visiting every fit again. `after` is `before` with the
+// fits of the `touched` leaves replaced by `new_fits` (indices in `after`; a touched leaf may
+// have been split) and the fits renumbered by `renumber` (before's index → after's; empty when
+// unchanged). An unchanged fit meets the same cubes as before, so only the leaves that a
+// replaced or a new support meets, and the leaves new to the tree, get their lists rebuilt; the
+// rest are renumbered. The result equals IndexInfluence(after) entry for entry.
+absl::Status UpdateInfluence(const PuFunction::Impl& before, PuFunction::Impl& after, std::span<const int32_t> touched,
+                             std::span<const int32_t> new_fits, std::span<const int32_t> renumber,
+                             core::JobContext& ctx) {
+  const size_t old_nodes = before.nodes.size(), nodes = after.nodes.size();
+  auto is_leaf = [&](size_t node) { return after.nodes[node].first_child < 0; };
+  auto to_after = [&](uint32_t fit) { return renumber.empty() ? static_cast<int32_t>(fit) : renumber[fit]; };
+  std::vector<char> replaced(before.fits.size(), 0);
+  for (int32_t t : touched) replaced[static_cast<size_t>(before.nodes[static_cast<size_t>(t)].fit)] = 1;
+  // Rebuilt lists: rebuilt[slot[leaf]]; `source[leaf]`, the before-leaf whose list it starts from.
+  std::vector<int32_t> slot(nodes, -1), source(nodes, -1);
+  std::vector<int32_t> rebuilt_leaves;
+  auto mark = [&](int32_t leaf, int32_t from) {
+    if (slot[static_cast<size_t>(leaf)] >= 0) return;
+    slot[static_cast<size_t>(leaf)] = static_cast<int32_t>(rebuilt_leaves.size());
+    source[static_cast<size_t>(leaf)] = from;
+    rebuilt_leaves.push_back(leaf);
+  };
+  for (int32_t t : touched) {  // Leaves new to the tree start from the split leaf's list.
+    std::vector<int32_t> stack{t};
+    while (!stack.empty()) {
+      const int32_t id = stack.back();
+      stack.pop_back();
+      const Node& n = after.nodes[static_cast<size_t>(id)];
+      if (n.first_child < 0) {
+        mark(id, t);
+      } else {
+        for (int32_t k = 0; k < 8; ++k) stack.push_back(n.first_child + k);
+      }
+    }
+  }
+  for (int32_t t : touched) {
+    ForEachLeafInSupport(before, before.fits[static_cast<size_t>(before.nodes[static_cast<size_t>(t)].fit)],
+                         [&](int32_t leaf) {
+                           if (is_leaf(static_cast<size_t>(leaf))) mark(leaf, leaf);
+                         });
+  }
+  std::vector<std::pair<int32_t, int32_t>> added;  // (leaf, new fit)
+  for (int32_t f : new_fits) {
+    ForEachLeafInSupport(after, after.fits[static_cast<size_t>(f)], [&](int32_t leaf) {
+      mark(leaf, leaf < static_cast<int32_t>(old_nodes) ? leaf : -1);
+      added.emplace_back(leaf, f);
+    });
+  }
+  std::vector<std::vector<uint32_t>> rebuilt(rebuilt_leaves.size());
+  for (size_t i = 0; i < rebuilt_leaves.size(); ++i) {
+    const auto leaf = static_cast<size_t>(rebuilt_leaves[i]);
+    const int32_t from = source[leaf];
+    if (from < 0) continue;  // A new leaf only new fits reach (its list starts from its split leaf's).
+    const bool new_leaf = leaf >= old_nodes;
+    for (uint32_t k = before.influence_offsets[static_cast<size_t>(from)];
+         k < before.influence_offsets[static_cast<size_t>(from) + 1]; ++k) {
+      const uint32_t fit = before.influence[k];
+      if (replaced[fit]) continue;
+      const int32_t now = to_after(fit);
+      if (new_leaf && !SupportMeetsCube(after, after.fits[static_cast<size_t>(now)], after.nodes[leaf])) continue;
+      rebuilt[i].push_back(static_cast<uint32_t>(now));
+    }
+  }
+  for (const auto& [leaf, fit] : added)
+    rebuilt[static_cast<size_t>(slot[static_cast<size_t>(leaf)])].push_back(static_cast<uint32_t>(fit));
+  for (std::vector<uint32_t>& list : rebuilt) std::sort(list.begin(), list.end());
+  std::vector<uint32_t>& offsets = after.influence_offsets;
+  offsets.assign(nodes + 1, 0);
+  for (size_t node = 0; node < nodes; ++node) {
+    uint32_t count = 0;
+    if (slot[node] >= 0) {
+      count = static_cast<uint32_t>(rebuilt[static_cast<size_t>(slot[node])].size());
+    } else if (node < old_nodes && is_leaf(node)) {
+      count = before.influence_offsets[node + 1] - before.influence_offsets[node];
+    }
+    offsets[node + 1] = offsets[node] + count;
+  }
+  after.influence.resize(offsets.back());
+  return core::ParallelFor(
+      nodes, 4096,
+      [&](size_t b, size_t e) {
+        for (size_t node = b; node < e; ++node) {
+          uint32_t* out = after.influence.data() + offsets[node];
+          if (slot[node] >= 0) {
+            const std::vector<uint32_t>& list = rebuilt[static_cast<size_t>(slot[node])];
+            std::copy(list.begin(), list.end(), out);
+          } else if (offsets[node + 1] > offsets[node]) {
+            for (uint32_t k = before.influence_offsets[node]; k < before.influence_offsets[node + 1]; ++k) {
+              *out++ = static_cast<uint32_t>(to_after(before.influence[k]));
+            }
+          }
+        }
+      },
+      &ctx);
+}
+
 }  // namespace
 
 absl::StatusOr<std::unique_ptr<PuFunction>> BuildPu(const core::PointCloud& cloud, const PuParams& params,
@@ -905,27 +1015,27 @@ absl::StatusOr<std::unique_ptr<PuFunction>> BuildPu(const core::PointCloud& clou
   // Morton (Z-curve) order: points close in space are close in memory, which makes the index
   // build and every neighbour query cache-friendly (4M points: the spacing pass 2.5× faster).
   const std::vector<uint32_t> order = core::MortonOrder(cloud.positions);
-  impl.positions.resize(cloud.size());
-  impl.normals.resize(cloud.size());
+  impl.cloud->positions.resize(cloud.size());
+  impl.cloud->normals.resize(cloud.size());
   for (size_t i = 0; i < order.size(); ++i) {
-    impl.positions[i] = cloud.positions[order[i]];
-    impl.normals[i] = cloud.normals[order[i]];
+    impl.cloud->positions[i] = cloud.positions[order[i]];
+    impl.cloud->normals[i] = cloud.normals[order[i]];
   }
-  impl.kd_tree = std::make_unique<core::KdTree>(impl.positions);
+  impl.cloud->kd_tree = std::make_unique<core::KdTree>(impl.cloud->positions);
   impl.coverage_check = params.coverage_check;
   impl.coverage_factor = params.coverage_factor;
   LSQSURF_RETURN_IF_ERROR(MeasureSpacing(impl, params.coverage_check, stats, ctx));
   stats.spacing_seconds = core::SecondsSince(start);
-  const core::Box3 box = core::BoundingBox(impl.positions);
+  const core::Box3 box = core::BoundingBox(impl.cloud->positions);
   const double diagonal = core::Diagonal(box);
   if (!(diagonal > 0)) return absl::InvalidArgumentError("all points coincide");
   // The root cube: 1.2 × the largest side, as in MPU, so that boundary cells have margin.
   impl.root_edge = 1.2 * box.sizes().maxCoeff();
   impl.origin = box.center() - Vec3d::Constant(impl.root_edge / 2);
   stats.root_edge = impl.root_edge;
-  const PuParams effective = NoiseAwareParams(impl, impl.normals, params, diagonal, stats);
+  const PuParams effective = NoiseAwareParams(impl, impl.cloud->normals, params, diagonal, stats);
   impl.params = effective;
-  const BuildContext bc(effective, impl, impl.normals, effective.error_threshold * diagonal);
+  const BuildContext bc(effective, impl, impl.cloud->normals, effective.error_threshold * diagonal);
   LSQSURF_RETURN_IF_ERROR(GrowFittingTree(bc, impl, cloud.size(), params.max_depth, stats, ctx));
   stats.fit_seconds = core::SecondsSince(start);
   const auto index_start = std::chrono::steady_clock::now();
@@ -1014,9 +1124,9 @@ absl::StatusOr<std::unique_ptr<ExtractionTree>> BuildExtractionTree(const PuFunc
       std::make_unique<ExtractionTree>(core::Box3(impl.origin, impl.origin + Vec3d::Constant(impl.root_edge)), depth);
   extract::AdaptiveOctree& tree = built->tree;
   std::vector<Vec3f> local_points;
-  std::span<const Vec3f> points = impl.positions;
+  std::span<const Vec3f> points = impl.cloud->positions;
   if (region != nullptr) {
-    for (const Vec3f& p : impl.positions) {
+    for (const Vec3f& p : impl.cloud->positions) {
       if (region->contains(p.cast<double>())) local_points.push_back(p);
     }
     points = local_points;
@@ -1024,7 +1134,7 @@ absl::StatusOr<std::unique_ptr<ExtractionTree>> BuildExtractionTree(const PuFunc
   extract::SurfaceBand band = extract::MarkSurfaceBand(tree, points, band_level);
   extract::SurfaceBand fine_band = extract::MarkSurfaceBand(tree, points, depth);
   band.occupied.clear();
-  const double chord_bound = params.chord_error * core::Diagonal(core::BoundingBox(impl.positions));
+  const double chord_bound = params.chord_error * core::Diagonal(core::BoundingBox(impl.cloud->positions));
   const absl::flat_hash_set<uint64_t> crease_cells = CellsNearSharpFits(impl, tree, band_level, depth, region);
   LSQSURF_RETURN_IF_ERROR(extract::RefineSurfaceBand(
       tree, band, band_level, fine_band,
@@ -1137,7 +1247,7 @@ absl::StatusOr<extract::IsosurfaceResult> Extract(const PuFunction& function, co
 }
 
 absl::StatusOr<extract::IsosurfaceResult> ExtractEdited(const PuFunction& before, const PuFunction& after,
-                                                        const PuEditStats& edit_stats, const KeptSurface& kept,
+                                                        const PuEditStats& edit_stats, KeptSurface kept,
                                                         const PuExtractParams& requested, core::JobContext& ctx) {
   const PuExtractParams& params = kept.params;
   if (!SameExtraction(params, requested)) {
@@ -1150,15 +1260,16 @@ absl::StatusOr<extract::IsosurfaceResult> ExtractEdited(const PuFunction& before
   const PuFunction::Impl& b = *before.impl_;
   if (edit_stats.changed.empty()) return absl::FailedPreconditionError("the edit names no changed region");
   const auto tree_start = std::chrono::steady_clock::now();
+  const auto levels = LevelsFor(before, params);
+  if (!levels.ok()) return levels.status();
+  const double coarse_cell = std::ldexp(b.root_edge, -levels->band);
   core::Box3 changed;
   for (const PuEditStats::Ball& ball : edit_stats.changed) {
     changed.extend(ball.centre - Vec3d::Constant(ball.radius));
     changed.extend(ball.centre + Vec3d::Constant(ball.radius));
   }
-  const auto levels = LevelsFor(before, params);
-  if (!levels.ok()) return levels.status();
   // Balancing and the band's neighbours reach about two coarse cells; four keep the tree exact.
-  const Vec3d margin = Vec3d::Constant(4 * std::ldexp(b.root_edge, -levels->band));
+  const Vec3d margin = Vec3d::Constant(4 * coarse_cell);
   const core::Box3 region(changed.min() - margin, changed.max() + margin);
   core::SubContext build_ctx(ctx, "building the J1a tree near the edit", 0.0, 0.2);
   auto built = BuildExtractionTree(before, b, params, &region, build_ctx);
@@ -1172,7 +1283,8 @@ absl::StatusOr<extract::IsosurfaceResult> ExtractEdited(const PuFunction& before
   for (uint64_t key : kept.trace.face_cells) {
     if (cells.contains(key)) continue;
     const extract::OctreeCell c = extract::CellFromKey(key);
-    if (changed.contains(tree.CellCentre(c)) && !tree.IsLeaf(c)) {
+    const Vec3d centre = tree.CellCentre(c);
+    if (changed.contains(centre) && !tree.IsLeaf(c)) {
       return absl::FailedPreconditionError("the kept surface was made on another tree");
     }
   }
@@ -1192,23 +1304,23 @@ absl::StatusOr<extract::IsosurfaceResult> ExtractEdited(const PuFunction& before
   result.stats.tree_seconds = tree_seconds;
   result.stats.replaced_faces = join->removed_faces();
   result.stats.seam_edges = join->seam_edges();
-  result.mesh = join->Merge(kept.mesh, kept.trace, *patch, result.trace);
+  result.mesh = join->Merge(std::move(kept.mesh), std::move(kept.trace), *patch, result.trace);
   return result;
 }
 
-std::span<const Vec3f> PuFunction::points() const { return impl_->positions; }
+std::span<const Vec3f> PuFunction::points() const { return impl_->cloud->positions; }
 
 core::FieldGradient PuFunction::ValueOrDataSide(const Vec3d& x, bool with_gradient) const {
   const Impl& m = *impl_;
-  const core::Neighbor nearest = m.kd_tree->Nearest(x.cast<float>());
-  const double reach = m.coverage_check ? m.coverage_factor * m.local_spacing[nearest.index] : 0;
+  const core::Neighbor nearest = m.cloud->kd_tree->Nearest(x.cast<float>());
+  const double reach = m.coverage_check ? m.coverage_factor * m.cloud->local_spacing[nearest.index] : 0;
   if (!m.coverage_check || nearest.distance2 <= reach * reach) {
     core::FieldGradient g = m.Evaluate(x, with_gradient, false);
     g.defined = std::isfinite(g.value);
     return g;
   }
-  const Vec3d d = x - m.positions[nearest.index].cast<double>();
-  const double side = d.dot(m.normals[nearest.index].cast<double>()) >= 0 ? 1.0 : -1.0;
+  const Vec3d d = x - m.cloud->positions[nearest.index].cast<double>();
+  const double side = d.dot(m.cloud->normals[nearest.index].cast<double>()) >= 0 ? 1.0 : -1.0;
   const double length = d.norm();
   core::FieldGradient g;
   g.value = side * length;
@@ -1231,8 +1343,8 @@ constexpr std::string_view kPuMagic = "LQPU0002";
 bool Consistent(const PuFunction::Impl& m) {
   const size_t nodes = m.nodes.size();
   if (nodes == 0 || m.fits.empty() || !(m.root_edge > 0) || !m.origin.allFinite()) return false;
-  if (m.normals.size() != m.positions.size()) return false;
-  if (m.coverage_check && m.local_spacing.size() != m.positions.size()) return false;
+  if (m.cloud->normals.size() != m.cloud->positions.size()) return false;
+  if (m.coverage_check && m.cloud->local_spacing.size() != m.cloud->positions.size()) return false;
   for (size_t i = 0; i < nodes; ++i) {
     const Node& n = m.nodes[i];
     if (n.level < 0 || n.level > 30) return false;
@@ -1320,9 +1432,9 @@ std::string SerializePu(const PuFunction& function) {
   w.Scalar(m.deepest_level);
   for (double v : {st.root_edge, st.mean_spacing, st.noise_estimate, st.error_threshold}) w.Scalar(v);
   w.Scalar(st.min_points);
-  w.Array<Vec3f>(m.positions);
-  w.Array<Vec3f>(m.normals);
-  w.Array<float>(m.local_spacing);
+  w.Array<Vec3f>(m.cloud->positions);
+  w.Array<Vec3f>(m.cloud->normals);
+  w.Array<float>(m.cloud->local_spacing);
   w.Array<Node>(m.nodes);
   WriteFits(m.fits, w);
   w.Array<SharpFit>(m.sharp_fits);
@@ -1351,13 +1463,13 @@ absl::StatusOr<std::unique_ptr<PuFunction>> DeserializePu(std::string_view bytes
     return bad("header fields");
   }
   m.coverage_check = coverage != 0;
-  if (!r.Array(m.positions) || m.positions.size() < 4 || !r.Array(m.normals, m.positions.size()) ||
-      !r.Array(m.local_spacing)) {
+  if (!r.Array(m.cloud->positions) || m.cloud->positions.size() < 4 ||
+      !r.Array(m.cloud->normals, m.cloud->positions.size()) || !r.Array(m.cloud->local_spacing)) {
     return bad("points");
   }
   if (!r.Array(m.nodes) || !ReadFits(r, m.fits) || !r.Array(m.sharp_fits) || !r.AtEnd()) return bad("fits");
   if (!Consistent(m)) return bad("inconsistent structure");
-  m.kd_tree = std::make_unique<core::KdTree>(m.positions);
+  m.cloud->kd_tree = std::make_unique<core::KdTree>(m.cloud->positions);
   core::LocalJobContext ctx;
   LSQSURF_RETURN_IF_ERROR(IndexInfluence(m, ctx));
   return function;
@@ -1365,13 +1477,15 @@ absl::StatusOr<std::unique_ptr<PuFunction>> DeserializePu(std::string_view bytes
 
 namespace {
 
-// Drops the fits no node refers to, keeping the others in their order (so that the support
-// lists of untouched leaves, sorted by index, sum in the same order as before).
-void CompactFits(PuFunction::Impl& m) {
+// Drops the fits no leaf refers to, keeping the others in their order (so that the support
+// lists of untouched leaves, sorted by index, sum in the same order as before). Returns the
+// renumbering (old index → new, −1 for a dropped fit), empty when no fit is dropped.
+std::vector<int32_t> CompactFits(PuFunction::Impl& m) {
   std::vector<int32_t> new_index(m.fits.size(), -1);
   for (const Node& n : m.nodes) {
     if (n.fit >= 0 && n.first_child < 0) new_index[static_cast<size_t>(n.fit)] = 0;
   }
+  if (std::find(new_index.begin(), new_index.end(), -1) == new_index.end()) return {};
   std::vector<LocalFit> kept;
   for (size_t f = 0; f < m.fits.size(); ++f) {
     if (new_index[f] < 0) continue;
@@ -1382,6 +1496,7 @@ void CompactFits(PuFunction::Impl& m) {
     if (n.fit >= 0) n.fit = n.first_child < 0 ? new_index[static_cast<size_t>(n.fit)] : -1;
   }
   m.fits = std::move(kept);
+  return new_index;
 }
 
 absl::Status CheckEdit(const PuEdit& edit) {
@@ -1403,11 +1518,39 @@ void PointsInCube(const PuFunction::Impl& m, const Node& n, std::vector<core::Ne
                   std::vector<uint32_t>& out) {
   const double edge = m.Edge(n.level);
   const Vec3d lo = m.origin + Vec3d(n.x, n.y, n.z) * edge, hi = lo + Vec3d::Constant(edge);
-  m.kd_tree->Radius(((lo + hi) / 2).cast<float>(), static_cast<float>(edge * kSqrt3 / 2 * 1.001), scratch);
+  m.cloud->kd_tree->Radius(((lo + hi) / 2).cast<float>(), static_cast<float>(edge * kSqrt3 / 2 * 1.001), scratch);
   for (const core::Neighbor& p : scratch) {
-    const Vec3d x = m.positions[p.index].cast<double>();
+    const Vec3d x = m.cloud->positions[p.index].cast<double>();
     if ((x.array() >= lo.array()).all() && (x.array() < hi.array()).all()) out.push_back(p.index);
   }
+}
+
+// A remove edit's points: those outside the ball, with a point index of their own. The fits
+// centred in the ball go; coverage changes where a removed point was the nearest.
+absl::Status RemovePoints(const PuFunction::Impl& b, PuFunction::Impl& m, const PuEdit& edit,
+                          std::span<const int32_t> touched, PuEditStats& local) {
+  m.cloud = std::make_shared<PointData>();
+  const double r2 = edit.radius * edit.radius;
+  double removed_spacing = 0;
+  for (size_t i = 0; i < b.cloud->positions.size(); ++i) {
+    if ((b.cloud->positions[i].cast<double>() - edit.centre).squaredNorm() < r2) {
+      ++local.points_removed;
+      if (!b.cloud->local_spacing.empty())
+        removed_spacing = std::max<double>(removed_spacing, b.cloud->local_spacing[i]);
+      continue;
+    }
+    m.cloud->positions.push_back(b.cloud->positions[i]);
+    m.cloud->normals.push_back(b.cloud->normals[i]);
+    if (!b.cloud->local_spacing.empty()) m.cloud->local_spacing.push_back(b.cloud->local_spacing[i]);
+  }
+  if (m.cloud->positions.size() < 4) return absl::FailedPreconditionError("the ball holds nearly every point");
+  if (m.coverage_check) local.changed.push_back({edit.centre, edit.radius + m.coverage_factor * removed_spacing});
+  for (int32_t node : touched) {
+    Node& n = m.nodes[static_cast<size_t>(node)];
+    if ((m.fits[static_cast<size_t>(n.fit)].centre - edit.centre).norm() < edit.radius) n.fit = -1;
+  }
+  m.cloud->kd_tree = std::make_unique<core::KdTree>(m.cloud->positions);
+  return absl::OkStatus();
 }
 
 }  // namespace
@@ -1438,30 +1581,11 @@ absl::StatusOr<std::unique_ptr<PuFunction>> EditPu(const PuFunction& base, const
   if (touched.empty()) return absl::FailedPreconditionError("no local fit meets the ball: nothing to edit there");
   local.fits_replaced = static_cast<int64_t>(touched.size());
   if (edit.action == PuEditAction::kRemove) {
-    const double r2 = edit.radius * edit.radius;
-    double removed_spacing = 0;
-    for (size_t i = 0; i < b.positions.size(); ++i) {
-      if ((b.positions[i].cast<double>() - edit.centre).squaredNorm() < r2) {
-        ++local.points_removed;
-        if (!b.local_spacing.empty()) removed_spacing = std::max<double>(removed_spacing, b.local_spacing[i]);
-        continue;
-      }
-      m.positions.push_back(b.positions[i]);
-      m.normals.push_back(b.normals[i]);
-      if (!b.local_spacing.empty()) m.local_spacing.push_back(b.local_spacing[i]);
-    }
-    if (m.positions.size() < 4) return absl::FailedPreconditionError("the ball holds nearly every point");
-    // Coverage changes where a removed point was the nearest.
-    if (m.coverage_check) local.changed.push_back({edit.centre, edit.radius + m.coverage_factor * removed_spacing});
-    for (int32_t node : touched) {
-      Node& n = m.nodes[static_cast<size_t>(node)];
-      if ((m.fits[static_cast<size_t>(n.fit)].centre - edit.centre).norm() < edit.radius) n.fit = -1;
-    }
+    LSQSURF_RETURN_IF_ERROR(RemovePoints(b, m, edit, touched, local));
   } else {
-    m.positions = b.positions, m.normals = b.normals, m.local_spacing = b.local_spacing;
+    m.cloud = b.cloud;
   }
-  m.kd_tree = std::make_unique<core::KdTree>(m.positions);
-  const double diagonal = core::Diagonal(core::BoundingBox(m.positions));
+  const double diagonal = core::Diagonal(core::BoundingBox(m.cloud->positions));
   PuParams params = m.params;
   params.sharp = false;  // An edited region is made smooth; its creases stay where they were fitted.
   double bound = params.error_threshold * diagonal;
@@ -1473,7 +1597,7 @@ absl::StatusOr<std::unique_ptr<PuFunction>> EditPu(const PuFunction& base, const
     params.error_threshold = edit.error_threshold;
     bound = edit.error_threshold * diagonal;
   }
-  const BuildContext bc(params, m, m.normals, bound);
+  const BuildContext bc(params, m, m.cloud->normals, bound);
   if (edit.action == PuEditAction::kSetDegree) {
     std::vector<CellOutcome> outcomes(touched.size());
     LSQSURF_RETURN_IF_ERROR(core::ParallelFor(
@@ -1511,9 +1635,10 @@ absl::StatusOr<std::unique_ptr<PuFunction>> EditPu(const PuFunction& base, const
     grown.fits_per_depth.assign(static_cast<size_t>(params.max_depth) + 1, 0);
     LSQSURF_RETURN_IF_ERROR(GrowSubtrees(bc, m, order, ranges, touched, params.max_depth, grown, ctx));
   }
-  CompactFits(m);
+  const std::vector<int32_t> renumber = CompactFits(m);
   if (m.fits.empty()) return absl::FailedPreconditionError("the edit leaves no local fit");
   // The new fits' supports (a refit's may reach past the ones they replace).
+  std::vector<int32_t> new_fits;
   std::vector<int32_t> stack(touched.begin(), touched.end());
   while (!stack.empty()) {
     const Node& n = m.nodes[static_cast<size_t>(stack.back())];
@@ -1522,11 +1647,12 @@ absl::StatusOr<std::unique_ptr<PuFunction>> EditPu(const PuFunction& base, const
       for (int32_t c = 0; c < 8; ++c) stack.push_back(n.first_child + c);
     } else if (n.fit >= 0) {
       const LocalFit& f = m.fits[static_cast<size_t>(n.fit)];
+      new_fits.push_back(n.fit);
       local.changed.push_back({f.centre, f.support_radius});
       local.reach = std::max(local.reach, (f.centre - edit.centre).norm() + f.support_radius);
     }
   }
-  LSQSURF_RETURN_IF_ERROR(IndexInfluence(m, ctx));
+  LSQSURF_RETURN_IF_ERROR(UpdateInfluence(b, m, touched, new_fits, renumber, ctx));
   local.fits_after = static_cast<int64_t>(m.fits.size());
   if (stats != nullptr) *stats = local;
   return out;

@@ -133,7 +133,7 @@ class PuFunction final : public core::ImplicitFunction {
                                                             struct PuEditStats*);
   friend absl::StatusOr<std::unique_ptr<PuFunction>> DeserializePu(std::string_view);
   friend absl::StatusOr<extract::IsosurfaceResult> ExtractEdited(const PuFunction&, const PuFunction&,
-                                                                 const struct PuEditStats&, const struct KeptSurface&,
+                                                                 const struct PuEditStats&, struct KeptSurface,
                                                                  const PuExtractParams&, core::JobContext&);
   PuFunction();
   std::unique_ptr<Impl> impl_;
@@ -223,14 +223,15 @@ std::string SerializeSurface(const core::TriangleMesh& mesh, const extract::Surf
 // Errors: kInvalidArgument (not a kept surface, truncated or inconsistent).
 absl::StatusOr<KeptSurface> DeserializeSurface(std::string_view bytes);
 
-// The surface of `after` = EditPu(before, edit, &stats) from `kept`, the surface of `before`:
+// The surface of `after` = EditPu(before, edit, &stats) from `kept`, the surface of `before`
+// (moved in: the result is made in its place):
 // only the J1a leaves that meet `stats.changed` (the union of the edited supports) are marched
 // again, on `after` and the tree Extract built for `before`, and joined to the rest of the kept
 // mesh (extract::PatchJoin), which stays as it was. The result carries its trace, for the next
 // edit. Errors: kFailedPrecondition where the patch cannot be joined exactly or `params` differ
 // from the kept surface's (Extract(after) is then the way), kCancelled.
 absl::StatusOr<extract::IsosurfaceResult> ExtractEdited(const PuFunction& before, const PuFunction& after,
-                                                        const PuEditStats& stats, const KeptSurface& kept,
+                                                        const PuEditStats& stats, KeptSurface kept,
                                                         const PuExtractParams& params, core::JobContext& ctx);
 
 // A built function as bytes, kept with a job's results so that later jobs (CSG, local edits)

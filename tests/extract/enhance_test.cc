@@ -1,13 +1,16 @@
-// Mesh enhancement: corner snapping before marching and tangential relaxation after it.
+// Mesh enhancement: corner snapping before marching, tangential relaxation and edge flips after it.
 #include <gtest/gtest.h>
 
 #include <cmath>
 #include <numbers>
+#include <set>
+#include <utility>
 
 #include "tests/polyhedra.h"
 #include "tests/test_shapes.h"
 #include "worker/core/mesh_metrics.h"
 #include "worker/extract/j1a_isosurface.h"
+#include "worker/extract/relax.h"
 
 namespace lsqsurf::extract {
 namespace {
@@ -100,6 +103,78 @@ TEST(Enhancement, RelaxationLeavesCreasesWhereTheyAre) {
               EnclosedVolume(b.mesh));
   EXPECT_LT(edges_b, 1.5 * edges_a + 1e-4);
   EXPECT_NEAR(EnclosedVolume(b.mesh), 1.0, 2e-4);
+}
+
+// Points of a lattice of unit rows `row_height` apart, each row shifted by half a unit; each
+// rhombus of four split along its long diagonal, so every triangle has a smallest angle of
+// atan(row_height / 1.5) (16° here, where the short diagonal gives atan(2 row_height), 41°). Rows
+// above `fold_row` are turned up by 90° about that row's line: the mesh folds along lattice edges.
+core::TriangleMesh BadlySplitLattice(int size, int fold_row, std::vector<uint64_t>& rhombus) {
+  core::TriangleMesh mesh;
+  const double h = std::sqrt(3.0) / 4;  // Row height.
+  for (int j = 0; j < size; ++j) {
+    for (int i = 0; i < size; ++i) {
+      const double x = i + 0.5 * j, y = h * j;
+      const double fold_y = h * fold_row;
+      mesh.vertices.push_back(
+          y <= fold_y ? core::Vec3f(static_cast<float>(x), static_cast<float>(y), 0)
+                      : core::Vec3f(static_cast<float>(x), static_cast<float>(fold_y), static_cast<float>(y - fold_y)));
+    }
+  }
+  auto at = [&](int i, int j) { return static_cast<uint32_t>(j * size + i); };
+  rhombus.clear();
+  for (int j = 0; j + 1 < size; ++j) {
+    for (int i = 0; i + 1 < size; ++i) {
+      mesh.faces.push_back({at(i, j), at(i + 1, j), at(i + 1, j + 1)});
+      mesh.faces.push_back({at(i, j), at(i + 1, j + 1), at(i, j + 1)});
+      rhombus.push_back(static_cast<uint64_t>(j * size + i));
+      rhombus.push_back(static_cast<uint64_t>(j * size + i));
+    }
+  }
+  return mesh;
+}
+
+std::set<std::pair<uint32_t, uint32_t>> Edges(const core::TriangleMesh& mesh) {
+  std::set<std::pair<uint32_t, uint32_t>> edges;
+  for (const core::Triangle& t : mesh.faces) {
+    for (size_t k = 0; k < 3; ++k) edges.insert(std::minmax(t[k], t[(k + 1) % 3]));
+  }
+  return edges;
+}
+
+TEST(Enhancement, FlipsTurnThinPairsIntoEquilateralOnesAndLeaveFoldsAlone) {
+  const int size = 12, fold_row = 6;
+  std::vector<uint64_t> cells;
+  core::TriangleMesh mesh = BadlySplitLattice(size, fold_row, cells);
+  const core::TriangleMesh before = mesh;
+  LocalJobContext ctx;
+  int64_t flips = 0;
+  ASSERT_TRUE(internal::FlipPoorEdges(mesh, &cells, flips, ctx).ok());
+  // Every rhombus on either side of the fold is flipped to its short diagonal.
+  const double h = std::sqrt(3.0) / 4, degrees = 180 / std::numbers::pi;
+  EXPECT_EQ(flips, (size - 1) * (size - 1));
+  EXPECT_NEAR(MeasureTriangleQuality(before).min_angle_p1, std::atan(h / 1.5) * degrees, 0.01);
+  EXPECT_NEAR(MeasureTriangleQuality(mesh).min_angle_p1, std::atan(2 * h) * degrees, 0.01);
+  EXPECT_EQ(mesh.vertices, before.vertices);
+  EXPECT_EQ(mesh.faces.size(), before.faces.size());
+  const MeshTopology a = AnalyzeTopology(before), b = AnalyzeTopology(mesh);
+  EXPECT_EQ(b.boundary_edges, a.boundary_edges);
+  EXPECT_EQ(b.non_manifold_edges, 0);
+  EXPECT_TRUE(b.consistently_oriented());
+  EXPECT_EQ(b.euler_characteristic(), a.euler_characteristic());
+  // The fold's edges (along the row where the mesh turns by 90°) are all still there.
+  const auto edges = Edges(mesh);
+  for (int i = 0; i + 1 < size; ++i) {
+    const auto first = static_cast<uint32_t>(fold_row * size + i);
+    EXPECT_TRUE(edges.contains({first, first + 1})) << i;
+  }
+  // Faces traced to different cells are never flipped together.
+  core::TriangleMesh split = before;
+  std::vector<uint64_t> own(split.faces.size());
+  for (size_t f = 0; f < own.size(); ++f) own[f] = f;
+  ASSERT_TRUE(internal::FlipPoorEdges(split, &own, flips, ctx).ok());
+  EXPECT_EQ(flips, 0);
+  EXPECT_EQ(split.faces, before.faces);
 }
 
 }  // namespace

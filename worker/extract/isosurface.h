@@ -82,7 +82,8 @@ struct IsosurfaceStats {
   int64_t crease_corners = 0;      // Triangles split around a corner.
   int64_t crease_snapped = 0;      // Vertices moved onto a crease that passed next to them.
   int64_t snapped_corners = 0;     // Grid corners moved onto the surface.
-  int64_t relaxed_vertices = 0;    // Vertices moved by the relaxation.
+  int64_t relaxed_vertices = 0;    // Vertices moved by the relaxation (once per round; two rounds).
+  int64_t flipped_edges = 0;       // Edges flipped after it (relax.h).
   int64_t replaced_faces = 0;      // Kept faces a local re-extraction replaced (PatchJoin).
   int64_t seam_edges = 0;          // Kept edges the patch was joined along.
   // Wall time of the stages, seconds.

@@ -524,8 +524,17 @@ absl::Status FinishSurface(const ImplicitFunction& field, const MarchingOptions&
   stats.crease_seconds = core::SecondsSince(stage_start);
   stage_start = std::chrono::steady_clock::now();
   if (params.relax_steps > 0) {
-    LSQSURF_RETURN_IF_ERROR(RelaxTangentially(field, params.relax_steps, static_cast<uint32_t>(stats.crossings), mesh,
-                                              stats.relaxed_vertices, ctx));
+    // Relaxation, then edge flips where it left thin triangles, then half as many steps again
+    // around the flipped edges (fandisk 100k: smallest-angle p1 13.7° → 16.7°, time +10 %).
+    const auto fixed_from = static_cast<uint32_t>(stats.crossings);
+    int64_t moved = 0;
+    LSQSURF_RETURN_IF_ERROR(RelaxTangentially(field, params.relax_steps, fixed_from, mesh, moved, ctx));
+    stats.relaxed_vertices = moved;
+    const bool traced = !result.trace.face_cells.empty();
+    LSQSURF_RETURN_IF_ERROR(FlipPoorEdges(mesh, traced ? &result.trace.face_cells : nullptr, stats.flipped_edges, ctx));
+    LSQSURF_RETURN_IF_ERROR(
+        RelaxTangentially(field, std::max(1, params.relax_steps / 2), fixed_from, mesh, moved, ctx));
+    stats.relaxed_vertices += moved;
   }
   stats.relax_seconds = core::SecondsSince(stage_start);
   if (!params.vertex_normals) mesh.normals.clear();

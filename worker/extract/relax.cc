@@ -24,6 +24,14 @@ constexpr double kMaxOffsetShare = 0.1;
 constexpr double kSameSheetCos = 0.9;
 // Only vertices of triangles whose smallest angle is below this move.
 constexpr double kGoodAngleDegrees = 25;
+// Edge flips: only between faces within this many degrees of one another (so that the surface
+// barely changes and creases are never flipped), only where the smaller angle of the pair grows
+// by more than kFlipGain radians; at most kFlipPasses sweeps, ending when one flips fewer than
+// 1/kFlipDiminish of what the first did.
+constexpr double kFlipFlatDegrees = 20;
+constexpr double kFlipGain = 1e-3;
+constexpr int kFlipPasses = 8;
+constexpr int64_t kFlipDiminish = 50;
 
 // The vertices that stay where they are: from `first_fixed` on (crease splits), on an unsplit
 // crease, and on a border.
@@ -67,6 +75,19 @@ absl::Status MarkFixedVertices(const core::TriangleMesh& mesh, const std::vector
       },
       &ctx));
   return absl::OkStatus();
+}
+
+// The smallest angle of the triangle (p, q, r), in radians; 0 for a degenerate one.
+double SmallestAngle(const Vec3d& p, const Vec3d& q, const Vec3d& r) {
+  const std::array<Vec3d, 3> x = {p, q, r};
+  double best = std::numbers::pi;
+  for (size_t i = 0; i < 3; ++i) {
+    const Vec3d u = x[(i + 1) % 3] - x[i], w = x[(i + 2) % 3] - x[i];
+    const double nu = u.norm(), nw = w.norm();
+    if (!(nu > 0 && nw > 0)) return 0;
+    best = std::min(best, std::acos(std::clamp(u.dot(w) / (nu * nw), -1.0, 1.0)));
+  }
+  return best;
 }
 
 }  // namespace
@@ -168,6 +189,101 @@ absl::Status RelaxTangentially(const core::ImplicitFunction& field, int steps, u
   }
   moves = 0;
   for (char m : moved) moves += m;
+  return absl::OkStatus();
+}
+
+absl::Status FlipPoorEdges(core::TriangleMesh& mesh, std::vector<uint64_t>* face_cells, int64_t& flips,
+                           core::JobContext& ctx) {
+  flips = 0;
+  const size_t n = mesh.vertices.size();
+  const double good_cos = std::cos(kGoodAngleDegrees * std::numbers::pi / 180);
+  const double flat_cos = std::cos(kFlipFlatDegrees * std::numbers::pi / 180);
+  auto position = [&](uint32_t v) { return mesh.vertices[v].cast<double>(); };
+  auto normal_of = [&](const core::Triangle& t) {
+    return (position(t[1]) - position(t[0])).cross(position(t[2]) - position(t[0]));
+  };
+  int64_t first_pass = 0;
+  for (int pass = 0; pass < kFlipPasses; ++pass) {
+    LSQSURF_RETURN_IF_ERROR(ctx.CheckCancelled());
+    // Vertex → incident faces, rebuilt per pass (flips change it).
+    std::vector<uint32_t> start(n + 1, 0), incident(3 * mesh.faces.size());
+    for (const core::Triangle& t : mesh.faces) {
+      for (uint32_t v : t) ++start[v + 1];
+    }
+    for (size_t v = 0; v < n; ++v) start[v + 1] += start[v];
+    {
+      std::vector<uint32_t> cursor(start.begin(), start.end() - 1);
+      for (uint32_t f = 0; f < mesh.faces.size(); ++f) {
+        for (uint32_t v : mesh.faces[f]) incident[cursor[v]++] = f;
+      }
+    }
+    // The faces holding both a and b (in `out`); and whether c and d share an edge already.
+    auto faces_with = [&](uint32_t a, uint32_t b, std::vector<uint32_t>& out) {
+      out.clear();
+      for (uint32_t k = start[a]; k < start[a + 1]; ++k) {
+        const core::Triangle& t = mesh.faces[incident[k]];
+        if (t[0] == b || t[1] == b || t[2] == b) out.push_back(incident[k]);
+      }
+    };
+    // Each poor face's longest edge (opposite its largest angle: the one a flip can shorten), or
+    // −1 for a good face.
+    std::vector<int8_t> longest_edge(mesh.faces.size(), -1);
+    LSQSURF_RETURN_IF_ERROR(core::ParallelFor(
+        mesh.faces.size(), 4096,
+        [&](size_t begin, size_t end) {
+          for (size_t f = begin; f < end; ++f) {
+            const core::Triangle& t = mesh.faces[f];
+            int8_t longest = 0;
+            double longest2 = -1;
+            bool poor = false;
+            for (size_t i = 0; i < 3; ++i) {
+              const Vec3d u = position(t[(i + 1) % 3]) - position(t[i]), w = position(t[(i + 2) % 3]) - position(t[i]);
+              poor |= u.dot(w) > good_cos * u.norm() * w.norm();
+              if (u.squaredNorm() > longest2) longest2 = u.squaredNorm(), longest = static_cast<int8_t>(i);
+            }
+            if (poor) longest_edge[f] = longest;
+          }
+        },
+        &ctx));
+    // One flip per vertex per pass: the incidence lists of the vertices not yet touched stay right.
+    std::vector<char> touched(n, 0);
+    std::vector<uint32_t> shared, other;
+    int64_t pass_flips = 0;
+    for (uint32_t f = 0; f < mesh.faces.size(); ++f) {
+      const core::Triangle t = mesh.faces[f];
+      if (longest_edge[f] < 0 || touched[t[0]] || touched[t[1]] || touched[t[2]]) continue;
+      const auto longest = static_cast<size_t>(longest_edge[f]);
+      const uint32_t a = t[longest], b = t[(longest + 1) % 3], c = t[(longest + 2) % 3];
+      faces_with(a, b, shared);
+      if (shared.size() != 2) continue;  // A border or a non-manifold edge.
+      const uint32_t g = shared[0] == f ? shared[1] : shared[0];
+      if (face_cells != nullptr && (*face_cells)[g] != (*face_cells)[f]) continue;
+      const core::Triangle& s = mesh.faces[g];
+      const uint32_t d = s[0] != a && s[0] != b ? s[0] : s[1] != a && s[1] != b ? s[1] : s[2];
+      if (touched[d]) continue;
+      // Only across a flat edge (never a crease), and never onto an edge that exists.
+      const Vec3d nf = normal_of(t), ng = normal_of(s);
+      if (!(nf.dot(ng) > flat_cos * nf.norm() * ng.norm())) continue;
+      faces_with(c, d, other);
+      if (!other.empty()) continue;
+      const core::Triangle first{a, d, c}, second{d, b, c};
+      const Vec3d n1 = normal_of(first), n2 = normal_of(second);
+      if (!(n1.dot(nf) > 0 && n2.dot(nf) > 0 && n1.dot(n2) > flat_cos * n1.norm() * n2.norm())) continue;
+      const double before = std::min(SmallestAngle(position(a), position(b), position(c)),
+                                     SmallestAngle(position(s[0]), position(s[1]), position(s[2])));
+      const double after = std::min(SmallestAngle(position(a), position(d), position(c)),
+                                    SmallestAngle(position(d), position(b), position(c)));
+      if (!(after > before + kFlipGain)) continue;
+      mesh.faces[f] = first;
+      mesh.faces[g] = second;
+      touched[a] = touched[b] = touched[c] = touched[d] = 1;
+      ++pass_flips;
+    }
+    flips += pass_flips;
+    // A pass flips each vertex's pairs at most once; later passes find ever fewer.
+    if (pass == 0) first_pass = pass_flips;
+    if (pass_flips == 0 || pass_flips * kFlipDiminish < first_pass) break;
+  }
   return absl::OkStatus();
 }
 

@@ -11,6 +11,7 @@
 #pragma once
 
 #include <cstdint>
+#include <vector>
 
 #include "absl/status/status.h"
 #include "worker/core/geometry.h"
@@ -23,5 +24,12 @@ namespace lsqsurf::extract::internal {
 // Returns the number of vertex moves made. Errors: kCancelled.
 absl::Status RelaxTangentially(const core::ImplicitFunction& field, int steps, uint32_t first_fixed,
                                core::TriangleMesh& mesh, int64_t& moves, core::JobContext& ctx);
+
+// Flips the longest edge of each triangle with an angle under 25° where the two faces across it
+// are nearly coplanar and the flip makes the pair's smallest angle larger (the Delaunay idea,
+// restricted to flat edges so that creases stay). With `face_cells`, only faces of one cell are
+// flipped together, so every face still lies in the cell it is traced to. Vertices do not move.
+absl::Status FlipPoorEdges(core::TriangleMesh& mesh, std::vector<uint64_t>* face_cells, int64_t& flips,
+                           core::JobContext& ctx);
 
 }  // namespace lsqsurf::extract::internal

@@ -87,6 +87,7 @@ class CsgKind final : public JobKind {
     stat("crease_vertices", static_cast<double>(extracted->stats.crease_vertices));
     stat("crease_corners", static_cast<double>(extracted->stats.crease_corners));
     stat("relaxed_vertices", static_cast<double>(extracted->stats.relaxed_vertices));
+    stat("flipped_edges", static_cast<double>(extracted->stats.flipped_edges));
     AddMeshStatistics(extracted->mesh, extracted->stats, &stats);
     LSQSURF_RETURN_IF_ERROR(DeliverMesh(extracted->mesh, spec, env, &stats));
     return stats;

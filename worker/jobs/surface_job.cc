@@ -195,6 +195,7 @@ absl::StatusOr<extract::IsosurfaceResult> RunPu(const PuJobParams& p, const core
     stat("crease_corners", static_cast<double>(extracted->stats.crease_corners));
     stat("snapped_corners", static_cast<double>(extracted->stats.snapped_corners));
     stat("relaxed_vertices", static_cast<double>(extracted->stats.relaxed_vertices));
+    stat("flipped_edges", static_cast<double>(extracted->stats.flipped_edges));
     if (p.keep_function) {
       const auto keep_start = std::chrono::steady_clock::now();
       std::string bytes = pu::SerializePu(**field);

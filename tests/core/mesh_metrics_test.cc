@@ -44,6 +44,34 @@ TEST(MeshMetrics, DetectsBoundaryFlipsAndNonManifoldEdges) {
   EXPECT_EQ(AnalyzeTopology(fin).non_manifold_edges, 1);
 }
 
+TEST(MeshMetrics, MergingCoincidentVerticesRemovesFoldsAndKeepsTheSolid) {
+  TriangleMesh cube = Cube();
+  cube.normals.assign(cube.vertices.size(), Vec3f::UnitZ());
+  cube.vertex_attributes.push_back({"id", {0, 1, 2, 3, 4, 5, 6, 7}});
+  // Vertex 8 sits on vertex 3 and takes its place in one face, with a face collapsing between
+  // them; vertex 9 sits on vertex 7 with two faces that fold onto the face 5–7–6.
+  for (const uint32_t twin : {3u, 7u}) {
+    cube.vertices.push_back(cube.vertices[twin]);
+    cube.normals.push_back(Vec3f::UnitX());
+    cube.vertex_attributes[0].values.push_back(static_cast<float>(10 + twin));
+  }
+  cube.faces[1] = {1, 2, 8};
+  cube.faces.push_back({2, 8, 3});
+  cube.faces.push_back({5, 9, 6});
+  cube.faces.push_back({9, 5, 6});
+  EXPECT_GT(AnalyzeTopology(WeldByPosition(cube)).non_manifold_edges, 0);
+  EXPECT_EQ(MergeCoincidentVertices(cube), 3);
+  const MeshTopology t = AnalyzeTopology(cube);
+  EXPECT_TRUE(t.watertight());
+  EXPECT_TRUE(t.consistently_oriented());
+  EXPECT_EQ(t.euler_characteristic(), 2);
+  EXPECT_EQ(cube.vertices.size(), 8u);
+  EXPECT_NEAR(EnclosedVolume(cube), 1.0, 1e-9);
+  // The first vertex at each position stays, with its normal and attributes.
+  EXPECT_EQ(cube.vertex_attributes[0].values, (std::vector<float>{0, 1, 2, 3, 4, 5, 6, 7}));
+  EXPECT_EQ(cube.normals[3], Vec3f::UnitZ());
+}
+
 TEST(SurfaceDistance, MeasuresAKnownOffset) {
   const TriangleMesh a = Cube();
   LocalJobContext ctx;

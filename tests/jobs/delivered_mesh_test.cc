@@ -5,8 +5,12 @@
 
 #include <gtest/gtest.h>
 
+#include <numbers>
+
 #include "tests/test_shapes.h"
 #include "worker/core/mesh_metrics.h"
+#include "worker/core/strings.h"
+#include "worker/csg/csg.h"
 #include "worker/io/draco_codec.h"
 #include "worker/jobs/method_registry.h"
 #include "worker/jobs/surface_job.h"
@@ -25,6 +29,39 @@ TEST(DeliveredMesh, ExplicitBitsAreKeptAsAsked) {
   Statistics statistics;
   ASSERT_TRUE(EncodeResultMesh(result->mesh, 12, &statistics).ok());
   EXPECT_EQ(Statistic(statistics, "delivered_position_bits"), 12);
+}
+
+TEST(DeliveredMesh, VerticesTheQuantizationJoinsAreMergedWithoutFolds) {
+  // An exact cylinder whose caps lie on the grid: along its rims, vertices of different edges come
+  // out a float step or two apart, which no quantization keeps apart; merged as they are, faces
+  // folded onto one another (48 non-manifold edges once).
+  const double r = 0.18, h = 0.3;
+  auto root = csg::ParseCsg("cylinder(a=0,0,0 b=0,0,0.3 r=0.18)");
+  ASSERT_TRUE(root.ok()) << root.status();
+  auto function = csg::BuildCsg(*root, [](const std::string& id) -> absl::StatusOr<csg::Operand> {
+    return absl::NotFoundError(core::StrCat("no job ", id));
+  });
+  ASSERT_TRUE(function.ok()) << function.status();
+  csg::CsgParams params;
+  params.cell_size = 0.002;
+  core::LocalJobContext ctx;
+  auto result = csg::ExtractCsg(**function, params, ctx);
+  ASSERT_TRUE(result.ok()) << result.status();
+  ASSERT_TRUE(core::AnalyzeTopology(core::WeldByPosition(result->mesh)).watertight());
+  Statistics statistics;
+  auto bytes = EncodeResultMesh(result->mesh, /*position_bits=*/0, &statistics);
+  ASSERT_TRUE(bytes.ok()) << bytes.status();
+  EXPECT_GT(Statistic(statistics, "delivery_dropped_faces"), 0);  // The case arises here.
+  auto decoded = io::DecodeDracoMesh(*bytes);
+  ASSERT_TRUE(decoded.ok()) << decoded.status();
+  const core::TriangleMesh welded = core::WeldByPosition(*decoded);
+  const core::MeshTopology delivered = core::AnalyzeTopology(welded);
+  EXPECT_EQ(delivered.boundary_edges, 0);
+  EXPECT_EQ(delivered.non_manifold_edges, 0);
+  EXPECT_EQ(delivered.components, 1);
+  EXPECT_EQ(delivered.euler_characteristic(), 2);
+  EXPECT_EQ(Statistic(statistics, "non_manifold_edges"), 0);
+  EXPECT_NEAR(core::EnclosedVolume(welded), std::numbers::pi * r * r * h, 1e-4 * std::numbers::pi * r * r * h);
 }
 
 }  // namespace

@@ -1,6 +1,7 @@
 #include "worker/core/mesh_metrics.h"
 
 #include <algorithm>
+#include <array>
 #include <cassert>
 #include <cmath>
 #include <limits>
@@ -41,6 +42,81 @@ TriangleMesh WeldByPosition(const TriangleMesh& mesh) {
   out.faces.reserve(mesh.faces.size());
   for (const Triangle& f : mesh.faces) out.faces.push_back({remap[f[0]], remap[f[1]], remap[f[2]]});
   return out;
+}
+
+int64_t MergeCoincidentVertices(TriangleMesh& mesh) {
+  const std::vector<uint32_t> order = OrderByPosition(mesh.vertices);
+  std::vector<uint32_t> first(mesh.vertices.size());
+  for (size_t i = 0; i < order.size(); ++i) {
+    const bool same = i > 0 && mesh.vertices[order[i]] == mesh.vertices[order[i - 1]];
+    first[order[i]] = same ? first[order[i - 1]] : order[i];
+  }
+  // Faces by their sorted vertex triple. A collapsed face goes; of the faces on one triple,
+  // opposite orientations cancel (a pair encloses nothing) and one of the rest stays.
+  std::vector<std::pair<std::array<uint32_t, 3>, uint32_t>> sorted;
+  sorted.reserve(mesh.faces.size());
+  for (uint32_t f = 0; f < mesh.faces.size(); ++f) {
+    Triangle& t = mesh.faces[f];
+    for (uint32_t& v : t) v = first[v];
+    std::array<uint32_t, 3> key = t;
+    std::sort(key.begin(), key.end());
+    sorted.emplace_back(key, f);
+  }
+  std::sort(sorted.begin(), sorted.end());
+  // +1 where the face runs through its sorted triple in cyclic order, −1 where against it.
+  auto orientation = [&](uint32_t f) {
+    const Triangle& t = mesh.faces[f];
+    const size_t lowest = static_cast<size_t>(std::min_element(t.begin(), t.end()) - t.begin());
+    return t[(lowest + 1) % 3] < t[(lowest + 2) % 3] ? 1 : -1;
+  };
+  std::vector<char> drop(mesh.faces.size(), 1);
+  for (size_t i = 0; i < sorted.size();) {
+    size_t j = i;
+    while (j < sorted.size() && sorted[j].first == sorted[i].first) ++j;
+    const auto& key = sorted[i].first;
+    if (key[0] != key[1] && key[1] != key[2]) {
+      int sum = 0;
+      for (size_t k = i; k < j; ++k) sum += orientation(sorted[k].second);
+      for (size_t k = i; k < j && sum != 0; ++k) {
+        if (orientation(sorted[k].second) == (sum > 0 ? 1 : -1)) {
+          drop[sorted[k].second] = 0;
+          break;
+        }
+      }
+    }
+    i = j;
+  }
+  int64_t dropped = 0;
+  size_t kept = 0;
+  for (size_t f = 0; f < mesh.faces.size(); ++f) {
+    if (drop[f]) {
+      ++dropped;
+      continue;
+    }
+    mesh.faces[kept++] = mesh.faces[f];
+  }
+  mesh.faces.resize(kept);
+  // The vertices still used, in their order.
+  std::vector<uint32_t> index(mesh.vertices.size(), UINT32_MAX);
+  for (const Triangle& t : mesh.faces) {
+    for (uint32_t v : t) index[v] = 0;
+  }
+  uint32_t count = 0;
+  for (size_t v = 0; v < mesh.vertices.size(); ++v) {
+    if (index[v] == UINT32_MAX) continue;
+    index[v] = count;
+    mesh.vertices[count] = mesh.vertices[v];
+    if (!mesh.normals.empty()) mesh.normals[count] = mesh.normals[v];
+    for (ScalarAttribute& a : mesh.vertex_attributes) a.values[count] = a.values[v];
+    ++count;
+  }
+  mesh.vertices.resize(count);
+  if (!mesh.normals.empty()) mesh.normals.resize(count);
+  for (ScalarAttribute& a : mesh.vertex_attributes) a.values.resize(count);
+  for (Triangle& t : mesh.faces) {
+    for (uint32_t& v : t) v = index[v];
+  }
+  return dropped;
 }
 
 int64_t CountDistinctPositions(const std::vector<Vec3f>& positions) {

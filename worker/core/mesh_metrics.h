@@ -32,6 +32,14 @@ MeshTopology AnalyzeTopology(const TriangleMesh& mesh);
 // dropped. O(V log V).
 TriangleMesh WeldByPosition(const TriangleMesh& mesh);
 
+// Merges the vertices at exactly the same position into the first of them (its normal and
+// attributes stay), drops the faces that collapse, lets faces on the same three vertices with
+// opposite orientations cancel (a pair encloses nothing; one of any rest stays), and drops the
+// vertices no face uses. What a delivery whose
+// quantization puts distinct vertices together must do to stay manifold. Returns the faces
+// dropped. O(V log V + F log F).
+int64_t MergeCoincidentVertices(TriangleMesh& mesh);
+
 // Number of distinct vertex positions.
 int64_t CountDistinctPositions(const std::vector<Vec3f>& positions);
 

@@ -70,7 +70,8 @@ const core::ParamTable<MarchingOptions>& MarchingParamTable() {
         .Integer<&MarchingOptions::relax_steps>(
             "relax_steps", 0, 10, "steps",
             "mesh enhancement: steps of tangential relaxation on the surface after extraction (vertices on creases "
-            "and borders stay); 0 = off");
+            "and borders stay), then edge flips of thin triangles across flat edges and half as many steps again; "
+            "0 = off");
     return t;
   }();
   return *table;

@@ -523,8 +523,23 @@ absl::StatusOr<std::string> EncodeResultMesh(const core::TriangleMesh& mesh, int
     if (!delivered.ok()) {
       return absl::InternalError(core::StrCat("the result mesh does not decode: ", delivered.status().message()));
     }
+    // Vertices the quantization (or the engine) put together are merged as a client's weld
+    // would, and the faces that then collapse or lie on one another go, so that what is
+    // delivered stays manifold; the merged mesh is sent instead.
+    const size_t before = delivered->vertices.size();
+    const int64_t dropped = core::MergeCoincidentVertices(*delivered);
+    if (dropped > 0 || delivered->vertices.size() != before) {
+      spdlog::info("result mesh: {} vertices merged at {} bits, {} faces dropped", before - delivered->vertices.size(),
+                   draco.position_bits, dropped);
+      encoded = io::EncodeDracoMesh(*delivered, draco);
+      if (!encoded.ok()) return encoded.status();
+      delivered = io::DecodeDracoMesh(*encoded);
+      if (!delivered.ok()) {
+        return absl::InternalError(core::StrCat("the result mesh does not decode: ", delivered.status().message()));
+      }
+    }
+    AddStatistic(statistics, "delivery_dropped_faces", static_cast<double>(dropped));
     topo = core::AnalyzeTopology(core::WeldByPosition(*delivered));
-    if (!kept) spdlog::warn("result mesh: distinct vertices share a position at {} bits", draco.position_bits);
   }
   AddStatistic(statistics, "delivered_position_bits", draco.position_bits);
   AddStatistic(statistics, "boundary_edges", static_cast<double>(topo.boundary_edges));

@@ -25,6 +25,12 @@ struct Fixture {
   }
 };
 
+// Two evaluations of F alike to the last bit (NaN counts as equal to NaN).
+bool SameEvaluation(const core::FieldGradient& a, const core::FieldGradient& b) {
+  return (a.value == b.value || (std::isnan(a.value) && std::isnan(b.value))) && a.gradient == b.gradient &&
+         a.defined == b.defined;
+}
+
 // Random points near the torus: counts those that changed, and fails on any change beyond `reach`.
 int CountChanged(const PuFunction& a, const PuFunction& b, const Vec3d& centre, double reach) {
   std::mt19937_64 rng(11);
@@ -33,8 +39,7 @@ int CountChanged(const PuFunction& a, const PuFunction& b, const Vec3d& centre, 
   for (int i = 0; i < 20'000; ++i) {
     const Vec3d x(u(rng), u(rng), u(rng) * 0.35);
     const core::FieldGradient fa = a.ValueAndGradient(x), fb = b.ValueAndGradient(x);
-    const bool same = (fa.value == fb.value || (std::isnan(fa.value) && std::isnan(fb.value))) &&
-                      fa.gradient == fb.gradient && fa.defined == fb.defined;
+    const bool same = SameEvaluation(fa, fb);
     if ((x - centre).norm() >= reach) {
       ++outside;
       EXPECT_TRUE(same) << "at " << x.transpose() << ": " << fa.value << " vs " << fb.value;
@@ -56,9 +61,7 @@ void ExpectSameAsRebuiltIndex(const PuFunction& edited) {
   int differ = 0;
   for (int i = 0; i < 20'000; ++i) {
     const Vec3d x(u(rng), u(rng), u(rng) * 0.35);
-    const core::FieldGradient a = edited.ValueAndGradient(x), b = (*rebuilt)->ValueAndGradient(x);
-    differ += !((a.value == b.value || (std::isnan(a.value) && std::isnan(b.value))) && a.gradient == b.gradient &&
-                a.defined == b.defined);
+    differ += !SameEvaluation(edited.ValueAndGradient(x), (*rebuilt)->ValueAndGradient(x));
   }
   EXPECT_EQ(differ, 0);
 }

@@ -525,7 +525,8 @@ absl::Status FinishSurface(const ImplicitFunction& field, const MarchingOptions&
   stage_start = std::chrono::steady_clock::now();
   if (params.relax_steps > 0) {
     // Relaxation, then edge flips where it left thin triangles, then half as many steps again
-    // around the flipped edges (fandisk 100k: smallest-angle p1 13.7° → 16.7°, time +10 %).
+    // around the flipped edges (fandisk 100k: smallest-angle p1 13.7° → 16.7°; the flips take
+    // about 0.1 s of the 0.55 s this stage takes there).
     const auto fixed_from = static_cast<uint32_t>(stats.crossings);
     int64_t moved = 0;
     LSQSURF_RETURN_IF_ERROR(RelaxTangentially(field, params.relax_steps, fixed_from, mesh, moved, ctx));

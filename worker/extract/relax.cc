@@ -33,6 +33,20 @@ constexpr double kFlipGain = 1e-3;
 constexpr int kFlipPasses = 8;
 constexpr int64_t kFlipDiminish = 50;
 
+// Vertex → incident faces as compressed rows: the faces of v are incident[start[v] .. start[v + 1]).
+void IncidentFaces(const core::TriangleMesh& mesh, std::vector<uint32_t>& start, std::vector<uint32_t>& incident) {
+  start.assign(mesh.vertices.size() + 1, 0);
+  incident.resize(3 * mesh.faces.size());
+  for (const core::Triangle& t : mesh.faces) {
+    for (uint32_t v : t) ++start[v + 1];
+  }
+  for (size_t v = 0; v < mesh.vertices.size(); ++v) start[v + 1] += start[v];
+  std::vector<uint32_t> cursor(start.begin(), start.end() - 1);
+  for (uint32_t f = 0; f < mesh.faces.size(); ++f) {
+    for (uint32_t v : mesh.faces[f]) incident[cursor[v]++] = f;
+  }
+}
+
 // The vertices that stay where they are: from `first_fixed` on (crease splits), on an unsplit
 // crease, and on a border.
 absl::Status MarkFixedVertices(const core::TriangleMesh& mesh, const std::vector<uint32_t>& start,
@@ -95,18 +109,8 @@ double SmallestAngle(const Vec3d& p, const Vec3d& q, const Vec3d& r) {
 absl::Status RelaxTangentially(const core::ImplicitFunction& field, int steps, uint32_t first_fixed,
                                core::TriangleMesh& mesh, int64_t& moves, core::JobContext& ctx) {
   const size_t n = mesh.vertices.size();
-  // Vertex → incident faces (compressed rows), and the border: edges with one face.
-  std::vector<uint32_t> start(n + 1, 0), incident(3 * mesh.faces.size());
-  for (const core::Triangle& t : mesh.faces) {
-    for (uint32_t v : t) ++start[v + 1];
-  }
-  for (size_t v = 0; v < n; ++v) start[v + 1] += start[v];
-  {
-    std::vector<uint32_t> cursor(start.begin(), start.end() - 1);
-    for (uint32_t f = 0; f < mesh.faces.size(); ++f) {
-      for (uint32_t v : mesh.faces[f]) incident[cursor[v]++] = f;
-    }
-  }
+  std::vector<uint32_t> start, incident;
+  IncidentFaces(mesh, start, incident);
   std::vector<char> fixed;
   LSQSURF_RETURN_IF_ERROR(MarkFixedVertices(mesh, start, incident, first_fixed, fixed, ctx));
   std::vector<Vec3f> next(mesh.vertices), next_normals(mesh.normals);
@@ -202,21 +206,12 @@ absl::Status FlipPoorEdges(core::TriangleMesh& mesh, std::vector<uint64_t>* face
   auto normal_of = [&](const core::Triangle& t) {
     return (position(t[1]) - position(t[0])).cross(position(t[2]) - position(t[0]));
   };
+  std::vector<uint32_t> start, incident;
   int64_t first_pass = 0;
   for (int pass = 0; pass < kFlipPasses; ++pass) {
     LSQSURF_RETURN_IF_ERROR(ctx.CheckCancelled());
-    // Vertex → incident faces, rebuilt per pass (flips change it).
-    std::vector<uint32_t> start(n + 1, 0), incident(3 * mesh.faces.size());
-    for (const core::Triangle& t : mesh.faces) {
-      for (uint32_t v : t) ++start[v + 1];
-    }
-    for (size_t v = 0; v < n; ++v) start[v + 1] += start[v];
-    {
-      std::vector<uint32_t> cursor(start.begin(), start.end() - 1);
-      for (uint32_t f = 0; f < mesh.faces.size(); ++f) {
-        for (uint32_t v : mesh.faces[f]) incident[cursor[v]++] = f;
-      }
-    }
+    // Rebuilt per pass: flips change it.
+    IncidentFaces(mesh, start, incident);
     // The faces holding both a and b (in `out`); and whether c and d share an edge already.
     auto faces_with = [&](uint32_t a, uint32_t b, std::vector<uint32_t>& out) {
       out.clear();

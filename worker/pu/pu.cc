@@ -948,7 +948,7 @@ absl::Status UpdateInfluence(const PuFunction::Impl& before, PuFunction::Impl& a
   std::vector<std::pair<int32_t, int32_t>> added;  // (leaf, new fit)
   for (int32_t f : new_fits) {
     ForEachLeafInSupport(after, after.fits[static_cast<size_t>(f)], [&](int32_t leaf) {
-      mark(leaf, leaf < static_cast<int32_t>(old_nodes) ? leaf : -1);
+      mark(leaf, leaf);  // A leaf new to the tree is marked already, from its split leaf.
       added.emplace_back(leaf, f);
     });
   }
@@ -956,7 +956,6 @@ absl::Status UpdateInfluence(const PuFunction::Impl& before, PuFunction::Impl& a
   for (size_t i = 0; i < rebuilt_leaves.size(); ++i) {
     const auto leaf = static_cast<size_t>(rebuilt_leaves[i]);
     const int32_t from = source[leaf];
-    if (from < 0) continue;  // A new leaf only new fits reach (its list starts from its split leaf's).
     const bool new_leaf = leaf >= old_nodes;
     for (uint32_t k = before.influence_offsets[static_cast<size_t>(from)];
          k < before.influence_offsets[static_cast<size_t>(from) + 1]; ++k) {

@@ -28,7 +28,7 @@ double RefineRootOnSegment(const ImplicitFunction& field, const Vec3d& a, const 
   int side = 0;
   for (int step = 0; step < (steps > 0 ? steps + kExtraRootSteps : 0); ++step) {
     const double f = field.ValueOnly(a + t * (b - a));
-    if (std::isnan(f) || f == 0.0) break;
+    if (std::isnan(f) || f == 0.0) return t;
     // Anderson–Björck: when one end is kept twice, its value is scaled by 1 − f/f_replaced
     // (0.5 where that is not positive), which converges faster than halving it (Illinois).
     if ((f < 0) == a_negative) {
@@ -41,9 +41,20 @@ double RefineRootOnSegment(const ImplicitFunction& field, const Vec3d& a, const 
       side = 1;
     }
     t = ta - fa * (tb - ta) / (fb - fa);
-    if (step + 1 >= steps && std::abs(f) <= tolerance) break;
+    if (step + 1 >= steps && std::abs(f) <= tolerance) return t;
   }
-  return t;
+  if (steps <= 0) return t;
+  // Still not converged: the secant stalls beside a kink where one end keeps a plateau's value
+  // (max(x − h, s) along a box face next to a sphere left a vertex 0.09 of its edge off the
+  // surface). Bisection shrinks the bracket 4096-fold at most.
+  constexpr int kBisectionSteps = 12;
+  for (int step = 0; step < kBisectionSteps; ++step) {
+    t = 0.5 * (ta + tb);
+    const double f = field.ValueOnly(a + t * (b - a));
+    if (std::isnan(f) || f == 0.0 || std::abs(f) <= tolerance) return t;
+    ((f < 0) == a_negative ? ta : tb) = t;
+  }
+  return 0.5 * (ta + tb);
 }
 
 }  // namespace lsqsurf::core

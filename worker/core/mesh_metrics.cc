@@ -44,6 +44,19 @@ TriangleMesh WeldByPosition(const TriangleMesh& mesh) {
   return out;
 }
 
+void IncidentFaces(const TriangleMesh& mesh, std::vector<uint32_t>& start, std::vector<uint32_t>& incident) {
+  start.assign(mesh.vertices.size() + 1, 0);
+  incident.resize(3 * mesh.faces.size());
+  for (const Triangle& t : mesh.faces) {
+    for (uint32_t v : t) ++start[v + 1];
+  }
+  for (size_t v = 0; v < mesh.vertices.size(); ++v) start[v + 1] += start[v];
+  std::vector<uint32_t> cursor(start.begin(), start.end() - 1);
+  for (uint32_t f = 0; f < mesh.faces.size(); ++f) {
+    for (uint32_t v : mesh.faces[f]) incident[cursor[v]++] = f;
+  }
+}
+
 int64_t MergeCoincidentVertices(TriangleMesh& mesh) {
   const std::vector<uint32_t> order = OrderByPosition(mesh.vertices);
   std::vector<uint32_t> first(mesh.vertices.size());

@@ -1,5 +1,6 @@
 #include "worker/extract/creases.h"
 
+#include <Eigen/Geometry>
 #include <Eigen/LU>
 #include <algorithm>
 #include <array>
@@ -10,6 +11,7 @@
 
 #include "absl/container/flat_hash_map.h"
 #include "absl/container/flat_hash_set.h"
+#include "worker/core/mesh_metrics.h"
 #include "worker/core/parallel.h"
 #include "worker/core/status.h"
 #include "worker/extract/marching_tets.h"
@@ -33,12 +35,56 @@ constexpr double kMaxOffsetShare = 0.5;
 
 // An end of an edge that lies this close to the crease (share of the edge) is moved onto it.
 constexpr double kMaxSnapShare = 0.15;
+// Where that end cannot move, the edge is split instead unless the crease point is closer than
+// this share of the edge to an end (a vertex there would merge with the end in any delivery).
+constexpr double kStuckMargin = 1e-3;
 
 struct CreaseHit {
   Vec3d point = Vec3d::Constant(std::numeric_limits<double>::quiet_NaN());  // The split point, or NaN.
   int snap_end = -1;                                                        // 0 (a) or 1 (b): move it...
   Vec3d snap_to = Vec3d::Zero();                                            // ...onto this crease point.
+  // Where the edge is split instead when the end cannot move (a triangle would turn), or NaN: a
+  // sliver keeps the crease where the curve would otherwise cut across a face.
+  Vec3d split_if_stuck = Vec3d::Constant(std::numeric_limits<double>::quiet_NaN());
 };
+
+// Points found again within `tolerance` of where they were put (a hash grid of that cell size).
+// New vertices closer than a delivery's quantization step to another one would merge in it.
+class NearbyPoints {
+ public:
+  explicit NearbyPoints(double tolerance) : tolerance_(tolerance) {}
+  bool Near(const Vec3f& p) const {
+    const std::array<int64_t, 3> key = Key(p);
+    for (int64_t dx = -1; dx <= 1; ++dx) {
+      for (int64_t dy = -1; dy <= 1; ++dy) {
+        for (int64_t dz = -1; dz <= 1; ++dz) {
+          const auto it = cells_.find({key[0] + dx, key[1] + dy, key[2] + dz});
+          if (it == cells_.end()) continue;
+          for (const Vec3f& q : it->second) {
+            if ((q - p).cast<double>().norm() <= tolerance_) return true;
+          }
+        }
+      }
+    }
+    return false;
+  }
+  void Insert(const Vec3f& p) { cells_[Key(p)].push_back(p); }
+
+ private:
+  std::array<int64_t, 3> Key(const Vec3f& p) const {
+    return {static_cast<int64_t>(std::floor(p.x() / tolerance_)), static_cast<int64_t>(std::floor(p.y() / tolerance_)),
+            static_cast<int64_t>(std::floor(p.z() / tolerance_))};
+  }
+  double tolerance_;
+  absl::flat_hash_map<std::array<int64_t, 3>, std::vector<Vec3f>> cells_;
+};
+
+// 16 steps of a 30-bit quantization of the mesh's box (the finest a delivery uses).
+double MergeTolerance(const core::TriangleMesh& mesh) {
+  Eigen::AlignedBox3f box;
+  for (const Vec3f& p : mesh.vertices) box.extend(p);
+  return box.isEmpty() ? 0.0 : std::ldexp(static_cast<double>(box.sizes().maxCoeff()), -26);
+}
 
 bool OnSurface(const core::ImplicitFunction& field, const Vec3d& x, double tolerance) {
   const core::FieldValue f = field.Value(x);
@@ -73,6 +119,11 @@ CreaseHit CreasePoint(const core::ImplicitFunction& field, const Vec3d& a, const
     if (!((p - e).norm() <= kMaxSnapShare * length) || !OnSurface(field, p, kMaxResidualShare * length)) return none;
     CreaseHit hit;
     hit.snap_end = end, hit.snap_to = p;
+    if (along > kStuckMargin && along < 1 - kStuckMargin &&
+        (x - (a + along * edge)).norm() <= kMaxOffsetShare * length &&
+        OnSurface(field, x, kMaxResidualShare * length)) {
+      hit.split_if_stuck = x;
+    }
     return hit;
   }
   if ((x - (a + along * edge)).norm() > kMaxOffsetShare * length) return none;
@@ -249,6 +300,107 @@ std::vector<core::Triangle> SplitFaces(const core::ImplicitFunction& field,
   return faces;
 }
 
+// A face left between three sheets: each of its edges borders a face of another sheet, so it cuts
+// off the corner where the sheets meet (where a crease ends on another, as a box's edge where a
+// sphere cuts it, no face had three splits). The corner, where
+// the three neighbours' planes meet, becomes a vertex and the face a fan of three around it,
+// each piece in the plane of the neighbour across its edge. Faces touching a vertex from
+// `first_new` on (the crease vertices) are looked at.
+void InsertCutCorners(const core::ImplicitFunction& field, double cos_crease, uint32_t first_new,
+                      core::TriangleMesh& mesh, CreaseCounts& counts, std::vector<uint64_t>* cells) {
+  // The faces of each new vertex, as compressed rows over first_new, first_new + 1, ...
+  const size_t added = mesh.vertices.size() - first_new;
+  std::vector<uint32_t> start(added + 1, 0), incident;
+  for (const core::Triangle& t : mesh.faces) {
+    for (uint32_t v : t) {
+      if (v >= first_new) ++start[v - first_new + 1];
+    }
+  }
+  for (size_t i = 0; i < added; ++i) start[i + 1] += start[i];
+  incident.resize(start[added]);
+  std::vector<uint32_t> cursor(start.begin(), start.end() - 1);
+  for (uint32_t f = 0; f < mesh.faces.size(); ++f) {
+    for (uint32_t v : mesh.faces[f]) {
+      if (v >= first_new) incident[cursor[v - first_new]++] = f;
+    }
+  }
+  auto v3 = [&](uint32_t v) { return Vec3d(mesh.vertices[v].cast<double>()); };
+  auto unit_normal = [&](const core::Triangle& t) {
+    const Vec3d n = (v3(t[1]) - v3(t[0])).cross(v3(t[2]) - v3(t[0]));
+    return n.norm() > 0 ? Vec3d(n.normalized()) : Vec3d::Zero();
+  };
+  // The one other face on edge a–b (a new vertex), or UINT32_MAX.
+  auto across = [&](uint32_t f, uint32_t a, uint32_t b) {
+    uint32_t found = UINT32_MAX;
+    for (uint32_t k = start[a - first_new]; k < start[a - first_new + 1]; ++k) {
+      const uint32_t g = incident[k];
+      const core::Triangle& t = mesh.faces[g];
+      if (g == f || (t[0] != b && t[1] != b && t[2] != b)) continue;
+      if (found != UINT32_MAX) return UINT32_MAX;  // Non-manifold: left alone.
+      found = g;
+    }
+    return found;
+  };
+  // Such a face lies between crease lines, so two of its corners at least are crease points:
+  // each of its edges then has a new end to look the neighbour up by.
+  std::vector<std::pair<uint32_t, Vec3f>> found;  // Face → the corner it cuts off.
+  for (uint32_t f = 0; f < mesh.faces.size(); ++f) {
+    const core::Triangle t = mesh.faces[f];
+    if ((t[0] >= first_new) + (t[1] >= first_new) + (t[2] >= first_new) < 2) continue;
+    const Vec3d nf = unit_normal(t);
+    std::array<Vec3d, 3> n;
+    bool cut = nf.squaredNorm() > 0;
+    for (size_t i = 0; i < 3 && cut; ++i) {
+      const uint32_t a = t[i], b = t[(i + 1) % 3];
+      const uint32_t g = a >= first_new ? across(f, a, b) : across(f, b, a);
+      cut = g != UINT32_MAX;
+      if (cut) n[i] = unit_normal(mesh.faces[g]);
+    }
+    for (size_t i = 0; i < 3 && cut; ++i) cut = n[i].dot(n[(i + 1) % 3]) < cos_crease;
+    if (!cut) continue;
+    Eigen::Matrix3d m;
+    m << n[0].transpose(), n[1].transpose(), n[2].transpose();
+    const Eigen::FullPivLU<Eigen::Matrix3d> lu(m);
+    if (lu.rank() < 3 || std::abs(lu.determinant()) < 0.05) continue;
+    const Vec3d x = lu.solve(Vec3d(n[0].dot(v3(t[0])), n[1].dot(v3(t[1])), n[2].dot(v3(t[2]))));
+    double size = 0;
+    for (size_t i = 0; i < 3; ++i) size = std::max(size, (v3(t[i]) - v3(t[(i + 1) % 3])).norm());
+    const Vec3d centroid = (v3(t[0]) + v3(t[1]) + v3(t[2])) / 3;
+    if (!x.allFinite() || (x - centroid).norm() > size || !OnSurface(field, x, kMaxCornerResidualShare * size))
+      continue;
+    bool at_a_vertex = false;  // Pieces that would be slivers of no width: the corner is there.
+    for (uint32_t v : t) at_a_vertex = at_a_vertex || (x - v3(v)).norm() <= kStuckMargin * size;
+    if (at_a_vertex) continue;
+    // Each piece must face like the neighbour across its edge (the corner lies over the face).
+    bool turns = false;
+    for (size_t i = 0; i < 3; ++i) {
+      turns = turns || (v3(t[(i + 1) % 3]) - v3(t[i])).cross(x - v3(t[i])).dot(n[i]) <= 0;
+    }
+    if (!turns) found.emplace_back(f, x.cast<float>());
+  }
+  if (found.empty()) return;
+  // One vertex per corner, and none where a vertex is already (a solid's corner on the lattice):
+  // two vertices at one position (or a quantization step apart) would merge in a delivery.
+  NearbyPoints taken(MergeTolerance(mesh));
+  for (uint32_t f : incident) {
+    for (uint32_t v : mesh.faces[f]) taken.Insert(mesh.vertices[v]);
+  }
+  for (const auto& [f, corner] : found) {
+    if (taken.Near(corner)) continue;
+    taken.Insert(corner);
+    const core::Triangle t = mesh.faces[f];
+    const auto q = static_cast<uint32_t>(mesh.vertices.size());
+    mesh.vertices.push_back(corner);
+    const Vec3d nf = unit_normal(t);
+    mesh.normals.push_back(nf.cast<float>());
+    ++counts.corners;
+    mesh.faces[f] = {t[0], t[1], q};
+    mesh.faces.push_back({t[1], t[2], q});
+    mesh.faces.push_back({t[2], t[0], q});
+    if (cells != nullptr) cells->resize(mesh.faces.size(), (*cells)[f]);
+  }
+}
+
 }  // namespace
 
 absl::Status SharpenCreases(const core::ImplicitFunction& field, double crease_angle, core::TriangleMesh& mesh,
@@ -273,6 +425,7 @@ absl::Status SharpenCreases(const core::ImplicitFunction& field, double crease_a
     }
   }
   if (candidates.empty()) return absl::OkStatus();
+  const auto first_new = static_cast<uint32_t>(mesh.vertices.size());
   std::vector<Vec3d> points(candidates.size());
   std::vector<CreaseHit> hits(candidates.size());
   LSQSURF_RETURN_IF_ERROR(core::ParallelFor(
@@ -286,7 +439,13 @@ absl::Status SharpenCreases(const core::ImplicitFunction& field, double crease_a
         }
       },
       &ctx));
+  const std::vector<Vec3f> before_snaps(mesh.vertices);
   SnapEndsOntoCreases(candidates, hits, mesh, counts);
+  for (size_t k = 0; k < candidates.size(); ++k) {
+    if (hits[k].snap_end < 0) continue;
+    const auto v = static_cast<uint32_t>(hits[k].snap_end == 0 ? candidates[k] >> 32 : candidates[k] & 0xffffffffu);
+    if (mesh.vertices[v] == before_snaps[v]) points[k] = hits[k].split_if_stuck;
+  }
   // Two edges of one triangle can meet the crease at the same point (a crease along a grid axis
   // seen from the edges a–b and a–c): they share one vertex, and the sliver between them goes.
   absl::flat_hash_map<uint32_t, std::vector<uint32_t>> candidates_at;  // Vertex → its candidates.
@@ -311,18 +470,26 @@ absl::Status SharpenCreases(const core::ImplicitFunction& field, double crease_a
       }
     }
   }
-  // New vertices by position. A crease point that lands on the float position of another one
-  // (edges placed symmetrically about an exact solid's crease) leaves its edge unsplit: two
-  // vertices there would merge in any weld by position, and one shared vertex can pinch.
+  // New vertices by position. A crease point that lands on (or a quantization step from) another
+  // one or an end of a candidate edge (edges placed symmetrically about an exact solid's crease,
+  // crossings converged onto a crease on the lattice) leaves its edge unsplit: two vertices there
+  // would merge in any weld by position, and one shared vertex can pinch.
   absl::flat_hash_map<std::array<float, 3>, uint32_t> vertex_at;
+  NearbyPoints taken(MergeTolerance(mesh));
+  for (const uint64_t edge : candidates) {
+    taken.Insert(mesh.vertices[edge >> 32]);
+    taken.Insert(mesh.vertices[edge & 0xffffffffu]);
+  }
   for (size_t k = 0; k < candidates.size(); ++k) {
     if (!points[k].allFinite() || twin[k] != UINT32_MAX) continue;
     const auto a = static_cast<uint32_t>(candidates[k] >> 32), b = static_cast<uint32_t>(candidates[k]);
     const Vec3f point = points[k].cast<float>();
-    if (!vertex_at.emplace(std::array<float, 3>{point.x(), point.y(), point.z()}, mesh.vertices.size()).second) {
+    if (taken.Near(point)) {
       points[k] = Vec3d::Constant(std::numeric_limits<double>::quiet_NaN());
       continue;
     }
+    taken.Insert(point);
+    vertex_at.emplace(std::array<float, 3>{point.x(), point.y(), point.z()}, mesh.vertices.size());
     split[candidates[k]] = static_cast<uint32_t>(mesh.vertices.size());
     mesh.vertices.push_back(point);
     const Vec3f n = mesh.normals[a] + mesh.normals[b];
@@ -333,6 +500,7 @@ absl::Status SharpenCreases(const core::ImplicitFunction& field, double crease_a
     if (twin[k] != UINT32_MAX && points[twin[k]].allFinite()) split[candidates[k]] = split[candidates[twin[k]]];
   }
   mesh.faces = SplitFaces(field, split, vertex_at, mesh, counts, face_cells);
+  InsertCutCorners(field, cos_crease, first_new, mesh, counts, face_cells);
   return absl::OkStatus();
 }
 

@@ -8,6 +8,7 @@
 #include <utility>
 #include <vector>
 
+#include "worker/core/mesh_metrics.h"
 #include "worker/core/parallel.h"
 #include "worker/core/status.h"
 #include "worker/extract/marching_tets.h"
@@ -15,6 +16,7 @@
 namespace lsqsurf::extract::internal {
 namespace {
 
+using core::IncidentFaces;
 using core::Vec3d;
 using core::Vec3f;
 
@@ -38,20 +40,6 @@ constexpr double kFlipFlatDegrees = 20;
 constexpr double kFlipGain = 1e-3;
 constexpr int kFlipPasses = 8;
 constexpr int64_t kFlipDiminish = 50;
-
-// Vertex → incident faces as compressed rows: the faces of v are incident[start[v] .. start[v + 1]).
-void IncidentFaces(const core::TriangleMesh& mesh, std::vector<uint32_t>& start, std::vector<uint32_t>& incident) {
-  start.assign(mesh.vertices.size() + 1, 0);
-  incident.resize(3 * mesh.faces.size());
-  for (const core::Triangle& t : mesh.faces) {
-    for (uint32_t v : t) ++start[v + 1];
-  }
-  for (size_t v = 0; v < mesh.vertices.size(); ++v) start[v + 1] += start[v];
-  std::vector<uint32_t> cursor(start.begin(), start.end() - 1);
-  for (uint32_t f = 0; f < mesh.faces.size(); ++f) {
-    for (uint32_t v : mesh.faces[f]) incident[cursor[v]++] = f;
-  }
-}
 
 // The vertices that stay where they are: from `first_fixed` on (crease splits), on an unsplit
 // crease, and on a border.

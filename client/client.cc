@@ -5,6 +5,7 @@
 #include <cctype>
 #include <cstdlib>
 
+#include "grpc/health/v1/health.grpc.pb.h"
 #include "lsqsurf/v1/enum_names.h"
 #include "worker/core/strings.h"
 #include "worker/io/files.h"
@@ -159,7 +160,8 @@ Client::Client(const std::string& address) {
   grpc::ChannelArguments args;
   args.SetMaxReceiveMessageSize(16 << 20);
   args.SetMaxSendMessageSize(16 << 20);
-  stub_ = v1::Reconstruction::NewStub(grpc::CreateCustomChannel(address, grpc::InsecureChannelCredentials(), args));
+  channel_ = grpc::CreateCustomChannel(address, grpc::InsecureChannelCredentials(), args);
+  stub_ = v1::Reconstruction::NewStub(channel_);
 }
 
 absl::StatusOr<VolumeUpload> EncodeVolumeFile(const std::string& path, const std::string& raw_layout,
@@ -282,6 +284,17 @@ absl::StatusOr<v1::ListMethodsResponse> Client::ListMethods() {
 
 absl::StatusOr<v1::ServerInfo> Client::GetServerInfo() {
   return Unary(&v1::Reconstruction::Stub::GetServerInfo, *stub_, v1::GetServerInfoRequest{});
+}
+
+absl::StatusOr<bool> Client::Serving(const std::string& service, std::chrono::milliseconds timeout) {
+  auto health = grpc::health::v1::Health::NewStub(channel_);
+  grpc::ClientContext ctx;
+  ctx.set_deadline(std::chrono::system_clock::now() + timeout);
+  grpc::health::v1::HealthCheckRequest request;
+  request.set_service(service);
+  grpc::health::v1::HealthCheckResponse response;
+  if (const grpc::Status status = health->Check(&ctx, request, &response); !status.ok()) return FromGrpc(status);
+  return response.status() == grpc::health::v1::HealthCheckResponse::SERVING;
 }
 
 }  // namespace lsqsurf::client

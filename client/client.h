@@ -5,6 +5,7 @@
 // own contexts on a shared channel.
 #pragma once
 
+#include <chrono>
 #include <functional>
 #include <memory>
 #include <string>
@@ -65,8 +66,13 @@ class Client {
   absl::Status Delete(const std::string& id);
   absl::StatusOr<v1::ListMethodsResponse> ListMethods();
   absl::StatusOr<v1::ServerInfo> GetServerInfo();
+  // The standard gRPC health check (grpc.health.v1) of `service` ("" = the server as a whole):
+  // true when SERVING, false when NOT_SERVING (a server that is stopping). Errors: the RPC's,
+  // kUnavailable or kDeadlineExceeded when nothing answers within `timeout`.
+  absl::StatusOr<bool> Serving(const std::string& service, std::chrono::milliseconds timeout);
 
  private:
+  std::shared_ptr<grpc::Channel> channel_;
   std::unique_ptr<v1::Reconstruction::Stub> stub_;
 };
 

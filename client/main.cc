@@ -635,6 +635,27 @@ int PrintMethods(const Globals& g) {
   return 0;
 }
 
+// `lsqsurf health`: exit 0 when the server answers SERVING (what a container's HEALTHCHECK and a
+// readiness probe run), 1 when it answers NOT_SERVING, 3 when nothing answers.
+struct HealthCommand {
+  std::string service;
+  double timeout_seconds = 5;
+
+  CLI::App* AddTo(CLI::App& app) {
+    CLI::App* health = app.add_subcommand("health", "exit 0 when the server answers SERVING to a gRPC health check");
+    health->add_option("--service", service, "service to ask about (default: the whole server)");
+    health->add_option("--timeout", timeout_seconds, "seconds to wait for an answer")->capture_default_str();
+    return health;
+  }
+  int Run(const Globals& g) const {
+    const auto timeout = std::chrono::milliseconds(static_cast<int64_t>(timeout_seconds * 1000));
+    auto serving = client::Client(g.server).Serving(service, timeout);
+    if (!serving.ok()) return FailStatus("health", serving.status());
+    std::printf("%s\n", *serving ? "SERVING" : "NOT_SERVING");
+    return *serving ? 0 : 1;
+  }
+};
+
 int PrintServerInfo(const Globals& g) {
   auto info = client::Client(g.server).GetServerInfo();
   if (!info.ok()) return FailStatus("info", info.status());
@@ -763,6 +784,8 @@ int main(int argc, char** argv) {
   fetch->add_option("--name", name, "artifact name, e.g. preview.png or stats.csv (default: the mesh)");
   auto* methods = app.add_subcommand("methods", "list the server's methods and parameters");
   auto* info = app.add_subcommand("info", "show the server's version and limits");
+  HealthCommand health_command;
+  CLI::App* health = health_command.AddTo(app);
   TrackCommand track_command;
   auto* track = app.add_subcommand("track", "advect an interface through a velocity field; write frames and stats");
   track_command.AddTo(track);
@@ -812,6 +835,7 @@ int main(int argc, char** argv) {
   }
   if (*methods) return PrintMethods(g);
   if (*info) return PrintServerInfo(g);
+  if (*health) return health_command.Run(g);
   if (*compare) return Compare(reference, candidate, samples);
   return Fail("no command given");
 }

@@ -4,7 +4,9 @@
 # --with-poisson also installs Open3D (libopen3d-dev, large), needed only by the benchmark
 # preset `bench-poisson` that runs screened Poisson side by side; --with-openvdb installs
 # libopenvdb-dev, needed only by the preset `bench-openvdb` (the level-set reference of the
-# front-tracking benchmarks). Both may be given.
+# front-tracking benchmarks); --with-vtk the VTK reference of the volume benchmark;
+# --with-containers podman and debootstrap for scripts/container-base.sh and container-test.sh.
+# Any of them may be given.
 set -euo pipefail
 
 packages=(
@@ -14,14 +16,15 @@ packages=(
   libspdlog-dev libfmt-dev
   libgtest-dev libgmock-dev libbenchmark-dev
   libsqlite3-dev libabsl-dev libtbb-dev libcli11-dev zlib1g-dev libpugixml-dev
-  libegl-dev libgl-dev libegl-mesa0 libgl1-mesa-dri libstb-dev
+  libegl-dev libgl-dev libopengl-dev libegl-mesa0 libgl1-mesa-dri libstb-dev
 )
 for option in "$@"; do
   case "$option" in
     --with-poisson) packages+=(libopen3d-dev) ;;
     --with-openvdb) packages+=(libopenvdb-dev libboost-dev) ;;  # OpenVDB's headers include Boost's.
     --with-vtk) packages+=(python3-vtk9 python3-numpy xvfb) ;;  # bench/vtk_volume_reference.py
-    *) echo "install-deps: unknown option $option (--with-poisson, --with-openvdb, --with-vtk)" >&2; exit 2 ;;
+    --with-containers) packages+=(podman runc debootstrap uidmap slirp4netns fuse-overlayfs) ;;  # scripts/container-*.sh
+    *) echo "install-deps: unknown option $option (--with-poisson, --with-openvdb, --with-vtk, --with-containers)" >&2; exit 2 ;;
   esac
 done
 

@@ -170,6 +170,19 @@ TEST_F(EndToEnd, ReconstructsASphereAndAnswersHealthChecks) {
   request.set_service("lsqsurf.v1.Reconstruction");
   ASSERT_TRUE(health->Check(&named_ctx, request, &response).ok());
   EXPECT_EQ(response.status(), grpc::health::v1::HealthCheckResponse::SERVING);
+
+  // The same through the CLI, as a container's HEALTHCHECK runs it.
+  const ClientRun serving = Client(server.address(), "health");
+  EXPECT_EQ(serving.code, 0) << serving.output;
+  EXPECT_EQ(Trim(serving.output), "SERVING");
+  EXPECT_EQ(Client(server.address(), "health --service lsqsurf.v1.Reconstruction").code, 0);
+  const ClientRun unknown = Client(server.address(), "health --service no.such.Service");
+  EXPECT_NE(unknown.code, 0);
+  EXPECT_NE(unknown.output.find("health:"), std::string::npos) << unknown.output;
+  const std::string address = server.address();
+  server.Kill(SIGKILL);
+  const ClientRun gone = Client(address, "health --timeout 1");
+  EXPECT_NE(gone.code, 0) << gone.output;
 }
 
 // The PU result carries the depth and degree of the fit that made each region, through Draco

@@ -51,9 +51,10 @@ class ImplicitFunction {
 
 // The root of F on the segment a → b, where F(a) = fa and F(b) = fb have opposite signs, as the
 // fraction t ∈ [0, 1] along it: the secant guess refined by `steps` Anderson–Björck (modified
-// regula falsi) steps on ValueOnly, superlinear and never leaving the bracket, and by up to 8 more while
-// |F| stays above 1e-6 |fa − fb| (roots beside a kink converge slowly). Stops early at an exact
-// zero or a NaN value; `steps` = 0 gives the secant guess alone.
+// regula falsi) steps on ValueOnly, superlinear and never leaving the bracket, by up to 8 more
+// while |F| stays above 1e-6 |fa − fb| (roots beside a kink converge slowly), and, where that
+// still has not converged (the secant stalls beside a plateau), by up to 12 bisections of the
+// bracket. Stops early at an exact zero or a NaN value; `steps` = 0 gives the secant guess alone.
 double RefineRootOnSegment(const ImplicitFunction& field, const Vec3d& a, const Vec3d& b, double fa, double fb,
                            int steps);
 

@@ -44,16 +44,22 @@ TriangleMesh WeldByPosition(const TriangleMesh& mesh) {
   return out;
 }
 
-void IncidentFaces(const TriangleMesh& mesh, std::vector<uint32_t>& start, std::vector<uint32_t>& incident) {
-  start.assign(mesh.vertices.size() + 1, 0);
-  incident.resize(3 * mesh.faces.size());
+void IncidentFaces(const TriangleMesh& mesh, std::vector<uint32_t>& start, std::vector<uint32_t>& incident,
+                   uint32_t first) {
+  const size_t rows = mesh.vertices.size() - std::min<size_t>(first, mesh.vertices.size());
+  start.assign(rows + 1, 0);
   for (const Triangle& t : mesh.faces) {
-    for (uint32_t v : t) ++start[v + 1];
+    for (uint32_t v : t) {
+      if (v >= first) ++start[v - first + 1];
+    }
   }
-  for (size_t v = 0; v < mesh.vertices.size(); ++v) start[v + 1] += start[v];
+  for (size_t i = 0; i < rows; ++i) start[i + 1] += start[i];
+  incident.resize(start[rows]);
   std::vector<uint32_t> cursor(start.begin(), start.end() - 1);
   for (uint32_t f = 0; f < mesh.faces.size(); ++f) {
-    for (uint32_t v : mesh.faces[f]) incident[cursor[v]++] = f;
+    for (uint32_t v : mesh.faces[f]) {
+      if (v >= first) incident[cursor[v - first]++] = f;
+    }
   }
 }
 

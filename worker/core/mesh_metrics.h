@@ -40,9 +40,10 @@ TriangleMesh WeldByPosition(const TriangleMesh& mesh);
 // dropped. O(V log V + F log F).
 int64_t MergeCoincidentVertices(TriangleMesh& mesh);
 
-// Vertex → incident faces as compressed rows: the faces of v are incident[start[v] .. start[v + 1]),
-// in face order. O(V + F).
-void IncidentFaces(const TriangleMesh& mesh, std::vector<uint32_t>& start, std::vector<uint32_t>& incident);
+// Vertex → incident faces as compressed rows for the vertices from `first` on: the faces of v are
+// incident[start[v − first] .. start[v − first + 1]), in face order. O(V + F).
+void IncidentFaces(const TriangleMesh& mesh, std::vector<uint32_t>& start, std::vector<uint32_t>& incident,
+                   uint32_t first = 0);
 
 // Number of distinct vertex positions.
 int64_t CountDistinctPositions(const std::vector<Vec3f>& positions);

@@ -153,9 +153,9 @@ Vec3d CornerPoint(const core::ImplicitFunction& field, const std::array<Vec3d, 3
 }
 
 // Moves each edge end that a crease passes next to onto its nearest crease point (the closest
-// of its edges' hits), unless that turns one of its triangles over.
-void SnapEndsOntoCreases(std::span<const uint64_t> candidates, std::span<const CreaseHit> hits,
-                         core::TriangleMesh& mesh, CreaseCounts& counts) {
+// of its edges' hits), unless that turns one of its triangles over. Returns the ends that stayed.
+absl::flat_hash_set<uint32_t> SnapEndsOntoCreases(std::span<const uint64_t> candidates, std::span<const CreaseHit> hits,
+                                                  core::TriangleMesh& mesh, CreaseCounts& counts) {
   absl::flat_hash_map<uint32_t, Vec3d> target;
   for (size_t k = 0; k < candidates.size(); ++k) {
     if (hits[k].snap_end < 0) continue;
@@ -165,7 +165,7 @@ void SnapEndsOntoCreases(std::span<const uint64_t> candidates, std::span<const C
     if (!fresh && (hits[k].snap_to - from).squaredNorm() < (it->second - from).squaredNorm())
       it->second = hits[k].snap_to;
   }
-  if (target.empty()) return;
+  if (target.empty()) return {};
   absl::flat_hash_map<uint32_t, Vec3f> old_position;
   for (const auto& [v, p] : target) {
     old_position[v] = mesh.vertices[v];
@@ -195,7 +195,15 @@ void SnapEndsOntoCreases(std::span<const uint64_t> candidates, std::span<const C
       }
     }
   }
-  for (const auto& [v, p] : old_position) counts.snapped_vertices += mesh.vertices[v] != p;
+  absl::flat_hash_set<uint32_t> stuck;
+  for (const auto& [v, p] : old_position) {
+    if (mesh.vertices[v] != p) {
+      ++counts.snapped_vertices;
+    } else {
+      stuck.insert(v);
+    }
+  }
+  return stuck;
 }
 
 // The faces of `mesh` with their split edges (`split`: edge → crease vertex) cut along the
@@ -302,28 +310,15 @@ std::vector<core::Triangle> SplitFaces(const core::ImplicitFunction& field,
 
 // A face left between three sheets: each of its edges borders a face of another sheet, so it cuts
 // off the corner where the sheets meet (where a crease ends on another, as a box's edge where a
-// sphere cuts it, no face had three splits). The corner, where
-// the three neighbours' planes meet, becomes a vertex and the face a fan of three around it,
-// each piece in the plane of the neighbour across its edge. Faces touching a vertex from
+// sphere cuts it, no face had three splits). The corner, where the three neighbours' planes
+// meet, becomes a vertex and the face a fan of three around it, each piece in the plane of the
+// neighbour across its edge. Faces touching a vertex from
 // `first_new` on (the crease vertices) are looked at.
 void InsertCutCorners(const core::ImplicitFunction& field, double cos_crease, uint32_t first_new,
                       core::TriangleMesh& mesh, CreaseCounts& counts, std::vector<uint64_t>* cells) {
-  // The faces of each new vertex, as compressed rows over first_new, first_new + 1, ...
-  const size_t added = mesh.vertices.size() - first_new;
-  std::vector<uint32_t> start(added + 1, 0), incident;
-  for (const core::Triangle& t : mesh.faces) {
-    for (uint32_t v : t) {
-      if (v >= first_new) ++start[v - first_new + 1];
-    }
-  }
-  for (size_t i = 0; i < added; ++i) start[i + 1] += start[i];
-  incident.resize(start[added]);
-  std::vector<uint32_t> cursor(start.begin(), start.end() - 1);
-  for (uint32_t f = 0; f < mesh.faces.size(); ++f) {
-    for (uint32_t v : mesh.faces[f]) {
-      if (v >= first_new) incident[cursor[v - first_new]++] = f;
-    }
-  }
+  // The faces of each new vertex.
+  std::vector<uint32_t> start, incident;
+  core::IncidentFaces(mesh, start, incident, first_new);
   auto v3 = [&](uint32_t v) { return Vec3d(mesh.vertices[v].cast<double>()); };
   auto unit_normal = [&](const core::Triangle& t) {
     const Vec3d n = (v3(t[1]) - v3(t[0])).cross(v3(t[2]) - v3(t[0]));
@@ -439,12 +434,11 @@ absl::Status SharpenCreases(const core::ImplicitFunction& field, double crease_a
         }
       },
       &ctx));
-  const std::vector<Vec3f> before_snaps(mesh.vertices);
-  SnapEndsOntoCreases(candidates, hits, mesh, counts);
+  const absl::flat_hash_set<uint32_t> stuck = SnapEndsOntoCreases(candidates, hits, mesh, counts);
   for (size_t k = 0; k < candidates.size(); ++k) {
     if (hits[k].snap_end < 0) continue;
     const auto v = static_cast<uint32_t>(hits[k].snap_end == 0 ? candidates[k] >> 32 : candidates[k] & 0xffffffffu);
-    if (mesh.vertices[v] == before_snaps[v]) points[k] = hits[k].split_if_stuck;
+    if (stuck.contains(v)) points[k] = hits[k].split_if_stuck;
   }
   // Two edges of one triangle can meet the crease at the same point (a crease along a grid axis
   // seen from the edges a–b and a–c): they share one vertex, and the sliver between them goes.

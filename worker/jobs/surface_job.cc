@@ -519,10 +519,15 @@ absl::StatusOr<std::string> EncodeResultMesh(const core::TriangleMesh& mesh, int
   if (kept && distinct == static_cast<int64_t>(mesh.vertices.size())) {
     topo = core::AnalyzeTopology(mesh);
   } else {
-    auto delivered = io::DecodeDracoMesh(*encoded);
-    if (!delivered.ok()) {
-      return absl::InternalError(core::StrCat("the result mesh does not decode: ", delivered.status().message()));
-    }
+    const auto decode = [](const std::string& bytes) -> absl::StatusOr<core::TriangleMesh> {
+      auto decoded = io::DecodeDracoMesh(bytes);
+      if (!decoded.ok()) {
+        return absl::InternalError(core::StrCat("the result mesh does not decode: ", decoded.status().message()));
+      }
+      return decoded;
+    };
+    auto delivered = decode(*encoded);
+    if (!delivered.ok()) return delivered.status();
     // Vertices the quantization (or the engine) put together are merged as a client's weld
     // would, and the faces that then collapse or lie on one another go, so that what is
     // delivered stays manifold; the merged mesh is sent instead.
@@ -533,10 +538,8 @@ absl::StatusOr<std::string> EncodeResultMesh(const core::TriangleMesh& mesh, int
                    draco.position_bits, dropped);
       encoded = io::EncodeDracoMesh(*delivered, draco);
       if (!encoded.ok()) return encoded.status();
-      delivered = io::DecodeDracoMesh(*encoded);
-      if (!delivered.ok()) {
-        return absl::InternalError(core::StrCat("the result mesh does not decode: ", delivered.status().message()));
-      }
+      delivered = decode(*encoded);
+      if (!delivered.ok()) return delivered.status();
     }
     AddStatistic(statistics, "delivery_dropped_faces", static_cast<double>(dropped));
     topo = core::AnalyzeTopology(core::WeldByPosition(*delivered));

@@ -252,6 +252,7 @@ void PrintJob(const v1::Job& job) {
   if (!job.error().empty()) std::printf("error      %s\n", job.error().c_str());
   std::printf("input      %lld points, %lld bytes\nattempts   %d\n", static_cast<long long>(job.input_points()),
               static_cast<long long>(job.input_bytes()), job.attempts());
+  if (!job.runner().empty()) std::printf("runner     %s\n", job.runner().c_str());
   // The parameters as run, in the text form --param takes.
   const auto& spec = job.spec();
   if (const auto* f =

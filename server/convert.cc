@@ -155,6 +155,7 @@ void ToProto(const jobs::JobRecord& r, v1::Job* out) {
     s->set_value(value);
   }
   for (const auto& name : r.results) out->add_results(name);
+  out->set_runner(r.runner);
 }
 
 void ToProto(const core::ParamInfo& p, v1::Parameter* out) {

@@ -13,6 +13,32 @@
 #include "server/reconstruction_service.h"
 #include "worker/jobs/job_service.h"
 #include "worker/jobs/method_registry.h"
+#include "worker/jobs/postgres_store.h"
+
+namespace {
+
+// Opens the job and blob stores the flags ask for into `options`; the defaults (SQLite and
+// files under the data directory) are left to the job service.
+absl::Status OpenStores(const std::string& store, const std::string& blob_dir, int connections,
+                        lsqsurf::jobs::JobServiceOptions& options) {
+  namespace jobs = lsqsurf::jobs;
+  if (!blob_dir.empty()) {
+    auto blobs = jobs::LocalDirBlobStore::Open(blob_dir);
+    if (!blobs.ok()) return blobs.status();
+    options.blobs = *std::move(blobs);
+  }
+  if (store.empty() || store == "sqlite") return absl::OkStatus();
+  if (store.rfind("postgresql://", 0) != 0 && store.rfind("postgres://", 0) != 0) {
+    return absl::InvalidArgumentError("--store takes 'sqlite' or a postgresql://user@host:port/database URL");
+  }
+  auto shared = jobs::PostgresJobStore::Open(store, connections);
+  if (!shared.ok()) return shared.status();
+  if (options.blobs == nullptr) options.blobs = std::make_shared<jobs::PostgresBlobStore>((*shared)->pool());
+  options.store = *std::move(shared);
+  return absl::OkStatus();
+}
+
+}  // namespace
 
 int main(int argc, char** argv) {
   CLI::App app{"lsqsurfd: surface reconstruction server"};
@@ -47,6 +73,26 @@ int main(int argc, char** argv) {
   app.add_option("--min-points", options.min_points, "smallest accepted surface cloud")
       ->capture_default_str()
       ->check(CLI::Range(int64_t{4}, int64_t{1'000'000}));
+  std::string store, blob_dir;
+  int store_connections = 8;
+  double lease_seconds = 10;
+  app.add_option("--store", store,
+                 "where jobs are kept: 'sqlite' (a file in the data directory, one server) or a "
+                 "postgresql://user@host:port/database URL that several servers share (a password is better "
+                 "kept in PGPASSWORD or ~/.pgpass than in the URL)")
+      ->capture_default_str();
+  app.add_option("--blob-dir", blob_dir,
+                 "where uploads and results are kept; default: the data directory with --store sqlite, the "
+                 "database with --store postgresql:// (give a shared volume here to keep them out of it)");
+  app.add_option("--name", options.name, "this server's name among those sharing a store (default: host name)");
+  app.add_option("--lease-seconds", lease_seconds,
+                 "a running job stays this server's this long without a renewal: how long the jobs of a server "
+                 "that died wait before another runs them")
+      ->capture_default_str()
+      ->check(CLI::Range(1.0, 3600.0));
+  app.add_option("--store-connections", store_connections, "connections to a PostgreSQL store")
+      ->capture_default_str()
+      ->check(CLI::Range(2, 64));
   app.set_config("--config", "", "read options from this TOML/INI file");
   bool parameter_reference = false;
   app.add_flag("--parameter-reference", parameter_reference,
@@ -57,6 +103,7 @@ int main(int argc, char** argv) {
     return 0;
   }
   options.max_input_bytes = max_upload_mib << 20;
+  options.lease = std::chrono::milliseconds(static_cast<int64_t>(lease_seconds * 1000));
 
   // Logs go to stderr; stdout carries only the "listening on" line that scripts wait for.
   spdlog::set_default_logger(spdlog::stderr_color_mt("lsqsurfd"));
@@ -69,6 +116,10 @@ int main(int argc, char** argv) {
   sigaddset(&signals, SIGINT);
   pthread_sigmask(SIG_BLOCK, &signals, nullptr);
 
+  if (absl::Status s = OpenStores(store, blob_dir, store_connections, options); !s.ok()) {
+    spdlog::critical("cannot start: {}", s.ToString());
+    return 1;
+  }
   auto jobs = lsqsurf::jobs::JobService::Open(options);
   if (!jobs.ok()) {
     spdlog::critical("cannot start: {}", jobs.status().ToString());

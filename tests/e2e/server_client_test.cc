@@ -20,6 +20,7 @@
 #include "grpc/health/v1/health.grpc.pb.h"
 #include "lsqsurf/v1/reconstruction.grpc.pb.h"
 #include "stb_image.h"
+#include "tests/e2e/harness.h"
 #include "tests/test_dir.h"
 #include "tests/test_shapes.h"
 #include "worker/core/mesh_metrics.h"
@@ -33,74 +34,10 @@ namespace {
 namespace fs = std::filesystem;
 namespace v1 = lsqsurf::v1;
 
-class Server {
- public:
-  // Starts lsqsurfd on 127.0.0.1:0 and reads the bound address from its first stdout line.
-  void Start(const fs::path& data_dir, std::vector<std::string> extra = {}) {
-    int out[2];
-    ASSERT_EQ(::pipe(out), 0);
-    pid_ = ::fork();
-    ASSERT_GE(pid_, 0);
-    if (pid_ == 0) {
-      ::dup2(out[1], STDOUT_FILENO);
-      const int null = ::open("/dev/null", O_WRONLY);
-      ::dup2(null, STDERR_FILENO);
-      ::close(out[0]);
-      std::vector<std::string> args = {LSQSURFD_PATH, "--listen", "127.0.0.1:0", "--data-dir", data_dir.string()};
-      args.insert(args.end(), extra.begin(), extra.end());
-      std::vector<char*> argv;
-      for (auto& a : args) argv.push_back(a.data());
-      argv.push_back(nullptr);
-      ::execv(argv[0], argv.data());
-      ::_exit(127);
-    }
-    ::close(out[1]);
-    FILE* f = ::fdopen(out[0], "r");
-    char line[256] = {0};
-    ASSERT_NE(std::fgets(line, sizeof(line), f), nullptr) << "server printed nothing";
-    std::fclose(f);
-    std::string s(line);
-    const std::string prefix = "listening on ";
-    ASSERT_EQ(s.rfind(prefix, 0), 0u) << s;
-    address_ = s.substr(prefix.size());
-    while (!address_.empty() && (address_.back() == '\n' || address_.back() == '\r')) address_.pop_back();
-  }
-  void Kill(int signal) {
-    if (pid_ <= 0) return;
-    ::kill(pid_, signal);
-    int status = 0;
-    ::waitpid(pid_, &status, 0);
-    pid_ = -1;
-  }
-  ~Server() { Kill(SIGKILL); }
-  const std::string& address() const { return address_; }
-
- private:
-  pid_t pid_ = -1;
-  std::string address_;
-};
-
-struct ClientRun {
-  int code = -1;
-  std::string output;  // stdout and stderr together.
-};
-
-ClientRun Client(const std::string& address, const std::string& args) {
-  const std::string cmd = std::string(LSQSURF_PATH) + " --server " + address + " " + args + " 2>&1";
-  ClientRun r;
-  FILE* p = ::popen(cmd.c_str(), "r");
-  std::array<char, 4096> buf;
-  size_t n;
-  while ((n = std::fread(buf.data(), 1, buf.size(), p)) > 0) r.output.append(buf.data(), n);
-  const int status = ::pclose(p);
-  r.code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
-  return r;
-}
-
-std::string Trim(std::string s) {
-  while (!s.empty() && (s.back() == '\n' || s.back() == ' ')) s.pop_back();
-  return s;
-}
+using testing::Client;
+using testing::ClientRun;
+using testing::Server;
+using testing::Trim;
 
 class EndToEnd : public ::testing::Test {
  protected:

@@ -1,24 +1,56 @@
+// The blob store contract, held by files in a folder and by chunks in PostgreSQL (on a
+// throwaway server this test process starts).
 #include "worker/jobs/blob_store.h"
 
 #include <gtest/gtest.h>
 
 #include <filesystem>
 
+#include "tests/postgres_cluster.h"
+#include "tests/test_dir.h"
+#include "worker/jobs/postgres_store.h"
+
 namespace lsqsurf::jobs {
 namespace {
 
-TEST(LocalDirBlobStore, StoresStreamsReplacesAndRemoves) {
-  const auto root = std::filesystem::temp_directory_path() / ("lsqsurf-blobs-" + std::to_string(::getpid()));
-  std::filesystem::remove_all(root);
-  auto blobs = LocalDirBlobStore::Open(root.string());
-  ASSERT_TRUE(blobs.ok()) << blobs.status();
-  std::string bytes;
-  for (int i = 0; i < 100000; ++i) bytes += static_cast<char>(i * 7 % 251);  // Binary, with zeros.
-  ASSERT_TRUE((*blobs)->Put("job1", "mesh.drc", bytes).ok());
-  EXPECT_TRUE((*blobs)->Exists("job1", "mesh.drc"));
-  EXPECT_FALSE((*blobs)->Exists("job1", "other"));
+class BlobStoreContract : public ::testing::TestWithParam<std::string> {
+ protected:
+  void SetUp() override {
+    if (GetParam() == "files") {
+      root_ = testing::FreshTestDir("lsqsurf-blobs");
+      auto blobs = LocalDirBlobStore::Open(root_.string());
+      ASSERT_TRUE(blobs.ok()) << blobs.status();
+      blobs_ = *std::move(blobs);
+      return;
+    }
+    std::string why_not;
+    testing::PostgresCluster* cluster = testing::SharedPostgresCluster(&why_not);
+    if (cluster == nullptr) GTEST_SKIP() << why_not;
+    auto store = PostgresJobStore::Open(cluster->NewDatabase());  // Makes the tables.
+    ASSERT_TRUE(store.ok()) << store.status();
+    blobs_ = std::make_unique<PostgresBlobStore>((*store)->pool());
+  }
+  void TearDown() override {
+    if (!root_.empty()) std::filesystem::remove_all(root_);
+  }
+  std::filesystem::path root_;
+  std::unique_ptr<BlobStore> blobs_;
+};
 
-  auto reader = (*blobs)->Open("job1", "mesh.drc");
+std::string BinaryBytes(size_t n) {
+  std::string bytes;
+  bytes.reserve(n);
+  for (size_t i = 0; i < n; ++i) bytes += static_cast<char>(i * 7 % 251);  // Binary, with zeros.
+  return bytes;
+}
+
+TEST_P(BlobStoreContract, StoresStreamsReplacesAndRemoves) {
+  const std::string bytes = BinaryBytes(100000);
+  ASSERT_TRUE(blobs_->Put("job1", "mesh.drc", bytes).ok());
+  EXPECT_TRUE(blobs_->Exists("job1", "mesh.drc"));
+  EXPECT_FALSE(blobs_->Exists("job1", "other"));
+
+  auto reader = blobs_->Open("job1", "mesh.drc");
   ASSERT_TRUE(reader.ok());
   EXPECT_EQ((*reader)->size(), 100000);
   std::string streamed;
@@ -31,15 +63,55 @@ TEST(LocalDirBlobStore, StoresStreamsReplacesAndRemoves) {
   EXPECT_EQ(chunks, 4);
   EXPECT_EQ(streamed, bytes);
 
-  ASSERT_TRUE((*blobs)->Put("job1", "mesh.drc", "short").ok());
-  EXPECT_EQ((*blobs)->Read("job1", "mesh.drc").value(), "short");
-  EXPECT_EQ((*blobs)->Open("job1", "nothing").status().code(), absl::StatusCode::kNotFound);
-  EXPECT_EQ((*blobs)->Open("job2", "mesh.drc").status().code(), absl::StatusCode::kNotFound);
-  ASSERT_TRUE((*blobs)->RemoveJob("job1").ok());
-  EXPECT_FALSE((*blobs)->Exists("job1", "mesh.drc"));
-  EXPECT_TRUE((*blobs)->RemoveJob("job1").ok());  // Nothing left: not an error.
-  std::filesystem::remove_all(root);
+  ASSERT_TRUE(blobs_->Put("job1", "mesh.drc", "short").ok());
+  EXPECT_EQ(blobs_->Read("job1", "mesh.drc").value(), "short");
+  EXPECT_EQ(blobs_->Open("job1", "nothing").status().code(), absl::StatusCode::kNotFound);
+  EXPECT_EQ(blobs_->Open("job2", "mesh.drc").status().code(), absl::StatusCode::kNotFound);
+  ASSERT_TRUE(blobs_->RemoveJob("job1").ok());
+  EXPECT_FALSE(blobs_->Exists("job1", "mesh.drc"));
+  EXPECT_TRUE(blobs_->RemoveJob("job1").ok());  // Nothing left: not an error.
 }
+
+TEST_P(BlobStoreContract, LargeBlobsComeBackWhole) {
+  // Several of the database's 1 MiB chunks, the last one partial, and an empty blob.
+  const std::string bytes = BinaryBytes(PostgresBlobStore::kChunkBytes * 5 / 2);
+  ASSERT_TRUE(blobs_->Put("job3", "input.drc", bytes).ok());
+  auto back = blobs_->Read("job3", "input.drc");
+  ASSERT_TRUE(back.ok()) << back.status();
+  EXPECT_TRUE(*back == bytes);
+  ASSERT_TRUE(blobs_->Put("job3", "empty", "").ok());
+  EXPECT_EQ(blobs_->Read("job3", "empty").value(), "");
+}
+
+TEST_P(BlobStoreContract, AReaderOfAReplacedBlobFailsRatherThanMixTwoVersions) {
+  const std::string bytes = BinaryBytes(PostgresBlobStore::kChunkBytes * 2);
+  ASSERT_TRUE(blobs_->Put("job4", "mesh.drc", bytes).ok());
+  auto reader = blobs_->Open("job4", "mesh.drc");
+  ASSERT_TRUE(reader.ok());
+  auto first = (*reader)->Next(PostgresBlobStore::kChunkBytes);
+  ASSERT_TRUE(first.ok());
+  ASSERT_TRUE(blobs_->Put("job4", "mesh.drc", BinaryBytes(10)).ok());
+  std::string rest;
+  absl::Status status;
+  for (;;) {
+    auto chunk = (*reader)->Next(PostgresBlobStore::kChunkBytes);
+    if (!chunk.ok()) {
+      status = chunk.status();
+      break;
+    }
+    if (chunk->empty()) break;
+    rest += *chunk;
+  }
+  // Either the old version whole (files: the open file outlives its replacement) or an error.
+  if (status.ok()) {
+    EXPECT_TRUE(*first + rest == bytes);
+  } else {
+    EXPECT_EQ(status.code(), absl::StatusCode::kUnavailable);
+  }
+}
+
+INSTANTIATE_TEST_SUITE_P(Stores, BlobStoreContract, ::testing::Values("files", "postgresql"),
+                         [](const ::testing::TestParamInfo<std::string>& param) { return param.param; });
 
 }  // namespace
 }  // namespace lsqsurf::jobs

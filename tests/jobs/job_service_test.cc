@@ -8,14 +8,17 @@
 #include <filesystem>
 #include <limits>
 #include <mutex>
+#include <set>
 
 #include "tests/latch_kind.h"
+#include "tests/postgres_cluster.h"
 #include "tests/test_dir.h"
 #include "tests/test_shapes.h"
 #include "worker/core/mesh_metrics.h"
 #include "worker/io/draco_codec.h"
 #include "worker/io/files.h"
 #include "worker/jobs/method_registry.h"
+#include "worker/jobs/postgres_store.h"
 #include "worker/jobs/surface_job.h"
 #include "worker/jobs/track_job.h"
 
@@ -412,7 +415,7 @@ TEST_F(JobServiceTest, QueuedJobsWhoseSpecNoLongerFitsFailWithTheReason) {
     stale.spec = Spec("iamls");
     stale.spec.params.Mutable<IamlsJobParams>()->fit.epsilon = 9;  // As if the range had shrunk since.
     stale.state = JobState::kQueued;
-    ASSERT_TRUE((*store)->Put(stale).ok());
+    ASSERT_TRUE((*store)->Insert(stale).ok());
   }
   JobService& s = Open();
   const JobRecord r = *s.Get("eeee");
@@ -438,8 +441,8 @@ TEST_F(JobServiceTest, CrashedJobsRunAgainOnceThenFail) {
     JobRecord twice = once;
     twice.id = "bbbb";
     twice.attempts = 2;
-    ASSERT_TRUE((*store)->Put(once).ok());
-    ASSERT_TRUE((*store)->Put(twice).ok());
+    ASSERT_TRUE((*store)->Insert(once).ok());
+    ASSERT_TRUE((*store)->Insert(twice).ok());
   }
   JobService& s = Open();
   EXPECT_EQ(s.Get("bbbb")->state, JobState::kFailed);
@@ -467,6 +470,151 @@ TEST_F(JobServiceTest, ShutdownRequeuesTheRunningJobWithoutHoldingItAgainstIt) {
   const JobRecord done = WaitTerminal(job->id);
   EXPECT_EQ(done.state, JobState::kSucceeded) << done.error;
   EXPECT_EQ(done.attempts, 2);
+}
+
+// A store whose lease renewals fail, as for a server cut off from the database or stalled.
+class UnrenewableStore final : public JobStore {
+ public:
+  explicit UnrenewableStore(std::shared_ptr<JobStore> inner) : inner_(std::move(inner)) {}
+  bool shared() const override { return inner_->shared(); }
+  absl::Status Insert(const JobRecord& r) override { return inner_->Insert(r); }
+  absl::StatusOr<std::optional<JobRecord>> Claim(const std::string& runner, std::chrono::milliseconds lease) override {
+    return inner_->Claim(runner, lease);
+  }
+  absl::StatusOr<int64_t> WriteHeld(const JobRecord& r) override { return inner_->WriteHeld(r); }
+  absl::StatusOr<std::vector<std::pair<std::string, bool>>> Renew(const std::string&, const std::vector<std::string>&,
+                                                                  std::chrono::milliseconds) override {
+    return absl::UnavailableError("renewals are cut off");
+  }
+  absl::StatusOr<std::vector<JobRecord>> RecoverLapsed(bool every_running,
+                                                       const std::function<void(JobRecord&)>& recover) override {
+    return inner_->RecoverLapsed(every_running, recover);
+  }
+  absl::StatusOr<JobRecord> Cancel(const std::string& id, const std::string& reason) override {
+    return inner_->Cancel(id, reason);
+  }
+  absl::Status Remove(const std::string& id) override { return inner_->Remove(id); }
+  absl::StatusOr<JobRecord> Get(const std::string& id) override { return inner_->Get(id); }
+  absl::StatusOr<JobChanges> ChangesSince(int64_t seq) override { return inner_->ChangesSince(seq); }
+  void WaitForOthers(std::chrono::milliseconds timeout) override { inner_->WaitForOthers(timeout); }
+
+ private:
+  std::shared_ptr<JobStore> inner_;
+};
+
+// Two services on one PostgreSQL database (a throwaway server this test process starts), as
+// two servers behind a balancer: each with its own connections, folder and runner name.
+class SharedJobServiceTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    std::string why_not;
+    testing::PostgresCluster* cluster = testing::SharedPostgresCluster(&why_not);
+    if (cluster == nullptr) GTEST_SKIP() << why_not;
+    url_ = cluster->NewDatabase();
+    ASSERT_FALSE(url_.empty());
+    dir_ = testing::FreshTestDir("lsqsurf-shared");
+  }
+  void TearDown() override {
+    for (testing::LatchKind* latch : {&latch_a_, &latch_b_}) latch->Release();
+    a_.reset();
+    b_.reset();
+    std::filesystem::remove_all(dir_);
+  }
+  // A service on the shared database; `wrap` may stand between it and the store.
+  std::unique_ptr<JobService> OpenService(
+      const std::string& name, testing::LatchKind* latch, std::chrono::milliseconds lease,
+      const std::function<std::shared_ptr<JobStore>(std::shared_ptr<JobStore>)>& wrap = nullptr) {
+    auto store = PostgresJobStore::Open(url_);
+    EXPECT_TRUE(store.ok()) << store.status();
+    if (!store.ok()) return nullptr;
+    JobServiceOptions options;
+    options.data_dir = (dir_ / name).string();
+    options.name = name;
+    options.lease = lease;
+    options.blobs = std::make_shared<PostgresBlobStore>((*store)->pool());
+    options.store = *std::move(store);
+    if (wrap) options.store = wrap(options.store);
+    if (latch != nullptr) options.kind_overrides["iamls"] = latch;
+    auto service = JobService::Open(options);
+    EXPECT_TRUE(service.ok()) << service.status();
+    return service.ok() ? *std::move(service) : nullptr;
+  }
+  static JobRecord WaitUntil(JobService& s, const std::string& id,
+                             const std::function<bool(const absl::StatusOr<JobRecord>&)>& done) {
+    absl::StatusOr<JobRecord> r = s.Get(id);
+    while (!done(r)) {
+      if (!r.ok()) return {};
+      r = s.WaitForChange(id, r->version, std::chrono::seconds(1));
+    }
+    return r.ok() ? *r : JobRecord{};
+  }
+
+  std::string url_;
+  std::filesystem::path dir_;
+  testing::LatchKind latch_a_, latch_b_;
+  std::unique_ptr<JobService> a_, b_;
+};
+
+TEST_F(SharedJobServiceTest, TwoServicesShareOneQueueAndAnswerForEachOthersJobs) {
+  a_ = OpenService("a", &latch_a_, std::chrono::seconds(10));
+  b_ = OpenService("b", &latch_b_, std::chrono::seconds(10));
+  ASSERT_TRUE(a_ && b_);
+  const Uploads input = Input(Encode(testing::SphereCloud(1000)));
+  auto first = a_->Submit(Spec("iamls"), input);
+  auto second = a_->Submit(Spec("iamls"), input);
+  ASSERT_TRUE(first.ok() && second.ok());
+  // One worker each: each service takes one of the two jobs.
+  latch_a_.WaitStarted(1);
+  latch_b_.WaitStarted(1);
+  const JobRecord one = WaitUntil(*b_, first->id, [](const auto& r) { return r.ok() && !r->runner.empty(); });
+  const JobRecord two = WaitUntil(*b_, second->id, [](const auto& r) { return r.ok() && !r->runner.empty(); });
+  EXPECT_EQ(one.state, JobState::kRunning);
+  EXPECT_EQ(two.state, JobState::kRunning);
+  ASSERT_EQ(std::set<std::string>({one.runner, two.runner}), std::set<std::string>({a_->runner(), b_->runner()}));
+  const std::string on_a = one.runner == a_->runner() ? one.id : two.id;
+  const std::string on_b = one.runner == a_->runner() ? two.id : one.id;
+
+  // A cancellation asked of B reaches A, which runs the job.
+  auto requested = b_->Cancel(on_a);
+  ASSERT_TRUE(requested.ok()) << requested.status();
+  EXPECT_EQ(requested->state, JobState::kRunning);
+  const JobRecord cancelled = WaitUntil(*b_, on_a, [](const auto& r) { return r.ok() && IsTerminal(r->state); });
+  EXPECT_EQ(cancelled.state, JobState::kCancelled);
+
+  // B's job succeeds; A serves its result, then deletes it, and B hears of the deletion.
+  latch_b_.Release();
+  const JobRecord done = WaitUntil(*a_, on_b, [](const auto& r) { return r.ok() && IsTerminal(r->state); });
+  ASSERT_EQ(done.state, JobState::kSucceeded) << done.error;
+  auto reader = a_->OpenResult(on_b, "held.txt");
+  ASSERT_TRUE(reader.ok()) << reader.status();
+  EXPECT_EQ(ReadAll(**reader).value(), "released");
+  ASSERT_TRUE(a_->Delete(on_b).ok());
+  WaitUntil(*b_, on_b, [](const auto& r) { return !r.ok(); });
+  EXPECT_EQ(b_->Get(on_b).status().code(), absl::StatusCode::kNotFound);
+  EXPECT_EQ(b_->List().size(), 1u);
+}
+
+TEST_F(SharedJobServiceTest, AJobWhoseServerStopsRenewingItsLeaseRunsOnAnother) {
+  // A holds its job on a latch it never releases, and cannot renew its 300 ms lease.
+  a_ = OpenService("a", &latch_a_, std::chrono::milliseconds(300),
+                   [](std::shared_ptr<JobStore> inner) { return std::make_shared<UnrenewableStore>(inner); });
+  ASSERT_TRUE(a_);
+  auto job = a_->Submit(Spec("iamls", {{"iterations", "1"}}), Input(Encode(testing::SphereCloud(3000))));
+  ASSERT_TRUE(job.ok());
+  latch_a_.WaitStarted(1);
+  // B, with the real engine, finds the lapsed lease, queues the job again and runs it.
+  b_ = OpenService("b", nullptr, std::chrono::seconds(1));
+  ASSERT_TRUE(b_);
+  const JobRecord done = WaitUntil(*b_, job->id, [](const auto& r) { return r.ok() && IsTerminal(r->state); });
+  EXPECT_EQ(done.state, JobState::kSucceeded) << done.error;
+  EXPECT_EQ(done.attempts, 2);
+  EXPECT_EQ(done.runner, b_->runner());
+  // A learns that it lost the job: its run stops, and it shows B's outcome.
+  const JobRecord seen_by_a = WaitUntil(*a_, job->id, [](const auto& r) { return r.ok() && IsTerminal(r->state); });
+  EXPECT_EQ(seen_by_a.state, JobState::kSucceeded);
+  EXPECT_EQ(seen_by_a.runner, b_->runner());
+  auto mesh = io::DecodeDracoMesh(b_->OpenResult(job->id, "mesh.drc").value()->Next(size_t{1} << 30).value());
+  EXPECT_TRUE(mesh.ok()) << mesh.status();
 }
 
 }  // namespace

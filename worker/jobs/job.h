@@ -56,7 +56,10 @@ struct JobRecord {
   int64_t input_bytes = 0;
   Statistics statistics;             // Final statistics of a success.
   std::vector<std::string> results;  // Artifact names of a success.
-  uint64_t version = 0;              // Bumped on every change (watchers compare it).
+  std::string runner;                // The server that runs the job, or ran it last.
+  bool cancel_requested = false;     // Running: its runner is asked to stop it.
+  int64_t seq = 0;                   // The store's change number of this state (job_store.h).
+  uint64_t version = 0;              // Bumped on every change this server sees (watchers compare it).
 };
 
 }  // namespace lsqsurf::jobs

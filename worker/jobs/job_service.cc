@@ -1,10 +1,12 @@
 #include "worker/jobs/job_service.h"
 
 #include <spdlog/spdlog.h>
+#include <unistd.h>
 
 #include <cmath>
 #include <filesystem>
 #include <random>
+#include <set>
 
 #include "worker/core/status.h"
 #include "worker/core/strings.h"
@@ -35,7 +37,34 @@ std::string NewJobId() {
   return fmt::format("{:016x}", rng());
 }
 
-absl::Status NoJob(const std::string& id) { return absl::NotFoundError(core::StrCat("no job with id '", id, "'")); }
+// A runner name unique to this start: a restarted service must not renew the leases of the
+// jobs its previous life held.
+std::string RunnerName(std::string name) {
+  if (name.empty()) {
+    char host[256] = {};
+    name = gethostname(host, sizeof(host) - 1) == 0 && host[0] != '\0' ? host : "lsqsurfd";
+  }
+  return fmt::format("{}/{:08x}", name, static_cast<uint32_t>(std::random_device{}()));
+}
+
+// The new state of a job whose runner stopped while it ran: cancelled if that was asked for,
+// queued again, or failed once such stops add up to `max_attempts`.
+void RecoverStoppedRun(JobRecord& r, int max_attempts) {
+  if (r.cancel_requested) {
+    r.state = JobState::kCancelled;
+    r.error = "cancelled by request (its server stopped while it ran)";
+  } else if (r.attempts - r.interruptions >= max_attempts) {
+    r.state = JobState::kFailed;
+    r.error = core::StrCat("the server stopped while this job was running, ", r.attempts - r.interruptions,
+                           " times; giving up (the input may crash the engine)");
+  } else {
+    r.state = JobState::kQueued;
+  }
+  r.stage.clear();
+  r.progress = 0;
+  r.cancel_requested = false;
+  r.updated_ms = NowMs();
+}
 
 }  // namespace
 
@@ -62,14 +91,16 @@ class BlobSink final : public ArtifactSink {
 };
 
 struct JobService::Entry {
-  JobRecord record;
-  std::shared_ptr<void> decoded;   // The kind's decoded input while queued; guarded by mutex_.
+  JobRecord record;                // Guarded by mutex_.
+  bool held = false;               // This service runs the job; guarded by mutex_.
   uint64_t persisted_version = 0;  // Guarded by the service's store_mutex_.
   std::atomic<bool> cancel_requested{false};
   std::atomic<bool> interrupted{false};  // Shutdown: re-queue rather than cancel.
+  std::atomic<bool> lost{false};         // The lease lapsed: another service may run it now.
 };
 
-// Progress of a running job, published to watchers at most every half percent.
+// Progress of a running job, published to watchers at most every half percent, and written to
+// a shared store (for the other services' watchers) at most twice a second.
 class JobService::Context : public core::JobContext {
  public:
   Context(JobService& service, std::shared_ptr<Entry> entry) : service_(service), entry_(std::move(entry)) {}
@@ -78,15 +109,20 @@ class JobService::Context : public core::JobContext {
     if (stage == last_stage_ && std::abs(fraction - last_fraction_) < 0.005) return;
     last_stage_.assign(stage);
     last_fraction_ = fraction;
+    const auto now = std::chrono::steady_clock::now();
+    const bool persist = service_.store_->shared() && now - last_persisted_ >= std::chrono::milliseconds(500);
+    if (persist) last_persisted_ = now;
     service_.Update(
         entry_,
         [&](JobRecord& r) {
           r.stage = last_stage_;
           r.progress = std::clamp(fraction, 0.0, 1.0);
         },
-        /*persist=*/false);
+        persist);
   }
-  bool IsCancelled() const override { return entry_->cancel_requested.load() || entry_->interrupted.load(); }
+  bool IsCancelled() const override {
+    return entry_->cancel_requested.load() || entry_->interrupted.load() || entry_->lost.load();
+  }
 
  private:
   JobService& service_;
@@ -94,15 +130,21 @@ class JobService::Context : public core::JobContext {
   std::mutex mutex_;
   std::string last_stage_;
   double last_fraction_ = -1;
+  std::chrono::steady_clock::time_point last_persisted_{};
 };
 
 JobService::JobService(JobServiceOptions options)
-    : options_(std::move(options)), renderer_(std::make_unique<render::SharedRenderer>()) {}
+    : options_(std::move(options)),
+      runner_(RunnerName(options_.name)),
+      renderer_(std::make_unique<render::SharedRenderer>()) {}
 
 absl::StatusOr<std::unique_ptr<JobService>> JobService::Open(const JobServiceOptions& options) {
   if (options.data_dir.empty()) return absl::InvalidArgumentError("a data directory is required");
   if (options.workers < 1 || options.max_queue < 1 || options.max_renders < 1) {
     return absl::InvalidArgumentError("workers, max_queue and max_renders must be at least 1");
+  }
+  if (options.lease < std::chrono::milliseconds(100) || options.poll < std::chrono::milliseconds(1)) {
+    return absl::InvalidArgumentError("the lease must be at least 100 ms and the poll interval at least 1 ms");
   }
   std::error_code ec;
   std::filesystem::create_directories(options.data_dir, ec);
@@ -117,36 +159,26 @@ absl::StatusOr<std::unique_ptr<JobService>> JobService::Open(const JobServiceOpt
     if (!blobs.ok()) return blobs.status();
     service->blobs_ = *std::move(blobs);
   }
-  auto store = SqliteJobStore::Open((std::filesystem::path(options.data_dir) / "jobs.db").string());
-  if (!store.ok()) return store.status();
-  service->store_ = *std::move(store);
-  auto records = service->store_->LoadAll();
-  if (!records.ok()) return records.status();
-  for (JobRecord& r : *records) {
-    auto entry = std::make_shared<Entry>();
-    if (r.state == JobState::kRunning) {
-      // The server died while this job ran (a graceful stop re-queues first): a crash.
-      if (r.attempts - r.interruptions >= options.max_attempts) {
-        r.state = JobState::kFailed;
-        r.error = core::StrCat("the server stopped while this job was running, ", r.attempts - r.interruptions,
-                               " times; giving up (the input may crash the engine)");
-        spdlog::warn("[job {}] failed on recovery: {}", r.id, r.error);
-      } else {
-        r.state = JobState::kQueued;
-        spdlog::info("[job {}] re-queued after an interrupted run", r.id);
-      }
-      r.stage.clear();
-      r.progress = 0;
-      r.updated_ms = NowMs();
-      if (absl::Status s = service->store_->Put(r); !s.ok()) return s;
-    }
-    entry->record = std::move(r);
-    if (entry->record.state == JobState::kQueued) service->queue_.push_back(entry);
-    service->jobs_[entry->record.id] = entry;
+  if (options.store != nullptr) {
+    service->store_ = options.store;
+  } else {
+    auto store = SqliteJobStore::Open((std::filesystem::path(options.data_dir) / "jobs.db").string());
+    if (!store.ok()) return store.status();
+    service->store_ = *std::move(store);
   }
-  spdlog::info("job service: {} jobs on record, {} queued, {} workers, data in {}", service->jobs_.size(),
-               service->queue_.size(), options.workers, options.data_dir);
+  // In a store of its own every running job was this service's before it stopped; in a shared
+  // one only those whose lease lapsed are known to be orphans (the sync thread goes on looking).
+  LSQSURF_RETURN_IF_ERROR(service->RecoverLapsed(!service->store_->shared()));
+  auto all = service->store_->ChangesSince(0);
+  if (!all.ok()) return all.status();
+  for (JobRecord& r : all->changed) service->Adopt(std::move(r));
+  service->synced_seq_ = all->seq;
+  const bool shared = service->store_->shared();
+  spdlog::info("job service {}: {} jobs on record, {} queued, {} workers, data in {}{}", service->runner_,
+               service->jobs_.size(), service->QueuedJobs(), options.workers, options.data_dir,
+               shared ? ", store shared with other servers" : "");
   for (int i = 0; i < options.workers; ++i) service->workers_.emplace_back([s = service.get()] { s->WorkerLoop(); });
+  if (shared) service->sync_thread_ = std::thread([s = service.get()] { s->SyncLoop(); });
   return service;
 }
 
@@ -190,13 +222,12 @@ absl::StatusOr<JobRecord> JobService::Submit(const JobSpec& spec, Uploads upload
   {
     std::lock_guard lock(mutex_);
     if (shutting_down_) return absl::UnavailableError("the server is shutting down");
-    if (static_cast<int>(queue_.size()) >= options_.max_queue) {
+    if (const int queued = QueuedJobs(); queued >= options_.max_queue) {
       return absl::ResourceExhaustedError(
-          core::StrCat("the job queue is full (", queue_.size(), " jobs waiting); try again later"));
+          core::StrCat("the job queue is full (", queued, " jobs waiting); try again later"));
     }
   }
-  auto entry = std::make_shared<Entry>();
-  JobRecord& r = entry->record;
+  JobRecord r;
   r.id = NewJobId();
   r.spec = spec;
   r.created_ms = r.updated_ms = NowMs();
@@ -208,41 +239,72 @@ absl::StatusOr<JobRecord> JobService::Submit(const JobSpec& spec, Uploads upload
       return s;
     }
   }
-  // Durable before it is visible: a job the caller hears of is on disk.
   {
-    std::lock_guard store_lock(store_mutex_);
-    if (absl::Status s = store_->Put(r); !s.ok()) {
-      (void)blobs_->RemoveJob(r.id);
-      return s;
+    // The decoded input waits with the job while the waiting ones hold at most max_points
+    // points. It is in place before the job is stored: a worker may claim it at once.
+    std::lock_guard lock(mutex_);
+    if (checked->decoded != nullptr && decoded_points_ + r.input_points <= options_.max_points) {
+      decoded_[r.id] = {std::move(checked->decoded), r.input_points};
+      decoded_points_ += r.input_points;
     }
   }
-  std::unique_lock lock(mutex_);
-  if (shutting_down_ || static_cast<int>(queue_.size()) >= options_.max_queue) {
-    const bool stopping = shutting_down_;
-    lock.unlock();
-    std::lock_guard store_lock(store_mutex_);
-    (void)store_->Remove(r.id);
+  // Stored before it is visible: a job the caller hears of survives a crash.
+  if (absl::Status s = store_->Insert(r); !s.ok()) {
     (void)blobs_->RemoveJob(r.id);
-    return stopping ? absl::UnavailableError("the server is shutting down")
-                    : absl::ResourceExhaustedError("the job queue is full; try again later");
+    std::lock_guard lock(mutex_);
+    ReleaseDecoded(r.id);
+    return s;
   }
-  // The decoded input waits with the job while the waiting ones hold at most max_points points.
-  if (checked->decoded != nullptr && decoded_points_ + r.input_points <= options_.max_points) {
-    entry->decoded = std::move(checked->decoded);
-    decoded_points_ += r.input_points;
+  {
+    std::lock_guard lock(mutex_);
+    std::shared_ptr<Entry>& entry = jobs_[r.id];
+    // A worker may have claimed the job already; its entry stays.
+    if (entry == nullptr) {
+      entry = std::make_shared<Entry>();
+      entry->record = r;
+    }
+    ++work_signal_;
   }
-  jobs_[r.id] = entry;
-  queue_.push_back(entry);
   work_available_.notify_one();
   spdlog::info("[job {}] accepted: method {}, {} points, {} bytes", r.id, spec.method, r.input_points, r.input_bytes);
   return r;
 }
 
-absl::StatusOr<JobRecord> JobService::Get(const std::string& id) const {
+int JobService::QueuedJobs() const {
+  int queued = 0;
+  for (const auto& [id, e] : jobs_) queued += e->record.state == JobState::kQueued;
+  return queued;
+}
+
+std::shared_ptr<JobService::Entry> JobService::Adopt(JobRecord record) {
+  std::shared_ptr<Entry>& entry = jobs_[record.id];
+  if (entry == nullptr) entry = std::make_shared<Entry>();
+  if (entry->held || (entry->record.seq >= record.seq && !entry->record.id.empty())) return entry;
+  record.version = entry->record.version + 1;
+  entry->record = std::move(record);
+  // A job another service took (or that ended) no longer needs the input decoded here.
+  if (entry->record.state != JobState::kQueued) ReleaseDecoded(entry->record.id);
+  return entry;
+}
+
+std::shared_ptr<JobService::Entry> JobService::Find(const std::string& id) const {
+  {
+    std::lock_guard lock(mutex_);
+    if (auto it = jobs_.find(id); it != jobs_.end()) return it->second;
+  }
+  // Another service may have accepted it a moment ago.
+  if (!store_->shared()) return nullptr;
+  auto stored = store_->Get(id);
+  if (!stored.ok()) return nullptr;
   std::lock_guard lock(mutex_);
-  auto it = jobs_.find(id);
-  if (it == jobs_.end()) return NoJob(id);
-  return it->second->record;
+  return const_cast<JobService*>(this)->Adopt(*std::move(stored));
+}
+
+absl::StatusOr<JobRecord> JobService::Get(const std::string& id) const {
+  std::shared_ptr<Entry> entry = Find(id);
+  if (entry == nullptr) return NoSuchJob(id);
+  std::lock_guard lock(mutex_);
+  return entry->record;
 }
 
 std::vector<JobRecord> JobService::List() const {
@@ -270,57 +332,49 @@ void JobService::Update(const std::shared_ptr<Entry>& entry, const std::function
 }
 
 void JobService::Persist(const std::shared_ptr<Entry>& entry, const JobRecord& copy) {
-  std::lock_guard store_lock(store_mutex_);
-  // Writes of one job may arrive out of order from two threads: the newest wins.
-  if (copy.version <= entry->persisted_version) return;
-  entry->persisted_version = copy.version;
-  if (absl::Status s = store_->Put(copy); !s.ok())
-    spdlog::error("[job {}] cannot persist state: {}", copy.id, s.ToString());
+  absl::StatusOr<int64_t> seq;
+  {
+    std::lock_guard store_lock(store_mutex_);
+    // Writes of one job may arrive out of order from two threads: the newest wins.
+    if (copy.version <= entry->persisted_version) return;
+    entry->persisted_version = copy.version;
+    seq = store_->WriteHeld(copy);
+  }
+  if (seq.ok()) {
+    std::lock_guard lock(mutex_);
+    entry->record.seq = std::max(entry->record.seq, *seq);
+  } else if (seq.status().code() == absl::StatusCode::kAborted) {
+    // Its lease lapsed (this service stalled or lost the store): another service runs it now.
+    if (!entry->lost.exchange(true)) spdlog::warn("[job {}] lease lost; this run stops", copy.id);
+  } else {
+    spdlog::error("[job {}] cannot store its state: {}", copy.id, seq.status().ToString());
+  }
 }
 
 absl::StatusOr<JobRecord> JobService::Cancel(const std::string& id) {
-  std::shared_ptr<Entry> entry;
+  auto cancelled = store_->Cancel(id, "cancelled by request before it started");
+  if (!cancelled.ok()) return cancelled.status();
+  JobRecord r;
   {
     std::lock_guard lock(mutex_);
-    auto it = jobs_.find(id);
-    if (it == jobs_.end()) return NoJob(id);
-    entry = it->second;
-    if (IsTerminal(entry->record.state)) {
-      return absl::FailedPreconditionError(
-          core::StrCat("job ", id, " has already ", JobStateName(entry->record.state)));
-    }
-    entry->cancel_requested = true;
-    auto q = std::find(queue_.begin(), queue_.end(), entry);
-    if (q == queue_.end()) {
-      spdlog::info("[job {}] cancellation requested while running", id);
-      return entry->record;
-    }
-    queue_.erase(q);
-    ReleaseDecoded(*entry);
+    std::shared_ptr<Entry> entry = Adopt(*cancelled);
+    if (entry->held) entry->cancel_requested = true;
+    r = entry->record;
   }
-  Update(entry, [](JobRecord& r) {
-    r.state = JobState::kCancelled;
-    r.error = "cancelled by request before it started";
-  });
-  spdlog::info("[job {}] cancelled while queued", id);
-  return Get(id);
+  changed_.notify_all();
+  spdlog::info("[job {}] {}", id,
+               r.state == JobState::kCancelled ? "cancelled while queued" : "cancellation requested while running");
+  return r;
 }
 
 absl::Status JobService::Delete(const std::string& id) {
+  LSQSURF_RETURN_IF_ERROR(store_->Remove(id));
   {
     std::lock_guard lock(mutex_);
-    auto it = jobs_.find(id);
-    if (it == jobs_.end()) return NoJob(id);
-    if (!IsTerminal(it->second->record.state)) {
-      return absl::FailedPreconditionError(
-          core::StrCat("job ", id, " is ", JobStateName(it->second->record.state), "; cancel it before deleting it"));
+    if (auto it = jobs_.find(id); it != jobs_.end()) {
+      ReleaseDecoded(id);
+      jobs_.erase(it);
     }
-    jobs_.erase(it);
-  }
-  {
-    std::lock_guard store_lock(store_mutex_);
-    if (absl::Status s = store_->Remove(id); !s.ok())
-      spdlog::error("[job {}] cannot remove its record: {}", id, s.ToString());
   }
   if (absl::Status s = blobs_->RemoveJob(id); !s.ok()) spdlog::error("[job {}] {}", id, s.ToString());
   changed_.notify_all();
@@ -429,10 +483,9 @@ bool JobService::CanRender() { return renderer_->Get().ok(); }
 
 absl::StatusOr<JobRecord> JobService::WaitForChange(const std::string& id, uint64_t seen_version,
                                                     std::chrono::milliseconds timeout) const {
+  std::shared_ptr<Entry> entry = Find(id);
+  if (entry == nullptr) return NoSuchJob(id);
   std::unique_lock lock(mutex_);
-  auto it = jobs_.find(id);
-  if (it == jobs_.end()) return NoJob(id);
-  std::shared_ptr<Entry> entry = it->second;
   changed_.wait_for(lock, timeout,
                     [&] { return entry->record.version != seen_version || shutting_down_ || !jobs_.contains(id); });
   if (!jobs_.contains(id)) return absl::NotFoundError(core::StrCat("job '", id, "' was deleted"));
@@ -442,36 +495,69 @@ absl::StatusOr<JobRecord> JobService::WaitForChange(const std::string& id, uint6
 void JobService::Shutdown() {
   {
     std::lock_guard lock(mutex_);
-    if (shutting_down_ && workers_.empty()) return;
+    if (shutting_down_ && workers_.empty() && !sync_thread_.joinable()) return;
     shutting_down_ = true;
     for (auto& [id, e] : jobs_) {
-      if (e->record.state == JobState::kRunning) e->interrupted = true;
+      if (e->held) e->interrupted = true;
     }
   }
   work_available_.notify_all();
   changed_.notify_all();
   for (auto& t : workers_) t.join();
   workers_.clear();
+  // The leases are renewed until the interrupted jobs are back in the queue.
+  sync_stop_ = true;
+  if (sync_thread_.joinable()) sync_thread_.join();
 }
 
-std::shared_ptr<void> JobService::ReleaseDecoded(Entry& entry) {
-  if (entry.decoded != nullptr) decoded_points_ -= entry.record.input_points;
-  return std::move(entry.decoded);
+std::shared_ptr<void> JobService::ReleaseDecoded(const std::string& id) {
+  auto it = decoded_.find(id);
+  if (it == decoded_.end()) return nullptr;
+  decoded_points_ -= it->second.points;
+  std::shared_ptr<void> input = std::move(it->second.input);
+  decoded_.erase(it);
+  return input;
+}
+
+std::shared_ptr<JobService::Entry> JobService::ClaimNext(std::shared_ptr<void>* decoded) {
+  auto claimed = store_->Claim(runner_, options_.lease);
+  if (!claimed.ok()) {
+    spdlog::error("cannot take a job from the store: {}", claimed.status().ToString());
+    return nullptr;
+  }
+  if (!claimed->has_value()) return nullptr;
+  std::shared_ptr<Entry> entry;
+  {
+    std::lock_guard lock(mutex_);
+    *decoded = ReleaseDecoded((*claimed)->id);
+    entry = Adopt(**std::move(claimed));
+    entry->held = true;
+    entry->cancel_requested = false;
+    entry->lost = false;
+  }
+  changed_.notify_all();
+  return entry;
 }
 
 void JobService::WorkerLoop() {
   for (;;) {
-    std::shared_ptr<Entry> entry;
-    std::shared_ptr<void> decoded;
+    uint64_t signal = 0;
     {
-      std::unique_lock lock(mutex_);
-      work_available_.wait(lock, [&] { return shutting_down_ || !queue_.empty(); });
+      std::lock_guard lock(mutex_);
       if (shutting_down_) return;
-      entry = queue_.front();
-      queue_.pop_front();
-      decoded = ReleaseDecoded(*entry);
+      signal = work_signal_;
     }
-    RunJob(entry, std::move(decoded));
+    std::shared_ptr<void> decoded;
+    if (std::shared_ptr<Entry> entry = ClaimNext(&decoded)) {
+      RunJob(entry, std::move(decoded));
+      continue;
+    }
+    // Nothing to claim: wait for a submission, another service's job, or the next poll.
+    std::unique_lock lock(mutex_);
+    const auto woken = [&] { return shutting_down_ || work_signal_ != signal; };
+    // A store of its own gets jobs only through Submit; the long wait there only guards
+    // against a claim that failed.
+    work_available_.wait_for(lock, store_->shared() ? options_.poll : std::chrono::milliseconds(10'000), woken);
   }
 }
 
@@ -507,47 +593,164 @@ absl::StatusOr<Statistics> JobService::RunKind(const std::shared_ptr<Entry>& ent
 
 void JobService::RunJob(const std::shared_ptr<Entry>& entry, std::shared_ptr<void> decoded) {
   const std::string id = entry->record.id;
-  Update(entry, [](JobRecord& r) {
-    r.state = JobState::kRunning;
-    r.stage = "starting";
-    r.progress = 0;
-    ++r.attempts;
-  });
-  spdlog::info("[job {}] started (attempt {})", id, entry->record.attempts);
-  const auto start = std::chrono::steady_clock::now();
-  BlobSink sink(*blobs_, id);
-  absl::StatusOr<Statistics> result = RunKind(entry, sink, std::move(decoded));
-  const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
-  if (result.ok()) {
-    Update(entry, [&](JobRecord& r) {
-      r.state = JobState::kSucceeded;
-      r.stage = "done";
-      r.progress = 1;
-      r.statistics = *std::move(result);
-      r.statistics.emplace_back("wall_seconds", seconds);
-      r.results = sink.names();
-    });
-    spdlog::info("[job {}] succeeded in {:.2f} s", id, seconds);
-  } else if (entry->interrupted && result.status().code() == absl::StatusCode::kCancelled) {
-    Update(entry, [](JobRecord& r) {
-      r.state = JobState::kQueued;
-      r.stage.clear();
-      r.progress = 0;
-      ++r.interruptions;  // A shutdown is not the job's fault.
-    });
-    spdlog::info("[job {}] interrupted by shutdown; will resume on restart", id);
-  } else if (result.status().code() == absl::StatusCode::kCancelled) {
-    Update(entry, [](JobRecord& r) {
-      r.state = JobState::kCancelled;
-      r.error = "cancelled by request";
-    });
-    spdlog::info("[job {}] cancelled after {:.2f} s", id, seconds);
+  if (entry->record.state == JobState::kFailed) {
+    // Its stored spec no longer decodes here: the claim read it back failed, with the reason.
+    Update(entry, [](JobRecord&) {});
   } else {
-    Update(entry, [&](JobRecord& r) {
-      r.state = JobState::kFailed;
-      r.error = std::string(result.status().message());
-    });
-    spdlog::warn("[job {}] failed: {}", id, result.status().ToString());
+    spdlog::info("[job {}] started (attempt {})", id, entry->record.attempts);
+    const auto start = std::chrono::steady_clock::now();
+    BlobSink sink(*blobs_, id);
+    absl::StatusOr<Statistics> result = RunKind(entry, sink, std::move(decoded));
+    const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+    if (entry->lost) {
+      spdlog::warn("[job {}] ran {:.2f} s under a lapsed lease; its outcome is dropped", id, seconds);
+      // Should the store still show it as this server's, it goes back to the queue, not held
+      // against it; otherwise the write is refused and the store's state stands.
+      Update(entry, [](JobRecord& r) {
+        r.state = JobState::kQueued;
+        r.stage.clear();
+        r.progress = 0;
+        ++r.interruptions;
+      });
+    } else if (result.ok()) {
+      Update(entry, [&](JobRecord& r) {
+        r.state = JobState::kSucceeded;
+        r.stage = "done";
+        r.progress = 1;
+        r.statistics = *std::move(result);
+        r.statistics.emplace_back("wall_seconds", seconds);
+        r.results = sink.names();
+      });
+      spdlog::info("[job {}] succeeded in {:.2f} s", id, seconds);
+    } else if (entry->interrupted && result.status().code() == absl::StatusCode::kCancelled) {
+      Update(entry, [](JobRecord& r) {
+        r.state = JobState::kQueued;
+        r.stage.clear();
+        r.progress = 0;
+        ++r.interruptions;  // A shutdown is not the job's fault.
+      });
+      spdlog::info("[job {}] interrupted by shutdown; will resume on restart", id);
+    } else if (result.status().code() == absl::StatusCode::kCancelled) {
+      Update(entry, [](JobRecord& r) {
+        r.state = JobState::kCancelled;
+        r.error = "cancelled by request";
+        r.cancel_requested = false;
+      });
+      spdlog::info("[job {}] cancelled after {:.2f} s", id, seconds);
+    } else {
+      Update(entry, [&](JobRecord& r) {
+        r.state = JobState::kFailed;
+        r.error = std::string(result.status().message());
+      });
+      spdlog::warn("[job {}] failed: {}", id, result.status().ToString());
+    }
+  }
+  {
+    std::lock_guard lock(mutex_);
+    entry->held = false;
+    if (!entry->lost) return;
+    entry->record.seq = 0;  // Whatever the store holds now replaces this run's view.
+  }
+  if (auto stored = store_->Get(id); stored.ok()) {
+    std::lock_guard lock(mutex_);
+    Adopt(*std::move(stored));
+  }
+  changed_.notify_all();
+}
+
+absl::Status JobService::RecoverLapsed(bool every_running) {
+  auto recovered =
+      store_->RecoverLapsed(every_running, [this](JobRecord& r) { RecoverStoppedRun(r, options_.max_attempts); });
+  if (!recovered.ok()) return recovered.status();
+  for (const JobRecord& r : *recovered) {
+    spdlog::warn("[job {}] its server ({}) stopped while it ran: {}", r.id, r.runner,
+                 r.state == JobState::kQueued ? "queued again" : r.error);
+  }
+  return absl::OkStatus();
+}
+
+void JobService::SyncChanges() {
+  auto changes = store_->ChangesSince(synced_seq_);
+  if (!changes.ok()) {
+    spdlog::warn("cannot read the store's changes: {}", changes.status().ToString());
+    return;
+  }
+  bool queued = false;
+  {
+    std::lock_guard lock(mutex_);
+    for (JobRecord& r : changes->changed) {
+      const bool cancel = r.cancel_requested;
+      // Queued again, or someone else's, after this server claimed it: not this run's own
+      // writes (running, or finished), nor older states that arrive late.
+      auto known = jobs_.find(r.id);
+      const bool newer = known == jobs_.end() || r.seq > known->second->record.seq;
+      const bool taken = newer && (r.runner != runner_ || r.state == JobState::kQueued);
+      std::shared_ptr<Entry> entry = Adopt(std::move(r));
+      if (entry->held) {
+        // The runner learns of a cancellation asked of another service, and of a lease that
+        // lapsed while it could not renew (the job went back to the queue or to another).
+        if (cancel) entry->cancel_requested = true;
+        if (taken && !entry->interrupted && !entry->lost.exchange(true))
+          spdlog::warn("[job {}] lease lost; this run stops", entry->record.id);
+      }
+      queued = queued || entry->record.state == JobState::kQueued;
+    }
+    for (const std::string& id : changes->removed) {
+      auto it = jobs_.find(id);
+      if (it == jobs_.end() || it->second->held) continue;
+      ReleaseDecoded(id);
+      jobs_.erase(it);
+    }
+    synced_seq_ = changes->seq;
+    if (queued) ++work_signal_;
+  }
+  changed_.notify_all();
+  if (queued) work_available_.notify_all();
+}
+
+void JobService::RenewLeases() {
+  std::vector<std::string> running;
+  {
+    std::lock_guard lock(mutex_);
+    for (const auto& [id, e] : jobs_) {
+      if (e->held && !e->lost) running.push_back(id);
+    }
+  }
+  auto held = store_->Renew(runner_, running, options_.lease);
+  if (!held.ok()) {
+    spdlog::warn("cannot renew the leases of the running jobs: {}", held.status().ToString());
+    return;
+  }
+  std::set<std::string> ids;
+  std::lock_guard lock(mutex_);
+  for (const auto& [id, cancel] : *held) {
+    ids.insert(id);
+    auto it = jobs_.find(id);
+    if (cancel && it != jobs_.end()) it->second->cancel_requested = true;
+  }
+  for (const std::string& id : running) {
+    auto it = jobs_.find(id);
+    // Held here but not in the store any more: taken over, or finished a moment ago.
+    if (it != jobs_.end() && it->second->held && it->second->record.state == JobState::kRunning && !ids.contains(id))
+      it->second->lost = true;
+  }
+}
+
+void JobService::SyncLoop() {
+  using Clock = std::chrono::steady_clock;
+  Clock::time_point next_renewal = Clock::now(), next_recovery = Clock::now();
+  while (!sync_stop_) {
+    store_->WaitForOthers(options_.poll);
+    SyncChanges();
+    const Clock::time_point now = Clock::now();
+    if (now >= next_renewal) {
+      RenewLeases();
+      next_renewal = now + options_.lease / 4;
+    }
+    if (now >= next_recovery) {
+      if (absl::Status s = RecoverLapsed(false); !s.ok()) spdlog::warn("cannot recover lapsed jobs: {}", s.ToString());
+      next_recovery = now + options_.lease / 2;
+    }
   }
 }
 

@@ -2,14 +2,22 @@
 //
 // The server's single entry point into the workers; it knows nothing of gRPC, and nothing of
 // a kind's details (those live behind JobKind). Specs are validated once here (ValidateSpec),
-// uploads by the job's kind, before a job is accepted; an accepted job is on disk (a store
+// uploads by the job's kind, before a job is accepted; an accepted job is stored (a store
 // record + its uploads) before Submit returns and is never lost: after a restart, queued jobs
 // run, and jobs that were running are queued again, then failed with a reason once they have
-// crashed the server `max_attempts` times (a graceful shutdown does not count).
+// crashed a server `max_attempts` times (a graceful shutdown does not count).
 //
-// Threading: a fixed pool of `workers` threads runs jobs from a bounded FIFO queue; every
-// public method is thread-safe. Store writes happen outside the service's lock, so reads
-// (Get, List, WaitForChange) never wait on the disk. Submit decodes the uploads to check them
+// The job store (job_store.h) is where jobs are queued and claimed. With a store of its own
+// (SQLite, the default) this service is the only one to run its jobs. With a shared store
+// (PostgreSQL) several services take jobs from one queue: each claims a job under a lease that
+// a background thread renews, follows the others' changes (a notification, else polling every
+// `poll`), passes cancellations on to the runner, and recovers the jobs of a service whose
+// lease lapsed. Jobs, results and pictures can then be asked of any of them.
+//
+// Threading: a fixed pool of `workers` threads claims and runs jobs in FIFO order; every
+// public method is thread-safe. The service keeps every job's record in memory and writes to
+// the store outside its lock, so reads (Get, List, WaitForChange) never wait on the store. Submit decodes the uploads
+// to check them
 // (~0.3 s per million points, on the caller's thread) and keeps the decoded input for the run
 // while the queued jobs' decoded inputs hold at most `max_points` points (else, and after a
 // restart, the run decodes the stored upload again); Render draws on the caller's thread with at
@@ -56,6 +64,16 @@ struct JobServiceOptions {
   int max_renders = 2;                         // Render calls drawn at once; more get kResourceExhausted.
   // Where uploads and artifacts are kept; null: files under data_dir/jobs.
   std::shared_ptr<BlobStore> blobs;
+  // Where job records are kept and claimed; null: SQLite in data_dir/jobs.db.
+  std::shared_ptr<JobStore> store;
+  // This service's name among those sharing a store; a job's runner is this name and a suffix
+  // drawn at start. Empty: the host name.
+  std::string name;
+  // A claimed job stays this service's for this long without a renewal (renewed every quarter
+  // of it): a service that dies holds its jobs up to this long before another runs them.
+  std::chrono::milliseconds lease{10'000};
+  // Shared stores: how often to look for the others' changes when no notification comes.
+  std::chrono::milliseconds poll{500};
   // Tests only: replaces the kind that runs a method's jobs (e.g. one that blocks on a latch).
   std::map<std::string, const JobKind*> kind_overrides;
 };
@@ -106,6 +124,8 @@ class JobService {
   void Shutdown();
 
   const JobServiceOptions& options() const { return options_; }
+  // This service's runner name (a job's runner while this service runs it).
+  const std::string& runner() const { return runner_; }
   // Whether pictures can be drawn (makes the renderer on first use, about 0.1 s).
   bool CanRender();
   bool shutting_down() const {
@@ -118,36 +138,60 @@ class JobService {
   class Context;
   explicit JobService(JobServiceOptions options);
   void WorkerLoop();
+  // Claims the oldest queued job; null when none is queued or the store failed.
+  std::shared_ptr<Entry> ClaimNext(std::shared_ptr<void>* decoded);
   void RunJob(const std::shared_ptr<Entry>& entry, std::shared_ptr<void> decoded);
-  // Takes the entry's decoded input out of the memory budget (mutex_ held).
-  std::shared_ptr<void> ReleaseDecoded(Entry& entry);
+  // Takes a job's decoded input out of the memory budget; null if none is kept (mutex_ held).
+  std::shared_ptr<void> ReleaseDecoded(const std::string& id);
   absl::StatusOr<Statistics> RunKind(const std::shared_ptr<Entry>& entry, class BlobSink& sink,
                                      std::shared_ptr<void> decoded);
-  // Applies `change` to the record under the lock, wakes watchers, then persists it.
+  // Applies `change` to the record under the lock, wakes watchers, then stores it.
   void Update(const std::shared_ptr<Entry>& entry, const std::function<void(JobRecord&)>& change, bool persist = true);
   void Persist(const std::shared_ptr<Entry>& entry, const JobRecord& copy);
+  // Takes a record read from the store unless this service's copy is as new (mutex_ held).
+  // Returns the entry (made if missing).
+  std::shared_ptr<Entry> Adopt(JobRecord record);
+  // The job's entry, read from the store when this service has not seen it yet.
+  std::shared_ptr<Entry> Find(const std::string& id) const;
   const JobKind* KindOf(const std::string& method) const;
   // A picture of a volume job's stored field (the Render path for field.lqvf).
   absl::StatusOr<RenderedPicture> RenderVolumeField(const std::string& id, const std::string& bytes,
                                                     const render::RenderParams& params);
+  // Shared stores: follows the others' changes, renews leases, recovers lapsed ones.
+  void SyncLoop();
+  void SyncChanges();
+  void RenewLeases();
+  // Requeues (or fails, or cancels) the jobs of runners whose lease lapsed; every running job
+  // with `every_running`.
+  absl::Status RecoverLapsed(bool every_running);
+  int QueuedJobs() const;  // mutex_ held.
 
   JobServiceOptions options_;
+  std::string runner_;
   std::unique_ptr<render::SharedRenderer> renderer_;
-  std::unique_ptr<JobStore> store_;
+  std::shared_ptr<JobStore> store_;
   std::shared_ptr<BlobStore> blobs_;
-  std::mutex store_mutex_;  // Orders store writes (never held with mutex_).
+  std::mutex store_mutex_;  // Orders store writes of records (never taken with mutex_ held).
   std::atomic<int> renders_{0};
   std::mutex volume_mutex_;  // Guards the two below: the last volume grid drawn and its key.
   std::string volume_key_;
   std::shared_ptr<const SampledVolume> volume_grid_;
   mutable std::mutex mutex_;
   mutable std::condition_variable changed_;  // Any job changed (watchers).
-  std::condition_variable work_available_;   // Queue gained a job or shutdown began.
-  std::map<std::string, std::shared_ptr<Entry>> jobs_;
-  std::deque<std::shared_ptr<Entry>> queue_;
+  std::condition_variable work_available_;   // A job may have been queued, or shutdown began.
+  mutable std::map<std::string, std::shared_ptr<Entry>> jobs_;
+  uint64_t work_signal_ = 0;  // Bumped whenever a job may have been queued (mutex_).
   std::vector<std::thread> workers_;
+  std::thread sync_thread_;
+  std::atomic<bool> sync_stop_{false};
+  int64_t synced_seq_ = 0;  // The store's change number this service has seen (sync thread).
   bool shutting_down_ = false;
-  int64_t decoded_points_ = 0;  // Points of the decoded inputs queued jobs hold (mutex_).
+  struct DecodedInput {
+    std::shared_ptr<void> input;
+    int64_t points = 0;
+  };
+  std::map<std::string, DecodedInput> decoded_;  // Queued jobs' decoded inputs by id (mutex_).
+  int64_t decoded_points_ = 0;                   // Their points (mutex_).
 };
 
 }  // namespace lsqsurf::jobs

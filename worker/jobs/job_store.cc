@@ -2,87 +2,35 @@
 
 #include <sqlite3.h>
 
-#include <charconv>
-#include <sstream>
+#include <thread>
 
 #include "worker/core/strings.h"
-#include "worker/jobs/method_registry.h"
+#include "worker/jobs/job_rows.h"
 
 namespace lsqsurf::jobs {
 namespace {
 
-// Statistics as flat "name=value;" text: readable in the sqlite3 shell. Names never contain
-// '=' or ';'.
-std::string EncodeStatistics(const Statistics& pairs) {
-  std::string out;
-  for (const auto& [name, value] : pairs) {
-    char buf[32];
-    const auto r = std::to_chars(buf, buf + sizeof(buf), value);
-    core::StrAppend(&out, name, "=", std::string_view(buf, static_cast<size_t>(r.ptr - buf)), ";");
-  }
-  return out;
+int64_t NowMs() {
+  return std::chrono::duration_cast<std::chrono::milliseconds>(std::chrono::system_clock::now().time_since_epoch())
+      .count();
 }
 
-Statistics DecodeStatistics(std::string_view text) {
-  Statistics out;
-  while (!text.empty()) {
-    const size_t end = text.find(';');
-    const std::string_view item = text.substr(0, end);
-    const size_t eq = item.find('=');
-    if (eq != std::string_view::npos) {
-      double v = 0;
-      std::from_chars(item.data() + eq + 1, item.data() + item.size(), v);
-      out.emplace_back(std::string(item.substr(0, eq)), v);
-    }
-    if (end == std::string_view::npos) break;
-    text.remove_prefix(end + 1);
-  }
-  return out;
-}
-
-// The preview column: the view options in their table's text form plus the turntable step;
-// empty means no preview. The colour attribute is kept in its own column, as before.
-std::string EncodePreview(const PreviewSpec& p) {
-  if (!p.enabled) return "";
-  char buf[32];
-  const auto r = std::to_chars(buf, buf + sizeof(buf), p.turntable_deg_per_frame);
-  return core::StrCat(p.view.Encode(), "turntable=", std::string_view(buf, static_cast<size_t>(r.ptr - buf)), ";");
-}
-
-PreviewSpec DecodePreview(std::string_view text, std::string colour) {
-  PreviewSpec p;
-  if (text.empty()) return p;
-  p.enabled = true;
-  p.view = DefaultView();
-  // Rows written before the view options had a table used shorter names.
-  static const std::pair<const char*, const char*> kRenamed[] = {{"up", "up_axis"},
-                                                                 {"azimuth", "azimuth_deg"},
-                                                                 {"elevation", "elevation_deg"},
-                                                                 {"fov", "fov_deg"},
-                                                                 {"flat", "flat_shading"}};
-  std::string current;
-  for (const auto& [name, value] : DecodeStatistics(text)) {
-    if (name == "turntable") {
-      p.turntable_deg_per_frame = value;
-      continue;
-    }
-    std::string field = name;
-    for (const auto& [old_name, new_name] : kRenamed) {
-      if (name == old_name) field = new_name;
-    }
-    if (field == "color") continue;
-    (void)p.view.Set(field, value);  // A value that no longer fits keeps the default.
-  }
-  if (!colour.empty()) (void)p.view.SetText("color", std::move(colour));
-  return p;
-}
-
-std::string Column(sqlite3_stmt* st, int i) {
-  const auto* text = sqlite3_column_text(st, i);
-  return text ? reinterpret_cast<const char*>(text) : "";
-}
+// The schema version this build writes (PRAGMA user_version). 0: the unversioned tables of
+// earlier builds; 1: runners, leases, change numbers and the removals table.
+constexpr int kSchemaVersion = 1;
 
 }  // namespace
+
+absl::Status NoSuchJob(const std::string& id) { return absl::NotFoundError(core::StrCat("no job with id '", id, "'")); }
+
+absl::Status AlreadyFinished(const JobRecord& r) {
+  return absl::FailedPreconditionError(core::StrCat("job ", r.id, " has already ", JobStateName(r.state)));
+}
+
+absl::Status NotFinished(const JobRecord& r) {
+  return absl::FailedPreconditionError(
+      core::StrCat("job ", r.id, " is ", JobStateName(r.state), "; cancel it before deleting it"));
+}
 
 const char* JobStateName(JobState state) {
   switch (state) {
@@ -108,147 +56,238 @@ absl::StatusOr<std::unique_ptr<SqliteJobStore>> SqliteJobStore::Open(const std::
     return absl::UnavailableError(core::StrCat("cannot open job database ", path, ": ", msg));
   }
   std::unique_ptr<SqliteJobStore> store(new SqliteJobStore(db));
+  std::lock_guard lock(store->mutex_);
+  if (absl::Status s = store->Migrate(); !s.ok()) return s;
+  auto last = store->Query(
+      "SELECT MAX(COALESCE((SELECT MAX(seq) FROM jobs), 0), "
+      "COALESCE((SELECT MAX(seq) FROM job_removals), 0))");
+  if (!last.ok()) return last.status();
+  store->seq_ = rows::ToInt(last->front().front());
+  return store;
+}
+
+absl::Status SqliteJobStore::Migrate() {
   for (const char* sql : {"PRAGMA journal_mode=WAL", "PRAGMA synchronous=FULL",
                           "CREATE TABLE IF NOT EXISTS jobs (id TEXT PRIMARY KEY, method TEXT, "
                           "parameters TEXT, mesh_bits INTEGER, state INTEGER, stage TEXT, "
                           "attempts INTEGER, error TEXT, created_ms INTEGER, updated_ms INTEGER, "
-                          "input_points INTEGER, input_bytes INTEGER, statistics TEXT, results TEXT, "
-                          "preview TEXT, preview_color TEXT, interruptions INTEGER)"}) {
-    if (absl::Status s = store->Exec(sql); !s.ok()) return s;
+                          "input_points INTEGER, input_bytes INTEGER, statistics TEXT, results TEXT)",
+                          "CREATE TABLE IF NOT EXISTS job_removals (id TEXT PRIMARY KEY, seq INTEGER)"}) {
+    if (auto r = Query(sql); !r.ok()) return r.status();
   }
-  // Databases written by earlier versions lack the later columns.
-  for (const char* column : {"preview TEXT", "preview_color TEXT", "interruptions INTEGER"}) {
+  // Databases written by earlier builds lack the later columns; each is added where missing,
+  // so a database of any earlier version ends up alike.
+  auto present = Query("SELECT name FROM pragma_table_info('jobs')");
+  if (!present.ok()) return present.status();
+  for (const char* column : {"preview TEXT", "preview_color TEXT", "interruptions INTEGER", "progress REAL",
+                             "runner TEXT", "cancel_requested INTEGER", "seq INTEGER", "lease_expires_ms INTEGER"}) {
     const std::string name(column, std::string_view(column).find(' '));
-    if (!store->HasColumn(name.c_str())) {
-      if (absl::Status s = store->Exec(core::StrCat("ALTER TABLE jobs ADD COLUMN ", column).c_str()); !s.ok()) {
-        return s;
-      }
-    }
+    const bool has = std::any_of(present->begin(), present->end(), [&](const Row& row) { return row[0] == name; });
+    if (has) continue;
+    if (auto r = Query(core::StrCat("ALTER TABLE jobs ADD COLUMN ", column)); !r.ok()) return r.status();
   }
-  return store;
+  // Rows of earlier builds get values where the new columns must have one.
+  if (auto r = Query("UPDATE jobs SET runner = COALESCE(runner, ''), cancel_requested = COALESCE(cancel_requested, 0), "
+                     "progress = COALESCE(progress, 0), interruptions = COALESCE(interruptions, 0), "
+                     "seq = COALESCE(seq, rowid) WHERE seq IS NULL");
+      !r.ok()) {
+    return r.status();
+  }
+  for (const char* sql : {"CREATE INDEX IF NOT EXISTS jobs_by_state ON jobs (state, created_ms, id)",
+                          "CREATE INDEX IF NOT EXISTS jobs_by_seq ON jobs (seq)"}) {
+    if (auto r = Query(sql); !r.ok()) return r.status();
+  }
+  if (auto r = Query(core::StrCat("PRAGMA user_version = ", kSchemaVersion)); !r.ok()) return r.status();
+  return absl::OkStatus();
 }
 
 SqliteJobStore::~SqliteJobStore() { sqlite3_close(db_); }
 
-absl::Status SqliteJobStore::Exec(const char* sql) {
-  char* err = nullptr;
-  if (sqlite3_exec(db_, sql, nullptr, nullptr, &err) != SQLITE_OK) {
-    std::string msg = err ? err : "unknown error";
-    sqlite3_free(err);
-    return absl::UnavailableError(core::StrCat("job database: ", msg));
-  }
-  return absl::OkStatus();
-}
-
-bool SqliteJobStore::HasColumn(const char* name) {
+absl::StatusOr<std::vector<SqliteJobStore::Row>> SqliteJobStore::Query(const std::string& sql,
+                                                                       const std::vector<std::string>& params) {
   sqlite3_stmt* st = nullptr;
-  if (sqlite3_prepare_v2(db_, "SELECT name FROM pragma_table_info('jobs')", -1, &st, nullptr) != SQLITE_OK)
-    return false;
-  bool found = false;
-  while (!found && sqlite3_step(st) == SQLITE_ROW) found = Column(st, 0) == name;
-  sqlite3_finalize(st);
-  return found;
-}
-
-absl::Status SqliteJobStore::Put(const JobRecord& r) {
-  std::lock_guard lock(mutex_);
-  sqlite3_stmt* st = nullptr;
-  const char* sql =
-      "INSERT OR REPLACE INTO jobs (id, method, parameters, mesh_bits, state, stage, attempts, "
-      "error, created_ms, updated_ms, input_points, input_bytes, statistics, results, preview, preview_color, "
-      "interruptions) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15, ?16, ?17)";
-  if (sqlite3_prepare_v2(db_, sql, -1, &st, nullptr) != SQLITE_OK) {
+  if (sqlite3_prepare_v2(db_, sql.c_str(), -1, &st, nullptr) != SQLITE_OK) {
     return absl::UnavailableError(core::StrCat("job database: ", sqlite3_errmsg(db_)));
   }
-  std::string results;
-  for (const auto& name : r.results) results += name + ";";
-  const std::string params = r.spec.params.Encode(), stats = EncodeStatistics(r.statistics);
-  sqlite3_bind_text(st, 1, r.id.c_str(), -1, SQLITE_TRANSIENT);
-  sqlite3_bind_text(st, 2, r.spec.method.c_str(), -1, SQLITE_TRANSIENT);
-  sqlite3_bind_text(st, 3, params.c_str(), -1, SQLITE_TRANSIENT);
-  sqlite3_bind_int(st, 4, r.spec.mesh_position_bits);
-  sqlite3_bind_int(st, 5, static_cast<int>(r.state));
-  sqlite3_bind_text(st, 6, r.stage.c_str(), -1, SQLITE_TRANSIENT);
-  sqlite3_bind_int(st, 7, r.attempts);
-  sqlite3_bind_text(st, 8, r.error.c_str(), -1, SQLITE_TRANSIENT);
-  sqlite3_bind_int64(st, 9, r.created_ms);
-  sqlite3_bind_int64(st, 10, r.updated_ms);
-  sqlite3_bind_int64(st, 11, r.input_points);
-  sqlite3_bind_int64(st, 12, r.input_bytes);
-  sqlite3_bind_text(st, 13, stats.c_str(), -1, SQLITE_TRANSIENT);
-  sqlite3_bind_text(st, 14, results.c_str(), -1, SQLITE_TRANSIENT);
-  const std::string preview = EncodePreview(r.spec.preview);
-  sqlite3_bind_text(st, 15, preview.c_str(), -1, SQLITE_TRANSIENT);
-  const std::string colour = r.spec.preview.enabled ? r.spec.preview.view.GetText("color").value_or("") : "";
-  sqlite3_bind_text(st, 16, colour.c_str(), -1, SQLITE_TRANSIENT);
-  sqlite3_bind_int(st, 17, r.interruptions);
-  const int rc = sqlite3_step(st);
+  for (size_t i = 0; i < params.size(); ++i) {
+    sqlite3_bind_text(st, static_cast<int>(i + 1), params[i].c_str(), static_cast<int>(params[i].size()),
+                      SQLITE_TRANSIENT);
+  }
+  std::vector<Row> out;
+  int rc = SQLITE_ROW;
+  while ((rc = sqlite3_step(st)) == SQLITE_ROW) {
+    Row& row = out.emplace_back(static_cast<size_t>(sqlite3_column_count(st)));
+    for (int i = 0; i < sqlite3_column_count(st); ++i) {
+      const auto* text = sqlite3_column_text(st, i);
+      if (text != nullptr) row[static_cast<size_t>(i)] = reinterpret_cast<const char*>(text);
+    }
+  }
   sqlite3_finalize(st);
-  if (rc != SQLITE_DONE) return absl::UnavailableError(core::StrCat("job database: ", sqlite3_errmsg(db_)));
-  return absl::OkStatus();
+  if (rc != SQLITE_DONE) {
+    const int code = sqlite3_extended_errcode(db_);
+    std::string msg = core::StrCat("job database: ", sqlite3_errmsg(db_));
+    if (code == SQLITE_CONSTRAINT_PRIMARYKEY) return absl::AlreadyExistsError(msg);
+    return absl::UnavailableError(msg);
+  }
+  return out;
+}
+
+absl::StatusOr<std::vector<JobRecord>> SqliteJobStore::QueryJobs(const std::string& where,
+                                                                 const std::vector<std::string>& params) {
+  auto found = Query(core::StrCat("SELECT ", rows::ColumnList(), " FROM jobs ", where), params);
+  if (!found.ok()) return found.status();
+  std::vector<JobRecord> out;
+  out.reserve(found->size());
+  for (const Row& row : *found) out.push_back(rows::FromColumns(row));
+  return out;
+}
+
+absl::Status SqliteJobStore::Insert(const JobRecord& record) {
+  std::lock_guard lock(mutex_);
+  std::vector<std::string> values = rows::JobColumns(record);
+  values.push_back(std::to_string(++seq_));
+  std::string placeholders;
+  for (int i = 1; i <= rows::kColumnCount; ++i) core::StrAppend(&placeholders, i > 1 ? ", ?" : "?", i);
+  auto r = Query(core::StrCat("INSERT INTO jobs (", rows::ColumnList(), ") VALUES (", placeholders, ")"), values);
+  return r.status();
+}
+
+absl::StatusOr<int64_t> SqliteJobStore::Replace(const JobRecord& record, const std::string& held_by) {
+  std::vector<std::string> values = rows::HeldColumns(record);
+  const int64_t seq = ++seq_;
+  values.push_back(std::to_string(seq));
+  values.push_back(held_by);
+  const size_t n = values.size();
+  auto r = Query(core::StrCat("UPDATE jobs SET ", rows::HeldAssignments('?'), ", seq = ?", n - 1,
+                              " WHERE id = ?1 AND state = 1 AND runner = ?", n, " RETURNING id"),
+                 values);
+  if (!r.ok()) return r.status();
+  if (r->empty()) return absl::AbortedError(core::StrCat("job ", record.id, " is not held by ", held_by));
+  return seq;
+}
+
+absl::StatusOr<std::optional<JobRecord>> SqliteJobStore::Claim(const std::string& runner,
+                                                               std::chrono::milliseconds lease) {
+  std::lock_guard lock(mutex_);
+  const int64_t now = NowMs();
+  auto claimed = Query(core::StrCat("UPDATE jobs SET state = 1, stage = 'starting', progress = 0, attempts = "
+                                    "attempts + 1, cancel_requested = 0, runner = ?1, lease_expires_ms = ?2, "
+                                    "updated_ms = ?3, seq = ?4 WHERE id = (SELECT id FROM jobs WHERE state = 0 "
+                                    "ORDER BY created_ms, id LIMIT 1) RETURNING ",
+                                    rows::ColumnList()),
+                       {runner, std::to_string(now + lease.count()), std::to_string(now), std::to_string(seq_ + 1)});
+  if (!claimed.ok()) return claimed.status();
+  if (claimed->empty()) return std::optional<JobRecord>();
+  ++seq_;
+  return std::optional<JobRecord>(rows::FromColumns(claimed->front()));
+}
+
+absl::StatusOr<int64_t> SqliteJobStore::WriteHeld(const JobRecord& record) {
+  std::lock_guard lock(mutex_);
+  return Replace(record, record.runner);
+}
+
+absl::StatusOr<std::vector<std::pair<std::string, bool>>> SqliteJobStore::Renew(const std::string& runner,
+                                                                                const std::vector<std::string>& ids,
+                                                                                std::chrono::milliseconds lease) {
+  if (ids.empty()) return std::vector<std::pair<std::string, bool>>();
+  std::lock_guard lock(mutex_);
+  std::vector<std::string> params = {runner, std::to_string(NowMs() + lease.count())};
+  std::string list;
+  for (const std::string& id : ids) {
+    params.push_back(id);
+    core::StrAppend(&list, list.empty() ? "?" : ", ?", params.size());
+  }
+  auto held = Query(core::StrCat("UPDATE jobs SET lease_expires_ms = ?2 WHERE state = 1 AND runner = ?1 AND id IN (",
+                                 list, ") RETURNING id, cancel_requested"),
+                    params);
+  if (!held.ok()) return held.status();
+  std::vector<std::pair<std::string, bool>> out;
+  for (const Row& row : *held) out.emplace_back(row[0], rows::ToInt(row[1]) != 0);
+  return out;
+}
+
+absl::StatusOr<std::vector<JobRecord>> SqliteJobStore::RecoverLapsed(bool every_running,
+                                                                     const std::function<void(JobRecord&)>& recover) {
+  std::lock_guard lock(mutex_);
+  auto lapsed =
+      QueryJobs(every_running ? "WHERE state = 1" : "WHERE state = 1 AND lease_expires_ms <= ?1",
+                every_running ? std::vector<std::string>{} : std::vector<std::string>{std::to_string(NowMs())});
+  if (!lapsed.ok()) return lapsed.status();
+  std::vector<JobRecord> out;
+  for (JobRecord& r : *lapsed) {
+    const std::string runner = r.runner;
+    recover(r);
+    auto seq = Replace(r, runner);
+    if (seq.status().code() == absl::StatusCode::kAborted) continue;
+    if (!seq.ok()) return seq.status();
+    r.seq = *seq;
+    out.push_back(std::move(r));
+  }
+  return out;
+}
+
+absl::StatusOr<JobRecord> SqliteJobStore::Cancel(const std::string& id, const std::string& reason) {
+  std::lock_guard lock(mutex_);
+  const std::string now = std::to_string(NowMs());
+  bool changed_here = false;
+  for (const char* sql : {"UPDATE jobs SET state = 4, error = ?2, updated_ms = ?3, seq = ?4 WHERE id = ?1 AND "
+                          "state = 0 RETURNING id",
+                          "UPDATE jobs SET cancel_requested = 1, updated_ms = ?3, seq = ?4 WHERE id = ?1 AND "
+                          "state = 1 RETURNING id"}) {
+    auto changed = Query(sql, {id, reason, now, std::to_string(seq_ + 1)});
+    if (!changed.ok()) return changed.status();
+    if (!changed->empty()) {
+      ++seq_;
+      changed_here = true;
+      break;
+    }
+  }
+  auto found = QueryJobs("WHERE id = ?1", {id});
+  if (!found.ok()) return found.status();
+  if (found->empty()) return NoSuchJob(id);
+  JobRecord& r = found->front();
+  if (!changed_here) return AlreadyFinished(r);
+  return std::move(r);
 }
 
 absl::Status SqliteJobStore::Remove(const std::string& id) {
   std::lock_guard lock(mutex_);
-  sqlite3_stmt* st = nullptr;
-  if (sqlite3_prepare_v2(db_, "DELETE FROM jobs WHERE id = ?1", -1, &st, nullptr) != SQLITE_OK) {
-    return absl::UnavailableError(core::StrCat("job database: ", sqlite3_errmsg(db_)));
+  auto removed = Query("DELETE FROM jobs WHERE id = ?1 AND state IN (2, 3, 4) RETURNING id", {id});
+  if (!removed.ok()) return removed.status();
+  if (removed->empty()) {
+    auto found = QueryJobs("WHERE id = ?1", {id});
+    if (!found.ok()) return found.status();
+    return found->empty() ? NoSuchJob(id) : NotFinished(found->front());
   }
-  sqlite3_bind_text(st, 1, id.c_str(), -1, SQLITE_TRANSIENT);
-  const int rc = sqlite3_step(st);
-  sqlite3_finalize(st);
-  if (rc != SQLITE_DONE) return absl::UnavailableError(core::StrCat("job database: ", sqlite3_errmsg(db_)));
-  return absl::OkStatus();
+  return Query("INSERT OR REPLACE INTO job_removals (id, seq) VALUES (?1, ?2)", {id, std::to_string(++seq_)}).status();
 }
 
-absl::StatusOr<std::vector<JobRecord>> SqliteJobStore::LoadAll() {
+absl::StatusOr<JobRecord> SqliteJobStore::Get(const std::string& id) {
   std::lock_guard lock(mutex_);
-  sqlite3_stmt* st = nullptr;
-  const char* sql =
-      "SELECT id, method, parameters, mesh_bits, state, stage, attempts, error, created_ms, "
-      "updated_ms, input_points, input_bytes, statistics, results, preview, preview_color, interruptions FROM jobs "
-      "ORDER BY created_ms, id";
-  if (sqlite3_prepare_v2(db_, sql, -1, &st, nullptr) != SQLITE_OK) {
-    return absl::UnavailableError(core::StrCat("job database: ", sqlite3_errmsg(db_)));
-  }
-  std::vector<JobRecord> out;
-  while (sqlite3_step(st) == SQLITE_ROW) {
-    JobRecord r;
-    r.id = Column(st, 0);
-    r.spec.method = Column(st, 1);
-    std::string unusable;  // Why the stored spec cannot run any more.
-    if (auto params = DefaultParams(r.spec.method); params.ok()) {
-      r.spec.params = *std::move(params);
-      if (absl::Status s = r.spec.params.Decode(Column(st, 2)); !s.ok()) unusable = std::string(s.message());
-    } else {
-      unusable = core::StrCat("this server has no method '", r.spec.method, "' any more");
-    }
-    r.spec.mesh_position_bits = sqlite3_column_int(st, 3);
-    r.state = static_cast<JobState>(std::clamp(sqlite3_column_int(st, 4), 0, 4));
-    r.stage = Column(st, 5);
-    r.attempts = sqlite3_column_int(st, 6);
-    r.error = Column(st, 7);
-    r.created_ms = sqlite3_column_int64(st, 8);
-    r.updated_ms = sqlite3_column_int64(st, 9);
-    r.input_points = sqlite3_column_int64(st, 10);
-    r.input_bytes = sqlite3_column_int64(st, 11);
-    r.statistics = DecodeStatistics(Column(st, 12));
-    std::stringstream ss(Column(st, 13));
-    for (std::string name; std::getline(ss, name, ';');) {
-      if (!name.empty()) r.results.push_back(name);
-    }
-    r.spec.preview = DecodePreview(Column(st, 14), Column(st, 15));
-    r.interruptions = sqlite3_column_int(st, 16);
-    // A stored spec that no longer decodes cannot run: it fails with the reason.
-    if (!unusable.empty() && !IsTerminal(r.state)) {
-      r.state = JobState::kFailed;
-      r.error = std::move(unusable);
-    }
-    if (IsTerminal(r.state)) r.progress = r.state == JobState::kSucceeded ? 1.0 : 0.0;
-    out.push_back(std::move(r));
-  }
-  sqlite3_finalize(st);
+  auto found = QueryJobs("WHERE id = ?1", {id});
+  if (!found.ok()) return found.status();
+  if (found->empty()) return NoSuchJob(id);
+  return std::move(found->front());
+}
+
+absl::StatusOr<JobChanges> SqliteJobStore::ChangesSince(int64_t seq) {
+  std::lock_guard lock(mutex_);
+  JobChanges out;
+  out.seq = seq_;
+  const std::vector<std::string> params{std::to_string(seq)};
+  auto changed = QueryJobs("WHERE seq > ?1 ORDER BY seq", params);
+  if (!changed.ok()) return changed.status();
+  out.changed = *std::move(changed);
+  auto removed = Query("SELECT id FROM job_removals WHERE seq > ?1 ORDER BY seq", params);
+  if (!removed.ok()) return removed.status();
+  for (Row& row : *removed) out.removed.push_back(std::move(row[0]));
   return out;
+}
+
+void SqliteJobStore::WaitForOthers(std::chrono::milliseconds timeout) {
+  // Nobody else writes to this database.
+  std::this_thread::sleep_for(timeout);
 }
 
 }  // namespace lsqsurf::jobs

@@ -1,0 +1,294 @@
+// The job store contract, held by both stores: SQLite (one server) and PostgreSQL (shared, on a
+// throwaway server this test process starts). Two "servers" are two runner names; on PostgreSQL
+// they also use two store objects, i.e. two connection pools, as two processes would.
+#include "worker/jobs/job_store.h"
+
+#include <gtest/gtest.h>
+
+#include <atomic>
+#include <future>
+#include <set>
+#include <thread>
+
+#include "tests/postgres_cluster.h"
+#include "tests/test_dir.h"
+#include "worker/core/strings.h"
+#include "worker/jobs/method_registry.h"
+#include "worker/jobs/postgres_store.h"
+
+namespace lsqsurf::jobs {
+namespace {
+
+using std::chrono::milliseconds;
+
+JobRecord Queued(const std::string& id, int64_t created_ms) {
+  JobRecord r;
+  r.id = id;
+  r.spec.method = "iamls";
+  r.spec.params = DefaultParams("iamls").value();
+  r.created_ms = r.updated_ms = created_ms;
+  r.input_points = 1234;
+  r.input_bytes = 5678;
+  return r;
+}
+
+class JobStoreContract : public ::testing::TestWithParam<std::string> {
+ protected:
+  void SetUp() override {
+    if (GetParam() == "sqlite") {
+      dir_ = testing::FreshTestDir("lsqsurf-store");
+      std::filesystem::create_directories(dir_);
+      auto store = SqliteJobStore::Open((dir_ / "jobs.db").string());
+      ASSERT_TRUE(store.ok()) << store.status();
+      first_ = *std::move(store);
+      second_ = first_;  // One server: both names share the one store.
+      return;
+    }
+    std::string why_not;
+    testing::PostgresCluster* cluster = testing::SharedPostgresCluster(&why_not);
+    if (cluster == nullptr) GTEST_SKIP() << why_not;
+    url_ = cluster->NewDatabase();
+    ASSERT_FALSE(url_.empty());
+    auto a = PostgresJobStore::Open(url_);
+    ASSERT_TRUE(a.ok()) << a.status();
+    auto b = PostgresJobStore::Open(url_);  // Migrating an up-to-date database changes nothing.
+    ASSERT_TRUE(b.ok()) << b.status();
+    first_ = *std::move(a);
+    second_ = *std::move(b);
+  }
+  void TearDown() override {
+    first_.reset();
+    second_.reset();
+    if (!dir_.empty()) std::filesystem::remove_all(dir_);
+  }
+
+  std::filesystem::path dir_;
+  std::string url_;
+  std::shared_ptr<JobStore> first_, second_;
+};
+
+TEST_P(JobStoreContract, RecordsRoundTripAndIdsAreUnique) {
+  JobRecord r = Queued("a1", 100);
+  r.statistics = {{"points", 1234}, {"wall_seconds", 0.125}};
+  r.results = {"mesh.drc", "preview.png"};
+  r.spec.preview.enabled = true;
+  r.spec.preview.view = DefaultView();
+  ASSERT_TRUE(r.spec.preview.view.Set("azimuth_deg", 30).ok());
+  r.spec.preview.turntable_deg_per_frame = 2.5;
+  r.spec.mesh_position_bits = 20;
+  ASSERT_TRUE(first_->Insert(r).ok());
+  EXPECT_EQ(first_->Insert(r).code(), absl::StatusCode::kAlreadyExists);
+  auto back = second_->Get("a1");
+  ASSERT_TRUE(back.ok()) << back.status();
+  EXPECT_EQ(back->spec.method, "iamls");
+  EXPECT_EQ(back->spec.params.Encode(), r.spec.params.Encode());
+  EXPECT_EQ(back->spec.mesh_position_bits, 20);
+  EXPECT_EQ(back->state, JobState::kQueued);
+  EXPECT_EQ(back->created_ms, 100);
+  EXPECT_EQ(back->input_points, 1234);
+  EXPECT_EQ(back->input_bytes, 5678);
+  EXPECT_EQ(back->statistics, r.statistics);
+  EXPECT_EQ(back->results, r.results);
+  EXPECT_TRUE(back->spec.preview.enabled);
+  EXPECT_EQ(back->spec.preview.view.Get("azimuth_deg"), 30);
+  EXPECT_EQ(back->spec.preview.turntable_deg_per_frame, 2.5);
+  EXPECT_GT(back->seq, 0);
+  EXPECT_EQ(second_->Get("nothing").status().code(), absl::StatusCode::kNotFound);
+}
+
+TEST_P(JobStoreContract, ClaimsTakeTheOldestOnceAndOnlyTheHolderWrites) {
+  for (int i = 3; i >= 1; --i) ASSERT_TRUE(first_->Insert(Queued(core::StrCat("c", i), i)).ok());
+  auto a = first_->Claim("server-a", milliseconds(60'000));
+  auto b = second_->Claim("server-b", milliseconds(60'000));
+  ASSERT_TRUE(a.ok() && a->has_value() && b.ok() && b->has_value());
+  EXPECT_EQ((*a)->id, "c1");
+  EXPECT_EQ((*b)->id, "c2");
+  EXPECT_EQ((*a)->state, JobState::kRunning);
+  EXPECT_EQ((*a)->stage, "starting");
+  EXPECT_EQ((*a)->attempts, 1);
+  EXPECT_EQ((*a)->runner, "server-a");
+
+  JobRecord stolen = **a;
+  stolen.runner = "server-b";
+  stolen.stage = "not mine";
+  EXPECT_EQ(second_->WriteHeld(stolen).status().code(), absl::StatusCode::kAborted);
+  JobRecord progress = **a;
+  progress.stage = "fitting";
+  progress.progress = 0.5;
+  auto seq = first_->WriteHeld(progress);
+  ASSERT_TRUE(seq.ok()) << seq.status();
+  EXPECT_GT(*seq, (*a)->seq);
+  auto seen = second_->Get("c1");
+  EXPECT_EQ(seen->stage, "fitting");
+  EXPECT_EQ(seen->progress, 0.5);
+
+  progress.state = JobState::kSucceeded;
+  ASSERT_TRUE(first_->WriteHeld(progress).ok());
+  EXPECT_EQ(first_->WriteHeld(progress).status().code(), absl::StatusCode::kAborted);  // Not running any more.
+  auto c = first_->Claim("server-a", milliseconds(60'000));
+  ASSERT_TRUE(c.ok() && c->has_value());
+  EXPECT_EQ((*c)->id, "c3");
+  auto none = second_->Claim("server-b", milliseconds(60'000));
+  ASSERT_TRUE(none.ok());
+  EXPECT_FALSE(none->has_value());
+}
+
+TEST_P(JobStoreContract, ConcurrentClaimsTakeEveryJobExactlyOnce) {
+  constexpr int kJobs = 60;
+  for (int i = 0; i < kJobs; ++i) ASSERT_TRUE(first_->Insert(Queued(core::StrCat("j", i), 1000 + i)).ok());
+  std::mutex mutex;
+  std::multiset<std::string> taken;
+  std::vector<std::thread> servers;
+  for (int t = 0; t < 4; ++t) {
+    servers.emplace_back([&, t] {
+      JobStore& store = t % 2 == 0 ? *first_ : *second_;
+      const std::string runner = core::StrCat("server-", t);
+      for (;;) {
+        auto claimed = store.Claim(runner, milliseconds(60'000));
+        if (!claimed.ok() || !claimed->has_value()) return;
+        std::lock_guard lock(mutex);
+        taken.insert((*claimed)->id);
+      }
+    });
+  }
+  for (auto& t : servers) t.join();
+  EXPECT_EQ(taken.size(), static_cast<size_t>(kJobs));
+  EXPECT_EQ(std::set<std::string>(taken.begin(), taken.end()).size(), static_cast<size_t>(kJobs));
+}
+
+TEST_P(JobStoreContract, LapsedLeasesAreRecoveredAndTheirRunnerLosesItsSay) {
+  ASSERT_TRUE(first_->Insert(Queued("l1", 1)).ok());
+  ASSERT_TRUE(first_->Insert(Queued("l2", 2)).ok());
+  auto dead = first_->Claim("dead-server", milliseconds(0));  // Lapsed at once.
+  auto alive = second_->Claim("live-server", milliseconds(60'000));
+  ASSERT_TRUE(dead.ok() && dead->has_value() && alive.ok() && alive->has_value());
+  // Only the jobs named, and only those the runner holds.
+  auto renewed = second_->Renew("live-server", {"l1", "l2", "none"}, milliseconds(60'000));
+  ASSERT_TRUE(renewed.ok());
+  ASSERT_EQ(renewed->size(), 1u);
+  EXPECT_EQ(renewed->front().first, "l2");
+
+  std::vector<std::string> handed;
+  auto recovered = second_->RecoverLapsed(false, [&](JobRecord& r) {
+    handed.push_back(r.id);
+    r.state = JobState::kQueued;
+    r.stage.clear();
+  });
+  ASSERT_TRUE(recovered.ok()) << recovered.status();
+  EXPECT_EQ(handed, std::vector<std::string>{"l1"});
+  ASSERT_EQ(recovered->size(), 1u);
+  EXPECT_EQ(first_->Get("l1")->state, JobState::kQueued);
+  EXPECT_EQ(first_->Get("l2")->state, JobState::kRunning);
+  JobRecord late = **dead;
+  late.state = JobState::kSucceeded;
+  EXPECT_EQ(first_->WriteHeld(late).status().code(), absl::StatusCode::kAborted);
+
+  // The job goes to the next claimant with one more attempt.
+  auto again = second_->Claim("live-server", milliseconds(60'000));
+  ASSERT_TRUE(again.ok() && again->has_value());
+  EXPECT_EQ((*again)->id, "l1");
+  EXPECT_EQ((*again)->attempts, 2);
+  // A store of one server recovers every running job when asked to (it just started).
+  auto all = first_->RecoverLapsed(true, [](JobRecord& r) { r.state = JobState::kQueued; });
+  ASSERT_TRUE(all.ok());
+  EXPECT_EQ(all->size(), 2u);
+}
+
+TEST_P(JobStoreContract, CancelStopsQueuedJobsAndFlagsRunningOnes) {
+  ASSERT_TRUE(first_->Insert(Queued("q1", 1)).ok());
+  ASSERT_TRUE(first_->Insert(Queued("q2", 2)).ok());
+  auto running = first_->Claim("server-a", milliseconds(60'000));
+  ASSERT_TRUE(running.ok() && running->has_value());
+
+  auto queued = second_->Cancel("q2", "cancelled by request before it started");
+  ASSERT_TRUE(queued.ok()) << queued.status();
+  EXPECT_EQ(queued->state, JobState::kCancelled);
+  EXPECT_EQ(queued->error, "cancelled by request before it started");
+
+  auto flagged = second_->Cancel("q1", "unused");
+  ASSERT_TRUE(flagged.ok());
+  EXPECT_EQ(flagged->state, JobState::kRunning);
+  EXPECT_TRUE(flagged->cancel_requested);
+  // The runner's own writes do not lower the flag; its renewal tells it.
+  JobRecord progress = **running;
+  progress.stage = "fitting";
+  ASSERT_TRUE(first_->WriteHeld(progress).ok());
+  auto renewed = first_->Renew("server-a", {"q1"}, milliseconds(60'000));
+  ASSERT_TRUE(renewed.ok());
+  ASSERT_EQ(renewed->size(), 1u);
+  EXPECT_TRUE(renewed->front().second);
+
+  EXPECT_EQ(second_->Cancel("q2", "again").status().code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_EQ(second_->Cancel("none", "x").status().code(), absl::StatusCode::kNotFound);
+}
+
+TEST_P(JobStoreContract, OnlyFinishedJobsAreRemovedAndRemovalsAreReported) {
+  ASSERT_TRUE(first_->Insert(Queued("r1", 1)).ok());
+  EXPECT_EQ(second_->Remove("r1").code(), absl::StatusCode::kFailedPrecondition);
+  auto before = second_->ChangesSince(0);
+  ASSERT_TRUE(before.ok());
+  ASSERT_EQ(before->changed.size(), 1u);
+  ASSERT_TRUE(first_->Cancel("r1", "stop").ok());
+  ASSERT_TRUE(second_->Remove("r1").ok());
+  EXPECT_EQ(second_->Remove("r1").code(), absl::StatusCode::kNotFound);
+  EXPECT_EQ(first_->Get("r1").status().code(), absl::StatusCode::kNotFound);
+  auto after = first_->ChangesSince(before->seq);
+  ASSERT_TRUE(after.ok());
+  EXPECT_TRUE(after->changed.empty());  // Cancelled, then gone: only the removal is left to tell.
+  EXPECT_EQ(after->removed, std::vector<std::string>{"r1"});
+  EXPECT_GT(after->seq, before->seq);
+}
+
+TEST_P(JobStoreContract, ChangesArriveInOrderAndOnlyOnce) {
+  ASSERT_TRUE(first_->Insert(Queued("o1", 1)).ok());
+  auto start = second_->ChangesSince(0);
+  ASSERT_TRUE(start.ok());
+  EXPECT_EQ(start->changed.size(), 1u);
+  auto quiet = second_->ChangesSince(start->seq);
+  ASSERT_TRUE(quiet.ok());
+  EXPECT_TRUE(quiet->changed.empty());
+  EXPECT_EQ(quiet->seq, start->seq);
+
+  ASSERT_TRUE(first_->Insert(Queued("o2", 2)).ok());
+  auto claimed = first_->Claim("server-a", milliseconds(60'000));
+  ASSERT_TRUE(claimed.ok() && claimed->has_value());
+  // A renewal alone is not a change.
+  ASSERT_TRUE(first_->Renew("server-a", {"o1"}, milliseconds(90'000)).ok());
+  auto next = second_->ChangesSince(start->seq);
+  ASSERT_TRUE(next.ok());
+  ASSERT_EQ(next->changed.size(), 2u);
+  EXPECT_LT(next->changed[0].seq, next->changed[1].seq);
+  EXPECT_EQ(next->changed[0].id, "o2");
+  EXPECT_EQ(next->changed[1].id, "o1");
+  EXPECT_EQ(next->changed[1].state, JobState::kRunning);
+  EXPECT_EQ(next->seq, next->changed[1].seq);
+}
+
+TEST_P(JobStoreContract, AnotherServersWriteWakesAWaiter) {
+  if (!first_->shared()) GTEST_SKIP() << "a store of one server has nobody else to wait for";
+  // A waiter for up to a minute returns once the other store writes: its notification arrives.
+  auto waited = std::async(std::launch::async, [&] {
+    const auto start = std::chrono::steady_clock::now();
+    second_->WaitForOthers(milliseconds(60'000));
+    return std::chrono::steady_clock::now() - start;
+  });
+  ASSERT_TRUE(first_->Insert(Queued("w1", 1)).ok());
+  EXPECT_LT(waited.get(), std::chrono::seconds(30));
+}
+
+TEST(PostgresUrl, PasswordsNeverReachMessages) {
+  EXPECT_EQ(pg::Redacted("postgresql://lsqsurf:s3cret@db:5432/jobs"), "postgresql://lsqsurf:***@db:5432/jobs");
+  EXPECT_EQ(pg::Redacted("postgresql://lsqsurf@db/jobs"), "postgresql://lsqsurf@db/jobs");
+  EXPECT_EQ(pg::Redacted("host=db password = 's3 cret' user=x"), "host=db password = *** user=x");
+  EXPECT_EQ(pg::Redacted("host=db password=s3cret"), "host=db password=***");
+  auto refused = PostgresJobStore::Open("postgresql://lsqsurf:s3cret@127.0.0.1:1/jobs?connect_timeout=2");
+  ASSERT_FALSE(refused.ok());
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kUnavailable);
+  EXPECT_EQ(std::string(refused.status().message()).find("s3cret"), std::string::npos) << refused.status();
+}
+
+INSTANTIATE_TEST_SUITE_P(Stores, JobStoreContract, ::testing::Values("sqlite", "postgresql"),
+                         [](const ::testing::TestParamInfo<std::string>& param) { return param.param; });
+
+}  // namespace
+}  // namespace lsqsurf::jobs

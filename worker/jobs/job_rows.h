@@ -1,0 +1,57 @@
+// worker/jobs/job_rows.h — a job record as the columns both job stores keep, in text.
+//
+// Both stores bind and read every column as text (SQLite converts by column affinity,
+// PostgreSQL by column type), so one conversion serves both and their rows stay alike.
+#pragma once
+
+#include <string>
+#include <vector>
+
+#include "worker/jobs/job.h"
+
+namespace lsqsurf::jobs::rows {
+
+// The job columns in the order JobColumns and FromColumns use; `seq` is last.
+inline constexpr const char* kColumnNames[] = {"id",
+                                               "method",
+                                               "parameters",
+                                               "mesh_bits",
+                                               "state",
+                                               "stage",
+                                               "attempts",
+                                               "error",
+                                               "created_ms",
+                                               "updated_ms",
+                                               "input_points",
+                                               "input_bytes",
+                                               "statistics",
+                                               "results",
+                                               "preview",
+                                               "preview_color",
+                                               "interruptions",
+                                               "progress",
+                                               "runner",
+                                               "cancel_requested",
+                                               "seq"};
+inline constexpr int kColumnCount = sizeof(kColumnNames) / sizeof(kColumnNames[0]);
+
+// "id, method, ..., seq".
+const std::string& ColumnList();
+
+// The record's values for every column but seq (a new row).
+std::vector<std::string> JobColumns(const JobRecord& record);
+
+// A runner's write of a job it holds sets every column but id, seq and cancel_requested (which
+// another server may raise meanwhile). "method = ?2, parameters = ?3, ...": the assignments,
+// numbered from 2 (the id is parameter 1), with `placeholder` before each number ('?' for
+// SQLite, '$' for PostgreSQL); HeldColumns gives the values, id first.
+std::string HeldAssignments(char placeholder);
+std::vector<std::string> HeldColumns(const JobRecord& record);
+// The record a row of kColumnCount texts holds. A stored spec that no longer decodes (its
+// method is gone, or a value left its range) comes back failed with the reason.
+JobRecord FromColumns(const std::vector<std::string>& row);
+
+std::string Number(double value);  // Shortest text that reads back to the same double.
+int64_t ToInt(const std::string& text);
+
+}  // namespace lsqsurf::jobs::rows

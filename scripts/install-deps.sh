@@ -18,7 +18,7 @@ packages=(
   libeigen3-dev libnanoflann-dev libdraco-dev draco
   libspdlog-dev libfmt-dev
   libgtest-dev libgmock-dev libbenchmark-dev
-  libsqlite3-dev libpq-dev postgresql nginx-light yamllint libabsl-dev libtbb-dev libcli11-dev zlib1g-dev libpugixml-dev
+  libsqlite3-dev libpq-dev postgresql nginx-light yamllint prometheus-cpp-dev libabsl-dev libtbb-dev libcli11-dev zlib1g-dev libpugixml-dev
   libegl-dev libgl-dev libopengl-dev libegl-mesa0 libgl1-mesa-dri libstb-dev
 )
 for option in "$@"; do

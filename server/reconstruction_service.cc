@@ -11,7 +11,7 @@ namespace {
 
 // Runs a handler body; an exception becomes a status instead of leaving the gRPC thread.
 template <class Body>
-grpc::Status Guarded(const char* rpc, Body&& body) {
+grpc::Status Run(const char* rpc, Body&& body) {
   try {
     return body();
   } catch (const std::bad_alloc&) {
@@ -23,11 +23,23 @@ grpc::Status Guarded(const char* rpc, Body&& body) {
   }
 }
 
+// Run, timed and its outcome told to `calls` (when there is one).
+template <class Body>
+grpc::Status Guarded(const char* rpc, CallObserver* calls, Body&& body) {
+  const auto start = std::chrono::steady_clock::now();
+  grpc::Status status = Run(rpc, std::forward<Body>(body));
+  if (calls != nullptr) {
+    calls->CallEnded(rpc, status.error_code(),
+                     std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count());
+  }
+  return status;
+}
+
 }  // namespace
 
 grpc::Status ReconstructionService::SubmitJob(grpc::ServerContext* context,
                                               grpc::ServerReader<v1::SubmitJobRequest>* reader, v1::Job* response) {
-  return Guarded("SubmitJob", [&] { return Submit(context, reader, response); });
+  return Guarded("SubmitJob", calls_, [&] { return Submit(context, reader, response); });
 }
 
 grpc::Status ReconstructionService::Submit(grpc::ServerContext* context,
@@ -60,6 +72,7 @@ grpc::Status ReconstructionService::Submit(grpc::ServerContext* context,
     }
     received += chunk.size();
     uploads[slot] += chunk;
+    if (calls_ != nullptr) calls_->Received(static_cast<int64_t>(chunk.size()));
   }
   if (context->IsCancelled()) return grpc::Status(grpc::StatusCode::CANCELLED, "upload cancelled");
   auto record = jobs_.Submit(*spec, std::move(uploads));
@@ -73,7 +86,7 @@ grpc::Status ReconstructionService::Submit(grpc::ServerContext* context,
 
 grpc::Status ReconstructionService::WatchJob(grpc::ServerContext* context, const v1::WatchJobRequest* request,
                                              grpc::ServerWriter<v1::JobEvent>* writer) {
-  return Guarded("WatchJob", [&] { return Watch(context, request->job_id(), writer); });
+  return Guarded("WatchJob", calls_, [&] { return Watch(context, request->job_id(), writer); });
 }
 
 grpc::Status ReconstructionService::Watch(grpc::ServerContext* context, const std::string& id,
@@ -100,7 +113,7 @@ grpc::Status ReconstructionService::Watch(grpc::ServerContext* context, const st
 }
 
 grpc::Status ReconstructionService::GetJob(grpc::ServerContext*, const v1::GetJobRequest* request, v1::Job* response) {
-  return Guarded("GetJob", [&] {
+  return Guarded("GetJob", calls_, [&] {
     auto record = jobs_.Get(request->job_id());
     if (!record.ok()) return ToGrpcStatus(record.status());
     ToProto(*record, response);
@@ -110,7 +123,7 @@ grpc::Status ReconstructionService::GetJob(grpc::ServerContext*, const v1::GetJo
 
 grpc::Status ReconstructionService::ListJobs(grpc::ServerContext*, const v1::ListJobsRequest* request,
                                              v1::ListJobsResponse* response) {
-  return Guarded("ListJobs", [&] {
+  return Guarded("ListJobs", calls_, [&] {
     if (request->limit() < 0) return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "limit must not be negative");
     int count = 0;
     for (const auto& r : jobs_.List()) {
@@ -123,7 +136,7 @@ grpc::Status ReconstructionService::ListJobs(grpc::ServerContext*, const v1::Lis
 
 grpc::Status ReconstructionService::CancelJob(grpc::ServerContext*, const v1::CancelJobRequest* request,
                                               v1::Job* response) {
-  return Guarded("CancelJob", [&] {
+  return Guarded("CancelJob", calls_, [&] {
     auto record = jobs_.Cancel(request->job_id());
     if (!record.ok()) return ToGrpcStatus(record.status());
     ToProto(*record, response);
@@ -133,12 +146,12 @@ grpc::Status ReconstructionService::CancelJob(grpc::ServerContext*, const v1::Ca
 
 grpc::Status ReconstructionService::DeleteJob(grpc::ServerContext*, const v1::DeleteJobRequest* request,
                                               v1::DeleteJobResponse*) {
-  return Guarded("DeleteJob", [&] { return ToGrpcStatus(jobs_.Delete(request->job_id())); });
+  return Guarded("DeleteJob", calls_, [&] { return ToGrpcStatus(jobs_.Delete(request->job_id())); });
 }
 
 grpc::Status ReconstructionService::FetchResult(grpc::ServerContext* context, const v1::FetchResultRequest* request,
                                                 grpc::ServerWriter<v1::ResultChunk>* writer) {
-  return Guarded("FetchResult", [&] { return Fetch(context, *request, writer); });
+  return Guarded("FetchResult", calls_, [&] { return Fetch(context, *request, writer); });
 }
 
 grpc::Status ReconstructionService::Fetch(grpc::ServerContext* context, const v1::FetchResultRequest& request,
@@ -155,6 +168,7 @@ grpc::Status ReconstructionService::Fetch(grpc::ServerContext* context, const v1
     if (data->empty() && !first) return grpc::Status::OK;
     chunk.set_data(*std::move(data));
     if (!writer->Write(chunk)) return grpc::Status(grpc::StatusCode::CANCELLED, "client went away");
+    if (calls_ != nullptr) calls_->Sent(static_cast<int64_t>(chunk.data().size()));
     chunk.clear_total_bytes();
     if (chunk.data().empty()) return grpc::Status::OK;  // An empty artifact: one empty chunk.
     first = false;
@@ -163,11 +177,15 @@ grpc::Status ReconstructionService::Fetch(grpc::ServerContext* context, const v1
 
 grpc::Status ReconstructionService::Render(grpc::ServerContext*, const v1::RenderRequest* request,
                                            v1::RenderResponse* response) {
-  return Guarded("Render", [&] {
+  return Guarded("Render", calls_, [&] {
     auto view = FromProto(request->options());
     if (!view.ok()) return ToGrpcStatus(view.status());
     auto picture = jobs_.Render(request->job_id(), request->name(), *view);
     if (!picture.ok()) return ToGrpcStatus(picture.status());
+    if (calls_ != nullptr) {
+      calls_->Sent(static_cast<int64_t>(picture->png.size()));
+      calls_->FrameRendered();
+    }
     response->set_png(std::move(picture->png));
     response->set_color_min(picture->color_min);
     response->set_color_max(picture->color_max);
@@ -180,7 +198,7 @@ grpc::Status ReconstructionService::Render(grpc::ServerContext*, const v1::Rende
 
 grpc::Status ReconstructionService::ListMethods(grpc::ServerContext*, const v1::ListMethodsRequest*,
                                                 v1::ListMethodsResponse* response) {
-  return Guarded("ListMethods", [&] {
+  return Guarded("ListMethods", calls_, [&] {
     for (const auto& m : jobs::Methods()) {
       v1::Method* out = response->add_methods();
       out->set_name(m.info.name);
@@ -194,7 +212,7 @@ grpc::Status ReconstructionService::ListMethods(grpc::ServerContext*, const v1::
 
 grpc::Status ReconstructionService::GetServerInfo(grpc::ServerContext*, const v1::GetServerInfoRequest*,
                                                   v1::ServerInfo* response) {
-  return Guarded("GetServerInfo", [&] {
+  return Guarded("GetServerInfo", calls_, [&] {
     const jobs::JobServiceOptions& o = jobs_.options();
     response->set_version(LSQSURF_VERSION);
     response->set_max_points(o.max_points);

@@ -12,14 +12,15 @@
 #include <string>
 
 #include "lsqsurf/v1/reconstruction.grpc.pb.h"
+#include "server/metrics.h"
 #include "worker/jobs/job_service.h"
 
 namespace lsqsurf::server {
 
 class ReconstructionService final : public v1::Reconstruction::Service {
  public:
-  // `jobs` must outlive the service.
-  explicit ReconstructionService(jobs::JobService& jobs) : jobs_(jobs) {}
+  // `jobs` (and `calls`, which may be null) must outlive the service.
+  explicit ReconstructionService(jobs::JobService& jobs, CallObserver* calls = nullptr) : jobs_(jobs), calls_(calls) {}
 
   grpc::Status SubmitJob(grpc::ServerContext* context, grpc::ServerReader<v1::SubmitJobRequest>* reader,
                          v1::Job* response) override;
@@ -52,6 +53,7 @@ class ReconstructionService final : public v1::Reconstruction::Service {
                      grpc::ServerWriter<v1::ResultChunk>* writer);
 
   jobs::JobService& jobs_;
+  CallObserver* calls_;
 };
 
 }  // namespace lsqsurf::server

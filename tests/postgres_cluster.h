@@ -5,9 +5,7 @@
 // under root the server runs as the "postgres" user that Debian's package makes.
 #pragma once
 
-#include <netinet/in.h>
 #include <pwd.h>
-#include <sys/socket.h>
 #include <unistd.h>
 
 #include <cstdlib>
@@ -16,6 +14,7 @@
 #include <random>
 #include <string>
 
+#include "tests/test_dir.h"
 #include "worker/jobs/postgres_connection.h"
 
 namespace lsqsurf::testing {
@@ -53,7 +52,7 @@ class PostgresCluster {
       return nullptr;
     }
     for (int attempt = 0; attempt < 5; ++attempt) {
-      cluster->port_ = FreePort();
+      cluster->port_ = FreeLoopbackPort();
       const std::string options = "-p " + std::to_string(cluster->port_) + " -k " + d +
                                   " -c listen_addresses=127.0.0.1 -c fsync=off -c synchronous_commit=off"
                                   " -c full_page_writes=off -c max_connections=200";
@@ -87,22 +86,6 @@ class PostgresCluster {
     return "postgresql://lsqsurf@127.0.0.1:" + std::to_string(port_) + "/" + database;
   }
   int port() const { return port_; }
-
-  // A loopback port free a moment ago (the caller binds it soon after).
-  static int FreePort() {
-    const int fd = ::socket(AF_INET, SOCK_STREAM, 0);
-    sockaddr_in addr{};
-    addr.sin_family = AF_INET;
-    addr.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
-    socklen_t length = sizeof(addr);
-    int port = 0;
-    if (::bind(fd, reinterpret_cast<sockaddr*>(&addr), sizeof(addr)) == 0 &&
-        ::getsockname(fd, reinterpret_cast<sockaddr*>(&addr), &length) == 0) {
-      port = ntohs(addr.sin_port);
-    }
-    ::close(fd);
-    return port;
-  }
 
  private:
   PostgresCluster() = default;

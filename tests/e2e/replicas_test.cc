@@ -39,7 +39,7 @@ class Balancer {
   void Start(const fs::path& dir, const std::vector<std::string>& upstreams) {
     fs::create_directories(dir / "temp");
     fs::permissions(dir / "temp", fs::perms::all);  // Its workers may run as another user.
-    port_ = testing::PostgresCluster::FreePort();
+    port_ = testing::FreeLoopbackPort();
     std::ofstream conf(dir / "nginx.conf");
     conf << "daemon off;\nworker_processes 1;\npid " << (dir / "nginx.pid").string() << ";\nerror_log "
          << (dir / "error.log").string() << " warn;\nevents {}\nhttp {\n  access_log off;\n";

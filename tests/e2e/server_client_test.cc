@@ -2,7 +2,9 @@
 #include <fcntl.h>
 #include <grpcpp/grpcpp.h>
 #include <gtest/gtest.h>
+#include <netinet/in.h>
 #include <signal.h>
+#include <sys/socket.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
@@ -675,6 +677,68 @@ TEST_F(EndToEnd, AGracefulStopRequeuesTheRunningJob) {
 
 // The checked-in parameter reference is what the tables generate: a table change that does not
 // regenerate it (lsqsurfd --parameter-reference > docs/parameters.md) fails here.
+// GET http://127.0.0.1:port/metrics over a plain socket; the body.
+std::string ScrapeMetrics(int port) {
+  const int fd = ::socket(AF_INET, SOCK_STREAM, 0);
+  sockaddr_in addr{};
+  addr.sin_family = AF_INET;
+  addr.sin_port = htons(static_cast<uint16_t>(port));
+  addr.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+  std::string response;
+  if (::connect(fd, reinterpret_cast<sockaddr*>(&addr), sizeof(addr)) == 0) {
+    const std::string request = "GET /metrics HTTP/1.0\r\nHost: 127.0.0.1\r\n\r\n";
+    if (::write(fd, request.data(), request.size()) == static_cast<ssize_t>(request.size())) {
+      char buf[4096];
+      for (ssize_t n; (n = ::read(fd, buf, sizeof(buf))) > 0;) response.append(buf, static_cast<size_t>(n));
+    }
+  }
+  ::close(fd);
+  const size_t body = response.find("\r\n\r\n");
+  return body == std::string::npos ? "" : response.substr(body + 4);
+}
+
+// The value of the sample `name` whose labels include every one of `labels` ("k=\"v\""); -1 if none.
+double MetricValue(const std::string& text, const std::string& name, const std::vector<std::string>& labels) {
+  std::istringstream lines(text);
+  for (std::string line; std::getline(lines, line);) {
+    if (line.rfind(name + "{", 0) != 0 && line.rfind(name + " ", 0) != 0) continue;
+    const size_t close = line.find('}');
+    const std::string label_text = close == std::string::npos ? "" : line.substr(0, close);
+    if (!std::all_of(labels.begin(), labels.end(),
+                     [&](const std::string& l) { return label_text.find(l) != std::string::npos; })) {
+      continue;
+    }
+    return std::stod(line.substr(line.rfind(' ') + 1));
+  }
+  return -1;
+}
+
+TEST_F(EndToEnd, MetricsCountJobsCallsAndRejections) {
+  const int port = testing::FreeLoopbackPort();
+  Server server;
+  ASSERT_NO_FATAL_FAILURE(server.Start(dir_ / "data", {"--metrics-listen", "127.0.0.1:" + std::to_string(port)}));
+  const std::string in = WriteCloud("sphere.ply", testing::SphereCloud(5000));
+  const ClientRun r = Client(server.address(), "reconstruct " + in + " -o " + (dir_ / "m.ply").string());
+  ASSERT_EQ(r.code, 0) << r.output;
+  EXPECT_NE(Client(server.address(), "status 0123456789abcdef").code, 0);  // NOT_FOUND.
+  v1::JobSpec no_input;
+  ASSERT_TRUE(client::SetMethod(&no_input, "iamls").ok());
+  EXPECT_EQ(client::Client(server.address()).Submit(no_input, "").status().code(),
+            absl::StatusCode::kInvalidArgument);  // A surface job needs a cloud.
+  const std::string text = ScrapeMetrics(port);
+  ASSERT_FALSE(text.empty()) << "no answer on the metrics port";
+  EXPECT_EQ(MetricValue(text, "lsqsurf_jobs", {"method=\"iamls\"", "state=\"succeeded\""}), 1) << text;
+  EXPECT_EQ(MetricValue(text, "lsqsurf_queue_depth", {}), 0);
+  EXPECT_EQ(MetricValue(text, "lsqsurf_job_duration_seconds_count", {"method=\"iamls\"", "state=\"succeeded\""}), 1);
+  EXPECT_GE(MetricValue(text, "lsqsurf_stage_duration_seconds_count", {"method=\"iamls\""}), 1);
+  EXPECT_EQ(MetricValue(text, "lsqsurf_rpc_errors_total", {"rpc=\"GetJob\"", "code=\"NOT_FOUND\""}), 1);
+  EXPECT_EQ(MetricValue(text, "lsqsurf_rpc_errors_total", {"rpc=\"SubmitJob\"", "code=\"INVALID_ARGUMENT\""}), 1);
+  EXPECT_GE(MetricValue(text, "lsqsurf_rpc_duration_seconds_count", {"rpc=\"SubmitJob\""}), 2);
+  // The upload (a 5000-point Draco cloud) came in; the mesh went out.
+  EXPECT_GT(MetricValue(text, "lsqsurf_received_bytes_total", {}), 10000);
+  EXPECT_GT(MetricValue(text, "lsqsurf_sent_bytes_total", {}), 10000);
+}
+
 TEST(ParameterReference, TheDocsAreGeneratedFromTheTables) {
   FILE* p = ::popen(LSQSURFD_PATH " --parameter-reference", "r");
   ASSERT_NE(p, nullptr);

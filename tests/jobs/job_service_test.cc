@@ -472,14 +472,18 @@ TEST_F(JobServiceTest, ShutdownRequeuesTheRunningJobWithoutHoldingItAgainstIt) {
   EXPECT_EQ(done.attempts, 2);
 }
 
-// A store whose lease renewals fail, as for a server cut off from the database or stalled.
-class UnrenewableStore final : public JobStore {
+// A store that lets its server claim one job and then neither renew its lease nor claim
+// another, as for a server cut off from the database after it took a job.
+class CutOffStore final : public JobStore {
  public:
-  explicit UnrenewableStore(std::shared_ptr<JobStore> inner) : inner_(std::move(inner)) {}
+  explicit CutOffStore(std::shared_ptr<JobStore> inner) : inner_(std::move(inner)) {}
   bool shared() const override { return inner_->shared(); }
   absl::Status Insert(const JobRecord& r) override { return inner_->Insert(r); }
   absl::StatusOr<std::optional<JobRecord>> Claim(const std::string& runner, std::chrono::milliseconds lease) override {
-    return inner_->Claim(runner, lease);
+    if (claimed_) return absl::UnavailableError("claims are cut off");
+    auto claimed = inner_->Claim(runner, lease);
+    if (claimed.ok() && claimed->has_value()) claimed_ = true;
+    return claimed;
   }
   absl::StatusOr<int64_t> WriteHeld(const JobRecord& r) override { return inner_->WriteHeld(r); }
   absl::StatusOr<std::vector<std::pair<std::string, bool>>> Renew(const std::string&, const std::vector<std::string>&,
@@ -500,6 +504,7 @@ class UnrenewableStore final : public JobStore {
 
  private:
   std::shared_ptr<JobStore> inner_;
+  std::atomic<bool> claimed_{false};
 };
 
 // Two services on one PostgreSQL database (a throwaway server this test process starts), as
@@ -595,9 +600,10 @@ TEST_F(SharedJobServiceTest, TwoServicesShareOneQueueAndAnswerForEachOthersJobs)
 }
 
 TEST_F(SharedJobServiceTest, AJobWhoseServerStopsRenewingItsLeaseRunsOnAnother) {
-  // A holds its job on a latch it never releases, and cannot renew its 300 ms lease.
+  // A holds its job on a latch it never releases, and can neither renew its 300 ms lease nor
+  // claim the job again.
   a_ = OpenService("a", &latch_a_, std::chrono::milliseconds(300),
-                   [](std::shared_ptr<JobStore> inner) { return std::make_shared<UnrenewableStore>(inner); });
+                   [](std::shared_ptr<JobStore> inner) { return std::make_shared<CutOffStore>(inner); });
   ASSERT_TRUE(a_);
   auto job = a_->Submit(Spec("iamls", {{"iterations", "1"}}), Input(Encode(testing::SphereCloud(3000))));
   ASSERT_TRUE(job.ok());

@@ -107,9 +107,10 @@ class JobService::Context : public core::JobContext {
   void ReportProgress(std::string_view stage, double fraction) override {
     std::lock_guard lock(mutex_);
     if (stage == last_stage_ && std::abs(fraction - last_fraction_) < 0.005) return;
+    const auto now = std::chrono::steady_clock::now();
+    if (stage != last_stage_) EndStage(now);
     last_stage_.assign(stage);
     last_fraction_ = fraction;
-    const auto now = std::chrono::steady_clock::now();
     const bool persist = service_.store_->shared() && now - last_persisted_ >= std::chrono::milliseconds(500);
     if (persist) last_persisted_ = now;
     service_.Update(
@@ -123,14 +124,29 @@ class JobService::Context : public core::JobContext {
   bool IsCancelled() const override {
     return entry_->cancel_requested.load() || entry_->interrupted.load() || entry_->lost.load();
   }
+  // Reports the stage in progress as ended (at the end of the run).
+  void Finish() {
+    std::lock_guard lock(mutex_);
+    EndStage(std::chrono::steady_clock::now());
+    last_stage_.clear();
+  }
 
  private:
+  void EndStage(std::chrono::steady_clock::time_point now) {  // mutex_ held.
+    if (!last_stage_.empty() && service_.options_.events != nullptr) {
+      service_.options_.events->StageEnded(entry_->record.spec.method, last_stage_,
+                                           std::chrono::duration<double>(now - stage_start_).count());
+    }
+    stage_start_ = now;
+  }
+
   JobService& service_;
   std::shared_ptr<Entry> entry_;
   std::mutex mutex_;
   std::string last_stage_;
   double last_fraction_ = -1;
   std::chrono::steady_clock::time_point last_persisted_{};
+  std::chrono::steady_clock::time_point stage_start_ = std::chrono::steady_clock::now();
 };
 
 JobService::JobService(JobServiceOptions options)
@@ -576,6 +592,10 @@ absl::StatusOr<Statistics> JobService::RunKind(const std::shared_ptr<Entry>& ent
   const JobKind* kind = KindOf(record.spec.method);
   if (kind == nullptr) return absl::FailedPreconditionError(core::StrCat("no method '", record.spec.method, "'"));
   Context ctx(*this, entry);
+  struct StageEnd {
+    Context& ctx;
+    ~StageEnd() { ctx.Finish(); }
+  } stage_end{ctx};
   RunEnvironment env{sink, ctx, renderer_.get(), std::move(decoded),
                      [this](const std::string& id, const std::string& name) -> absl::StatusOr<std::string> {
                        auto reader = OpenResult(id, name);
@@ -593,6 +613,7 @@ absl::StatusOr<Statistics> JobService::RunKind(const std::shared_ptr<Entry>& ent
 
 void JobService::RunJob(const std::shared_ptr<Entry>& entry, std::shared_ptr<void> decoded) {
   const std::string id = entry->record.id;
+  const auto run_start = std::chrono::steady_clock::now();
   if (entry->record.state == JobState::kFailed) {
     // Its stored spec no longer decodes here: the claim read it back failed, with the reason.
     Update(entry, [](JobRecord&) {});
@@ -645,6 +666,15 @@ void JobService::RunJob(const std::shared_ptr<Entry>& entry, std::shared_ptr<voi
       spdlog::warn("[job {}] failed: {}", id, result.status().ToString());
     }
   }
+  if (options_.events != nullptr) {
+    JobRecord ended;
+    {
+      std::lock_guard lock(mutex_);
+      ended = entry->record;
+    }
+    options_.events->JobEnded(ended.spec.method, ended.state,
+                              std::chrono::duration<double>(std::chrono::steady_clock::now() - run_start).count());
+  }
   {
     std::lock_guard lock(mutex_);
     entry->held = false;
@@ -680,11 +710,13 @@ void JobService::SyncChanges() {
     std::lock_guard lock(mutex_);
     for (JobRecord& r : changes->changed) {
       const bool cancel = r.cancel_requested;
-      // Queued again, or someone else's, after this server claimed it: not this run's own
-      // writes (running, or finished), nor older states that arrive late.
+      // Queued again, someone else's, or ended while this run goes on: changes made by others
+      // since this server claimed it (not this run's own writes, nor older states arriving late).
       auto known = jobs_.find(r.id);
       const bool newer = known == jobs_.end() || r.seq > known->second->record.seq;
-      const bool taken = newer && (r.runner != runner_ || r.state == JobState::kQueued);
+      const bool ended_elsewhere =
+          r.state != JobState::kRunning && known != jobs_.end() && known->second->record.state == JobState::kRunning;
+      const bool taken = newer && (r.runner != runner_ || r.state == JobState::kQueued || ended_elsewhere);
       std::shared_ptr<Entry> entry = Adopt(std::move(r));
       if (entry->held) {
         // The runner learns of a cancellation asked of another service, and of a lease that

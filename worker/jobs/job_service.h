@@ -40,6 +40,7 @@
 #include "absl/status/statusor.h"
 #include "worker/jobs/blob_store.h"
 #include "worker/jobs/job.h"
+#include "worker/jobs/job_events.h"
 #include "worker/jobs/job_kind.h"
 #include "worker/jobs/job_store.h"
 
@@ -74,6 +75,8 @@ struct JobServiceOptions {
   std::chrono::milliseconds lease{10'000};
   // Shared stores: how often to look for the others' changes when no notification comes.
   std::chrono::milliseconds poll{500};
+  // Told of stages and runs as they end (metrics); null: nobody.
+  std::shared_ptr<JobEvents> events;
   // Tests only: replaces the kind that runs a method's jobs (e.g. one that blocks on a latch).
   std::map<std::string, const JobKind*> kind_overrides;
 };

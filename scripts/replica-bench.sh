@@ -32,6 +32,7 @@ fi
 bin=build/release/bin
 pg_bin=$(ls -d /usr/lib/postgresql/*/bin | tail -1)
 work=$(mktemp -d /tmp/lsqsurf-replica-bench.XXXXXX)
+chmod 755 "$work"  # The postgres user must reach its folder inside.
 pids=()
 as_postgres=()
 cleanup() {

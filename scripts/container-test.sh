@@ -11,26 +11,10 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-cli=build/release/bin/lsqsurf
+source scripts/container-env.sh
 image=localhost/lsqsurf:test
 name=lsqsurf-test-$$
 volume=lsqsurf-test-data-$$
-for tool in podman; do
-  command -v "$tool" >/dev/null || { echo "container-test: $tool is missing (scripts/install-deps.sh --with-containers)" >&2; exit 2; }
-done
-[[ -x $cli ]] || { echo "container-test: build the CLI first (cmake --preset release && cmake --build --preset release)" >&2; exit 2; }
-
-base=${BASE:-}
-if [[ -z $base ]]; then
-  scripts/container-base.sh
-  base=localhost/debian:bookworm
-fi
-# Hosts whose cgroup setup or limits podman's defaults cannot use (see docker/containers.conf).
-if [[ -z ${CONTAINERS_CONF:-} ]] && ! podman run --rm "$base" true >/dev/null 2>&1; then
-  export CONTAINERS_CONF=$PWD/docker/containers.conf
-  echo "container-test: podman's defaults cannot start containers here; using $CONTAINERS_CONF"
-  podman run --rm "$base" true
-fi
 
 out=$(mktemp -d)
 cleanup() {
@@ -45,7 +29,7 @@ podman build --format docker --build-arg "BASE=$base" -f docker/Dockerfile -t "$
 built=$(date +%s)
 echo "container-test: image built in $((built - start)) s, $(podman image inspect "$image" --format '{{.Size}}') bytes"
 
-port=$(python3 -c 'import socket; s = socket.socket(); s.bind(("127.0.0.1", 0)); print(s.getsockname()[1])')
+port=$(free_port)
 server=127.0.0.1:$port
 podman volume create "$volume" >/dev/null
 run() { podman run -d --name "$name" -p "$server:50051" -v "$volume:/data" "$image" >/dev/null; }

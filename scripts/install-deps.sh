@@ -8,7 +8,8 @@
 # preset `bench-poisson` that runs screened Poisson side by side; --with-openvdb installs
 # libopenvdb-dev, needed only by the preset `bench-openvdb` (the level-set reference of the
 # front-tracking benchmarks); --with-vtk the VTK reference of the volume benchmark;
-# --with-containers podman and debootstrap for scripts/container-base.sh and container-test.sh.
+# --with-containers podman, debootstrap, podman-compose and the CNI dnsname plugin for
+# scripts/container-base.sh, container-test.sh and compose-test.sh.
 # Any of them may be given.
 set -euo pipefail
 
@@ -26,7 +27,7 @@ for option in "$@"; do
     --with-poisson) packages+=(libopen3d-dev) ;;
     --with-openvdb) packages+=(libopenvdb-dev libboost-dev) ;;  # OpenVDB's headers include Boost's.
     --with-vtk) packages+=(python3-vtk9 python3-numpy xvfb) ;;  # bench/vtk_volume_reference.py
-    --with-containers) packages+=(podman runc debootstrap uidmap slirp4netns fuse-overlayfs) ;;  # scripts/container-*.sh
+    --with-containers) packages+=(podman runc debootstrap uidmap slirp4netns fuse-overlayfs podman-compose golang-github-containernetworking-plugin-dnsname) ;;  # scripts/container-*.sh, compose-test.sh
     *) echo "install-deps: unknown option $option (--with-poisson, --with-openvdb, --with-vtk, --with-containers)" >&2; exit 2 ;;
   esac
 done

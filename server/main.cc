@@ -169,10 +169,25 @@ int main(int argc, char** argv) {
   std::fflush(stdout);
   spdlog::info("serving on {}:{}", host, port);
 
+  // Readiness (the API's health status) follows the store; liveness (the server's) does not.
+  std::atomic<bool> stopping{false};
+  std::thread readiness([&] {
+    bool serving = true;
+    while (!stopping) {
+      std::this_thread::sleep_for(std::chrono::milliseconds(500));
+      if (stopping) break;
+      const bool reachable = (*jobs)->StoreReachable();
+      if (reachable == serving) continue;
+      serving = reachable;
+      server->GetHealthCheckService()->SetServingStatus(lsqsurf::server::ReconstructionService::kServiceName, serving);
+    }
+  });
   std::thread waiter([&] {
     int signal = 0;
     sigwait(&signals, &signal);
     spdlog::info("signal {} received: shutting down", signal);
+    stopping = true;
+    readiness.join();
     // Interrupted jobs go back to the queue on disk first, then open streams are closed.
     server->GetHealthCheckService()->SetServingStatus(false);
     (*jobs)->Shutdown();

@@ -473,7 +473,8 @@ TEST_F(JobServiceTest, ShutdownRequeuesTheRunningJobWithoutHoldingItAgainstIt) {
 }
 
 // A store that lets its server claim one job and then neither renew its lease nor claim
-// another, as for a server cut off from the database after it took a job.
+// another, as for a server cut off from the database after it took a job; with `unreachable`
+// its server's looks for changes fail as well.
 class CutOffStore final : public JobStore {
  public:
   explicit CutOffStore(std::shared_ptr<JobStore> inner) : inner_(std::move(inner)) {}
@@ -499,8 +500,13 @@ class CutOffStore final : public JobStore {
   }
   absl::Status Remove(const std::string& id) override { return inner_->Remove(id); }
   absl::StatusOr<JobRecord> Get(const std::string& id) override { return inner_->Get(id); }
-  absl::StatusOr<JobChanges> ChangesSince(int64_t seq) override { return inner_->ChangesSince(seq); }
+  absl::StatusOr<JobChanges> ChangesSince(int64_t seq) override {
+    if (unreachable) return absl::UnavailableError("the store does not answer");
+    return inner_->ChangesSince(seq);
+  }
   void WaitForOthers(std::chrono::milliseconds timeout) override { inner_->WaitForOthers(timeout); }
+
+  std::atomic<bool> unreachable{false};  // Its server's looks at the store fail too.
 
  private:
   std::shared_ptr<JobStore> inner_;
@@ -621,6 +627,27 @@ TEST_F(SharedJobServiceTest, AJobWhoseServerStopsRenewingItsLeaseRunsOnAnother) 
   EXPECT_EQ(seen_by_a.runner, b_->runner());
   auto mesh = io::DecodeDracoMesh(b_->OpenResult(job->id, "mesh.drc").value()->Next(size_t{1} << 30).value());
   EXPECT_TRUE(mesh.ok()) << mesh.status();
+}
+
+TEST_F(SharedJobServiceTest, AServiceSaysWhenItsStoreStopsAnswering) {
+  std::shared_ptr<CutOffStore> faulty;
+  a_ = OpenService("a", nullptr, std::chrono::seconds(10), [&](std::shared_ptr<JobStore> inner) {
+    faulty = std::make_shared<CutOffStore>(inner);
+    return faulty;
+  });
+  ASSERT_TRUE(a_ && faulty);
+  EXPECT_TRUE(a_->StoreReachable());
+  // The service looks at the store every poll (0.5 s); each wait is bounded at 20 s.
+  const auto wait_for = [&](bool reachable) {
+    for (int i = 0; i < 400 && a_->StoreReachable() != reachable; ++i) {
+      std::this_thread::sleep_for(std::chrono::milliseconds(50));
+    }
+    return a_->StoreReachable() == reachable;
+  };
+  faulty->unreachable = true;
+  EXPECT_TRUE(wait_for(false));
+  faulty->unreachable = false;
+  EXPECT_TRUE(wait_for(true));
 }
 
 }  // namespace

@@ -538,9 +538,12 @@ std::shared_ptr<void> JobService::ReleaseDecoded(const std::string& id) {
 std::shared_ptr<JobService::Entry> JobService::ClaimNext(std::shared_ptr<void>* decoded) {
   auto claimed = store_->Claim(runner_, options_.lease);
   if (!claimed.ok()) {
-    spdlog::error("cannot take a job from the store: {}", claimed.status().ToString());
+    // Once per outage, not at every poll of every worker.
+    if (!claims_failing_.exchange(true))
+      spdlog::error("cannot take jobs from the store: {}", claimed.status().ToString());
     return nullptr;
   }
+  claims_failing_ = false;
   if (!claimed->has_value()) return nullptr;
   std::shared_ptr<Entry> entry;
   {
@@ -701,10 +704,15 @@ absl::Status JobService::RecoverLapsed(bool every_running) {
 
 void JobService::SyncChanges() {
   auto changes = store_->ChangesSince(synced_seq_);
-  if (!changes.ok()) {
-    spdlog::warn("cannot read the store's changes: {}", changes.status().ToString());
-    return;
+  // Logged when the store goes away and when it comes back, not at every poll.
+  if (store_reachable_.exchange(changes.ok()) != changes.ok()) {
+    if (changes.ok()) {
+      spdlog::info("the job store answers again");
+    } else {
+      spdlog::warn("cannot reach the job store: {}", changes.status().ToString());
+    }
   }
+  if (!changes.ok()) return;
   bool queued = false;
   {
     std::lock_guard lock(mutex_);

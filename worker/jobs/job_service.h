@@ -131,6 +131,9 @@ class JobService {
   const std::string& runner() const { return runner_; }
   // Whether pictures can be drawn (makes the renderer on first use, about 0.1 s).
   bool CanRender();
+  // Whether the store answered this service's last look (always true for a store of its own):
+  // a server whose shared store is gone cannot take or report jobs, so it should not be sent any.
+  bool StoreReachable() const { return store_reachable_.load(); }
   bool shutting_down() const {
     std::lock_guard lock(mutex_);
     return shutting_down_;
@@ -187,6 +190,8 @@ class JobService {
   std::vector<std::thread> workers_;
   std::thread sync_thread_;
   std::atomic<bool> sync_stop_{false};
+  std::atomic<bool> store_reachable_{true};
+  std::atomic<bool> claims_failing_{false};
   int64_t synced_seq_ = 0;  // The store's change number this service has seen (sync thread).
   bool shutting_down_ = false;
   struct DecodedInput {

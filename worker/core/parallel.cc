@@ -17,7 +17,8 @@ absl::Status ParallelFor(size_t n, size_t grain, const std::function<void(size_t
   std::atomic<bool> stop{false};
   std::atomic<size_t> done{0};
   std::mutex progress_mutex;
-  size_t last_reported = 0;
+  // Read without the lock to skip it cheaply, so atomic (relaxed: the lock orders the writes).
+  std::atomic<size_t> last_reported{0};
   const size_t report_step = n / 100 + 1;
   // An isolated context keeps a cancellation in this loop from touching unrelated TBB work.
   tbb::task_group_context group;
@@ -32,10 +33,10 @@ absl::Status ParallelFor(size_t n, size_t grain, const std::function<void(size_t
         }
         body(r.begin(), r.end());
         const size_t now = done.fetch_add(r.size()) + r.size();
-        if (progress && now - last_reported >= report_step) {
+        if (progress && now - last_reported.load(std::memory_order_relaxed) >= report_step) {
           std::unique_lock lock(progress_mutex, std::try_to_lock);
-          if (lock.owns_lock() && now > last_reported) {
-            last_reported = now;
+          if (lock.owns_lock() && now > last_reported.load(std::memory_order_relaxed)) {
+            last_reported.store(now, std::memory_order_relaxed);
             progress(static_cast<double>(now) / static_cast<double>(n));
           }
         }

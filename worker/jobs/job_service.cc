@@ -91,9 +91,8 @@ class BlobSink final : public ArtifactSink {
 };
 
 struct JobService::Entry {
-  JobRecord record;                // Guarded by mutex_.
-  bool held = false;               // This service runs the job; guarded by mutex_.
-  uint64_t persisted_version = 0;  // Guarded by the service's store_mutex_.
+  JobRecord record;   // Guarded by mutex_.
+  bool held = false;  // This service runs the job; guarded by mutex_.
   std::atomic<bool> cancel_requested{false};
   std::atomic<bool> interrupted{false};  // Shutdown: re-queue rather than cancel.
   std::atomic<bool> lost{false};         // The lease lapsed: another service may run it now.
@@ -103,7 +102,8 @@ struct JobService::Entry {
 // a shared store (for the other services' watchers) at most twice a second.
 class JobService::Context : public core::JobContext {
  public:
-  Context(JobService& service, std::shared_ptr<Entry> entry) : service_(service), entry_(std::move(entry)) {}
+  Context(JobService& service, std::shared_ptr<Entry> entry, std::string method)
+      : service_(service), entry_(std::move(entry)), method_(std::move(method)) {}
   void ReportProgress(std::string_view stage, double fraction) override {
     std::lock_guard lock(mutex_);
     if (stage == last_stage_ && std::abs(fraction - last_fraction_) < 0.005) return;
@@ -134,7 +134,7 @@ class JobService::Context : public core::JobContext {
  private:
   void EndStage(std::chrono::steady_clock::time_point now) {  // mutex_ held.
     if (!last_stage_.empty() && service_.options_.events != nullptr) {
-      service_.options_.events->StageEnded(entry_->record.spec.method, last_stage_,
+      service_.options_.events->StageEnded(method_, last_stage_,
                                            std::chrono::duration<double>(now - stage_start_).count());
     }
     stage_start_ = now;
@@ -142,6 +142,7 @@ class JobService::Context : public core::JobContext {
 
   JobService& service_;
   std::shared_ptr<Entry> entry_;
+  const std::string method_;
   std::mutex mutex_;
   std::string last_stage_;
   double last_fraction_ = -1;
@@ -335,36 +336,51 @@ std::vector<JobRecord> JobService::List() const {
 
 void JobService::Update(const std::shared_ptr<Entry>& entry, const std::function<void(JobRecord&)>& change,
                         bool persist) {
-  JobRecord copy;
+  if (!persist) {
+    {
+      std::lock_guard lock(mutex_);
+      change(entry->record);
+      entry->record.updated_ms = NowMs();
+      ++entry->record.version;
+    }
+    changed_.notify_all();
+    return;
+  }
+  // A stored change shows here only once the store has it: whoever sees it (a watcher that then
+  // cancels or deletes the job, through this server or another) finds the store agreeing. The
+  // held job's record changes only through here meanwhile (progress is reported under the
+  // context's lock, and the run ends after its last report).
+  JobRecord next;
   {
     std::lock_guard lock(mutex_);
-    change(entry->record);
-    entry->record.updated_ms = NowMs();
-    ++entry->record.version;
-    if (persist) copy = entry->record;
+    next = entry->record;
+  }
+  change(next);
+  next.updated_ms = NowMs();
+  const int64_t seq = Persist(entry, next);
+  {
+    std::lock_guard lock(mutex_);
+    next.version = entry->record.version + 1;
+    next.seq = std::max(entry->record.seq, seq);
+    entry->record = std::move(next);
   }
   changed_.notify_all();
-  if (persist) Persist(entry, copy);
 }
 
-void JobService::Persist(const std::shared_ptr<Entry>& entry, const JobRecord& copy) {
+int64_t JobService::Persist(const std::shared_ptr<Entry>& entry, const JobRecord& record) {
   absl::StatusOr<int64_t> seq;
   {
     std::lock_guard store_lock(store_mutex_);
-    // Writes of one job may arrive out of order from two threads: the newest wins.
-    if (copy.version <= entry->persisted_version) return;
-    entry->persisted_version = copy.version;
-    seq = store_->WriteHeld(copy);
+    seq = store_->WriteHeld(record);
   }
-  if (seq.ok()) {
-    std::lock_guard lock(mutex_);
-    entry->record.seq = std::max(entry->record.seq, *seq);
-  } else if (seq.status().code() == absl::StatusCode::kAborted) {
+  if (seq.ok()) return *seq;
+  if (seq.status().code() == absl::StatusCode::kAborted) {
     // Its lease lapsed (this service stalled or lost the store): another service runs it now.
-    if (!entry->lost.exchange(true)) spdlog::warn("[job {}] lease lost; this run stops", copy.id);
+    if (!entry->lost.exchange(true)) spdlog::warn("[job {}] lease lost; this run stops", record.id);
   } else {
-    spdlog::error("[job {}] cannot store its state: {}", copy.id, seq.status().ToString());
+    spdlog::error("[job {}] cannot store its state: {}", record.id, seq.status().ToString());
   }
+  return 0;
 }
 
 absl::StatusOr<JobRecord> JobService::Cancel(const std::string& id) {
@@ -378,8 +394,9 @@ absl::StatusOr<JobRecord> JobService::Cancel(const std::string& id) {
     r = entry->record;
   }
   changed_.notify_all();
-  spdlog::info("[job {}] {}", id,
-               r.state == JobState::kCancelled ? "cancelled while queued" : "cancellation requested while running");
+  spdlog::info(
+      "[job {}] {}", id,
+      cancelled->state == JobState::kCancelled ? "cancelled while queued" : "cancellation requested while running");
   return r;
 }
 
@@ -582,7 +599,12 @@ void JobService::WorkerLoop() {
 
 absl::StatusOr<Statistics> JobService::RunKind(const std::shared_ptr<Entry>& entry, BlobSink& sink,
                                                std::shared_ptr<void> decoded) {
-  const JobRecord& record = entry->record;  // Only this worker changes spec and id.
+  // The run works on its own copy: the record is replaced whenever its state is stored.
+  JobRecord record;
+  {
+    std::lock_guard lock(mutex_);
+    record = entry->record;
+  }
   Uploads uploads;
   // A decoded input stands in for the uploads; without one they are read back.
   for (const auto& [slot, blob] : UploadFiles()) {
@@ -594,7 +616,7 @@ absl::StatusOr<Statistics> JobService::RunKind(const std::shared_ptr<Entry>& ent
   }
   const JobKind* kind = KindOf(record.spec.method);
   if (kind == nullptr) return absl::FailedPreconditionError(core::StrCat("no method '", record.spec.method, "'"));
-  Context ctx(*this, entry);
+  Context ctx(*this, entry, record.spec.method);
   struct StageEnd {
     Context& ctx;
     ~StageEnd() { ctx.Finish(); }

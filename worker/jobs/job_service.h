@@ -151,9 +151,11 @@ class JobService {
   std::shared_ptr<void> ReleaseDecoded(const std::string& id);
   absl::StatusOr<Statistics> RunKind(const std::shared_ptr<Entry>& entry, class BlobSink& sink,
                                      std::shared_ptr<void> decoded);
-  // Applies `change` to the record under the lock, wakes watchers, then stores it.
+  // Applies `change` to the record and wakes watchers; with `persist`, stores the changed record
+  // first (a held job's), so that what watchers see is in the store already.
   void Update(const std::shared_ptr<Entry>& entry, const std::function<void(JobRecord&)>& change, bool persist = true);
-  void Persist(const std::shared_ptr<Entry>& entry, const JobRecord& copy);
+  // Writes a held job's record; its change number, or 0 when the write failed.
+  int64_t Persist(const std::shared_ptr<Entry>& entry, const JobRecord& record);
   // Takes a record read from the store unless this service's copy is as new (mutex_ held).
   // Returns the entry (made if missing).
   std::shared_ptr<Entry> Adopt(JobRecord record);

@@ -51,7 +51,9 @@ Lanes ExpOfMinusLanes(Lanes s) {
   return TwoToThe(__builtin_convertvector(k, Lanes) - t) * std::bit_cast<Lanes>(bits);
 }
 
-#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
+// Not under ThreadSanitizer: the clones' resolver runs while the program loads, before the
+// sanitizer's runtime is ready, and crashes there.
+#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__) && !defined(__SANITIZE_THREAD__)
 #define LSQSURF_VECTOR_CLONES __attribute__((target_clones("arch=x86-64-v3", "default")))
 #else
 #define LSQSURF_VECTOR_CLONES

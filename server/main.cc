@@ -45,7 +45,7 @@ struct ServerFlags {
   int64_t max_upload_mib = 1024;
   std::string store = "sqlite", blob_dir, metrics_listen;
   int store_connections = 8;
-  double lease_seconds = 10;
+  double lease_seconds = 0;  // Set from JobServiceOptions::lease, whose default it shows.
   bool parameter_reference = false;
 };
 
@@ -108,6 +108,7 @@ int main(int argc, char** argv) {
   ServerFlags flags;
   lsqsurf::jobs::JobServiceOptions options;
   options.data_dir = "lsqsurf-data";
+  flags.lease_seconds = std::chrono::duration<double>(options.lease).count();
   DefineFlags(app, flags, options);
   CLI11_PARSE(app, argc, argv);
   if (flags.parameter_reference) {

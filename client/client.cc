@@ -86,17 +86,37 @@ absl::Status SetField(Message* m, const FieldDescriptor& f, std::string_view val
   return absl::InvalidArgumentError(StrCat(f.name(), "='", value, "' must be a whole number"));
 }
 
+}  // namespace
+
 template <class Request, class Response>
-absl::StatusOr<Response> Unary(grpc::Status (v1::Reconstruction::Stub::*call)(grpc::ClientContext*, const Request&,
-                                                                              Response*),
-                               v1::Reconstruction::Stub& stub, const Request& request) {
-  grpc::ClientContext ctx;
+absl::StatusOr<Response> Client::Unary(grpc::Status (v1::Reconstruction::Stub::*call)(grpc::ClientContext*,
+                                                                                      const Request&, Response*),
+                                       const Request& request) {
+  auto ctx = NewContext();
   Response response;
-  if (grpc::Status s = (stub.*call)(&ctx, request, &response); !s.ok()) return FromGrpc(s);
+  if (grpc::Status s = ((*stub_).*call)(ctx.get(), request, &response); !s.ok()) return FromGrpc(s);
   return response;
 }
 
-}  // namespace
+std::unique_ptr<grpc::ClientContext> Client::NewContext() const {
+  auto ctx = std::make_unique<grpc::ClientContext>();
+  // gRPC aborts on a header value it cannot send; such a token is left out (the server then
+  // answers UNAUTHENTICATED).
+  if (!token_.empty() && CheckToken(token_).ok()) ctx->AddMetadata("authorization", "Bearer " + token_);
+  return ctx;
+}
+
+absl::Status CheckToken(std::string_view token) {
+  if (token.empty()) return absl::InvalidArgumentError("the token is empty");
+  for (char c : token) {
+    if (c <= ' ' || c > '~') {
+      return absl::InvalidArgumentError(
+          "the token holds a space, a line break or a character that is not printable ASCII: a token file holds "
+          "one line, the token as `lsqsurfd tokens add` printed it");
+    }
+  }
+  return absl::OkStatus();
+}
 
 absl::Status FromGrpc(const grpc::Status& status) {
   if (status.ok()) return absl::OkStatus();
@@ -156,11 +176,20 @@ bool IsTerminal(v1::JobState s) {
   return s == v1::JOB_STATE_SUCCEEDED || s == v1::JOB_STATE_FAILED || s == v1::JOB_STATE_CANCELLED;
 }
 
-Client::Client(const std::string& address) {
+Client::Client(const std::string& address, const ConnectOptions& options) : token_(options.token) {
   grpc::ChannelArguments args;
   args.SetMaxReceiveMessageSize(16 << 20);
   args.SetMaxSendMessageSize(16 << 20);
-  channel_ = grpc::CreateCustomChannel(address, grpc::InsecureChannelCredentials(), args);
+  std::shared_ptr<grpc::ChannelCredentials> credentials = grpc::InsecureChannelCredentials();
+  if (options.uses_tls()) {
+    grpc::SslCredentialsOptions ssl;
+    ssl.pem_root_certs = options.ca_pem;
+    ssl.pem_cert_chain = options.cert_pem;
+    ssl.pem_private_key = options.key_pem;
+    credentials = grpc::SslCredentials(ssl);
+    if (!options.server_name.empty()) args.SetSslTargetNameOverride(options.server_name);
+  }
+  channel_ = grpc::CreateCustomChannel(address, credentials, args);
   stub_ = v1::Reconstruction::NewStub(channel_);
 }
 
@@ -185,9 +214,9 @@ absl::StatusOr<VolumeUpload> EncodeVolumeFile(const std::string& path, const std
 
 absl::StatusOr<v1::Job> Client::Submit(const v1::JobSpec& spec, std::string_view input, std::string_view velocity,
                                        std::string_view cells) {
-  grpc::ClientContext ctx;
+  auto ctx = NewContext();
   v1::Job job;
-  auto writer = stub_->SubmitJob(&ctx, &job);
+  auto writer = stub_->SubmitJob(ctx.get(), &job);
   v1::SubmitJobRequest request;
   *request.mutable_spec() = spec;
   bool open = writer->Write(request);
@@ -210,10 +239,10 @@ absl::StatusOr<v1::Job> Client::Submit(const v1::JobSpec& spec, std::string_view
 }
 
 absl::StatusOr<v1::Job> Client::Watch(const std::string& id, const std::function<void(const v1::Job&)>& on_event) {
-  grpc::ClientContext ctx;
+  auto ctx = NewContext();
   v1::WatchJobRequest request;
   request.set_job_id(id);
-  auto reader = stub_->WatchJob(&ctx, request);
+  auto reader = stub_->WatchJob(ctx.get(), request);
   v1::JobEvent event;
   v1::Job last;
   while (reader->Read(&event)) {
@@ -226,11 +255,11 @@ absl::StatusOr<v1::Job> Client::Watch(const std::string& id, const std::function
 }
 
 absl::StatusOr<std::string> Client::Fetch(const std::string& id, const std::string& name) {
-  grpc::ClientContext ctx;
+  auto ctx = NewContext();
   v1::FetchResultRequest request;
   request.set_job_id(id);
   request.set_name(name);
-  auto reader = stub_->FetchResult(&ctx, request);
+  auto reader = stub_->FetchResult(ctx.get(), request);
   v1::ResultChunk chunk;
   std::string bytes;
   while (reader->Read(&chunk)) {
@@ -247,43 +276,43 @@ absl::StatusOr<v1::RenderResponse> Client::Render(const std::string& id, const s
   request.set_job_id(id);
   request.set_name(name);
   *request.mutable_options() = options;
-  grpc::ClientContext ctx;
-  ctx.set_deadline(std::chrono::system_clock::now() + std::chrono::minutes(5));
+  auto ctx = NewContext();
+  ctx->set_deadline(std::chrono::system_clock::now() + std::chrono::minutes(5));
   v1::RenderResponse response;
-  if (grpc::Status s = stub_->Render(&ctx, request, &response); !s.ok()) return FromGrpc(s);
+  if (grpc::Status s = stub_->Render(ctx.get(), request, &response); !s.ok()) return FromGrpc(s);
   return response;
 }
 
 absl::StatusOr<v1::Job> Client::Get(const std::string& id) {
   v1::GetJobRequest request;
   request.set_job_id(id);
-  return Unary(&v1::Reconstruction::Stub::GetJob, *stub_, request);
+  return Unary(&v1::Reconstruction::Stub::GetJob, request);
 }
 
 absl::StatusOr<v1::ListJobsResponse> Client::List(int limit) {
   v1::ListJobsRequest request;
   request.set_limit(limit);
-  return Unary(&v1::Reconstruction::Stub::ListJobs, *stub_, request);
+  return Unary(&v1::Reconstruction::Stub::ListJobs, request);
 }
 
 absl::StatusOr<v1::Job> Client::Cancel(const std::string& id) {
   v1::CancelJobRequest request;
   request.set_job_id(id);
-  return Unary(&v1::Reconstruction::Stub::CancelJob, *stub_, request);
+  return Unary(&v1::Reconstruction::Stub::CancelJob, request);
 }
 
 absl::Status Client::Delete(const std::string& id) {
   v1::DeleteJobRequest request;
   request.set_job_id(id);
-  return Unary(&v1::Reconstruction::Stub::DeleteJob, *stub_, request).status();
+  return Unary(&v1::Reconstruction::Stub::DeleteJob, request).status();
 }
 
 absl::StatusOr<v1::ListMethodsResponse> Client::ListMethods() {
-  return Unary(&v1::Reconstruction::Stub::ListMethods, *stub_, v1::ListMethodsRequest{});
+  return Unary(&v1::Reconstruction::Stub::ListMethods, v1::ListMethodsRequest{});
 }
 
 absl::StatusOr<v1::ServerInfo> Client::GetServerInfo() {
-  return Unary(&v1::Reconstruction::Stub::GetServerInfo, *stub_, v1::GetServerInfoRequest{});
+  return Unary(&v1::Reconstruction::Stub::GetServerInfo, v1::GetServerInfoRequest{});
 }
 
 absl::StatusOr<bool> Client::Serving(const std::string& service, std::chrono::milliseconds timeout) {

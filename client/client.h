@@ -45,9 +45,25 @@ absl::StatusOr<VolumeUpload> EncodeVolumeFile(const std::string& path, const std
 const char* StateName(v1::JobState state);
 bool IsTerminal(v1::JobState state);
 
+// How a Client reaches the server.
+struct ConnectOptions {
+  // TLS is used when `tls` is set or any PEM below is given; plaintext otherwise.
+  bool tls = false;
+  std::string ca_pem;       // Certificates to trust; empty: the system's roots.
+  std::string cert_pem;     // The client's certificate chain (mutual TLS), with...
+  std::string key_pem;      // ...its private key.
+  std::string server_name;  // The name the server's certificate must carry; empty: the address's host.
+  std::string token;        // Sent as "authorization: Bearer TOKEN" on every call; empty: none.
+  bool uses_tls() const { return tls || !ca_pem.empty() || !cert_pem.empty() || !key_pem.empty(); }
+};
+
+// A token can be sent: printable ASCII without spaces. Errors: kInvalidArgument saying what is
+// wrong with it (never repeating it). A Client sends no invalid token.
+absl::Status CheckToken(std::string_view token);
+
 class Client {
  public:
-  explicit Client(const std::string& address);
+  explicit Client(const std::string& address, const ConnectOptions& options = {});
 
   // Uploads `input` (Draco bytes; may be empty for jobs that need none) and `velocity` (legacy
   // VTK; empty when not used) in 1 MiB chunks. Returns the accepted job.
@@ -72,6 +88,14 @@ class Client {
   absl::StatusOr<bool> Serving(const std::string& service, std::chrono::milliseconds timeout);
 
  private:
+  // A context for one call, carrying the token.
+  std::unique_ptr<grpc::ClientContext> NewContext() const;
+  template <class Request, class Response>
+  absl::StatusOr<Response> Unary(grpc::Status (v1::Reconstruction::Stub::*call)(grpc::ClientContext*, const Request&,
+                                                                                Response*),
+                                 const Request& request);
+
+  std::string token_;
   std::shared_ptr<grpc::Channel> channel_;
   std::unique_ptr<v1::Reconstruction::Stub> stub_;
 };

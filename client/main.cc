@@ -3,6 +3,7 @@
 #include <unistd.h>
 
 #include <CLI/CLI.hpp>
+#include <cctype>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
@@ -11,6 +12,7 @@
 #include <optional>
 
 #include "client/client.h"
+#include "worker/core/address.h"
 #include "worker/core/strings.h"
 #include "worker/core/surface_distance.h"
 #include "worker/io/draco_codec.h"
@@ -127,10 +129,87 @@ struct VolumeViewFlags {
   }
 };
 
+// How to reach the server: TLS, and the token. Flags win over LSQSURF_* variables.
+struct ConnectionFlags {
+  std::string ca, cert, key, server_name, token_file;
+  bool tls = false, plaintext = false;
+
+  void AddTo(CLI::App& app) {
+    app.add_option("--tls-ca", ca,
+                   "PEM certificates to trust for the server's ($LSQSURF_TLS_CA; default: the system's)");
+    app.add_option("--tls-cert", cert, "PEM client certificate, for mutual TLS ($LSQSURF_TLS_CERT)");
+    app.add_option("--tls-key", key, "PEM private key of --tls-cert ($LSQSURF_TLS_KEY)");
+    app.add_option("--tls-server-name", server_name,
+                   "name the server's certificate must carry, when not the address's host ($LSQSURF_TLS_SERVER_NAME)");
+    app.add_flag("--tls", tls, "use TLS with the system's roots (implied by --tls-*, and for non-loopback servers)");
+    app.add_flag("--plaintext", plaintext, "talk to a non-loopback server without TLS");
+    app.add_option("--token-file", token_file,
+                   "file holding the token for a server with tokens (default: $LSQSURF_TOKEN)");
+  }
+
+  // The options for `server`: TLS when asked for or when the server is not on loopback (unless
+  // --plaintext). Errors: kInvalidArgument (an unreadable file, --plaintext with --tls-*).
+  absl::StatusOr<client::ConnectOptions> Resolve(const std::string& server) {
+    const auto from_env = [](std::string& value, const char* name) {
+      const char* env = std::getenv(name);
+      if (value.empty() && env != nullptr) value = env;
+    };
+    from_env(ca, "LSQSURF_TLS_CA");
+    from_env(cert, "LSQSURF_TLS_CERT");
+    from_env(key, "LSQSURF_TLS_KEY");
+    from_env(server_name, "LSQSURF_TLS_SERVER_NAME");
+    client::ConnectOptions options;
+    options.server_name = server_name;
+    for (auto [path, pem] : {std::pair{&ca, &options.ca_pem}, {&cert, &options.cert_pem}, {&key, &options.key_pem}}) {
+      if (path->empty()) continue;
+      auto bytes = lsqsurf::io::ReadFileBytes(*path);
+      if (!bytes.ok()) return bytes.status();
+      *pem = *std::move(bytes);
+    }
+    if (options.cert_pem.empty() != options.key_pem.empty()) {
+      return absl::InvalidArgumentError("--tls-cert and --tls-key go together");
+    }
+    if (plaintext && (tls || options.uses_tls())) return absl::InvalidArgumentError("--plaintext contradicts --tls*");
+    options.tls = tls || (!plaintext && !lsqsurf::core::IsLoopback(server));
+    if (!token_file.empty()) {
+      auto token = lsqsurf::io::ReadFileBytes(token_file);
+      if (!token.ok()) return token.status();
+      options.token = *std::move(token);
+    } else if (const char* env = std::getenv("LSQSURF_TOKEN"); env != nullptr) {
+      options.token = env;
+    }
+    while (!options.token.empty() && std::isspace(static_cast<unsigned char>(options.token.back()))) {
+      options.token.pop_back();
+    }
+    if (!options.token.empty()) {
+      if (absl::Status s = client::CheckToken(options.token); !s.ok()) return s;
+    }
+    return options;
+  }
+};
+
 struct Globals {
   std::string server;
   bool quiet = false;
+  ConnectionFlags connection;
+  client::ConnectOptions connect;  // From `connection`, once parsed.
+
+  void AddTo(CLI::App& app) {
+    const char* env = std::getenv("LSQSURF_SERVER");
+    server = env && *env ? env : "127.0.0.1:50051";
+    app.add_option("--server", server, "HOST:PORT of lsqsurfd (default: $LSQSURF_SERVER or 127.0.0.1:50051)");
+    app.add_flag("-q,--quiet", quiet, "no progress output");
+    connection.AddTo(app);
+  }
+  absl::Status Resolve() {
+    auto resolved = connection.Resolve(server);
+    if (!resolved.ok()) return resolved.status();
+    connect = *std::move(resolved);
+    return absl::OkStatus();
+  }
 };
+
+client::Client Connect(const Globals& g) { return client::Client(g.server, g.connect); }
 
 // What reconstruct and submit upload.
 struct JobFlags {
@@ -207,7 +286,7 @@ class ProgressPrinter {
 
 // Follows a job to its end; returns the exit code and the final job through `out`.
 int Watch(const Globals& g, const std::string& id, v1::Job* out) {
-  client::Client c(g.server);
+  client::Client c = Connect(g);
   absl::StatusOr<v1::Job> job;
   {
     ProgressPrinter progress(g.quiet);
@@ -253,6 +332,7 @@ void PrintJob(const v1::Job& job) {
   std::printf("input      %lld points, %lld bytes\nattempts   %d\n", static_cast<long long>(job.input_points()),
               static_cast<long long>(job.input_bytes()), job.attempts());
   if (!job.runner().empty()) std::printf("runner     %s\n", job.runner().c_str());
+  if (!job.owner().empty()) std::printf("owner      %s\n", job.owner().c_str());
   // The parameters as run, in the text form --param takes.
   const auto& spec = job.spec();
   if (const auto* f =
@@ -270,7 +350,7 @@ constexpr char kVolumeField[] = "field.lqvf";
 int RenderToFile(const Globals& g, const std::string& id, const std::string& name, const v1::RenderOptions& view,
                  const std::string& path) {
   const auto start = std::chrono::steady_clock::now();
-  auto response = client::Client(g.server).Render(id, name, view);
+  auto response = Connect(g).Render(id, name, view);
   const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   if (!response.ok()) return FailStatus("render", response.status());
   if (absl::Status s = lsqsurf::io::WriteFileAtomically(path, response->png()); !s.ok())
@@ -395,7 +475,7 @@ struct SurfaceCommand {
       if (!bytes.ok()) upload = bytes.status();
     }
     if (!upload.ok()) return Fail(std::string(upload.status().message()));
-    client::Client c(g.server);
+    client::Client c = Connect(g);
     auto accepted = c.Submit(*spec, upload->input, {}, upload->cells);
     if (!accepted.ok()) return FailStatus("submit", accepted.status());
     if (!wait) {
@@ -489,7 +569,7 @@ struct ProbeCommand {
       if (!encoded.ok()) return Fail(StrCat(points, ": ", encoded.status().message()));
       upload = *std::move(encoded);
     }
-    client::Client c(g.server);
+    client::Client c = Connect(g);
     auto accepted = c.Submit(spec, upload);
     if (!accepted.ok()) return FailStatus("probe", accepted.status());
     v1::Job done;
@@ -586,7 +666,7 @@ struct TrackCommand {
       if (!raw.ok()) return Fail(StrCat(field, ": ", raw.status().message()));
       velocity = *std::move(raw);
     }
-    client::Client c(g.server);
+    client::Client c = Connect(g);
     auto accepted = c.Submit(*spec, *cloud, velocity);
     if (!accepted.ok()) return FailStatus("submit", accepted.status());
     if (!g.quiet) std::fprintf(stderr, "job %s accepted\n", accepted->id().c_str());
@@ -611,7 +691,7 @@ struct TrackCommand {
 };
 
 int PrintMethods(const Globals& g) {
-  auto response = client::Client(g.server).ListMethods();
+  auto response = Connect(g).ListMethods();
   if (!response.ok()) return FailStatus("methods", response.status());
   for (const auto& m : response->methods()) {
     std::printf("%s: %s\n", m.name().c_str(), m.description().c_str());
@@ -650,7 +730,7 @@ struct HealthCommand {
   }
   int Run(const Globals& g) const {
     const auto timeout = std::chrono::milliseconds(static_cast<int64_t>(timeout_seconds * 1000));
-    auto serving = client::Client(g.server).Serving(service, timeout);
+    auto serving = Connect(g).Serving(service, timeout);
     if (!serving.ok()) return FailStatus("health", serving.status());
     std::printf("%s\n", *serving ? "SERVING" : "NOT_SERVING");
     return *serving ? 0 : 1;
@@ -658,7 +738,7 @@ struct HealthCommand {
 };
 
 int PrintServerInfo(const Globals& g) {
-  auto info = client::Client(g.server).GetServerInfo();
+  auto info = Connect(g).GetServerInfo();
   if (!info.ok()) return FailStatus("info", info.status());
   std::printf(
       "version          %s\nmax_points       %lld\nmin_points       %lld\nmax_upload_bytes %lld\n"
@@ -666,6 +746,15 @@ int PrintServerInfo(const Globals& g) {
       info->version().c_str(), static_cast<long long>(info->max_points()), static_cast<long long>(info->min_points()),
       static_cast<long long>(info->max_upload_bytes()), info->max_queue(), info->workers(), info->max_renders(),
       info->can_render() ? "yes" : "no");
+  if (!info->requires_token()) return 0;
+  const v1::Account& a = info->account();
+  const auto limit = [](int64_t value) { return value > 0 ? std::to_string(value) : std::string("none"); };
+  std::printf(
+      "account          %s (%s)\njobs             %d of %s\nstored_bytes     %lld of %s\n"
+      "max_upload_bytes %s\n",
+      a.name().c_str(), a.admin() ? "admin" : "user", a.active_jobs(), limit(a.max_jobs()).c_str(),
+      static_cast<long long>(a.stored_bytes()), limit(a.max_stored_bytes()).c_str(),
+      limit(a.max_upload_bytes()).c_str());
   return 0;
 }
 
@@ -688,7 +777,7 @@ int Compare(const std::string& reference, const std::string& candidate, size_t s
 
 // The commands that take a job id and print little.
 int JobCommand(const Globals& g, const std::string& command, const std::string& id) {
-  client::Client c(g.server);
+  client::Client c = Connect(g);
   if (command == "status") {
     auto job = c.Get(id);
     if (!job.ok()) return FailStatus("status", job.status());
@@ -710,7 +799,7 @@ int JobCommand(const Globals& g, const std::string& command, const std::string& 
 }
 
 int List(const Globals& g, int limit) {
-  auto response = client::Client(g.server).List(limit);
+  auto response = Connect(g).List(limit);
   if (!response.ok()) return FailStatus("list", response.status());
   for (const auto& job : response->jobs()) {
     std::printf("%s  %-9s  %-7s  %3.0f%%  %s\n", job.id().c_str(), client::StateName(job.state()),
@@ -727,10 +816,7 @@ int main(int argc, char** argv) {
   app.footer("Defaults and ranges of method parameters and view options: lsqsurf methods, or docs/parameters.md.");
   app.require_subcommand(1);
   Globals g;
-  const char* env = std::getenv("LSQSURF_SERVER");
-  g.server = env && *env ? env : "127.0.0.1:50051";
-  app.add_option("--server", g.server, "HOST:PORT of lsqsurfd (default: $LSQSURF_SERVER or 127.0.0.1:50051)");
-  app.add_flag("-q,--quiet", g.quiet, "no progress output");
+  g.AddTo(app);
 
   SurfaceCommand surface;
   auto* reconstruct = app.add_subcommand("reconstruct", "upload a cloud, wait, and write the mesh");
@@ -804,6 +890,7 @@ int main(int argc, char** argv) {
   compare->add_option("candidate", candidate, "candidate mesh")->required();
   compare->add_option("--samples", samples, "samples per surface")->capture_default_str();
   CLI11_PARSE(app, argc, argv);
+  if (absl::Status s = g.Resolve(); !s.ok()) return Fail(std::string(s.message()));
 
   if (*volume) {
     surface.job.method = "volume";
@@ -830,7 +917,7 @@ int main(int argc, char** argv) {
   }
   if (*list) return List(g, limit);
   if (*fetch) {
-    auto bytes = client::Client(g.server).Fetch(id, name);
+    auto bytes = Connect(g).Fetch(id, name);
     if (!bytes.ok()) return FailStatus("fetch", bytes.status());
     return WriteResult(*bytes, name, output);
   }

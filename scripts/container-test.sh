@@ -32,7 +32,7 @@ echo "container-test: image built in $((built - start)) s, $(podman image inspec
 port=$(free_port)
 server=127.0.0.1:$port
 podman volume create "$volume" >/dev/null
-run() { podman run -d --name "$name" -p "$server:50051" -v "$volume:/data" "$image" >/dev/null; }
+run() { podman run -d --name "$name" -p "$server:50051" -v "$volume:/data" "$image" --plaintext >/dev/null; }
 wait_healthy() {
   for _ in $(seq 60); do
     if "$cli" --server "$server" health --timeout 2 >/dev/null 2>&1; then return 0; fi

@@ -3,7 +3,7 @@
 # Idempotent: packages already present are skipped, so a second run is quick.
 # postgresql brings the server programs (initdb, pg_ctl) with which the tests start throwaway
 # PostgreSQL servers on loopback for the shared job store; libpq-dev is its client library;
-# nginx-light is the gRPC balancer of the replica test; yamllint checks deploy/.
+# libssl-dev hashes tokens and checks certificates; nginx-light is the gRPC balancer of the replica test; yamllint checks deploy/.
 # --with-poisson also installs Open3D (libopen3d-dev, large), needed only by the benchmark
 # preset `bench-poisson` that runs screened Poisson side by side; --with-openvdb installs
 # libopenvdb-dev, needed only by the preset `bench-openvdb` (the level-set reference of the
@@ -19,7 +19,7 @@ packages=(
   libeigen3-dev libnanoflann-dev libdraco-dev draco
   libspdlog-dev libfmt-dev
   libgtest-dev libgmock-dev libbenchmark-dev
-  libsqlite3-dev libpq-dev postgresql nginx-light yamllint prometheus-cpp-dev libabsl-dev libtbb-dev libcli11-dev zlib1g-dev libpugixml-dev
+  libssl-dev libsqlite3-dev libpq-dev postgresql nginx-light yamllint prometheus-cpp-dev libabsl-dev libtbb-dev libcli11-dev zlib1g-dev libpugixml-dev
   libegl-dev libgl-dev libopengl-dev libegl-mesa0 libgl1-mesa-dri libstb-dev
 )
 for option in "$@"; do

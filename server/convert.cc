@@ -156,6 +156,8 @@ void ToProto(const jobs::JobRecord& r, v1::Job* out) {
   }
   for (const auto& name : r.results) out->add_results(name);
   out->set_runner(r.runner);
+  out->set_owner(r.owner);
+  out->set_stored_bytes(r.stored_bytes);
 }
 
 void ToProto(const core::ParamInfo& p, v1::Parameter* out) {

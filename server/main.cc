@@ -8,10 +8,15 @@
 #include <CLI/CLI.hpp>
 #include <csignal>
 #include <cstdio>
+#include <filesystem>
 #include <thread>
 
 #include "server/metrics.h"
 #include "server/reconstruction_service.h"
+#include "server/tls.h"
+#include "server/tokens.h"
+#include "worker/core/address.h"
+#include "worker/core/strings.h"
 #include "worker/jobs/job_service.h"
 #include "worker/jobs/method_registry.h"
 #include "worker/jobs/postgres_store.h"
@@ -47,7 +52,82 @@ struct ServerFlags {
   int store_connections = 8;
   double lease_seconds = 0;  // Set from JobServiceOptions::lease, whose default it shows.
   bool parameter_reference = false;
+  lsqsurf::server::TlsFiles tls;
+  bool plaintext = false;
+  std::string auth_tokens;
 };
+
+// `lsqsurfd tokens add|list|revoke`: edits a token file.
+struct TokenCommand {
+  CLI::App* add = nullptr;
+  CLI::App* list = nullptr;
+  CLI::App* revoke = nullptr;
+  std::string file, name, role = "user";
+  lsqsurf::server::TokenEntry quotas;
+};
+
+void DefineTokenCommand(CLI::App& app, TokenCommand& command) {
+  CLI::App* tokens = app.add_subcommand("tokens", "make, list and revoke the tokens of a --auth-tokens file");
+  tokens->require_subcommand(1);
+  command.add = tokens->add_subcommand(
+      "add", "make a token for NAME, add its salted hash to FILE (made if missing) and print the token, once");
+  command.list = tokens->add_subcommand("list", "list the names, roles and quotas in FILE");
+  command.revoke = tokens->add_subcommand("revoke", "remove NAME's token from FILE");
+  for (CLI::App* sub : {command.add, command.list, command.revoke}) {
+    sub->add_option("file", command.file, "the token file")->required();
+  }
+  for (CLI::App* sub : {command.add, command.revoke}) {
+    sub->add_option("name", command.name, "the token's holder: letters, digits, _.@- (at most 64)")->required();
+  }
+  command.add->add_option("--role", command.role, "user: its own jobs only; admin: every job")
+      ->capture_default_str()
+      ->check(CLI::IsMember({"user", "admin"}));
+  command.add->add_option("--max-jobs", command.quotas.max_jobs, "jobs queued or running at once (0: no limit)")
+      ->check(CLI::Range(0, 1'000'000));
+  command.add
+      ->add_option("--max-stored-mib", command.quotas.max_stored_mib,
+                   "MiB its jobs may keep, uploads and results (0: no limit)")
+      ->check(CLI::Range(int64_t{0}, int64_t{1} << 30));
+  command.add->add_option("--max-upload-mib", command.quotas.max_upload_mib, "largest upload, MiB (0: the server's)")
+      ->check(CLI::Range(int64_t{0}, int64_t{1} << 20));
+}
+
+int RunTokenCommand(const TokenCommand& command) {
+  namespace server = lsqsurf::server;
+  if (command.add->parsed()) {
+    server::TokenEntry entry = command.quotas;
+    entry.name = command.name;
+    entry.role = *server::ParseRole(command.role);
+    auto token = server::AddToken(command.file, entry);
+    if (!token.ok()) {
+      std::fprintf(stderr, "lsqsurfd tokens add: %s\n", std::string(token.status().message()).c_str());
+      return 1;
+    }
+    std::printf("%s\n", token->c_str());
+    std::fprintf(stderr, "added %s's token (%s) to %s; it is shown only now: keep it where its user can read it\n",
+                 entry.name.c_str(), server::RoleName(entry.role), command.file.c_str());
+    return 0;
+  }
+  if (command.revoke->parsed()) {
+    if (absl::Status s = server::RevokeToken(command.file, command.name); !s.ok()) {
+      std::fprintf(stderr, "lsqsurfd tokens revoke: %s\n", std::string(s.message()).c_str());
+      return 1;
+    }
+    std::fprintf(stderr, "revoked %s's token; a running lsqsurfd refuses it after SIGHUP\n", command.name.c_str());
+    return 0;
+  }
+  auto entries = server::ReadTokenFile(command.file);
+  if (!entries.ok()) {
+    std::fprintf(stderr, "lsqsurfd tokens list: %s\n", std::string(entries.status().message()).c_str());
+    return 1;
+  }
+  std::printf("%-24s %-6s %9s %15s %15s\n", "NAME", "ROLE", "MAX_JOBS", "MAX_STORED_MIB", "MAX_UPLOAD_MIB");
+  for (const auto& e : *entries) {
+    std::printf("%-24s %-6s %9d %15lld %15lld\n", e.name.c_str(), server::RoleName(e.role), e.max_jobs,
+                static_cast<long long>(e.max_stored_mib), static_cast<long long>(e.max_upload_mib));
+  }
+  return 0;
+}
 
 void DefineFlags(CLI::App& app, ServerFlags& flags, lsqsurf::jobs::JobServiceOptions& options) {
   app.add_option("--listen", flags.listen, "HOST:PORT to listen on; port 0 picks a free port")->capture_default_str();
@@ -96,9 +176,81 @@ void DefineFlags(CLI::App& app, ServerFlags& flags, lsqsurf::jobs::JobServiceOpt
       ->check(CLI::Range(2, 64));
   app.add_option("--metrics-listen", flags.metrics_listen,
                  "HOST:PORT on which to serve Prometheus metrics at /metrics (off when not given)");
+  app.add_option("--tls-cert", flags.tls.cert, "PEM certificate chain to serve TLS with (read again on SIGHUP)");
+  app.add_option("--tls-key", flags.tls.key, "PEM private key of --tls-cert");
+  app.add_option("--tls-client-ca", flags.tls.client_ca,
+                 "PEM CA bundle: clients must present a certificate it signed (mutual TLS)");
+  app.add_flag("--plaintext", flags.plaintext,
+               "serve without TLS on a non-loopback address (e.g. behind a proxy that terminates TLS); "
+               "loopback addresses are served in plaintext without it");
+  app.add_option("--auth-tokens", flags.auth_tokens,
+                 "token file (`lsqsurfd tokens add`): every call then needs a token, and users see only their "
+                 "own jobs (read again on SIGHUP)");
   app.set_config("--config", "", "read options from this TOML/INI file");
   app.add_flag("--parameter-reference", flags.parameter_reference,
                "print every method's parameters (and the view options) as Markdown, then exit");
+}
+
+// What lsqsurfd serves with: TLS (`tls` set) or plaintext, and the tokens it takes (null: none).
+struct Security {
+  std::unique_ptr<lsqsurf::server::ServerTls> tls;
+  std::shared_ptr<grpc::ServerCredentials> credentials;
+  std::unique_ptr<lsqsurf::server::TokenTable> tokens;
+};
+
+absl::StatusOr<Security> OpenSecurity(const ServerFlags& flags, const std::string& data_dir) {
+  namespace server = lsqsurf::server;
+  Security security;
+  if (!flags.auth_tokens.empty()) {
+    auto tokens = server::TokenTable::Load(flags.auth_tokens);
+    if (!tokens.ok()) return tokens.status();
+    security.tokens = *std::move(tokens);
+  }
+  const bool loopback = lsqsurf::core::IsLoopback(flags.listen);
+  if (flags.tls.cert.empty() != flags.tls.key.empty()) {
+    return absl::InvalidArgumentError("--tls-cert and --tls-key go together");
+  }
+  if (flags.tls.cert.empty()) {
+    if (!flags.tls.client_ca.empty())
+      return absl::InvalidArgumentError("--tls-client-ca needs --tls-cert and --tls-key");
+    if (!loopback && !flags.plaintext) {
+      return absl::InvalidArgumentError(
+          lsqsurf::core::StrCat("lsqsurfd would listen on ", flags.listen,
+                                " without TLS: give --tls-cert and --tls-key, or --plaintext "
+                                "(e.g. behind a proxy that terminates TLS)"));
+    }
+    if (!loopback) {
+      spdlog::warn("serving plaintext on {}: tokens, uploads and results cross the network unencrypted", flags.listen);
+    }
+    security.credentials = grpc::InsecureServerCredentials();
+    return security;
+  }
+  auto tls = server::ServerTls::Open(flags.tls, (std::filesystem::path(data_dir) / "tls").string());
+  if (!tls.ok()) return tls.status();
+  security.tls = *std::move(tls);
+  security.credentials = security.tls->credentials();
+  spdlog::info("TLS{}: {}", flags.tls.client_ca.empty() ? "" : " with client certificates",
+               security.tls->description());
+  return security;
+}
+
+// SIGHUP: the token file and the certificate are read again; a bad one is refused and logged,
+// and the one in use stays.
+void Reload(Security& security) {
+  if (security.tokens != nullptr) {
+    if (auto count = security.tokens->Reload(); count.ok()) {
+      spdlog::info("tokens reloaded: {} in {}", *count, security.tokens->path());
+    } else {
+      spdlog::error("tokens not reloaded, the previous ones stay: {}", count.status().message());
+    }
+  }
+  if (security.tls != nullptr) {
+    if (auto description = security.tls->Reload(); description.ok()) {
+      spdlog::info("certificate reloaded: {}", *description);
+    } else {
+      spdlog::error("certificate not reloaded, the previous one stays: {}", description.status().message());
+    }
+  }
 }
 
 }  // namespace
@@ -110,7 +262,10 @@ int main(int argc, char** argv) {
   options.data_dir = "lsqsurf-data";
   flags.lease_seconds = std::chrono::duration<double>(options.lease).count();
   DefineFlags(app, flags, options);
+  TokenCommand token_command;
+  DefineTokenCommand(app, token_command);
   CLI11_PARSE(app, argc, argv);
+  if (!app.get_subcommands().empty()) return RunTokenCommand(token_command);
   if (flags.parameter_reference) {
     std::fputs(lsqsurf::jobs::ParameterReference().c_str(), stdout);
     return 0;
@@ -127,7 +282,14 @@ int main(int argc, char** argv) {
   sigemptyset(&signals);
   sigaddset(&signals, SIGTERM);
   sigaddset(&signals, SIGINT);
+  sigaddset(&signals, SIGHUP);
   pthread_sigmask(SIG_BLOCK, &signals, nullptr);
+
+  auto security = OpenSecurity(flags, options.data_dir);
+  if (!security.ok()) {
+    spdlog::critical("cannot start: {}", security.status().message());
+    return 1;
+  }
 
   if (absl::Status s = OpenStores(flags.store, flags.blob_dir, flags.store_connections, options); !s.ok()) {
     spdlog::critical("cannot start: {}", s.ToString());
@@ -150,12 +312,12 @@ int main(int argc, char** argv) {
     return 1;
   }
   if (metrics != nullptr) metrics->Watch(jobs->get());
-  lsqsurf::server::ReconstructionService service(**jobs, metrics.get());
+  lsqsurf::server::ReconstructionService service(**jobs, metrics.get(), security->tokens.get());
   grpc::EnableDefaultHealthCheckService(true);
   grpc::reflection::InitProtoReflectionServerBuilderPlugin();
   grpc::ServerBuilder builder;
   int port = 0;
-  builder.AddListeningPort(flags.listen, grpc::InsecureServerCredentials(), &port);
+  builder.AddListeningPort(flags.listen, security->credentials, &port);
   builder.RegisterService(&service);
   builder.SetMaxReceiveMessageSize(16 << 20);
   builder.SetMaxSendMessageSize(16 << 20);
@@ -185,7 +347,7 @@ int main(int argc, char** argv) {
   });
   std::thread waiter([&] {
     int signal = 0;
-    sigwait(&signals, &signal);
+    while (sigwait(&signals, &signal) == 0 && signal == SIGHUP) Reload(*security);
     spdlog::info("signal {} received: shutting down", signal);
     stopping = true;
     readiness.join();

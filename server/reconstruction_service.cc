@@ -23,26 +23,52 @@ grpc::Status Run(const char* rpc, Body&& body) {
   }
 }
 
-// Run, timed and its outcome told to `calls` (when there is one).
+}  // namespace
+
 template <class Body>
-grpc::Status Guarded(const char* rpc, CallObserver* calls, Body&& body) {
+grpc::Status ReconstructionService::Serve(const char* rpc, grpc::ServerContext* context, Body&& body) {
   const auto start = std::chrono::steady_clock::now();
-  grpc::Status status = Run(rpc, std::forward<Body>(body));
-  if (calls != nullptr) {
-    calls->CallEnded(rpc, status.error_code(),
-                     std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count());
+  std::string who;  // For the log: the token's name, else the peer.
+  grpc::Status status = Run(rpc, [&] {
+    auto caller = Identify(*context);
+    if (!caller.ok()) {
+      who = core::StrCat("peer ", context->peer());
+      return ToGrpcStatus(caller.status());
+    }
+    who = caller->name.empty() ? core::StrCat("peer ", context->peer()) : core::StrCat("'", caller->name, "'");
+    return body(*caller);
+  });
+  if (!status.ok() && status.error_code() != grpc::StatusCode::CANCELLED) {
+    spdlog::info("{} by {} refused ({}): {}", rpc, who,
+                 absl::StatusCodeToString(static_cast<absl::StatusCode>(status.error_code())), status.error_message());
+  }
+  if (calls_ != nullptr) {
+    calls_->CallEnded(rpc, status.error_code(),
+                      std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count());
   }
   return status;
 }
 
-}  // namespace
+absl::StatusOr<Caller> ReconstructionService::Identify(const grpc::ServerContext& context) const {
+  if (tokens_ == nullptr) return Caller{};
+  const auto& metadata = context.client_metadata();
+  const auto header = metadata.find("authorization");
+  if (header == metadata.end()) return tokens_->Authenticate("");
+  return tokens_->Authenticate(std::string_view(header->second.data(), header->second.size()));
+}
+
+absl::StatusOr<jobs::JobRecord> ReconstructionService::Visible(const Caller& caller, const std::string& id) const {
+  auto record = jobs_.Get(id);
+  if (record.ok() && !caller.admin && record->owner != caller.name) return jobs::NoSuchJob(id);
+  return record;
+}
 
 grpc::Status ReconstructionService::SubmitJob(grpc::ServerContext* context,
                                               grpc::ServerReader<v1::SubmitJobRequest>* reader, v1::Job* response) {
-  return Guarded("SubmitJob", calls_, [&] { return Submit(context, reader, response); });
+  return Serve("SubmitJob", context, [&](const Caller& caller) { return Submit(caller, context, reader, response); });
 }
 
-grpc::Status ReconstructionService::Submit(grpc::ServerContext* context,
+grpc::Status ReconstructionService::Submit(const Caller& caller, grpc::ServerContext* context,
                                            grpc::ServerReader<v1::SubmitJobRequest>* reader, v1::Job* response) {
   v1::SubmitJobRequest message;
   if (!reader->Read(&message) || !message.has_spec()) {
@@ -52,7 +78,8 @@ grpc::Status ReconstructionService::Submit(grpc::ServerContext* context,
   if (!spec.ok()) return ToGrpcStatus(spec.status());
   jobs::Uploads uploads;
   size_t received = 0;
-  const auto limit = static_cast<size_t>(jobs_.options().max_input_bytes);
+  const auto limit = static_cast<size_t>(jobs_.MaxUploadBytes(caller.submitter));
+  const bool quota_limit = jobs_.MaxUploadBytes(caller.submitter) < jobs_.options().max_input_bytes;
   while (reader->Read(&message)) {
     if (message.has_spec()) {
       return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "only the first message may carry a spec");
@@ -68,31 +95,33 @@ grpc::Status ReconstructionService::Submit(grpc::ServerContext* context,
     }
     if (received + chunk.size() > limit) {
       return grpc::Status(grpc::StatusCode::RESOURCE_EXHAUSTED,
-                          core::StrCat("the upload exceeds this server's limit of ", limit, " bytes"));
+                          core::StrCat("the upload exceeds ", quota_limit ? "your quota's" : "this server's",
+                                       " limit of ", limit, " bytes"));
     }
     received += chunk.size();
     uploads[slot] += chunk;
     if (calls_ != nullptr) calls_->Received(static_cast<int64_t>(chunk.size()));
   }
   if (context->IsCancelled()) return grpc::Status(grpc::StatusCode::CANCELLED, "upload cancelled");
-  auto record = jobs_.Submit(*spec, std::move(uploads));
-  if (!record.ok()) {
-    spdlog::info("rejected a job from {}: {}", context->peer(), record.status().ToString());
-    return ToGrpcStatus(record.status());
-  }
+  auto record = jobs_.Submit(*spec, std::move(uploads), caller.submitter);
+  if (!record.ok()) return ToGrpcStatus(record.status());
   ToProto(*record, response);
   return grpc::Status::OK;
 }
 
 grpc::Status ReconstructionService::WatchJob(grpc::ServerContext* context, const v1::WatchJobRequest* request,
                                              grpc::ServerWriter<v1::JobEvent>* writer) {
-  return Guarded("WatchJob", calls_, [&] { return Watch(context, request->job_id(), writer); });
+  return Serve("WatchJob", context, [&](const Caller& caller) {
+    auto record = Visible(caller, request->job_id());
+    if (!record.ok()) return ToGrpcStatus(record.status());
+    return Watch(context, *record, writer);
+  });
 }
 
-grpc::Status ReconstructionService::Watch(grpc::ServerContext* context, const std::string& id,
+grpc::Status ReconstructionService::Watch(grpc::ServerContext* context, const jobs::JobRecord& first,
                                           grpc::ServerWriter<v1::JobEvent>* writer) {
-  auto record = jobs_.Get(id);
-  if (!record.ok()) return ToGrpcStatus(record.status());
+  const std::string id = first.id;
+  absl::StatusOr<jobs::JobRecord> record = first;
   for (;;) {
     v1::JobEvent event;
     ToProto(*record, event.mutable_job());
@@ -112,21 +141,23 @@ grpc::Status ReconstructionService::Watch(grpc::ServerContext* context, const st
   }
 }
 
-grpc::Status ReconstructionService::GetJob(grpc::ServerContext*, const v1::GetJobRequest* request, v1::Job* response) {
-  return Guarded("GetJob", calls_, [&] {
-    auto record = jobs_.Get(request->job_id());
+grpc::Status ReconstructionService::GetJob(grpc::ServerContext* context, const v1::GetJobRequest* request,
+                                           v1::Job* response) {
+  return Serve("GetJob", context, [&](const Caller& caller) {
+    auto record = Visible(caller, request->job_id());
     if (!record.ok()) return ToGrpcStatus(record.status());
     ToProto(*record, response);
     return grpc::Status::OK;
   });
 }
 
-grpc::Status ReconstructionService::ListJobs(grpc::ServerContext*, const v1::ListJobsRequest* request,
+grpc::Status ReconstructionService::ListJobs(grpc::ServerContext* context, const v1::ListJobsRequest* request,
                                              v1::ListJobsResponse* response) {
-  return Guarded("ListJobs", calls_, [&] {
+  return Serve("ListJobs", context, [&](const Caller& caller) {
     if (request->limit() < 0) return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "limit must not be negative");
     int count = 0;
     for (const auto& r : jobs_.List()) {
+      if (!caller.admin && r.owner != caller.name) continue;
       if (request->limit() > 0 && count++ >= request->limit()) break;
       ToProto(r, response->add_jobs());
     }
@@ -134,9 +165,10 @@ grpc::Status ReconstructionService::ListJobs(grpc::ServerContext*, const v1::Lis
   });
 }
 
-grpc::Status ReconstructionService::CancelJob(grpc::ServerContext*, const v1::CancelJobRequest* request,
+grpc::Status ReconstructionService::CancelJob(grpc::ServerContext* context, const v1::CancelJobRequest* request,
                                               v1::Job* response) {
-  return Guarded("CancelJob", calls_, [&] {
+  return Serve("CancelJob", context, [&](const Caller& caller) {
+    if (auto visible = Visible(caller, request->job_id()); !visible.ok()) return ToGrpcStatus(visible.status());
     auto record = jobs_.Cancel(request->job_id());
     if (!record.ok()) return ToGrpcStatus(record.status());
     ToProto(*record, response);
@@ -144,14 +176,20 @@ grpc::Status ReconstructionService::CancelJob(grpc::ServerContext*, const v1::Ca
   });
 }
 
-grpc::Status ReconstructionService::DeleteJob(grpc::ServerContext*, const v1::DeleteJobRequest* request,
+grpc::Status ReconstructionService::DeleteJob(grpc::ServerContext* context, const v1::DeleteJobRequest* request,
                                               v1::DeleteJobResponse*) {
-  return Guarded("DeleteJob", calls_, [&] { return ToGrpcStatus(jobs_.Delete(request->job_id())); });
+  return Serve("DeleteJob", context, [&](const Caller& caller) {
+    if (auto visible = Visible(caller, request->job_id()); !visible.ok()) return ToGrpcStatus(visible.status());
+    return ToGrpcStatus(jobs_.Delete(request->job_id()));
+  });
 }
 
 grpc::Status ReconstructionService::FetchResult(grpc::ServerContext* context, const v1::FetchResultRequest* request,
                                                 grpc::ServerWriter<v1::ResultChunk>* writer) {
-  return Guarded("FetchResult", calls_, [&] { return Fetch(context, *request, writer); });
+  return Serve("FetchResult", context, [&](const Caller& caller) {
+    if (auto visible = Visible(caller, request->job_id()); !visible.ok()) return ToGrpcStatus(visible.status());
+    return Fetch(context, *request, writer);
+  });
 }
 
 grpc::Status ReconstructionService::Fetch(grpc::ServerContext* context, const v1::FetchResultRequest& request,
@@ -175,9 +213,10 @@ grpc::Status ReconstructionService::Fetch(grpc::ServerContext* context, const v1
   }
 }
 
-grpc::Status ReconstructionService::Render(grpc::ServerContext*, const v1::RenderRequest* request,
+grpc::Status ReconstructionService::Render(grpc::ServerContext* context, const v1::RenderRequest* request,
                                            v1::RenderResponse* response) {
-  return Guarded("Render", calls_, [&] {
+  return Serve("Render", context, [&](const Caller& caller) {
+    if (auto visible = Visible(caller, request->job_id()); !visible.ok()) return ToGrpcStatus(visible.status());
     auto view = FromProto(request->options());
     if (!view.ok()) return ToGrpcStatus(view.status());
     auto picture = jobs_.Render(request->job_id(), request->name(), *view);
@@ -196,9 +235,9 @@ grpc::Status ReconstructionService::Render(grpc::ServerContext*, const v1::Rende
   });
 }
 
-grpc::Status ReconstructionService::ListMethods(grpc::ServerContext*, const v1::ListMethodsRequest*,
+grpc::Status ReconstructionService::ListMethods(grpc::ServerContext* context, const v1::ListMethodsRequest*,
                                                 v1::ListMethodsResponse* response) {
-  return Guarded("ListMethods", calls_, [&] {
+  return Serve("ListMethods", context, [&](const Caller&) {
     for (const auto& m : jobs::Methods()) {
       v1::Method* out = response->add_methods();
       out->set_name(m.info.name);
@@ -210,9 +249,9 @@ grpc::Status ReconstructionService::ListMethods(grpc::ServerContext*, const v1::
   });
 }
 
-grpc::Status ReconstructionService::GetServerInfo(grpc::ServerContext*, const v1::GetServerInfoRequest*,
+grpc::Status ReconstructionService::GetServerInfo(grpc::ServerContext* context, const v1::GetServerInfoRequest*,
                                                   v1::ServerInfo* response) {
-  return Guarded("GetServerInfo", calls_, [&] {
+  return Serve("GetServerInfo", context, [&](const Caller& caller) {
     const jobs::JobServiceOptions& o = jobs_.options();
     response->set_version(LSQSURF_VERSION);
     response->set_max_points(o.max_points);
@@ -224,6 +263,16 @@ grpc::Status ReconstructionService::GetServerInfo(grpc::ServerContext*, const v1
     response->set_workers(o.workers);
     response->set_max_renders(o.max_renders);
     response->set_can_render(jobs_.CanRender());
+    response->set_requires_token(tokens_ != nullptr);
+    v1::Account* account = response->mutable_account();
+    account->set_name(caller.name);
+    account->set_admin(caller.admin);
+    account->set_max_jobs(caller.submitter.max_active_jobs);
+    account->set_max_stored_bytes(caller.submitter.max_stored_bytes);
+    account->set_max_upload_bytes(caller.submitter.max_upload_bytes);
+    const jobs::JobService::Usage usage = jobs_.UsageOf(caller.submitter.owner);
+    account->set_active_jobs(usage.active_jobs);
+    account->set_stored_bytes(usage.stored_bytes);
     return grpc::Status::OK;
   });
 }

@@ -56,6 +56,10 @@ class Server {
     ::waitpid(pid_, &status, 0);
     pid_ = -1;
   }
+  // Sends a signal without waiting for the server to act on it (SIGHUP: reload).
+  void Signal(int signal) const {
+    if (pid_ > 0) ::kill(pid_, signal);
+  }
   ~Server() { Kill(SIGKILL); }
   const std::string& address() const { return address_; }
   bool running() const { return pid_ > 0; }
@@ -70,10 +74,16 @@ struct ClientRun {
   std::string output;  // stdout and stderr together.
 };
 
+ClientRun Shell(const std::string& command);
+
 inline ClientRun Client(const std::string& address, const std::string& args) {
-  const std::string cmd = std::string(LSQSURF_PATH) + " --server " + address + " " + args + " 2>&1";
+  return Shell(std::string(LSQSURF_PATH) + " --server " + address + " " + args);
+}
+
+// Runs a shell command line; its exit code and its stdout and stderr together.
+inline ClientRun Shell(const std::string& command) {
   ClientRun r;
-  FILE* p = ::popen(cmd.c_str(), "r");
+  FILE* p = ::popen(("(" + command + ") 2>&1").c_str(), "r");
   std::array<char, 4096> buf;
   size_t n;
   while ((n = std::fread(buf.data(), 1, buf.size(), p)) > 0) r.output.append(buf.data(), n);

@@ -13,6 +13,7 @@
 #include <chrono>
 #include <cstdio>
 #include <filesystem>
+#include <fstream>
 #include <map>
 #include <numbers>
 #include <sstream>
@@ -753,6 +754,64 @@ TEST(ParameterReference, TheDocsAreGeneratedFromTheTables) {
   for (const char* method : {"## iamls", "## pu", "## ramls", "## apss", "## track", "## View options"}) {
     EXPECT_NE(generated.find(method), std::string::npos) << method;
   }
+}
+
+TEST_F(EndToEnd, TokensMadeByTheCommandLineAreTakenAndReloadedOnSighup) {
+  const std::string file = (dir_ / "tokens").string();
+  const auto add = [&](const std::string& name, const std::string& extra) {
+    const std::string token_file = (dir_ / (name + ".token")).string();
+    ClientRun made = testing::Shell(std::string(LSQSURFD_PATH) + " tokens add " + file + " " + name + " " + extra +
+                                    " >" + token_file);
+    EXPECT_EQ(made.code, 0) << made.output;
+    EXPECT_NE(made.output.find("shown only now"), std::string::npos) << made.output;
+    return "--token-file " + token_file + " ";
+  };
+  const std::string alice = add("alice", "--max-jobs 3");
+  Server server;
+  server.Start(dir_ / "data", {"--auth-tokens", file});
+  ClientRun info = Client(server.address(), alice + "info");
+  ASSERT_EQ(info.code, 0) << info.output;
+  EXPECT_NE(info.output.find("alice (user)"), std::string::npos) << info.output;
+  EXPECT_NE(info.output.find("jobs             0 of 3"), std::string::npos) << info.output;
+  ClientRun anonymous = Client(server.address(), "list");
+  EXPECT_NE(anonymous.code, 0);
+  EXPECT_NE(anonymous.output.find("needs a token"), std::string::npos) << anonymous.output;
+  std::ofstream(dir_ / "garbled.token") << "lsq_12\n34\n";
+  ClientRun garbled = Client(server.address(), "--token-file " + (dir_ / "garbled.token").string() + " list");
+  EXPECT_EQ(garbled.code, 3);  // Refused by the client (a local error), not a crash.
+  EXPECT_NE(garbled.output.find("token"), std::string::npos) << garbled.output;
+
+  // A token added to the file is taken after SIGHUP; a revoked one is refused after the next.
+  const std::string bob = add("bob", "--role admin");
+  ASSERT_EQ(testing::Shell(std::string(LSQSURFD_PATH) + " tokens revoke " + file + " alice").code, 0);
+  server.Signal(SIGHUP);
+  bool reloaded = false;  // The server reloads on its own thread: wait (bounded) for it.
+  for (int attempt = 0; attempt < 100 && !reloaded; ++attempt) {
+    reloaded = Client(server.address(), bob + "list").code == 0;
+    if (!reloaded) std::this_thread::sleep_for(std::chrono::milliseconds(50));
+  }
+  EXPECT_TRUE(reloaded);
+  EXPECT_NE(Client(server.address(), alice + "list").code, 0);
+  ClientRun listed = testing::Shell(std::string(LSQSURFD_PATH) + " tokens list " + file);
+  EXPECT_NE(listed.output.find("bob"), std::string::npos);
+  EXPECT_EQ(listed.output.find("alice"), std::string::npos);
+}
+
+TEST_F(EndToEnd, PlaintextOffLoopbackIsServedOnlyWhenAskedFor) {
+  const std::string server = std::string(LSQSURFD_PATH) + " --data-dir " + (dir_ / "data").string();
+  ClientRun refused = testing::Shell(server + " --listen 0.0.0.0:0");
+  EXPECT_EQ(refused.code, 1);
+  EXPECT_NE(refused.output.find("--plaintext"), std::string::npos) << refused.output;
+  ClientRun half = testing::Shell(server + " --listen 127.0.0.1:0 --tls-cert x.pem");
+  EXPECT_EQ(half.code, 1);
+  EXPECT_NE(half.output.find("--tls-cert and --tls-key go together"), std::string::npos) << half.output;
+  // The client, too, uses TLS off loopback unless asked not to: it fails to reach a plaintext
+  // server rather than send a token in the clear.
+  Server plain;
+  plain.Start(dir_ / "data", {});
+  ClientRun tls = Client(plain.address(), "--tls info");
+  EXPECT_NE(tls.code, 0);
+  EXPECT_EQ(Client(plain.address(), "info").code, 0);
 }
 
 }  // namespace

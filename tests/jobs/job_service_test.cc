@@ -261,6 +261,49 @@ TEST_F(JobServiceTest, ReleasedJobsSucceedWithTheirArtifacts) {
   EXPECT_EQ(s.OpenResult(job->id, "mesh.drc").status().code(), absl::StatusCode::kNotFound);
 }
 
+TEST_F(JobServiceTest, QuotasHoldPerOwnerAndFinishedJobsCountTheirResults) {
+  HoldIamlsJobs();
+  JobService& s = Open();
+  const Uploads input = Input(Encode(testing::SphereCloud(1000)));
+  const auto upload = static_cast<int64_t>(input.at(kInputUpload).size());
+  Submitter alice{"alice", /*max_active_jobs=*/1, /*max_stored_bytes=*/3 * upload, /*max_upload_bytes=*/0};
+  auto first = s.Submit(Spec("iamls"), input, alice);
+  ASSERT_TRUE(first.ok()) << first.status();
+  EXPECT_EQ(first->owner, "alice");
+  EXPECT_EQ(first->stored_bytes, upload);
+  auto second = s.Submit(Spec("iamls"), input, alice);
+  EXPECT_EQ(second.status().code(), absl::StatusCode::kResourceExhausted);
+  EXPECT_NE(second.status().message().find("queued or running"), std::string::npos) << second.status();
+  EXPECT_TRUE(s.Submit(Spec("iamls"), input, Submitter{"bob", 1, 0, 0}).ok());  // Others are not held back.
+
+  // Once it ends, the job no longer counts as active, but what it keeps counts against the bytes.
+  latch_.WaitStarted(1);
+  latch_.Release();
+  const JobRecord done = WaitTerminal(first->id);
+  EXPECT_EQ(done.stored_bytes, upload + static_cast<int64_t>(std::string("released").size()));
+  EXPECT_EQ(s.UsageOf("alice").active_jobs, 0);
+  EXPECT_EQ(s.UsageOf("alice").stored_bytes, done.stored_bytes);
+  auto third = s.Submit(Spec("iamls"), input, alice);
+  ASSERT_TRUE(third.ok()) << third.status();
+  ASSERT_EQ(WaitTerminal(third->id).state, JobState::kSucceeded);
+  auto fourth = s.Submit(Spec("iamls"), input, alice);  // 2 jobs kept + this upload > 3 uploads.
+  EXPECT_EQ(fourth.status().code(), absl::StatusCode::kResourceExhausted);
+  EXPECT_NE(fourth.status().message().find("delete finished jobs"), std::string::npos) << fourth.status();
+  ASSERT_TRUE(s.Delete(first->id).ok());
+  auto fifth = s.Submit(Spec("iamls"), input, alice);
+  ASSERT_TRUE(fifth.ok()) << fifth.status();
+  ASSERT_EQ(WaitTerminal(fifth->id).state, JobState::kSucceeded);
+  // The upload limit: the submitter's when lower than the server's.
+  alice.max_upload_bytes = upload - 1;
+  EXPECT_EQ(s.MaxUploadBytes(alice), upload - 1);
+  EXPECT_EQ(s.Submit(Spec("iamls"), input, alice).status().code(), absl::StatusCode::kResourceExhausted);
+  // Owners survive a restart.
+  const int64_t kept = s.UsageOf("alice").stored_bytes;
+  JobService& reopened = Open();
+  EXPECT_EQ(reopened.Get(third->id)->owner, "alice");
+  EXPECT_EQ(reopened.UsageOf("alice").stored_bytes, kept);
+}
+
 // Counts the reads of each blob name, storing through a local folder.
 class CountingBlobStore final : public BlobStore {
  public:
@@ -398,6 +441,8 @@ TEST_F(JobServiceTest, DatabasesFromEarlierVersionsStillOpen) {
   EXPECT_EQ(old->state, JobState::kSucceeded);
   EXPECT_EQ(old->spec.params.Get("iterations"), 3);
   EXPECT_FALSE(old->spec.preview.enabled);
+  EXPECT_EQ(old->owner, "");
+  EXPECT_EQ(old->stored_bytes, 100);  // Its upload, as recorded then.
   auto track = s.Get("dddd");
   ASSERT_TRUE(track.ok()) << track.status();
   // Numeric codes of the time before enums map to the same choices.

@@ -76,6 +76,8 @@ TEST_P(JobStoreContract, RecordsRoundTripAndIdsAreUnique) {
   ASSERT_TRUE(r.spec.preview.view.Set("azimuth_deg", 30).ok());
   r.spec.preview.turntable_deg_per_frame = 2.5;
   r.spec.mesh_position_bits = 20;
+  r.owner = "alice@example";
+  r.stored_bytes = 9012;
   ASSERT_TRUE(first_->Insert(r).ok());
   EXPECT_EQ(first_->Insert(r).code(), absl::StatusCode::kAlreadyExists);
   auto back = second_->Get("a1");
@@ -87,6 +89,8 @@ TEST_P(JobStoreContract, RecordsRoundTripAndIdsAreUnique) {
   EXPECT_EQ(back->created_ms, 100);
   EXPECT_EQ(back->input_points, 1234);
   EXPECT_EQ(back->input_bytes, 5678);
+  EXPECT_EQ(back->owner, "alice@example");
+  EXPECT_EQ(back->stored_bytes, 9012);
   EXPECT_EQ(back->statistics, r.statistics);
   EXPECT_EQ(back->results, r.results);
   EXPECT_TRUE(back->spec.preview.enabled);

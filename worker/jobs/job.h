@@ -57,6 +57,8 @@ struct JobRecord {
   Statistics statistics;             // Final statistics of a success.
   std::vector<std::string> results;  // Artifact names of a success.
   std::string runner;                // The server that runs the job, or ran it last.
+  std::string owner;                 // Who submitted it (a token's name; empty without tokens).
+  int64_t stored_bytes = 0;          // Its uploads and results as stored (quotas, retention).
   bool cancel_requested = false;     // Running: its runner is asked to stop it.
   int64_t seq = 0;                   // The store's change number of this state (job_store.h).
   uint64_t version = 0;              // Bumped on every change this server sees (watchers compare it).

@@ -144,7 +144,9 @@ std::vector<std::string> JobColumns(const JobRecord& r) {
           std::to_string(r.interruptions),
           Number(r.progress),
           r.runner,
-          r.cancel_requested ? "1" : "0"};
+          r.cancel_requested ? "1" : "0",
+          r.owner,
+          std::to_string(r.stored_bytes)};
 }
 
 JobRecord FromColumns(const std::vector<std::string>& c) {
@@ -177,7 +179,9 @@ JobRecord FromColumns(const std::vector<std::string>& c) {
   r.progress = ToDouble(c[17]);
   r.runner = c[18];
   r.cancel_requested = ToInt(c[19]) != 0;
-  r.seq = ToInt(c[20]);
+  r.owner = c[20];
+  r.stored_bytes = ToInt(c[21]);
+  r.seq = ToInt(c[22]);
   // A stored spec that no longer decodes cannot run: it fails with the reason.
   if (!unusable.empty() && !IsTerminal(r.state)) {
     r.state = JobState::kFailed;

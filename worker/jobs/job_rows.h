@@ -32,6 +32,8 @@ inline constexpr const char* kColumnNames[] = {"id",
                                                "progress",
                                                "runner",
                                                "cancel_requested",
+                                               "owner",
+                                               "stored_bytes",
                                                "seq"};
 inline constexpr int kColumnCount = sizeof(kColumnNames) / sizeof(kColumnNames[0]);
 

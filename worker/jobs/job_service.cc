@@ -8,6 +8,7 @@
 #include <random>
 #include <set>
 
+#include "absl/cleanup/cleanup.h"
 #include "worker/core/status.h"
 #include "worker/core/strings.h"
 #include "worker/io/draco_codec.h"
@@ -76,11 +77,18 @@ class BlobSink final : public ArtifactSink {
     LSQSURF_RETURN_IF_ERROR(blobs_.Put(job_id_, name, bytes));
     std::lock_guard lock(mutex_);
     if (std::find(names_.begin(), names_.end(), name) == names_.end()) names_.emplace_back(name);
+    sizes_[std::string(name)] = static_cast<int64_t>(bytes.size());
     return absl::OkStatus();
   }
   std::vector<std::string> names() const {
     std::lock_guard lock(mutex_);
     return names_;
+  }
+  int64_t bytes() const {  // Of the artifacts as last written.
+    std::lock_guard lock(mutex_);
+    int64_t total = 0;
+    for (const auto& [name, size] : sizes_) total += size;
+    return total;
   }
 
  private:
@@ -88,6 +96,7 @@ class BlobSink final : public ArtifactSink {
   std::string job_id_;
   mutable std::mutex mutex_;
   std::vector<std::string> names_;
+  std::map<std::string, int64_t> sizes_;
 };
 
 struct JobService::Entry {
@@ -207,7 +216,7 @@ const JobKind* JobService::KindOf(const std::string& method) const {
   return m ? m->kind : nullptr;
 }
 
-absl::StatusOr<JobRecord> JobService::Submit(const JobSpec& spec, Uploads uploads) {
+absl::StatusOr<JobRecord> JobService::Submit(const JobSpec& spec, Uploads uploads, const Submitter& submitter) {
   LSQSURF_RETURN_IF_ERROR(ValidateSpec(spec));
   if (spec.preview.enabled) {
     if (auto r = renderer_->Get(); !r.ok()) {
@@ -229,13 +238,21 @@ absl::StatusOr<JobRecord> JobService::Submit(const JobSpec& spec, Uploads upload
     bytes += static_cast<int64_t>(it->second.size());
     ++it;
   }
-  if (bytes > options_.max_input_bytes) {
-    return absl::ResourceExhaustedError(
-        core::StrCat("the upload has ", bytes, " bytes; this server accepts at most ", options_.max_input_bytes));
+  if (const int64_t limit = MaxUploadBytes(submitter); bytes > limit) {
+    return absl::ResourceExhaustedError(core::StrCat(
+        "the upload has ", bytes, " bytes; ",
+        limit < options_.max_input_bytes ? "your quota allows" : "this server accepts", " at most ", limit));
   }
   auto checked =
       KindOf(spec.method)->CheckUploads(spec, uploads, {options_.max_points, options_.min_points, options_.max_cells});
   if (!checked.ok()) return checked.status();
+  JobRecord r;
+  r.id = NewJobId();
+  r.spec = spec;
+  r.owner = submitter.owner;
+  r.created_ms = r.updated_ms = NowMs();
+  r.input_points = checked->points;
+  r.input_bytes = r.stored_bytes = bytes;
   {
     std::lock_guard lock(mutex_);
     if (shutting_down_) return absl::UnavailableError("the server is shutting down");
@@ -243,13 +260,19 @@ absl::StatusOr<JobRecord> JobService::Submit(const JobSpec& spec, Uploads upload
       return absl::ResourceExhaustedError(
           core::StrCat("the job queue is full (", queued, " jobs waiting); try again later"));
     }
+    LSQSURF_RETURN_IF_ERROR(CheckQuota(submitter, bytes));
+    // Held against the quota until the job's entry counts itself.
+    Usage& pending = pending_[submitter.owner];
+    ++pending.active_jobs;
+    pending.stored_bytes += bytes;
   }
-  JobRecord r;
-  r.id = NewJobId();
-  r.spec = spec;
-  r.created_ms = r.updated_ms = NowMs();
-  r.input_points = checked->points;
-  r.input_bytes = bytes;
+  const absl::Cleanup release_pending = [&] {
+    std::lock_guard lock(mutex_);
+    Usage& pending = pending_[submitter.owner];
+    --pending.active_jobs;
+    pending.stored_bytes -= bytes;
+    if (pending.active_jobs == 0) pending_.erase(submitter.owner);
+  };
   for (const auto& [slot, data] : uploads) {
     if (absl::Status s = blobs_->Put(r.id, UploadFiles().at(slot), data); !s.ok()) {
       (void)blobs_->RemoveJob(r.id);
@@ -285,6 +308,42 @@ absl::StatusOr<JobRecord> JobService::Submit(const JobSpec& spec, Uploads upload
   work_available_.notify_one();
   spdlog::info("[job {}] accepted: method {}, {} points, {} bytes", r.id, spec.method, r.input_points, r.input_bytes);
   return r;
+}
+
+int64_t JobService::MaxUploadBytes(const Submitter& submitter) const {
+  return submitter.max_upload_bytes > 0 ? std::min(submitter.max_upload_bytes, options_.max_input_bytes)
+                                        : options_.max_input_bytes;
+}
+
+JobService::Usage JobService::UsageOf(const std::string& owner) const {
+  std::lock_guard lock(mutex_);
+  return OwnerUsage(owner);
+}
+
+JobService::Usage JobService::OwnerUsage(const std::string& owner) const {
+  Usage usage;
+  if (auto it = pending_.find(owner); it != pending_.end()) usage = it->second;
+  for (const auto& [id, e] : jobs_) {
+    if (e->record.owner != owner) continue;
+    usage.active_jobs += !IsTerminal(e->record.state);
+    usage.stored_bytes += e->record.stored_bytes;
+  }
+  return usage;
+}
+
+absl::Status JobService::CheckQuota(const Submitter& submitter, int64_t upload_bytes) const {
+  if (submitter.max_active_jobs <= 0 && submitter.max_stored_bytes <= 0) return absl::OkStatus();
+  const Usage usage = OwnerUsage(submitter.owner);
+  if (submitter.max_active_jobs > 0 && usage.active_jobs >= submitter.max_active_jobs) {
+    return absl::ResourceExhaustedError(core::StrCat(
+        "you have ", usage.active_jobs, " jobs queued or running, your quota's limit; wait for one to end"));
+  }
+  if (submitter.max_stored_bytes > 0 && usage.stored_bytes + upload_bytes > submitter.max_stored_bytes) {
+    return absl::ResourceExhaustedError(
+        core::StrCat("your jobs keep ", usage.stored_bytes, " bytes and this upload has ", upload_bytes,
+                     "; your quota allows ", submitter.max_stored_bytes, " in all: delete finished jobs to make room"));
+  }
+  return absl::OkStatus();
 }
 
 int JobService::QueuedJobs() const {
@@ -666,6 +725,7 @@ void JobService::RunJob(const std::shared_ptr<Entry>& entry, std::shared_ptr<voi
         r.statistics = *std::move(result);
         r.statistics.emplace_back("wall_seconds", seconds);
         r.results = sink.names();
+        r.stored_bytes = r.input_bytes + sink.bytes();
       });
       spdlog::info("[job {}] succeeded in {:.2f} s", id, seconds);
     } else if (entry->interrupted && result.status().code() == absl::StatusCode::kCancelled) {

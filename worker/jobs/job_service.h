@@ -89,8 +89,23 @@ struct RenderedPicture {
   double grid_rms_error = 0, grid_max_error = 0;  // Volume fields: the sampled grid against the field.
 };
 
+// Who submits a job, and the limits that hold for them (0: none). Without tokens everyone is
+// the same unnamed submitter without limits.
+struct Submitter {
+  std::string owner;             // Recorded as the job's owner.
+  int max_active_jobs = 0;       // Their queued and running jobs.
+  int64_t max_stored_bytes = 0;  // Their jobs' uploads and results, as stored.
+  int64_t max_upload_bytes = 0;  // One job's upload (the server's limit holds as well).
+};
+
 class JobService {
  public:
+  // What an owner's jobs hold now.
+  struct Usage {
+    int active_jobs = 0;       // Queued or running.
+    int64_t stored_bytes = 0;  // Uploads and results.
+  };
+
   // Opens the store and recovers the jobs of a previous run. Errors: kUnavailable, kInvalidArgument.
   static absl::StatusOr<std::unique_ptr<JobService>> Open(const JobServiceOptions& options);
   ~JobService();  // Calls Shutdown().
@@ -98,8 +113,11 @@ class JobService {
   // Validates and enqueues. Errors: kInvalidArgument (bad method, parameter, preview, or
   // upload, with the reason), kResourceExhausted (queue full, too many points or bytes),
   // kUnavailable (shutting down, storage failure, or a preview asked of a server that cannot
-  // draw).
-  absl::StatusOr<JobRecord> Submit(const JobSpec& spec, Uploads uploads);
+  // draw); kResourceExhausted also for a submitter over a quota.
+  absl::StatusOr<JobRecord> Submit(const JobSpec& spec, Uploads uploads, const Submitter& submitter = {});
+  // The largest upload `submitter` may send: their limit or the server's, whichever is less.
+  int64_t MaxUploadBytes(const Submitter& submitter) const;
+  Usage UsageOf(const std::string& owner) const;
 
   absl::StatusOr<JobRecord> Get(const std::string& id) const;
   std::vector<JobRecord> List() const;  // Newest first.
@@ -172,7 +190,9 @@ class JobService {
   // Requeues (or fails, or cancels) the jobs of runners whose lease lapsed; every running job
   // with `every_running`.
   absl::Status RecoverLapsed(bool every_running);
-  int QueuedJobs() const;  // mutex_ held.
+  int QueuedJobs() const;                                                           // mutex_ held.
+  Usage OwnerUsage(const std::string& owner) const;                                 // mutex_ held.
+  absl::Status CheckQuota(const Submitter& submitter, int64_t upload_bytes) const;  // mutex_ held.
 
   JobServiceOptions options_;
   std::string runner_;
@@ -202,6 +222,7 @@ class JobService {
   };
   std::map<std::string, DecodedInput> decoded_;  // Queued jobs' decoded inputs by id (mutex_).
   int64_t decoded_points_ = 0;                   // Their points (mutex_).
+  std::map<std::string, Usage> pending_;         // Submissions being stored, by owner (mutex_).
 };
 
 }  // namespace lsqsurf::jobs

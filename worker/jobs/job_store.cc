@@ -16,8 +16,9 @@ int64_t NowMs() {
 }
 
 // The schema version this build writes (PRAGMA user_version). 0: the unversioned tables of
-// earlier builds; 1: runners, leases, change numbers and the removals table.
-constexpr int kSchemaVersion = 1;
+// earlier builds; 1: runners, leases, change numbers and the removals table; 2: owners and
+// stored sizes.
+constexpr int kSchemaVersion = 2;
 
 }  // namespace
 
@@ -80,7 +81,8 @@ absl::Status SqliteJobStore::Migrate() {
   auto present = Query("SELECT name FROM pragma_table_info('jobs')");
   if (!present.ok()) return present.status();
   for (const char* column : {"preview TEXT", "preview_color TEXT", "interruptions INTEGER", "progress REAL",
-                             "runner TEXT", "cancel_requested INTEGER", "seq INTEGER", "lease_expires_ms INTEGER"}) {
+                             "runner TEXT", "cancel_requested INTEGER", "seq INTEGER", "lease_expires_ms INTEGER",
+                             "owner TEXT NOT NULL DEFAULT ''", "stored_bytes INTEGER"}) {
     const std::string name(column, std::string_view(column).find(' '));
     const bool has = std::any_of(present->begin(), present->end(), [&](const Row& row) { return row[0] == name; });
     if (has) continue;
@@ -91,6 +93,9 @@ absl::Status SqliteJobStore::Migrate() {
                      "progress = COALESCE(progress, 0), interruptions = COALESCE(interruptions, 0), "
                      "seq = COALESCE(seq, rowid) WHERE seq IS NULL");
       !r.ok()) {
+    return r.status();
+  }
+  if (auto r = Query("UPDATE jobs SET stored_bytes = COALESCE(input_bytes, 0) WHERE stored_bytes IS NULL"); !r.ok()) {
     return r.status();
   }
   for (const char* sql : {"CREATE INDEX IF NOT EXISTS jobs_by_state ON jobs (state, created_ms, id)",

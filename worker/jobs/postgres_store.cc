@@ -65,6 +65,12 @@ CREATE TABLE blobs (job_id TEXT NOT NULL, name TEXT NOT NULL, generation BIGSERI
 CREATE TABLE blob_chunks (generation BIGINT NOT NULL, chunk INTEGER NOT NULL, data BYTEA NOT NULL,
   PRIMARY KEY (generation, chunk));
 )sql",
+    // 2: owners (token names) and stored sizes, for isolation, quotas and retention.
+    R"sql(
+ALTER TABLE jobs ADD COLUMN owner TEXT NOT NULL DEFAULT '';
+ALTER TABLE jobs ADD COLUMN stored_bytes BIGINT NOT NULL DEFAULT 0;
+UPDATE jobs SET stored_bytes = input_bytes;
+)sql",
 };
 constexpr int kSchemaVersion = sizeof(kMigrations) / sizeof(kMigrations[0]);
 

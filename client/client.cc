@@ -93,6 +93,7 @@ absl::StatusOr<Response> Client::Unary(grpc::Status (v1::Reconstruction::Stub::*
                                                                                       const Request&, Response*),
                                        const Request& request) {
   auto ctx = NewContext();
+  if (unary_deadline_.count() > 0) ctx->set_deadline(std::chrono::system_clock::now() + unary_deadline_);
   Response response;
   if (grpc::Status s = ((*stub_).*call)(ctx.get(), request, &response); !s.ok()) return FromGrpc(s);
   return response;
@@ -176,7 +177,8 @@ bool IsTerminal(v1::JobState s) {
   return s == v1::JOB_STATE_SUCCEEDED || s == v1::JOB_STATE_FAILED || s == v1::JOB_STATE_CANCELLED;
 }
 
-Client::Client(const std::string& address, const ConnectOptions& options) : token_(options.token) {
+Client::Client(const std::string& address, const ConnectOptions& options)
+    : token_(options.token), unary_deadline_(options.unary_deadline) {
   grpc::ChannelArguments args;
   args.SetMaxReceiveMessageSize(16 << 20);
   args.SetMaxSendMessageSize(16 << 20);

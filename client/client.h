@@ -54,6 +54,9 @@ struct ConnectOptions {
   std::string key_pem;      // ...its private key.
   std::string server_name;  // The name the server's certificate must carry; empty: the address's host.
   std::string token;        // Sent as "authorization: Bearer TOKEN" on every call; empty: none.
+  // Deadline of each unary call (Get, List, Cancel, Delete, ListMethods, GetServerInfo); 0: none.
+  // A call past it fails with kDeadlineExceeded.
+  std::chrono::milliseconds unary_deadline{0};
   bool uses_tls() const { return tls || !ca_pem.empty() || !cert_pem.empty() || !key_pem.empty(); }
 };
 
@@ -96,6 +99,7 @@ class Client {
                                  const Request& request);
 
   std::string token_;
+  std::chrono::milliseconds unary_deadline_{0};
   std::shared_ptr<grpc::Channel> channel_;
   std::unique_ptr<v1::Reconstruction::Stub> stub_;
 };

@@ -9,8 +9,8 @@
 # libopenvdb-dev, needed only by the preset `bench-openvdb` (the level-set reference of the
 # front-tracking benchmarks); --with-vtk the VTK reference of the volume benchmark;
 # --with-containers podman, debootstrap, podman-compose and the CNI dnsname plugin for
-# scripts/container-base.sh, container-test.sh and compose-test.sh.
-# Any of them may be given.
+# scripts/container-base.sh, container-test.sh and compose-test.sh; --with-fuzz clang and its
+# libFuzzer runtime for scripts/fuzz.sh. Any of them may be given.
 set -euo pipefail
 
 packages=(
@@ -19,7 +19,7 @@ packages=(
   libeigen3-dev libnanoflann-dev libdraco-dev draco
   libspdlog-dev libfmt-dev
   libgtest-dev libgmock-dev libbenchmark-dev
-  libssl-dev libsqlite3-dev libpq-dev postgresql nginx-light yamllint prometheus-cpp-dev libabsl-dev libtbb-dev libcli11-dev zlib1g-dev libpugixml-dev
+  libssl-dev openssl libsqlite3-dev libpq-dev postgresql nginx-light yamllint prometheus-cpp-dev libabsl-dev libtbb-dev libcli11-dev zlib1g-dev libpugixml-dev
   libegl-dev libgl-dev libopengl-dev libegl-mesa0 libgl1-mesa-dri libstb-dev
 )
 for option in "$@"; do
@@ -28,7 +28,8 @@ for option in "$@"; do
     --with-openvdb) packages+=(libopenvdb-dev libboost-dev) ;;  # OpenVDB's headers include Boost's.
     --with-vtk) packages+=(python3-vtk9 python3-numpy xvfb) ;;  # bench/vtk_volume_reference.py
     --with-containers) packages+=(podman runc debootstrap uidmap slirp4netns fuse-overlayfs podman-compose golang-github-containernetworking-plugin-dnsname) ;;  # scripts/container-*.sh, compose-test.sh
-    *) echo "install-deps: unknown option $option (--with-poisson, --with-openvdb, --with-vtk, --with-containers)" >&2; exit 2 ;;
+    --with-fuzz) packages+=(clang libclang-rt-dev) ;;  # scripts/fuzz.sh
+    *) echo "install-deps: unknown option $option (--with-poisson, --with-openvdb, --with-vtk, --with-containers, --with-fuzz)" >&2; exit 2 ;;
   esac
 done
 

@@ -55,6 +55,8 @@ struct ServerFlags {
   lsqsurf::server::TlsFiles tls;
   bool plaintext = false;
   std::string auth_tokens;
+  double retain_days = 0, max_store_gib = 0;
+  int64_t min_free_mib = 0;  // Set from JobServiceOptions::min_free_bytes, whose default it shows.
 };
 
 // `lsqsurfd tokens add|list|revoke`: edits a token file.
@@ -186,6 +188,19 @@ void DefineFlags(CLI::App& app, ServerFlags& flags, lsqsurf::jobs::JobServiceOpt
   app.add_option("--auth-tokens", flags.auth_tokens,
                  "token file (`lsqsurfd tokens add`): every call then needs a token, and users see only their "
                  "own jobs (read again on SIGHUP)");
+  app.add_option("--retain-days", flags.retain_days,
+                 "delete finished jobs this many days after they ended, oldest first (0: keep them until deleted)")
+      ->capture_default_str()
+      ->check(CLI::Range(0.0, 36500.0));
+  app.add_option("--max-store-gib", flags.max_store_gib,
+                 "GiB all jobs may keep; past it the oldest finished jobs are deleted, then submissions refused "
+                 "(0: no limit)")
+      ->capture_default_str()
+      ->check(CLI::Range(0.0, 1e6));
+  app.add_option("--min-free-mib", flags.min_free_mib,
+                 "refuse submissions that would leave the data disk less than this free, for running jobs' results")
+      ->capture_default_str()
+      ->check(CLI::Range(int64_t{0}, int64_t{1} << 30));
   app.set_config("--config", "", "read options from this TOML/INI file");
   app.add_flag("--parameter-reference", flags.parameter_reference,
                "print every method's parameters (and the view options) as Markdown, then exit");
@@ -261,6 +276,7 @@ int main(int argc, char** argv) {
   lsqsurf::jobs::JobServiceOptions options;
   options.data_dir = "lsqsurf-data";
   flags.lease_seconds = std::chrono::duration<double>(options.lease).count();
+  flags.min_free_mib = options.min_free_bytes >> 20;
   DefineFlags(app, flags, options);
   TokenCommand token_command;
   DefineTokenCommand(app, token_command);
@@ -272,6 +288,9 @@ int main(int argc, char** argv) {
   }
   options.max_input_bytes = flags.max_upload_mib << 20;
   options.lease = std::chrono::milliseconds(static_cast<int64_t>(flags.lease_seconds * 1000));
+  options.retain = std::chrono::seconds(static_cast<int64_t>(flags.retain_days * 86400));
+  options.max_store_bytes = static_cast<int64_t>(flags.max_store_gib * double(int64_t{1} << 30));
+  options.min_free_bytes = flags.min_free_mib << 20;
 
   // Logs go to stderr; stdout carries only the "listening on" line that scripts wait for.
   spdlog::set_default_logger(spdlog::stderr_color_mt("lsqsurfd"));

@@ -264,6 +264,9 @@ grpc::Status ReconstructionService::GetServerInfo(grpc::ServerContext* context, 
     response->set_max_renders(o.max_renders);
     response->set_can_render(jobs_.CanRender());
     response->set_requires_token(tokens_ != nullptr);
+    response->set_retain_seconds(o.retain.count());
+    response->set_max_store_bytes(o.max_store_bytes);
+    if (caller.admin) response->set_stored_bytes(jobs_.StoredBytes());
     v1::Account* account = response->mutable_account();
     account->set_name(caller.name);
     account->set_admin(caller.admin);

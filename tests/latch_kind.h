@@ -40,6 +40,10 @@ class LatchKind final : public jobs::JobKind {
     std::unique_lock lock(mutex_);
     changed_.wait(lock, [&] { return started_ >= n; });
   }
+  int started() const {
+    std::lock_guard lock(mutex_);
+    return started_;
+  }
   void Release() const {
     std::lock_guard lock(mutex_);
     released_ = true;

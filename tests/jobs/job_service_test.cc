@@ -2,14 +2,17 @@
 
 #include <gtest/gtest.h>
 #include <sqlite3.h>
+#include <sys/mount.h>
 
 #include <cmath>
 #include <condition_variable>
 #include <filesystem>
+#include <fstream>
 #include <limits>
 #include <mutex>
 #include <set>
 
+#include "absl/cleanup/cleanup.h"
 #include "tests/latch_kind.h"
 #include "tests/postgres_cluster.h"
 #include "tests/test_dir.h"
@@ -304,6 +307,76 @@ TEST_F(JobServiceTest, QuotasHoldPerOwnerAndFinishedJobsCountTheirResults) {
   EXPECT_EQ(reopened.UsageOf("alice").stored_bytes, kept);
 }
 
+TEST_F(JobServiceTest, RetentionDeletesTheOldestFinishedJobsAndNeverAQueuedOrRunningOne) {
+  HoldIamlsJobs();
+  options_.sweep_interval = std::chrono::hours(1);  // The test sweeps by hand.
+  JobService* s = &Open();
+  const Uploads input = Input(std::string(1000, 'x'));  // The latch takes any bytes.
+  std::vector<std::string> finished;
+  for (int i = 0; i < 3; ++i) {
+    auto job = s->Submit(Spec("iamls"), input);
+    ASSERT_TRUE(job.ok()) << job.status();
+    ASSERT_TRUE(s->Cancel(job->id).ok());  // Queued or just started: it ends cancelled.
+    ASSERT_EQ(WaitTerminal(job->id).state, JobState::kCancelled);
+    finished.push_back(job->id);
+  }
+  const int started = latch_.started();
+  auto running = s->Submit(Spec("iamls"), input);
+  auto queued = s->Submit(Spec("iamls"), input);
+  ASSERT_TRUE(running.ok() && queued.ok());
+  latch_.WaitStarted(started + 1);
+  const int64_t kept = s->StoredBytes();
+  EXPECT_EQ(kept, 5000);
+  const int64_t now = s->Get(finished.back())->updated_ms;
+  EXPECT_EQ(s->SweepFinished(now + 1), 0);  // No limits set: nothing goes.
+
+  // Over the byte limit: the oldest finished job goes first, and only as many as needed.
+  options_.max_store_bytes = kept - 1;
+  s = &Open();
+  EXPECT_EQ(s->SweepFinished(now), 1);
+  EXPECT_EQ(s->Get(finished[0]).status().code(), absl::StatusCode::kNotFound);
+  EXPECT_TRUE(s->Get(finished[1]).ok());
+  // Past their age every finished job goes; the queued and running ones stay whatever the limit.
+  options_.retain = std::chrono::hours(48);
+  options_.max_store_bytes = 1;
+  s = &Open();
+  EXPECT_EQ(s->SweepFinished(now + int64_t{49} * 3600 * 1000), 2);
+  EXPECT_FALSE(IsTerminal(s->Get(running->id)->state));
+  EXPECT_FALSE(IsTerminal(s->Get(queued->id)->state));
+  EXPECT_FALSE(std::filesystem::exists(dir_ / "jobs" / finished[1]));
+  EXPECT_TRUE(std::filesystem::exists(dir_ / "jobs" / queued->id));
+  // Nothing finished is left to make room: submissions are refused, saying why.
+  auto refused = s->Submit(Spec("iamls"), input);
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kResourceExhausted);
+  EXPECT_NE(refused.status().message().find("store is full"), std::string::npos) << refused.status();
+}
+
+TEST_F(JobServiceTest, FilesOfJobsNeverStoredAreRemovedAtStart) {
+  JobService& s = Open();
+  auto job = s.Submit(Spec("iamls", {{"iterations", "1"}}), Input(Encode(testing::SphereCloud(1000))));
+  ASSERT_TRUE(job.ok());
+  ASSERT_EQ(WaitTerminal(job->id).state, JobState::kSucceeded);
+  service_.reset();
+  // What a crash between an upload and its record, or inside a write, leaves behind.
+  const auto jobs = dir_ / "jobs";
+  std::filesystem::create_directories(jobs / "00000000deadbeef");
+  std::ofstream(jobs / "00000000deadbeef" / "input.drc") << "never stored";
+  std::ofstream(jobs / job->id / "mesh.drc.tmp.12345") << "cut short";
+  JobService& reopened = Open();
+  EXPECT_FALSE(std::filesystem::exists(jobs / "00000000deadbeef"));
+  EXPECT_FALSE(std::filesystem::exists(jobs / job->id / "mesh.drc.tmp.12345"));
+  EXPECT_TRUE(reopened.OpenResult(job->id, "mesh.drc").ok());  // The stored job keeps its files.
+}
+
+TEST_F(JobServiceTest, ANearlyFullDiskRefusesSubmissions) {
+  options_.min_free_bytes = int64_t{1} << 60;  // More than any disk has.
+  JobService& s = Open();
+  auto refused = s.Submit(Spec("iamls"), Input(Encode(testing::SphereCloud(1000))));
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kResourceExhausted);
+  EXPECT_NE(refused.status().message().find("disk is nearly full"), std::string::npos) << refused.status();
+  EXPECT_TRUE(s.List().empty());
+}
+
 // Counts the reads of each blob name, storing through a local folder.
 class CountingBlobStore final : public BlobStore {
  public:
@@ -329,6 +402,57 @@ class CountingBlobStore final : public BlobStore {
   mutable std::mutex mutex_;
   mutable std::map<std::string, int> opened_;
 };
+
+// A data directory on a 2 MiB tmpfs (root only): uploads until the disk is full are refused with
+// RESOURCE_EXHAUSTED, and what was stored before stays whole, before and after a restart.
+TEST_F(JobServiceTest, AFullDiskRefusesNewJobsAndCorruptsNothingStored) {
+  std::filesystem::create_directories(dir_);
+  if (::mount("tmpfs", dir_.c_str(), "tmpfs", 0, "size=2m") != 0) {
+    GTEST_SKIP() << "cannot mount a tmpfs here (needs root): " << std::strerror(errno);
+  }
+  const absl::Cleanup unmount = [&] {
+    service_.reset();
+    EXPECT_EQ(::umount(dir_.c_str()), 0) << std::strerror(errno);
+  };
+  HoldIamlsJobs();
+  // A store that cannot tell its free space: the disk itself says no, at the write.
+  auto local = LocalDirBlobStore::Open((dir_ / "jobs").string());
+  ASSERT_TRUE(local.ok());
+  options_.blobs = std::make_shared<CountingBlobStore>(*std::move(local));
+  std::map<std::string, std::string> stored;
+  absl::Status refusal;
+  {
+    JobService& s = Open();
+    for (int i = 0; i < 20 && refusal.ok(); ++i) {
+      std::string bytes(300'000, static_cast<char>('a' + i));
+      auto job = s.Submit(Spec("iamls"), Input(bytes));
+      if (job.ok()) {
+        stored[job->id] = bytes;
+      } else {
+        refusal = job.status();
+      }
+    }
+    EXPECT_EQ(refusal.code(), absl::StatusCode::kResourceExhausted) << refusal;
+    EXPECT_NE(refusal.message().find("disk is full"), std::string::npos) << refusal;
+    EXPECT_GE(stored.size(), 3u);
+    EXPECT_EQ(s.List().size(), stored.size());
+  }
+  service_.reset();
+  auto blobs = LocalDirBlobStore::Open((dir_ / "jobs").string());
+  ASSERT_TRUE(blobs.ok());
+  for (const auto& [id, bytes] : stored) EXPECT_EQ((*blobs)->Read(id, "input.drc").value_or(""), bytes) << id;
+  for (const auto& entry : std::filesystem::recursive_directory_iterator(dir_ / "jobs")) {
+    EXPECT_EQ(entry.path().filename().string().find(".tmp."), std::string::npos) << entry.path();
+  }
+  // With the files' own store, which knows its free space, the next upload is refused up front.
+  options_.blobs = nullptr;
+  options_.min_free_bytes = 0;
+  JobService& reopened = Open();
+  EXPECT_EQ(reopened.List().size(), stored.size());
+  auto refused = reopened.Submit(Spec("iamls"), Input(std::string(300'000, 'z')));
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kResourceExhausted);
+  EXPECT_NE(refused.status().message().find("nearly full"), std::string::npos) << refused.status();
+}
 
 TEST_F(JobServiceTest, AnUploadIsDecodedOnceUnlessTheServerRestarted) {
   auto local = LocalDirBlobStore::Open((dir_ / "jobs").string());

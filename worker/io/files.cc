@@ -48,23 +48,31 @@ absl::StatusOr<std::string> ReadFileBytes(const std::string& path, uint64_t max_
 }
 
 absl::Status WriteFileAtomically(const std::string& path, std::string_view bytes) {
+  // A full disk (or quota) says kResourceExhausted wherever it shows: at open, write or flush.
+  const auto failed = [&](const char* what, int error) {
+    const std::string message = core::StrCat(path, ": ", what, ": ", std::strerror(error));
+    if (error == ENOSPC || error == EDQUOT) return absl::ResourceExhaustedError(message);
+    return absl::PermissionDeniedError(message);
+  };
   const std::string tmp = core::StrCat(path, ".tmp.", ::getpid());
   const int fd = ::open(tmp.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC, 0644);
-  if (fd < 0) return absl::PermissionDeniedError(core::StrCat(tmp, ": cannot create: ", std::strerror(errno)));
+  if (fd < 0) return failed("cannot create", errno);
   size_t written = 0;
   while (written < bytes.size()) {
     const ssize_t n = ::write(fd, bytes.data() + written, bytes.size() - written);
     if (n < 0) {
       if (errno == EINTR) continue;
-      const std::string err = std::strerror(errno);
+      const int error = errno;
       ::close(fd);
       ::unlink(tmp.c_str());
-      return absl::ResourceExhaustedError(core::StrCat(path, ": write failed: ", err));
+      return absl::ResourceExhaustedError(core::StrCat(path, ": write failed: ", std::strerror(error)));
     }
     written += static_cast<size_t>(n);
   }
   if (::fsync(fd) != 0 || ::close(fd) != 0) {
+    const int error = errno;
     ::unlink(tmp.c_str());
+    if (error == ENOSPC || error == EDQUOT) return failed("cannot flush to disk", error);
     return absl::DataLossError(core::StrCat(path, ": cannot flush to disk"));
   }
   if (::rename(tmp.c_str(), path.c_str()) != 0) {

@@ -1,5 +1,7 @@
 #include "worker/jobs/blob_store.h"
 
+#include <sys/statvfs.h>
+
 #include <filesystem>
 #include <fstream>
 
@@ -61,9 +63,41 @@ absl::Status LocalDirBlobStore::Put(const std::string& job_id, std::string_view 
   std::filesystem::create_directories(core::StrCat(root_, "/", job_id), ec);
   if (ec) return absl::UnavailableError(core::StrCat("cannot create the folder of job ", job_id, ": ", ec.message()));
   if (absl::Status s = io::WriteFileAtomically(PathOf(job_id, name), bytes); !s.ok()) {
+    if (s.code() == absl::StatusCode::kResourceExhausted) {
+      return absl::ResourceExhaustedError(core::StrCat("the server's disk is full: cannot store ", name, " of job ",
+                                                       job_id, "; try again once jobs have been deleted"));
+    }
     return absl::UnavailableError(core::StrCat("cannot store ", name, ": ", s.message()));
   }
   return absl::OkStatus();
+}
+
+absl::StatusOr<int> LocalDirBlobStore::RemoveOrphans(const std::function<bool(const std::string&)>& is_job) {
+  namespace fs = std::filesystem;
+  std::error_code ec;
+  int removed = 0;
+  for (fs::directory_iterator it(root_, ec), end; !ec && it != end; it.increment(ec)) {
+    if (!it->is_directory()) continue;
+    const std::string id = it->path().filename().string();
+    if (!is_job(id)) {
+      if (absl::Status s = RemoveJob(id); !s.ok()) return s;
+      ++removed;
+      continue;
+    }
+    // A write cut short leaves its temporary file (io::WriteFileAtomically) beside the blobs.
+    std::error_code inner;
+    for (fs::directory_iterator file(it->path(), inner), done; !inner && file != done; file.increment(inner)) {
+      if (file->path().filename().string().find(".tmp.") != std::string::npos) fs::remove(file->path(), inner);
+    }
+  }
+  if (ec) return absl::UnavailableError(core::StrCat("cannot list ", root_, ": ", ec.message()));
+  return removed;
+}
+
+int64_t LocalDirBlobStore::AvailableBytes() const {
+  struct statvfs disk {};
+  if (::statvfs(root_.c_str(), &disk) != 0) return -1;
+  return static_cast<int64_t>(disk.f_bavail) * static_cast<int64_t>(disk.f_frsize);
 }
 
 absl::StatusOr<std::unique_ptr<BlobReader>> LocalDirBlobStore::Open(const std::string& job_id,

@@ -7,6 +7,7 @@
 #pragma once
 
 #include <cstdint>
+#include <functional>
 #include <memory>
 #include <string>
 #include <string_view>
@@ -30,7 +31,8 @@ absl::StatusOr<std::string> ReadAll(BlobReader& reader);
 class BlobStore {
  public:
   virtual ~BlobStore() = default;
-  // Stores (or replaces) a blob. Errors: kUnavailable.
+  // Stores (or replaces) a blob. Errors: kResourceExhausted (the disk is full; nothing of the
+  // blob is left behind), kUnavailable.
   virtual absl::Status Put(const std::string& job_id, std::string_view name, std::string_view bytes) = 0;
   // Errors: kNotFound (no such blob), kUnavailable.
   virtual absl::StatusOr<std::unique_ptr<BlobReader>> Open(const std::string& job_id, std::string_view name) const = 0;
@@ -39,6 +41,15 @@ class BlobStore {
   virtual bool Exists(const std::string& job_id, std::string_view name) const = 0;
   // Removes every blob of the job; removing nothing is not an error.
   virtual absl::Status RemoveJob(const std::string& job_id) = 0;
+  // Bytes that can still be stored, or -1 when the store cannot tell.
+  virtual int64_t AvailableBytes() const { return -1; }
+  // Removes the blobs of every job `is_job` does not know and whatever a write cut short left
+  // behind; returns how many jobs' blobs went. Only safe while nobody else writes to the store
+  // (a server with a job store of its own, at start). Errors: kUnimplemented, kUnavailable.
+  virtual absl::StatusOr<int> RemoveOrphans(const std::function<bool(const std::string&)>& is_job) {
+    (void)is_job;
+    return absl::UnimplementedError("this blob store cannot list its jobs");
+  }
 };
 
 // Blobs as files: <root>/<job id>/<name>, written to a temporary file and renamed.
@@ -50,7 +61,9 @@ class LocalDirBlobStore final : public BlobStore {
   absl::Status Put(const std::string& job_id, std::string_view name, std::string_view bytes) override;
   absl::StatusOr<std::unique_ptr<BlobReader>> Open(const std::string& job_id, std::string_view name) const override;
   bool Exists(const std::string& job_id, std::string_view name) const override;
-  absl::Status RemoveJob(const std::string& job_id) override;
+  absl::Status RemoveJob(const std::string& id) override;
+  int64_t AvailableBytes() const override;
+  absl::StatusOr<int> RemoveOrphans(const std::function<bool(const std::string&)>& is_job) override;
 
  private:
   explicit LocalDirBlobStore(std::string root) : root_(std::move(root)) {}

@@ -7,6 +7,7 @@
 #include <filesystem>
 #include <random>
 #include <set>
+#include <tuple>
 
 #include "absl/cleanup/cleanup.h"
 #include "worker/core/status.h"
@@ -200,15 +201,42 @@ absl::StatusOr<std::unique_ptr<JobService>> JobService::Open(const JobServiceOpt
   for (JobRecord& r : all->changed) service->Adopt(std::move(r));
   service->synced_seq_ = all->seq;
   const bool shared = service->store_->shared();
+  if (!shared) service->RemoveOrphanedBlobs();
   spdlog::info("job service {}: {} jobs on record, {} queued, {} workers, data in {}{}", service->runner_,
                service->jobs_.size(), service->QueuedJobs(), options.workers, options.data_dir,
                shared ? ", store shared with other servers" : "");
   for (int i = 0; i < options.workers; ++i) service->workers_.emplace_back([s = service.get()] { s->WorkerLoop(); });
   if (shared) service->sync_thread_ = std::thread([s = service.get()] { s->SyncLoop(); });
+  if (options.retain.count() > 0 || options.max_store_bytes > 0) {
+    service->sweep_thread_ = std::thread([s = service.get()] {
+      std::unique_lock lock(s->mutex_);
+      while (!s->sweep_wake_.wait_for(lock, s->options_.sweep_interval, [s] { return s->shutting_down_; })) {
+        lock.unlock();
+        s->SweepFinished(NowMs());
+        lock.lock();
+      }
+    });
+  }
   return service;
 }
 
 JobService::~JobService() { Shutdown(); }
+
+void JobService::RemoveOrphanedBlobs() {
+  std::set<std::string> known;
+  {
+    std::lock_guard lock(mutex_);
+    for (const auto& [id, e] : jobs_) known.insert(id);
+  }
+  auto removed = blobs_->RemoveOrphans([&](const std::string& id) { return known.count(id) > 0; });
+  if (!removed.ok()) {
+    if (removed.status().code() != absl::StatusCode::kUnimplemented) {
+      spdlog::warn("orphaned files not removed: {}", removed.status().ToString());
+    }
+  } else if (*removed > 0) {
+    spdlog::info("removed the files of {} jobs that were never stored or whose deletion was cut short", *removed);
+  }
+}
 
 const JobKind* JobService::KindOf(const std::string& method) const {
   if (auto it = options_.kind_overrides.find(method); it != options_.kind_overrides.end()) return it->second;
@@ -243,6 +271,7 @@ absl::StatusOr<JobRecord> JobService::Submit(const JobSpec& spec, Uploads upload
         "the upload has ", bytes, " bytes; ",
         limit < options_.max_input_bytes ? "your quota allows" : "this server accepts", " at most ", limit));
   }
+  LSQSURF_RETURN_IF_ERROR(CheckRoom(bytes));
   auto checked =
       KindOf(spec.method)->CheckUploads(spec, uploads, {options_.max_points, options_.min_points, options_.max_cells});
   if (!checked.ok()) return checked.status();
@@ -344,6 +373,70 @@ absl::Status JobService::CheckQuota(const Submitter& submitter, int64_t upload_b
                      "; your quota allows ", submitter.max_stored_bytes, " in all: delete finished jobs to make room"));
   }
   return absl::OkStatus();
+}
+
+absl::Status JobService::CheckRoom(int64_t upload_bytes) {
+  if (options_.max_store_bytes > 0 && StoredBytes() + upload_bytes > options_.max_store_bytes) {
+    SweepFinished(NowMs(), upload_bytes);
+    if (const int64_t kept = StoredBytes(); kept + upload_bytes > options_.max_store_bytes) {
+      return absl::ResourceExhaustedError(core::StrCat(
+          "the server's store is full: its jobs keep ", kept, " of ", options_.max_store_bytes,
+          " bytes and this upload has ", upload_bytes, "; try again once jobs have finished and been deleted"));
+    }
+  }
+  if (const int64_t available = blobs_->AvailableBytes();
+      available >= 0 && available - upload_bytes < options_.min_free_bytes) {
+    return absl::ResourceExhaustedError(core::StrCat("the server's disk is nearly full (", available >> 20,
+                                                     " MiB free, ", options_.min_free_bytes >> 20,
+                                                     " MiB kept for running jobs); try again later"));
+  }
+  return absl::OkStatus();
+}
+
+int64_t JobService::StoredBytes() const {
+  std::lock_guard lock(mutex_);
+  int64_t total = 0;
+  for (const auto& [id, e] : jobs_) total += e->record.stored_bytes;
+  for (const auto& [owner, usage] : pending_) total += usage.stored_bytes;
+  return total;
+}
+
+int JobService::SweepFinished(int64_t now_ms, int64_t room) {
+  struct Finished {
+    int64_t ended_ms, seq, bytes;
+    std::string id;
+  };
+  std::vector<Finished> finished;
+  int64_t total = 0;
+  {
+    std::lock_guard lock(mutex_);
+    for (const auto& [id, e] : jobs_) {
+      total += e->record.stored_bytes;
+      if (IsTerminal(e->record.state)) {
+        finished.push_back({e->record.updated_ms, e->record.seq, e->record.stored_bytes, id});
+      }
+    }
+  }
+  std::sort(finished.begin(), finished.end(), [](const Finished& a, const Finished& b) {
+    return std::tie(a.ended_ms, a.seq) < std::tie(b.ended_ms, b.seq);  // Within a millisecond, store order.
+  });
+  const int64_t retain_ms = std::chrono::duration_cast<std::chrono::milliseconds>(options_.retain).count();
+  int removed = 0;
+  for (const Finished& f : finished) {
+    const bool expired = retain_ms > 0 && now_ms - f.ended_ms > retain_ms;
+    const bool over = options_.max_store_bytes > 0 && total + room > options_.max_store_bytes;
+    if (!expired && !over) break;  // Oldest first: the rest are newer.
+    // Another server sharing the store may have deleted it already.
+    if (absl::Status s = Delete(f.id); !s.ok() && s.code() != absl::StatusCode::kNotFound) {
+      spdlog::warn("[job {}] not deleted by retention: {}", f.id, s.ToString());
+      continue;
+    }
+    total -= f.bytes;
+    ++removed;
+    spdlog::info("[job {}] deleted by retention ({})", f.id,
+                 expired ? "older than --retain-days" : "store over --max-store-gib");
+  }
+  return removed;
 }
 
 int JobService::QueuedJobs() const {
@@ -587,7 +680,7 @@ absl::StatusOr<JobRecord> JobService::WaitForChange(const std::string& id, uint6
 void JobService::Shutdown() {
   {
     std::lock_guard lock(mutex_);
-    if (shutting_down_ && workers_.empty() && !sync_thread_.joinable()) return;
+    if (shutting_down_ && workers_.empty() && !sync_thread_.joinable() && !sweep_thread_.joinable()) return;
     shutting_down_ = true;
     for (auto& [id, e] : jobs_) {
       if (e->held) e->interrupted = true;
@@ -595,6 +688,8 @@ void JobService::Shutdown() {
   }
   work_available_.notify_all();
   changed_.notify_all();
+  sweep_wake_.notify_all();
+  if (sweep_thread_.joinable()) sweep_thread_.join();
   for (auto& t : workers_) t.join();
   workers_.clear();
   // The leases are renewed until the interrupted jobs are back in the queue.
@@ -627,8 +722,13 @@ std::shared_ptr<JobService::Entry> JobService::ClaimNext(std::shared_ptr<void>* 
     *decoded = ReleaseDecoded((*claimed)->id);
     entry = Adopt(**std::move(claimed));
     entry->held = true;
-    entry->cancel_requested = false;
+    // A cancellation that reached the store between the claim and this line is in the record
+    // kept (Adopt keeps the newer one); the run must see it, as no one will tell it again.
+    entry->cancel_requested = entry->record.cancel_requested;
     entry->lost = false;
+    // A shutdown that began during the claim has marked the held jobs already: this one goes
+    // back to the queue at once instead of running until it ends.
+    entry->interrupted = shutting_down_;
   }
   changed_.notify_all();
   return entry;
@@ -728,7 +828,9 @@ void JobService::RunJob(const std::shared_ptr<Entry>& entry, std::shared_ptr<voi
         r.stored_bytes = r.input_bytes + sink.bytes();
       });
       spdlog::info("[job {}] succeeded in {:.2f} s", id, seconds);
-    } else if (entry->interrupted && result.status().code() == absl::StatusCode::kCancelled) {
+    } else if (entry->interrupted && !entry->cancel_requested &&
+               result.status().code() == absl::StatusCode::kCancelled) {
+      // Interrupted by a shutdown, and nobody asked to cancel it: it runs again later.
       Update(entry, [](JobRecord& r) {
         r.state = JobState::kQueued;
         r.stage.clear();

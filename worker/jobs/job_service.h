@@ -75,6 +75,17 @@ struct JobServiceOptions {
   std::chrono::milliseconds lease{10'000};
   // Shared stores: how often to look for the others' changes when no notification comes.
   std::chrono::milliseconds poll{500};
+  // Finished jobs (succeeded, failed, cancelled) are deleted this long after they ended, oldest
+  // first; 0: kept until deleted.
+  std::chrono::seconds retain{0};
+  // Bytes all jobs may keep (uploads and results). Past it the oldest finished jobs are deleted
+  // (never a queued or running one); when they are not enough, submissions are refused. 0: no limit.
+  int64_t max_store_bytes = 0;
+  // Submissions are refused while the blob store's disk would keep less than this free after the
+  // upload, so that running jobs keep room for their results (stores that cannot tell: unchecked).
+  int64_t min_free_bytes = int64_t{256} << 20;
+  // How often finished jobs are looked at for deletion (with `retain` or `max_store_bytes`).
+  std::chrono::milliseconds sweep_interval{60'000};
   // Told of stages and runs as they end (metrics); null: nobody.
   std::shared_ptr<JobEvents> events;
   // Tests only: replaces the kind that runs a method's jobs (e.g. one that blocks on a latch).
@@ -118,6 +129,12 @@ class JobService {
   // The largest upload `submitter` may send: their limit or the server's, whichever is less.
   int64_t MaxUploadBytes(const Submitter& submitter) const;
   Usage UsageOf(const std::string& owner) const;
+  // Deletes the finished jobs that `retain` and `max_store_bytes` no longer allow as of `now_ms`
+  // (Unix milliseconds), oldest first, leaving `room` bytes under max_store_bytes when it can.
+  // Returns how many it deleted. Runs every `sweep_interval` on its own thread, and at Submit.
+  int SweepFinished(int64_t now_ms, int64_t room = 0);
+  // Bytes every job keeps together (uploads and results).
+  int64_t StoredBytes() const;
 
   absl::StatusOr<JobRecord> Get(const std::string& id) const;
   std::vector<JobRecord> List() const;  // Newest first.
@@ -190,9 +207,14 @@ class JobService {
   // Requeues (or fails, or cancels) the jobs of runners whose lease lapsed; every running job
   // with `every_running`.
   absl::Status RecoverLapsed(bool every_running);
-  int QueuedJobs() const;                                                           // mutex_ held.
+  int QueuedJobs() const;  // mutex_ held.
+  // At start with a store of its own: removes the files of jobs that are not on record (a crash
+  // between an upload and its record, or during a deletion) and temporaries of cut writes.
+  void RemoveOrphanedBlobs();
   Usage OwnerUsage(const std::string& owner) const;                                 // mutex_ held.
   absl::Status CheckQuota(const Submitter& submitter, int64_t upload_bytes) const;  // mutex_ held.
+  // Refuses an upload that the store has no room for (max_store_bytes, min_free_bytes).
+  absl::Status CheckRoom(int64_t upload_bytes);
 
   JobServiceOptions options_;
   std::string runner_;
@@ -211,6 +233,8 @@ class JobService {
   uint64_t work_signal_ = 0;  // Bumped whenever a job may have been queued (mutex_).
   std::vector<std::thread> workers_;
   std::thread sync_thread_;
+  std::thread sweep_thread_;            // With retain or max_store_bytes.
+  std::condition_variable sweep_wake_;  // Shutdown (mutex_).
   std::atomic<bool> sync_stop_{false};
   std::atomic<bool> store_reachable_{true};
   std::atomic<bool> claims_failing_{false};

@@ -132,6 +132,7 @@ absl::StatusOr<std::vector<SqliteJobStore::Row>> SqliteJobStore::Query(const std
     const int code = sqlite3_extended_errcode(db_);
     std::string msg = core::StrCat("job database: ", sqlite3_errmsg(db_));
     if (code == SQLITE_CONSTRAINT_PRIMARYKEY) return absl::AlreadyExistsError(msg);
+    if (code == SQLITE_FULL) return absl::ResourceExhaustedError(core::StrCat(msg, " (the server's disk is full)"));
     return absl::UnavailableError(msg);
   }
   return out;

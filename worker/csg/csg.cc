@@ -21,8 +21,6 @@ using Mat3d = Eigen::Matrix3d;
 using core::Vec3d;
 using core::Vec3f;
 
-constexpr double kInf = std::numeric_limits<double>::infinity();
-
 // A similarity from world to a leaf's own coordinates: y = linear · x + offset, with
 // linear = Rᵀ / scale; the leaf's world value is scale · f(y) (a distance stays a distance)
 // and its world gradient R · ∇f(y).

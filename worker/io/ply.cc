@@ -260,7 +260,11 @@ class ElementReader {
     // than that allows is a corrupt header, refused before any allocation.
     size_t min_record = 0;
     for (const Property& p : e_.properties) min_record += p.is_list ? TypeSize(p.count_type) : TypeSize(p.type);
-    if (body_.format() == PlyFormat::kAscii) min_record = 2 * e_.properties.size();
+    if (body_.format() == PlyFormat::kAscii) min_record = std::max<size_t>(1, 2 * e_.properties.size());
+    // Binary records without properties take no bytes: there is nothing to read, however many
+    // the header declares (a loop over a count from the file would run for hours; fuzzing).
+    if (min_record == 0)
+      return layout_.is_vertex || layout_.is_face ? Fail("an element without properties") : absl::OkStatus();
     if (min_record > 0 && e_.count > body_.remaining() / min_record) {
       return Fail(core::StrCat("PLY element '", e_.name, "' declares ", e_.count,
                                " records but the file is too short for them (truncated?)"));

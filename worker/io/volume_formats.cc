@@ -601,9 +601,13 @@ struct XmlLayout {
   bool appended_base64 = false;
 };
 
+// Read as an integer, never through a double: a corrupt 64-bit size can exceed what a double
+// converts back (undefined behaviour, found by fuzzing).
 uint64_t HeaderInt(std::string_view bytes, size_t index, int size) {
-  return size == 8 ? static_cast<uint64_t>(LoadLittle("UInt64", bytes.data() + index * 8))
-                   : static_cast<uint64_t>(LoadLittle("UInt32", bytes.data() + index * 4));
+  const auto* p = reinterpret_cast<const unsigned char*>(bytes.data() + index * static_cast<size_t>(size));
+  uint64_t value = 0;
+  for (int i = size - 1; i >= 0; --i) value = (value << 8) | p[i];
+  return value;
 }
 
 // The bytes of one binary array: `header` then `payload`, inflated block by block when compressed.

@@ -1191,7 +1191,8 @@ std::vector<extract::OctreeCell> LeavesMeetingBalls(const extract::AdaptiveOctre
   while (!stack.empty()) {
     auto [cell, near] = std::move(stack.back());
     stack.pop_back();
-    std::erase_if(near, [&](uint32_t i) { return !meets(cell, balls[i]); });
+    const extract::OctreeCell here = cell;  // Lambdas capture no structured binding before clang 16.
+    std::erase_if(near, [&](uint32_t i) { return !meets(here, balls[i]); });
     if (near.empty()) continue;
     if (!tree.IsSubdivided(cell)) {
       if (tree.IsLeaf(cell)) leaves.push_back(cell);

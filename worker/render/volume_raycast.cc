@@ -115,7 +115,10 @@ absl::StatusOr<Image> RaycastVolume(const VolumeGrid& g, const RenderParams& p, 
   LSQSURF_ASSIGN_OR_RETURN(auto opacity, ParseOpacity(p.opacity));
   const core::Box3 box(g.origin,
                        g.origin + (Vec3d(g.dims[0], g.dims[1], g.dims[2]) - Vec3d::Ones()).cwiseProduct(g.spacing));
-  const auto [lo, hi] = internal::VolumeColorRange(g, p);
+  // Plain names, not a structured binding: the lambdas below capture them (clang before 16
+  // cannot capture bindings).
+  const std::pair<double, double> range = internal::VolumeColorRange(g, p);
+  const double lo = range.first, hi = range.second;
   const double span = hi > lo ? hi - lo : 1.0;
   const internal::View view = internal::MakeView(box, p);
   const Eigen::Matrix4d inverse = (view.projection.cast<double>() * view.model_view.cast<double>()).inverse();

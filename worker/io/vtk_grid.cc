@@ -99,13 +99,17 @@ absl::StatusOr<VectorGrid> ParseVtkVectorGrid(std::string_view bytes, std::strin
   const size_t vectors_line = lines.line_number();
   if (!have_dataset || !have_dims)
     return error(vectors_line, "DATASET STRUCTURED_POINTS and DIMENSIONS must come before VECTORS");
+  // The product is bounded factor by factor: three large dimensions overflow even 64 bits
+  // (undefined behaviour, found by fuzzing).
+  int64_t nodes = 1;
   for (int a = 0; a < 3; ++a) {
     if (grid.dims[a] < 1) return error(vectors_line, "DIMENSIONS must be positive");
-  }
-  const int64_t nodes = int64_t{grid.dims[0]} * grid.dims[1] * grid.dims[2];
-  if (nodes > kMaxVectorGridNodes) {
-    return error(vectors_line,
-                 core::StrCat("the grid has ", nodes, " nodes; at most ", kMaxVectorGridNodes, " are accepted"));
+    nodes *= grid.dims[a];
+    if (nodes > kMaxVectorGridNodes) {
+      return error(vectors_line,
+                   core::StrCat("the grid has more than ", kMaxVectorGridNodes, " nodes (DIMENSIONS ", grid.dims[0],
+                                " ", grid.dims[1], " ", grid.dims[2], "); at most that many are accepted"));
+    }
   }
   if (point_data != nodes) return error(vectors_line, core::StrCat("POINT_DATA must equal nx·ny·nz = ", nodes));
   if (!grid.origin.allFinite() || !grid.spacing.allFinite() || !(grid.spacing.minCoeff() > 0)) {

@@ -78,8 +78,9 @@ grpc::Status ReconstructionService::Submit(const Caller& caller, grpc::ServerCon
   if (!spec.ok()) return ToGrpcStatus(spec.status());
   jobs::Uploads uploads;
   size_t received = 0;
-  const auto limit = static_cast<size_t>(jobs_.MaxUploadBytes(caller.submitter));
-  const bool quota_limit = jobs_.MaxUploadBytes(caller.submitter) < jobs_.options().max_input_bytes;
+  const int64_t max_upload = jobs_.MaxUploadBytes(caller.submitter);
+  const auto limit = static_cast<size_t>(max_upload);
+  const bool quota_limit = max_upload < jobs_.options().max_input_bytes;
   while (reader->Read(&message)) {
     if (message.has_spec()) {
       return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "only the first message may carry a spec");

@@ -8,9 +8,8 @@
 #include <openssl/x509.h>
 
 #include <filesystem>
-#include <fstream>
-#include <sstream>
 
+#include "server/owner_files.h"
 #include "worker/core/strings.h"
 
 namespace lsqsurf::server {
@@ -18,14 +17,6 @@ namespace {
 
 namespace fs = std::filesystem;
 using core::StrCat;
-
-absl::StatusOr<std::string> ReadPem(const std::string& path, const char* what) {
-  std::ifstream in(path, std::ios::binary);
-  if (!in) return absl::InvalidArgumentError(StrCat("cannot read the ", what, " ", path));
-  std::stringstream text;
-  text << in.rdbuf();
-  return text.str();
-}
 
 // OpenSSL objects freed on scope exit.
 struct BioDeleter {
@@ -55,15 +46,6 @@ std::string Describe(X509* cert) {
   char* data = nullptr;
   const long size = BIO_get_mem_data(out.get(), &data);
   return StrCat(subject, ", expires ", std::string(data, static_cast<size_t>(size)));
-}
-
-absl::Status WriteOwnerOnly(const fs::path& path, const std::string& text) {
-  std::ofstream out(path, std::ios::binary | std::ios::trunc);
-  fs::permissions(path, fs::perms::owner_read | fs::perms::owner_write, fs::perm_options::replace);
-  out << text;
-  out.close();
-  if (!out) return absl::UnavailableError(StrCat("cannot write ", path.string()));
-  return absl::OkStatus();
 }
 
 }  // namespace
@@ -101,13 +83,13 @@ absl::StatusOr<std::string> ServerTls::Reload() {
 }
 
 absl::Status ServerTls::Stage() {
-  auto cert_pem = ReadPem(files_.cert, "certificate");
+  auto cert_pem = ReadOwnerFile(files_.cert, "certificate");
   if (!cert_pem.ok()) return cert_pem.status();
-  auto key_pem = ReadPem(files_.key, "private key");
+  auto key_pem = ReadOwnerFile(files_.key, "private key");
   if (!key_pem.ok()) return key_pem.status();
   std::string ca_pem;
   if (!files_.client_ca.empty()) {
-    auto ca = ReadPem(files_.client_ca, "client CA");
+    auto ca = ReadOwnerFile(files_.client_ca, "client CA");
     if (!ca.ok()) return ca.status();
     if (FirstCertificate(*ca) == nullptr) {
       return absl::InvalidArgumentError(StrCat(files_.client_ca, " holds no PEM certificate"));
@@ -137,7 +119,7 @@ absl::Status ServerTls::Stage() {
   for (const auto& [name, text] : {std::pair<const char*, const std::string*>{"cert.pem", &*cert_pem},
                                    {"key.pem", &*key_pem},
                                    {"ca.pem", &ca_pem}}) {
-    if (absl::Status s = WriteOwnerOnly(folder / name, *text); !s.ok()) return s;
+    if (absl::Status s = WriteOwnerFile((folder / name).string(), *text, name); !s.ok()) return s;
   }
   const fs::path link = root / "current.new";
   fs::remove(link, error);

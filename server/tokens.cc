@@ -1,18 +1,16 @@
 #include "server/tokens.h"
 
-#include <fcntl.h>
 #include <openssl/crypto.h>
 #include <openssl/evp.h>
 #include <openssl/rand.h>
 #include <unistd.h>
 
 #include <cctype>
-#include <cerrno>
 #include <cstring>
-#include <fstream>
 #include <sstream>
 #include <stdexcept>
 
+#include "server/owner_files.h"
 #include "worker/core/strings.h"
 
 namespace lsqsurf::server {
@@ -101,37 +99,6 @@ std::string FormatEntry(const TokenEntry& e) {
   return line + "\n";
 }
 
-absl::StatusOr<std::string> ReadText(const std::string& path) {
-  std::ifstream in(path, std::ios::binary);
-  if (!in) return absl::NotFoundError(StrCat("cannot read the token file ", path, ": ", std::strerror(errno)));
-  std::stringstream text;
-  text << in.rdbuf();
-  return text.str();
-}
-
-// Replaces the file's text in one step (a reader sees the old file or the new one), readable by
-// its owner only: it names who may use the server.
-absl::Status WriteText(const std::string& path, const std::string& text) {
-  const std::string temporary = path + ".new";
-  const int fd = ::open(temporary.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC, 0600);
-  if (fd < 0) return absl::UnavailableError(StrCat("cannot write ", temporary, ": ", std::strerror(errno)));
-  size_t written = 0;
-  while (written < text.size()) {
-    const ssize_t n = ::write(fd, text.data() + written, text.size() - written);
-    if (n < 0 && errno == EINTR) continue;
-    if (n <= 0) break;
-    written += static_cast<size_t>(n);
-  }
-  const bool ok = written == text.size() && ::fsync(fd) == 0;
-  ::close(fd);
-  if (!ok || ::rename(temporary.c_str(), path.c_str()) != 0) {
-    const std::string reason = std::strerror(errno);
-    ::unlink(temporary.c_str());
-    return absl::UnavailableError(StrCat("cannot write the token file ", path, ": ", reason));
-  }
-  return absl::OkStatus();
-}
-
 }  // namespace
 
 const char* RoleName(Role role) { return role == Role::kAdmin ? "admin" : "user"; }
@@ -179,7 +146,7 @@ absl::StatusOr<std::vector<TokenEntry>> ParseTokens(std::string_view text, std::
 }
 
 absl::StatusOr<std::vector<TokenEntry>> ReadTokenFile(const std::string& path) {
-  auto text = ReadText(path);
+  auto text = ReadOwnerFile(path, "token file");
   if (!text.ok()) return text.status();
   return ParseTokens(*text, path);
 }
@@ -190,7 +157,7 @@ absl::StatusOr<std::string> AddToken(const std::string& path, TokenEntry entry) 
   }
   std::string text = kFileHeader;
   if (::access(path.c_str(), F_OK) == 0) {
-    auto existing = ReadText(path);
+    auto existing = ReadOwnerFile(path, "token file");
     if (!existing.ok()) return existing.status();
     auto entries = ParseTokens(*existing, path);
     if (!entries.ok()) return entries.status();
@@ -208,12 +175,12 @@ absl::StatusOr<std::string> AddToken(const std::string& path, TokenEntry entry) 
   entry.salt_hex = Hex(random, kSaltBytes);
   entry.hash_hex = Hex(reinterpret_cast<const unsigned char*>(digest.data()), digest.size());
   text += FormatEntry(entry);
-  if (absl::Status s = WriteText(path, text); !s.ok()) return s;
+  if (absl::Status s = WriteOwnerFile(path, text, "token file"); !s.ok()) return s;
   return token;
 }
 
 absl::Status RevokeToken(const std::string& path, const std::string& name) {
-  auto text = ReadText(path);
+  auto text = ReadOwnerFile(path, "token file");
   if (!text.ok()) return text.status();
   auto entries = ParseTokens(*text, path);
   if (!entries.ok()) return entries.status();
@@ -232,7 +199,7 @@ absl::Status RevokeToken(const std::string& path, const std::string& name) {
     kept += line + "\n";
   }
   if (!found) return absl::NotFoundError(StrCat("no token named '", name, "' in ", path));
-  return WriteText(path, kept);
+  return WriteOwnerFile(path, kept, "token file");
 }
 
 absl::StatusOr<std::unique_ptr<TokenTable>> TokenTable::Load(const std::string& path) {

@@ -74,12 +74,6 @@ struct ClientRun {
   std::string output;  // stdout and stderr together.
 };
 
-ClientRun Shell(const std::string& command);
-
-inline ClientRun Client(const std::string& address, const std::string& args) {
-  return Shell(std::string(LSQSURF_PATH) + " --server " + address + " " + args);
-}
-
 // Runs a shell command line; its exit code and its stdout and stderr together.
 inline ClientRun Shell(const std::string& command) {
   ClientRun r;
@@ -90,6 +84,10 @@ inline ClientRun Shell(const std::string& command) {
   const int status = ::pclose(p);
   r.code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
   return r;
+}
+
+inline ClientRun Client(const std::string& address, const std::string& args) {
+  return Shell(std::string(LSQSURF_PATH) + " --server " + address + " " + args);
 }
 
 inline std::string Trim(std::string s) {

@@ -3,15 +3,17 @@
 # with TLS (a CA and certificate made here with openssl) and --auth-tokens, and the same uploads
 # of a 1M-point cloud to each, cancelled at once so that no job competes with the next upload.
 #
-#   scripts/tls-bench.sh [POINTS] [UPLOADS]    defaults: 1000000 points, 7 uploads per server
+#   scripts/tls-bench.sh [POINTS] [UPLOADS] [ROUNDS]
+#       defaults: 1000000 points, 5 uploads per server and round, 6 rounds
 #
-# Prints lsqsurf-load's SubmitJob latencies per server and the overhead of the median. Needs a
-# release build and openssl.
+# Prints the median SubmitJob latency per server and round, and the median over the rounds of
+# each round's overhead. Needs a release build and openssl; run it on an otherwise idle machine.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
 points=${1:-1000000}
-uploads=${2:-7}
+uploads=${2:-5}
+rounds=${3:-6}
 bin=build/release/bin
 work=$(mktemp -d /tmp/lsqsurf-tls-bench.XXXXXX)
 pids=()
@@ -43,11 +45,28 @@ secure=$(start secure --tls-cert "$work/server.crt" --tls-key "$work/server.key"
 
 load=("$bin/lsqsurf-load" --cloud ../shared/data/meshes/stanford-bunny.obj --points "$points" --method iamls
   --jobs "$uploads" --submitters 1 --pollers 0 --submit-only --cancel-every 1)
-echo "== plaintext, no token ($plain)"
-"${load[@]}" --server "$plain" | tee "$work/plain.txt" | grep -E "SubmitJob|job "
-echo "== TLS and a token ($secure)"
-LSQSURF_TOKEN=$(cat "$work/bench.token") "${load[@]}" --server "$secure" --tls-ca "$work/ca.crt" |
-  tee "$work/secure.txt" | grep -E "SubmitJob|job "
+run_plain() { "${load[@]}" --server "$plain" >"$1"; }
+run_secure() { LSQSURF_TOKEN=$(cat "$work/bench.token") "${load[@]}" --server "$secure" --tls-ca "$work/ca.crt" >"$1"; }
 p50() { sed -n 's/^SubmitJob .*p50 \([0-9.]*\) .*/\1/p' "$1"; }
-python3 -c "import sys; a, b = float(sys.argv[1]), float(sys.argv[2]); print(f'median upload: plaintext {a:.1f} ms, TLS + token {b:.1f} ms, overhead {100 * (b - a) / a:+.1f} %')" \
-  "$(p50 "$work/plain.txt")" "$(p50 "$work/secure.txt")"
+# Rounds alternate which server goes first, and each round compares its own pair of medians, so
+# that a drift of the machine's speed over the run does not count as overhead.
+for round in $(seq "$rounds"); do
+  if ((round % 2)); then
+    run_plain "$work/plain.$round"
+    run_secure "$work/secure.$round"
+  else
+    run_secure "$work/secure.$round"
+    run_plain "$work/plain.$round"
+  fi
+  printf 'round %d: plaintext p50 %s ms, TLS + token p50 %s ms\n' "$round" "$(p50 "$work/plain.$round")" \
+    "$(p50 "$work/secure.$round")"
+done
+for round in $(seq "$rounds"); do printf '%s %s\n' "$(p50 "$work/plain.$round")" "$(p50 "$work/secure.$round")"; done |
+  python3 -c "
+import statistics, sys
+pairs = [tuple(map(float, line.split())) for line in sys.stdin]
+plain = statistics.median(a for a, _ in pairs)
+secure = statistics.median(b for _, b in pairs)
+paired = statistics.median(100 * (b - a) / a for a, b in pairs)
+print(f'median upload: plaintext {plain:.1f} ms, TLS + token {secure:.1f} ms; median paired overhead {paired:+.1f} %')
+"

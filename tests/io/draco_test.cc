@@ -1,10 +1,12 @@
 #include <gtest/gtest.h>
 
 #include <cstdio>
+#include <cstring>
 #include <filesystem>
 #include <random>
 
 #include "worker/io/draco_codec.h"
+#include "worker/io/draco_header.h"
 #include "worker/io/files.h"
 #include "worker/io/ply.h"
 
@@ -47,17 +49,24 @@ TEST(Draco, PointCloudRoundTripWithinQuantization) {
   }
 }
 
-TEST(Draco, MeshRoundTripKeepsConnectivity) {
+// The unit square in the z = 0 plane, n × n quads split into two triangles each.
+core::TriangleMesh GridMesh(int n) {
   core::TriangleMesh m;
-  const int n = 20;
   for (int j = 0; j <= n; ++j)
-    for (int i = 0; i <= n; ++i) m.vertices.emplace_back(static_cast<float>(i) / n, static_cast<float>(j) / n, 0.0f);
+    for (int i = 0; i <= n; ++i)
+      m.vertices.emplace_back(static_cast<float>(i) / static_cast<float>(n),
+                              static_cast<float>(j) / static_cast<float>(n), 0.0f);
   for (int j = 0; j < n; ++j)
     for (int i = 0; i < n; ++i) {
       const auto a = static_cast<uint32_t>(j * (n + 1) + i);
       m.faces.push_back({a, a + 1, a + static_cast<uint32_t>(n) + 1});
       m.faces.push_back({a + 1, a + static_cast<uint32_t>(n) + 2, a + static_cast<uint32_t>(n) + 1});
     }
+  return m;
+}
+
+TEST(Draco, MeshRoundTripKeepsConnectivity) {
+  const core::TriangleMesh m = GridMesh(20);
   auto bytes = EncodeDracoMesh(m, {});
   ASSERT_TRUE(bytes.ok());
   auto back = DecodeDracoMesh(*bytes);
@@ -112,6 +121,81 @@ TEST(Draco, ReferenceDecoderReadsOurFiles) {
   ASSERT_TRUE(decoded.ok()) << decoded.status();
   EXPECT_EQ(decoded->size(), cloud.size());
   std::filesystem::remove_all(dir);
+}
+
+// The counts read from the header, without Draco, are those of the data: for both point-cloud
+// coders (kd-tree, sequential) and both mesh coders (Edgebreaker, sequential).
+TEST(DracoHeader, ClaimsMatchTheEncodedData) {
+  const core::PointCloud cloud = RandomCloud(777);
+  for (int speed : {5, 10}) {
+    auto bytes = EncodeDracoPointCloud(cloud, {.speed = speed});
+    ASSERT_TRUE(bytes.ok());
+    auto claim = ReadDracoClaim(*bytes);
+    ASSERT_TRUE(claim.ok()) << claim.status();
+    EXPECT_FALSE(claim->is_mesh);
+    EXPECT_EQ(claim->points, cloud.size()) << "speed " << speed;
+    // Float positions and normals (3 components) and one float scalar, 4 + 4 bytes a component.
+    EXPECT_EQ(claim->attribute_bytes_per_point, 7u * 8u) << "speed " << speed;
+  }
+  const core::TriangleMesh mesh = GridMesh(9);
+  for (int speed : {5, 10}) {
+    auto bytes = EncodeDracoMesh(mesh, {.speed = speed});
+    ASSERT_TRUE(bytes.ok());
+    auto claim = ReadDracoClaim(*bytes);
+    ASSERT_TRUE(claim.ok()) << claim.status();
+    EXPECT_TRUE(claim->is_mesh);
+    EXPECT_EQ(claim->points, mesh.vertices.size()) << "speed " << speed;
+    EXPECT_EQ(claim->faces, mesh.faces.size()) << "speed " << speed;
+  }
+}
+
+// A valid cloud whose point count is raised to a billion: Draco would allocate ~12 GB for it.
+TEST(DracoHeader, InflatedPointCountIsRefusedBeforeDecoding) {
+  auto bytes = EncodeDracoPointCloud(RandomCloud(500), {.position_bits = 11});
+  ASSERT_TRUE(bytes.ok());
+  auto claim = ReadDracoClaim(*bytes);
+  ASSERT_TRUE(claim.ok());
+  // The unnamed-attribute cloud has no metadata, so the count sits right after the 11-byte header.
+  std::string inflated = *EncodeDracoPointCloud({RandomCloud(500).positions, {}, {}}, {.position_bits = 11});
+  ASSERT_EQ(inflated[10] & 0x80, 0) << "metadata flag";
+  const int32_t billion = 1'000'000'000;
+  std::memcpy(inflated.data() + 11, &billion, sizeof(billion));
+  auto inflated_claim = ReadDracoClaim(inflated);
+  ASSERT_TRUE(inflated_claim.ok()) << inflated_claim.status();
+  EXPECT_EQ(inflated_claim->points, 1'000'000'000u);
+  auto decoded = DecodeDracoPointCloud(inflated);
+  EXPECT_EQ(decoded.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(decoded.status().message().find("claims 1000000000 points"), std::string_view::npos) << decoded.status();
+  // The server's own point limit is a resource limit, told apart from corruption.
+  auto limited = DecodeDracoPointCloud(*bytes, {.max_points = 499});
+  EXPECT_EQ(limited.status().code(), absl::StatusCode::kResourceExhausted);
+  EXPECT_TRUE(DecodeDracoPointCloud(*bytes, {.max_points = 500}).ok());
+}
+
+TEST(DracoHeader, RefusesDeepMetadataOldVersionsAndTruncation) {
+  // Header of a sequential cloud with metadata, then blocks nested 40 deep: no entries, one
+  // nameless child each.
+  std::string deep = std::string("DRACO") + '\x02' + '\x03' + '\x00' + '\x00' + '\x00' + '\x80';
+  deep += '\x00';  // No attribute metadata.
+  for (int level = 0; level < 40; ++level) deep += std::string("\x00\x01\x00", 3);
+  auto claim = ReadDracoClaim(deep);
+  EXPECT_EQ(claim.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(claim.status().message().find("nested"), std::string_view::npos) << claim.status();
+
+  auto bytes = EncodeDracoPointCloud(RandomCloud(50), {});
+  ASSERT_TRUE(bytes.ok());
+  std::string old = *bytes;
+  old[6] = 1;  // Bitstream 2.1.
+  EXPECT_NE(ReadDracoClaim(old).status().message().find("version 2.1"), std::string_view::npos);
+  // Before 2.3 the kd-tree coder carries a second, unchecked point count deep in the stream.
+  std::string old_kd_tree = *bytes;
+  ASSERT_EQ(old_kd_tree[8], 1) << "kd-tree coded";
+  old_kd_tree[6] = 2;
+  EXPECT_NE(ReadDracoClaim(old_kd_tree).status().message().find("bitstream 2.2"), std::string_view::npos);
+  // Every prefix that cuts the counts or descriptors off is refused, never read past its end.
+  for (size_t len = 0; len < 24; ++len) {
+    EXPECT_FALSE(ReadDracoClaim(std::string_view(*bytes).substr(0, len)).ok()) << "length " << len;
+  }
 }
 
 }  // namespace

@@ -4,8 +4,20 @@
 // the return-if-error helpers, so these macros stand in for them.
 #pragma once
 
+#include <string>
+#include <string_view>
+
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
+
+namespace lsqsurf::core {
+
+// `status` with "`context`: " before its message, and its code kept.
+inline absl::Status WithContext(std::string_view context, const absl::Status& status) {
+  return absl::Status(status.code(), std::string(context) + ": " + std::string(status.message()));
+}
+
+}  // namespace lsqsurf::core
 
 #define LSQSURF_STATUS_CONCAT_INNER(a, b) a##b
 #define LSQSURF_STATUS_CONCAT(a, b) LSQSURF_STATUS_CONCAT_INNER(a, b)

@@ -6,7 +6,11 @@
 #include <draco/metadata/geometry_metadata.h>
 #include <draco/point_cloud/point_cloud.h>
 
+#include <algorithm>
+
+#include "worker/core/status.h"
 #include "worker/core/strings.h"
+#include "worker/io/draco_header.h"
 
 namespace lsqsurf::io {
 namespace {
@@ -52,6 +56,11 @@ draco::Encoder MakeEncoder(const DracoOptions& o) {
   return enc;
 }
 
+// Draco reads a BOOL attribute's bytes as C++ bools, which is undefined for any byte but 0 and 1.
+bool IsNumeric(const draco::PointAttribute& attribute) {
+  return attribute.data_type() != draco::DT_BOOL && attribute.data_type() != draco::DT_INVALID;
+}
+
 absl::Status DracoError(std::string_view what, const draco::Status& s) {
   return absl::InvalidArgumentError(
       core::StrCat(what, ": ", s.error_msg_string(), " (is the data truncated or corrupt?)"));
@@ -62,9 +71,10 @@ absl::Status ExtractPoints(const draco::PointCloud& pc, std::vector<core::Vec3f>
                            std::vector<core::Vec3f>& normals, std::vector<core::ScalarAttribute>& attributes) {
   const draco::PointAttribute* pos = pc.GetNamedAttribute(draco::GeometryAttribute::POSITION);
   if (pos == nullptr) return absl::InvalidArgumentError("Draco data has no position attribute");
-  if (pos->num_components() != 3) {
-    return absl::InvalidArgumentError(
-        core::StrCat("Draco positions have ", pos->num_components(), " components; 3 are required"));
+  if (pos->num_components() != 3 || !IsNumeric(*pos)) {
+    return absl::InvalidArgumentError(core::StrCat("Draco positions have ", pos->num_components(),
+                                                   " components of type ", int{pos->data_type()},
+                                                   "; 3 numbers are required"));
   }
   const uint32_t n = pc.num_points();
   positions.resize(n);
@@ -73,9 +83,10 @@ absl::Status ExtractPoints(const draco::PointCloud& pc, std::vector<core::Vec3f>
   }
   const draco::PointAttribute* nrm = pc.GetNamedAttribute(draco::GeometryAttribute::NORMAL);
   if (nrm != nullptr) {
-    if (nrm->num_components() != 3) {
-      return absl::InvalidArgumentError(
-          core::StrCat("Draco normals have ", nrm->num_components(), " components; 3 are required"));
+    if (nrm->num_components() != 3 || !IsNumeric(*nrm)) {
+      return absl::InvalidArgumentError(core::StrCat("Draco normals have ", nrm->num_components(),
+                                                     " components of type ", int{nrm->data_type()},
+                                                     "; 3 numbers are required"));
     }
     normals.resize(n);
     for (uint32_t i = 0; i < n; ++i) {
@@ -85,7 +96,7 @@ absl::Status ExtractPoints(const draco::PointCloud& pc, std::vector<core::Vec3f>
   const int generic_count = pc.NumNamedAttributes(draco::GeometryAttribute::GENERIC);
   for (int g = 0; g < generic_count; ++g) {
     const draco::PointAttribute* att = pc.GetNamedAttribute(draco::GeometryAttribute::GENERIC, g);
-    if (att->num_components() != 1) continue;  // Only scalar attributes are product data.
+    if (att->num_components() != 1 || !IsNumeric(*att)) continue;  // Only scalars are product data.
     core::ScalarAttribute out;
     out.name = core::StrCat("generic_", g);
     if (const draco::AttributeMetadata* md =
@@ -97,6 +108,29 @@ absl::Status ExtractPoints(const draco::PointCloud& pc, std::vector<core::Vec3f>
       att->ConvertValue<float>(att->mapped_index(draco::PointIndex(i)), 1, &out.values[i]);
     }
     attributes.push_back(std::move(out));
+  }
+  return absl::OkStatus();
+}
+
+// Refuses a stream whose header claims more than `limits` allow, before Draco allocates it.
+absl::Status CheckClaim(std::string_view bytes, const DracoDecodeLimits& limits) {
+  auto claim = ReadDracoClaim(bytes);
+  if (!claim.ok()) return claim.status();
+  if (claim->points > static_cast<uint64_t>(limits.max_points)) {
+    return absl::ResourceExhaustedError(
+        core::StrCat("the cloud has ", claim->points, " points; this server accepts at most ", limits.max_points));
+  }
+  // Positions as floats and Draco's integer copy; a mesh's corner table and faces besides.
+  const uint64_t per_point = std::max<uint64_t>(claim->attribute_bytes_per_point, 24);
+  const double needed =
+      static_cast<double>(claim->points) * static_cast<double>(per_point) + static_cast<double>(claim->faces) * 36.0;
+  const double allowed = static_cast<double>(limits.max_expansion) * static_cast<double>(bytes.size()) +
+                         static_cast<double>(limits.expansion_allowance_bytes);
+  if (needed > allowed) {
+    return absl::InvalidArgumentError(core::StrCat("the Draco header claims ", claim->points, " points",
+                                                   claim->is_mesh ? core::StrCat(" and ", claim->faces, " faces") : "",
+                                                   " in only ", bytes.size(),
+                                                   " bytes; no real data compresses that far, so it is corrupt"));
   }
   return absl::OkStatus();
 }
@@ -162,8 +196,9 @@ absl::StatusOr<DracoGeometry> PeekDracoGeometry(std::string_view bytes) {
   }
 }
 
-absl::StatusOr<core::PointCloud> DecodeDracoPointCloud(std::string_view bytes) {
+absl::StatusOr<core::PointCloud> DecodeDracoPointCloud(std::string_view bytes, const DracoDecodeLimits& limits) {
   if (bytes.empty()) return absl::InvalidArgumentError("the Draco data is empty");
+  LSQSURF_RETURN_IF_ERROR(CheckClaim(bytes, limits));
   draco::DecoderBuffer buffer;
   buffer.Init(bytes.data(), bytes.size());
   draco::Decoder decoder;
@@ -175,13 +210,14 @@ absl::StatusOr<core::PointCloud> DecodeDracoPointCloud(std::string_view bytes) {
   return cloud;
 }
 
-absl::StatusOr<core::TriangleMesh> DecodeDracoMesh(std::string_view bytes) {
+absl::StatusOr<core::TriangleMesh> DecodeDracoMesh(std::string_view bytes, const DracoDecodeLimits& limits) {
   if (bytes.empty()) return absl::InvalidArgumentError("the Draco data is empty");
   auto type = PeekDracoGeometry(bytes);
   if (!type.ok()) return type.status();
   if (*type != DracoGeometry::kTriangleMesh) {
     return absl::InvalidArgumentError("the Draco data holds a point cloud, not a triangle mesh");
   }
+  LSQSURF_RETURN_IF_ERROR(CheckClaim(bytes, limits));
   draco::DecoderBuffer buffer;
   buffer.Init(bytes.data(), bytes.size());
   draco::Decoder decoder;

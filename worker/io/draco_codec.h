@@ -7,6 +7,7 @@
 // (Edgebreaker) reorders vertices; attributes stay attached to their points.
 #pragma once
 
+#include <cstdint>
 #include <string>
 #include <string_view>
 
@@ -35,10 +36,23 @@ enum class DracoGeometry { kPointCloud, kTriangleMesh };
 // that is empty, not Draco, or of another geometry type.
 absl::StatusOr<DracoGeometry> PeekDracoGeometry(std::string_view bytes);
 
+// Bounds on what a stream may claim, checked on its header before Draco decodes it (Draco
+// allocates what the header claims before reading the data; see draco_header.h).
+struct DracoDecodeLimits {
+  int64_t max_points = 2'000'000'000;  // Points (vertices) of one stream.
+  // Memory the decoder may need, per byte of the stream. Real data stays far below it: a
+  // 1M-vertex grid mesh at 11 bits expands ~700 times, a scanned cloud ~50 times; only a
+  // cloud of one point repeated a million times compresses further.
+  int64_t max_expansion = 4096;
+  int64_t expansion_allowance_bytes = 32 << 20;  // Granted to every stream on top of that.
+};
+
 // Decodes a Draco point cloud, or the vertices of a Draco mesh. Errors: kInvalidArgument with
-// Draco's reason for truncated or corrupt data, or a position attribute that is not 3-D.
-absl::StatusOr<core::PointCloud> DecodeDracoPointCloud(std::string_view bytes);
+// Draco's reason for truncated or corrupt data, a header that claims more memory than
+// `max_expansion` allows, or a position attribute that is not 3-D; kResourceExhausted for more
+// than `max_points` points.
+absl::StatusOr<core::PointCloud> DecodeDracoPointCloud(std::string_view bytes, const DracoDecodeLimits& limits = {});
 // Decodes a Draco mesh. Errors as above, plus kInvalidArgument when the data is a point cloud.
-absl::StatusOr<core::TriangleMesh> DecodeDracoMesh(std::string_view bytes);
+absl::StatusOr<core::TriangleMesh> DecodeDracoMesh(std::string_view bytes, const DracoDecodeLimits& limits = {});
 
 }  // namespace lsqsurf::io

@@ -55,13 +55,13 @@ const core::ParamTable<ProbeJobParams>& ProbeJobParamTable() {
   return *table;
 }
 
-absl::StatusOr<std::vector<Vec3d>> DecodePoints(const Uploads& uploads) {
+absl::StatusOr<std::vector<Vec3d>> DecodePoints(const Uploads& uploads, int64_t max_points) {
   auto it = uploads.find(kInputUpload);
   if (it == uploads.end() || it->second.empty()) {
     return absl::InvalidArgumentError("no points were uploaded (input: a Draco point cloud), and no grid was given");
   }
-  auto cloud = io::DecodeDracoPointCloud(it->second);
-  if (!cloud.ok()) return absl::InvalidArgumentError(core::StrCat("input: ", cloud.status().message()));
+  auto cloud = io::DecodeDracoPointCloud(it->second, {.max_points = max_points});
+  if (!cloud.ok()) return core::WithContext("input", cloud.status());
   std::vector<Vec3d> out;
   out.reserve(cloud->size());
   for (size_t i = 0; i < cloud->size(); ++i) {
@@ -129,7 +129,7 @@ class ProbeKind final : public JobKind {
     LSQSURF_ASSIGN_OR_RETURN(auto grid, ParseGrid(p->grid));
     const int64_t count = p->grid.empty() ? 0 : grid[0] * grid[1] * grid[2];
     if (p->grid.empty()) {
-      LSQSURF_ASSIGN_OR_RETURN(std::vector<Vec3d> points, DecodePoints(uploads));
+      LSQSURF_ASSIGN_OR_RETURN(std::vector<Vec3d> points, DecodePoints(uploads, limits.max_points));
       if (static_cast<int64_t>(points.size()) > limits.max_points) {
         return absl::ResourceExhaustedError(
             core::StrCat(points.size(), " probe points; this server accepts at most ", limits.max_points));
@@ -169,7 +169,8 @@ class ProbeKind final : public JobKind {
       if (env.decoded != nullptr) {
         xs = std::move(*std::static_pointer_cast<std::vector<Vec3d>>(env.decoded));
       } else {
-        LSQSURF_ASSIGN_OR_RETURN(xs, DecodePoints(uploads));
+        // Its size was checked at submission.
+        LSQSURF_ASSIGN_OR_RETURN(xs, DecodePoints(uploads, io::DracoDecodeLimits{}.max_points));
       }
     } else {
       for (int a = 0; a < 3; ++a) spacing[a] = field->bounds().sizes()[a] / static_cast<double>(grid[a] - 1);

@@ -295,14 +295,14 @@ absl::Status CheckCloud(const core::PointCloud& cloud, const NormalsParams& norm
 }
 
 // Decodes the upload; a Draco mesh is refused rather than read as its vertices.
-absl::StatusOr<core::PointCloud> DecodeCloud(const Uploads& uploads) {
+absl::StatusOr<core::PointCloud> DecodeCloud(const Uploads& uploads, int64_t max_points) {
   auto it = uploads.find(kInputUpload);
   if (it == uploads.end() || it->second.empty()) return absl::InvalidArgumentError("no input data was uploaded");
   if (auto type = io::PeekDracoGeometry(it->second); type.ok() && *type == io::DracoGeometry::kTriangleMesh) {
     return absl::InvalidArgumentError("input: the upload is a Draco triangle mesh; upload a Draco point cloud");
   }
-  auto cloud = io::DecodeDracoPointCloud(it->second);
-  if (!cloud.ok()) return absl::InvalidArgumentError(core::StrCat("input: ", cloud.status().message()));
+  auto cloud = io::DecodeDracoPointCloud(it->second, {.max_points = max_points});
+  if (!cloud.ok()) return core::WithContext("input", cloud.status());
   return cloud;
 }
 
@@ -320,7 +320,7 @@ class SurfaceKind final : public JobKind {
                                             const InputLimits& limits) const override {
     const SurfaceMethod* m = FindSurfaceMethod(spec.method);
     if (m == nullptr || m->normals(spec.params) == nullptr) return absl::InternalError("not a surface method");
-    auto cloud = DecodeCloud(uploads);
+    auto cloud = DecodeCloud(uploads, limits.max_points);
     if (!cloud.ok()) return cloud.status();
     LSQSURF_RETURN_IF_ERROR(CheckCloud(*cloud, *m->normals(spec.params), limits));
     const auto points = static_cast<int64_t>(cloud->size());
@@ -332,7 +332,7 @@ class SurfaceKind final : public JobKind {
     if (env.decoded != nullptr) {
       cloud = std::move(*std::static_pointer_cast<core::PointCloud>(env.decoded));  // Decoded at submission.
     } else {
-      cloud = DecodeCloud(uploads);
+      cloud = DecodeCloud(uploads, io::DracoDecodeLimits{}.max_points);  // Its size was checked at submission.
       if (!cloud.ok()) return cloud.status();
     }
     auto result = ReconstructSurface(spec.method, spec.params, *std::move(cloud), env.context);

@@ -222,7 +222,7 @@ class TrackKind final : public JobKind {
     TrackInput input;
     const bool has_input = uploads.contains(kInputUpload) && !uploads.at(kInputUpload).empty();
     if (p.interface == TrackInterface::kUploaded) {
-      auto cloud = DecodeInterface(uploads);
+      auto cloud = DecodeInterface(uploads, max_points);
       if (!cloud.ok()) return cloud.status();
       if (cloud->empty()) return absl::InvalidArgumentError("the uploaded interface is empty");
       if (static_cast<int64_t>(cloud->size()) > max_points) {
@@ -251,13 +251,13 @@ class TrackKind final : public JobKind {
     return input;
   }
 
-  static absl::StatusOr<core::PointCloud> DecodeInterface(const Uploads& uploads) {
+  static absl::StatusOr<core::PointCloud> DecodeInterface(const Uploads& uploads, int64_t max_points) {
     auto it = uploads.find(kInputUpload);
     if (it == uploads.end() || it->second.empty()) {
       return absl::InvalidArgumentError("interface=uploaded needs an uploaded oriented cloud");
     }
-    auto cloud = io::DecodeDracoPointCloud(it->second);
-    if (!cloud.ok()) return absl::InvalidArgumentError(core::StrCat("input: ", cloud.status().message()));
+    auto cloud = io::DecodeDracoPointCloud(it->second, {.max_points = max_points});
+    if (!cloud.ok()) return core::WithContext("input", cloud.status());
     if (!cloud->has_normals())
       return absl::InvalidArgumentError("a tracked interface needs oriented normals (outward)");
     return cloud;

@@ -41,7 +41,7 @@ absl::StatusOr<volume::VolumeMesh> DecodeVolume(const Uploads& uploads, int64_t 
   }
   volume::VolumeMesh mesh;
   if (absl::Status s = io::DecodeVolumeVertices(it->second, mesh); !s.ok()) {
-    return absl::InvalidArgumentError(core::StrCat("input: ", s.message()));
+    return core::WithContext("input", s);
   }
   if (auto cells = uploads.find(kCellsUpload); cells != uploads.end() && !cells->second.empty()) {
     if (absl::Status s = io::DecodeCellStream(cells->second, max_cells, mesh); !s.ok()) {

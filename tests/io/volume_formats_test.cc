@@ -118,7 +118,13 @@ TEST(LegacyVtk, RefusesHostileFilesWithAReason) {
                            "LOOKUP_TABLE default\n1 nan 3 4\n")
                 .find("NaN"),
             std::string::npos);
-  EXPECT_NE(Refusal(head + "CELLS 1 5000000000\n4 0 1 2 3\n").find("do not fit"), std::string::npos);
+  EXPECT_NE(Refusal(head + "CELLS 1 5000000\n4 0 1 2 3\n").find("do not fit"), std::string::npos);
+  // Counts are bounded before they are multiplied (a lookup table's size × 4 overflowed).
+  EXPECT_NE(Refusal(head + "CELLS 1 5000000000\n4 0 1 2 3\n").find("too large"), std::string::npos);
+  EXPECT_NE(Refusal(head + "CELLS 1 5\n4 0 1 2 3\nCELL_TYPES 1\n10\nPOINT_DATA 4\nSCALARS f float\n"
+                           "LOOKUP_TABLE default\n1 2 3 4\nLOOKUP_TABLE t 2666666666666666661\n")
+                .find("too large"),
+            std::string::npos);
   EXPECT_NE(Refusal("# vtk DataFile Version 3.0\nx\nASCII\nDATASET POLYDATA\n").find("holds no volume"),
             std::string::npos);
   const std::string binary = EncodeLegacyVtk(MixedMesh(), true);

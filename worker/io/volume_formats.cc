@@ -69,6 +69,8 @@ double LoadBinary(std::string_view type, const char* p) {
 }
 
 // Tokens of the text parts and the numbers of the data blocks, ASCII or big-endian binary.
+constexpr int64_t kMaxCount = (int64_t{1} << 31) - 1;  // Any count in a legacy VTK file.
+
 class VtkCursor {
  public:
   VtkCursor(std::string_view bytes, std::string_view name) : b_(bytes), name_(name) {}
@@ -92,6 +94,9 @@ class VtkCursor {
     if (ec != std::errc() || p != tok.data() + tok.size() || v < 0) {
       return Error(core::StrCat("expected ", what, " (a count), found '", tok, "'"));
     }
+    // Counts are multiplied together (components × tuples, entries × 4): bounding each keeps
+    // those products far from overflow, and no file holds 2^31 of anything.
+    if (v > kMaxCount) return Error(core::StrCat(what, " ", v, " is too large (at most ", kMaxCount, ")"));
     return v;
   }
   absl::StatusOr<double> Number(std::string_view what) {
@@ -119,8 +124,10 @@ class VtkCursor {
     if (size == 0) return Error(core::StrCat(what, ": data type '", type, "' is not supported"));
     const size_t left = b_.size() - std::min(pos_, b_.size());
     // Each ASCII number needs at least two bytes (a digit and a separator).
-    const uint64_t need = binary_ ? static_cast<uint64_t>(count) * size : static_cast<uint64_t>(count);
-    if (count < 0 || need > left + 1) {
+    // Checked before the multiplication, which could otherwise wrap: every value takes a byte at least.
+    const bool fits = count >= 0 && static_cast<uint64_t>(count) <= left + 1 &&
+                      (binary_ ? static_cast<uint64_t>(count) * size : static_cast<uint64_t>(count)) <= left + 1;
+    if (!fits) {
       return Error(
           core::StrCat(what, ": ", count, " values do not fit in the ", left, " bytes left (truncated file?)"));
     }
@@ -328,6 +335,10 @@ absl::Status CheckedIndex(VtkCursor& c, double value, std::string_view what, uin
   return absl::OkStatus();
 }
 
+// A VTK cell type read as a number, within 0..255. NaN passes through a clamp and converting it
+// is undefined, so it becomes 0 (VTK's empty cell, refused later like any unknown type).
+uint8_t CellKind(double value) { return static_cast<uint8_t>(std::isnan(value) ? 0.0 : std::clamp(value, 0.0, 255.0)); }
+
 // One cell of any VTK type (checked later by ValidateVolumeMesh); a voxel becomes the
 // hexahedron it is, with its last two vertex pairs swapped.
 void AppendCell(uint8_t type, std::vector<uint32_t>& vertices, VolumeMesh& mesh) {
@@ -370,7 +381,7 @@ absl::Status AssembleCells(VtkCursor& c, const VtkContent& v, VolumeMesh& mesh) 
     for (size_t k = begin; k < end; ++k) {
       LSQSURF_RETURN_IF_ERROR(CheckedIndex(c, v.cells[k], core::StrCat("CELLS: cell ", cell), vertices[k - begin]));
     }
-    AppendCell(static_cast<uint8_t>(std::clamp(v.cell_types[cell], 0.0, 255.0)), vertices, mesh);
+    AppendCell(CellKind(v.cell_types[cell]), vertices, mesh);
   }
   return absl::OkStatus();
 }
@@ -803,8 +814,7 @@ absl::StatusOr<VolumeMesh> ParseVtu(std::string_view bytes, std::string_view nam
         v.push_back(base + static_cast<uint32_t>(ids[k]));
       }
       begin = ends[c];
-      auto type = static_cast<uint8_t>(std::clamp(kinds[c], 0.0, 255.0));
-      AppendCell(type, v, mesh);
+      AppendCell(CellKind(kinds[c]), v, mesh);
     }
     for (pugi::xml_node a : piece.child("PointData").children("DataArray")) {
       const std::string field_name = a.attribute("Name").value();

@@ -4,6 +4,7 @@
 
 #include "worker/core/status.h"
 #include "worker/core/strings.h"
+#include "worker/io/varint.h"
 
 namespace lsqsurf::io {
 namespace {
@@ -48,20 +49,12 @@ class ByteReader {
     std::memcpy(&out, &v, sizeof(out));
     return true;
   }
-  // Unsigned LEB128 of at most five bytes whose value fits 32 bits, as Draco writes counts.
+  // A count as Draco writes it: LEB128 whose value fits 32 bits.
   bool Varint(uint32_t& out) {
     uint64_t v = 0;
-    for (int i = 0; i < 5; ++i) {
-      uint8_t b = 0;
-      if (!U8(b)) return false;
-      v |= static_cast<uint64_t>(b & 0x7f) << (7 * i);
-      if ((b & 0x80) == 0) {
-        if (v > 0xffffffffu) return false;
-        out = static_cast<uint32_t>(v);
-        return true;
-      }
-    }
-    return false;
+    if (!GetVarint(bytes_, pos_, v) || v > 0xffffffffu) return false;
+    out = static_cast<uint32_t>(v);
+    return true;
   }
 
  private:

@@ -7,6 +7,7 @@
 #include "worker/core/status.h"
 #include "worker/core/strings.h"
 #include "worker/io/draco_codec.h"
+#include "worker/io/varint.h"
 
 namespace lsqsurf::io {
 namespace {
@@ -14,24 +15,6 @@ namespace {
 constexpr std::string_view kCellMagic = "LQC1";
 // The longest a cell can be in the payload: a type byte and 8 indices of at most 5 bytes each.
 constexpr uint64_t kMaxCellBytes = 1 + 8 * 5;
-
-void PutVarint(std::string& out, uint64_t v) {
-  while (v >= 0x80) {
-    out += static_cast<char>((v & 0x7f) | 0x80);
-    v >>= 7;
-  }
-  out += static_cast<char>(v);
-}
-
-bool GetVarint(std::string_view s, size_t& pos, uint64_t& v) {
-  v = 0;
-  for (int shift = 0; shift < 64 && pos < s.size(); shift += 7) {
-    const auto byte = static_cast<uint8_t>(s[pos++]);
-    v |= static_cast<uint64_t>(byte & 0x7f) << shift;
-    if ((byte & 0x80) == 0) return true;
-  }
-  return false;
-}
 
 }  // namespace
 

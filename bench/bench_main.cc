@@ -152,8 +152,8 @@ struct BenchOptions {
   std::vector<std::string> models = {"stanford-bunny", "spot", "fandisk"};
   std::vector<size_t> sizes = {100000};
   std::vector<double> noises = {0.0};
-  std::string method = "iamls";
-  std::vector<std::string> params;  // name=value, as the CLI's --param.
+  std::vector<std::string> methods = {"iamls"};
+  std::vector<std::string> params;  // name=value, as the CLI's --param; each goes to the methods that have it.
   size_t samples = 1'000'000;
   bool server = false;
   bool drop_normals = false;
@@ -170,16 +170,18 @@ struct BenchCase {
   std::string model;
   size_t points = 0;
   double noise = 0;
+  std::string method;
 };
 
 void Print(const BenchCase& c, const char* mode, const CaseResult& r) {
   if (!r.error.empty()) {
-    std::printf("%-15s %8zu %6.4f %-7s failed: %s\n", c.model.c_str(), c.points, c.noise, mode, r.error.c_str());
+    std::printf("%-15s %8zu %6.4f %-6s %-7s failed: %s\n", c.model.c_str(), c.points, c.noise, c.method.c_str(), mode,
+                r.error.c_str());
   } else {
-    std::printf("%-15s %8zu %6.4f %-7s %8.2f %9.0f %10lld %10.3e %10.3e %7.4f %6s %6lld %10.3e %9.1f\n",
-                c.model.c_str(), c.points, c.noise, mode, r.seconds, r.peak_mib, static_cast<long long>(r.triangles),
-                r.chamfer, r.hausdorff, r.normal_consistency, r.watertight ? "yes" : "no",
-                static_cast<long long>(r.components), r.far_fraction, r.min_angle_p1);
+    std::printf("%-15s %8zu %6.4f %-6s %-7s %8.2f %9.0f %10lld %10.3e %10.3e %7.4f %6s %6lld %10.3e %9.1f\n",
+                c.model.c_str(), c.points, c.noise, c.method.c_str(), mode, r.seconds, r.peak_mib,
+                static_cast<long long>(r.triangles), r.chamfer, r.hausdorff, r.normal_consistency,
+                r.watertight ? "yes" : "no", static_cast<long long>(r.components), r.far_fraction, r.min_angle_p1);
   }
   std::fflush(stdout);
 }
@@ -190,7 +192,7 @@ CaseResult RunDirect(const BenchOptions& o, const core::ParamSet& params, const 
     CaseResult r;
     core::LocalJobContext ctx;
     const auto start = Clock::now();
-    auto result = jobs::ReconstructSurface(o.method, params, c.cloud, ctx);
+    auto result = jobs::ReconstructSurface(c.method, params, c.cloud, ctx);
     r.seconds = Since(start);
     r.peak_mib = PeakMibSoFar();
     if (!result.ok()) {
@@ -198,7 +200,8 @@ CaseResult RunDirect(const BenchOptions& o, const core::ParamSet& params, const 
       return r;
     }
     if (!o.save_dir.empty()) {
-      const auto path = fs::path(o.save_dir) / core::StrCat(c.model, "-", c.points, "-", c.noise, ".ply");
+      const auto path =
+          fs::path(o.save_dir) / core::StrCat(c.model, "-", c.points, "-", c.noise, "-", c.method, ".ply");
       if (absl::Status s = io::WriteMeshFile(path.string(), result->mesh); !s.ok()) {
         std::fprintf(stderr, "%s\n", s.ToString().c_str());
       }
@@ -230,7 +233,7 @@ void RunPoisson(const BenchOptions& o, const BenchCase& c, const CaseResult& dir
   Print(c, "poisson", poisson);
   if (direct.error.empty() && poisson.error.empty()) {
     std::printf("    %s / poisson depth %d: time %.2fx, peak memory %.2fx, Chamfer %.2fx, triangles %.2fx\n",
-                o.method.c_str(), o.poisson_depth, direct.seconds / poisson.seconds, direct.peak_mib / poisson.peak_mib,
+                c.method.c_str(), o.poisson_depth, direct.seconds / poisson.seconds, direct.peak_mib / poisson.peak_mib,
                 direct.chamfer / poisson.chamfer,
                 static_cast<double>(direct.triangles) / static_cast<double>(poisson.triangles));
   }
@@ -279,7 +282,8 @@ class BenchServer {
 };
 
 // The same cloud through a real server and the real client: upload, reconstruct, download.
-void RunService(const BenchOptions& o, const BenchCase& c, const fs::path& work) {
+void RunService(const BenchOptions& o, const BenchCase& c, const std::vector<std::string>& params,
+                const fs::path& work) {
   const std::string cloud_path = (work / "cloud.drc").string(), mesh_path = (work / "mesh.drc").string();
   const auto t_encode = Clock::now();
   auto encoded = io::EncodeDracoPointCloud(c.cloud, {});
@@ -291,9 +295,9 @@ void RunService(const BenchOptions& o, const BenchCase& c, const fs::path& work)
   BenchServer server(o.bin_dir, work);
   const std::string client = core::StrCat(o.bin_dir, "/lsqsurf -q --server ", server.address(), " ");
   std::string param_args;
-  for (const auto& p : o.params) param_args += " --param " + p;
+  for (const auto& p : params) param_args += " --param " + p;
   const auto t_upload = Clock::now();
-  const std::string submitted = FirstLine(client + "submit " + cloud_path + " --method " + o.method + param_args);
+  const std::string submitted = FirstLine(client + "submit " + cloud_path + " --method " + c.method + param_args);
   const double upload_s = Since(t_upload);
   // That job only measured the upload: cancel it so it does not delay the timed one.
   if (!submitted.empty()) RunTool(client + "cancel " + submitted);
@@ -312,7 +316,7 @@ void RunService(const BenchOptions& o, const BenchCase& c, const fs::path& work)
   });
   const auto t_e2e = Clock::now();
   const int rc =
-      RunTool(client + "reconstruct " + cloud_path + " -o " + mesh_path + " --method " + o.method + param_args);
+      RunTool(client + "reconstruct " + cloud_path + " -o " + mesh_path + " --method " + c.method + param_args);
   const double seconds = Since(t_e2e);
   polling = false;
   poller.join();
@@ -355,17 +359,57 @@ void RunService(const BenchOptions& o, const BenchCase& c, const fs::path& work)
   }
 }
 
-// The method's parameters from name=value texts. Errors: kInvalidArgument.
-absl::StatusOr<core::ParamSet> ParseParams(const std::string& method, const std::vector<std::string>& texts) {
+// A method's parameters and the name=value texts it took: each text goes to the methods whose
+// table has its name. Errors: kInvalidArgument (a bad text, value or combination).
+struct MethodParams {
+  core::ParamSet params;
+  std::vector<std::string> texts;
+};
+absl::StatusOr<MethodParams> ParseParams(const std::string& method, const std::vector<std::string>& texts) {
   auto params = jobs::DefaultParams(method);
   if (!params.ok()) return params.status();
+  MethodParams out{*std::move(params), {}};
+  const std::vector<core::ParamInfo> known = out.params.Describe();
   for (const auto& p : texts) {
     const size_t eq = p.find('=');
     if (eq == std::string::npos) return absl::InvalidArgumentError(core::StrCat("bad --param ", p, "; use NAME=VALUE"));
-    LSQSURF_RETURN_IF_ERROR(params->Parse(p.substr(0, eq), p.substr(eq + 1)));
+    const std::string name = p.substr(0, eq);
+    if (std::none_of(known.begin(), known.end(), [&](const core::ParamInfo& i) { return i.name == name; })) continue;
+    LSQSURF_RETURN_IF_ERROR(out.params.Parse(name, p.substr(eq + 1)));
+    out.texts.push_back(p);
   }
-  LSQSURF_RETURN_IF_ERROR(params->Validate());
-  return params;
+  LSQSURF_RETURN_IF_ERROR(out.params.Validate());
+  return out;
+}
+
+// With several methods: Chamfer and wall time of each method on each case, one row per method
+// (the seed's Figure 11 comparison as numbers).
+struct SummaryCell {
+  std::string column;  // model/points/noise
+  std::string method;
+  CaseResult result;
+};
+void PrintSummary(const std::vector<std::string>& methods, const std::vector<SummaryCell>& cells) {
+  std::vector<std::string> columns;
+  for (const auto& c : cells) {
+    if (std::find(columns.begin(), columns.end(), c.column) == columns.end()) columns.push_back(c.column);
+  }
+  std::printf("\nChamfer (share of the diagonal) / wall seconds, direct:\n%-7s", "method");
+  for (const auto& col : columns) std::printf(" %24s", col.c_str());
+  for (const auto& m : methods) {
+    std::printf("\n%-7s", m.c_str());
+    for (const auto& col : columns) {
+      std::string text = "-";
+      for (const auto& c : cells) {
+        if (c.method != m || c.column != col) continue;
+        char buf[64];
+        std::snprintf(buf, sizeof(buf), "%.2e / %.2f", c.result.chamfer, c.result.seconds);
+        text = c.result.error.empty() ? buf : "failed";
+      }
+      std::printf(" %24s", text.c_str());
+    }
+  }
+  std::printf("\n");
 }
 
 }  // namespace
@@ -377,7 +421,9 @@ int main(int argc, char** argv) {
   app.add_option("--models", o.models, "model names")->capture_default_str();
   app.add_option("--sizes", o.sizes, "cloud sizes")->capture_default_str();
   app.add_option("--noise", o.noises, "noise sigma as a fraction of the diagonal (0 = clean)")->capture_default_str();
-  app.add_option("--method", o.method, "surface method")->capture_default_str();
+  app.add_option("--method,--methods", o.methods, "surface methods, comma-separated or repeated")
+      ->delimiter(',')
+      ->capture_default_str();
   app.add_option("--param", o.params, "method parameter name=value (repeatable)");
   app.add_option("--samples", o.samples, "samples per surface for the distances")->capture_default_str();
   app.add_flag("--server", o.server, "also run every case through lsqsurfd and the lsqsurf client");
@@ -395,17 +441,30 @@ int main(int argc, char** argv) {
   }
 #endif
   if (o.bin_dir.empty()) o.bin_dir = fs::canonical("/proc/self/exe").parent_path().string();
-  auto params = ParseParams(o.method, o.params);
-  if (!params.ok()) {
-    std::fprintf(stderr, "%s\n", params.status().ToString().c_str());
-    return 2;
+  std::vector<MethodParams> params;
+  for (const auto& m : o.methods) {
+    auto p = ParseParams(m, o.params);
+    if (!p.ok()) {
+      std::fprintf(stderr, "%s: %s\n", m.c_str(), p.status().ToString().c_str());
+      return 2;
+    }
+    params.push_back(*std::move(p));
   }
+  for (const auto& p : o.params) {
+    if (std::none_of(params.begin(), params.end(), [&](const MethodParams& m) {
+          return std::find(m.texts.begin(), m.texts.end(), p) != m.texts.end();
+        })) {
+      std::fprintf(stderr, "--param %s: no method given has that parameter (see lsqsurf methods)\n", p.c_str());
+      return 2;
+    }
+  }
+  std::vector<SummaryCell> summary;
 
   const fs::path work = fs::temp_directory_path() / ("lsqsurf-bench-" + std::to_string(::getpid()));
   fs::create_directories(work);
-  std::printf("%-15s %8s %6s %-7s %8s %9s %10s %10s %10s %7s %6s %6s %10s %9s\n", "model", "points", "noise", "mode",
-              "wall_s", "peak_MiB", "triangles", "chamfer", "hausdorff", "normals", "closed", "comps", "far>1e-3",
-              "angle_p1");
+  std::printf("%-15s %8s %6s %-6s %-7s %8s %9s %10s %10s %10s %7s %6s %6s %10s %9s\n", "model", "points", "noise",
+              "method", "mode", "wall_s", "peak_MiB", "triangles", "chamfer", "hausdorff", "normals", "closed", "comps",
+              "far>1e-3", "angle_p1");
   for (const auto& model : o.models) {
     auto truth = io::ReadMeshFile((fs::path(o.data_dir) / (model + ".obj")).string());
     if (!truth.ok()) {
@@ -417,16 +476,20 @@ int main(int argc, char** argv) {
       for (double noise : o.noises) {
         core::PointCloud cloud = core::SampleCloud(*truth, n, 1234, noise * diag);
         if (o.drop_normals) cloud.normals.clear();
-        const BenchCase c{*truth, cloud, model, n, noise};
-        const CaseResult direct = RunDirect(o, *params, c);
-        Print(c, "direct", direct);
+        for (size_t m = 0; m < o.methods.size(); ++m) {
+          const BenchCase c{*truth, cloud, model, n, noise, o.methods[m]};
+          const CaseResult direct = RunDirect(o, params[m].params, c);
+          Print(c, "direct", direct);
+          summary.push_back({core::StrCat(model, "/", n, "/", noise), o.methods[m], direct});
 #if LSQSURF_WITH_POISSON
-        if (o.poisson_depth > 0) RunPoisson(o, c, direct);
+          if (o.poisson_depth > 0 && m + 1 == o.methods.size()) RunPoisson(o, c, direct);
 #endif
-        if (o.server) RunService(o, c, work);
+          if (o.server) RunService(o, c, params[m].texts, work);
+        }
       }
     }
   }
+  if (o.methods.size() > 1) PrintSummary(o.methods, summary);
   fs::remove_all(work);
   return 0;
 }

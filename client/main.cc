@@ -218,7 +218,8 @@ struct JobFlags {
   int mesh_bits = 0;
 
   void AddTo(CLI::App* cmd) {
-    cmd->add_option("--method", method, "iamls | pu | ramls | apss | volume (lsqsurf methods)")->capture_default_str();
+    cmd->add_option("--method", method, "iamls | pu | ramls | apss | aamls | imls | volume (lsqsurf methods)")
+        ->capture_default_str();
     cmd->add_option("--param", params, "method parameter as name=value (repeatable; lsqsurf methods lists them)");
     cmd->add_option("--mesh-bits", mesh_bits, "Draco quantization of result positions (8..30; default: per mesh)");
   }

@@ -84,6 +84,47 @@ inline core::PointCloud DrilledBlockCloud(size_t n, double a = 1.0, double b = 0
   return cloud;
 }
 
+// A torus around z, sampled on a regular (θ, φ) grid with arc steps of about `step`, with
+// exact normals: close to the gridline samples of front tracking, and free of random gaps.
+inline core::PointCloud TorusGridCloud(double R, double r, double step) {
+  core::PointCloud cloud;
+  const int around = static_cast<int>(std::ceil(2 * std::numbers::pi * (R + r) / step));
+  const int tube = static_cast<int>(std::ceil(2 * std::numbers::pi * r / step));
+  for (int i = 0; i < around; ++i) {
+    const double theta = 2 * std::numbers::pi * i / around;
+    for (int j = 0; j < tube; ++j) {
+      const double phi = 2 * std::numbers::pi * (j + 0.5 * (i % 2)) / tube;
+      const core::Vec3d n(std::cos(phi) * std::cos(theta), std::cos(phi) * std::sin(theta), std::sin(phi));
+      const core::Vec3d c(R * std::cos(theta), R * std::sin(theta), 0);
+      cloud.positions.push_back((c + r * n).cast<float>());
+      cloud.normals.push_back(n.cast<float>());
+    }
+  }
+  return cloud;
+}
+
+// Largest distance, along the exact normal, from probe points of the true torus to the zero
+// set of F (found by bisection within ±h).
+inline double MaxTorusError(const core::ImplicitFunction& f, double R, double r, double h, int probes) {
+  std::mt19937_64 rng(3);
+  std::uniform_real_distribution<double> angle(0, 2 * std::numbers::pi);
+  double worst = 0;
+  for (int k = 0; k < probes; ++k) {
+    const double theta = angle(rng), phi = angle(rng);
+    const core::Vec3d n(std::cos(phi) * std::cos(theta), std::cos(phi) * std::sin(theta), std::sin(phi));
+    const core::Vec3d p = core::Vec3d(R * std::cos(theta), R * std::sin(theta), 0) + r * n;
+    double lo = -h, hi = h;
+    EXPECT_LT(f.Value(p + lo * n).value, 0);
+    EXPECT_GT(f.Value(p + hi * n).value, 0);
+    for (int i = 0; i < 60; ++i) {
+      const double mid = 0.5 * (lo + hi);
+      (f.Value(p + mid * n).value < 0 ? lo : hi) = mid;
+    }
+    worst = std::max(worst, std::abs(0.5 * (lo + hi)));
+  }
+  return worst;
+}
+
 class SphereField : public core::ImplicitFunction {
  public:
   explicit SphereField(double radius) : radius_(radius) {}

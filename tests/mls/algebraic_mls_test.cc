@@ -20,47 +20,6 @@ std::unique_ptr<AlgebraicMlsFunction> Build(const core::PointCloud& cloud, Algeb
   return testing::BuildOrFail(&BuildAlgebraicMls, cloud, p);
 }
 
-// A torus around z, sampled on a regular (θ, φ) grid with arc steps of about `step`, with
-// exact normals: close to the gridline samples of front tracking, and free of random gaps.
-core::PointCloud TorusGrid(double R, double r, double step) {
-  core::PointCloud cloud;
-  const int around = static_cast<int>(std::ceil(2 * std::numbers::pi * (R + r) / step));
-  const int tube = static_cast<int>(std::ceil(2 * std::numbers::pi * r / step));
-  for (int i = 0; i < around; ++i) {
-    const double theta = 2 * std::numbers::pi * i / around;
-    for (int j = 0; j < tube; ++j) {
-      const double phi = 2 * std::numbers::pi * (j + 0.5 * (i % 2)) / tube;
-      const Vec3d n(std::cos(phi) * std::cos(theta), std::cos(phi) * std::sin(theta), std::sin(phi));
-      const Vec3d c(R * std::cos(theta), R * std::sin(theta), 0);
-      cloud.positions.push_back((c + r * n).cast<float>());
-      cloud.normals.push_back(n.cast<float>());
-    }
-  }
-  return cloud;
-}
-
-// Largest distance, along the exact normal, from probe points of the true torus to the zero
-// set of F (found by bisection within ±h).
-double MaxTorusError(const core::ImplicitFunction& f, double R, double r, double h, int probes) {
-  std::mt19937_64 rng(3);
-  std::uniform_real_distribution<double> angle(0, 2 * std::numbers::pi);
-  double worst = 0;
-  for (int k = 0; k < probes; ++k) {
-    const double theta = angle(rng), phi = angle(rng);
-    const Vec3d n(std::cos(phi) * std::cos(theta), std::cos(phi) * std::sin(theta), std::sin(phi));
-    const Vec3d p = Vec3d(R * std::cos(theta), R * std::sin(theta), 0) + r * n;
-    double lo = -h, hi = h;
-    EXPECT_LT(f.Value(p + lo * n).value, 0);
-    EXPECT_GT(f.Value(p + hi * n).value, 0);
-    for (int i = 0; i < 60; ++i) {
-      const double mid = 0.5 * (lo + hi);
-      (f.Value(p + mid * n).value < 0 ? lo : hi) = mid;
-    }
-    worst = std::max(worst, std::abs(0.5 * (lo + hi)));
-  }
-  return worst;
-}
-
 TEST(AlgebraicMls, BothFitsReproduceASphereExactly) {
   for (AlgebraicFit fit : {AlgebraicFit::kRamls, AlgebraicFit::kApss}) {
     AlgebraicMlsParams p;
@@ -126,9 +85,9 @@ TEST(AlgebraicMls, RamlsTorusErrorFallsAtAboutSecondOrder) {
   for (double h : {1.0 / 32, 1.0 / 64, 1.0 / 128}) {
     AlgebraicMlsParams p;
     p.spacing = h;
-    auto f = Build(TorusGrid(R, r, h), p);
+    auto f = Build(testing::TorusGridCloud(R, r, h), p);
     ASSERT_TRUE(f);
-    errors.push_back(MaxTorusError(*f, R, r, h, 200));
+    errors.push_back(testing::MaxTorusError(*f, R, r, h, 200));
   }
   EXPECT_LT(errors[0], 1e-3);
   EXPECT_LT(errors[1], errors[0] / 2.5) << errors[0] << " " << errors[1];
@@ -138,7 +97,7 @@ TEST(AlgebraicMls, RamlsTorusErrorFallsAtAboutSecondOrder) {
 // RAMLS is APSS's β → ∞ limit; a small β lets positions outweigh normals, which on points with
 // wrong normals keeps the surface on the points.
 TEST(AlgebraicMls, ApssApproachesRamlsAsBetaGrows) {
-  const core::PointCloud torus = TorusGrid(0.3, 0.12, 1.0 / 64);
+  const core::PointCloud torus = testing::TorusGridCloud(0.3, 0.12, 1.0 / 64);
   AlgebraicMlsParams ramls;
   ramls.spacing = 1.0 / 64;
   AlgebraicMlsParams apss = ramls;

@@ -146,8 +146,8 @@ TEST_F(ServiceTest, MethodsListTheirParametersWithDefaults) {
   ASSERT_TRUE(methods.ok());
   std::vector<std::string> names;
   for (const auto& m : methods->methods()) names.push_back(m.name());
-  EXPECT_EQ(names,
-            (std::vector<std::string>{"iamls", "pu", "ramls", "apss", "csg", "edit", "track", "volume", "probe"}));
+  EXPECT_EQ(names, (std::vector<std::string>{"iamls", "pu", "ramls", "apss", "aamls", "imls", "csg", "edit", "track",
+                                             "volume", "probe"}));
   for (const auto& m : methods->methods()) {
     EXPECT_GT(m.parameters_size(), 0) << m.name();
     for (const auto& p : m.parameters()) {

@@ -77,6 +77,19 @@ const core::ParamTable<AlgebraicJobParams<kFit>>& AlgebraicTable() {
   return *table;
 }
 
+template <mls::GaussianFit kFit>
+const core::ParamTable<GaussianJobParams<kFit>>& GaussianTable() {
+  using P = GaussianJobParams<kFit>;
+  static const auto* table = [] {
+    auto* t = new core::ParamTable<P>();
+    t->Include(&P::fit, mls::GaussianMlsParamTable());
+    AddExtractionHints(*t);
+    t->Include(&P::normals, NormalsTable());
+    return t;
+  }();
+  return *table;
+}
+
 const core::ParamTable<PuJobParams>& PuTable() {
   static const auto* table = [] {
     auto* t = new core::ParamTable<PuJobParams>();
@@ -142,11 +155,13 @@ absl::StatusOr<extract::IsosurfaceResult> RunIamls(const IamlsJobParams& p, cons
   return extracted;
 }
 
-template <mls::AlgebraicFit kFit>
-absl::StatusOr<extract::IsosurfaceResult> RunAlgebraic(const AlgebraicJobParams<kFit>& p, const core::PointCloud& cloud,
-                                                       core::JobContext& ctx, const StatFn& stat, const KeepFn&) {
+// The MLS surfaces without an extractor of their own: build the function with `build`, then
+// extract it on J1a leaves sized by its spacing.
+template <class P, class Build>
+absl::StatusOr<extract::IsosurfaceResult> RunOnSharedExtractor(const P& p, const core::PointCloud& cloud,
+                                                               core::JobContext& ctx, const StatFn& stat, Build build) {
   core::SubContext build_ctx(ctx, "indexing points", 0.0, 0.05);
-  auto field = mls::BuildAlgebraicMls(cloud, p.fit, build_ctx);
+  auto field = build(cloud, p.fit, build_ctx);
   if (!field.ok()) return field.status();
   stat("spacing", (*field)->spacing());
   const auto start = std::chrono::steady_clock::now();
@@ -155,6 +170,18 @@ absl::StatusOr<extract::IsosurfaceResult> RunAlgebraic(const AlgebraicJobParams<
       **field, cloud, {p.cell_size * (*field)->spacing(), p.refine_steps, SurfaceExtractor::kJ1a}, extract_ctx);
   if (extracted.ok()) stat("extract_seconds", core::SecondsSince(start));
   return extracted;
+}
+
+template <mls::AlgebraicFit kFit>
+absl::StatusOr<extract::IsosurfaceResult> RunAlgebraic(const AlgebraicJobParams<kFit>& p, const core::PointCloud& cloud,
+                                                       core::JobContext& ctx, const StatFn& stat, const KeepFn&) {
+  return RunOnSharedExtractor(p, cloud, ctx, stat, &mls::BuildAlgebraicMls);
+}
+
+template <mls::GaussianFit kFit>
+absl::StatusOr<extract::IsosurfaceResult> RunGaussian(const GaussianJobParams<kFit>& p, const core::PointCloud& cloud,
+                                                      core::JobContext& ctx, const StatFn& stat, const KeepFn&) {
+  return RunOnSharedExtractor(p, cloud, ctx, stat, &mls::BuildGaussianMls);
 }
 
 void PuStatistics(const pu::PuStats& s, const StatFn& stat) {
@@ -254,6 +281,14 @@ const std::vector<SurfaceMethod>& SurfaceMethods() {
                  "algebraic point set surface (Guennebaud & Gross): normal-constrained sphere fits weighted by beta, "
                  "extracted on J1a tetrahedra",
                  AlgebraicTable<mls::AlgebraicFit::kApss>(), RunAlgebraic<mls::AlgebraicFit::kApss>),
+      MakeMethod("aamls",
+                 "Adamson-Alexa MLS surface: distance to the plane through the Gaussian-weighted centroid along the "
+                 "weighted mean normal, extracted on J1a tetrahedra",
+                 GaussianTable<mls::GaussianFit::kAdamsonAlexa>(), RunGaussian<mls::GaussianFit::kAdamsonAlexa>),
+      MakeMethod("imls",
+                 "Kolluri's implicit MLS surface: Gaussian-weighted mean of the points' tangent-plane distances, "
+                 "extracted on J1a tetrahedra",
+                 GaussianTable<mls::GaussianFit::kKolluri>(), RunGaussian<mls::GaussianFit::kKolluri>),
   };
   return *methods;
 }

@@ -1,7 +1,7 @@
 // worker/jobs/surface_job.h — the surface job kind: an oriented (or unoriented) point cloud in,
 // a watertight-where-the-data-is triangle mesh out (mesh.drc, and preview.png on request).
 //
-// Methods: iamls, pu, ramls, apss. Each method's parameters are one struct below with one
+// Methods: iamls, pu, ramls, apss, aamls, imls. Each method's parameters are one struct below with one
 // descriptor table (the engine's own table, its extraction hints and the normal estimation);
 // every method hands the job layer the same thing: a mesh from its own extractor (pu) or from
 // the one shared extractor given the method's hints (the others).
@@ -19,6 +19,7 @@
 #include "worker/extract/isosurface.h"
 #include "worker/jobs/job_kind.h"
 #include "worker/mls/algebraic_mls.h"
+#include "worker/mls/gaussian_mls.h"
 #include "worker/mls/iamls.h"
 #include "worker/pu/pu.h"
 
@@ -51,6 +52,17 @@ struct AlgebraicJobParams {
 };
 using RamlsJobParams = AlgebraicJobParams<mls::AlgebraicFit::kRamls>;
 using ApssJobParams = AlgebraicJobParams<mls::AlgebraicFit::kApss>;
+
+template <mls::GaussianFit kFit>
+struct GaussianJobParams {
+  GaussianJobParams() { fit.fit = kFit; }
+  mls::GaussianMlsParams fit;
+  double cell_size = 1.0;  // Spacing of the extraction vertices in units of h.
+  int refine_steps = 3;
+  NormalsParams normals;
+};
+using AamlsJobParams = GaussianJobParams<mls::GaussianFit::kAdamsonAlexa>;
+using ImlsJobParams = GaussianJobParams<mls::GaussianFit::kKolluri>;
 
 struct PuJobParams {
   pu::PuParams fit;

@@ -7,6 +7,7 @@
 #include "worker/core/kd_tree.h"
 #include "worker/core/status.h"
 #include "worker/core/strings.h"
+#include "worker/mls/oriented_points.h"
 
 namespace lsqsurf::mls {
 namespace {
@@ -43,8 +44,7 @@ Sphere FitRamls(const Sums& s) {
 }  // namespace
 
 struct AlgebraicMlsFunction::Impl {
-  std::vector<Vec3f> positions, normals;
-  std::unique_ptr<core::KdTree> kd_tree;
+  OrientedPoints points;
   AlgebraicMlsParams params;
   double h = 1, radius = 1;
 
@@ -53,7 +53,9 @@ struct AlgebraicMlsFunction::Impl {
   // the side rule of the parameters.
   core::FieldGradient Evaluate(const Vec3d& x, const Vec3f* facing = nullptr, float min_cosine = -1) const {
     thread_local std::vector<core::Neighbor> near;
-    kd_tree->Radius(x.cast<float>(), static_cast<float>(radius), near);
+    const std::vector<Vec3f>& positions = points.positions;
+    const std::vector<Vec3f>& normals = points.normals;
+    points.tree->Radius(x.cast<float>(), static_cast<float>(radius), near);
     core::FieldGradient out;
     out.value = std::numeric_limits<double>::quiet_NaN();
     Sums s;
@@ -186,27 +188,14 @@ absl::StatusOr<std::unique_ptr<AlgebraicMlsFunction>> BuildAlgebraicMls(const co
                                                                         const AlgebraicMlsParams& params,
                                                                         core::JobContext& ctx) {
   LSQSURF_RETURN_IF_ERROR(Validate(params));
-  if (!cloud.has_normals()) return absl::InvalidArgumentError("algebraic MLS surfaces need oriented normals");
-  if (cloud.size() < 4) return absl::InvalidArgumentError("algebraic MLS surfaces need at least 4 points");
-  for (size_t i = 0; i < cloud.size(); ++i) {
-    if (!cloud.positions[i].allFinite() || !cloud.normals[i].allFinite()) {
-      return absl::InvalidArgumentError(core::StrCat("point ", i, " has a non-finite position or normal"));
-    }
-  }
+  auto points = IndexOrientedPoints(cloud, params.spacing, params.spacing_scale, "an algebraic MLS surface");
+  if (!points.ok()) return points.status();
+  LSQSURF_RETURN_IF_ERROR(ctx.CheckCancelled());
   std::unique_ptr<AlgebraicMlsFunction> function(new AlgebraicMlsFunction());
   AlgebraicMlsFunction::Impl& impl = *function->impl_;
   impl.params = params;
-  impl.positions = cloud.positions;
-  impl.normals = cloud.normals;
-  for (Vec3f& n : impl.normals) {
-    const float length = n.norm();
-    n = length > 0 ? Vec3f(n / length) : Vec3f::Zero();
-  }
-  impl.kd_tree = std::make_unique<core::KdTree>(impl.positions);
-  LSQSURF_RETURN_IF_ERROR(ctx.CheckCancelled());
-  impl.h =
-      params.spacing > 0 ? params.spacing : params.spacing_scale * core::MeanNearestNeighborDistance(*impl.kd_tree);
-  if (!(impl.h > 0)) return absl::InvalidArgumentError("all points coincide: no spacing to size the support by");
+  impl.points = *std::move(points);
+  impl.h = impl.points.spacing;
   impl.radius = params.support_factor * impl.h;
   function->h_ = impl.h;
   return function;

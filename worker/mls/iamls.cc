@@ -11,6 +11,7 @@
 #include "worker/core/parallel.h"
 #include "worker/core/status.h"
 #include "worker/core/strings.h"
+#include "worker/mls/oriented_points.h"
 
 namespace lsqsurf::mls {
 namespace {
@@ -197,31 +198,14 @@ core::FieldGradient IamlsFunction::ValueAndGradient(const Vec3d& x) const { retu
 absl::StatusOr<std::unique_ptr<IamlsFunction>> BuildIamls(const core::PointCloud& cloud, const IamlsParams& params,
                                                           core::JobContext& ctx) {
   if (absl::Status s = Validate(params); !s.ok()) return s;
-  if (cloud.size() < 4) return absl::InvalidArgumentError("iaMLS needs at least 4 points");
-  if (!cloud.has_normals()) {
-    return absl::InvalidArgumentError("iaMLS needs oriented normals (estimate them first)");
-  }
   core::SubContext setup_ctx(ctx, "building iaMLS", 0.0, 0.4);
+  auto points = IndexOrientedPoints(cloud, params.spacing, params.spacing_scale, "iaMLS");
+  if (!points.ok()) return points.status();
   auto impl = std::make_shared<IamlsFunction::Impl>();
-  for (size_t i = 0; i < cloud.size(); ++i) {
-    const float len = cloud.normals[i].norm();
-    if (!(len > 0) || !std::isfinite(len)) {
-      return absl::InvalidArgumentError(core::StrCat("normal ", i, " is zero or not finite"));
-    }
-  }
-  // Points are stored in Morton (Z-curve) order: neighbours in space become neighbours in
-  // memory, which keeps the sparse products and the evaluations cache-friendly.
-  const std::vector<uint32_t> order = core::MortonOrder(cloud.positions);
-  impl->positions.resize(cloud.size());
-  impl->normals.resize(cloud.size());
-  for (size_t i = 0; i < order.size(); ++i) {
-    impl->positions[i] = cloud.positions[order[i]];
-    impl->normals[i] = cloud.normals[order[i]].normalized();
-  }
-  impl->tree = std::make_unique<core::KdTree>(impl->positions);
-  double h = params.spacing;
-  if (h == 0) h = params.spacing_scale * core::MeanNearestNeighborDistance(*impl->tree);
-  if (!(h > 0)) return absl::InvalidArgumentError("the points have zero spacing (all coincide?)");
+  impl->positions = std::move(points->positions);
+  impl->normals = std::move(points->normals);
+  impl->tree = std::move(points->tree);
+  const double h = points->spacing;
   const double eps = params.epsilon;
   impl->inv_h2 = 1.0 / (h * h);
   impl->eps2 = eps * eps;

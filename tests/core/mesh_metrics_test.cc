@@ -2,6 +2,8 @@
 
 #include <gtest/gtest.h>
 
+#include <numeric>
+
 #include "worker/core/sampling.h"
 #include "worker/core/surface_distance.h"
 
@@ -70,6 +72,35 @@ TEST(MeshMetrics, MergingCoincidentVerticesRemovesFoldsAndKeepsTheSolid) {
   // The first vertex at each position stays, with its normal and attributes.
   EXPECT_EQ(cube.vertex_attributes[0].values, (std::vector<float>{0, 1, 2, 3, 4, 5, 6, 7}));
   EXPECT_EQ(cube.normals[3], Vec3f::UnitZ());
+}
+
+// A unit cube, a cube of edge 0.1 beside it and one of edge 0.5: with a threshold between their
+// diagonals (0.17, 0.87, 1.73) the small one goes with its vertices, and the rest keep their
+// positions, normals and attributes.
+TEST(MeshMetrics, RemovesComponentsSmallerThanADiagonal) {
+  TriangleMesh mesh = Cube();
+  for (const auto& [offset, scale] : {std::pair{Vec3f(3, 0, 0), 0.1f}, std::pair{Vec3f(5, 0, 0), 0.5f}}) {
+    const TriangleMesh part = Cube(offset, scale);
+    const auto base = static_cast<uint32_t>(mesh.vertices.size());
+    mesh.vertices.insert(mesh.vertices.end(), part.vertices.begin(), part.vertices.end());
+    for (Triangle t : part.faces) mesh.faces.push_back({t[0] + base, t[1] + base, t[2] + base});
+  }
+  std::vector<float> ids(mesh.vertices.size());
+  std::iota(ids.begin(), ids.end(), 0.0f);
+  mesh.vertex_attributes.push_back({"id", ids});
+  mesh.normals.assign(mesh.vertices.size(), Vec3f::UnitY());
+  EXPECT_EQ(AnalyzeTopology(mesh).components, 3);
+  EXPECT_EQ(RemoveSmallComponents(mesh, 0.05), 0);
+  EXPECT_EQ(RemoveSmallComponents(mesh, 0.5), 1);
+  const MeshTopology t = AnalyzeTopology(mesh);
+  EXPECT_EQ(t.components, 2);
+  EXPECT_TRUE(t.watertight());
+  ASSERT_EQ(mesh.vertices.size(), 16u);
+  EXPECT_NEAR(EnclosedVolume(mesh), 1.0 + 0.125, 1e-6);
+  for (size_t v = 0; v < 16; ++v) EXPECT_EQ(mesh.vertex_attributes[0].values[v], v < 8 ? v : v + 8);
+  EXPECT_EQ(mesh.normals.size(), 16u);
+  EXPECT_EQ(RemoveSmallComponents(mesh, 10), 2);
+  EXPECT_TRUE(mesh.vertices.empty() && mesh.faces.empty());
 }
 
 TEST(SurfaceDistance, MeasuresAKnownOffset) {

@@ -61,6 +61,7 @@ TEST(Iamls, NoSurfaceOnTheGhostSheet) {
   // F⁽⁰⁾ has spurious zeros where ΣΨ turns negative (~1.22 h/ε off the data): they must be
   // reported undefined.
   IamlsParams p;
+  p.epsilon = 0.6;
   p.iterations = 0;
   p.min_weight = 0;  // Only the sign of ΣΨ decides: F is then still defined inside the band.
   auto f = Build(testing::SphereCloud(4000), p);
@@ -86,6 +87,72 @@ TEST(Iamls, ReconstructsAClosedSphereOfTheRightVolume) {
   EXPECT_NEAR(core::EnclosedVolume(mesh->mesh) / (4.0 / 3.0 * std::numbers::pi), 1.0, 0.01);
 }
 
+TEST(Iamls, TheChoiceWidensTheKernelAndIteratesLessAsNoiseGrows) {
+  const IamlsChoice clean = ChooseIamlsParameters(0.05);
+  EXPECT_EQ(clean.epsilon, 0.6);
+  EXPECT_EQ(clean.iterations, 3);
+  EXPECT_EQ(clean.cutoff, 4);
+  double previous = clean.epsilon;
+  for (double ratio : {0.2, 0.5, 0.9, 1.5}) {
+    const IamlsChoice noisy = ChooseIamlsParameters(ratio);
+    EXPECT_LT(noisy.epsilon, previous) << ratio;
+    EXPECT_EQ(noisy.iterations, 1);
+    EXPECT_EQ(noisy.cutoff, 3);
+    previous = noisy.epsilon;
+  }
+  EXPECT_EQ(ChooseIamlsParameters(10).epsilon, 0.3);  // The widest kernel it picks.
+}
+
+// Mean first-order distance |F| / |∇F| from the unit sphere to the zero set of F.
+double MeanSphereError(const IamlsFunction& f, int samples) {
+  std::mt19937_64 rng(8);
+  std::normal_distribution<double> g(0, 1);
+  double sum = 0;
+  for (int i = 0; i < samples; ++i) {
+    const core::FieldGradient v = f.ValueAndGradient(Vec3d(g(rng), g(rng), g(rng)).normalized());
+    sum += std::abs(v.value) / v.gradient.norm();
+  }
+  return sum / samples;
+}
+
+// With no parameters: a clean sphere gets the clean choice; one whose points are displaced along
+// the normal by noise of σ = the point spacing gets a wider kernel and one iteration, and comes
+// out closer to the true sphere than with the clean choice forced on it (ε = 0.5: at 0.6 the
+// iteration diverges on this cloud).
+TEST(Iamls, ChoosesItsParametersFromTheNoise) {
+  const core::PointCloud clean = testing::SphereCloud(20000);
+  auto exact = Build(clean);
+  ASSERT_TRUE(exact);
+  EXPECT_LT(exact->stats().noise_ratio, 0.15);
+  EXPECT_EQ(exact->stats().epsilon, 0.6);
+  EXPECT_EQ(exact->stats().iterations, 3);
+
+  core::PointCloud noisy = clean;
+  std::mt19937_64 rng(21);
+  const double spacing = std::sqrt(4 * std::numbers::pi / 20000.0);
+  std::normal_distribution<double> noise(0, spacing);
+  for (size_t i = 0; i < noisy.size(); ++i) {
+    noisy.positions[i] += static_cast<float>(noise(rng)) * noisy.normals[i];
+  }
+  auto chosen = Build(noisy);
+  ASSERT_TRUE(chosen);
+  EXPECT_GT(chosen->stats().noise_ratio, 0.5);
+  EXPECT_LT(chosen->stats().epsilon, 0.5);
+  EXPECT_EQ(chosen->stats().iterations, 1);
+  ASSERT_EQ(chosen->stats().residuals.size(), 2u);  // Before and after the one iteration.
+  EXPECT_LT(chosen->stats().residuals[1], chosen->stats().residuals[0]);
+  IamlsParams forced;
+  forced.epsilon = 0.5;
+  forced.iterations = 3;
+  forced.cutoff = 4;
+  auto clean_choice = Build(noisy, forced);
+  ASSERT_TRUE(clean_choice);
+  EXPECT_LT(clean_choice->stats().noise_ratio, 0);  // Nothing was chosen: no estimate.
+  const double e_chosen = MeanSphereError(*chosen, 500), e_forced = MeanSphereError(*clean_choice, 500);
+  EXPECT_LT(e_chosen, 0.75 * e_forced) << e_chosen << " " << e_forced;
+  EXPECT_LT(e_chosen, 0.3 * spacing);
+}
+
 TEST(Iamls, RejectsBadParametersWithActionableMessages) {
   core::LocalJobContext ctx;
   const auto cloud = testing::SphereCloud(3000);
@@ -95,6 +162,13 @@ TEST(Iamls, RejectsBadParametersWithActionableMessages) {
   ASSERT_EQ(diverging.status().code(), absl::StatusCode::kInvalidArgument);
   EXPECT_NE(std::string(diverging.status().message()).find("diverge"), std::string::npos);
   p.epsilon = -1;
+  EXPECT_EQ(BuildIamls(cloud, p, ctx).status().code(), absl::StatusCode::kInvalidArgument);
+  p.epsilon = 0.01;  // Neither 0 (chosen) nor within [0.05, 3].
+  auto tiny = BuildIamls(cloud, p, ctx);
+  ASSERT_EQ(tiny.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(std::string(tiny.status().message()).find("0 (chosen)"), std::string::npos);
+  p = {};
+  p.noise_level = -0.5;
   EXPECT_EQ(BuildIamls(cloud, p, ctx).status().code(), absl::StatusCode::kInvalidArgument);
   core::PointCloud no_normals = cloud;
   no_normals.normals.clear();

@@ -17,6 +17,30 @@ uint32_t FindRoot(std::vector<uint32_t>& parent, uint32_t x) {
   return x;
 }
 
+// Drops the vertices no face uses, keeping the others in their order with their normals and
+// attributes, and renumbers the faces.
+void DropUnusedVertices(TriangleMesh& mesh) {
+  std::vector<uint32_t> index(mesh.vertices.size(), UINT32_MAX);
+  for (const Triangle& t : mesh.faces) {
+    for (uint32_t v : t) index[v] = 0;
+  }
+  uint32_t count = 0;
+  for (size_t v = 0; v < mesh.vertices.size(); ++v) {
+    if (index[v] == UINT32_MAX) continue;
+    index[v] = count;
+    mesh.vertices[count] = mesh.vertices[v];
+    if (!mesh.normals.empty()) mesh.normals[count] = mesh.normals[v];
+    for (ScalarAttribute& a : mesh.vertex_attributes) a.values[count] = a.values[v];
+    ++count;
+  }
+  mesh.vertices.resize(count);
+  if (!mesh.normals.empty()) mesh.normals.resize(count);
+  for (ScalarAttribute& a : mesh.vertex_attributes) a.values.resize(count);
+  for (Triangle& t : mesh.faces) {
+    for (uint32_t& v : t) v = index[v];
+  }
+}
+
 // Vertex indices ordered by position (lexicographic), so equal positions are adjacent.
 std::vector<uint32_t> OrderByPosition(const std::vector<Vec3f>& v) {
   std::vector<uint32_t> order(v.size());
@@ -115,26 +139,7 @@ int64_t MergeCoincidentVertices(TriangleMesh& mesh) {
     mesh.faces[kept++] = mesh.faces[f];
   }
   mesh.faces.resize(kept);
-  // The vertices still used, in their order.
-  std::vector<uint32_t> index(mesh.vertices.size(), UINT32_MAX);
-  for (const Triangle& t : mesh.faces) {
-    for (uint32_t v : t) index[v] = 0;
-  }
-  uint32_t count = 0;
-  for (size_t v = 0; v < mesh.vertices.size(); ++v) {
-    if (index[v] == UINT32_MAX) continue;
-    index[v] = count;
-    mesh.vertices[count] = mesh.vertices[v];
-    if (!mesh.normals.empty()) mesh.normals[count] = mesh.normals[v];
-    for (ScalarAttribute& a : mesh.vertex_attributes) a.values[count] = a.values[v];
-    ++count;
-  }
-  mesh.vertices.resize(count);
-  if (!mesh.normals.empty()) mesh.normals.resize(count);
-  for (ScalarAttribute& a : mesh.vertex_attributes) a.values.resize(count);
-  for (Triangle& t : mesh.faces) {
-    for (uint32_t& v : t) v = index[v];
-  }
+  DropUnusedVertices(mesh);
   return dropped;
 }
 
@@ -246,6 +251,31 @@ TriangleQuality MeasureTriangleQuality(const TriangleMesh& mesh) {
   q.min_angle_median = quantile(min_angles, 0.5);
   q.aspect_ratio_p99 = quantile(aspect, 0.99);
   return q;
+}
+
+int64_t RemoveSmallComponents(TriangleMesh& mesh, double min_diagonal) {
+  std::vector<uint32_t> parent(mesh.vertices.size());
+  std::iota(parent.begin(), parent.end(), 0u);
+  for (const Triangle& t : mesh.faces) {
+    parent[FindRoot(parent, t[1])] = FindRoot(parent, t[0]);
+    parent[FindRoot(parent, t[2])] = FindRoot(parent, t[0]);
+  }
+  std::vector<Box3> box(mesh.vertices.size());
+  for (const Triangle& t : mesh.faces) {
+    for (uint32_t v : t) box[FindRoot(parent, v)].extend(mesh.vertices[v].cast<double>());
+  }
+  int64_t removed = 0;
+  std::vector<char> small(mesh.vertices.size(), 0);
+  for (uint32_t v = 0; v < parent.size(); ++v) {
+    if (parent[v] == v && !box[v].isEmpty() && Diagonal(box[v]) < min_diagonal) {
+      small[v] = 1;
+      ++removed;
+    }
+  }
+  if (removed == 0) return 0;
+  std::erase_if(mesh.faces, [&](const Triangle& t) { return small[FindRoot(parent, t[0])] != 0; });
+  DropUnusedVertices(mesh);
+  return removed;
 }
 
 }  // namespace lsqsurf::core

@@ -40,6 +40,11 @@ TriangleMesh WeldByPosition(const TriangleMesh& mesh);
 // dropped. O(V log V + F log F).
 int64_t MergeCoincidentVertices(TriangleMesh& mesh);
 
+// Removes the components (faces connected through shared vertices) whose bounding-box diagonal
+// is below `min_diagonal`, and the vertices only they used; the others keep their order, normals
+// and attributes. Returns the components removed. O(V + F).
+int64_t RemoveSmallComponents(TriangleMesh& mesh, double min_diagonal);
+
 // Vertex → incident faces as compressed rows for the vertices from `first` on: the faces of v are
 // incident[start[v − first] .. start[v − first + 1]), in face order. O(V + F).
 void IncidentFaces(const TriangleMesh& mesh, std::vector<uint32_t>& start, std::vector<uint32_t>& incident,

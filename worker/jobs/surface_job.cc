@@ -59,6 +59,9 @@ const core::ParamTable<IamlsJobParams>& IamlsTable() {
           "surface-following uniform Kuhn grid (a little faster)"}},
         "where the zero set is extracted");
     t->Include(&IamlsJobParams::normals, NormalsTable());
+    t->Real<&IamlsJobParams::min_component>("min_component", 0, 100, "kernel widths",
+                                            "components whose bounding-box diagonal is below this many kernel "
+                                            "widths (h/epsilon) are removed as unresolved; 0 keeps all");
     return t;
   }();
   return *table;
@@ -143,15 +146,31 @@ absl::StatusOr<extract::IsosurfaceResult> RunIamls(const IamlsJobParams& p, cons
   core::SubContext build_ctx(ctx, "building iaMLS", 0.0, 0.3);
   auto field = mls::BuildIamls(cloud, p.fit, build_ctx);
   if (!field.ok()) return field.status();
+  const mls::IamlsStats& fit = (*field)->stats();
   stat("fit_seconds", core::SecondsSince(start));
   stat("spacing", (*field)->spacing());
-  stat("largest_eigenvalue", (*field)->stats().largest_eigenvalue);
-  if (!(*field)->stats().residuals.empty()) stat("final_residual_over_h", (*field)->stats().residuals.back());
+  // The parameters used, given or chosen from the noise (noise_level as in pu, a share of the
+  // diagonal; reported only when something was chosen).
+  stat("epsilon_used", fit.epsilon);
+  stat("iterations_used", fit.iterations);
+  stat("cutoff_used", fit.cutoff);
+  if (fit.noise_sigma >= 0) {
+    stat("noise_level", fit.noise_sigma / core::Diagonal(core::BoundingBox(cloud.positions)));
+    stat("noise_to_spacing", fit.noise_ratio);
+  }
+  if (fit.largest_eigenvalue > 0) stat("largest_eigenvalue", fit.largest_eigenvalue);
+  if (!fit.residuals.empty()) stat("final_residual_over_h", fit.residuals.back());
   const auto extract_start = std::chrono::steady_clock::now();
   core::SubContext extract_ctx(ctx, "extracting surface", 0.3, 1.0);
   auto extracted =
       ExtractShared(**field, cloud, {p.cell_size * (*field)->spacing(), p.refine_steps, p.extractor}, extract_ctx);
-  if (extracted.ok()) stat("extract_seconds", core::SecondsSince(extract_start));
+  if (!extracted.ok()) return extracted;
+  stat("extract_seconds", core::SecondsSince(extract_start));
+  if (p.min_component > 0) {
+    const double kernel_width = (*field)->spacing() / fit.epsilon;
+    stat("removed_components",
+         static_cast<double>(core::RemoveSmallComponents(extracted->mesh, p.min_component * kernel_width)));
+  }
   return extracted;
 }
 

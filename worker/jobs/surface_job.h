@@ -40,6 +40,10 @@ struct IamlsJobParams {
   int refine_steps = 3;    // Root-refinement steps per crossing edge.
   SurfaceExtractor extractor = SurfaceExtractor::kJ1a;
   NormalsParams normals;
+  // Components whose bounding-box diagonal is below this many kernel widths (h/ε) are removed:
+  // the kernel averages over all of such a component, so it cannot have resolved it; on noisy
+  // scans they are bubbles of noise. 0 keeps every component; 0..100.
+  double min_component = 2.0;
 };
 
 template <mls::AlgebraicFit kFit>

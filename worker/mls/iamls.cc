@@ -8,6 +8,7 @@
 #include <numbers>
 
 #include "worker/core/kd_tree.h"
+#include "worker/core/noise.h"
 #include "worker/core/parallel.h"
 #include "worker/core/status.h"
 #include "worker/core/strings.h"
@@ -57,18 +58,46 @@ struct IamlsFunction::Impl {
 const core::ParamTable<IamlsParams>& IamlsParamTable() {
   static const auto* table = [] {
     auto* t = new core::ParamTable<IamlsParams>();
-    t->Real<&IamlsParams::epsilon>("epsilon", 0.05, 3, "", "kernel shape parameter; larger = more detail")
-        .Integer<&IamlsParams::iterations>("iterations", 0, 20, "", "residual-correction iterations; more = closer fit")
+    t->Real<&IamlsParams::epsilon>("epsilon", 0, 3, "",
+                                   "kernel shape parameter; larger = more detail; 0 = chosen from the noise")
+        .Integer<&IamlsParams::iterations>("iterations", -1, 20, "",
+                                           "residual-correction iterations; more = closer fit; -1 = chosen from the "
+                                           "noise")
         .Real<&IamlsParams::spacing>("spacing", 0, 1e30, "model units",
                                      "kernel spacing h; 0 = spacing_scale x mean nearest-neighbour distance")
         .Real<&IamlsParams::spacing_scale>("spacing_scale", 0.25, 8, "", "multiplier of the measured spacing")
-        .Real<&IamlsParams::cutoff>("cutoff", 2, 8, "", "kernel truncation at epsilon*r = cutoff")
+        .Real<&IamlsParams::cutoff>("cutoff", 0, 8, "", "kernel truncation at epsilon*r = cutoff; 0 = chosen")
         .Real<&IamlsParams::min_weight>("min_weight", 0, 0.99, "",
                                         "ghost-sheet guard: no surface where the kernel sum is below this share of "
-                                        "its mean at the samples");
+                                        "its mean at the samples")
+        .Real<&IamlsParams::noise_level>("noise_level", -1, 0.1, "share of the diagonal",
+                                         "noise sigma for the choice of epsilon, iterations and cutoff: -1 estimates "
+                                         "it, 0 declares the data exact")
+        .AddRule([](const IamlsParams& p) {
+          if (p.epsilon != 0 && p.epsilon < 0.05) {
+            return absl::InvalidArgumentError(
+                core::StrCat("epsilon=", p.epsilon, " must be 0 (chosen) or within [0.05, 3]"));
+          }
+          if (p.cutoff != 0 && p.cutoff < 2) {
+            return absl::InvalidArgumentError(
+                core::StrCat("cutoff=", p.cutoff, " must be 0 (chosen) or within [2, 8]"));
+          }
+          if (p.noise_level != -1 && p.noise_level < 0) {
+            return absl::InvalidArgumentError(
+                core::StrCat("noise_level=", p.noise_level, " must be -1 (estimate it) or within [0, 0.1]"));
+          }
+          return absl::OkStatus();
+        });
     return t;
   }();
   return *table;
+}
+
+IamlsChoice ChooseIamlsParameters(double noise_ratio) {
+  // Below this ratio the estimate is the clouds' own curvature residual, not noise.
+  constexpr double kNoisyRatio = 0.15;
+  if (!(noise_ratio >= kNoisyRatio)) return {};
+  return {std::max(0.3, 0.6 / (1 + noise_ratio / 1.5)), 1, 3};
 }
 
 absl::Status Validate(const IamlsParams& p) { return IamlsParamTable().Validate(p); }
@@ -123,9 +152,25 @@ core::FieldGradient Evaluate(const IamlsFunction::Impl& m, const Vec3d& x) {
   return out;
 }
 
-// Kernel matrix rows and the right-hand side s_k = Σ_i ℓ_i(x_k) Ψ_i(x_k).
-// Two passes (count, then fill) build the CSR arrays in place: at a million points the matrix
-// holds ~140 million entries, and a per-row staging copy would double the peak.
+// Row k of the kernel matrix: the neighbours of x_k within the truncation radius (left in `nn`)
+// and Ψ_i(x_k) for each (in `psi`); returns s_k = Σ_i ℓ_i(x_k) Ψ_i(x_k).
+double KernelRow(const IamlsFunction::Impl& impl, size_t k, std::vector<core::Neighbor>& nn, std::vector<double>& psi) {
+  impl.tree->Radius(impl.positions[k], impl.radius, nn);
+  const Vec3d xk = impl.positions[k].cast<double>();
+  psi.resize(nn.size());
+  double sk = 0;
+  for (size_t j = 0; j < nn.size(); ++j) {
+    const Vec3d d = xk - impl.positions[nn[j].index].cast<double>();
+    const double si = impl.eps2 * d.squaredNorm() * impl.inv_h2;
+    psi[j] = impl.scale * (2.5 - si) * std::exp(-si);
+    sk += impl.normals[nn[j].index].cast<double>().dot(d) * psi[j];
+  }
+  return sk;
+}
+
+// Kernel matrix rows and the right-hand side s. Two passes (count, then fill) build the CSR
+// arrays in place: at a million points the matrix holds ~140 million entries, and a per-row
+// staging copy would double the peak.
 absl::Status FillKernelMatrix(const IamlsFunction::Impl& impl, KernelMatrix& a, std::vector<double>& s,
                               core::SubContext& setup_ctx, core::JobContext& ctx) {
   const size_t n = impl.positions.size();
@@ -147,23 +192,54 @@ absl::Status FillKernelMatrix(const IamlsFunction::Impl& impl, KernelMatrix& a, 
       n, 1024,
       [&](size_t begin, size_t end) {
         std::vector<core::Neighbor> nn;
+        std::vector<double> psi;
         for (size_t k = begin; k < end; ++k) {
-          impl.tree->Radius(impl.positions[k], impl.radius, nn);
-          const Vec3d xk = impl.positions[k].cast<double>();
-          double sk = 0;
+          s[k] = KernelRow(impl, k, nn, psi);
           uint64_t e = a.row_start[k];
-          for (const core::Neighbor& q : nn) {
-            const Vec3d d = xk - impl.positions[q.index].cast<double>();
-            const double si = impl.eps2 * d.squaredNorm() * impl.inv_h2;
-            const double psi = impl.scale * (2.5 - si) * std::exp(-si);
-            a.column[e] = q.index;
-            a.value[e++] = static_cast<float>(psi);
-            sk += impl.normals[q.index].cast<double>().dot(d) * psi;
+          for (size_t j = 0; j < nn.size(); ++j, ++e) {
+            a.column[e] = nn[j].index;
+            a.value[e] = static_cast<float>(psi[j]);
           }
-          s[k] = sk;
         }
       },
       &ctx, [&](double f) { setup_ctx.Report(0.5 + 0.5 * f); });
+}
+
+// The kernel matrix's rows one at a time, never stored: with c empty, s and the row sums ΣΨ at
+// the samples; with c, A c.
+struct StreamedRows {
+  std::vector<double> s, row_sum, ac;
+  uint64_t entries = 0;
+};
+absl::Status StreamKernelRows(const IamlsFunction::Impl& impl, std::span<const double> c, StreamedRows& out,
+                              core::JobContext& ctx) {
+  const size_t n = impl.positions.size();
+  std::vector<double>& target = c.empty() ? out.s : out.ac;
+  target.assign(n, 0.0);
+  if (c.empty()) out.row_sum.assign(n, 0.0);
+  std::vector<uint32_t> counts(n);
+  LSQSURF_RETURN_IF_ERROR(core::ParallelFor(
+      n, 1024,
+      [&](size_t begin, size_t end) {
+        std::vector<core::Neighbor> nn;
+        std::vector<double> psi;
+        for (size_t k = begin; k < end; ++k) {
+          const double sk = KernelRow(impl, k, nn, psi);
+          counts[k] = static_cast<uint32_t>(nn.size());
+          double sum = 0;
+          for (size_t j = 0; j < nn.size(); ++j) sum += psi[j] * (c.empty() ? 1.0 : c[nn[j].index]);
+          if (c.empty()) {
+            out.s[k] = sk;
+            out.row_sum[k] = sum;
+          } else {
+            out.ac[k] = sum;
+          }
+        }
+      },
+      &ctx));
+  out.entries = 0;
+  for (uint32_t count : counts) out.entries += count;
+  return absl::OkStatus();
 }
 
 // The largest eigenvalue of the symmetric kernel matrix, by 25 power steps.
@@ -195,80 +271,130 @@ core::FieldValue IamlsFunction::Value(const Vec3d& x) const {
 
 core::FieldGradient IamlsFunction::ValueAndGradient(const Vec3d& x) const { return Evaluate<true>(*impl_, x); }
 
+namespace {
+
+// ε, the iterations and the cutoff, given or chosen from the noise (then with the noise used).
+void ChooseParameters(const IamlsParams& params, const OrientedPoints& points, IamlsStats& stats) {
+  IamlsChoice choice;
+  if (params.epsilon == 0 || params.iterations < 0 || params.cutoff == 0) {
+    const double neighbor_distance =
+        params.spacing == 0 ? points.spacing / params.spacing_scale : core::MeanNearestNeighborDistance(*points.tree);
+    const double diagonal = core::Diagonal(core::BoundingBox(points.positions));
+    stats.noise_sigma = params.noise_level >= 0 ? params.noise_level * diagonal
+                                                : core::EstimateNoise(*points.tree, points.normals).sigma;
+    stats.noise_ratio = neighbor_distance > 0 ? stats.noise_sigma / neighbor_distance : 0;
+    choice = ChooseIamlsParameters(stats.noise_ratio);
+  }
+  stats.epsilon = params.epsilon > 0 ? params.epsilon : choice.epsilon;
+  stats.iterations = params.iterations >= 0 ? params.iterations : choice.iterations;
+  stats.cutoff = params.cutoff > 0 ? params.cutoff : choice.cutoff;
+}
+
+double MaxAbsDifference(std::span<const double> a, std::span<const double> b) {
+  double most = 0;
+  for (size_t k = 0; k < a.size(); ++k) most = std::max(most, std::abs(a[k] - (b.empty() ? 0.0 : b[k])));
+  return most;
+}
+
+// Richardson iteration c ← c + (s − A c) on the stored kernel matrix (two or more iterations).
+absl::Status IterateWithMatrix(const IamlsFunction::Impl& impl, IamlsStats& stats, std::vector<double>& c,
+                               core::SubContext& setup_ctx, core::JobContext& ctx) {
+  const size_t n = impl.positions.size();
+  const double h = stats.spacing;
+  KernelMatrix a;
+  std::vector<double> s(n);
+  LSQSURF_RETURN_IF_ERROR(FillKernelMatrix(impl, a, s, setup_ctx, ctx));
+  stats.mean_neighbors = static_cast<double>(a.row_start[n]) / static_cast<double>(n);
+  double weight_sum = 0;
+  for (float v : a.value) weight_sum += v;
+  stats.mean_sample_weight = weight_sum / static_cast<double>(n);
+  // It converges iff the spectrum of the symmetric A lies in (0, 2): estimate its largest
+  // eigenvalue with a few power steps before iterating.
+  core::SubContext iter_ctx(ctx, "iterating iaMLS", 0.4, 1.0);
+  auto largest = LargestEigenvalue(a, ctx);
+  if (!largest.ok()) return largest.status();
+  const double lambda = *largest, eps = stats.epsilon;
+  stats.largest_eigenvalue = lambda;
+  if (lambda >= 1.98) {
+    // λ_max grows roughly like ε³ (the self term 2.5 ε³/π^{3/2} dominates); suggest an ε that
+    // brings it to about 1.5.
+    const double suggested = eps * std::cbrt(1.5 / lambda);
+    return absl::InvalidArgumentError(
+        fmt::format("epsilon={:.3g} makes the iaMLS iteration diverge on this cloud (largest eigenvalue of "
+                    "the kernel matrix {:.3g}, must be below 2); use epsilon <= {:.2f} or iterations=1",
+                    eps, lambda, suggested));
+  }
+  c.assign(n, 0.0);
+  std::vector<double> ac;
+  for (int it = 0; it < stats.iterations; ++it) {
+    a.Multiply(c, ac);
+    double max_residual = 0;
+    for (size_t k = 0; k < n; ++k) {
+      const double residual = s[k] - ac[k];  // F⁽ⁱᵗ⁾(x_k); the data value there is 0.
+      max_residual = std::max(max_residual, std::abs(residual));
+      c[k] += residual;
+    }
+    stats.residuals.push_back(max_residual / h);
+    iter_ctx.Report(static_cast<double>(it + 1) / stats.iterations);
+    if (ctx.IsCancelled()) return absl::CancelledError("cancelled by request");
+  }
+  a.Multiply(c, ac);
+  stats.residuals.push_back(MaxAbsDifference(s, ac) / h);
+  return absl::OkStatus();
+}
+
+// No iteration or one: c = 0 or c = s (the first step from c = 0 needs no product), with the
+// rows streamed, so the matrix (hundreds of entries per point with the wide kernels of noisy
+// clouds) is never stored; one more pass gives the residual after the step.
+absl::Status IterateStreamed(const IamlsFunction::Impl& impl, IamlsStats& stats, std::vector<double>& c,
+                             core::JobContext& ctx) {
+  const size_t n = impl.positions.size();
+  StreamedRows rows;
+  LSQSURF_RETURN_IF_ERROR(StreamKernelRows(impl, {}, rows, ctx));
+  stats.mean_neighbors = static_cast<double>(rows.entries) / static_cast<double>(n);
+  double weight_sum = 0;
+  for (double v : rows.row_sum) weight_sum += v;
+  stats.mean_sample_weight = weight_sum / static_cast<double>(n);
+  if (stats.iterations == 0) return absl::OkStatus();
+  core::SubContext iter_ctx(ctx, "iterating iaMLS", 0.4, 1.0);
+  c = rows.s;
+  stats.residuals.push_back(MaxAbsDifference(rows.s, {}) / stats.spacing);
+  LSQSURF_RETURN_IF_ERROR(StreamKernelRows(impl, c, rows, iter_ctx));
+  stats.residuals.push_back(MaxAbsDifference(rows.s, rows.ac) / stats.spacing);
+  return absl::OkStatus();
+}
+
+}  // namespace
+
 absl::StatusOr<std::unique_ptr<IamlsFunction>> BuildIamls(const core::PointCloud& cloud, const IamlsParams& params,
                                                           core::JobContext& ctx) {
-  if (absl::Status s = Validate(params); !s.ok()) return s;
+  LSQSURF_RETURN_IF_ERROR(Validate(params));
   core::SubContext setup_ctx(ctx, "building iaMLS", 0.0, 0.4);
   auto points = IndexOrientedPoints(cloud, params.spacing, params.spacing_scale, "iaMLS");
   if (!points.ok()) return points.status();
+  auto fn = std::unique_ptr<IamlsFunction>(new IamlsFunction());
+  IamlsStats& stats = fn->stats_;
+  ChooseParameters(params, *points, stats);
   auto impl = std::make_shared<IamlsFunction::Impl>();
   impl->positions = std::move(points->positions);
   impl->normals = std::move(points->normals);
   impl->tree = std::move(points->tree);
-  const double h = points->spacing;
-  const double eps = params.epsilon;
+  const double h = points->spacing, eps = stats.epsilon;
   impl->inv_h2 = 1.0 / (h * h);
   impl->eps2 = eps * eps;
   impl->scale = eps * eps * eps / std::pow(std::numbers::pi, 1.5);
-  impl->radius = static_cast<float>(params.cutoff * h / eps);
+  impl->radius = static_cast<float>(stats.cutoff * h / eps);
   setup_ctx.Report(0.2);
-
-  auto fn = std::unique_ptr<IamlsFunction>(new IamlsFunction());
   fn->h_ = h;
-  fn->stats_.spacing = h;
-  const size_t n = cloud.size();
-  impl->coefficient.assign(n, 0.0f);
-  {
-    KernelMatrix a;
-    std::vector<double> s(n);
-    LSQSURF_RETURN_IF_ERROR(FillKernelMatrix(*impl, a, s, setup_ctx, ctx));
-    fn->stats_.mean_neighbors = static_cast<double>(a.row_start[n]) / static_cast<double>(n);
-    // ΣΨ at the samples sets the scale of "clearly positive" for the ghost-sheet guard.
-    double weight_sum = 0;
-    for (float v : a.value) weight_sum += v;
-    fn->stats_.mean_sample_weight = weight_sum / static_cast<double>(n);
-    impl->fallback_scale = fn->stats_.mean_sample_weight;
-    impl->min_kernel_sum = params.min_weight * fn->stats_.mean_sample_weight;
-    if (params.iterations == 0) {
-      fn->impl_ = std::move(impl);
-      return fn;
-    }
-
-    // Richardson iteration c ← c + (s − A c) converges iff the spectrum of the symmetric A lies
-    // in (0, 2). Estimate its largest eigenvalue with a few power steps before iterating.
-    core::SubContext iter_ctx(ctx, "iterating iaMLS", 0.4, 1.0);
-    auto largest = LargestEigenvalue(a, ctx);
-    if (!largest.ok()) return largest.status();
-    const double lambda = *largest;
-    fn->stats_.largest_eigenvalue = lambda;
-    if (lambda >= 1.98) {
-      // λ_max grows roughly like ε³ (the self term 2.5 ε³/π^{3/2} dominates); suggest an ε that
-      // brings it to about 1.5.
-      const double suggested = eps * std::cbrt(1.5 / lambda);
-      return absl::InvalidArgumentError(
-          fmt::format("epsilon={:.3g} makes the iaMLS iteration diverge on this cloud (largest eigenvalue of "
-                      "the kernel matrix {:.3g}, must be below 2); use epsilon <= {:.2f} or iterations=0",
-                      eps, lambda, suggested));
-    }
-    std::vector<double> c(n, 0.0), ac;
-    for (int it = 0; it < params.iterations; ++it) {
-      a.Multiply(c, ac);
-      double max_residual = 0;
-      for (size_t k = 0; k < n; ++k) {
-        const double residual = s[k] - ac[k];  // F⁽ⁱᵗ⁾(x_k); the data value there is 0.
-        max_residual = std::max(max_residual, std::abs(residual));
-        c[k] += residual;
-      }
-      fn->stats_.residuals.push_back(max_residual / h);
-      iter_ctx.Report(static_cast<double>(it + 1) / params.iterations);
-      if (ctx.IsCancelled()) return absl::CancelledError("cancelled by request");
-    }
-    a.Multiply(c, ac);
-    double max_residual = 0;
-    for (size_t k = 0; k < n; ++k) max_residual = std::max(max_residual, std::abs(s[k] - ac[k]));
-    fn->stats_.residuals.push_back(max_residual / h);
-    for (size_t k = 0; k < n; ++k) impl->coefficient[k] = static_cast<float>(c[k]);
-  }
+  stats.spacing = h;
+  std::vector<double> c;
+  LSQSURF_RETURN_IF_ERROR(stats.iterations <= 1 ? IterateStreamed(*impl, stats, c, ctx)
+                                                : IterateWithMatrix(*impl, stats, c, setup_ctx, ctx));
+  // ΣΨ at the samples sets the scale of "clearly positive" for the ghost-sheet guard.
+  impl->fallback_scale = stats.mean_sample_weight;
+  impl->min_kernel_sum = params.min_weight * stats.mean_sample_weight;
+  impl->coefficient.assign(impl->positions.size(), 0.0f);
+  for (size_t k = 0; k < c.size(); ++k) impl->coefficient[k] = static_cast<float>(c[k]);
   fn->impl_ = std::move(impl);
   return fn;
 }

@@ -9,8 +9,9 @@
 // The iterations fold into one coefficient per point, F(x) = Σ (ℓ_i(x) − c_i) Ψ_i(x), so an
 // evaluation costs a single neighbour sum however many iterations were run.
 //
-// Truncation: Ψ is cut at ε r = `cutoff` (default 4, radius 4h/ε); there |Ψ| < 2.7e-7 ε³ and the
-// neglected tail of a sum over a uniformly sampled surface is about 1e-6 of the kernel's mass.
+// Truncation: Ψ is cut at ε r = `cutoff` (4 on clean clouds, radius 4h/ε); there |Ψ| < 2.7e-7 ε³
+// and the neglected tail of a sum over a uniformly sampled surface is about 1e-6 of the kernel's
+// mass (at cutoff 3, used on noisy clouds, about 1e-3: far below the noise).
 // Ghost sheets: ΣΨ changes sign at about 1.22 h/ε from the data (the kernel's negative lobe),
 // where F has spurious zeros; F is reported undefined wherever ΣΨ is not clearly positive
 // (see `min_weight`), so no extractor places surface there.
@@ -28,18 +29,32 @@
 namespace lsqsurf::mls {
 
 struct IamlsParams {
-  // Defaults: the seed's ε = 0.8 with h = mean nearest-neighbour distance leaves holes on
-  // randomly sampled clouds (there the mean NN distance is about half the sampling spacing, so
-  // the kernel is narrower than the gaps), and ε = 0.8 with twice that h makes the iteration
-  // diverge (largest eigenvalue 2.3). h = 2 × NN distance with ε = 0.6 is the measured optimum.
-  double epsilon = 0.6;        // Shape parameter ε (dimensionless), 0.05..3. Larger = more detail.
-  int iterations = 3;          // Residual-correction steps, 0..20. More = closer fit, less smoothing.
+  // ε, the iterations and the cutoff are chosen from the scan's noise unless given (see
+  // ChooseIamlsParameters): clean clouds get ε = 0.6, 3 iterations and cutoff 4; noisy ones a
+  // wider kernel and one iteration, since every iteration fits the noise a little more.
+  double epsilon = 0;          // Shape parameter ε (dimensionless), 0.05..3; 0 = chosen. Larger = more detail.
+  int iterations = -1;         // Residual-correction steps, 0..20; -1 = chosen. More = closer fit, less smoothing.
   double spacing = 0.0;        // h in model units; 0 = `spacing_scale` × mean nearest-neighbour distance.
   double spacing_scale = 2.0;  // Multiplier of the measured spacing when `spacing` is 0; 0.25..8.
-  double cutoff = 4.0;         // Kernel truncation at ε r = cutoff, 2..8.
+  double cutoff = 0;           // Kernel truncation at ε r = cutoff, 2..8; 0 = chosen.
   double min_weight = 0.1;     // F is undefined where ΣΨ < min_weight × (mean ΣΨ at the samples), 0..1:
                                // the guard against the ghost sheets of the kernel's negative lobe.
+  double noise_level = -1;     // Noise σ along the normal as a share of the bounding-box diagonal, for
+                               // the choice: -1 estimates it (core::EstimateNoise), 0 declares the data
+                               // exact, up to 0.1.
 };
+
+// What the automatic choice picks from ρ = σ / (mean nearest-neighbour distance), σ the noise
+// along the normal. Measured on the bunny, spot and fandisk at 100k points (README): on clean
+// clouds ρ is about 0.01 to 0.09 (the estimator's residual of curvature), and ε = 0.6 with 3
+// iterations fits best; from ρ = 0.15 on, one iteration with ε = 0.6 / (1 + ρ/1.5) (at least
+// 0.3), cutoff 3, balances the noise left against the detail smoothed away.
+struct IamlsChoice {
+  double epsilon = 0.6;
+  int iterations = 3;
+  double cutoff = 4;
+};
+IamlsChoice ChooseIamlsParameters(double noise_ratio);
 
 // The one description of every IamlsParams field (range, unit, meaning).
 const core::ParamTable<IamlsParams>& IamlsParamTable();
@@ -48,8 +63,14 @@ const core::ParamTable<IamlsParams>& IamlsParamTable();
 absl::Status Validate(const IamlsParams& params);
 
 struct IamlsStats {
-  double spacing = 0;             // h actually used (model units).
-  double largest_eigenvalue = 0;  // Of the kernel matrix; the iteration needs it below 2.
+  double spacing = 0;  // h actually used (model units).
+  double epsilon = 0;  // ε, iterations and cutoff used (given or chosen).
+  int iterations = 0;
+  double cutoff = 0;
+  double noise_sigma = -1;        // Noise σ used for the choice, model units; -1 when nothing was chosen.
+  double noise_ratio = -1;        // σ / mean nearest-neighbour distance; -1 likewise.
+  double largest_eigenvalue = 0;  // Of the kernel matrix; the iteration needs it below 2 (0: not computed,
+                                  // one iteration cannot diverge).
   std::vector<double> residuals;  // max_i |F(x_i)| / h before each iteration and after the last.
   double mean_neighbors = 0;      // Points within the truncation radius, per point.
   double mean_sample_weight = 0;  // Mean ΣΨ at the samples.
@@ -80,7 +101,8 @@ class IamlsFunction final : public core::ImplicitFunction {
 // Builds F for an oriented cloud (the cloud is copied; it need not outlive the function).
 // Errors: kInvalidArgument (no normals, fewer than 4 points, bad parameters, or an ε for which
 // the iteration diverges on this cloud — the message says which ε to use), kCancelled.
-// Cost: one radius query per point plus `iterations` sparse products (~50/ε² neighbours each).
+// Cost: one radius query per point plus `iterations` sparse products (~50/ε² neighbours each);
+// with at most one iteration the kernel matrix is never stored (two radius queries per point).
 absl::StatusOr<std::unique_ptr<IamlsFunction>> BuildIamls(const core::PointCloud& cloud, const IamlsParams& params,
                                                           core::JobContext& ctx);
 

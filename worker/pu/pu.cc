@@ -13,6 +13,7 @@
 
 #include "worker/core/binary.h"
 #include "worker/core/kd_tree.h"
+#include "worker/core/noise.h"
 #include "worker/core/parallel.h"
 #include "worker/core/status.h"
 #include "worker/core/strings.h"
@@ -553,79 +554,6 @@ CellOutcome ProcessCell(const BuildContext& bc, const Node& node, std::span<uint
   return out;
 }
 
-// The scan noise σ along the normal: the median, over an even sample of points, of the residual
-// RMS of a quadratic height fit to the point's neighbourhood. A quadratic follows the shape at
-// that scale, so on clean data what remains is tiny (third-order terms) and on noisy data it is
-// the noise (the 6 fitted terms taken into account). The neighbourhood is the kNoiseNeighbors
-// nearest points, widened to a ball of kNoiseBallFactor × σ: a neighbourhood thinner than the
-// noise holds mostly points displaced alike and underestimates it, so the estimate is repeated
-// on the wider ball until it settles.
-constexpr size_t kNoiseSamples = 2048;
-constexpr size_t kNoiseNeighbors = 48;
-constexpr size_t kNoiseMaxFitPoints = 256;
-constexpr double kNoiseBallFactor = 4.0;
-struct NoiseEstimate {
-  double sigma = 0;           // Model units.
-  double points_in_ball = 0;  // Median number of points within kNoiseBallFactor × σ.
-};
-// With `known_sigma` >= 0 only the ball is counted.
-NoiseEstimate EstimateNoise(const PuFunction::Impl& impl, std::span<const Vec3f> normals, double known_sigma) {
-  NoiseEstimate estimate;
-  if (known_sigma >= 0) estimate.sigma = known_sigma;
-  const size_t n = impl.cloud->positions.size();
-  if (n < kNoiseNeighbors) return estimate;
-  const size_t stride = std::max<size_t>(1, n / kNoiseSamples);
-  const size_t samples = (n + stride - 1) / stride;
-  auto median = [](std::vector<double>& values) {
-    auto middle = values.begin() + static_cast<std::ptrdiff_t>(values.size() / 2);
-    std::nth_element(values.begin(), middle, values.end());
-    return *middle;
-  };
-  for (int pass = 0; pass < 4; ++pass) {
-    const double ball = kNoiseBallFactor * estimate.sigma;
-    std::vector<double> rms(samples, 0.0), counts(samples, 0.0);
-    (void)core::ParallelFor(samples, 32, [&](size_t b, size_t e) {
-      std::vector<core::Neighbor> near;
-      std::vector<double> u, v, w, weight;
-      OrthogonalFitter fitter;
-      for (size_t i = b; i < e; ++i) {
-        const Vec3f& p = impl.cloud->positions[i * stride];
-        impl.cloud->kd_tree->Knn(p, kNoiseNeighbors, near);
-        if (ball * ball > near.back().distance2) impl.cloud->kd_tree->Radius(p, static_cast<float>(ball), near);
-        counts[i] = static_cast<double>(near.size());
-        if (known_sigma >= 0) continue;
-        const size_t step = std::max<size_t>(1, near.size() / kNoiseMaxFitPoints);
-        Vec3d normal = Vec3d::Zero();
-        double radius = 0;
-        for (size_t j = 0; j < near.size(); j += step) {
-          normal += normals[near[j].index].cast<double>();
-          radius = std::max(radius, static_cast<double>(near[j].distance2));
-        }
-        radius = std::sqrt(radius);
-        if (!(normal.norm() > 0) || !(radius > 0)) continue;
-        normal.normalize();
-        const Vec3d tu = normal.unitOrthogonal(), tv = normal.cross(tu);
-        u.clear(), v.clear(), w.clear();
-        for (size_t j = 0; j < near.size(); j += step) {
-          const Vec3d d = (impl.cloud->positions[near[j].index] - p).cast<double>();
-          u.push_back(tu.dot(d) / radius), v.push_back(tv.dot(d) / radius), w.push_back(normal.dot(d));
-        }
-        weight.assign(u.size(), 1.0);
-        fitter.Reset(u, v, w, weight);
-        if (!fitter.RaiseDegree() || !fitter.RaiseDegree()) continue;
-        rms[i] = std::sqrt(fitter.residual_energy() / static_cast<double>(u.size() - TermCount(2)));
-      }
-    });
-    estimate.points_in_ball = median(counts);
-    if (known_sigma >= 0) break;
-    const double sigma = median(rms);
-    const bool settled = sigma <= 1.1 * estimate.sigma;
-    estimate.sigma = std::max(estimate.sigma, sigma);
-    if (settled) break;  // The ball counted was within 10% of the final one.
-  }
-  return estimate;
-}
-
 }  // namespace
 
 const core::ParamTable<PuParams>& PuParamTable() {
@@ -746,8 +674,8 @@ absl::Status MeasureSpacing(PuFunction::Impl& impl, bool coverage_check, PuStats
 // accuracy both are raised.
 PuParams NoiseAwareParams(const PuFunction::Impl& impl, std::span<const Vec3f> normals, const PuParams& params,
                           double diagonal, PuStats& stats) {
-  const NoiseEstimate noise =
-      EstimateNoise(impl, normals, params.noise_level >= 0 ? params.noise_level * diagonal : -1.0);
+  const core::NoiseEstimate noise = core::EstimateNoise(*impl.cloud->kd_tree, normals,
+                                                        params.noise_level >= 0 ? params.noise_level * diagonal : -1.0);
   stats.noise_estimate = noise.sigma / diagonal;
   PuParams effective = params;
   if (stats.noise_estimate > params.error_threshold) {

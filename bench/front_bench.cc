@@ -62,6 +62,24 @@ absl::Status WriteFramePicture(lsqsurf::render::Renderer& renderer, const lsqsur
   return lsqsurf::jobs::WritePicture(renderer, cloud, view, dir + "/frame_" + std::to_string(step) + ".png");
 }
 
+// The time step and step count: as given, or one revolution with Δt = 1 (Zalesak), or about a
+// cell per step at the field's peak speed up to t = T (Enright).
+void SetSchedule(bool zalesak, double dt, int steps, int cells, double period, lsqsurf::front::TrackingParams& p) {
+  if (zalesak) {
+    p.dt = dt > 0 ? dt : 1.0;
+    p.steps = steps > 0 ? steps : static_cast<int>(std::lround(628 / p.dt));
+  } else {
+    p.steps = steps > 0 ? steps : std::max(50, static_cast<int>(std::lround(150.0 * cells / 64)));
+    p.dt = dt > 0 ? dt : period / p.steps;
+  }
+}
+
+std::unique_ptr<lsqsurf::front::VelocityField> EnrightField(double period, const std::string& modulation) {
+  using lsqsurf::front::TimeModulation;
+  return lsqsurf::front::EnrightDeformation(
+      period, modulation == "reversal" ? TimeModulation::kReversal : TimeModulation::kCosine);
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -85,6 +103,11 @@ int main(int argc, char** argv) {
   app.add_option("--dt", dt, "time step (default: 1 for zalesak, T/(150·cells/64) for enright)");
   app.add_option("--steps", steps, "steps (default: one revolution or t = T)");
   app.add_option("--period", period, "Enright period T")->capture_default_str();
+  std::string modulation = "cos";
+  app.add_option("--modulation", modulation,
+                 "Enright field in time: cos (cos(pi t/T)) | reversal (+1 before T/2, -1 after, as the seed)")
+      ->check(CLI::IsMember({"cos", "reversal"}))
+      ->capture_default_str();
   app.add_option("--stride", stride, "print every this many steps (default: steps/8)");
   app.add_option("--support", support, "RAMLS support radius in units of h")->capture_default_str();
   app.add_flag("--mesh-check", mesh_check, "also print each frame's mesh volume (cross-check of the gridline volume)");
@@ -107,14 +130,7 @@ int main(int argc, char** argv) {
   p.resampling = resampling == "markers" ? front::Resampling::kMarkers : front::Resampling::kGridlines;
   p.marker_spacing = marker_spacing;
   p.marker_gap = marker_gap;
-  if (zalesak) {
-    p.dt = dt > 0 ? dt : 1.0;
-    p.steps = steps > 0 ? steps : static_cast<int>(std::lround(628 / p.dt));
-  } else {
-    // About a cell per step at the field's peak speed (~2 / T per unit time … ~1).
-    p.steps = steps > 0 ? steps : std::max(50, static_cast<int>(std::lround(150.0 * cells / 64)));
-    p.dt = dt > 0 ? dt : period / p.steps;
-  }
+  SetSchedule(zalesak, dt, steps, cells, period, p);
   p.output_stride = stride > 0 ? stride : std::max(1, p.steps / 8);
   if (shape_name.empty()) shape_name = zalesak ? "slotted" : "sphere";
   if (shape_name != "sphere" && shape_name != "slotted") return std::fprintf(stderr, "unknown --shape\n"), 2;
@@ -124,9 +140,9 @@ int main(int argc, char** argv) {
   if (!initial.ok()) return std::fprintf(stderr, "%s\n", initial.status().ToString().c_str()), 1;
   auto e1_initial = front::ShapeError(*initial, shape, p.h);
   if (!e1_initial.ok()) return std::fprintf(stderr, "%s\n", e1_initial.status().ToString().c_str()), 1;
-  const auto field = zalesak ? front::ZalesakRotation() : front::EnrightDeformation(period);
+  const auto field = zalesak ? front::ZalesakRotation() : EnrightField(period, modulation);
   std::printf("%s h=1/%d dt=%g steps=%d resampling=%s%s\n", test.c_str(), cells, p.dt, p.steps, resampling.c_str(),
-              zalesak ? "" : (" T=" + std::to_string(period)).c_str());
+              zalesak ? "" : (" T=" + std::to_string(period) + " modulation=" + modulation).c_str());
   std::printf("%6s %9s %9s %12s %12s %9s%s\n", "step", "time", "points", "volume", "change_%", "wall_s",
               mesh_check ? "  mesh_volume mesh_vs_grid_%" : "");
   if (preimage)

@@ -13,6 +13,7 @@
 
 #include "client/client.h"
 #include "worker/core/address.h"
+#include "worker/core/sampling.h"
 #include "worker/core/strings.h"
 #include "worker/core/surface_distance.h"
 #include "worker/io/draco_codec.h"
@@ -776,6 +777,39 @@ int Compare(const std::string& reference, const std::string& candidate, size_t s
   return 0;
 }
 
+// A cloud sampled from a mesh (area-uniform, normals interpolated from the vertex normals, as
+// the benchmark samples), with optional Gaussian noise along the normal as a share of the mesh's
+// bounding-box diagonal: test input with a known truth.
+struct SampleCommand {
+  std::string mesh_path, output;
+  size_t points = 100'000;
+  double noise = 0;
+  uint64_t seed = 1234;
+
+  CLI::App* AddTo(CLI::App& app) {
+    CLI::App* sample =
+        app.add_subcommand("sample", "sample a cloud with normals from a mesh (test input with a known truth)");
+    sample->add_option("mesh", mesh_path, "mesh to sample (PLY, OBJ, DRC)")->required();
+    sample->add_option("-o,--output", output, "cloud to write (PLY, XYZ, DRC)")->required();
+    sample->add_option("--points", points, "number of points")->capture_default_str();
+    sample->add_option("--noise", noise, "Gaussian noise along the normal, share of the diagonal")
+        ->capture_default_str();
+    sample->add_option("--seed", seed, "random seed")->capture_default_str();
+    return sample;
+  }
+  int Run() const {
+    auto mesh = lsqsurf::io::ReadMeshFile(mesh_path);
+    if (!mesh.ok()) return Fail(std::string(mesh.status().message()));
+    if (mesh->faces.empty()) return Fail(mesh_path + " has no triangles to sample");
+    if (!(noise >= 0 && noise <= 0.1)) return Fail("--noise must be within [0, 0.1] (a share of the diagonal)");
+    const double diagonal = lsqsurf::core::Diagonal(lsqsurf::core::BoundingBox(mesh->vertices));
+    const lsqsurf::core::PointCloud cloud = lsqsurf::core::SampleCloud(*mesh, points, seed, noise * diagonal);
+    if (absl::Status s = lsqsurf::io::WritePointCloudFile(output, cloud); !s.ok())
+      return Fail(std::string(s.message()));
+    return 0;
+  }
+};
+
 // The commands that take a job id and print little.
 int JobCommand(const Globals& g, const std::string& command, const std::string& id) {
   client::Client c = Connect(g);
@@ -890,7 +924,10 @@ int main(int argc, char** argv) {
   compare->add_option("reference", reference, "reference mesh")->required();
   compare->add_option("candidate", candidate, "candidate mesh")->required();
   compare->add_option("--samples", samples, "samples per surface")->capture_default_str();
+  SampleCommand sample_command;
+  CLI::App* sample = sample_command.AddTo(app);
   CLI11_PARSE(app, argc, argv);
+  if (*sample) return sample_command.Run();
   if (absl::Status s = g.Resolve(); !s.ok()) return Fail(std::string(s.message()));
 
   if (*volume) {

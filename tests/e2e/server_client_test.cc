@@ -745,9 +745,43 @@ TEST(ParameterReference, TheDocsAreGeneratedFromTheTables) {
   auto docs = io::ReadFileBytes(LSQSURF_SOURCE_DIR "/docs/parameters.md");
   ASSERT_TRUE(docs.ok()) << docs.status();
   EXPECT_EQ(*docs, generated) << "regenerate docs/parameters.md with lsqsurfd --parameter-reference";
-  for (const char* method : {"## iamls", "## pu", "## ramls", "## apss", "## track", "## View options"}) {
+  for (const char* method :
+       {"## iamls", "## pu", "## ramls", "## apss", "## aamls", "## imls", "## track", "## View options"}) {
     EXPECT_NE(generated.find(method), std::string::npos) << method;
   }
+}
+
+// `lsqsurf sample`: points on the mesh with outward unit normals, as many as asked; the noise is
+// Gaussian along the normal with σ the asked share of the diagonal.
+TEST(ClientTool, SamplesACloudOnTheMeshWithTheAskedNoise) {
+  const fs::path dir = testing::FreshTestDir("lsqsurf-sample");
+  fs::create_directories(dir);
+  const std::string mesh = (dir / "sphere.obj").string(), cloud = (dir / "cloud.ply").string();
+  ASSERT_TRUE(io::WriteMeshFile(mesh, testing::SphereMesh(60, 120)).ok());
+  const std::string tool = LSQSURF_PATH;
+  ASSERT_EQ(testing::Shell(tool + " sample " + mesh + " --points 5000 -o " + cloud).code, 0);
+  auto exact = io::ReadPointCloudFile(cloud);
+  ASSERT_TRUE(exact.ok()) << exact.status();
+  ASSERT_EQ(exact->size(), 5000u);
+  ASSERT_TRUE(exact->has_normals());
+  for (size_t i = 0; i < exact->size(); ++i) {
+    const double r = exact->positions[i].norm();
+    EXPECT_GT(r, 0.998);  // On the facets: between the chords' depth (1 − cos(1.5°)) and the sphere.
+    EXPECT_LT(r, 1.0 + 1e-6);
+    EXPECT_NEAR(exact->normals[i].norm(), 1.0, 1e-5);
+    EXPECT_GT(exact->normals[i].dot(exact->positions[i]) / r, 0.999);
+  }
+  ASSERT_EQ(testing::Shell(tool + " sample " + mesh + " --points 20000 --noise 0.01 --seed 7 -o " + cloud).code, 0);
+  auto noisy = io::ReadPointCloudFile(cloud);
+  ASSERT_TRUE(noisy.ok()) << noisy.status();
+  double sum2 = 0;
+  for (const auto& p : noisy->positions) sum2 += std::pow(p.norm() - 1.0, 2);
+  const double sigma = 0.01 * 2 * std::sqrt(3.0);  // The sphere's box diagonal is 2√3.
+  EXPECT_NEAR(std::sqrt(sum2 / static_cast<double>(noisy->size())), sigma, 0.05 * sigma);
+  const testing::ClientRun bad = testing::Shell(tool + " sample " + mesh + " --noise 0.5 -o " + cloud);
+  EXPECT_NE(bad.code, 0);
+  EXPECT_NE(bad.output.find("--noise"), std::string::npos) << bad.output;
+  fs::remove_all(dir);
 }
 
 TEST_F(EndToEnd, TokensMadeByTheCommandLineAreTakenAndReloadedOnSighup) {

@@ -47,9 +47,15 @@ class ZalesakField final : public VelocityField {
 
 class EnrightField final : public VelocityField {
  public:
-  explicit EnrightField(double period) : period_(period) {}
+  EnrightField(double period, TimeModulation modulation) : period_(period), modulation_(modulation) {}
+  double Modulation(double t) const {
+    if (modulation_ == TimeModulation::kCosine) return std::cos(std::numbers::pi * t / period_);
+    const double from_half = t - 0.5 * period_;
+    if (std::abs(from_half) <= 1e-9 * period_) return 0;
+    return from_half < 0 ? 1 : -1;
+  }
   Vec3d At(const Vec3d& p, double t) const override {
-    const double pi = std::numbers::pi, c = std::cos(pi * t / period_);
+    const double pi = std::numbers::pi, c = Modulation(t);
     const double sx = std::sin(pi * p.x()), sy = std::sin(pi * p.y()), sz = std::sin(pi * p.z());
     const double s2x = std::sin(2 * pi * p.x()), s2y = std::sin(2 * pi * p.y()), s2z = std::sin(2 * pi * p.z());
     return {2 * sx * sx * s2y * s2z * c, -s2x * sy * sy * s2z * c, -s2x * s2y * sz * sz * c};
@@ -57,6 +63,7 @@ class EnrightField final : public VelocityField {
 
  private:
   double period_;
+  TimeModulation modulation_;
 };
 
 class GridField final : public VelocityField {
@@ -485,7 +492,9 @@ Vec3d Rk4Step(const VelocityField& v, const Vec3d& x, double t, double dt) {
 }
 
 std::unique_ptr<VelocityField> ZalesakRotation() { return std::make_unique<ZalesakField>(); }
-std::unique_ptr<VelocityField> EnrightDeformation(double period) { return std::make_unique<EnrightField>(period); }
+std::unique_ptr<VelocityField> EnrightDeformation(double period, TimeModulation modulation) {
+  return std::make_unique<EnrightField>(period, modulation);
+}
 
 absl::StatusOr<std::unique_ptr<VelocityField>> GridVelocity(Vec3d origin, Vec3d spacing, int nx, int ny, int nz,
                                                             std::vector<Vec3d> values) {

@@ -41,8 +41,16 @@ class VelocityField {
 // Zalesak's rigid rotation about the axis through (0.5, 0.5) parallel to z,
 // v = (π/314)(0.5 − y, x − 0.5, 0): one revolution every 628 time units.
 std::unique_ptr<VelocityField> ZalesakRotation();
-// LeVeque's 3D deformation field modulated by cos(πt/T): the shape returns at t = T.
-std::unique_ptr<VelocityField> EnrightDeformation(double period);
+// How LeVeque's deformation field changes in time; with either the shape returns at t = T.
+enum class TimeModulation {
+  kCosine,    // cos(πt/T): Enright et al.'s smooth form.
+  kReversal,  // +1 before T/2 and −1 after (0 at T/2 itself, so that an RK4 step centred there
+              // cancels its two halves as the exact flow does): the field "reversed at T/2" the
+              // seed describes; it stretches the shape more than the cosine (the flow runs at full
+              // speed until T/2).
+};
+// LeVeque's 3D deformation field, modulated in time as `modulation` says.
+std::unique_ptr<VelocityField> EnrightDeformation(double period, TimeModulation modulation = TimeModulation::kCosine);
 // A user field on a regular grid, interpolated trilinearly in space and constant in time.
 // Node (i, j, k) lies at origin + (i, j, k) ⊙ spacing; `values` holds nx·ny·nz vectors, x
 // fastest. Errors: kInvalidArgument (sizes, non-finite values, a spacing ≤ 0). Outside the grid

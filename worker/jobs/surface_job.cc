@@ -67,25 +67,13 @@ const core::ParamTable<IamlsJobParams>& IamlsTable() {
   return *table;
 }
 
-template <mls::AlgebraicFit kFit>
-const core::ParamTable<AlgebraicJobParams<kFit>>& AlgebraicTable() {
-  using P = AlgebraicJobParams<kFit>;
-  static const auto* table = [] {
+// The table of an MLS method on the shared extractor: its engine's table, the extraction hints
+// and the normals.
+template <class P>
+const core::ParamTable<P>& MlsTable(const core::ParamTable<decltype(P::fit)>& fit_table) {
+  static const auto* table = [&] {
     auto* t = new core::ParamTable<P>();
-    t->Include(&P::fit, mls::AlgebraicMlsParamTable(kFit));
-    AddExtractionHints(*t);
-    t->Include(&P::normals, NormalsTable());
-    return t;
-  }();
-  return *table;
-}
-
-template <mls::GaussianFit kFit>
-const core::ParamTable<GaussianJobParams<kFit>>& GaussianTable() {
-  using P = GaussianJobParams<kFit>;
-  static const auto* table = [] {
-    auto* t = new core::ParamTable<P>();
-    t->Include(&P::fit, mls::GaussianMlsParamTable());
+    t->Include(&P::fit, fit_table);
     AddExtractionHints(*t);
     t->Include(&P::normals, NormalsTable());
     return t;
@@ -295,19 +283,21 @@ const std::vector<SurfaceMethod>& SurfaceMethods() {
       MakeMethod("ramls",
                  "robust algebraic MLS surface (seed §3): closed-form normal-driven sphere fits, extracted on J1a "
                  "tetrahedra",
-                 AlgebraicTable<mls::AlgebraicFit::kRamls>(), RunAlgebraic<mls::AlgebraicFit::kRamls>),
+                 MlsTable<RamlsJobParams>(mls::AlgebraicMlsParamTable(mls::AlgebraicFit::kRamls)),
+                 RunAlgebraic<mls::AlgebraicFit::kRamls>),
       MakeMethod("apss",
                  "algebraic point set surface (Guennebaud & Gross): normal-constrained sphere fits weighted by beta, "
                  "extracted on J1a tetrahedra",
-                 AlgebraicTable<mls::AlgebraicFit::kApss>(), RunAlgebraic<mls::AlgebraicFit::kApss>),
+                 MlsTable<ApssJobParams>(mls::AlgebraicMlsParamTable(mls::AlgebraicFit::kApss)),
+                 RunAlgebraic<mls::AlgebraicFit::kApss>),
       MakeMethod("aamls",
                  "Adamson-Alexa MLS surface: distance to the plane through the Gaussian-weighted centroid along the "
                  "weighted mean normal, extracted on J1a tetrahedra",
-                 GaussianTable<mls::GaussianFit::kAdamsonAlexa>(), RunGaussian<mls::GaussianFit::kAdamsonAlexa>),
+                 MlsTable<AamlsJobParams>(mls::GaussianMlsParamTable()), RunGaussian<mls::GaussianFit::kAdamsonAlexa>),
       MakeMethod("imls",
                  "Kolluri's implicit MLS surface: Gaussian-weighted mean of the points' tangent-plane distances, "
                  "extracted on J1a tetrahedra",
-                 GaussianTable<mls::GaussianFit::kKolluri>(), RunGaussian<mls::GaussianFit::kKolluri>),
+                 MlsTable<ImlsJobParams>(mls::GaussianMlsParamTable()), RunGaussian<mls::GaussianFit::kKolluri>),
   };
   return *methods;
 }

@@ -46,25 +46,22 @@ struct IamlsJobParams {
   double min_component = 2.0;
 };
 
-template <mls::AlgebraicFit kFit>
-struct AlgebraicJobParams {
-  AlgebraicJobParams() { fit.fit = kFit; }
-  mls::AlgebraicMlsParams fit;
+// The MLS surfaces on the shared extractor: the engine's parameters (its `fit` member, the variant,
+// set by the method), where to extract, and the normals.
+template <class FitParams, auto kFit>
+struct MlsJobParams {
+  MlsJobParams() { fit.fit = kFit; }
+  FitParams fit;
   double cell_size = 1.0;  // Spacing of the extraction vertices in units of h.
   int refine_steps = 3;
   NormalsParams normals;
 };
+template <mls::AlgebraicFit kFit>
+using AlgebraicJobParams = MlsJobParams<mls::AlgebraicMlsParams, kFit>;
 using RamlsJobParams = AlgebraicJobParams<mls::AlgebraicFit::kRamls>;
 using ApssJobParams = AlgebraicJobParams<mls::AlgebraicFit::kApss>;
-
 template <mls::GaussianFit kFit>
-struct GaussianJobParams {
-  GaussianJobParams() { fit.fit = kFit; }
-  mls::GaussianMlsParams fit;
-  double cell_size = 1.0;  // Spacing of the extraction vertices in units of h.
-  int refine_steps = 3;
-  NormalsParams normals;
-};
+using GaussianJobParams = MlsJobParams<mls::GaussianMlsParams, kFit>;
 using AamlsJobParams = GaussianJobParams<mls::GaussianFit::kAdamsonAlexa>;
 using ImlsJobParams = GaussianJobParams<mls::GaussianFit::kKolluri>;
 

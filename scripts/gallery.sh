@@ -48,7 +48,7 @@ for m in "${models[@]}"; do cli sample "$data/meshes/$m.obj" --points $points -o
 statistic() { cli status "$1" | awk -v key="$2" '$1 == "stat" { split($2, kv, "="); if (kv[1] == key) print kv[2] }'; }
 
 # surface PICTURE MODEL METHOD [lsqsurf options...]: reconstructs MODEL's cloud, draws
-# $out/PICTURE.png and sets `caption` to its Chamfer (share of the diagonal) and the job's wall
+# $out/PICTURE.png (unless called with draw=0) and sets `caption` to its Chamfer (share of the diagonal) and the job's wall
 # time, or to why it failed; `job` to its id.
 surface() {
   local picture=$1 model=$2 method=$3
@@ -70,7 +70,7 @@ surface() {
   fi
   cli fetch "$job" -o "$work/$picture.ply"
   # shellcheck disable=SC2086  # the view options are words
-  cli render "$job" -o "$out/$picture.png" --size $size ${view[$model]} >/dev/null
+  [[ ${draw:-1} == 0 ]] || cli render "$job" -o "$out/$picture.png" --size $size ${view[$model]} >/dev/null
   local chamfer
   chamfer=$(cli compare "$data/meshes/$model.obj" "$work/$picture.ply" --samples 300000 | awk '/^chamfer/ {print $2}')
   caption=$(printf 'Chamfer %.2e, %.1f s' "$chamfer" "$(statistic "$job" wall_seconds)")
@@ -131,9 +131,12 @@ family=(aamls imls iamls apss ramls pu)
 for m in "${models[@]}"; do
   line="| ${title[$m]} |"
   for method in "${family[@]}"; do
-    surface "fig11-$m-$method" "$m" "$method"
-    [[ $method == aamls || $method == imls || $method == iamls ]] && line+=" $(cell "fig11-$m-$method" "$caption") |"
-    [[ $method == apss || $method == ramls || $method == pu ]] && rm -f "$out/fig11-$m-$method.png"
+    if [[ $method == aamls || $method == imls || $method == iamls ]]; then
+      surface "fig11-$m-$method" "$m" "$method"
+      line+=" $(cell "fig11-$m-$method" "$caption") |"
+    else
+      draw=0 surface "fig11-$m-$method" "$m" "$method"  # In the table only.
+    fi
   done
   echo "$line" >>"$readme"
 done
@@ -169,14 +172,13 @@ echo "gallery: PU by degree and depth" >&2
   printf '| | degree | depth |\n|---|---|---|\n'
 } >>"$readme"
 for m in "${models[@]}"; do
-  surface "pu-$m" "$m" pu
+  draw=0 surface "pu-$m" "$m" pu
   line="| ${title[$m]} ($caption) |"
   for colour in degree depth; do
     # shellcheck disable=SC2086
     cli render "$job" -o "$out/pu-$m-$colour.png" --size $size ${view[$m]} --color "$colour" >/dev/null
     line+=" ![pu-$m-$colour](pu-$m-$colour.png) |"
   done
-  rm -f "$out/pu-$m.png"
   echo "$line" >>"$readme"
 done
 

@@ -142,8 +142,8 @@ absl::StatusOr<extract::IsosurfaceResult> RunIamls(const IamlsJobParams& p, cons
   stat("epsilon_used", fit.epsilon);
   stat("iterations_used", fit.iterations);
   stat("cutoff_used", fit.cutoff);
-  if (fit.noise_sigma >= 0) {
-    stat("noise_level", fit.noise_sigma / core::Diagonal(core::BoundingBox(cloud.positions)));
+  if (fit.noise_level >= 0) {
+    stat("noise_level", fit.noise_level);
     stat("noise_to_spacing", fit.noise_ratio);
   }
   if (fit.largest_eigenvalue > 0) stat("largest_eigenvalue", fit.largest_eigenvalue);

@@ -205,8 +205,8 @@ absl::Status FillKernelMatrix(const IamlsFunction::Impl& impl, KernelMatrix& a, 
       &ctx, [&](double f) { setup_ctx.Report(0.5 + 0.5 * f); });
 }
 
-// The kernel matrix's rows one at a time, never stored: with c empty, s and the row sums ΣΨ at
-// the samples; with c, A c.
+// The kernel matrix's rows one at a time, never stored: with c empty, s, the row sums ΣΨ at the
+// samples and the entry count; with c, A c.
 struct StreamedRows {
   std::vector<double> s, row_sum, ac;
   uint64_t entries = 0;
@@ -217,7 +217,7 @@ absl::Status StreamKernelRows(const IamlsFunction::Impl& impl, std::span<const d
   std::vector<double>& target = c.empty() ? out.s : out.ac;
   target.assign(n, 0.0);
   if (c.empty()) out.row_sum.assign(n, 0.0);
-  std::vector<uint32_t> counts(n);
+  std::vector<uint32_t> counts(c.empty() ? n : 0);
   LSQSURF_RETURN_IF_ERROR(core::ParallelFor(
       n, 1024,
       [&](size_t begin, size_t end) {
@@ -225,20 +225,22 @@ absl::Status StreamKernelRows(const IamlsFunction::Impl& impl, std::span<const d
         std::vector<double> psi;
         for (size_t k = begin; k < end; ++k) {
           const double sk = KernelRow(impl, k, nn, psi);
-          counts[k] = static_cast<uint32_t>(nn.size());
           double sum = 0;
           for (size_t j = 0; j < nn.size(); ++j) sum += psi[j] * (c.empty() ? 1.0 : c[nn[j].index]);
           if (c.empty()) {
             out.s[k] = sk;
             out.row_sum[k] = sum;
+            counts[k] = static_cast<uint32_t>(nn.size());
           } else {
             out.ac[k] = sum;
           }
         }
       },
       &ctx));
-  out.entries = 0;
-  for (uint32_t count : counts) out.entries += count;
+  if (c.empty()) {
+    out.entries = 0;
+    for (uint32_t count : counts) out.entries += count;
+  }
   return absl::OkStatus();
 }
 
@@ -280,9 +282,10 @@ void ChooseParameters(const IamlsParams& params, const OrientedPoints& points, I
     const double neighbor_distance =
         params.spacing == 0 ? points.spacing / params.spacing_scale : core::MeanNearestNeighborDistance(*points.tree);
     const double diagonal = core::Diagonal(core::BoundingBox(points.positions));
-    stats.noise_sigma = params.noise_level >= 0 ? params.noise_level * diagonal
-                                                : core::EstimateNoise(*points.tree, points.normals).sigma;
-    stats.noise_ratio = neighbor_distance > 0 ? stats.noise_sigma / neighbor_distance : 0;
+    const double sigma = params.noise_level >= 0 ? params.noise_level * diagonal
+                                                 : core::EstimateNoise(*points.tree, points.normals).sigma;
+    stats.noise_level = diagonal > 0 ? sigma / diagonal : 0;
+    stats.noise_ratio = neighbor_distance > 0 ? sigma / neighbor_distance : 0;
     choice = ChooseIamlsParameters(stats.noise_ratio);
   }
   stats.epsilon = params.epsilon > 0 ? params.epsilon : choice.epsilon;

@@ -67,7 +67,8 @@ struct IamlsStats {
   double epsilon = 0;  // ε, iterations and cutoff used (given or chosen).
   int iterations = 0;
   double cutoff = 0;
-  double noise_sigma = -1;        // Noise σ used for the choice, model units; -1 when nothing was chosen.
+  double noise_level = -1;        // Noise σ used for the choice, share of the bounding-box diagonal (as
+                                  // PuStats::noise_estimate); -1 when nothing was chosen.
   double noise_ratio = -1;        // σ / mean nearest-neighbour distance; -1 likewise.
   double largest_eigenvalue = 0;  // Of the kernel matrix; the iteration needs it below 2 (0: not computed,
                                   // one iteration cannot diverge).

@@ -97,7 +97,7 @@ int main(int argc, char** argv) {
   std::string pictures;
   std::string resampling = "markers";
   bool preimage = false;
-  double marker_spacing = 0.5, marker_gap = 0.75;
+  double marker_spacing = 0.5, marker_gap = 0.75, merge_distance = 0;
   app.add_option("--test", test, "zalesak | enright")->capture_default_str();
   app.add_option("--cells", cells, "grid cells per unit (h = 1/cells)")->capture_default_str();
   app.add_option("--dt", dt, "time step (default: 1 for zalesak, T/(150·cells/64) for enright)");
@@ -116,6 +116,9 @@ int main(int argc, char** argv) {
   app.add_option("--resampling", resampling, "gridlines (the seed's re-generation) | markers")->capture_default_str();
   app.add_option("--marker-spacing", marker_spacing, "markers: thinning distance in units of h")->capture_default_str();
   app.add_option("--marker-gap", marker_gap, "markers: gap-filling distance in units of h")->capture_default_str();
+  app.add_option("--merge-distance", merge_distance,
+                 "fronts closer than this (units of h) merge and thinner necks pinch off; 0 = never")
+      ->capture_default_str();
   app.add_flag("--preimage", preimage,
                "also print, for each printed frame, how far the points' preimages (the flow run back to t = 0) lie "
                "from the exact initial surface, in units of h: the front's true error at that time");
@@ -130,6 +133,7 @@ int main(int argc, char** argv) {
   p.resampling = resampling == "markers" ? front::Resampling::kMarkers : front::Resampling::kGridlines;
   p.marker_spacing = marker_spacing;
   p.marker_gap = marker_gap;
+  p.merge_distance = merge_distance;
   SetSchedule(zalesak, dt, steps, cells, period, p);
   p.output_stride = stride > 0 ? stride : std::max(1, p.steps / 8);
   if (shape_name.empty()) shape_name = zalesak ? "slotted" : "sphere";
@@ -168,7 +172,7 @@ int main(int argc, char** argv) {
         std::printf("%6d %9.3f %9zu %12.6e %12.4f %9.2f", f.step, f.time, f.points, f.volume, 100 * f.volume_change,
                     wall);
         if (mesh_check) {
-          auto mesh = front::FrontMesh(fr, p.h, ctx, p.support_factor);
+          auto mesh = front::FrontMesh(fr, p.h, ctx, p.support_factor, p.merge_distance);
           if (!mesh.ok()) return mesh.status();
           const double mesh_volume = core::EnclosedVolume(*mesh);
           std::printf(" %12.6e %12.4f", mesh_volume, 100 * (mesh_volume - f.volume) / f.volume);
@@ -185,7 +189,7 @@ int main(int argc, char** argv) {
       });
   const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   if (!s.ok()) return std::fprintf(stderr, "%s\n", s.ToString().c_str()), 1;
-  auto e1 = front::ShapeError(last, shape, p.h);
+  auto e1 = front::ShapeError(last, shape, p.h, p.support_factor, p.merge_distance);
   if (!e1.ok()) return std::fprintf(stderr, "%s\n", e1.status().ToString().c_str()), 1;
   struct rusage usage {};
   ::getrusage(RUSAGE_SELF, &usage);

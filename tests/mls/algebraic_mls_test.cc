@@ -78,6 +78,42 @@ TEST(AlgebraicMls, FacingFitKeepsTheTwoFacesOfAThinSheetApart) {
   EXPECT_FALSE(f->ValueAndGradientFacing(Vec3d::Zero(), Vec3d(1, 0, 0), 0.5).defined);
 }
 
+// Sides(): two planes z = ±g/2 (g < the support), sampled like the sheet above. With normals
+// facing each other (a gap between two fronts) or away from each other (the walls of a slab),
+// the near fit is the nearer plane's signed distance, the far fit the other's, and far_in_front
+// tells the gap from the slab.
+TEST(AlgebraicMls, SidesSeparatesAGapFromASlab) {
+  const double h = 0.01, half = 0.6 * h;
+  for (double facing : {-1.0, 1.0}) {  // −1: normals point into the gap; +1: out of the slab.
+    core::PointCloud cloud;
+    for (int i = -20; i <= 20; ++i) {
+      for (int j = -20; j <= 20; ++j) {
+        for (double side : {-1.0, 1.0}) {
+          const double shift = side < 0 ? 0.5 * h : 0;
+          cloud.positions.push_back(Vec3d(i * h + shift, j * h + shift, side * half).cast<float>());
+          cloud.normals.push_back(Vec3d(0, 0, facing * side).cast<float>());
+        }
+      }
+    }
+    AlgebraicMlsParams p;
+    p.spacing = h;
+    p.side_cosine = -0.5;
+    auto f = Build(cloud, p);
+    ASSERT_TRUE(f);
+    for (double z : {-0.4 * h, 0.2 * h, 0.9 * h}) {
+      const Vec3d x(0.013, -0.021, z);
+      const SidesAt s = f->Sides(x);
+      ASSERT_TRUE(s.near.defined && s.far.defined) << z;
+      const double near_side = z >= 0 ? 1 : -1;  // The plane nearer x.
+      // Signed distance to the plane at side·half with outward normal facing·side·z.
+      auto distance = [&](double side) { return facing * side * (z - side * half); };
+      EXPECT_NEAR(s.near.value, distance(near_side), 1e-6) << facing << " " << z;
+      EXPECT_NEAR(s.far.value, distance(-near_side), 1e-6) << facing << " " << z;
+      EXPECT_EQ(s.far_in_front, facing < 0) << facing << " " << z;
+    }
+  }
+}
+
 // METHODS.md §2.6: the RAMLS surface of a torus converges at about second order as h halves.
 TEST(AlgebraicMls, RamlsTorusErrorFallsAtAboutSecondOrder) {
   const double R = 0.3, r = 0.12;

@@ -354,6 +354,56 @@ absl::StatusOr<std::unique_ptr<mls::AlgebraicMlsFunction>> FrontFunction(const F
   return mls::BuildAlgebraicMls(cloud, p, ctx);
 }
 
+// F where the front's points face two opposite ways within the support: the smooth union of the
+// two sides' fits where the far side lies in front of the near one (a gap closes), their smooth
+// intersection where it lies behind (a neck or sheet pinches), with blend radius k. Both
+// blends reduce to the nearer side's value (the plain side rule) where the two values differ by
+// k or more, and close a gap or cut a neck narrower than k/2.
+class TopologyField final : public core::ImplicitFunction {
+ public:
+  TopologyField(std::unique_ptr<mls::AlgebraicMlsFunction> sides, double blend)
+      : sides_(std::move(sides)), blend_(blend) {}
+  core::FieldValue Value(const Vec3d& x) const override {
+    const core::FieldGradient g = ValueAndGradient(x);
+    return {g.value, g.defined};
+  }
+  core::FieldGradient ValueAndGradient(const Vec3d& x) const override { return Blend(sides_->Sides(x)); }
+
+  // The blended value from the two fits; also whether the blend changes the near side's value.
+  core::FieldGradient Blend(const mls::SidesAt& s, bool* acts = nullptr) const {
+    if (acts) *acts = false;
+    if (!s.near.defined || !s.far.defined) return s.near;
+    // Smooth minimum of a and b (a union); the intersection is −smin(−a, −b). With
+    // m = clamp(½ + ½(b − a)/k): smin = b + (a − b)m − k m(1 − m), and its gradient is exactly
+    // ∇b + (∇a − ∇b)m (the terms in ∇m cancel).
+    const double sign = s.far_in_front ? 1 : -1;
+    const double a = sign * s.near.value, b = sign * s.far.value;
+    const double m = std::clamp(0.5 + 0.5 * (b - a) / blend_, 0.0, 1.0);
+    core::FieldGradient out = s.near;
+    out.value = sign * (b + (a - b) * m - blend_ * m * (1 - m));
+    out.gradient = s.far.gradient + (s.near.gradient - s.far.gradient) * m;
+    if (acts) *acts = m < 1;
+    return out;
+  }
+  const mls::AlgebraicMlsFunction& sides() const { return *sides_; }
+
+ private:
+  std::unique_ptr<mls::AlgebraicMlsFunction> sides_;
+  double blend_;
+};
+
+// The function whose zero set is the front: the side rule's RAMLS function, blended where two
+// sides meet when merge_distance > 0.
+absl::StatusOr<std::unique_ptr<core::ImplicitFunction>> SurfaceFunction(const Front& front, double h,
+                                                                        double support_factor, double merge_distance,
+                                                                        core::JobContext& ctx) {
+  auto fit = FrontFunction(front, h, support_factor, ctx);
+  if (!fit.ok()) return fit.status();
+  if (merge_distance <= 0) return std::unique_ptr<core::ImplicitFunction>(std::move(*fit));
+  return std::unique_ptr<core::ImplicitFunction>(
+      std::make_unique<TopologyField>(*std::move(fit), 2 * merge_distance * h));
+}
+
 // Marker points carry the step they were made at; older markers have been moved by the exact
 // flow for longer and outrank younger ones when two crowd each other.
 struct Markers {
@@ -445,11 +495,60 @@ absl::Status FillGaps(Markers& m, int step, double h, double gap, double support
   return absl::OkStatus();
 }
 
+// The markers mode's topology changes: the markers where the blend of TopologyField changes F
+// (two sides within the blend radius of each other, or one front inside another) go, and the
+// gridline roots of the blended F around them, thinned against the markers that stay, take
+// their place.
+absl::Status ReplaceMergingMarkers(Markers& m, int step, double h, double support_factor, double merge_distance,
+                                   std::vector<bool>& marks, core::JobContext& ctx) {
+  auto fit = FrontFunction(m.front, h, support_factor, ctx);
+  if (!fit.ok()) return fit.status();
+  const TopologyField field(*std::move(fit), 2 * merge_distance * h);
+  std::vector<char> merging(m.front.points.size(), 0);
+  LSQSURF_RETURN_IF_ERROR(core::ParallelFor(
+      merging.size(), 512,
+      [&](size_t b, size_t e) {
+        for (size_t i = b; i < e; ++i) {
+          bool acts = false;
+          field.Blend(field.sides().Sides(m.front.points[i].cast<double>()), &acts);
+          merging[i] = acts;
+        }
+      },
+      &ctx));
+  std::vector<Vec3f> replaced;
+  Markers kept;
+  for (size_t i = 0; i < merging.size(); ++i) {
+    if (merging[i]) {
+      replaced.push_back(m.front.points[i]);
+      continue;
+    }
+    kept.front.points.push_back(m.front.points[i]);
+    kept.front.normals.push_back(m.front.normals[i]);
+    kept.birth.push_back(m.birth[i]);
+  }
+  if (replaced.empty()) return absl::OkStatus();
+  const double fine = 0.5 * h;
+  auto sampled = SampleGridlines(field, NodesNear(replaced, fine, marks), fine, false, ctx);
+  if (!sampled.ok()) return sampled.status();
+  SpacingGrid grid(0.5 * h);
+  for (size_t i = 0; i < kept.front.points.size(); ++i) grid.Add(kept.front.points[i], kept.front.normals[i]);
+  for (const Crossing& c : sampled->crossings) {
+    if (grid.HasNear(c.point, c.normal, 0.5 * h)) continue;
+    grid.Add(c.point, c.normal);
+    kept.front.points.push_back(c.point);
+    kept.front.normals.push_back(c.normal);
+    kept.birth.push_back(step);
+  }
+  m = std::move(kept);
+  return absl::OkStatus();
+}
+
 // The z-gridline crossings, on a grid of spacing `grid`, of the RAMLS function (spacing h) of
 // the front: what the volume and the shape error are measured from.
 absl::StatusOr<std::vector<ZCrossing>> ZCrossings(const Front& front, double h, double grid, double support_factor,
-                                                  std::vector<bool>& marks, core::JobContext& ctx) {
-  auto field = FrontFunction(front, h, support_factor, ctx);
+                                                  double merge_distance, std::vector<bool>& marks,
+                                                  core::JobContext& ctx) {
+  auto field = SurfaceFunction(front, h, support_factor, merge_distance, ctx);
   if (!field.ok()) return field.status();
   auto sampled = SampleGridlines(**field, NodesNear(front.points, grid, marks), grid, true, ctx);
   if (!sampled.ok()) return sampled.status();
@@ -538,6 +637,9 @@ const core::ParamTable<TrackingParams>& TrackingParamTable() {
         .Real<&TrackingParams::marker_gap>("marker_gap", 0.15, 1, "h",
                                            "markers: a midpoint of two markers with no marker within this gets a "
                                            "new one; must exceed marker_spacing")
+        .Real<&TrackingParams::merge_distance>("merge_distance", 0, 1, "h",
+                                               "fronts closer than this merge and necks thinner than it pinch off; "
+                                               "0 keeps every thin sheet and gap")
         .Integer<&TrackingParams::max_points>("max_points", 100, 50'000'000, "points",
                                               "stop with an error if the front grows past this many points")
         .AddRule([](const TrackingParams& p) { return ValidateSpacing(p.h); })
@@ -555,15 +657,22 @@ const core::ParamTable<TrackingParams>& TrackingParamTable() {
 absl::Status Validate(const TrackingParams& p) { return TrackingParamTable().Validate(p); }
 
 absl::StatusOr<Front> SampleInitialFront(InitialShape shape, double h) {
-  LSQSURF_RETURN_IF_ERROR(ValidateSpacing(h));
-  const ShapeField field(shape);
   const Vec3d centre = ShapeCentre(shape);
+  return SampleFront(ShapeField(shape), centre - Vec3d::Constant(kRadius), centre + Vec3d::Constant(kRadius), h);
+}
+
+absl::StatusOr<Front> SampleFront(const core::ImplicitFunction& shape, const Vec3d& box_lo, const Vec3d& box_hi,
+                                  double h) {
+  LSQSURF_RETURN_IF_ERROR(ValidateSpacing(h));
+  if (!box_lo.allFinite() || !box_hi.allFinite() || !(box_lo.array() <= box_hi.array()).all()) {
+    return absl::InvalidArgumentError("the sampling box needs finite corners with lo <= hi");
+  }
   std::vector<NodeKey> nodes;
   const int n = GridCells(h);
   std::array<int, 3> lo{}, hi{};
   for (int a = 0; a < 3; ++a) {
-    lo[a] = std::max(0, static_cast<int>(std::floor((centre[a] - kRadius) / h)) - 2);
-    hi[a] = std::min(n, static_cast<int>(std::ceil((centre[a] + kRadius) / h)) + 2);
+    lo[a] = std::clamp(static_cast<int>(std::floor(std::clamp(box_lo[a], 0.0, 1.0) / h)) - 2, 0, n);
+    hi[a] = std::clamp(static_cast<int>(std::ceil(std::clamp(box_hi[a], 0.0, 1.0) / h)) + 2, 0, n);
   }
   for (int k = lo[2]; k <= hi[2]; ++k) {
     for (int j = lo[1]; j <= hi[1]; ++j) {
@@ -574,24 +683,27 @@ absl::StatusOr<Front> SampleInitialFront(InitialShape shape, double h) {
   }
   std::sort(nodes.begin(), nodes.end());
   core::LocalJobContext ctx;
-  auto sampled = SampleGridlines(field, nodes, h, false, ctx);
+  auto sampled = SampleGridlines(shape, nodes, h, false, ctx);
   if (!sampled.ok()) return sampled.status();
+  if (sampled->crossings.empty()) {
+    return absl::FailedPreconditionError("the shape has no surface inside the sampling box");
+  }
   return Thin(sampled->crossings, h);
 }
 
-absl::StatusOr<double> FrontVolume(const Front& front, double h, double support_factor) {
+absl::StatusOr<double> FrontVolume(const Front& front, double h, double support_factor, double merge_distance) {
   LSQSURF_RETURN_IF_ERROR(ValidateSpacing(h));
   core::LocalJobContext ctx;
   std::vector<bool> marks;
-  auto z = ZCrossings(front, h, h, support_factor, marks, ctx);
+  auto z = ZCrossings(front, h, h, support_factor, merge_distance, marks, ctx);
   if (!z.ok()) return z.status();
   return VolumeOf(*z, h);
 }
 
-absl::StatusOr<core::TriangleMesh> FrontMesh(const Front& front, double h, core::JobContext& ctx,
-                                             double support_factor) {
+absl::StatusOr<core::TriangleMesh> FrontMesh(const Front& front, double h, core::JobContext& ctx, double support_factor,
+                                             double merge_distance) {
   LSQSURF_RETURN_IF_ERROR(ValidateSpacing(h));
-  auto field = FrontFunction(front, h, support_factor, ctx);
+  auto field = SurfaceFunction(front, h, support_factor, merge_distance, ctx);
   if (!field.ok()) return field.status();
   extract::IsosurfaceParams p;
   p.cell_size = h;
@@ -600,12 +712,13 @@ absl::StatusOr<core::TriangleMesh> FrontMesh(const Front& front, double h, core:
   return std::move(extracted->mesh);
 }
 
-absl::StatusOr<double> ShapeError(const Front& front, InitialShape exact, double h, double support_factor) {
+absl::StatusOr<double> ShapeError(const Front& front, InitialShape exact, double h, double support_factor,
+                                  double merge_distance) {
   LSQSURF_RETURN_IF_ERROR(ValidateSpacing(h));
   core::LocalJobContext ctx;
   const double fine = 0.5 * h;
   std::vector<bool> marks;
-  auto crossings = ZCrossings(front, h, fine, support_factor, marks, ctx);
+  auto crossings = ZCrossings(front, h, fine, support_factor, merge_distance, marks, ctx);
   if (!crossings.ok()) return crossings.status();
   // Inside intervals of the front per column, then of the exact shape (a sphere's chord, or
   // nothing across the slot), and the length of their symmetric difference.
@@ -664,7 +777,7 @@ absl::Status Track(const Front& initial, const VelocityField& velocity, const Tr
   std::vector<bool> marks;
   Markers markers{initial, std::vector<int>(initial.points.size(), 0)};
   Front& front = markers.front;
-  auto z0 = ZCrossings(front, h, h, params.support_factor, marks, ctx);
+  auto z0 = ZCrossings(front, h, h, params.support_factor, params.merge_distance, marks, ctx);
   if (!z0.ok()) return z0.status();
   const double v0 = VolumeOf(*z0, h);
   if (!(v0 > 0))
@@ -702,7 +815,7 @@ absl::Status Track(const Front& initial, const VelocityField& velocity, const Tr
     std::vector<ZCrossing> z_crossings;
     if (params.resampling == Resampling::kGridlines) {
       // 2. Re-generation on the gridlines, 3. thinning.
-      auto field = FrontFunction(front, h, params.support_factor, ctx);
+      auto field = SurfaceFunction(front, h, params.support_factor, params.merge_distance, ctx);
       if (!field.ok()) return field.status();
       auto sampled = SampleGridlines(**field, NodesNear(front.points, h, marks), h, false, ctx);
       if (!sampled.ok()) return sampled.status();
@@ -713,6 +826,10 @@ absl::Status Track(const Front& initial, const VelocityField& velocity, const Tr
       // 2. Markers that crowd are thinned, 3. gaps are filled.
       ThinMarkers(markers, params.marker_spacing * h);
       LSQSURF_RETURN_IF_ERROR(FillGaps(markers, step, h, params.marker_gap * h, params.support_factor, ctx));
+      if (params.merge_distance > 0) {
+        LSQSURF_RETURN_IF_ERROR(
+            ReplaceMergingMarkers(markers, step, h, params.support_factor, params.merge_distance, marks, ctx));
+      }
     }
     if (front.points.size() < 4) {
       return absl::FailedPreconditionError(
@@ -729,7 +846,7 @@ absl::Status Track(const Front& initial, const VelocityField& velocity, const Tr
       stats.time = step * dt;
       stats.points = front.points.size();
       if (params.resampling == Resampling::kMarkers) {
-        auto z = ZCrossings(front, h, h, params.support_factor, marks, ctx);
+        auto z = ZCrossings(front, h, h, params.support_factor, params.merge_distance, marks, ctx);
         if (!z.ok()) return z.status();
         z_crossings = std::move(*z);
       }

@@ -26,6 +26,7 @@
 
 #include "absl/status/statusor.h"
 #include "worker/core/geometry.h"
+#include "worker/core/implicit_function.h"
 #include "worker/core/job_context.h"
 #include "worker/core/params.h"
 
@@ -101,6 +102,13 @@ struct TrackingParams {
   double marker_spacing = 0.5;  // kMarkers: the closest two markers facing the same way may come, units of h, 0.1..1.
   double marker_gap = 0.75;     // kMarkers: the midpoint of two markers with no marker within this gets one,
                                 // units of h, (marker_spacing, 1].
+  // Topology changes, units of h, 0..1; 0 (the default) keeps every sheet and gap however thin.
+  // Two fronts (or two parts of one) that come closer than this merge, and a neck or sheet
+  // thinner than it pinches off: where a point's neighbourhood holds two opposite-facing sides,
+  // F is their smooth union (a gap) or smooth intersection (a neck) of blend radius 2·merge_distance·h
+  // instead of the nearer side's fit. In the markers mode the markers where that blend acts
+  // are replaced by the gridline roots of the blended F.
+  double merge_distance = 0;
 };
 
 // The one description of every TrackingParams field (output_stride is called "stride");
@@ -121,20 +129,32 @@ struct FrameStats {
 // Errors: kInvalidArgument (h out of range).
 absl::StatusOr<Front> SampleInitialFront(InitialShape shape, double h);
 
+// Samples any closed surface, given as an implicit function (< 0 inside, about a signed distance
+// near its zero set, defined in the box), on the gridlines of spacing `h` in the box [lo, hi]
+// (clipped to the unit cube): the rule of SampleInitialFront. Errors: kInvalidArgument (h, an
+// empty box), kFailedPrecondition (no surface crossed).
+absl::StatusOr<Front> SampleFront(const core::ImplicitFunction& shape, const core::Vec3d& lo, const core::Vec3d& hi,
+                                  double h);
+
+// The three measures below use the surface Track uses: the RAMLS function of the front (support
+// `support_factor`·h), blended where two sides meet when `merge_distance` > 0.
+
 // Volume of the region where the front's RAMLS function is negative, from the z gridlines of
 // spacing `h` (the measure used for every frame). Errors: kInvalidArgument.
-absl::StatusOr<double> FrontVolume(const Front& front, double h, double support_factor = 3.0);
+absl::StatusOr<double> FrontVolume(const Front& front, double h, double support_factor = 3.0,
+                                   double merge_distance = 0);
 
 // The front's surface as a triangle mesh: the RAMLS function (support `support_factor`·h)
 // extracted by marching tetrahedra on cubes of edge h around the points, with vertex normals.
 // Its enclosed volume cross-checks FrontVolume. Errors: kInvalidArgument, kResourceExhausted,
 // kCancelled.
 absl::StatusOr<core::TriangleMesh> FrontMesh(const Front& front, double h, core::JobContext& ctx,
-                                             double support_factor = 3.0);
+                                             double support_factor = 3.0, double merge_distance = 0);
 
 // E1 = ∫ |χ_front − χ_exact| dV (BENCHMARKS.md), with χ_front from the crossings of the front's
 // RAMLS function on z gridlines of spacing `h` / 2 (exact along each line, sampled across).
-absl::StatusOr<double> ShapeError(const Front& front, InitialShape exact, double h, double support_factor = 3.0);
+absl::StatusOr<double> ShapeError(const Front& front, InitialShape exact, double h, double support_factor = 3.0,
+                                  double merge_distance = 0);
 
 // Advects `initial` for params.steps steps. `on_frame(stats, front)` is called for step 0 and
 // then every output_stride steps and after the last; returning a non-OK status stops tracking

@@ -130,7 +130,8 @@ class FrameWriter {
     if (!params_.meshes) {
       Draw(cloud, s.step);
     } else {
-      auto mesh = front::FrontMesh(f, 1.0 / params_.cells, env_.context, params_.tracking.support_factor);
+      auto mesh = front::FrontMesh(f, 1.0 / params_.cells, env_.context, params_.tracking.support_factor,
+                                   params_.tracking.merge_distance);
       if (!mesh.ok()) return mesh.status();
       Draw(*mesh, s.step);
       auto encoded_mesh = io::EncodeDracoMesh(*mesh, {});
@@ -300,7 +301,7 @@ class TrackKind final : public JobKind {
         std::abs(end_time - back_at) <= 1e-6 * back_at) {
       const front::InitialShape exact =
           p.interface == TrackInterface::kSphere ? front::InitialShape::kSphere : front::InitialShape::kZalesakSphere;
-      auto e1 = front::ShapeError(last, exact, tp.h, tp.support_factor);
+      auto e1 = front::ShapeError(last, exact, tp.h, tp.support_factor, tp.merge_distance);
       if (!e1.ok()) return e1.status();
       const double e1_rel = *e1 / v0;
       char summary[128];

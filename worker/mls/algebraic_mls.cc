@@ -1,6 +1,7 @@
 #include "worker/mls/algebraic_mls.h"
 
 #include <Eigen/Cholesky>
+#include <array>
 #include <cmath>
 #include <limits>
 
@@ -41,66 +42,35 @@ Sphere FitRamls(const Sums& s) {
   return sphere;
 }
 
-}  // namespace
+// The weighted sums of one fit, and what decides whether its F is defined.
+struct FitAccumulator {
+  Sums s;
+  Eigen::Matrix<double, 5, 5> normal_matrix = Eigen::Matrix<double, 5, 5>::Zero();  // APSS only.
+  int weighted = 0;
+  double nearest2 = std::numeric_limits<double>::infinity();
 
-struct AlgebraicMlsFunction::Impl {
-  OrientedPoints points;
-  AlgebraicMlsParams params;
-  double h = 1, radius = 1;
+  void Add(const Vec3d& y, const Vec3d& n, double w, double d2, bool apss) {
+    nearest2 = std::min(nearest2, d2);
+    ++weighted;
+    s.w += w;
+    s.p += w * y;
+    s.n += w * n;
+    s.pn += w * y.dot(n);
+    s.pp += w * y.squaredNorm();
+    if (apss) {
+      Eigen::Matrix<double, 5, 1> row;
+      row << 1, y.x(), y.y(), y.z(), y.squaredNorm();
+      normal_matrix.selfadjointView<Eigen::Lower>().rankUpdate(row, w);
+    }
+  }
 
-  // F and the fitted sphere's gradient at x; `defined` as documented in the header. With
-  // `facing`, only the points whose normal n has n·facing ≥ min_cosine enter the fit, in place of
-  // the side rule of the parameters.
-  core::FieldGradient Evaluate(const Vec3d& x, const Vec3f* facing = nullptr, float min_cosine = -1) const {
-    thread_local std::vector<core::Neighbor> near;
-    const std::vector<Vec3f>& positions = points.positions;
-    const std::vector<Vec3f>& normals = points.normals;
-    points.tree->Radius(x.cast<float>(), static_cast<float>(radius), near);
+  // F and the fitted sphere's gradient; `defined` as documented in the header.
+  core::FieldGradient Finish(const AlgebraicMlsParams& params, double h, double radius) const {
     core::FieldGradient out;
     out.value = std::numeric_limits<double>::quiet_NaN();
-    Sums s;
-    Eigen::Matrix<double, 5, 5> normal_matrix = Eigen::Matrix<double, 5, 5>::Zero();
-    Eigen::Matrix<double, 5, 1> rhs = Eigen::Matrix<double, 5, 1>::Zero();
-    const bool apss = params.fit == AlgebraicFit::kApss;
-    int weighted = 0;
-    double nearest2 = std::numeric_limits<double>::infinity();
-    // The side rule needs the nearest point's normal before the sums; without it the nearest
-    // distance is tracked in the one pass.
-    const bool one_side = facing != nullptr || params.side_cosine > -1;
-    const double side_cosine = facing != nullptr ? min_cosine : params.side_cosine;
-    Vec3f nearest_normal = facing != nullptr ? *facing : Vec3f::Zero();
-    if (one_side && facing == nullptr) {
-      for (const core::Neighbor& q : near) {
-        if (q.distance2 < nearest2) {
-          nearest2 = q.distance2;
-          nearest_normal = normals[q.index];
-        }
-      }
-    }
-    const double r2 = radius * radius;
-    for (const core::Neighbor& q : near) {
-      const double d2 = q.distance2;
-      if (d2 >= r2) continue;
-      if (one_side && nearest_normal.dot(normals[q.index]) < side_cosine) continue;
-      nearest2 = std::min(nearest2, d2);
-      const double t = 1 - d2 / r2, w = t * t * t * t;
-      const Vec3d y = (positions[q.index].cast<double>() - x) / radius;
-      const Vec3d n = normals[q.index].cast<double>();
-      ++weighted;
-      s.w += w;
-      s.p += w * y;
-      s.n += w * n;
-      s.pn += w * y.dot(n);
-      s.pp += w * y.squaredNorm();
-      if (apss) {
-        Eigen::Matrix<double, 5, 1> row;
-        row << 1, y.x(), y.y(), y.z(), y.squaredNorm();
-        normal_matrix.selfadjointView<Eigen::Lower>().rankUpdate(row, w);
-      }
-    }
     if (!(s.w > 0)) return out;
     Sphere sphere;
-    if (apss) {
+    if (params.fit == AlgebraicFit::kApss) {
       // The gradient rows [0, e_k, 2y_k] · u = n_k, summed over k, in closed form.
       const double bw = params.apss_beta;
       Eigen::Matrix<double, 5, 5> full = normal_matrix.selfadjointView<Eigen::Lower>();
@@ -108,6 +78,7 @@ struct AlgebraicMlsFunction::Impl {
       full.block<3, 1>(1, 4) += 2 * bw * s.p;
       full.block<1, 3>(4, 1) += 2 * bw * s.p.transpose();
       full(4, 4) += 4 * bw * s.pp;
+      Eigen::Matrix<double, 5, 1> rhs = Eigen::Matrix<double, 5, 1>::Zero();
       rhs.segment<3>(1) = bw * s.n;
       rhs(4) = 2 * bw * s.pn;
       full.diagonal().array() += 1e-12 * full.trace();
@@ -127,6 +98,82 @@ struct AlgebraicMlsFunction::Impl {
     out.gradient = sphere.ul / scale;
     const double reach = params.coverage * h;
     out.defined = weighted >= params.min_neighbors && nearest2 <= reach * reach && std::isfinite(out.value);
+    return out;
+  }
+};
+
+}  // namespace
+
+struct AlgebraicMlsFunction::Impl {
+  OrientedPoints points;
+  AlgebraicMlsParams params;
+  double h = 1, radius = 1;
+
+  // The normal of the point nearest x among `near` (zero if none).
+  Vec3f NearestNormal(const std::vector<core::Neighbor>& near) const {
+    double nearest2 = std::numeric_limits<double>::infinity();
+    Vec3f normal = Vec3f::Zero();
+    for (const core::Neighbor& q : near) {
+      if (q.distance2 < nearest2) {
+        nearest2 = q.distance2;
+        normal = points.normals[q.index];
+      }
+    }
+    return normal;
+  }
+
+  // Feeds every point of `near` within the support to one of the accumulators: `pick(normal)`
+  // returns 0, 1 or −1 (skip).
+  template <typename Pick>
+  void Accumulate(const Vec3d& x, const std::vector<core::Neighbor>& near, Pick&& pick,
+                  std::array<FitAccumulator*, 2> into) const {
+    const double r2 = radius * radius;
+    const bool apss = params.fit == AlgebraicFit::kApss;
+    for (const core::Neighbor& q : near) {
+      const double d2 = q.distance2;
+      if (d2 >= r2) continue;
+      const int group = pick(points.normals[q.index]);
+      if (group < 0 || into[static_cast<size_t>(group)] == nullptr) continue;
+      const double t = 1 - d2 / r2, w = t * t * t * t;
+      into[static_cast<size_t>(group)]->Add((points.positions[q.index].cast<double>() - x) / radius,
+                                            points.normals[q.index].cast<double>(), w, d2, apss);
+    }
+  }
+
+  // F and the fitted sphere's gradient at x. With `facing`, only the points whose normal n has
+  // n·facing ≥ min_cosine enter the fit, in place of the side rule of the parameters.
+  core::FieldGradient Evaluate(const Vec3d& x, const Vec3f* facing = nullptr, float min_cosine = -1) const {
+    thread_local std::vector<core::Neighbor> near;
+    points.tree->Radius(x.cast<float>(), static_cast<float>(radius), near);
+    const bool one_side = facing != nullptr || params.side_cosine > -1;
+    const double side_cosine = facing != nullptr ? min_cosine : params.side_cosine;
+    // The side rule needs the nearest point's normal before the sums.
+    const Vec3f reference = facing != nullptr ? *facing : one_side ? NearestNormal(near) : Vec3f::Zero();
+    FitAccumulator fit;
+    Accumulate(x, near, [&](const Vec3f& n) { return !one_side || reference.dot(n) >= side_cosine ? 0 : -1; },
+               {&fit, nullptr});
+    return fit.Finish(params, h, radius);
+  }
+
+  SidesAt EvaluateSides(const Vec3d& x) const {
+    thread_local std::vector<core::Neighbor> near;
+    points.tree->Radius(x.cast<float>(), static_cast<float>(radius), near);
+    const Vec3f reference = NearestNormal(near);
+    const float side_cosine = static_cast<float>(params.side_cosine > -1 ? params.side_cosine : 0.0);
+    FitAccumulator own, other;
+    Accumulate(x, near, [&](const Vec3f& n) { return reference.dot(n) >= side_cosine ? 0 : 1; }, {&own, &other});
+    SidesAt out;
+    out.near = own.Finish(params, h, radius);
+    out.far = other.Finish(params, h, radius);
+    // The far fit only has to be well posed, not near x: a coverage cut would switch it on and
+    // off where the near side's value is small.
+    out.far.defined = other.weighted >= params.min_neighbors && std::isfinite(out.far.value);
+    if (own.s.w > 0 && other.s.w > 0) {
+      // The far side's weighted centroid seen from the near side's: in front of its outward
+      // normal (a gap between two fronts) or behind it (the two walls of a neck).
+      const Vec3d from_own = (other.s.p / other.s.w - own.s.p / own.s.w) * radius;
+      out.far_in_front = from_own.dot(reference.cast<double>()) > 0;
+    }
     return out;
   }
 };
@@ -183,6 +230,8 @@ core::FieldGradient AlgebraicMlsFunction::ValueAndGradientFacing(const Vec3d& x,
   const Vec3f unit = facing.normalized().cast<float>();
   return impl_->Evaluate(x, &unit, static_cast<float>(min_cosine));
 }
+
+SidesAt AlgebraicMlsFunction::Sides(const Vec3d& x) const { return impl_->EvaluateSides(x); }
 
 absl::StatusOr<std::unique_ptr<AlgebraicMlsFunction>> BuildAlgebraicMls(const core::PointCloud& cloud,
                                                                         const AlgebraicMlsParams& params,

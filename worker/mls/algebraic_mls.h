@@ -55,6 +55,16 @@ const core::ParamTable<AlgebraicMlsParams>& AlgebraicMlsParamTable(AlgebraicFit 
 // The table of params.fit.
 absl::Status Validate(const AlgebraicMlsParams& params);
 
+// The two fits at one place where the points within the support face two opposite ways (the
+// walls of a thin sheet or neck, or two fronts that have come close).
+struct SidesAt {
+  core::FieldGradient near;  // Fitted to the points facing like the nearest point (the side rule).
+  core::FieldGradient far;   // Fitted to the rest (undefined where they are too few or too far).
+  // The far points lie on the side the near points' normals face (a gap between two surfaces),
+  // not behind them (the two walls of a neck or sheet). Meaningful only where both fits exist.
+  bool far_in_front = false;
+};
+
 class AlgebraicMlsFunction final : public core::ImplicitFunction {
  public:
   ~AlgebraicMlsFunction() override;
@@ -67,6 +77,9 @@ class AlgebraicMlsFunction final : public core::ImplicitFunction {
   // need not be unit), in place of the side rule of the parameters: one side of a sheet thinner
   // than the support, chosen by the caller. `defined` counts only those points.
   core::FieldGradient ValueAndGradientFacing(const core::Vec3d& x, const core::Vec3d& facing, double min_cosine) const;
+  // Both sides at x in one neighbour query: the points whose normal n has n·n* ≥ side_cosine (n*
+  // the nearest point's; 0 when the parameters keep every point) and the others.
+  SidesAt Sides(const core::Vec3d& x) const;
 
   double spacing() const { return h_; }
   double support_radius() const;

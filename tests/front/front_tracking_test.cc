@@ -310,6 +310,12 @@ TEST(FrontTracking, RejectsBadFieldsAndParameters) {
   const absl::Status gap = Track(front, *rotation, p, ctx, ignore);
   EXPECT_EQ(gap.code(), absl::StatusCode::kInvalidArgument);
   EXPECT_NE(gap.message().find("marker_gap"), std::string::npos) << gap;
+  p = {};
+  p.h = 1.0 / 32;
+  p.merge_distance = 1.6;  // A blend wider than the support (3h) would see only one side.
+  const absl::Status merge = Track(front, *rotation, p, ctx, ignore);
+  EXPECT_EQ(merge.code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(merge.message().find("merge_distance"), std::string::npos) << merge;
 }
 
 }  // namespace

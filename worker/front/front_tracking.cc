@@ -637,12 +637,22 @@ const core::ParamTable<TrackingParams>& TrackingParamTable() {
         .Real<&TrackingParams::marker_gap>("marker_gap", 0.15, 1, "h",
                                            "markers: a midpoint of two markers with no marker within this gets a "
                                            "new one; must exceed marker_spacing")
-        .Real<&TrackingParams::merge_distance>("merge_distance", 0, 1, "h",
-                                               "fronts closer than this merge and necks thinner than it pinch off; "
-                                               "0 keeps every thin sheet and gap")
+        .Real<&TrackingParams::merge_distance>("merge_distance", 0, 5, "h",
+                                               "fronts closer than this merge and necks thinner than it pinch off; at "
+                                               "most support_factor/2; 1.25-1.5 with the default support; 0 keeps "
+                                               "every thin sheet and gap")
         .Integer<&TrackingParams::max_points>("max_points", 100, 50'000'000, "points",
                                               "stop with an error if the front grows past this many points")
         .AddRule([](const TrackingParams& p) { return ValidateSpacing(p.h); })
+        .AddRule([](const TrackingParams& p) {
+          // The blend compares the two sides' fits over 2·merge_distance·h; only the support
+          // sees both, so a wider blend would switch on and off at the support's edge.
+          return 2 * p.merge_distance <= p.support_factor + 1e-12
+                     ? absl::OkStatus()
+                     : absl::InvalidArgumentError(core::StrCat("merge_distance=", p.merge_distance,
+                                                               " may be at most half of support_factor=",
+                                                               p.support_factor));
+        })
         .AddRule([](const TrackingParams& p) {
           return p.marker_gap > p.marker_spacing
                      ? absl::OkStatus()

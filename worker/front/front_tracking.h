@@ -102,7 +102,9 @@ struct TrackingParams {
   double marker_spacing = 0.5;  // kMarkers: the closest two markers facing the same way may come, units of h, 0.1..1.
   double marker_gap = 0.75;     // kMarkers: the midpoint of two markers with no marker within this gets one,
                                 // units of h, (marker_spacing, 1].
-  // Topology changes, units of h, 0..1; 0 (the default) keeps every sheet and gap however thin.
+  // Topology changes, units of h, 0..support_factor/2; 0 (the default) keeps every sheet and gap
+  // however thin. 1.25–1.5 with the default support: below that the markers mode lets a neck
+  // thin into a thread the RAMLS fits cannot describe before it pinches.
   // Two fronts (or two parts of one) that come closer than this merge, and a neck or sheet
   // thinner than it pinches off: where a point's neighbourhood holds two opposite-facing sides,
   // F is their smooth union (a gap) or smooth intersection (a neck) of blend radius 2·merge_distance·h

@@ -109,17 +109,21 @@ struct AlgebraicMlsFunction::Impl {
   AlgebraicMlsParams params;
   double h = 1, radius = 1;
 
-  // The normal of the point nearest x among `near` (zero if none).
-  Vec3f NearestNormal(const std::vector<core::Neighbor>& near) const {
+  // The index of the point nearest x among `near` (none: −1).
+  int64_t Nearest(const std::vector<core::Neighbor>& near) const {
     double nearest2 = std::numeric_limits<double>::infinity();
-    Vec3f normal = Vec3f::Zero();
+    int64_t index = -1;
     for (const core::Neighbor& q : near) {
       if (q.distance2 < nearest2) {
         nearest2 = q.distance2;
-        normal = points.normals[q.index];
+        index = q.index;
       }
     }
-    return normal;
+    return index;
+  }
+  Vec3f NearestNormal(const std::vector<core::Neighbor>& near) const {
+    const int64_t i = Nearest(near);
+    return i < 0 ? Vec3f::Zero() : points.normals[static_cast<size_t>(i)];
   }
 
   // Feeds every point of `near` within the support to one of the accumulators: `pick(normal)`
@@ -158,7 +162,8 @@ struct AlgebraicMlsFunction::Impl {
   SidesAt EvaluateSides(const Vec3d& x) const {
     thread_local std::vector<core::Neighbor> near;
     points.tree->Radius(x.cast<float>(), static_cast<float>(radius), near);
-    const Vec3f reference = NearestNormal(near);
+    const int64_t nearest = Nearest(near);
+    const Vec3f reference = nearest < 0 ? Vec3f::Zero() : points.normals[static_cast<size_t>(nearest)];
     const float side_cosine = static_cast<float>(params.side_cosine > -1 ? params.side_cosine : 0.0);
     FitAccumulator own, other;
     Accumulate(x, near, [&](const Vec3f& n) { return reference.dot(n) >= side_cosine ? 0 : 1; }, {&own, &other});
@@ -169,10 +174,12 @@ struct AlgebraicMlsFunction::Impl {
     // off where the near side's value is small.
     out.far.defined = other.weighted >= params.min_neighbors && std::isfinite(out.far.value);
     if (own.s.w > 0 && other.s.w > 0) {
-      // The far side's weighted centroid seen from the near side's: in front of its outward
-      // normal (a gap between two fronts) or behind it (the two walls of a neck).
-      const Vec3d from_own = (other.s.p / other.s.w - own.s.p / own.s.w) * radius;
-      out.far_in_front = from_own.dot(reference.cast<double>()) > 0;
+      // The far side's weighted centroid seen from the nearest point: in front of its outward
+      // normal (a gap between two fronts) or behind it (the two walls of a neck). Not from the
+      // near side's centroid: on a thread a few h across, that lies near the axis.
+      const Vec3d centroid = x + other.s.p / other.s.w * radius;
+      out.far_in_front =
+          (centroid - points.positions[static_cast<size_t>(nearest)].cast<double>()).dot(reference.cast<double>()) > 0;
     }
     return out;
   }

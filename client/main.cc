@@ -590,8 +590,8 @@ struct ProbeCommand {
 
 // track: every option the user leaves out keeps the server's default.
 struct TrackCommand {
-  std::string interface, field, resampling, output;
-  std::optional<double> period, h, dt;
+  std::string interface, field, modulation, resampling, output;
+  std::optional<double> period, h, dt, merge_distance;
   std::optional<int> steps, stride;
   bool meshes = false, pictures = false;
   double turntable = 0;
@@ -602,6 +602,11 @@ struct TrackCommand {
     track->add_option("--field", field,
                       "rotation (Zalesak) | deformation (Enright) | FILE (legacy VTK STRUCTURED_POINTS with VECTORS)");
     track->add_option("--period", period, "period T of the deformation field");
+    track
+        ->add_option("--modulation", modulation,
+                     "the deformation field in time: cos (times cos(pi t/T), the default) | reversal (full speed, "
+                     "reversed at T/2: the seed's test)")
+        ->check(CLI::IsMember({"cos", "reversal"}));
     track->add_option("--h", h, "grid spacing; 1/h must be a whole number (the cells parameter)");
     track->add_option("--dt", dt, "time step");
     track->add_option("--steps", steps, "number of steps");
@@ -611,6 +616,9 @@ struct TrackCommand {
                      "markers (advected points kept, gaps filled; keeps thin sheets) | gridlines (the seed's "
                      "re-generation every step)")
         ->check(CLI::IsMember({"markers", "gridlines"}));
+    track->add_option("--merge-distance", merge_distance,
+                      "fronts closer than this (units of h) merge and thinner necks pinch off; 0 = never (the "
+                      "default), 1.25-1.5 with the default support");
     track->add_flag("--meshes", meshes, "also write a mesh of every frame and its volume (mesh_volume in stats.csv)");
     track->add_option("-o,--output", output, "folder for frame_NNNNN.drc, stats.csv and summary.txt")->required();
     auto* pictures_flag =
@@ -641,6 +649,11 @@ struct TrackCommand {
       p.set_cells(static_cast<int32_t>(std::lround(cells)));
     }
     if (period) p.set_period(*period);
+    if (!modulation.empty()) {
+      p.set_modulation(modulation == "reversal" ? v1::TrackParams::MODULATION_REVERSAL
+                                                : v1::TrackParams::MODULATION_COS);
+    }
+    if (merge_distance) p.set_merge_distance(*merge_distance);
     if (dt) p.set_dt(*dt);
     if (steps) p.set_steps(*steps);
     if (stride) p.set_stride(*stride);

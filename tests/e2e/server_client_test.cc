@@ -622,6 +622,41 @@ TEST_F(EndToEnd, TrackThroughAnUploadedVelocityGrid) {
   EXPECT_NE(refused.output.find("velocity: vector 7 is not finite"), std::string::npos) << refused.output;
 }
 
+// The seed's deformation test through the service: with modulation=reversal the field runs at
+// full speed and reverses at T/2, so the sphere is stretched further at T/2 than with the
+// default cos(pi t / T) (a wider front, more points), and both bring it back at t = T, where the
+// summary measures it against the exact sphere.
+TEST_F(EndToEnd, TrackRunsTheDeformationFieldReversedAtHalfPeriod) {
+  Server server;
+  ASSERT_NO_FATAL_FAILURE(server.Start(dir_ / "data"));
+  std::map<std::string, size_t> half_points;
+  for (const std::string modulation : {"cos", "reversal"}) {
+    const fs::path out = dir_ / modulation;
+    const ClientRun r = Client(server.address(),
+                               "track --interface sphere --field deformation --period 1 "
+                               "--modulation " +
+                                   modulation + " --h 0.03125 --dt 0.025 --steps 40 --stride 20 -o " + out.string());
+    ASSERT_EQ(r.code, 0) << r.output;
+    auto half = io::ReadPointCloudFile((out / "frame_00020.drc").string());
+    ASSERT_TRUE(half.ok()) << half.status();
+    half_points[modulation] = half->size();
+    auto summary = io::ReadFileBytes((out / "summary.txt").string());
+    ASSERT_TRUE(summary.ok()) << modulation << ": " << summary.status();
+    double e1 = -1;
+    const size_t at = summary->find("e1_rel=");
+    ASSERT_NE(at, std::string::npos) << *summary;
+    ASSERT_EQ(std::sscanf(summary->c_str() + at, "e1_rel=%lf", &e1), 1) << *summary;
+    EXPECT_LT(e1, 0.25) << modulation << ": the sphere did not come back; " << *summary;
+  }
+  EXPECT_GT(half_points["reversal"], half_points["cos"] * 11 / 10)
+      << half_points["reversal"] << " vs " << half_points["cos"];
+  const ClientRun refused =
+      Client(server.address(),
+             "track --interface sphere --field deformation --modulation sine -o " + (dir_ / "sine").string());
+  EXPECT_NE(refused.code, 0);
+  EXPECT_NE(refused.output.find("modulation"), std::string::npos) << refused.output;
+}
+
 TEST_F(EndToEnd, SizeLimitsAreEnforced) {
   Server server;
   ASSERT_NO_FATAL_FAILURE(server.Start(dir_ / "data", {"--max-upload-mib", "1", "--max-points", "50000"}));

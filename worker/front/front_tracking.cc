@@ -649,9 +649,9 @@ const core::ParamTable<TrackingParams>& TrackingParamTable() {
           // sees both, so a wider blend would switch on and off at the support's edge.
           return 2 * p.merge_distance <= p.support_factor + 1e-12
                      ? absl::OkStatus()
-                     : absl::InvalidArgumentError(core::StrCat("merge_distance=", p.merge_distance,
-                                                               " may be at most half of support_factor=",
-                                                               p.support_factor));
+                     : absl::InvalidArgumentError(
+                           core::StrCat("merge_distance=", p.merge_distance,
+                                        " may be at most half of support_factor=", p.support_factor));
         })
         .AddRule([](const TrackingParams& p) {
           return p.marker_gap > p.marker_spacing

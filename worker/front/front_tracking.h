@@ -44,11 +44,11 @@ class VelocityField {
 std::unique_ptr<VelocityField> ZalesakRotation();
 // How LeVeque's deformation field changes in time; with either the shape returns at t = T.
 enum class TimeModulation {
-  kCosine,    // cos(πt/T): Enright et al.'s smooth form.
-  kReversal,  // +1 before T/2 and −1 after (0 at T/2 itself, so that an RK4 step centred there
-              // cancels its two halves as the exact flow does): the field "reversed at T/2" the
-              // seed describes; it stretches the shape more than the cosine (the flow runs at full
-              // speed until T/2).
+  kCosine = 0,    // cos(πt/T): Enright et al.'s smooth form. (Values are stored with track jobs.)
+  kReversal = 1,  // +1 before T/2 and −1 after (0 at T/2 itself, so that an RK4 step centred there
+                  // cancels its two halves as the exact flow does): the field "reversed at T/2" the
+                  // seed describes; it stretches the shape more than the cosine (the flow runs at full
+                  // speed until T/2).
 };
 // LeVeque's 3D deformation field, modulated in time as `modulation` says.
 std::unique_ptr<VelocityField> EnrightDeformation(double period, TimeModulation modulation = TimeModulation::kCosine);

@@ -39,7 +39,13 @@ const core::ParamTable<TrackJobParams>& TrackTable() {
               "the uploaded velocity grid (legacy VTK, trilinear, constant in time)"}},
             "the velocity field")
         .Real<&TrackJobParams::period>("period", 0.01, 1000, "time units",
-                                       "period T of the deformation field, cos(pi t / T) modulation")
+                                       "period T of the deformation field; the shape returns at t = T")
+        .Choice<&TrackJobParams::modulation>(
+            "modulation",
+            {{"cos", static_cast<int>(front::TimeModulation::kCosine), "the field times cos(pi t / T) (Enright's)"},
+             {"reversal", static_cast<int>(front::TimeModulation::kReversal),
+              "the field at full speed, reversed at T/2 (the seed's deformation test; stretches further)"}},
+            "how the deformation field changes in time")
         .Integer<&TrackJobParams::cells>("cells", 8, 512, "per unit length", "background grid cells (h = 1/cells)")
         .Include(&TrackJobParams::tracking, front::TrackingParamTable(), {"h"})
         .Flag<&TrackJobParams::meshes>("meshes",
@@ -74,7 +80,7 @@ absl::StatusOr<front::Front> InitialFront(const TrackJobParams& p, const core::P
 absl::StatusOr<std::unique_ptr<front::VelocityField>> MakeField(const TrackJobParams& p, const io::VectorGrid* grid) {
   switch (p.field) {
     case TrackField::kRotation: return front::ZalesakRotation();
-    case TrackField::kDeformation: return front::EnrightDeformation(p.period);
+    case TrackField::kDeformation: return front::EnrightDeformation(p.period, p.modulation);
     case TrackField::kUploaded:
       if (grid == nullptr) return absl::InvalidArgumentError("field=uploaded needs an uploaded velocity grid");
       return front::GridVelocity(grid->origin, grid->spacing, grid->dims[0], grid->dims[1], grid->dims[2],

@@ -29,7 +29,8 @@ struct TrackJobParams {
   }
   TrackInterface interface = TrackInterface::kSphere;
   TrackField field = TrackField::kRotation;
-  double period = 3;               // T of the deformation field's cos(πt/T), time units.
+  double period = 3;                                                  // T of the deformation field, time units.
+  front::TimeModulation modulation = front::TimeModulation::kCosine;  // How it changes in time.
   int cells = 128;                 // Background grid cells per unit length (h = 1/cells).
   bool meshes = false;             // Also write frame meshes and a mesh_volume column.
   front::TrackingParams tracking;  // h is set from `cells`.

@@ -20,6 +20,23 @@ std::unique_ptr<AlgebraicMlsFunction> Build(const core::PointCloud& cloud, Algeb
   return testing::BuildOrFail(&BuildAlgebraicMls, cloud, p);
 }
 
+// The planes z = ±half sampled on a grid of step h, with normals facing·(0, 0, ±1) (facing 1:
+// out of the slab between them). The lower plane is shifted by half a step so that the two do
+// not pair up.
+core::PointCloud PlanePair(double h, double half, double facing) {
+  core::PointCloud cloud;
+  for (int i = -20; i <= 20; ++i) {
+    for (int j = -20; j <= 20; ++j) {
+      for (double side : {-1.0, 1.0}) {
+        const double shift = side < 0 ? 0.5 * h : 0;
+        cloud.positions.push_back(Vec3d(i * h + shift, j * h + shift, side * half).cast<float>());
+        cloud.normals.push_back(Vec3d(0, 0, facing * side).cast<float>());
+      }
+    }
+  }
+  return cloud;
+}
+
 TEST(AlgebraicMls, BothFitsReproduceASphereExactly) {
   for (AlgebraicFit fit : {AlgebraicFit::kRamls, AlgebraicFit::kApss}) {
     AlgebraicMlsParams p;
@@ -50,17 +67,7 @@ TEST(AlgebraicMls, BothFitsReproduceASphereExactly) {
 // face and the gradient its normal, however close the other face is.
 TEST(AlgebraicMls, FacingFitKeepsTheTwoFacesOfAThinSheetApart) {
   const double h = 0.01, half = 0.1 * h;
-  core::PointCloud cloud;
-  for (int i = -20; i <= 20; ++i) {
-    for (int j = -20; j <= 20; ++j) {
-      for (double side : {-1.0, 1.0}) {
-        // The lower face is shifted by half a step so that the two faces do not pair up.
-        const double shift = side < 0 ? 0.5 * h : 0;
-        cloud.positions.push_back(Vec3d(i * h + shift, j * h + shift, side * half).cast<float>());
-        cloud.normals.push_back(Vec3d(0, 0, side).cast<float>());
-      }
-    }
-  }
+  const core::PointCloud cloud = PlanePair(h, half, 1.0);
   AlgebraicMlsParams p;
   p.spacing = h;
   auto f = Build(cloud, p);
@@ -85,16 +92,7 @@ TEST(AlgebraicMls, FacingFitKeepsTheTwoFacesOfAThinSheetApart) {
 TEST(AlgebraicMls, SidesSeparatesAGapFromASlab) {
   const double h = 0.01, half = 0.6 * h;
   for (double facing : {-1.0, 1.0}) {  // −1: normals point into the gap; +1: out of the slab.
-    core::PointCloud cloud;
-    for (int i = -20; i <= 20; ++i) {
-      for (int j = -20; j <= 20; ++j) {
-        for (double side : {-1.0, 1.0}) {
-          const double shift = side < 0 ? 0.5 * h : 0;
-          cloud.positions.push_back(Vec3d(i * h + shift, j * h + shift, side * half).cast<float>());
-          cloud.normals.push_back(Vec3d(0, 0, facing * side).cast<float>());
-        }
-      }
-    }
+    const core::PointCloud cloud = PlanePair(h, half, facing);
     AlgebraicMlsParams p;
     p.spacing = h;
     p.side_cosine = -0.5;

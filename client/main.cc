@@ -591,8 +591,9 @@ struct ProbeCommand {
 // track: every option the user leaves out keeps the server's default.
 struct TrackCommand {
   std::string interface, field, modulation, resampling, output;
-  std::optional<double> period, h, dt, merge_distance;
+  std::optional<double> period, h, dt, merge_distance, support, marker_spacing, marker_gap;
   std::optional<int> steps, stride;
+  std::optional<int64_t> max_points;
   bool meshes = false, pictures = false;
   double turntable = 0;
   ViewFlags view;
@@ -616,6 +617,12 @@ struct TrackCommand {
                      "markers (advected points kept, gaps filled; keeps thin sheets) | gridlines (the seed's "
                      "re-generation every step)")
         ->check(CLI::IsMember({"markers", "gridlines"}));
+    track->add_option("--support", support, "RAMLS support radius in units of h (default 3)");
+    track->add_option("--marker-spacing", marker_spacing,
+                      "markers: of two markers facing the same way closer than this (units of h), the younger goes");
+    track->add_option("--marker-gap", marker_gap,
+                      "markers: a midpoint of two markers with none within this (units of h) gets a new one");
+    track->add_option("--max-points", max_points, "fail when the front grows past this many points");
     track->add_option("--merge-distance", merge_distance,
                       "fronts closer than this (units of h) merge and thinner necks pinch off; 0 = never (the "
                       "default), 1.25-1.5 with the default support");
@@ -654,6 +661,10 @@ struct TrackCommand {
                                                 : v1::TrackParams::MODULATION_COS);
     }
     if (merge_distance) p.set_merge_distance(*merge_distance);
+    if (support) p.set_support_factor(*support);
+    if (marker_spacing) p.set_marker_spacing(*marker_spacing);
+    if (marker_gap) p.set_marker_gap(*marker_gap);
+    if (max_points) p.set_max_points(*max_points);
     if (dt) p.set_dt(*dt);
     if (steps) p.set_steps(*steps);
     if (stride) p.set_stride(*stride);

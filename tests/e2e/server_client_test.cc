@@ -655,6 +655,12 @@ TEST_F(EndToEnd, TrackRunsTheDeformationFieldReversedAtHalfPeriod) {
              "track --interface sphere --field deformation --modulation sine -o " + (dir_ / "sine").string());
   EXPECT_NE(refused.code, 0);
   EXPECT_NE(refused.output.find("modulation"), std::string::npos) << refused.output;
+  // The markers' spacing and gap reach the server, which refuses a gap not above the spacing.
+  const ClientRun crossed =
+      Client(server.address(),
+             "track --interface sphere --marker-spacing 0.6 --marker-gap 0.5 -o " + (dir_ / "crossed").string());
+  EXPECT_NE(crossed.code, 0);
+  EXPECT_NE(crossed.output.find("marker_gap=0.5 must exceed marker_spacing=0.6"), std::string::npos) << crossed.output;
 }
 
 TEST_F(EndToEnd, SizeLimitsAreEnforced) {

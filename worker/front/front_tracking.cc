@@ -368,7 +368,14 @@ class TopologyField final : public core::ImplicitFunction {
     return {g.value, g.defined};
   }
   core::FieldGradient ValueAndGradient(const Vec3d& x) const override { return Blend(sides_->Sides(x)); }
+  // Whether the blend changes F at x from the nearer side's value.
+  bool BlendActsAt(const Vec3d& x) const {
+    bool acts = false;
+    Blend(sides_->Sides(x), &acts);
+    return acts;
+  }
 
+ private:
   // The blended value from the two fits; also whether the blend changes the near side's value.
   core::FieldGradient Blend(const mls::SidesAt& s, bool* acts = nullptr) const {
     if (acts) *acts = false;
@@ -385,9 +392,7 @@ class TopologyField final : public core::ImplicitFunction {
     if (acts) *acts = m < 1;
     return out;
   }
-  const mls::AlgebraicMlsFunction& sides() const { return *sides_; }
 
- private:
   std::unique_ptr<mls::AlgebraicMlsFunction> sides_;
   double blend_;
 };
@@ -432,6 +437,18 @@ void ThinMarkers(Markers& m, double min_distance) {
     out.birth.push_back(m.birth[i]);
   }
   m = std::move(out);
+}
+
+// Adds each candidate as a marker born at `step` unless a marker facing the same way (in `grid`,
+// which the new ones join) lies within `spacing` of it.
+void AddMarkersApart(std::span<const Crossing> candidates, double spacing, int step, SpacingGrid& grid, Markers& m) {
+  for (const Crossing& c : candidates) {
+    if (grid.HasNear(c.point, c.normal, spacing)) continue;
+    grid.Add(c.point, c.normal);
+    m.front.points.push_back(c.point);
+    m.front.normals.push_back(c.normal);
+    m.birth.push_back(step);
+  }
 }
 
 // Where the flow has stretched the markers apart, adds new ones. The midpoint of two markers
@@ -483,15 +500,7 @@ absl::Status FillGaps(Markers& m, int step, double h, double gap, double support
         }
       },
       &ctx));
-  for (const std::vector<Crossing>& around : spots) {
-    for (const Crossing& c : around) {
-      if (grid.HasNear(c.point, c.normal, gap)) continue;
-      grid.Add(c.point, c.normal);
-      m.front.points.push_back(c.point);
-      m.front.normals.push_back(c.normal);
-      m.birth.push_back(step);
-    }
-  }
+  for (const std::vector<Crossing>& around : spots) AddMarkersApart(around, gap, step, grid, m);
   return absl::OkStatus();
 }
 
@@ -508,11 +517,7 @@ absl::Status ReplaceMergingMarkers(Markers& m, int step, double h, double suppor
   LSQSURF_RETURN_IF_ERROR(core::ParallelFor(
       merging.size(), 512,
       [&](size_t b, size_t e) {
-        for (size_t i = b; i < e; ++i) {
-          bool acts = false;
-          field.Blend(field.sides().Sides(m.front.points[i].cast<double>()), &acts);
-          merging[i] = acts;
-        }
+        for (size_t i = b; i < e; ++i) merging[i] = field.BlendActsAt(m.front.points[i].cast<double>());
       },
       &ctx));
   std::vector<Vec3f> replaced;
@@ -532,13 +537,7 @@ absl::Status ReplaceMergingMarkers(Markers& m, int step, double h, double suppor
   if (!sampled.ok()) return sampled.status();
   SpacingGrid grid(0.5 * h);
   for (size_t i = 0; i < kept.front.points.size(); ++i) grid.Add(kept.front.points[i], kept.front.normals[i]);
-  for (const Crossing& c : sampled->crossings) {
-    if (grid.HasNear(c.point, c.normal, 0.5 * h)) continue;
-    grid.Add(c.point, c.normal);
-    kept.front.points.push_back(c.point);
-    kept.front.normals.push_back(c.normal);
-    kept.birth.push_back(step);
-  }
+  AddMarkersApart(sampled->crossings, 0.5 * h, step, grid, kept);
   m = std::move(kept);
   return absl::OkStatus();
 }

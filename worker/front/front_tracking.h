@@ -103,13 +103,13 @@ struct TrackingParams {
   double marker_gap = 0.75;     // kMarkers: the midpoint of two markers with no marker within this gets one,
                                 // units of h, (marker_spacing, 1].
   // Topology changes, units of h, 0..support_factor/2; 0 (the default) keeps every sheet and gap
-  // however thin. 1.25–1.5 with the default support: below that the markers mode lets a neck
-  // thin into a thread the RAMLS fits cannot describe before it pinches.
-  // Two fronts (or two parts of one) that come closer than this merge, and a neck or sheet
-  // thinner than it pinches off: where a point's neighbourhood holds two opposite-facing sides,
-  // F is their smooth union (a gap) or smooth intersection (a neck) of blend radius 2·merge_distance·h
-  // instead of the nearer side's fit. In the markers mode the markers where that blend acts
-  // are replaced by the gridline roots of the blended F.
+  // however thin. Two fronts (or two parts of one) that come closer than this merge, and a neck
+  // or sheet thinner than it pinches off: where a point's neighbourhood holds two opposite-facing
+  // sides, F is their smooth union (a gap) or smooth intersection (a neck) of blend radius
+  // 2·merge_distance·h instead of the nearer side's fit. In the markers mode the markers where
+  // that blend acts are replaced by the gridline roots of the blended F. 1.25–1.5 with the
+  // default support: below that the markers mode lets a neck thin into a thread the RAMLS fits
+  // cannot describe before it pinches.
   double merge_distance = 0;
 };
 

@@ -121,10 +121,6 @@ struct AlgebraicMlsFunction::Impl {
     }
     return index;
   }
-  Vec3f NearestNormal(const std::vector<core::Neighbor>& near) const {
-    const int64_t i = Nearest(near);
-    return i < 0 ? Vec3f::Zero() : points.normals[static_cast<size_t>(i)];
-  }
 
   // Feeds every point of `near` within the support to one of the accumulators: `pick(normal)`
   // returns 0, 1 or −1 (skip).
@@ -152,7 +148,12 @@ struct AlgebraicMlsFunction::Impl {
     const bool one_side = facing != nullptr || params.side_cosine > -1;
     const double side_cosine = facing != nullptr ? min_cosine : params.side_cosine;
     // The side rule needs the nearest point's normal before the sums.
-    const Vec3f reference = facing != nullptr ? *facing : one_side ? NearestNormal(near) : Vec3f::Zero();
+    Vec3f reference = Vec3f::Zero();
+    if (facing != nullptr) {
+      reference = *facing;
+    } else if (const int64_t nearest = one_side ? Nearest(near) : -1; nearest >= 0) {
+      reference = points.normals[static_cast<size_t>(nearest)];
+    }
     FitAccumulator fit;
     Accumulate(x, near, [&](const Vec3f& n) { return !one_side || reference.dot(n) >= side_cosine ? 0 : -1; },
                {&fit, nullptr});

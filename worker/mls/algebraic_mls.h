@@ -59,7 +59,8 @@ absl::Status Validate(const AlgebraicMlsParams& params);
 // walls of a thin sheet or neck, or two fronts that have come close).
 struct SidesAt {
   core::FieldGradient near;  // Fitted to the points facing like the nearest point (the side rule).
-  core::FieldGradient far;   // Fitted to the rest (undefined where they are too few or too far).
+  core::FieldGradient far;   // Fitted to the rest; undefined where fewer than min_neighbors carry weight
+                             // (no coverage rule: it need not be near x).
   // The far points lie on the side the near points' normals face (a gap between two surfaces),
   // not behind them (the two walls of a neck or sheet). Meaningful only where both fits exist.
   bool far_in_front = false;

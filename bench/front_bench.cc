@@ -92,12 +92,11 @@ int main(int argc, char** argv) {
   double period = 3.0;
   int stride = 0;
   std::string shape_name;
-  double support = 3.0;
   bool mesh_check = false;
   std::string pictures;
   std::string resampling = "markers";
   bool preimage = false;
-  double marker_spacing = 0.5, marker_gap = 0.75, merge_distance = 0;
+  front::TrackingParams p;  // The tracking options below fill it directly.
   app.add_option("--test", test, "zalesak | enright")->capture_default_str();
   app.add_option("--cells", cells, "grid cells per unit (h = 1/cells)")->capture_default_str();
   app.add_option("--dt", dt, "time step (default: 1 for zalesak, T/(150·cells/64) for enright)");
@@ -109,31 +108,32 @@ int main(int argc, char** argv) {
       ->check(CLI::IsMember({"cos", "reversal"}))
       ->capture_default_str();
   app.add_option("--stride", stride, "print every this many steps (default: steps/8)");
-  app.add_option("--support", support, "RAMLS support radius in units of h")->capture_default_str();
+  app.add_option("--support", p.support_factor, "RAMLS support radius in units of h")->capture_default_str();
   app.add_flag("--mesh-check", mesh_check, "also print each frame's mesh volume (cross-check of the gridline volume)");
   app.add_option("--pictures", pictures,
                  "write a picture of each printed frame's points as DIR/frame_STEP.png (the directory must exist)");
   app.add_option("--resampling", resampling, "gridlines (the seed's re-generation) | markers")->capture_default_str();
-  app.add_option("--marker-spacing", marker_spacing, "markers: thinning distance in units of h")->capture_default_str();
-  app.add_option("--marker-gap", marker_gap, "markers: gap-filling distance in units of h")->capture_default_str();
-  app.add_option("--merge-distance", merge_distance,
+  app.add_option("--marker-spacing", p.marker_spacing, "markers: thinning distance in units of h")
+      ->capture_default_str();
+  app.add_option("--marker-gap", p.marker_gap, "markers: gap-filling distance in units of h")->capture_default_str();
+  app.add_option("--merge-distance", p.merge_distance,
                  "fronts closer than this (units of h) merge and thinner necks pinch off; 0 = never")
       ->capture_default_str();
   app.add_flag("--preimage", preimage,
                "also print, for each printed frame, how far the points' preimages (the flow run back to t = 0) lie "
                "from the exact initial surface, in units of h: the front's true error at that time");
+  app.add_option("--regeneration-stretch", p.regeneration_stretch,
+                 "gridlines: re-generate once neighbouring points may have spread by this factor (1 = every step)")
+      ->capture_default_str();
+  app.add_option("--max-points", p.max_points, "stop when the front grows past this many points")
+      ->capture_default_str();
   app.add_option("--shape", shape_name, "sphere | slotted (default: the test's own shape)");
   CLI11_PARSE(app, argc, argv);
   const bool zalesak = test == "zalesak";
   if (!zalesak && test != "enright") return std::fprintf(stderr, "unknown --test %s\n", test.c_str()), 2;
-  front::TrackingParams p;
   p.h = 1.0 / cells;
-  p.support_factor = support;
   if (resampling != "gridlines" && resampling != "markers") return std::fprintf(stderr, "unknown --resampling\n"), 2;
   p.resampling = resampling == "markers" ? front::Resampling::kMarkers : front::Resampling::kGridlines;
-  p.marker_spacing = marker_spacing;
-  p.marker_gap = marker_gap;
-  p.merge_distance = merge_distance;
   SetSchedule(zalesak, dt, steps, cells, period, p);
   p.output_stride = stride > 0 ? stride : std::max(1, p.steps / 8);
   if (shape_name.empty()) shape_name = zalesak ? "slotted" : "sphere";

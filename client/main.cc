@@ -591,7 +591,7 @@ struct ProbeCommand {
 // track: every option the user leaves out keeps the server's default.
 struct TrackCommand {
   std::string interface, field, modulation, resampling, output;
-  std::optional<double> period, h, dt, merge_distance, support, marker_spacing, marker_gap;
+  std::optional<double> period, h, dt, merge_distance, support, marker_spacing, marker_gap, regeneration_stretch;
   std::optional<int> steps, stride;
   std::optional<int64_t> max_points;
   bool meshes = false, pictures = false;
@@ -615,8 +615,11 @@ struct TrackCommand {
     track
         ->add_option("--resampling", resampling,
                      "markers (advected points kept, gaps filled; keeps thin sheets) | gridlines (the seed's "
-                     "re-generation every step)")
+                     "re-generation on the gridlines)")
         ->check(CLI::IsMember({"markers", "gridlines"}));
+    track->add_option("--regeneration-stretch", regeneration_stretch,
+                      "gridlines: re-generate once the flow may have spread neighbouring points by this factor "
+                      "(default 1.5; 1 = every step, the seed's literal scheme)");
     track->add_option("--support", support, "RAMLS support radius in units of h (default 3)");
     track->add_option("--marker-spacing", marker_spacing,
                       "markers: of two markers facing the same way closer than this (units of h), the younger goes");
@@ -661,6 +664,7 @@ struct TrackCommand {
                                                 : v1::TrackParams::MODULATION_COS);
     }
     if (merge_distance) p.set_merge_distance(*merge_distance);
+    if (regeneration_stretch) p.set_regeneration_stretch(*regeneration_stretch);
     if (support) p.set_support_factor(*support);
     if (marker_spacing) p.set_marker_spacing(*marker_spacing);
     if (marker_gap) p.set_marker_gap(*marker_gap);

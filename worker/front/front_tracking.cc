@@ -1,5 +1,6 @@
 #include "worker/front/front_tracking.h"
 
+#include <Eigen/Eigenvalues>
 #include <algorithm>
 #include <atomic>
 #include <chrono>
@@ -28,6 +29,12 @@ constexpr double kRadius = 0.15;
 // Root refinement on a grid edge: regula-falsi steps (core::RefineRootOnSegment; superlinear, 8
 // bring the bracket far below 1e-6 h on smooth fronts).
 constexpr int kRootSteps = 8;
+// A bracketed root whose |F| / |∇F| stays above this share of h is not a root but a jump of F:
+// the side rule switches fits where the nearest point changes sides, and on an open rim or a
+// fold the two fits can disagree in sign there. Such a "root" lies between the two sides, off
+// both; kept, it seeds a sheet that the next steps multiply (Enright's test, reversed at T/2,
+// h = 1/128: the front exploded from t ≈ 1.05, and without these roots it holds to t ≈ 1.6).
+constexpr double kRootResidual = 0.01;
 // The grid nodes sampled around each point: its cell widened by one cell on every side, so that
 // a crossing in a cell the surface only clips is still found.
 constexpr int kNodeReach = 1;
@@ -206,7 +213,7 @@ absl::StatusOr<GridlineResult> SampleGridlines(const core::ImplicitFunction& fie
                 from + core::RefineRootOnSegment(field, from, to, va.value, vb.value, kRootSteps) * (to - from);
             const core::FieldGradient g = field.ValueAndGradient(root);
             const double length = g.gradient.norm();
-            if (!(length > 0)) continue;
+            if (!(length > 0) || std::abs(g.value) > kRootResidual * h * length) continue;
             found[n][static_cast<size_t>(axis)] = {root.cast<float>(), (g.gradient / length).cast<float>()};
             has[n][static_cast<size_t>(axis)] = 1;
           }
@@ -565,6 +572,20 @@ absl::Status ValidateSpacing(double h) {
   return absl::OkStatus();
 }
 
+// The largest eigenvalue of the symmetric part of ∇v: the fastest rate at which the flow pulls
+// two nearby points apart (d|δ|/dt ≤ λ|δ|).
+double LargestStrainRate(const Eigen::Matrix3d& jacobian) {
+  Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> solver;
+  solver.computeDirect(0.5 * (jacobian + jacobian.transpose()), Eigen::EigenvaluesOnly);
+  return solver.eigenvalues()(2);
+}
+
+void RaiseTo(std::atomic<double>& most, double value) {
+  double seen = most.load();
+  while (value > seen && !most.compare_exchange_weak(seen, value)) {
+  }
+}
+
 // Flow Jacobian ∇v by central differences (the fields are smooth; the step only has to be far
 // below their length scale and far above rounding).
 Eigen::Matrix3d Jacobian(const VelocityField& v, const Vec3d& x, double t) {
@@ -628,7 +649,7 @@ const core::ParamTable<TrackingParams>& TrackingParamTable() {
               "the advected points stay; crowded ones are thinned, stretched gaps filled from the RAMLS surface of "
               "their side; keeps sheets thinner than h"},
              {"gridlines", static_cast<int>(Resampling::kGridlines),
-              "the seed's re-generation of the whole front on the gridlines every step"}},
+              "the seed's re-generation of the whole front on the gridlines (see regeneration_stretch)"}},
             "how the front stays sampled after each step")
         .Real<&TrackingParams::marker_spacing>("marker_spacing", 0.1, 1, "h",
                                                "markers: of two markers facing the same way closer than this, the "
@@ -640,6 +661,10 @@ const core::ParamTable<TrackingParams>& TrackingParamTable() {
                                                "fronts closer than this merge and necks thinner than it pinch off; at "
                                                "most support_factor/2; 1.25-1.5 with the default support; 0 keeps "
                                                "every thin sheet and gap")
+        .Real<&TrackingParams::regeneration_stretch>(
+            "regeneration_stretch", 1, 4, "",
+            "gridlines: re-generate the front once the flow may have spread neighbouring points by this factor; 1 = "
+            "every step (the seed's literal scheme)")
         .Integer<&TrackingParams::max_points>("max_points", 100, 50'000'000, "points",
                                               "stop with an error if the front grows past this many points")
         .AddRule([](const TrackingParams& p) { return ValidateSpacing(p.h); })
@@ -797,10 +822,13 @@ absl::Status Track(const Front& initial, const VelocityField& velocity, const Tr
   stats.volume = v0;
   LSQSURF_RETURN_IF_ERROR(on_frame(stats, front));
   auto since = std::chrono::steady_clock::now();
+  const bool gridlines = params.resampling == Resampling::kGridlines;
+  double log_stretch = 0;  // ∫ λ dt since the last re-generation (gridlines).
   for (int step = 1; step <= params.steps; ++step) {
     const double t = (step - 1) * dt;
-    // 1. Advection (RK4) and normal transport.
+    // 1. Advection (RK4) and normal transport; in the gridline mode also the largest strain rate.
     std::atomic<bool> finite{true};
+    std::atomic<double> strain_rate{0};
     LSQSURF_RETURN_IF_ERROR(core::ParallelFor(
         front.points.size(), 512,
         [&](size_t b, size_t e) {
@@ -808,7 +836,9 @@ absl::Status Track(const Front& initial, const VelocityField& velocity, const Tr
             const Vec3d p = front.points[i].cast<double>();
             const Vec3d moved = Rk4Step(velocity, p, t, dt);
             const Vec3d n = front.normals[i].cast<double>();
-            const Vec3d turned = n - dt * Jacobian(velocity, 0.5 * (p + moved), t + 0.5 * dt).transpose() * n;
+            const Eigen::Matrix3d jacobian = Jacobian(velocity, 0.5 * (p + moved), t + 0.5 * dt);
+            const Vec3d turned = n - dt * jacobian.transpose() * n;
+            if (gridlines) RaiseTo(strain_rate, LargestStrainRate(jacobian));
             if (!moved.allFinite() || !turned.allFinite() || !(turned.norm() > 0)) {
               finite = false;
               continue;
@@ -822,8 +852,14 @@ absl::Status Track(const Front& initial, const VelocityField& velocity, const Tr
       return absl::InvalidArgumentError(core::StrCat("the velocity field gave a non-finite value at step ", step));
     }
     std::vector<ZCrossing> z_crossings;
-    if (params.resampling == Resampling::kGridlines) {
+    log_stretch += strain_rate.load() * dt;
+    // Topology changes happen at re-generations, so with merge_distance every step is one: two
+    // fronts that merely translate towards each other never stretch.
+    const bool regenerate = gridlines && (params.regeneration_stretch <= 1 || params.merge_distance > 0 ||
+                                          log_stretch >= std::log(params.regeneration_stretch));
+    if (regenerate) {
       // 2. Re-generation on the gridlines, 3. thinning.
+      log_stretch = 0;
       auto field = SurfaceFunction(front, h, params.support_factor, params.merge_distance, ctx);
       if (!field.ok()) return field.status();
       auto sampled = SampleGridlines(**field, NodesNear(front.points, h, marks), h, false, ctx);
@@ -831,7 +867,7 @@ absl::Status Track(const Front& initial, const VelocityField& velocity, const Tr
       front = Thin(sampled->crossings, h);
       markers.birth.assign(front.points.size(), step);
       z_crossings = std::move(sampled->z_crossings);
-    } else {
+    } else if (!gridlines) {
       // 2. Markers that crowd are thinned, 3. gaps are filled.
       ThinMarkers(markers, params.marker_spacing * h);
       LSQSURF_RETURN_IF_ERROR(FillGaps(markers, step, h, params.marker_gap * h, params.support_factor, ctx));
@@ -854,7 +890,7 @@ absl::Status Track(const Front& initial, const VelocityField& velocity, const Tr
       stats.step = step;
       stats.time = step * dt;
       stats.points = front.points.size();
-      if (params.resampling == Resampling::kMarkers) {
+      if (!regenerate) {
         auto z = ZCrossings(front, h, h, params.support_factor, params.merge_distance, marks, ctx);
         if (!z.ok()) return z.status();
         z_crossings = std::move(*z);

@@ -81,9 +81,10 @@ struct Front {
 
 // What keeps the front's points spread over the surface after each advection step.
 enum class Resampling {
-  // The seed's: the front is replaced every step by the roots of its RAMLS function on the
-  // gridlines of spacing h, thinned to h/2. Each replacement projects once more, and sheets
-  // thinner than about 2h are lost (worker/front/README.md).
+  // The seed's: the front is replaced by the roots of its RAMLS function on the gridlines of
+  // spacing h, thinned to h/2, whenever the flow may have stretched it by regeneration_stretch
+  // (every step with 1). Each replacement projects once more, and sheets thinner than about 2h
+  // are lost (worker/front/README.md).
   kGridlines,
   // The advected points stay (markers): where they crowd, the younger of two facing the same way
   // within marker_spacing·h goes; where the flow stretches them apart, a new marker is projected
@@ -111,6 +112,15 @@ struct TrackingParams {
   // default support: below that the markers mode lets a neck thin into a thread the RAMLS fits
   // cannot describe before it pinches.
   double merge_distance = 0;
+  // kGridlines: the front is re-generated once the flow may have spread two neighbouring points
+  // apart by this factor since the last re-generation, 1..4. The bound is exp(∫ λ dt), λ the
+  // largest strain rate (eigenvalue of the symmetric part of ∇v) at any point; steps in between
+  // only advect. 1 re-generates every step, the seed's literal scheme: each re-generation adds a
+  // fitting error, and where the seed's field is reversed at T/2 the returning flow amplifies the
+  // errors added at the peak stretch until the front grows without bound (README). Rigid motions
+  // (Zalesak) never stretch, so they are never re-generated after the start. With merge_distance
+  // > 0 every step re-generates: topology changes happen at re-generations.
+  double regeneration_stretch = 1.5;
 };
 
 // The one description of every TrackingParams field (output_stride is called "stride");

@@ -142,6 +142,7 @@ absl::StatusOr<extract::IsosurfaceResult> RunIamls(const IamlsJobParams& p, cons
   stat("epsilon_used", fit.epsilon);
   stat("iterations_used", fit.iterations);
   stat("cutoff_used", fit.cutoff);
+  stat("normal_sigma_used", fit.normal_sigma);
   if (fit.noise_level >= 0) {
     stat("noise_level", fit.noise_level);
     stat("noise_to_spacing", fit.noise_ratio);

@@ -47,12 +47,13 @@ struct IamlsFunction::Impl {
   std::vector<Vec3f> normals;
   std::vector<float> coefficient;  // c_i
   std::unique_ptr<core::KdTree> tree;
-  double inv_h2 = 0;          // 1 / h²
-  double eps2 = 0;            // ε²
-  double scale = 0;           // ε³ / π^{3/2}
-  float radius = 0;           // Truncation radius, cutoff · h / ε.
-  double min_kernel_sum = 0;  // ΣΨ below which F is not trusted.
-  double fallback_scale = 0;  // Scale of the sign-only extension (a typical ΣΨ).
+  double inv_h2 = 0;             // 1 / h²
+  double eps2 = 0;               // ε²
+  double scale = 0;              // ε³ / π^{3/2}
+  float radius = 0;              // Truncation radius, cutoff · h / ε.
+  double min_kernel_sum = 0;     // ΣΨ below which F is not trusted.
+  double fallback_scale = 0;     // Scale of the sign-only extension (a typical ΣΨ).
+  double inv_normal_sigma2 = 0;  // 1 / normal_sigma², 0 without the crease-keeping refit.
 };
 
 const core::ParamTable<IamlsParams>& IamlsParamTable() {
@@ -73,7 +74,15 @@ const core::ParamTable<IamlsParams>& IamlsParamTable() {
         .Real<&IamlsParams::noise_level>("noise_level", -1, 0.1, "share of the diagonal",
                                          "noise sigma for the choice of epsilon, iterations and cutoff: -1 estimates "
                                          "it, 0 declares the data exact")
+        .Real<&IamlsParams::normal_sigma>("normal_sigma", -1, 2, "",
+                                          "crease-keeping refit: samples whose normals differ from the local mean "
+                                          "normal by much more than this weigh less; -1 = chosen from the noise "
+                                          "(0.5 when noisy), 0 = off")
         .AddRule([](const IamlsParams& p) {
+          if (p.normal_sigma != -1 && p.normal_sigma != 0 && p.normal_sigma < 0.2) {
+            return absl::InvalidArgumentError(
+                core::StrCat("normal_sigma=", p.normal_sigma, " must be -1 (chosen), 0 (off) or within [0.2, 2]"));
+          }
           if (p.epsilon != 0 && p.epsilon < 0.05) {
             return absl::InvalidArgumentError(
                 core::StrCat("epsilon=", p.epsilon, " must be 0 (chosen) or within [0.05, 3]"));
@@ -97,12 +106,42 @@ IamlsChoice ChooseIamlsParameters(double noise_ratio) {
   // Below this ratio the estimate is the clouds' own curvature residual, not noise.
   constexpr double kNoisyRatio = 0.15;
   if (!(noise_ratio >= kNoisyRatio)) return {};
-  return {std::max(0.3, 0.6 / (1 + noise_ratio / 1.5)), 1, 3};
+  return {std::max(0.3, 0.55 / (1 + noise_ratio / 1.5)), 1, 3, 0.5};
 }
 
 absl::Status Validate(const IamlsParams& p) { return IamlsParamTable().Validate(p); }
 
 namespace {
+
+// The neighbour list of the point being evaluated, one per thread (Evaluate fills it).
+std::vector<core::Neighbor>& Neighbours() {
+  thread_local std::vector<core::Neighbor> nn;
+  return nn;
+}
+
+// The crease-keeping refit: F again with each sample's Ψ scaled by exp(−|n_i − n̄|²/σ_n²),
+// rescaled to the plain kernel sum `w` so that F keeps its magnitude (its sign is that of the
+// refit). The weights' own dependence on x is left out of the gradient, as robust MLS does.
+template <bool kGradient>
+void Refit(const IamlsFunction::Impl& m, const Vec3d& x, const Vec3d& reference_normal, double w, double& f, Vec3d& g) {
+  const auto& nn = Neighbours();
+  double f2 = 0, w2 = 0;
+  Vec3d g2 = Vec3d::Zero();
+  for (const core::Neighbor& q : nn) {
+    const Vec3d d = x - m.positions[q.index].cast<double>();
+    const Vec3d n = m.normals[q.index].cast<double>();
+    const double s = m.eps2 * d.squaredNorm() * m.inv_h2;
+    const double e = std::exp(-s) * std::exp(-(n - reference_normal).squaredNorm() * m.inv_normal_sigma2);
+    const double psi = (2.5 - s) * e;
+    const double l = n.dot(d) - m.coefficient[q.index];
+    w2 += psi;
+    f2 += l * psi;
+    if constexpr (kGradient) g2 += n * psi + l * ((s - 3.5) * e * 2.0 * m.eps2 * m.inv_h2) * d;
+  }
+  if (!(w2 > 0)) return;  // Every weight went to the other face: keep the plain blend.
+  f = f2 * w / w2;
+  if constexpr (kGradient) g = g2 * w / w2;
+}
 
 // Where ΣΨ is too small to trust F (the kernel's negative lobe takes over at ~1.22 h/ε),
 // the value falls back to a Gaussian-weighted mean of the samples' tangent-plane distances
@@ -111,15 +150,16 @@ namespace {
 // corners); the function reports it as undefined so that no surface is placed on it.
 template <bool kGradient>
 core::FieldGradient Evaluate(const IamlsFunction::Impl& m, const Vec3d& x) {
-  thread_local std::vector<core::Neighbor> nn;
+  std::vector<core::Neighbor>& nn = Neighbours();
   m.tree->Radius(x.cast<float>(), m.radius, nn);
   core::FieldGradient out;
   if (nn.empty()) {
     out.value = std::numeric_limits<double>::quiet_NaN();
     return out;
   }
-  double f = 0, w = 0, gauss = 0, gauss_distance = 0;
-  Vec3d g = Vec3d::Zero(), gauss_normal = Vec3d::Zero();
+  const bool refit = m.inv_normal_sigma2 > 0;
+  double f = 0, w = 0, gauss = 0, gauss_distance = 0, reference_weight = 0;
+  Vec3d g = Vec3d::Zero(), gauss_normal = Vec3d::Zero(), reference_normal = Vec3d::Zero();
   for (const core::Neighbor& q : nn) {
     const Vec3d d = x - m.positions[q.index].cast<double>();
     const Vec3d n = m.normals[q.index].cast<double>();
@@ -132,6 +172,9 @@ core::FieldGradient Evaluate(const IamlsFunction::Impl& m, const Vec3d& x) {
     gauss += e;
     gauss_distance += n.dot(d) * e;
     gauss_normal += n * e;
+    // The refit's reference normal: a narrower Gaussian (e^{−2s}) than the kernel's, so that
+    // near a crease it leans to the face x is on.
+    if (refit) reference_normal += n * (e * e), reference_weight += e * e;
     if constexpr (kGradient) {
       // dΨ/dx = (s − 7/2) e^{−s} · 2 ε² d / h²
       g += n * psi + l * ((s - 3.5) * e * 2.0 * m.eps2 * m.inv_h2) * d;
@@ -140,6 +183,13 @@ core::FieldGradient Evaluate(const IamlsFunction::Impl& m, const Vec3d& x) {
   // Trust F only where the kernel sum is clearly positive: it changes sign ~1.22 h/ε off the
   // data, and F has spurious zeros (ghost sheets) where it does.
   out.defined = w * m.scale > m.min_kernel_sum;
+  // The refit only where the nearby normals roughly agree (|mean| ≥ kRefitCoherence): on a thin
+  // part (an ear) both sides' normals cancel in the mean, which then points nowhere in
+  // particular, and the refit would drop the wrong samples.
+  constexpr double kRefitCoherence = 0.85;
+  if (refit && out.defined && reference_normal.norm() >= kRefitCoherence * reference_weight && reference_weight > 0) {
+    Refit<kGradient>(m, x, reference_normal.normalized(), w, f, g);
+  }
   if (out.defined) {
     out.value = f * m.scale;
     out.gradient = g * m.scale;
@@ -278,7 +328,7 @@ namespace {
 // ε, the iterations and the cutoff, given or chosen from the noise (then with the noise used).
 void ChooseParameters(const IamlsParams& params, const OrientedPoints& points, IamlsStats& stats) {
   IamlsChoice choice;
-  if (params.epsilon == 0 || params.iterations < 0 || params.cutoff == 0) {
+  if (params.epsilon == 0 || params.iterations < 0 || params.cutoff == 0 || params.normal_sigma < 0) {
     const double neighbor_distance =
         params.spacing == 0 ? points.spacing / params.spacing_scale : core::MeanNearestNeighborDistance(*points.tree);
     const double diagonal = core::Diagonal(core::BoundingBox(points.positions));
@@ -291,6 +341,7 @@ void ChooseParameters(const IamlsParams& params, const OrientedPoints& points, I
   stats.epsilon = params.epsilon > 0 ? params.epsilon : choice.epsilon;
   stats.iterations = params.iterations >= 0 ? params.iterations : choice.iterations;
   stats.cutoff = params.cutoff > 0 ? params.cutoff : choice.cutoff;
+  stats.normal_sigma = params.normal_sigma >= 0 ? params.normal_sigma : choice.normal_sigma;
 }
 
 double MaxAbsDifference(std::span<const double> a, std::span<const double> b) {
@@ -396,6 +447,7 @@ absl::StatusOr<std::unique_ptr<IamlsFunction>> BuildIamls(const core::PointCloud
   // ΣΨ at the samples sets the scale of "clearly positive" for the ghost-sheet guard.
   impl->fallback_scale = stats.mean_sample_weight;
   impl->min_kernel_sum = params.min_weight * stats.mean_sample_weight;
+  impl->inv_normal_sigma2 = stats.normal_sigma > 0 ? 1.0 / (stats.normal_sigma * stats.normal_sigma) : 0.0;
   impl->coefficient.assign(impl->positions.size(), 0.0f);
   for (size_t k = 0; k < c.size(); ++k) impl->coefficient[k] = static_cast<float>(c[k]);
   fn->impl_ = std::move(impl);

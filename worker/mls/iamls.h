@@ -29,9 +29,10 @@
 namespace lsqsurf::mls {
 
 struct IamlsParams {
-  // ε, the iterations and the cutoff are chosen from the scan's noise unless given (see
-  // ChooseIamlsParameters): clean clouds get ε = 0.6, 3 iterations and cutoff 4; noisy ones a
-  // wider kernel and one iteration, since every iteration fits the noise a little more.
+  // ε, the iterations, the cutoff and normal_sigma are chosen from the scan's noise unless given
+  // (see ChooseIamlsParameters): clean clouds get ε = 0.6, 3 iterations, cutoff 4 and no refit;
+  // noisy ones a wider kernel and one iteration, since every iteration fits the noise a little
+  // more, and the crease-keeping refit, since the wider kernel rounds creases more.
   double epsilon = 0;          // Shape parameter ε (dimensionless), 0.05..3; 0 = chosen. Larger = more detail.
   int iterations = -1;         // Residual-correction steps, 0..20; -1 = chosen. More = closer fit, less smoothing.
   double spacing = 0.0;        // h in model units; 0 = `spacing_scale` × mean nearest-neighbour distance.
@@ -42,17 +43,26 @@ struct IamlsParams {
   double noise_level = -1;     // Noise σ along the normal as a share of the bounding-box diagonal, for
                                // the choice: -1 estimates it (core::EstimateNoise), 0 declares the data
                                // exact, up to 0.1.
+  // Crease-keeping refit, -1 (chosen: 0.5 on noisy clouds, off on clean ones), 0 (off) or
+  // 0.2..2: F is evaluated a second time with each sample's weight scaled by
+  // exp(−|n_i − n̄|² / normal_sigma²), n̄ the samples' mean normal near x (a Gaussian half as
+  // wide as the kernel), so the other face of a crease drops out of the blend (robust-MLS normal
+  // weights). Skipped where the nearby normals disagree too much to have a mean (thin parts).
+  // It costs about 1.5× the evaluation time.
+  double normal_sigma = -1;
 };
 
 // What the automatic choice picks from ρ = σ / (mean nearest-neighbour distance), σ the noise
 // along the normal. Measured on the bunny, spot and fandisk at 100k points (README): on clean
 // clouds ρ is about 0.01 to 0.09 (the estimator's residual of curvature), and ε = 0.6 with 3
-// iterations fits best; from ρ = 0.15 on, one iteration with ε = 0.6 / (1 + ρ/1.5) (at least
-// 0.3), cutoff 3, balances the noise left against the detail smoothed away.
+// iterations fits best; from ρ = 0.15 on, one iteration with ε = 0.55 / (1 + ρ/1.5) (at least
+// 0.3), cutoff 3 and the crease-keeping refit at normal_sigma 0.5 balances the noise left
+// against the detail (and the creases) smoothed away.
 struct IamlsChoice {
   double epsilon = 0.6;
   int iterations = 3;
   double cutoff = 4;
+  double normal_sigma = 0;
 };
 IamlsChoice ChooseIamlsParameters(double noise_ratio);
 
@@ -67,6 +77,7 @@ struct IamlsStats {
   double epsilon = 0;  // ε, iterations and cutoff used (given or chosen).
   int iterations = 0;
   double cutoff = 0;
+  double normal_sigma = 0;        // The crease-keeping refit's σ_n used (0: off).
   double noise_level = -1;        // Noise σ used for the choice, share of the bounding-box diagonal (as
                                   // PuStats::noise_estimate); -1 when nothing was chosen.
   double noise_ratio = -1;        // σ / mean nearest-neighbour distance; -1 likewise.

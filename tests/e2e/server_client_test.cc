@@ -661,6 +661,13 @@ TEST_F(EndToEnd, TrackRunsTheDeformationFieldReversedAtHalfPeriod) {
              "track --interface sphere --marker-spacing 0.6 --marker-gap 0.5 -o " + (dir_ / "crossed").string());
   EXPECT_NE(crossed.code, 0);
   EXPECT_NE(crossed.output.find("marker_gap=0.5 must exceed marker_spacing=0.6"), std::string::npos) << crossed.output;
+  // So does the gridline mode's re-generation bound: a stretch below 1 is refused.
+  const ClientRun shrinking = Client(server.address(),
+                                     "track --interface sphere --resampling gridlines "
+                                     "--regeneration-stretch 0.5 -o " +
+                                         (dir_ / "shrinking").string());
+  EXPECT_NE(shrinking.code, 0);
+  EXPECT_NE(shrinking.output.find("regeneration_stretch=0.5 is out of range"), std::string::npos) << shrinking.output;
 }
 
 TEST_F(EndToEnd, SizeLimitsAreEnforced) {

@@ -855,8 +855,9 @@ absl::Status Track(const Front& initial, const VelocityField& velocity, const Tr
     log_stretch += strain_rate.load() * dt;
     // Topology changes happen at re-generations, so with merge_distance every step is one: two
     // fronts that merely translate towards each other never stretch.
-    const bool regenerate = gridlines && (params.regeneration_stretch <= 1 || params.merge_distance > 0 ||
-                                          log_stretch >= std::log(params.regeneration_stretch));
+    // (λ ≥ 0, so regeneration_stretch = 1 re-generates every step.)
+    const bool regenerate =
+        gridlines && (params.merge_distance > 0 || log_stretch >= std::log(params.regeneration_stretch));
     if (regenerate) {
       // 2. Re-generation on the gridlines, 3. thinning.
       log_stretch = 0;

@@ -119,24 +119,44 @@ std::vector<core::Neighbor>& Neighbours() {
   return nn;
 }
 
+// Term and GradientTerm run once per neighbour of every evaluation; left out of line by the
+// compiler they made the noisy bench runs 40 % slower, hence always_inline.
+// Sample i's part of F at x: offset d = x − x_i, normal n, s = ε²|d|²/h², e = e^{−s} and
+// ℓ = n·d − c_i; its kernel is Ψ = (2.5 − s) e.
+struct SampleTerm {
+  Vec3d d, n;
+  double s, e, l;
+};
+
+[[gnu::always_inline]] inline SampleTerm Term(const IamlsFunction::Impl& m, const Vec3d& x, uint32_t i) {
+  SampleTerm t;
+  t.d = x - m.positions[i].cast<double>();
+  t.n = m.normals[i].cast<double>();
+  t.s = m.eps2 * t.d.squaredNorm() * m.inv_h2;
+  t.e = std::exp(-t.s);
+  t.l = t.n.dot(t.d) - m.coefficient[i];
+  return t;
+}
+
+// ∇(ℓ Ψ) of one sample, its Ψ scaled by a weight held constant in x; dΨ/dx = (s − 7/2) e · 2ε² d / h².
+[[gnu::always_inline]] inline Vec3d GradientTerm(const IamlsFunction::Impl& m, const SampleTerm& t, double weight) {
+  return weight * (t.n * ((2.5 - t.s) * t.e) + t.l * ((t.s - 3.5) * t.e * 2.0 * m.eps2 * m.inv_h2) * t.d);
+}
+
 // The crease-keeping refit: F again with each sample's Ψ scaled by exp(−|n_i − n̄|²/σ_n²),
 // rescaled to the plain kernel sum `w` so that F keeps its magnitude (its sign is that of the
 // refit). The weights' own dependence on x is left out of the gradient, as robust MLS does.
 template <bool kGradient>
 void Refit(const IamlsFunction::Impl& m, const Vec3d& x, const Vec3d& reference_normal, double w, double& f, Vec3d& g) {
-  const auto& nn = Neighbours();
   double f2 = 0, w2 = 0;
   Vec3d g2 = Vec3d::Zero();
-  for (const core::Neighbor& q : nn) {
-    const Vec3d d = x - m.positions[q.index].cast<double>();
-    const Vec3d n = m.normals[q.index].cast<double>();
-    const double s = m.eps2 * d.squaredNorm() * m.inv_h2;
-    const double e = std::exp(-s) * std::exp(-(n - reference_normal).squaredNorm() * m.inv_normal_sigma2);
-    const double psi = (2.5 - s) * e;
-    const double l = n.dot(d) - m.coefficient[q.index];
+  for (const core::Neighbor& q : Neighbours()) {
+    const SampleTerm t = Term(m, x, q.index);
+    const double r = std::exp(-(t.n - reference_normal).squaredNorm() * m.inv_normal_sigma2);
+    const double psi = (2.5 - t.s) * t.e * r;
     w2 += psi;
-    f2 += l * psi;
-    if constexpr (kGradient) g2 += n * psi + l * ((s - 3.5) * e * 2.0 * m.eps2 * m.inv_h2) * d;
+    f2 += t.l * psi;
+    if constexpr (kGradient) g2 += GradientTerm(m, t, r);
   }
   if (!(w2 > 0)) return;  // Every weight went to the other face: keep the plain blend.
   f = f2 * w / w2;
@@ -161,24 +181,17 @@ core::FieldGradient Evaluate(const IamlsFunction::Impl& m, const Vec3d& x) {
   double f = 0, w = 0, gauss = 0, gauss_distance = 0, reference_weight = 0;
   Vec3d g = Vec3d::Zero(), gauss_normal = Vec3d::Zero(), reference_normal = Vec3d::Zero();
   for (const core::Neighbor& q : nn) {
-    const Vec3d d = x - m.positions[q.index].cast<double>();
-    const Vec3d n = m.normals[q.index].cast<double>();
-    const double s = m.eps2 * d.squaredNorm() * m.inv_h2;
-    const double e = std::exp(-s);
-    const double psi = (2.5 - s) * e;
-    const double l = n.dot(d) - m.coefficient[q.index];
+    const SampleTerm t = Term(m, x, q.index);
+    const double psi = (2.5 - t.s) * t.e;
     w += psi;
-    f += l * psi;
-    gauss += e;
-    gauss_distance += n.dot(d) * e;
-    gauss_normal += n * e;
+    f += t.l * psi;
+    gauss += t.e;
+    gauss_distance += t.n.dot(t.d) * t.e;
+    gauss_normal += t.n * t.e;
     // The refit's reference normal: a narrower Gaussian (e^{−2s}) than the kernel's, so that
     // near a crease it leans to the face x is on.
-    if (refit) reference_normal += n * (e * e), reference_weight += e * e;
-    if constexpr (kGradient) {
-      // dΨ/dx = (s − 7/2) e^{−s} · 2 ε² d / h²
-      g += n * psi + l * ((s - 3.5) * e * 2.0 * m.eps2 * m.inv_h2) * d;
-    }
+    if (refit) reference_normal += t.n * (t.e * t.e), reference_weight += t.e * t.e;
+    if constexpr (kGradient) g += GradientTerm(m, t, 1.0);
   }
   // Trust F only where the kernel sum is clearly positive: it changes sign ~1.22 h/ε off the
   // data, and F has spurious zeros (ghost sheets) where it does.
@@ -325,7 +338,8 @@ core::FieldGradient IamlsFunction::ValueAndGradient(const Vec3d& x) const { retu
 
 namespace {
 
-// ε, the iterations and the cutoff, given or chosen from the noise (then with the noise used).
+// ε, the iterations, the cutoff and normal_sigma, given or chosen from the noise (then with the
+// noise used).
 void ChooseParameters(const IamlsParams& params, const OrientedPoints& points, IamlsStats& stats) {
   IamlsChoice choice;
   if (params.epsilon == 0 || params.iterations < 0 || params.cutoff == 0 || params.normal_sigma < 0) {

@@ -48,7 +48,7 @@ struct IamlsParams {
   // exp(−|n_i − n̄|² / normal_sigma²), n̄ the samples' mean normal near x (a Gaussian half as
   // wide as the kernel), so the other face of a crease drops out of the blend (robust-MLS normal
   // weights). Skipped where the nearby normals disagree too much to have a mean (thin parts).
-  // It costs about 1.5× the evaluation time.
+  // Where it acts it is a second pass over the neighbours.
   double normal_sigma = -1;
 };
 

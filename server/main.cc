@@ -1,18 +1,20 @@
 // lsqsurfd — the reconstruction server. Parses flags, wires the job service to gRPC, waits.
-#include <grpcpp/ext/proto_server_reflection_plugin.h>
 #include <grpcpp/grpcpp.h>
 #include <grpcpp/health_check_service_interface.h>
+#include <grpcpp/resource_quota.h>
 #include <spdlog/sinks/stdout_color_sinks.h>
 #include <spdlog/spdlog.h>
 
 #include <CLI/CLI.hpp>
 #include <csignal>
 #include <cstdio>
+#include <cstdlib>
 #include <filesystem>
 #include <thread>
 
 #include "server/metrics.h"
 #include "server/reconstruction_service.h"
+#include "server/reflection.h"
 #include "server/tls.h"
 #include "server/tokens.h"
 #include "worker/core/address.h"
@@ -22,6 +24,9 @@
 #include "worker/jobs/postgres_store.h"
 
 namespace {
+
+// How long the server's own teardown may take once every job is safely back in the store.
+constexpr std::chrono::seconds kTeardownGrace{15};
 
 // Opens the job and blob stores the flags ask for into `options`; the defaults (SQLite and
 // files under the data directory) are left to the job service.
@@ -56,7 +61,12 @@ struct ServerFlags {
   bool plaintext = false;
   std::string auth_tokens;
   double retain_days = 0, max_store_gib = 0;
-  int64_t min_free_mib = 0;  // Set from JobServiceOptions::min_free_bytes, whose default it shows.
+  int64_t min_free_mib = 0;    // Set from JobServiceOptions::min_free_bytes, whose default it shows.
+  int64_t max_render_mib = 0;  // Set from JobServiceOptions::max_render_bytes, whose default it shows.
+  lsqsurf::server::StreamLimits streams;
+  double stream_idle_seconds = 0;  // Set from StreamLimits::idle, whose default it shows.
+  int max_streams_per_connection = 100;
+  int max_threads = 64;
 };
 
 // `lsqsurfd tokens add|list|revoke`: edits a token file.
@@ -152,6 +162,38 @@ void DefineFlags(CLI::App& app, ServerFlags& flags, lsqsurf::jobs::JobServiceOpt
   app.add_option("--max-renders", options.max_renders, "pictures drawn at once by Render; more are refused")
       ->capture_default_str()
       ->check(CLI::Range(1, 64));
+  app.add_option("--max-render-mib", flags.max_render_mib,
+                 "memory one picture of a volume field may take for its sampled grid (16 bytes a point); a "
+                 "resolution that needs more is refused")
+      ->capture_default_str()
+      ->check(CLI::Range(int64_t{16}, int64_t{1} << 20));
+  app.add_option("--max-uploads", flags.streams.max_uploads,
+                 "SubmitJob streams open at once (a named user holds at most half); more are refused")
+      ->capture_default_str()
+      ->check(CLI::Range(1, 100000));
+  app.add_option("--max-downloads", flags.streams.max_downloads, "FetchResult streams open at once (half per user)")
+      ->capture_default_str()
+      ->check(CLI::Range(1, 100000));
+  app.add_option("--max-watches", flags.streams.max_watches, "WatchJob streams open at once (half per user)")
+      ->capture_default_str()
+      ->check(CLI::Range(1, 1000000));
+  app.add_option("--max-reflection-streams", flags.streams.max_reflection,
+                 "server reflection streams open at once (they need no token)")
+      ->capture_default_str()
+      ->check(CLI::Range(1, 100000));
+  app.add_option("--stream-idle-seconds", flags.stream_idle_seconds,
+                 "an upload that sends nothing, a download whose client reads nothing or a reflection stream that "
+                 "asks nothing for this long is cancelled")
+      ->capture_default_str()
+      ->check(CLI::Range(1.0, 86400.0));
+  app.add_option("--max-streams-per-connection", flags.max_streams_per_connection,
+                 "concurrent calls one client connection may have open")
+      ->capture_default_str()
+      ->check(CLI::Range(1, 100000));
+  app.add_option("--max-threads", flags.max_threads,
+                 "threads gRPC may run the short calls on (streams hold none); past it calls are refused")
+      ->capture_default_str()
+      ->check(CLI::Range(4, 10000));
   app.add_option("--max-attempts", options.max_attempts,
                  "starts cut short by a crash after which a job is failed (a graceful stop does not count)")
       ->capture_default_str()
@@ -249,6 +291,24 @@ absl::StatusOr<Security> OpenSecurity(const ServerFlags& flags, const std::strin
   return security;
 }
 
+// The gRPC server with the services and the bounds the flags give; `port` is the one bound.
+std::unique_ptr<grpc::Server> StartServer(const ServerFlags& flags,
+                                          const std::shared_ptr<grpc::ServerCredentials>& credentials,
+                                          const std::vector<grpc::Service*>& services, int* port) {
+  grpc::EnableDefaultHealthCheckService(true);
+  grpc::ServerBuilder builder;
+  builder.AddListeningPort(flags.listen, credentials, port);
+  for (grpc::Service* service : services) builder.RegisterService(service);
+  builder.SetMaxReceiveMessageSize(16 << 20);
+  builder.SetMaxSendMessageSize(16 << 20);
+  builder.AddChannelArgument(GRPC_ARG_MAX_CONCURRENT_STREAMS, flags.max_streams_per_connection);
+  // The synchronous calls' threads are bounded; the streams run on the callback API and hold none.
+  grpc::ResourceQuota quota("lsqsurfd");
+  quota.SetMaxThreads(flags.max_threads);
+  builder.SetResourceQuota(quota);
+  return builder.BuildAndStart();
+}
+
 // SIGHUP: the token file and the certificate are read again; a bad one is refused and logged,
 // and the one in use stays.
 void Reload(Security& security) {
@@ -277,6 +337,8 @@ int main(int argc, char** argv) {
   options.data_dir = "lsqsurf-data";
   flags.lease_seconds = std::chrono::duration<double>(options.lease).count();
   flags.min_free_mib = options.min_free_bytes >> 20;
+  flags.max_render_mib = options.max_render_bytes >> 20;
+  flags.stream_idle_seconds = std::chrono::duration<double>(flags.streams.idle).count();
   DefineFlags(app, flags, options);
   TokenCommand token_command;
   DefineTokenCommand(app, token_command);
@@ -291,6 +353,8 @@ int main(int argc, char** argv) {
   options.retain = std::chrono::seconds(static_cast<int64_t>(flags.retain_days * 86400));
   options.max_store_bytes = static_cast<int64_t>(flags.max_store_gib * double(int64_t{1} << 30));
   options.min_free_bytes = flags.min_free_mib << 20;
+  options.max_render_bytes = flags.max_render_mib << 20;
+  flags.streams.idle = std::chrono::milliseconds(static_cast<int64_t>(flags.stream_idle_seconds * 1000));
 
   // Logs go to stderr; stdout carries only the "listening on" line that scripts wait for.
   spdlog::set_default_logger(spdlog::stderr_color_mt("lsqsurfd"));
@@ -331,16 +395,13 @@ int main(int argc, char** argv) {
     return 1;
   }
   if (metrics != nullptr) metrics->Watch(jobs->get());
-  lsqsurf::server::ReconstructionService service(**jobs, metrics.get(), security->tokens.get());
-  grpc::EnableDefaultHealthCheckService(true);
-  grpc::reflection::InitProtoReflectionServerBuilderPlugin();
-  grpc::ServerBuilder builder;
+  lsqsurf::server::ReconstructionService service(**jobs, metrics.get(), security->tokens.get(), flags.streams);
+  lsqsurf::server::ReflectionService reflection(
+      {lsqsurf::server::ReconstructionService::kServiceName, "grpc.health.v1.Health",
+       lsqsurf::server::ReflectionService::kServiceName},
+      service.streams());
   int port = 0;
-  builder.AddListeningPort(flags.listen, security->credentials, &port);
-  builder.RegisterService(&service);
-  builder.SetMaxReceiveMessageSize(16 << 20);
-  builder.SetMaxSendMessageSize(16 << 20);
-  std::unique_ptr<grpc::Server> server = builder.BuildAndStart();
+  std::unique_ptr<grpc::Server> server = StartServer(flags, security->credentials, {&service, &reflection}, &port);
   if (!server || port == 0) {
     spdlog::critical("cannot listen on {}", flags.listen);
     return 1;
@@ -373,6 +434,14 @@ int main(int argc, char** argv) {
     // Interrupted jobs go back to the queue on disk first, then open streams are closed.
     server->GetHealthCheckService()->SetServingStatus(false);
     (*jobs)->Shutdown();
+    // Nothing is lost past this point. gRPC's teardown has been seen to hang for good after its
+    // threads ran out (in the TLS credentials' destructor): the process then ends regardless.
+    std::thread([] {
+      std::this_thread::sleep_for(kTeardownGrace);
+      spdlog::warn("the server's teardown did not end within {} s; exiting now", kTeardownGrace.count());
+      spdlog::default_logger()->flush();
+      std::_Exit(0);
+    }).detach();
     server->Shutdown(std::chrono::system_clock::now() + std::chrono::seconds(3));
   });
   server->Wait();

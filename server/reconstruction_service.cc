@@ -2,12 +2,21 @@
 
 #include <spdlog/spdlog.h>
 
+#include <filesystem>
+#include <fstream>
+#include <optional>
+
 #include "server/convert.h"
 #include "worker/core/strings.h"
+#include "worker/io/files.h"
+#include "worker/jobs/job_ids.h"
 #include "worker/jobs/method_registry.h"
 
 namespace lsqsurf::server {
 namespace {
+
+// Threads that decode and submit finished uploads: a few, as each uses a core while it decodes.
+constexpr int kSubmitThreads = 2;
 
 // Runs a handler body; an exception becomes a status instead of leaving the gRPC thread.
 template <class Body>
@@ -23,33 +32,52 @@ grpc::Status Run(const char* rpc, Body&& body) {
   }
 }
 
+// What a job-service call sees of its gRPC call: cancelled once the client has gone, so that
+// work done for it (a picture) stops and frees its slot.
+class CallContext final : public core::JobContext {
+ public:
+  explicit CallContext(const grpc::ServerContext& call) : call_(call) {}
+  void ReportProgress(std::string_view, double) override {}
+  bool IsCancelled() const override { return call_.IsCancelled(); }
+
+ private:
+  const grpc::ServerContext& call_;
+};
+
 }  // namespace
 
-template <class Body>
-grpc::Status ReconstructionService::Serve(const char* rpc, grpc::ServerContext* context, Body&& body) {
-  const auto start = std::chrono::steady_clock::now();
-  std::string who;  // For the log: the token's name, else the peer.
-  grpc::Status status = Run(rpc, [&] {
-    auto caller = Identify(*context);
-    if (!caller.ok()) {
-      who = core::StrCat("peer ", context->peer());
-      return ToGrpcStatus(caller.status());
-    }
-    who = caller->name.empty() ? core::StrCat("peer ", context->peer()) : core::StrCat("'", caller->name, "'");
-    return body(*caller);
-  });
+grpc::Status ReconstructionService::Conclude(const CallRecord& call, grpc::Status status) const {
+  // Messages may quote what a client sent: bounded, and with no control bytes, before they are
+  // logged or sent back (a long one wedges some clients; a newline would forge a log line).
+  if (!status.ok())
+    status = grpc::Status(status.error_code(), core::Printable(status.error_message(), kMaxMessageBytes));
   if (!status.ok() && status.error_code() != grpc::StatusCode::CANCELLED) {
-    spdlog::info("{} by {} refused ({}): {}", rpc, who,
+    spdlog::info("{} by {} refused ({}): {}", call.rpc, call.who,
                  absl::StatusCodeToString(static_cast<absl::StatusCode>(status.error_code())), status.error_message());
   }
   if (calls_ != nullptr) {
-    calls_->CallEnded(rpc, status.error_code(),
-                      std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count());
+    calls_->CallEnded(call.rpc, status.error_code(),
+                      std::chrono::duration<double>(std::chrono::steady_clock::now() - call.start).count());
   }
   return status;
 }
 
-absl::StatusOr<Caller> ReconstructionService::Identify(const grpc::ServerContext& context) const {
+template <class Body>
+grpc::Status ReconstructionService::Serve(const char* rpc, grpc::ServerContext* context, Body&& body) {
+  CallRecord call{rpc};
+  grpc::Status status = Run(rpc, [&] {
+    auto caller = Identify(*context);
+    if (!caller.ok()) {
+      call.who = core::StrCat("peer ", context->peer());
+      return ToGrpcStatus(caller.status());
+    }
+    call.who = caller->name.empty() ? core::StrCat("peer ", context->peer()) : core::StrCat("'", caller->name, "'");
+    return body(*caller);
+  });
+  return Conclude(call, status);
+}
+
+absl::StatusOr<Caller> ReconstructionService::Identify(const grpc::ServerContextBase& context) const {
   if (tokens_ == nullptr) return Caller{};
   const auto& metadata = context.client_metadata();
   const auto header = metadata.find("authorization");
@@ -58,88 +86,391 @@ absl::StatusOr<Caller> ReconstructionService::Identify(const grpc::ServerContext
 }
 
 absl::StatusOr<jobs::JobRecord> ReconstructionService::Visible(const Caller& caller, const std::string& id) const {
-  auto record = jobs_.Get(id);
-  if (record.ok() && !caller.admin && record->owner != caller.name) return jobs::NoSuchJob(id);
-  return record;
+  if (!jobs::IsJobIdForm(id)) return absl::InvalidArgumentError(jobs::kNotAJobId);
+  return jobs_.GetFor(caller.submitter, id);
 }
 
-grpc::Status ReconstructionService::SubmitJob(grpc::ServerContext* context,
-                                              grpc::ServerReader<v1::SubmitJobRequest>* reader, v1::Job* response) {
-  return Serve("SubmitJob", context, [&](const Caller& caller) { return Submit(caller, context, reader, response); });
+absl::StatusOr<Caller> ReconstructionService::Begin(grpc::CallbackServerContext* context, CallRecord& call) const {
+  auto caller = Identify(*context);
+  call.who = caller.ok() && !caller->name.empty() ? core::StrCat("'", caller->name, "'")
+                                                  : core::StrCat("peer ", context->peer());
+  return caller;
 }
 
-grpc::Status ReconstructionService::Submit(const Caller& caller, grpc::ServerContext* context,
-                                           grpc::ServerReader<v1::SubmitJobRequest>* reader, v1::Job* response) {
-  v1::SubmitJobRequest message;
-  if (!reader->Read(&message) || !message.has_spec()) {
-    return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "the first SubmitJob message must carry the job spec");
+ReconstructionService::ReconstructionService(jobs::JobService& jobs, CallObserver* calls, const TokenTable* tokens,
+                                             StreamLimits limits)
+    : jobs_(jobs),
+      calls_(calls),
+      tokens_(tokens),
+      streams_(limits),
+      spool_dir_((std::filesystem::path(jobs.options().data_dir) / "uploads").string()) {
+  // What a previous run was receiving when it stopped is gone with its client.
+  std::error_code error;
+  std::filesystem::remove_all(spool_dir_, error);
+  std::filesystem::create_directories(spool_dir_, error);
+  if (error) spdlog::error("cannot make the upload folder {}: {}", spool_dir_, error.message());
+  for (int i = 0; i < kSubmitThreads; ++i) submit_threads_.emplace_back([this] { SubmitLoop(); });
+  watch_thread_ = std::thread([this] { WatchLoop(); });
+}
+
+ReconstructionService::~ReconstructionService() {
+  {
+    std::lock_guard lock(submit_mutex_);
+    stopping_ = true;
   }
-  auto spec = FromProto(message.spec());  // Fully checked: a bad spec fails before its upload.
-  if (!spec.ok()) return ToGrpcStatus(spec.status());
-  jobs::Uploads uploads;
-  size_t received = 0;
-  const int64_t max_upload = jobs_.MaxUploadBytes(caller.submitter);
-  const auto limit = static_cast<size_t>(max_upload);
-  const bool quota_limit = max_upload < jobs_.options().max_input_bytes;
-  while (reader->Read(&message)) {
-    if (message.has_spec()) {
-      return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "only the first message may carry a spec");
-    }
-    const char* slot = message.has_velocity_chunk() ? jobs::kVelocityUpload
-                       : message.has_cells_chunk()  ? jobs::kCellsUpload
-                                                    : jobs::kInputUpload;
-    const std::string& chunk = message.has_velocity_chunk() ? message.velocity_chunk()
-                               : message.has_cells_chunk()  ? message.cells_chunk()
-                                                            : message.input_chunk();
-    if (chunk.size() > kMaxChunkBytes) {
-      return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "upload chunks must be at most 1 MiB");
-    }
-    if (received + chunk.size() > limit) {
-      return grpc::Status(grpc::StatusCode::RESOURCE_EXHAUSTED,
-                          core::StrCat("the upload exceeds ", quota_limit ? "your quota's" : "this server's",
-                                       " limit of ", limit, " bytes"));
-    }
-    received += chunk.size();
-    uploads[slot] += chunk;
-    if (calls_ != nullptr) calls_->Received(static_cast<int64_t>(chunk.size()));
+  submit_wake_.notify_all();
+  for (std::thread& t : submit_threads_) t.join();
+  stop_watching_ = true;
+  watch_thread_.join();
+}
+
+void ReconstructionService::Post(std::function<void()> task) {
+  {
+    std::lock_guard lock(submit_mutex_);
+    submissions_.push_back(std::move(task));
   }
-  if (context->IsCancelled()) return grpc::Status(grpc::StatusCode::CANCELLED, "upload cancelled");
-  auto record = jobs_.Submit(*spec, std::move(uploads), caller.submitter);
-  if (!record.ok()) return ToGrpcStatus(record.status());
-  ToProto(*record, response);
-  return grpc::Status::OK;
+  submit_wake_.notify_one();
 }
 
-grpc::Status ReconstructionService::WatchJob(grpc::ServerContext* context, const v1::WatchJobRequest* request,
-                                             grpc::ServerWriter<v1::JobEvent>* writer) {
-  return Serve("WatchJob", context, [&](const Caller& caller) {
-    auto record = Visible(caller, request->job_id());
-    if (!record.ok()) return ToGrpcStatus(record.status());
-    return Watch(context, *record, writer);
-  });
-}
-
-grpc::Status ReconstructionService::Watch(grpc::ServerContext* context, const jobs::JobRecord& first,
-                                          grpc::ServerWriter<v1::JobEvent>* writer) {
-  const std::string id = first.id;
-  absl::StatusOr<jobs::JobRecord> record = first;
+void ReconstructionService::SubmitLoop() {
   for (;;) {
-    v1::JobEvent event;
-    ToProto(*record, event.mutable_job());
-    if (!writer->Write(event)) return grpc::Status(grpc::StatusCode::CANCELLED, "watcher went away");
-    if (jobs::IsTerminal(record->state)) return grpc::Status::OK;
-    const uint64_t seen = record->version;
-    // Changes wake the wait at once; the timeout only bounds how long a departed client holds
-    // this thread.
-    do {
-      if (context->IsCancelled()) return grpc::Status(grpc::StatusCode::CANCELLED, "watch cancelled");
-      if (jobs_.shutting_down()) {
-        return grpc::Status(grpc::StatusCode::UNAVAILABLE, "the server is shutting down; watch again later");
-      }
-      record = jobs_.WaitForChange(id, seen, std::chrono::milliseconds(500));
-      if (!record.ok()) return ToGrpcStatus(record.status());
-    } while (record->version == seen);
+    std::function<void()> task;
+    {
+      std::unique_lock lock(submit_mutex_);
+      submit_wake_.wait(lock, [this] { return stopping_ || !submissions_.empty(); });
+      if (submissions_.empty()) return;
+      task = std::move(submissions_.front());
+      submissions_.pop_front();
+    }
+    task();
   }
+}
+
+// SubmitJob: the spec first, then chunks, each appended to its slot's spool file as it comes; at
+// the end the token is asked again and the job submitted on a submission thread.
+class ReconstructionService::Upload final : public grpc::ServerReadReactor<v1::SubmitJobRequest> {
+ public:
+  Upload(ReconstructionService& service, grpc::CallbackServerContext* context, v1::Job* response, Caller caller,
+         CallRecord call, std::unique_ptr<StreamGuard::Ticket> ticket)
+      : service_(service),
+        context_(context),
+        response_(response),
+        caller_(std::move(caller)),
+        call_(std::move(call)),
+        ticket_(std::move(ticket)),
+        limit_(static_cast<size_t>(service.jobs_.MaxUploadBytes(caller_.submitter))),
+        prefix_((std::filesystem::path(service.spool_dir_) / jobs::NewJobId()).string()) {
+    StartRead(&message_);
+  }
+
+  void OnReadDone(bool ok) override {
+    if (!ok) {
+      if (!spec_.has_value()) return End(InvalidArgument("the first SubmitJob message must carry the job spec"));
+      if (context_->IsCancelled()) return End(grpc::Status(grpc::StatusCode::CANCELLED, "upload cancelled"));
+      service_.Post([this] { Submit(); });
+      return;
+    }
+    ticket_->Touch();
+    grpc::Status status = Take();
+    if (!status.ok()) return End(status);
+    StartRead(&message_);
+  }
+
+  void OnDone() override {
+    files_.clear();
+    std::error_code error;
+    for (const auto& [slot, path] : paths_) std::filesystem::remove(path, error);
+    delete this;
+  }
+
+ private:
+  static grpc::Status InvalidArgument(const std::string& why) {
+    return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, why);
+  }
+
+  // The message just read: the spec, or a chunk for the spool.
+  grpc::Status Take() {
+    try {
+      if (!spec_.has_value()) {
+        if (!message_.has_spec()) return InvalidArgument("the first SubmitJob message must carry the job spec");
+        auto spec = FromProto(message_.spec());  // Fully checked: a bad spec fails before its upload.
+        if (!spec.ok()) return ToGrpcStatus(spec.status());
+        spec_ = *std::move(spec);
+        return grpc::Status::OK;
+      }
+      if (message_.has_spec()) return InvalidArgument("only the first message may carry a spec");
+      const char* slot = message_.has_velocity_chunk() ? jobs::kVelocityUpload
+                         : message_.has_cells_chunk()  ? jobs::kCellsUpload
+                                                       : jobs::kInputUpload;
+      const std::string& chunk = message_.has_velocity_chunk() ? message_.velocity_chunk()
+                                 : message_.has_cells_chunk()  ? message_.cells_chunk()
+                                                               : message_.input_chunk();
+      if (chunk.size() > kMaxChunkBytes) return InvalidArgument("upload chunks must be at most 1 MiB");
+      if (received_ + chunk.size() > limit_) {
+        const bool quota = static_cast<int64_t>(limit_) < service_.jobs_.options().max_input_bytes;
+        return grpc::Status(grpc::StatusCode::RESOURCE_EXHAUSTED,
+                            core::StrCat("the upload exceeds ", quota ? "your quota's" : "this server's", " limit of ",
+                                         limit_, " bytes"));
+      }
+      received_ += chunk.size();
+      std::ofstream& file = FileOf(slot);
+      file.write(chunk.data(), static_cast<std::streamsize>(chunk.size()));
+      file.flush();
+      if (!file) {
+        return grpc::Status(grpc::StatusCode::RESOURCE_EXHAUSTED,
+                            "the server cannot keep the upload (its disk may be full); try again later");
+      }
+      if (service_.calls_ != nullptr) service_.calls_->Received(static_cast<int64_t>(chunk.size()));
+      return grpc::Status::OK;
+    } catch (const std::bad_alloc&) {
+      return grpc::Status(grpc::StatusCode::RESOURCE_EXHAUSTED, "the server ran out of memory for this call");
+    }
+  }
+
+  std::ofstream& FileOf(const std::string& slot) {
+    auto& file = files_[slot];
+    if (file == nullptr) {
+      paths_[slot] = core::StrCat(prefix_, ".", slot);
+      file = std::make_unique<std::ofstream>(paths_[slot], std::ios::binary | std::ios::trunc);
+    }
+    return *file;
+  }
+
+  // On a submission thread: the token asked again (one revoked meanwhile may not have the job
+  // accepted, and the quotas are those in force now), the spool read back, the job submitted.
+  void Submit() {
+    grpc::Status status;
+    try {
+      status = Accept();
+    } catch (const std::bad_alloc&) {
+      status = grpc::Status(grpc::StatusCode::RESOURCE_EXHAUSTED, "the server ran out of memory for this call");
+    } catch (const std::exception& e) {
+      status = grpc::Status(grpc::StatusCode::INTERNAL, core::StrCat("SubmitJob failed: ", e.what()));
+    }
+    End(status);
+  }
+
+  grpc::Status Accept() {
+    auto now = service_.Identify(*context_);
+    if (!now.ok()) return ToGrpcStatus(now.status());
+    if (now->name != caller_.name) {
+      return grpc::Status(grpc::StatusCode::UNAUTHENTICATED, "the token changed during the upload");
+    }
+    jobs::Uploads uploads;
+    files_.clear();  // Flushed and closed.
+    for (const auto& [slot, path] : paths_) {
+      auto bytes = io::ReadFileBytes(path);
+      if (!bytes.ok()) return ToGrpcStatus(bytes.status());
+      uploads[slot] = *std::move(bytes);
+      std::error_code error;
+      std::filesystem::remove(path, error);
+    }
+    auto record = service_.jobs_.Submit(*spec_, std::move(uploads), now->submitter);
+    if (!record.ok()) return ToGrpcStatus(record.status());
+    ToProto(*record, response_);
+    return grpc::Status::OK;
+  }
+
+  void End(const grpc::Status& status) { Finish(service_.Conclude(call_, status)); }
+
+  ReconstructionService& service_;
+  grpc::CallbackServerContext* context_;
+  v1::Job* response_;
+  const Caller caller_;
+  const CallRecord call_;
+  std::unique_ptr<StreamGuard::Ticket> ticket_;
+  const size_t limit_;
+  const std::string prefix_;  // Of the spool files.
+  v1::SubmitJobRequest message_;
+  std::optional<jobs::JobSpec> spec_;
+  size_t received_ = 0;
+  std::map<std::string, std::string> paths_;
+  std::map<std::string, std::unique_ptr<std::ofstream>> files_;
+};
+
+grpc::ServerReadReactor<v1::SubmitJobRequest>* ReconstructionService::SubmitJob(grpc::CallbackServerContext* context,
+                                                                                v1::Job* response) {
+  using Refused = Refusal<grpc::ServerReadReactor<v1::SubmitJobRequest>>;
+  CallRecord call{"SubmitJob"};
+  auto caller = Begin(context, call);
+  if (!caller.ok()) return new Refused(Conclude(call, ToGrpcStatus(caller.status())));
+  auto ticket = streams_.Admit(StreamKind::kUpload, caller->submitter.owner, context);
+  if (!ticket.ok()) return new Refused(Conclude(call, ToGrpcStatus(ticket.status())));
+  return new Upload(*this, context, response, *std::move(caller), std::move(call), *std::move(ticket));
+}
+
+// WatchJob: the job's record now, then every change until it ends. The watcher thread pokes
+// every watch when any job changes; a poke writes when the record is newer than the last sent
+// and no write is in flight. Start* and Finish are never called with the lock held (their
+// reactions may run at once on the calling thread).
+class ReconstructionService::Watch final : public grpc::ServerWriteReactor<v1::JobEvent> {
+ public:
+  Watch(ReconstructionService& service, std::string id, CallRecord call, std::unique_ptr<StreamGuard::Ticket> ticket)
+      : service_(service), id_(std::move(id)), call_(std::move(call)), ticket_(std::move(ticket)) {}
+
+  void Poke() {
+    std::optional<grpc::Status> end;
+    {
+      std::lock_guard lock(mutex_);
+      if (finished_ || writing_) return;
+      auto record = service_.jobs_.Get(id_);
+      if (cancelled_) {
+        end = grpc::Status(grpc::StatusCode::CANCELLED, "watch cancelled");
+      } else if (!record.ok()) {
+        end = ToGrpcStatus(record.status());
+      } else if (service_.jobs_.shutting_down()) {
+        end = grpc::Status(grpc::StatusCode::UNAVAILABLE, "the server is shutting down; watch again later");
+      } else if (!sent_any_ || record->version != sent_version_) {
+        sent_any_ = true;
+        sent_version_ = record->version;
+        last_ = jobs::IsTerminal(record->state);
+        event_.Clear();
+        ToProto(*record, event_.mutable_job());
+        writing_ = true;
+      } else {
+        return;
+      }
+      if (end.has_value()) finished_ = true;
+    }
+    if (end.has_value()) return Finish(service_.Conclude(call_, *end));
+    StartWrite(&event_);
+  }
+
+  void OnWriteDone(bool ok) override {
+    std::optional<grpc::Status> end;
+    {
+      std::lock_guard lock(mutex_);
+      writing_ = false;
+      if (!ok) end = grpc::Status(grpc::StatusCode::CANCELLED, "watcher went away");
+      if (ok && last_) end = grpc::Status::OK;
+      if (end.has_value()) finished_ = true;
+    }
+    if (end.has_value()) return Finish(service_.Conclude(call_, *end));
+    Poke();  // It may have changed while the event was on its way.
+  }
+
+  void OnCancel() override {
+    {
+      std::lock_guard lock(mutex_);
+      cancelled_ = true;
+      if (writing_ || finished_) return;  // The write's end finishes it.
+      finished_ = true;
+    }
+    Finish(service_.Conclude(call_, grpc::Status(grpc::StatusCode::CANCELLED, "watch cancelled")));
+  }
+
+  void OnDone() override {
+    service_.RemoveWatch(this);
+    delete this;
+  }
+
+ private:
+  ReconstructionService& service_;
+  const std::string id_;
+  const CallRecord call_;
+  std::unique_ptr<StreamGuard::Ticket> ticket_;
+  std::mutex mutex_;
+  bool writing_ = false, finished_ = false, cancelled_ = false, sent_any_ = false, last_ = false;
+  uint64_t sent_version_ = 0;
+  v1::JobEvent event_;  // The event in flight.
+};
+
+grpc::ServerWriteReactor<v1::JobEvent>* ReconstructionService::WatchJob(grpc::CallbackServerContext* context,
+                                                                        const v1::WatchJobRequest* request) {
+  using Refused = Refusal<grpc::ServerWriteReactor<v1::JobEvent>>;
+  CallRecord call{"WatchJob"};
+  auto caller = Begin(context, call);
+  if (!caller.ok()) return new Refused(Conclude(call, ToGrpcStatus(caller.status())));
+  auto record = Visible(*caller, request->job_id());
+  if (!record.ok()) return new Refused(Conclude(call, ToGrpcStatus(record.status())));
+  auto ticket = streams_.Admit(StreamKind::kWatch, caller->submitter.owner, context);
+  if (!ticket.ok()) return new Refused(Conclude(call, ToGrpcStatus(ticket.status())));
+  auto* watch = new Watch(*this, record->id, std::move(call), *std::move(ticket));
+  {
+    std::lock_guard lock(watch_mutex_);
+    watches_.insert(watch);
+  }
+  watch->Poke();
+  return watch;
+}
+
+void ReconstructionService::RemoveWatch(Watch* watch) {
+  std::lock_guard lock(watch_mutex_);
+  watches_.erase(watch);
+}
+
+void ReconstructionService::WatchLoop() {
+  uint64_t seen = 0;
+  while (!stop_watching_) {
+    // The timeout bounds how late a shutdown or a change no one announced is noticed.
+    seen = jobs_.WaitForAnyChange(seen, std::chrono::milliseconds(500));
+    std::lock_guard lock(watch_mutex_);
+    const std::vector<Watch*> all(watches_.begin(), watches_.end());
+    for (Watch* watch : all) {
+      if (watches_.contains(watch)) watch->Poke();  // One poked earlier may have ended meanwhile.
+    }
+  }
+}
+
+// FetchResult: the artifact in chunks of at most 1 MiB, each read when the last has gone out.
+class ReconstructionService::Download final : public grpc::ServerWriteReactor<v1::ResultChunk> {
+ public:
+  Download(ReconstructionService& service, std::unique_ptr<jobs::BlobReader> reader, CallRecord call,
+           std::unique_ptr<StreamGuard::Ticket> ticket)
+      : service_(service), reader_(std::move(reader)), call_(std::move(call)), ticket_(std::move(ticket)) {
+    chunk_.set_total_bytes(reader_->size());
+    Next();
+  }
+
+  void OnWriteDone(bool ok) override {
+    if (!ok) return End(grpc::Status(grpc::StatusCode::CANCELLED, "client went away"));
+    ticket_->Touch();
+    if (service_.calls_ != nullptr) service_.calls_->Sent(static_cast<int64_t>(chunk_.data().size()));
+    if (chunk_.data().empty()) return End(grpc::Status::OK);  // An empty artifact: one empty chunk.
+    chunk_.clear_total_bytes();
+    Next();
+  }
+
+  void OnDone() override { delete this; }
+
+ private:
+  void Next() {
+    absl::StatusOr<std::string> data;
+    try {
+      data = reader_->Next(kMaxChunkBytes);
+    } catch (const std::bad_alloc&) {
+      data = absl::ResourceExhaustedError("the server ran out of memory for this call");
+    }
+    if (!data.ok()) return End(ToGrpcStatus(data.status()));
+    if (data->empty() && !first_) return End(grpc::Status::OK);
+    first_ = false;
+    chunk_.set_data(*std::move(data));
+    StartWrite(&chunk_);
+  }
+  void End(const grpc::Status& status) { Finish(service_.Conclude(call_, status)); }
+
+  ReconstructionService& service_;
+  std::unique_ptr<jobs::BlobReader> reader_;
+  const CallRecord call_;
+  std::unique_ptr<StreamGuard::Ticket> ticket_;
+  v1::ResultChunk chunk_;
+  bool first_ = true;
+};
+
+grpc::ServerWriteReactor<v1::ResultChunk>* ReconstructionService::FetchResult(grpc::CallbackServerContext* context,
+                                                                              const v1::FetchResultRequest* request) {
+  using Refused = Refusal<grpc::ServerWriteReactor<v1::ResultChunk>>;
+  CallRecord call{"FetchResult"};
+  auto caller = Begin(context, call);
+  if (!caller.ok()) return new Refused(Conclude(call, ToGrpcStatus(caller.status())));
+  if (auto visible = Visible(*caller, request->job_id()); !visible.ok()) {
+    return new Refused(Conclude(call, ToGrpcStatus(visible.status())));
+  }
+  auto reader = jobs_.OpenResult(request->job_id(), request->name());
+  if (!reader.ok()) return new Refused(Conclude(call, ToGrpcStatus(reader.status())));
+  auto ticket = streams_.Admit(StreamKind::kDownload, caller->submitter.owner, context);
+  if (!ticket.ok()) return new Refused(Conclude(call, ToGrpcStatus(ticket.status())));
+  return new Download(*this, *std::move(reader), std::move(call), *std::move(ticket));
 }
 
 grpc::Status ReconstructionService::GetJob(grpc::ServerContext* context, const v1::GetJobRequest* request,
@@ -158,7 +489,7 @@ grpc::Status ReconstructionService::ListJobs(grpc::ServerContext* context, const
     if (request->limit() < 0) return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "limit must not be negative");
     int count = 0;
     for (const auto& r : jobs_.List()) {
-      if (!caller.admin && r.owner != caller.name) continue;
+      if (!jobs::JobService::MayView(caller.submitter, r)) continue;
       if (request->limit() > 0 && count++ >= request->limit()) break;
       ToProto(r, response->add_jobs());
     }
@@ -185,42 +516,14 @@ grpc::Status ReconstructionService::DeleteJob(grpc::ServerContext* context, cons
   });
 }
 
-grpc::Status ReconstructionService::FetchResult(grpc::ServerContext* context, const v1::FetchResultRequest* request,
-                                                grpc::ServerWriter<v1::ResultChunk>* writer) {
-  return Serve("FetchResult", context, [&](const Caller& caller) {
-    if (auto visible = Visible(caller, request->job_id()); !visible.ok()) return ToGrpcStatus(visible.status());
-    return Fetch(context, *request, writer);
-  });
-}
-
-grpc::Status ReconstructionService::Fetch(grpc::ServerContext* context, const v1::FetchResultRequest& request,
-                                          grpc::ServerWriter<v1::ResultChunk>* writer) {
-  auto reader = jobs_.OpenResult(request.job_id(), request.name());
-  if (!reader.ok()) return ToGrpcStatus(reader.status());
-  v1::ResultChunk chunk;
-  chunk.set_total_bytes((*reader)->size());
-  bool first = true;
-  for (;;) {
-    if (context->IsCancelled()) return grpc::Status(grpc::StatusCode::CANCELLED, "download cancelled");
-    auto data = (*reader)->Next(kMaxChunkBytes);
-    if (!data.ok()) return ToGrpcStatus(data.status());
-    if (data->empty() && !first) return grpc::Status::OK;
-    chunk.set_data(*std::move(data));
-    if (!writer->Write(chunk)) return grpc::Status(grpc::StatusCode::CANCELLED, "client went away");
-    if (calls_ != nullptr) calls_->Sent(static_cast<int64_t>(chunk.data().size()));
-    chunk.clear_total_bytes();
-    if (chunk.data().empty()) return grpc::Status::OK;  // An empty artifact: one empty chunk.
-    first = false;
-  }
-}
-
 grpc::Status ReconstructionService::Render(grpc::ServerContext* context, const v1::RenderRequest* request,
                                            v1::RenderResponse* response) {
   return Serve("Render", context, [&](const Caller& caller) {
     if (auto visible = Visible(caller, request->job_id()); !visible.ok()) return ToGrpcStatus(visible.status());
     auto view = FromProto(request->options());
     if (!view.ok()) return ToGrpcStatus(view.status());
-    auto picture = jobs_.Render(request->job_id(), request->name(), *view);
+    const CallContext call(*context);
+    auto picture = jobs_.Render(caller.submitter, request->job_id(), request->name(), *view, &call);
     if (!picture.ok()) return ToGrpcStatus(picture.status());
     if (calls_ != nullptr) {
       calls_->Sent(static_cast<int64_t>(picture->png.size()));
@@ -267,10 +570,10 @@ grpc::Status ReconstructionService::GetServerInfo(grpc::ServerContext* context, 
     response->set_requires_token(tokens_ != nullptr);
     response->set_retain_seconds(o.retain.count());
     response->set_max_store_bytes(o.max_store_bytes);
-    if (caller.admin) response->set_stored_bytes(jobs_.StoredBytes());
+    if (caller.admin()) response->set_stored_bytes(jobs_.StoredBytes());
     v1::Account* account = response->mutable_account();
     account->set_name(caller.name);
-    account->set_admin(caller.admin);
+    account->set_admin(caller.admin());
     account->set_max_jobs(caller.submitter.max_active_jobs);
     account->set_max_stored_bytes(caller.submitter.max_stored_bytes);
     account->set_max_upload_bytes(caller.submitter.max_upload_bytes);

@@ -110,6 +110,10 @@ absl::Status ServerTls::Stage() {
   if (X509_cmp_current_time(X509_get0_notAfter(cert.get())) < 0) {
     return absl::InvalidArgumentError(StrCat("the certificate in ", files_.cert, " has expired: ", description));
   }
+  if (X509_cmp_current_time(X509_get0_notBefore(cert.get())) > 0) {
+    return absl::InvalidArgumentError(StrCat("the certificate in ", files_.cert,
+                                             " is not valid yet (check the clock, or its issuer's): ", description));
+  }
   // A new folder, then the `current` link swapped onto it: gRPC reads one folder or the other.
   const fs::path root(staging_dir_);
   const fs::path folder = root / StrCat("gen-", ++generation_);

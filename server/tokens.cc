@@ -242,7 +242,7 @@ absl::StatusOr<Caller> TokenTable::Authenticate(std::string_view authorization) 
     if (CRYPTO_memcmp(digest.data(), expected.data(), digest.size()) != 0) continue;
     Caller caller;
     caller.name = e.name;
-    caller.admin = e.role == Role::kAdmin;
+    caller.submitter.sees_all = e.role == Role::kAdmin;
     caller.submitter.owner = e.name;
     caller.submitter.max_active_jobs = e.max_jobs;
     caller.submitter.max_stored_bytes = e.max_stored_mib << 20;

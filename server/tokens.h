@@ -57,8 +57,8 @@ absl::Status RevokeToken(const std::string& path, const std::string& name);
 // Who makes a call and what they may do.
 struct Caller {
   std::string name;           // The token's name; empty when the server takes no tokens.
-  bool admin = true;          // Sees and acts on every job.
-  jobs::Submitter submitter;  // Owner and quotas of the jobs they submit.
+  jobs::Submitter submitter;  // Owner and quotas of the jobs they submit; sees_all for an admin.
+  bool admin() const { return submitter.sees_all; }
 };
 
 // The tokens lsqsurfd accepts. Thread-safe: Authenticate may run while Reload replaces the table.

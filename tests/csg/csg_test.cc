@@ -118,6 +118,47 @@ TEST(CsgFunction, UnboundedAndDisjointSolidsAreRefused) {
   EXPECT_NE(s.message().find("job:nope"), std::string::npos);
 }
 
+// Solids whose extraction would grow without bound are refused before any work is done: one too
+// large for its cells to mean anything in doubles, or one whose surface needs more cells than a
+// job may use. The estimate that decides it follows the real seed count; a cancelled extraction
+// stops while it seeds.
+TEST(CsgExtraction, SolidsTooLargeToExtractAreRefusedBeforeTheyGrow) {
+  for (const char* huge :
+       {"sphere(r=1e308)", "box(min=-1e300,0,0 max=1e300,1,1)", "scale(s=1e9 scale(s=1e9 sphere(r=10)))"}) {
+    auto root = ParseCsg(huge);
+    ASSERT_TRUE(root.ok()) << huge;
+    const absl::Status s = BuildCsg(*root, NoJobs).status();
+    EXPECT_EQ(s.code(), absl::StatusCode::kInvalidArgument) << huge;
+    EXPECT_NE(s.message().find("model units across"), std::string::npos) << s;
+  }
+  auto sphere = ParseCsg("sphere(r=1)");
+  ASSERT_TRUE(sphere.ok());
+  auto f = BuildCsg(*sphere, NoJobs);
+  ASSERT_TRUE(f.ok());
+  CsgParams fine;
+  fine.cell_size = 1.2e-4;  // About 1.5e9 cells along the surface.
+  core::LocalJobContext ctx;
+  const auto refused = ExtractCsg(**f, fine, ctx);
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kResourceExhausted) << refused.status();
+  EXPECT_NE(refused.status().message().find("larger cell_size"), std::string::npos) << refused.status();
+
+  CsgParams coarse;
+  coarse.cell_size = 0.02;
+  const double estimate = *EstimateSurfaceCells(**f, coarse);
+  CsgStats stats;
+  ASSERT_TRUE(ExtractCsg(**f, coarse, ctx, &stats).ok());
+  // A sphere crosses 1.5·area/h² cells on average over its normals; the estimate takes √3.
+  EXPECT_GT(static_cast<double>(stats.seeds), 0.6 * estimate) << estimate;
+  EXPECT_LT(static_cast<double>(stats.seeds), 1.2 * estimate) << estimate;
+
+  CsgParams allowed;
+  allowed.cell_size = 1.5e-3;  // About 1.2e7 cells: within the limit, and long to seed.
+  ASSERT_TRUE(CheckExtractionSize(**f, allowed).ok());
+  core::LocalJobContext cancelled;
+  cancelled.Cancel();
+  EXPECT_EQ(ExtractCsg(**f, allowed, cancelled).status().code(), absl::StatusCode::kCancelled);
+}
+
 // Distance from p to the three quarter circles where the sphere of radius r about the corner
 // (h, h, h) of the box [−h, h]³ meets the box's faces.
 double DistanceToCornerArcs(const Vec3d& p, double h, double r) {

@@ -216,7 +216,8 @@ TEST_F(EndToEnd, RendersResultsThroughTheCliAndTheApi) {
 
   const size_t at = r.output.find("job ");
   ASSERT_NE(at, std::string::npos) << r.output;
-  const std::string id = r.output.substr(at + 4, 16);
+  const std::string id = r.output.substr(at + 4, r.output.find_first_of(" \n:", at + 4) - (at + 4));
+  ASSERT_EQ(id.size(), 32u) << r.output;
   const std::string view = (dir_ / "degree.png").string();
   const ClientRun coloured = Client(server.address(), "render " + id + " -o " + view + " --color degree --size 256");
   ASSERT_EQ(coloured.code, 0) << coloured.output;
@@ -472,12 +473,19 @@ TEST_F(EndToEnd, RawApiStatusCodes) {
   EXPECT_EQ(submit({spec, huge}).error_code(), grpc::StatusCode::INVALID_ARGUMENT);   // Chunk > 1 MiB.
   EXPECT_EQ(submit({spec}).error_code(), grpc::StatusCode::INVALID_ARGUMENT);         // No input.
   EXPECT_EQ(submit({spec, chunk}).error_code(), grpc::StatusCode::INVALID_ARGUMENT);  // Not Draco.
-  {
+  // A text that is not an id is refused as such (not looked up, logged or echoed); a missing id
+  // is not found.
+  const std::string missing(32, '7');
+  for (const auto& [id, code] : {std::pair{std::string("nope"), grpc::StatusCode::INVALID_ARGUMENT},
+                                 std::pair{std::string(1 << 20, 'a'), grpc::StatusCode::INVALID_ARGUMENT},
+                                 std::pair{missing, grpc::StatusCode::NOT_FOUND}}) {
     grpc::ClientContext ctx;
     v1::GetJobRequest request;
-    request.set_job_id("nope");
+    request.set_job_id(id);
     v1::Job job;
-    EXPECT_EQ(stub->GetJob(&ctx, request, &job).error_code(), grpc::StatusCode::NOT_FOUND);
+    const grpc::Status status = stub->GetJob(&ctx, request, &job);
+    EXPECT_EQ(status.error_code(), code);
+    EXPECT_LE(status.error_message().size(), 1024u);
   }
   // Reads a server stream to its end and returns its status.
   auto drain = [](auto reader, auto message) {
@@ -488,13 +496,13 @@ TEST_F(EndToEnd, RawApiStatusCodes) {
   {
     grpc::ClientContext ctx;
     v1::FetchResultRequest request;
-    request.set_job_id("nope");
+    request.set_job_id(missing);
     EXPECT_EQ(drain(stub->FetchResult(&ctx, request), v1::ResultChunk()), grpc::StatusCode::NOT_FOUND);
   }
   {
     grpc::ClientContext ctx;
     v1::WatchJobRequest request;
-    request.set_job_id("nope");
+    request.set_job_id(missing);
     EXPECT_EQ(drain(stub->WatchJob(&ctx, request), v1::JobEvent()), grpc::StatusCode::NOT_FOUND);
   }
   // A running job cannot be deleted, and its result cannot be fetched yet.

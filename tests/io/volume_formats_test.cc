@@ -1,6 +1,7 @@
 #include "worker/io/volume_formats.h"
 
 #include <gtest/gtest.h>
+#include <sys/resource.h>
 
 #include <cmath>
 #include <fstream>
@@ -182,6 +183,50 @@ TEST(VolumeCodec, VerticesAndCellsRoundTripSmallerThanBinaryVtk) {
   EXPECT_EQ(DecodeCellStream(cells.substr(0, cells.size() / 2), 1'000'000, sink).code(),
             absl::StatusCode::kInvalidArgument);
   EXPECT_EQ(DecodeCellStream("LQC0", 10, sink).code(), absl::StatusCode::kInvalidArgument);
+}
+
+// The peak resident memory of this process, bytes.
+int64_t PeakResidentBytes() {
+  rusage usage{};
+  getrusage(RUSAGE_SELF, &usage);
+  return int64_t{usage.ru_maxrss} * 1024;
+}
+
+TEST(VolumeCodec, ADeclaredLengthIsNeverAllocatedBeforeItsBytesInflate) {
+  // 17 bytes: the magic, a payload length of 4.1e9 and an empty zlib stream. The length is within
+  // what 100M cells could need, so only the bytes behind it can refuse it.
+  std::string lying = "LQC1";
+  uint64_t declared = 4'100'000'000;
+  for (; declared >= 0x80; declared >>= 7) lying += static_cast<char>((declared & 0x7f) | 0x80);
+  lying += static_cast<char>(declared);
+  lying += std::string("\x78\x9c\x03\x00\x00\x00\x00\x01", 8);
+  ASSERT_EQ(lying.size(), 17u);
+  const int64_t peak_before = PeakResidentBytes();
+  VolumeMesh sink;
+  const absl::Status refused = DecodeCellStream(lying, 100'000'000, sink);
+  EXPECT_EQ(refused.code(), absl::StatusCode::kInvalidArgument) << refused;
+  EXPECT_NE(refused.message().find("compressed bytes can hold"), std::string_view::npos) << refused;
+  // A length that its bytes could hold, with a stream that inflates to far less: refused as well.
+  const std::string cells =
+      EncodeCellStream(volume::JitteredTetMesh(core::Box3(core::Vec3d::Zero(), core::Vec3d::Ones()), 4, 0.2, 3));
+  std::string longer = "LQC1";
+  uint64_t size = 0, shift = 0;
+  size_t pos = 4;
+  for (;; shift += 7) {
+    const auto byte = static_cast<uint8_t>(cells[pos++]);
+    size |= uint64_t{byte & 0x7fu} << shift;
+    if ((byte & 0x80) == 0) break;
+  }
+  uint64_t claimed = (cells.size() - pos) * 1000;
+  ASSERT_GT(claimed, size);
+  for (; claimed >= 0x80; claimed >>= 7) longer += static_cast<char>((claimed & 0x7f) | 0x80);
+  longer += static_cast<char>(claimed);
+  longer += cells.substr(pos);
+  const absl::Status short_stream = DecodeCellStream(longer, 100'000'000, sink);
+  EXPECT_EQ(short_stream.code(), absl::StatusCode::kInvalidArgument) << short_stream;
+  EXPECT_NE(short_stream.message().find("inflates to"), std::string_view::npos) << short_stream;
+  // Neither grew the process by the declared sizes (the old decoder zeroed all 4.1 GB first).
+  EXPECT_LT(PeakResidentBytes() - peak_before, int64_t{256} << 20);
 }
 
 }  // namespace

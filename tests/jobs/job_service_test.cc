@@ -269,11 +269,11 @@ TEST_F(JobServiceTest, QuotasHoldPerOwnerAndFinishedJobsCountTheirResults) {
   JobService& s = Open();
   const Uploads input = Input(Encode(testing::SphereCloud(1000)));
   const auto upload = static_cast<int64_t>(input.at(kInputUpload).size());
-  Submitter alice{"alice", /*max_active_jobs=*/1, /*max_stored_bytes=*/3 * upload, /*max_upload_bytes=*/0};
+  Submitter alice{"alice", /*max_active_jobs=*/1, /*max_stored_bytes=*/4 * upload, /*max_upload_bytes=*/0};
   auto first = s.Submit(Spec("iamls"), input, alice);
   ASSERT_TRUE(first.ok()) << first.status();
   EXPECT_EQ(first->owner, "alice");
-  EXPECT_EQ(first->stored_bytes, upload);
+  EXPECT_EQ(first->stored_bytes, upload + ResultReserve(upload));  // Its results are reserved for.
   auto second = s.Submit(Spec("iamls"), input, alice);
   EXPECT_EQ(second.status().code(), absl::StatusCode::kResourceExhausted);
   EXPECT_NE(second.status().message().find("queued or running"), std::string::npos) << second.status();
@@ -289,7 +289,7 @@ TEST_F(JobServiceTest, QuotasHoldPerOwnerAndFinishedJobsCountTheirResults) {
   auto third = s.Submit(Spec("iamls"), input, alice);
   ASSERT_TRUE(third.ok()) << third.status();
   ASSERT_EQ(WaitTerminal(third->id).state, JobState::kSucceeded);
-  auto fourth = s.Submit(Spec("iamls"), input, alice);  // 2 jobs kept + this upload > 3 uploads.
+  auto fourth = s.Submit(Spec("iamls"), input, alice);  // 2 jobs kept + this upload and reserve > 4 uploads.
   EXPECT_EQ(fourth.status().code(), absl::StatusCode::kResourceExhausted);
   EXPECT_NE(fourth.status().message().find("delete finished jobs"), std::string::npos) << fourth.status();
   ASSERT_TRUE(s.Delete(first->id).ok());
@@ -305,6 +305,105 @@ TEST_F(JobServiceTest, QuotasHoldPerOwnerAndFinishedJobsCountTheirResults) {
   JobService& reopened = Open();
   EXPECT_EQ(reopened.Get(third->id)->owner, "alice");
   EXPECT_EQ(reopened.UsageOf("alice").stored_bytes, kept);
+}
+
+// Writes one artifact of a given size, then ends as told: succeeded, failed, or held until it is
+// cancelled (with a latch the test waits on: the artifact is written by then).
+class WritingKind final : public JobKind {
+ public:
+  enum class End { kSucceed, kFail, kHoldUntilCancelled };
+  WritingKind(int64_t bytes, End end) : bytes_(bytes), end_(end) {}
+  std::string_view name() const override { return "writing"; }
+  std::vector<MethodInfo> Methods() const override { return {}; }
+  absl::StatusOr<CheckedInput> CheckUploads(const JobSpec&, const Uploads&, const InputLimits&) const override {
+    return CheckedInput{1, nullptr};
+  }
+  absl::StatusOr<Statistics> Run(const JobSpec&, const Uploads&, RunEnvironment& env) const override {
+    const absl::Status written = env.sink.Write("big.bin", std::string(static_cast<size_t>(bytes_), 'x'));
+    {
+      std::lock_guard lock(mutex_);
+      ran_ = true;
+      changed_.notify_all();
+    }
+    if (!written.ok()) return written;
+    if (end_ == End::kFail) return absl::InternalError("failed on purpose");
+    while (end_ == End::kHoldUntilCancelled && !env.context.IsCancelled()) {
+      std::unique_lock lock(mutex_);
+      changed_.wait_for(lock, std::chrono::milliseconds(5));
+    }
+    if (env.context.IsCancelled()) return absl::CancelledError("cancelled");
+    return Statistics{{"written", static_cast<double>(bytes_)}};
+  }
+  void WaitRan() const {
+    std::unique_lock lock(mutex_);
+    changed_.wait(lock, [&] { return ran_; });
+  }
+
+ private:
+  int64_t bytes_;
+  End end_;
+  mutable std::mutex mutex_;
+  mutable std::condition_variable changed_;
+  mutable bool ran_ = false;
+};
+
+// A job's results are held to its owner's stored-bytes quota as they are written (not only its
+// upload at submission), and what a failed or cancelled job wrote counts as stored.
+TEST_F(JobServiceTest, ResultsAreHeldToTheQuotaAndEndedJobsCountWhatTheyWrote) {
+  const Uploads input = Input(Encode(testing::SphereCloud(1000)));
+  const auto upload = static_cast<int64_t>(input.at(kInputUpload).size());
+  const WritingKind too_big(10 * upload, WritingKind::End::kSucceed);
+  const WritingKind failing(upload, WritingKind::End::kFail);
+  const WritingKind held(upload, WritingKind::End::kHoldUntilCancelled);
+  options_.kind_overrides["iamls"] = &too_big;
+  options_.kind_overrides["apss"] = &failing;
+  options_.kind_overrides["aamls"] = &held;
+  JobService& s = Open();
+  const Submitter alice{"alice", /*max_active_jobs=*/0, /*max_stored_bytes=*/5 * upload, /*max_upload_bytes=*/0};
+
+  auto big = s.Submit(Spec("iamls"), input, alice);
+  ASSERT_TRUE(big.ok()) << big.status();
+  const JobRecord refused = WaitTerminal(big->id);
+  EXPECT_EQ(refused.state, JobState::kFailed);
+  EXPECT_NE(refused.error.find("past your quota"), std::string::npos) << refused.error;
+  EXPECT_EQ(refused.stored_bytes, upload);  // Nothing was written.
+
+  auto failed = s.Submit(Spec("apss"), input, alice);
+  ASSERT_TRUE(failed.ok()) << failed.status();
+  const JobRecord failed_done = WaitTerminal(failed->id);
+  EXPECT_EQ(failed_done.state, JobState::kFailed);
+  EXPECT_EQ(failed_done.stored_bytes, 2 * upload);
+
+  auto cancelled = s.Submit(Spec("aamls"), input, alice);
+  ASSERT_TRUE(cancelled.ok()) << cancelled.status();
+  held.WaitRan();
+  ASSERT_TRUE(s.Cancel(cancelled->id).ok());
+  const JobRecord cancelled_done = WaitTerminal(cancelled->id);
+  EXPECT_EQ(cancelled_done.state, JobState::kCancelled);
+  EXPECT_EQ(cancelled_done.stored_bytes, 2 * upload);
+  EXPECT_EQ(s.UsageOf("alice").stored_bytes, 5 * upload);
+  EXPECT_EQ(s.StoredBytes(), 5 * upload);  // The server's own limit sees them as well.
+  // The quota is full: nothing more is accepted until jobs are deleted.
+  EXPECT_EQ(s.Submit(Spec("apss"), input, alice).status().code(), absl::StatusCode::kResourceExhausted);
+}
+
+// A named user may fill at most half of the queue: others still get in.
+TEST_F(JobServiceTest, OneUserCannotFillTheQueue) {
+  HoldIamlsJobs();
+  options_.max_queue = 4;
+  JobService& s = Open();
+  const Uploads input = Input(Encode(testing::SphereCloud(1000)));
+  const Submitter alice{"alice", 0, 0, 0}, bob{"bob", 0, 0, 0};
+  ASSERT_TRUE(s.Submit(Spec("iamls"), input, alice).ok());
+  latch_.WaitStarted(1);  // Running, no longer queued.
+  ASSERT_TRUE(s.Submit(Spec("iamls"), input, alice).ok());
+  ASSERT_TRUE(s.Submit(Spec("iamls"), input, alice).ok());
+  const absl::Status third = s.Submit(Spec("iamls"), input, alice).status();
+  EXPECT_EQ(third.code(), absl::StatusCode::kResourceExhausted);
+  EXPECT_NE(third.message().find("half of this server's queue"), std::string::npos) << third;
+  EXPECT_TRUE(s.Submit(Spec("iamls"), input, bob).ok());
+  EXPECT_TRUE(s.Submit(Spec("iamls"), input, bob).ok());
+  EXPECT_EQ(s.Submit(Spec("iamls"), input, bob).status().code(), absl::StatusCode::kResourceExhausted);  // Full.
 }
 
 TEST_F(JobServiceTest, RetentionDeletesTheOldestFinishedJobsAndNeverAQueuedOrRunningOne) {
@@ -326,7 +425,7 @@ TEST_F(JobServiceTest, RetentionDeletesTheOldestFinishedJobsAndNeverAQueuedOrRun
   ASSERT_TRUE(running.ok() && queued.ok());
   latch_.WaitStarted(started + 1);
   const int64_t kept = s->StoredBytes();
-  EXPECT_EQ(kept, 5000);
+  EXPECT_EQ(kept, 3 * 1000 + 2 * (1000 + ResultReserve(1000)));  // The two unfinished reserve for results.
   const int64_t now = s->Get(finished.back())->updated_ms;
   EXPECT_EQ(s->SweepFinished(now + 1), 0);  // No limits set: nothing goes.
 

@@ -17,6 +17,8 @@
 #include "tests/test_dir.h"
 #include "tests/test_shapes.h"
 #include "worker/io/draco_codec.h"
+#include "worker/io/volume_codec.h"
+#include "worker/volume/synthetic.h"
 
 namespace lsqsurf::server {
 namespace {
@@ -67,11 +69,11 @@ TEST(TokenFileTest, TokensAreKeptOnlyAsSaltedHashesAndAuthenticateTheirHolder) {
   auto caller = (*table)->Authenticate("Bearer " + alice);
   ASSERT_TRUE(caller.ok()) << caller.status();
   EXPECT_EQ(caller->name, "alice");
-  EXPECT_FALSE(caller->admin);
+  EXPECT_FALSE(caller->admin());
   EXPECT_EQ(caller->submitter.owner, "alice");
   EXPECT_EQ(caller->submitter.max_active_jobs, 3);
   EXPECT_EQ(caller->submitter.max_upload_bytes, 5 << 20);
-  EXPECT_TRUE((*table)->Authenticate("Bearer " + root)->admin);
+  EXPECT_TRUE((*table)->Authenticate("Bearer " + root)->admin());
   std::string altered = alice;
   altered.back() = altered.back() == '0' ? '1' : '0';
   for (const std::string& wrong :
@@ -138,6 +140,8 @@ class SecureServer {
   ~SecureServer() {
     latch_.Release();
     server_->Shutdown();
+    server_.reset();
+    service_.reset();  // Before the job service it follows.
     jobs_.reset();
   }
   std::string address() const { return "127.0.0.1:" + std::to_string(port_); }
@@ -236,6 +240,99 @@ TEST_F(IsolationTest, AUserCannotSeeFetchRenderCancelOrDeleteAnothersJob) {
   EXPECT_TRUE(alice.Delete(done->id()).ok());
 }
 
+// Jobs that read another job's results (csg operands, edit and probe sources) may name only
+// jobs their submitter may see: another user's answers exactly as a missing id does, at once,
+// and no job is made that could report on it.
+TEST_F(IsolationTest, AJobCannotReferToAnotherUsersJob) {
+  client::Client alice = server_->Connect(alice_), bob = server_->Connect(bob_), root = server_->Connect(root_);
+  v1::JobSpec pu;
+  pu.mutable_pu();
+  auto fitted = alice.Submit(pu, cloud_);
+  ASSERT_TRUE(fitted.ok()) << fitted.status();
+  volume::VolumeMesh mesh = volume::JitteredTetMesh(core::Box3(core::Vec3d::Zero(), core::Vec3d::Ones()), 5, 0.3, 2);
+  volume::SampleField(mesh, volume::Franke3d());
+  const std::vector<std::string> fields = {"franke"};
+  v1::JobSpec volume_spec;
+  volume_spec.mutable_volume()->set_field("franke");
+  volume_spec.mutable_volume()->set_iso("0.4");
+  auto field = alice.Submit(volume_spec, *io::EncodeVolumeVertices(mesh, fields, {}), {}, io::EncodeCellStream(mesh));
+  ASSERT_TRUE(field.ok()) << field.status();
+  ASSERT_EQ(alice.Watch(fitted->id())->state(), v1::JOB_STATE_SUCCEEDED);
+  ASSERT_EQ(alice.Watch(field->id())->state(), v1::JOB_STATE_SUCCEEDED);
+
+  const auto csg = [](const std::string& id) {
+    v1::JobSpec spec;
+    spec.mutable_csg()->set_expression("union(job:" + id + " sphere(r=0.1))");
+    return spec;
+  };
+  const auto edit = [](const std::string& id) {
+    v1::JobSpec spec;
+    spec.mutable_edit()->set_source(id);
+    spec.mutable_edit()->set_center_x(1.0);
+    spec.mutable_edit()->set_radius(0.2);
+    spec.mutable_edit()->set_degree(1);
+    return spec;
+  };
+  const auto probe = [](const std::string& id) {
+    v1::JobSpec spec;
+    spec.mutable_probe()->set_source(id);
+    spec.mutable_probe()->set_grid("4x4x4");
+    return spec;
+  };
+  const std::string missing(32, 'a');
+  struct Case {
+    const char* kind;
+    v1::JobSpec theirs, nobodys;
+  };
+  for (const Case& c : {Case{"csg", csg(fitted->id()), csg(missing)}, Case{"edit", edit(fitted->id()), edit(missing)},
+                        Case{"probe", probe(field->id()), probe(missing)}}) {
+    SCOPED_TRACE(c.kind);
+    const absl::Status theirs = bob.Submit(c.theirs, "").status();
+    const absl::Status nobodys = bob.Submit(c.nobodys, "").status();
+    EXPECT_EQ(theirs.code(), absl::StatusCode::kNotFound) << theirs;
+    EXPECT_EQ(nobodys.code(), absl::StatusCode::kNotFound) << nobodys;
+    // Word for word the same, but for the id the caller gave.
+    const std::string referenced = c.theirs.has_probe() ? field->id() : fitted->id();
+    EXPECT_EQ(theirs.message(), "no job with id '" + referenced + "'");
+    EXPECT_EQ(nobodys.message(), "no job with id '" + missing + "'");
+  }
+  EXPECT_EQ(bob.List(0)->jobs_size(), 0);  // Nothing was made that could fail with a telling error.
+
+  // The owner and an admin may refer to it.
+  for (client::Client* allowed : {&alice, &root}) {
+    auto job = allowed->Submit(csg(fitted->id()), "");
+    ASSERT_TRUE(job.ok()) << job.status();
+    EXPECT_EQ(allowed->Watch(job->id())->state(), v1::JOB_STATE_SUCCEEDED);
+    auto probed = allowed->Submit(probe(field->id()), "");
+    ASSERT_TRUE(probed.ok()) << probed.status();
+    EXPECT_EQ(allowed->Watch(probed->id())->state(), v1::JOB_STATE_SUCCEEDED);
+  }
+}
+
+// An upload that began before its token was revoked is not accepted when it ends.
+TEST_F(IsolationTest, AnUploadWhoseTokenIsRevokedMeanwhileIsRefusedAtItsEnd) {
+  auto channel = grpc::CreateChannel(server_->address(), grpc::InsecureChannelCredentials());
+  auto stub = v1::Reconstruction::NewStub(channel);
+  grpc::ClientContext context;
+  context.AddMetadata("authorization", "Bearer " + bob_);
+  v1::Job response;
+  auto writer = stub->SubmitJob(&context, &response);
+  v1::SubmitJobRequest message;
+  *message.mutable_spec() = Spec("iamls");
+  ASSERT_TRUE(writer->Write(message));
+  message.Clear();
+  message.set_input_chunk(cloud_.substr(0, cloud_.size() / 2));
+  ASSERT_TRUE(writer->Write(message));
+  ASSERT_TRUE(RevokeToken((dir_ / "tokens").string(), "bob").ok());
+  ASSERT_TRUE(tokens_->Reload().ok());
+  message.set_input_chunk(cloud_.substr(cloud_.size() / 2));
+  writer->Write(message);
+  writer->WritesDone();
+  const grpc::Status status = writer->Finish();
+  EXPECT_EQ(status.error_code(), grpc::StatusCode::UNAUTHENTICATED) << status.error_message();
+  EXPECT_EQ(server_->Connect(root_).List(0)->jobs_size(), 0);
+}
+
 TEST_F(IsolationTest, AMissingOrWrongTokenIsUnauthenticatedWhileHealthStaysOpen) {
   for (const std::string& token : {std::string(), std::string("lsq_not-a-token"), alice_ + "0"}) {
     client::Client c = server_->Connect(token);
@@ -263,7 +360,8 @@ TEST_F(IsolationTest, QuotasBoundJobsAndUploadsPerToken) {
   EXPECT_EQ(info->account().name(), "alice");
   EXPECT_EQ(info->account().active_jobs(), 2);
   EXPECT_EQ(info->account().max_jobs(), 2);
-  EXPECT_EQ(info->account().stored_bytes(), 2 * static_cast<int64_t>(cloud_.size()));
+  EXPECT_EQ(info->account().stored_bytes(),
+            2 * (static_cast<int64_t>(cloud_.size()) + jobs::ResultReserve(static_cast<int64_t>(cloud_.size()))));
 
   // More than alice's 1 MiB is refused while it streams in; bob may send it.
   const std::string big((size_t{3} << 19), 'x');
@@ -343,14 +441,19 @@ TEST_F(TlsTest, MutualTlsRefusesMissingForeignAndExpiredClientCertificates) {
 
 TEST_F(TlsTest, BadOrExpiredServerFilesAreRefusedWithTheReason) {
   const testing::PemPair expired = ca_.Issue("127.0.0.1", -10, -1), other = ca_.Issue("127.0.0.1");
+  const testing::PemPair early = ca_.Issue("127.0.0.1", 2, 30);
   WriteFile(dir_ / "expired.crt", expired.cert);
   WriteFile(dir_ / "expired.key", expired.key);
+  WriteFile(dir_ / "early.crt", early.cert);
+  WriteFile(dir_ / "early.key", early.key);
   WriteFile(dir_ / "other.key", other.key);
   const std::string staged = (dir_ / "staged").string();
   const auto reason = [&](const TlsFiles& files) {
     return std::string(ServerTls::Open(files, staged).status().message());
   };
   EXPECT_NE(reason({(dir_ / "expired.crt").string(), (dir_ / "expired.key").string(), ""}).find("expired"),
+            std::string::npos);
+  EXPECT_NE(reason({(dir_ / "early.crt").string(), (dir_ / "early.key").string(), ""}).find("not valid yet"),
             std::string::npos);
   EXPECT_NE(reason({files_.cert, (dir_ / "other.key").string(), ""}).find("is not the key"), std::string::npos);
   EXPECT_NE(reason({files_.key, files_.key, ""}).find("no PEM certificate"), std::string::npos);

@@ -49,6 +49,8 @@ class ServiceTest : public ::testing::Test {
   void TearDown() override {
     latch_.Release();
     if (server_) server_->Shutdown();
+    server_.reset();
+    service_.reset();  // Before the job service it follows.
     jobs_.reset();
     std::filesystem::remove_all(dir_);
   }
@@ -263,11 +265,20 @@ TEST_F(ServiceTest, AVolumeMeshBecomesAnIsosurfaceAndBadVolumesAreRefused) {
   auto vti = client_->Fetch(grid_job->id(), "field.vti");
   ASSERT_TRUE(vti.ok());
   EXPECT_NE(vti->find("WholeExtent=\"0 4 0 3 0 2\""), std::string::npos);
+  // A source that is no job is refused at once: one that is not an id at all, and a missing one.
   v1::JobSpec orphan;
   orphan.mutable_probe()->set_source("no-such-job");
   orphan.mutable_probe()->set_grid("4x4x4");
+  EXPECT_EQ(client_->Submit(orphan, "").status().code(), absl::StatusCode::kInvalidArgument);
+  const std::string no_job(32, '0');
+  orphan.mutable_probe()->set_source(no_job);
+  const absl::Status no_source = client_->Submit(orphan, "").status();
+  EXPECT_EQ(no_source.code(), absl::StatusCode::kNotFound);
+  EXPECT_EQ(no_source.message(), "no job with id '" + no_job + "'");
+  // A job that has no field: it fails with the reason.
+  orphan.mutable_probe()->set_source(probed->id());
   auto orphan_job = client_->Submit(orphan, "");
-  ASSERT_TRUE(orphan_job.ok());
+  ASSERT_TRUE(orphan_job.ok()) << orphan_job.status();
   auto orphan_done = client_->Watch(orphan_job->id());
   ASSERT_TRUE(orphan_done.ok());
   EXPECT_EQ(orphan_done->state(), v1::JOB_STATE_FAILED);
@@ -364,14 +375,22 @@ TEST_F(ServiceTest, CsgAndEditReuseAKeptPuResult) {
   v1::JobSpec with_upload = cut;
   EXPECT_EQ(client_->Submit(with_upload, input_).status().code(), absl::StatusCode::kInvalidArgument);
 
+  // A reference to no job is refused at submission; one to a job that keeps no function fails.
   v1::JobSpec orphan;
   orphan.mutable_csg()->set_expression("union(job:no-such-job sphere(r=1))");
+  EXPECT_EQ(client_->Submit(orphan, "").status().code(), absl::StatusCode::kInvalidArgument);
+  const std::string missing(32, 'f');
+  orphan.mutable_csg()->set_expression("union(job:" + missing + " sphere(r=1))");
+  const absl::Status no_operand = client_->Submit(orphan, "").status();
+  EXPECT_EQ(no_operand.code(), absl::StatusCode::kNotFound);
+  EXPECT_EQ(no_operand.message(), "no job with id '" + missing + "'");
+  orphan.mutable_csg()->set_expression("union(job:" + job->id() + " sphere(r=1))");
   auto orphan_job = client_->Submit(orphan, "");
   ASSERT_TRUE(orphan_job.ok()) << orphan_job.status();
   auto orphan_done = client_->Watch(orphan_job->id());
   ASSERT_TRUE(orphan_done.ok());
   EXPECT_EQ(orphan_done->state(), v1::JOB_STATE_FAILED);
-  EXPECT_NE(orphan_done->error().find("job:no-such-job"), std::string::npos) << orphan_done->error();
+  EXPECT_NE(orphan_done->error().find("job:" + job->id()), std::string::npos) << orphan_done->error();
 }
 
 }  // namespace

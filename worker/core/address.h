@@ -1,6 +1,10 @@
 // worker/core/address.h — what a HOST:PORT address says about where it leads.
 #pragma once
 
+#include <arpa/inet.h>
+#include <netinet/in.h>
+
+#include <string>
 #include <string_view>
 
 namespace lsqsurf::core {
@@ -14,11 +18,19 @@ inline std::string_view HostOf(std::string_view address) {
 
 // Whether the address's host is this machine's loopback, where traffic stays on the machine
 // (the only place plaintext is used without being asked for). "unix:" sockets count as well.
+// The host must be an address in 127.0.0.0/8 or ::1 (or "localhost"): a name that merely starts
+// with "127." may lead anywhere.
 inline bool IsLoopback(std::string_view address) {
   if (address.rfind("unix:", 0) == 0) return true;
   std::string_view host = HostOf(address);
-  if (host.rfind("ipv4:", 0) == 0) host.remove_prefix(5);
-  return host == "localhost" || host == "[::1]" || host == "::1" || host.rfind("127.", 0) == 0;
+  if (host.rfind("ipv4:", 0) == 0 || host.rfind("ipv6:", 0) == 0) host.remove_prefix(5);
+  if (host == "localhost") return true;
+  if (host.size() >= 2 && host.front() == '[' && host.back() == ']') host = host.substr(1, host.size() - 2);
+  const std::string text(host);
+  in_addr v4{};
+  if (inet_pton(AF_INET, text.c_str(), &v4) == 1) return (ntohl(v4.s_addr) >> 24) == 127;
+  in6_addr v6{};
+  return inet_pton(AF_INET6, text.c_str(), &v6) == 1 && IN6_IS_ADDR_LOOPBACK(&v6);
 }
 
 }  // namespace lsqsurf::core

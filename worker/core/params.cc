@@ -16,11 +16,12 @@ std::string Number(double v) {
   return std::string(buf, static_cast<size_t>(r.ptr - buf));
 }
 
-// Text values are stored between ';' separators: escape '%', ';' and '='.
+// Text values are stored between ';' separators: escape '%', ';' and '=', and control bytes (a
+// NUL would cut the stored text short, so that a job would come back after a restart as another).
 std::string Escape(std::string_view text) {
   std::string out;
   for (char c : text) {
-    if (c == '%' || c == ';' || c == '=') {
+    if (c == '%' || c == ';' || c == '=' || static_cast<unsigned char>(c) < 0x20 || c == 0x7f) {
       StrAppend(&out, fmt::format("%{:02X}", static_cast<unsigned char>(c)));
     } else {
       out += c;
@@ -144,6 +145,10 @@ absl::Status ParamSet::SetText(std::string_view name, std::string value) {
   const ParamInfo* info = Info(name);
   if (info == nullptr) return UnknownName(name);
   if (info->type != ParamType::kText) return Parse(name, value);
+  if (value.size() > kMaxTextBytes) {
+    return absl::InvalidArgumentError(
+        StrCat(name, " has ", value.size(), " bytes; a text parameter takes at most ", kMaxTextBytes));
+  }
   holder_->SetText(name, std::move(value));
   return absl::OkStatus();
 }

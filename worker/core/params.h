@@ -214,6 +214,8 @@ class ParamTable {
 // parameters without knowing every engine. Copies are deep. Not thread-safe for writes.
 class ParamSet {
  public:
+  // The longest value a text parameter takes (a CSG expression is the longest in use).
+  static constexpr size_t kMaxTextBytes = 64 << 10;
   ParamSet() = default;
   // `table` must outlive the set (tables are static).
   template <class P>

@@ -7,7 +7,9 @@
 
 #include <fmt/format.h>
 
+#include <algorithm>
 #include <string>
+#include <string_view>
 
 #include "absl/strings/string_view.h"
 
@@ -31,6 +33,24 @@ std::string StrCat(const Args&... args) {
 template <class... Args>
 void StrAppend(std::string* out, const Args&... args) {
   (fmt::format_to(std::back_inserter(*out), "{}", args), ...);
+}
+
+// `text` made safe to log or send back: control bytes (a newline that would forge a log line, a
+// NUL that would cut it) written as \xNN, and at most `max_bytes` of it kept, the cut said.
+inline std::string Printable(std::string_view text, size_t max_bytes = 1024) {
+  std::string out;
+  const size_t kept = std::min(text.size(), max_bytes);
+  out.reserve(kept + 32);
+  for (size_t i = 0; i < kept; ++i) {
+    const auto c = static_cast<unsigned char>(text[i]);
+    if (c < 0x20 || c == 0x7f) {
+      StrAppend(&out, fmt::format("\\x{:02x}", c));
+    } else {
+      out += static_cast<char>(c);
+    }
+  }
+  if (kept < text.size()) StrAppend(&out, "... (", text.size() - kept, " more bytes)");
+  return out;
 }
 
 }  // namespace lsqsurf::core

@@ -352,6 +352,10 @@ absl::StatusOr<std::unique_ptr<CsgFunction>> BuildCsg(const CsgNode& root, const
         "the csg solid is unbounded (a plane's half-space reaches infinity): intersect it with a bounded solid");
   }
   if (top.bounds.isEmpty()) return absl::InvalidArgumentError("the csg solid is empty: its operands do not overlap");
+  if (!(top.bounds.sizes().maxCoeff() <= kMaxSolidExtent)) {
+    return absl::InvalidArgumentError(core::StrCat("the csg solid is ", top.bounds.sizes().maxCoeff(),
+                                                   " model units across; at most ", kMaxSolidExtent, " are supported"));
+  }
   m.bounds = top.bounds;
   return out;
 }
@@ -361,15 +365,23 @@ namespace {
 // Finest-level cell centres near a primitive leaf's surface: descends an octree over `root`
 // and skips every cell whose centre is farther from the surface than its half-diagonal (the
 // leaf value is an exact world distance, so no surface can pass there).
-void PrimitiveSeeds(const CsgFunction::Impl& m, const CsgFunction::Impl::Node& leaf, const Box3& root, int depth,
-                    std::vector<Vec3f>& out) {
+// The finest cells along a primitive's surface, as seeds; at most `max_seeds` in `out`, else
+// kResourceExhausted (the estimate that ExtractCsg checks first can be passed by a surface that
+// folds more than a convex one). Cancellation is honoured as it descends.
+absl::Status PrimitiveSeeds(const CsgFunction::Impl& m, const CsgFunction::Impl::Node& leaf, const Box3& root,
+                            int depth, int64_t max_seeds, std::vector<Vec3f>& out, core::JobContext& ctx) {
   struct Cell {
     Vec3d lo;
     int level;
   };
   const double edge = root.sizes().x();
   std::vector<Cell> stack{{root.min(), 0}};
-  while (!stack.empty()) {
+  for (int64_t visited = 0; !stack.empty(); ++visited) {
+    if ((visited & 0xffff) == 0) LSQSURF_RETURN_IF_ERROR(ctx.CheckCancelled());
+    if (static_cast<int64_t>(out.size()) > max_seeds) {
+      return absl::ResourceExhaustedError(core::StrCat("the csg solid's surface needs more than ", max_seeds,
+                                                       " cells at this cell_size; give a larger one"));
+    }
     const Cell c = stack.back();
     stack.pop_back();
     const double size = std::ldexp(edge, -c.level);
@@ -385,6 +397,7 @@ void PrimitiveSeeds(const CsgFunction::Impl& m, const CsgFunction::Impl::Node& l
           {c.lo + Vec3d((k & 1) ? size / 2 : 0, (k & 2) ? size / 2 : 0, (k & 4) ? size / 2 : 0), c.level + 1});
     }
   }
+  return absl::OkStatus();
 }
 
 }  // namespace
@@ -392,7 +405,8 @@ void PrimitiveSeeds(const CsgFunction::Impl& m, const CsgFunction::Impl::Node& l
 // Seeds of the extraction: points near the combined surface, one per finest cell; `fine_seeds`
 // those that need the finest cells.
 absl::Status FindSeeds(const CsgFunction& function, const CsgFunction::Impl& m, const Box3& root, int depth,
-                       double cell, std::vector<Vec3f>& seeds, std::vector<Vec3f>& fine_seeds, core::JobContext& ctx) {
+                       double cell, int64_t max_seeds, std::vector<Vec3f>& seeds, std::vector<Vec3f>& fine_seeds,
+                       core::JobContext& ctx) {
   // Candidates near each operand's own surface; `crease` marks those that need the finest cells
   // whatever the curvature, or for a job's points the leaf that decides (its creases).
   constexpr int32_t kNoCrease = -2, kCrease = -1;
@@ -401,7 +415,7 @@ absl::Status FindSeeds(const CsgFunction& function, const CsgFunction::Impl& m, 
   for (int index : m.leaves) {
     const auto& leaf = m.nodes[static_cast<size_t>(index)];
     if (leaf.job == nullptr) {
-      PrimitiveSeeds(m, leaf, root, depth, candidates);
+      LSQSURF_RETURN_IF_ERROR(PrimitiveSeeds(m, leaf, root, depth, max_seeds, candidates, ctx));
       crease.resize(candidates.size(), kNoCrease);  // Their curvature is the chord rule's.
       continue;
     }
@@ -465,10 +479,11 @@ absl::Status FindSeeds(const CsgFunction& function, const CsgFunction::Impl& m, 
   return absl::OkStatus();
 }
 
-absl::StatusOr<extract::IsosurfaceResult> ExtractCsg(const CsgFunction& function, const CsgParams& params,
-                                                     core::JobContext& ctx, CsgStats* stats) {
-  LSQSURF_RETURN_IF_ERROR(Validate(params));
-  const CsgFunction::Impl& m = *function.impl_;
+namespace {
+
+// The finest cell's edge ExtractCsg uses: the given one, else the referenced jobs' finest, else
+// 1/256 of the solid's longest side.
+double ExtractionCell(const CsgFunction::Impl& m, const CsgParams& params) {
   double cell = params.cell_size;
   if (cell == 0) {
     cell = m.bounds.sizes().maxCoeff() / 256;
@@ -481,7 +496,63 @@ absl::StatusOr<extract::IsosurfaceResult> ExtractCsg(const CsgFunction& function
       from_jobs = true;
     }
   }
+  return cell;
+}
+
+// A primitive's surface area in its own units (planes, unbounded, count for nothing here: only
+// their part inside the solid's box, which the box bound below takes).
+double OwnArea(const CsgFunction::Impl::Node& n) {
+  switch (n.kind) {
+    case NodeKind::kSphere: return 4 * M_PI * n.r * n.r;
+    case NodeKind::kBox: {
+      const Vec3d s = (n.b - n.a).cwiseAbs();
+      return 2 * (s.x() * s.y() + s.y() * s.z() + s.z() * s.x());
+    }
+    case NodeKind::kCylinder: return 2 * M_PI * n.r * ((n.b - n.a).norm() + n.r);
+    case NodeKind::kTorus: return 4 * M_PI * M_PI * n.major * n.r;
+    default: return std::numeric_limits<double>::infinity();
+  }
+}
+
+}  // namespace
+
+absl::StatusOr<double> EstimateSurfaceCells(const CsgFunction& function, const CsgParams& params) {
+  LSQSURF_RETURN_IF_ERROR(Validate(params));
+  const CsgFunction::Impl& m = *function.impl_;
+  const double cell = ExtractionCell(m, params);
   if (!(cell > 0)) return absl::InvalidArgumentError("the solid has no extent to size cells by");
+  // A convex surface inside a box has at most the box's area there; a torus is two such sheets.
+  const Vec3d box = m.bounds.sizes() + Vec3d::Constant(4 * cell);
+  const double box_area = 2 * (box.x() * box.y() + box.y() * box.z() + box.z() * box.x());
+  double cells = 0;
+  for (int index : m.leaves) {
+    const auto& leaf = m.nodes[static_cast<size_t>(index)];
+    if (leaf.job != nullptr) {
+      cells += static_cast<double>(leaf.job->surface_points.size());  // One seed per point at most.
+      continue;
+    }
+    const double area = OwnArea(leaf) * leaf.to_world.scale * leaf.to_world.scale;
+    // A plane crosses about √3 cells per cell² of its area.
+    cells += std::sqrt(3.0) * std::min(area, (leaf.kind == NodeKind::kTorus ? 2 : 1) * box_area) / (cell * cell);
+  }
+  return cells;
+}
+
+absl::Status CheckExtractionSize(const CsgFunction& function, const CsgParams& params) {
+  LSQSURF_ASSIGN_OR_RETURN(const double estimate, EstimateSurfaceCells(function, params));
+  if (estimate > static_cast<double>(params.max_leaves)) {
+    return absl::ResourceExhaustedError(core::StrCat("the csg solid's surface needs about ", std::llround(estimate),
+                                                     " cells at this cell_size, more than the ", params.max_leaves,
+                                                     " a csg job may use; give a larger cell_size"));
+  }
+  return absl::OkStatus();
+}
+
+absl::StatusOr<extract::IsosurfaceResult> ExtractCsg(const CsgFunction& function, const CsgParams& params,
+                                                     core::JobContext& ctx, CsgStats* stats) {
+  LSQSURF_RETURN_IF_ERROR(CheckExtractionSize(function, params));
+  const CsgFunction::Impl& m = *function.impl_;
+  const double cell = ExtractionCell(m, params);
   // The seeds' cube: the solid's box with margin, at a power-of-two multiple of the cell.
   const double extent = m.bounds.sizes().maxCoeff() + 4 * cell;
   const int depth = static_cast<int>(std::ceil(std::log2(extent / cell)));
@@ -494,7 +565,7 @@ absl::StatusOr<extract::IsosurfaceResult> ExtractCsg(const CsgFunction& function
 
   ctx.ReportProgress("finding the surface", 0.0);
   std::vector<Vec3f> seeds, fine_seeds;
-  LSQSURF_RETURN_IF_ERROR(FindSeeds(function, m, root, depth, cell, seeds, fine_seeds, ctx));
+  LSQSURF_RETURN_IF_ERROR(FindSeeds(function, m, root, depth, cell, params.max_leaves, seeds, fine_seeds, ctx));
   if (stats != nullptr) stats->seeds = static_cast<int64_t>(seeds.size()), stats->cell_size = cell;
   if (seeds.empty()) return absl::FailedPreconditionError("the csg solid is empty: no surface passes its box");
   // The tree: three levels coarser than the cell along the whole surface, split towards the cell

@@ -82,19 +82,32 @@ class CsgFunction final : public core::ImplicitFunction {
 
  private:
   friend absl::StatusOr<std::unique_ptr<CsgFunction>> BuildCsg(const CsgNode&, const OperandResolver&);
+  friend absl::StatusOr<double> EstimateSurfaceCells(const CsgFunction&, const CsgParams&);
   friend absl::StatusOr<extract::IsosurfaceResult> ExtractCsg(const CsgFunction&, const CsgParams&, core::JobContext&,
                                                               CsgStats*);
   CsgFunction();
   std::unique_ptr<Impl> impl_;
 };
 
-// Errors: kInvalidArgument (an unbounded solid, e.g. a lone plane, or an empty intersection of
-// bounds), and the resolver's errors.
+// The largest solid, in model units across: past it cell sizes and extents lose their meaning in
+// doubles (sphere(r=1e308) once made the extraction run without bound).
+inline constexpr double kMaxSolidExtent = 1e12;
+
+// Errors: kInvalidArgument (an unbounded solid, e.g. a lone plane, an empty intersection of
+// bounds, or one wider than kMaxSolidExtent), and the resolver's errors.
 absl::StatusOr<std::unique_ptr<CsgFunction>> BuildCsg(const CsgNode& root, const OperandResolver& resolve);
 
+// About how many finest cells the extraction seeds along the surface (the work and memory of
+// ExtractCsg grow with it): for each primitive its area within the solid's box over the cell's
+// area, for each job its points. Checked against max_leaves before extraction, and at submission
+// for solids without job references. Errors: kInvalidArgument (bad parameters).
+absl::StatusOr<double> EstimateSurfaceCells(const CsgFunction& function, const CsgParams& params);
+// kResourceExhausted, saying what to change, when that estimate is past max_leaves.
+absl::Status CheckExtractionSize(const CsgFunction& function, const CsgParams& params);
+
 // The boundary of the solid, with the per-vertex attribute "operand" (ActiveOperand).
-// Errors: kInvalidArgument, kResourceExhausted (more than max_leaves), kFailedPrecondition (an
-// empty solid), kCancelled.
+// Errors: kInvalidArgument, kResourceExhausted (the estimate or the cells past max_leaves),
+// kFailedPrecondition (an empty solid), kCancelled (checked throughout).
 absl::StatusOr<extract::IsosurfaceResult> ExtractCsg(const CsgFunction& function, const CsgParams& params,
                                                      core::JobContext& ctx, CsgStats* stats = nullptr);
 

@@ -2,7 +2,9 @@
 
 #include <zlib.h>
 
+#include <algorithm>
 #include <cmath>
+#include <cstdint>
 
 #include "worker/core/status.h"
 #include "worker/core/strings.h"
@@ -15,6 +17,45 @@ namespace {
 constexpr std::string_view kCellMagic = "LQC1";
 // The longest a cell can be in the payload: a type byte and 8 indices of at most 5 bytes each.
 constexpr uint64_t kMaxCellBytes = 1 + 8 * 5;
+
+// Inflates a zlib stream that must give exactly `expected` bytes. The output grows with what
+// actually inflates (never allocated at the declared size up front), so a stream that merely
+// declares a large size costs nothing.
+absl::StatusOr<std::string> Inflate(std::string_view packed, uint64_t expected) {
+  z_stream z{};
+  if (inflateInit(&z) != Z_OK) return absl::InternalError("zlib could not start");
+  struct End {
+    z_stream& z;
+    ~End() { inflateEnd(&z); }
+  } end{z};
+  std::string out;
+  z.next_in = reinterpret_cast<Bytef*>(const_cast<char*>(packed.data()));
+  z.avail_in = static_cast<uInt>(std::min<size_t>(packed.size(), UINT32_MAX));
+  int rc = Z_OK;
+  while (rc == Z_OK) {
+    if (out.size() == z.total_out) {
+      if (out.size() > expected) break;
+      // Doubling from 64 KiB, to one byte past the declared size (which tells a longer stream).
+      out.resize(std::min<uint64_t>(std::max<size_t>(out.size() * 2, 64 << 10), expected + 1));
+    }
+    z.next_out = reinterpret_cast<Bytef*>(out.data() + z.total_out);
+    z.avail_out = static_cast<uInt>(std::min<uint64_t>(out.size() - z.total_out, UINT32_MAX));
+    rc = inflate(&z, Z_NO_FLUSH);
+    if (rc == Z_BUF_ERROR && z.avail_out > 0) break;  // Input ran out before the stream's end.
+    if (rc == Z_BUF_ERROR) rc = Z_OK;
+  }
+  if (z.total_out > expected) {
+    return absl::InvalidArgumentError(
+        core::StrCat("it inflates to more than the ", expected, " bytes its header declares"));
+  }
+  if (rc != Z_STREAM_END) return absl::InvalidArgumentError(core::StrCat("zlib could not inflate it (code ", rc, ")"));
+  if (z.total_out != expected) {
+    return absl::InvalidArgumentError(
+        core::StrCat("it inflates to ", z.total_out, " bytes where its header declares ", expected));
+  }
+  out.resize(z.total_out);
+  return out;
+}
 
 }  // namespace
 
@@ -86,14 +127,17 @@ absl::Status DecodeCellStream(std::string_view bytes, int64_t max_cells, volume:
     return absl::ResourceExhaustedError(
         core::StrCat("the cell stream declares ", payload_size, " bytes, more than ", max_cells, " cells can need"));
   }
-  std::string payload(payload_size, '\0');
-  uLongf size = static_cast<uLongf>(payload_size);
-  const int rc = uncompress(reinterpret_cast<Bytef*>(payload.data()), &size,
-                            reinterpret_cast<const Bytef*>(bytes.data() + pos), static_cast<uLong>(bytes.size() - pos));
-  if (rc != Z_OK || size != payload_size) return corrupt(core::StrCat("zlib could not inflate it (code ", rc, ")"));
+  // Nor can it exceed what its compressed bytes inflate to at zlib's best ratio (1032:1).
+  const uint64_t compressed = bytes.size() - pos;
+  if (payload_size > compressed * 1032 + 64) {
+    return corrupt(
+        core::StrCat("it declares ", payload_size, " bytes, more than its ", compressed, " compressed bytes can hold"));
+  }
+  auto payload = Inflate(bytes.substr(pos), payload_size);
+  if (!payload.ok()) return corrupt(std::string(payload.status().message()));
   pos = 0;
   uint64_t count = 0;
-  if (!GetVarint(payload, pos, count)) return corrupt("no cell count");
+  if (!GetVarint(*payload, pos, count)) return corrupt("no cell count");
   if (count > static_cast<uint64_t>(max_cells)) {
     return absl::ResourceExhaustedError(
         core::StrCat("the volume has ", count, " cells; this server accepts at most ", max_cells));
@@ -103,8 +147,8 @@ absl::Status DecodeCellStream(std::string_view bytes, int64_t max_cells, volume:
   mesh.cell_offsets.assign(1, 0);
   int64_t previous = 0;
   for (uint64_t c = 0; c < count; ++c) {
-    if (pos >= payload.size()) return corrupt(core::StrCat("it ends at cell ", c, " of ", count));
-    const auto type = static_cast<uint8_t>(payload[pos++]);
+    if (pos >= payload->size()) return corrupt(core::StrCat("it ends at cell ", c, " of ", count));
+    const auto type = static_cast<uint8_t>((*payload)[pos++]);
     const int n = volume::CellVertexCount(type);
     if (n == 0) {
       return absl::InvalidArgumentError(core::StrCat("cell ", c, " is a ", volume::CellTypeName(type),
@@ -113,7 +157,7 @@ absl::Status DecodeCellStream(std::string_view bytes, int64_t max_cells, volume:
     }
     for (int k = 0; k < n; ++k) {
       uint64_t z = 0;
-      if (!GetVarint(payload, pos, z)) return corrupt(core::StrCat("it ends inside cell ", c));
+      if (!GetVarint(*payload, pos, z)) return corrupt(core::StrCat("it ends inside cell ", c));
       const int64_t delta = static_cast<int64_t>(z >> 1) ^ -static_cast<int64_t>(z & 1);
       previous += delta;
       if (previous < 0 || previous > 0xffffffffLL) return corrupt(core::StrCat("cell ", c, " has a negative index"));
@@ -122,7 +166,7 @@ absl::Status DecodeCellStream(std::string_view bytes, int64_t max_cells, volume:
     mesh.cell_types.push_back(type);
     mesh.cell_offsets.push_back(static_cast<uint32_t>(mesh.cell_vertices.size()));
   }
-  if (pos != payload.size()) return corrupt("bytes follow the last cell");
+  if (pos != payload->size()) return corrupt("bytes follow the last cell");
   if (count == 0) mesh.cell_offsets.clear();
   return absl::OkStatus();
 }

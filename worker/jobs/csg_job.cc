@@ -53,10 +53,27 @@ class CsgKind final : public JobKind {
              {}}};
   }
 
-  // No upload slots are listed, so the job service refuses any upload before this.
+  // No upload slots are listed, so the job service refuses any upload before this. A solid of
+  // primitives alone is built here, so that one that is unbounded, too large, or would need more
+  // cells than the extraction allows is refused now rather than failing (or growing) later;
+  // with job references that waits for the run, which checks the same before it extracts.
   absl::StatusOr<CheckedInput> CheckUploads(const JobSpec& spec, const Uploads&, const InputLimits&) const override {
-    if (spec.params.As<CsgJobParams>() == nullptr) return absl::InternalError("not a csg job");
+    const auto* p = spec.params.As<CsgJobParams>();
+    if (p == nullptr) return absl::InternalError("not a csg job");
+    LSQSURF_ASSIGN_OR_RETURN(csg::CsgNode root, csg::ParseCsg(p->expression));
+    if (!csg::ReferencedJobs(root).empty()) return CheckedInput{0, nullptr};
+    LSQSURF_ASSIGN_OR_RETURN(auto function, csg::BuildCsg(root, [](const std::string&) -> absl::StatusOr<csg::Operand> {
+                               return absl::InternalError("no job references here");
+                             }));
+    LSQSURF_RETURN_IF_ERROR(csg::CheckExtractionSize(*function, p->extract));
     return CheckedInput{0, nullptr};
+  }
+
+  std::vector<std::string> ReferencedJobs(const JobSpec& spec) const override {
+    const auto* p = spec.params.As<CsgJobParams>();
+    if (p == nullptr) return {};
+    auto root = csg::ParseCsg(p->expression);
+    return root.ok() ? csg::ReferencedJobs(*root) : std::vector<std::string>{};
   }
 
   absl::StatusOr<Statistics> Run(const JobSpec& spec, const Uploads&, RunEnvironment& env) const override {

@@ -74,6 +74,11 @@ class EditKind final : public JobKind {
     return CheckedInput{0, nullptr};
   }
 
+  std::vector<std::string> ReferencedJobs(const JobSpec& spec) const override {
+    const auto* p = spec.params.As<EditJobParams>();
+    return p == nullptr ? std::vector<std::string>{} : std::vector<std::string>{p->source};
+  }
+
   absl::StatusOr<Statistics> Run(const JobSpec& spec, const Uploads&, RunEnvironment& env) const override {
     const auto* p = spec.params.As<EditJobParams>();
     if (p == nullptr) return absl::InternalError("not an edit job");

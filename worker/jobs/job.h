@@ -58,10 +58,13 @@ struct JobRecord {
   std::vector<std::string> results;  // Artifact names of a success.
   std::string runner;                // The server that runs the job, or ran it last.
   std::string owner;                 // Who submitted it (a token's name; empty without tokens).
-  int64_t stored_bytes = 0;          // Its uploads and results as stored (quotas, retention).
-  bool cancel_requested = false;     // Running: its runner is asked to stop it.
-  int64_t seq = 0;                   // The store's change number of this state (job_store.h).
-  uint64_t version = 0;              // Bumped on every change this server sees (watchers compare it).
+  // The owner's stored-bytes quota when it was submitted (0: none): what its results are held to
+  // as they are written, on whichever server runs it.
+  int64_t quota_bytes = 0;
+  int64_t stored_bytes = 0;       // Its uploads and results as stored, or reserved until it ends (quotas).
+  bool cancel_requested = false;  // Running: its runner is asked to stop it.
+  int64_t seq = 0;                // The store's change number of this state (job_store.h).
+  uint64_t version = 0;           // Bumped on every change this server sees (watchers compare it).
 };
 
 }  // namespace lsqsurf::jobs

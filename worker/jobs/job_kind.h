@@ -77,6 +77,9 @@ class JobKind {
   // undecodable or unsuitable upload, with what to fix), kResourceExhausted (over the limits).
   virtual absl::StatusOr<CheckedInput> CheckUploads(const JobSpec& spec, const Uploads& uploads,
                                                     const InputLimits& limits) const = 0;
+  // The other jobs a validated spec reads results of (RunEnvironment::read_result reads no
+  // others): the job service lets a submitter name only jobs it may see.
+  virtual std::vector<std::string> ReferencedJobs(const JobSpec&) const { return {}; }
   // Runs an accepted job; the artifacts go through `env.sink`. Returns the final statistics.
   // Errors: kCancelled, or the engine's own (kInvalidArgument, kResourceExhausted, ...).
   virtual absl::StatusOr<Statistics> Run(const JobSpec& spec, const Uploads& uploads, RunEnvironment& env) const = 0;

@@ -146,7 +146,8 @@ std::vector<std::string> JobColumns(const JobRecord& r) {
           r.runner,
           r.cancel_requested ? "1" : "0",
           r.owner,
-          std::to_string(r.stored_bytes)};
+          std::to_string(r.stored_bytes),
+          std::to_string(r.quota_bytes)};
 }
 
 JobRecord FromColumns(const std::vector<std::string>& c) {
@@ -181,7 +182,8 @@ JobRecord FromColumns(const std::vector<std::string>& c) {
   r.cancel_requested = ToInt(c[19]) != 0;
   r.owner = c[20];
   r.stored_bytes = ToInt(c[21]);
-  r.seq = ToInt(c[22]);
+  r.quota_bytes = ToInt(c[22]);
+  r.seq = ToInt(c[23]);
   // A stored spec that no longer decodes cannot run: it fails with the reason.
   if (!unusable.empty() && !IsTerminal(r.state)) {
     r.state = JobState::kFailed;

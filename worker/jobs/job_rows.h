@@ -34,6 +34,7 @@ inline constexpr const char* kColumnNames[] = {"id",
                                                "cancel_requested",
                                                "owner",
                                                "stored_bytes",
+                                               "quota_bytes",
                                                "seq"};
 inline constexpr int kColumnCount = sizeof(kColumnNames) / sizeof(kColumnNames[0]);
 

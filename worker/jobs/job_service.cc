@@ -13,6 +13,7 @@
 #include "worker/core/status.h"
 #include "worker/core/strings.h"
 #include "worker/io/draco_codec.h"
+#include "worker/jobs/job_ids.h"
 #include "worker/jobs/method_registry.h"
 #include "worker/jobs/volume_job.h"
 #include "worker/render/render.h"
@@ -30,13 +31,6 @@ const std::map<std::string, std::string>& UploadFiles() {
 int64_t NowMs() {
   return std::chrono::duration_cast<std::chrono::milliseconds>(std::chrono::system_clock::now().time_since_epoch())
       .count();
-}
-
-std::string NewJobId() {
-  static std::mutex mutex;
-  static std::mt19937_64 rng(std::random_device{}());
-  std::lock_guard lock(mutex);
-  return fmt::format("{:016x}", rng());
 }
 
 // A runner name unique to this start: a restarted service must not renew the leases of the
@@ -71,10 +65,19 @@ void RecoverStoppedRun(JobRecord& r, int max_attempts) {
 }  // namespace
 
 // Writes a job's artifacts into the blob store, recording their names in order.
+// Each write is first admitted with what all the job's artifacts would then take (quotas).
 class BlobSink final : public ArtifactSink {
  public:
-  BlobSink(BlobStore& blobs, std::string job_id) : blobs_(blobs), job_id_(std::move(job_id)) {}
+  using Admit = std::function<absl::Status(int64_t artifact_bytes)>;
+  BlobSink(BlobStore& blobs, std::string job_id, Admit admit)
+      : blobs_(blobs), job_id_(std::move(job_id)), admit_(std::move(admit)) {}
   absl::Status Write(std::string_view name, std::string_view bytes) override {
+    {
+      std::lock_guard lock(mutex_);
+      int64_t after = static_cast<int64_t>(bytes.size());
+      for (const auto& [kept, size] : sizes_) after += kept == name ? 0 : size;
+      LSQSURF_RETURN_IF_ERROR(admit_(after));
+    }
     LSQSURF_RETURN_IF_ERROR(blobs_.Put(job_id_, name, bytes));
     std::lock_guard lock(mutex_);
     if (std::find(names_.begin(), names_.end(), name) == names_.end()) names_.emplace_back(name);
@@ -95,6 +98,7 @@ class BlobSink final : public ArtifactSink {
  private:
   BlobStore& blobs_;
   std::string job_id_;
+  Admit admit_;
   mutable std::mutex mutex_;
   std::vector<std::string> names_;
   std::map<std::string, int64_t> sizes_;
@@ -246,6 +250,12 @@ const JobKind* JobService::KindOf(const std::string& method) const {
 
 absl::StatusOr<JobRecord> JobService::Submit(const JobSpec& spec, Uploads uploads, const Submitter& submitter) {
   LSQSURF_RETURN_IF_ERROR(ValidateSpec(spec));
+  // A job that reads another's results may name only jobs its submitter may see; the run reads
+  // no others (RunKind).
+  for (const std::string& referenced : KindOf(spec.method)->ReferencedJobs(spec)) {
+    if (!IsJobIdForm(referenced)) return absl::InvalidArgumentError(core::StrCat("a referenced ", kNotAJobId));
+    LSQSURF_RETURN_IF_ERROR(GetFor(submitter, referenced).status());
+  }
   if (spec.preview.enabled) {
     if (auto r = renderer_->Get(); !r.ok()) {
       return absl::UnavailableError(
@@ -271,7 +281,7 @@ absl::StatusOr<JobRecord> JobService::Submit(const JobSpec& spec, Uploads upload
         "the upload has ", bytes, " bytes; ",
         limit < options_.max_input_bytes ? "your quota allows" : "this server accepts", " at most ", limit));
   }
-  LSQSURF_RETURN_IF_ERROR(CheckRoom(bytes));
+  LSQSURF_RETURN_IF_ERROR(CheckRoom(bytes + ResultReserve(bytes)));
   auto checked =
       KindOf(spec.method)->CheckUploads(spec, uploads, {options_.max_points, options_.min_points, options_.max_cells});
   if (!checked.ok()) return checked.status();
@@ -281,7 +291,10 @@ absl::StatusOr<JobRecord> JobService::Submit(const JobSpec& spec, Uploads upload
   r.owner = submitter.owner;
   r.created_ms = r.updated_ms = NowMs();
   r.input_points = checked->points;
-  r.input_bytes = r.stored_bytes = bytes;
+  r.input_bytes = bytes;
+  // Its results are still to come: a reservation counts them until the run settles what they took.
+  r.stored_bytes = bytes + ResultReserve(bytes);
+  r.quota_bytes = submitter.max_stored_bytes;
   {
     std::lock_guard lock(mutex_);
     if (shutting_down_) return absl::UnavailableError("the server is shutting down");
@@ -289,17 +302,23 @@ absl::StatusOr<JobRecord> JobService::Submit(const JobSpec& spec, Uploads upload
       return absl::ResourceExhaustedError(
           core::StrCat("the job queue is full (", queued, " jobs waiting); try again later"));
     }
-    LSQSURF_RETURN_IF_ERROR(CheckQuota(submitter, bytes));
+    // A named user may fill half of the queue (rounded up), so that others still get in.
+    if (!submitter.owner.empty() && 2 * QueuedJobsOf(submitter.owner) >= options_.max_queue) {
+      return absl::ResourceExhaustedError(core::StrCat("you have ", QueuedJobsOf(submitter.owner),
+                                                       " jobs waiting, half of this server's queue; submit more once "
+                                                       "they have started"));
+    }
+    LSQSURF_RETURN_IF_ERROR(CheckQuota(submitter, r.stored_bytes));
     // Held against the quota until the job's entry counts itself.
     Usage& pending = pending_[submitter.owner];
     ++pending.active_jobs;
-    pending.stored_bytes += bytes;
+    pending.stored_bytes += r.stored_bytes;
   }
   const absl::Cleanup release_pending = [&] {
     std::lock_guard lock(mutex_);
     Usage& pending = pending_[submitter.owner];
     --pending.active_jobs;
-    pending.stored_bytes -= bytes;
+    pending.stored_bytes -= r.stored_bytes;
     if (pending.active_jobs == 0) pending_.erase(submitter.owner);
   };
   for (const auto& [slot, data] : uploads) {
@@ -360,32 +379,34 @@ JobService::Usage JobService::OwnerUsage(const std::string& owner) const {
   return usage;
 }
 
-absl::Status JobService::CheckQuota(const Submitter& submitter, int64_t upload_bytes) const {
+absl::Status JobService::CheckQuota(const Submitter& submitter, int64_t job_bytes) const {
   if (submitter.max_active_jobs <= 0 && submitter.max_stored_bytes <= 0) return absl::OkStatus();
   const Usage usage = OwnerUsage(submitter.owner);
   if (submitter.max_active_jobs > 0 && usage.active_jobs >= submitter.max_active_jobs) {
     return absl::ResourceExhaustedError(core::StrCat(
         "you have ", usage.active_jobs, " jobs queued or running, your quota's limit; wait for one to end"));
   }
-  if (submitter.max_stored_bytes > 0 && usage.stored_bytes + upload_bytes > submitter.max_stored_bytes) {
+  if (submitter.max_stored_bytes > 0 && usage.stored_bytes + job_bytes > submitter.max_stored_bytes) {
     return absl::ResourceExhaustedError(
-        core::StrCat("your jobs keep ", usage.stored_bytes, " bytes and this upload has ", upload_bytes,
-                     "; your quota allows ", submitter.max_stored_bytes, " in all: delete finished jobs to make room"));
+        core::StrCat("your jobs keep ", usage.stored_bytes, " bytes and this job needs ", job_bytes,
+                     " (its upload, and a reserve for its results); your quota allows ", submitter.max_stored_bytes,
+                     " in all: delete finished jobs to make room"));
   }
   return absl::OkStatus();
 }
 
-absl::Status JobService::CheckRoom(int64_t upload_bytes) {
-  if (options_.max_store_bytes > 0 && StoredBytes() + upload_bytes > options_.max_store_bytes) {
-    SweepFinished(NowMs(), upload_bytes);
-    if (const int64_t kept = StoredBytes(); kept + upload_bytes > options_.max_store_bytes) {
+absl::Status JobService::CheckRoom(int64_t job_bytes) {
+  if (options_.max_store_bytes > 0 && StoredBytes() + job_bytes > options_.max_store_bytes) {
+    SweepFinished(NowMs(), job_bytes);
+    if (const int64_t kept = StoredBytes(); kept + job_bytes > options_.max_store_bytes) {
       return absl::ResourceExhaustedError(core::StrCat(
           "the server's store is full: its jobs keep ", kept, " of ", options_.max_store_bytes,
-          " bytes and this upload has ", upload_bytes, "; try again once jobs have finished and been deleted"));
+          " bytes and this job needs ", job_bytes,
+          " (its upload and a reserve for its results); try again once jobs have finished and been deleted"));
     }
   }
   if (const int64_t available = blobs_->AvailableBytes();
-      available >= 0 && available - upload_bytes < options_.min_free_bytes) {
+      available >= 0 && available - job_bytes < options_.min_free_bytes) {
     return absl::ResourceExhaustedError(core::StrCat("the server's disk is nearly full (", available >> 20,
                                                      " MiB free, ", options_.min_free_bytes >> 20,
                                                      " MiB kept for running jobs); try again later"));
@@ -445,6 +466,29 @@ int JobService::QueuedJobs() const {
   return queued;
 }
 
+int JobService::QueuedJobsOf(const std::string& owner) const {
+  int queued = 0;
+  for (const auto& [id, e] : jobs_) queued += e->record.state == JobState::kQueued && e->record.owner == owner;
+  return queued;
+}
+
+absl::Status JobService::AdmitResults(const std::shared_ptr<Entry>& entry, int64_t artifact_bytes) {
+  std::lock_guard lock(mutex_);
+  JobRecord& r = entry->record;
+  const int64_t total = r.input_bytes + artifact_bytes;
+  if (r.quota_bytes > 0) {
+    const int64_t others = OwnerUsage(r.owner).stored_bytes - r.stored_bytes;
+    if (others + total > r.quota_bytes) {
+      return absl::ResourceExhaustedError(core::StrCat("the job's results would take your jobs past your quota of ",
+                                                       r.quota_bytes, " stored bytes (the others keep ", others,
+                                                       "); delete finished jobs to make room"));
+    }
+  }
+  // The reservation stands until the run settles; past it, what was written counts at once.
+  r.stored_bytes = std::max(r.stored_bytes, total);
+  return absl::OkStatus();
+}
+
 std::shared_ptr<JobService::Entry> JobService::Adopt(JobRecord record) {
   std::shared_ptr<Entry>& entry = jobs_[record.id];
   if (entry == nullptr) entry = std::make_shared<Entry>();
@@ -476,6 +520,12 @@ absl::StatusOr<JobRecord> JobService::Get(const std::string& id) const {
   return entry->record;
 }
 
+absl::StatusOr<JobRecord> JobService::GetFor(const Submitter& who, const std::string& id) const {
+  auto record = Get(id);
+  if (record.ok() && !MayView(who, *record)) return NoSuchJob(id);
+  return record;
+}
+
 std::vector<JobRecord> JobService::List() const {
   std::lock_guard lock(mutex_);
   std::vector<JobRecord> out;
@@ -495,7 +545,7 @@ void JobService::Update(const std::shared_ptr<Entry>& entry, const std::function
       entry->record.updated_ms = NowMs();
       ++entry->record.version;
     }
-    changed_.notify_all();
+    NotifyChanged();
     return;
   }
   // A stored change shows here only once the store has it: whoever sees it (a watcher that then
@@ -516,7 +566,7 @@ void JobService::Update(const std::shared_ptr<Entry>& entry, const std::function
     next.seq = std::max(entry->record.seq, seq);
     entry->record = std::move(next);
   }
-  changed_.notify_all();
+  NotifyChanged();
 }
 
 int64_t JobService::Persist(const std::shared_ptr<Entry>& entry, const JobRecord& record) {
@@ -545,7 +595,7 @@ absl::StatusOr<JobRecord> JobService::Cancel(const std::string& id) {
     if (entry->held) entry->cancel_requested = true;
     r = entry->record;
   }
-  changed_.notify_all();
+  NotifyChanged();
   spdlog::info(
       "[job {}] {}", id,
       cancelled->state == JobState::kCancelled ? "cancelled while queued" : "cancellation requested while running");
@@ -562,7 +612,7 @@ absl::Status JobService::Delete(const std::string& id) {
     }
   }
   if (absl::Status s = blobs_->RemoveJob(id); !s.ok()) spdlog::error("[job {}] {}", id, s.ToString());
-  changed_.notify_all();
+  NotifyChanged();
   spdlog::info("[job {}] deleted", id);
   return absl::OkStatus();
 }
@@ -575,6 +625,7 @@ absl::StatusOr<std::unique_ptr<BlobReader>> JobService::OpenResult(const std::st
     return absl::FailedPreconditionError(
         core::StrCat("job ", id, " is ", JobStateName(r->state), "; results exist only for succeeded jobs"));
   }
+  if (!name.empty() && !IsArtifactNameForm(name)) return absl::InvalidArgumentError(kNotAnArtifactName);
   const std::string artifact = name.empty() && !r->results.empty() ? r->results.front() : name;
   if (std::find(r->results.begin(), r->results.end(), artifact) == r->results.end()) {
     std::string names;
@@ -584,27 +635,46 @@ absl::StatusOr<std::unique_ptr<BlobReader>> JobService::OpenResult(const std::st
   return blobs_->Open(id, artifact);
 }
 
-absl::StatusOr<RenderedPicture> JobService::Render(const std::string& id, const std::string& name,
-                                                   const core::ParamSet& view) {
+bool JobService::TakeRenderSlot(const std::string& owner) {
+  std::lock_guard lock(render_mutex_);
+  if (renders_ >= options_.max_renders) return false;
+  if (!owner.empty()) {
+    int& mine = owner_renders_[owner];
+    if (mine >= (options_.max_renders + 1) / 2) {
+      if (mine == 0) owner_renders_.erase(owner);
+      return false;
+    }
+    ++mine;
+  }
+  ++renders_;
+  return true;
+}
+
+void JobService::ReleaseRenderSlot(const std::string& owner) {
+  std::lock_guard lock(render_mutex_);
+  --renders_;
+  if (auto it = owner_renders_.find(owner); it != owner_renders_.end() && --it->second == 0) owner_renders_.erase(it);
+}
+
+absl::StatusOr<RenderedPicture> JobService::Render(const Submitter& who, const std::string& id, const std::string& name,
+                                                   const core::ParamSet& view, const core::JobContext* ctx) {
+  LSQSURF_RETURN_IF_ERROR(GetFor(who, id).status());
   const auto* params = view.As<render::RenderParams>();
   if (params == nullptr) return absl::InternalError("view options of another type");
   // Checked before any file is read or a context is made.
   LSQSURF_RETURN_IF_ERROR(render::Validate(*params));
-  if (renders_.fetch_add(1) >= options_.max_renders) {
-    renders_.fetch_sub(1);
-    return absl::ResourceExhaustedError(
-        core::StrCat(options_.max_renders, " pictures are being drawn already; try again shortly"));
+  if (!TakeRenderSlot(who.owner)) {
+    return absl::ResourceExhaustedError(core::StrCat("the pictures this server draws at once (", options_.max_renders,
+                                                     ", half of them per user) are being drawn; "
+                                                     "try again shortly"));
   }
-  struct Release {
-    std::atomic<int>& n;
-    ~Release() { n.fetch_sub(1); }
-  } release{renders_};
+  const absl::Cleanup release = [&] { ReleaseRenderSlot(who.owner); };
   auto reader = OpenResult(id, name);
   if (!reader.ok()) return reader.status();
   auto read = ReadAll(**reader);
   if (!read.ok()) return read.status();
   const std::string& bytes = *read;
-  if (volume::IsStoredVolumeField(bytes)) return RenderVolumeField(id, bytes, *params);
+  if (volume::IsStoredVolumeField(bytes)) return RenderVolumeField(id, bytes, *params, ctx);
   auto geometry = io::PeekDracoGeometry(bytes);
   if (!geometry.ok()) {
     return absl::InvalidArgumentError(
@@ -630,7 +700,8 @@ absl::StatusOr<RenderedPicture> JobService::Render(const std::string& id, const 
 }
 
 absl::StatusOr<RenderedPicture> JobService::RenderVolumeField(const std::string& id, const std::string& bytes,
-                                                              const render::RenderParams& params) {
+                                                              const render::RenderParams& params,
+                                                              const core::JobContext* ctx) {
   // The sampled grid of the last job drawn is kept: the frames of a turntable share it.
   const std::string key = core::StrCat(id, "/", params.volume_resolution);
   std::shared_ptr<const SampledVolume> sampled;
@@ -641,7 +712,7 @@ absl::StatusOr<RenderedPicture> JobService::RenderVolumeField(const std::string&
   if (sampled == nullptr) {
     auto field = volume::DeserializeVolumeField(bytes);
     if (!field.ok()) return field.status();
-    auto grid = SampleVolumeForPicture(**field, params.volume_resolution);
+    auto grid = SampleVolumeForPicture(**field, params.volume_resolution, options_.max_render_bytes, ctx);
     if (!grid.ok()) return grid.status();
     sampled = std::make_shared<const SampledVolume>(*std::move(grid));
     std::lock_guard lock(volume_mutex_);
@@ -666,6 +737,20 @@ absl::StatusOr<RenderedPicture> JobService::RenderVolumeField(const std::string&
 
 bool JobService::CanRender() { return renderer_->Get().ok(); }
 
+void JobService::NotifyChanged() {
+  {
+    std::lock_guard lock(mutex_);
+    ++changes_;
+  }
+  changed_.notify_all();
+}
+
+uint64_t JobService::WaitForAnyChange(uint64_t seen, std::chrono::milliseconds timeout) const {
+  std::unique_lock lock(mutex_);
+  changed_.wait_for(lock, timeout, [&] { return changes_ != seen || shutting_down_; });
+  return changes_;
+}
+
 absl::StatusOr<JobRecord> JobService::WaitForChange(const std::string& id, uint64_t seen_version,
                                                     std::chrono::milliseconds timeout) const {
   std::shared_ptr<Entry> entry = Find(id);
@@ -687,7 +772,7 @@ void JobService::Shutdown() {
     }
   }
   work_available_.notify_all();
-  changed_.notify_all();
+  NotifyChanged();
   sweep_wake_.notify_all();
   if (sweep_thread_.joinable()) sweep_thread_.join();
   for (auto& t : workers_) t.join();
@@ -730,7 +815,7 @@ std::shared_ptr<JobService::Entry> JobService::ClaimNext(std::shared_ptr<void>* 
     // back to the queue at once instead of running until it ends.
     entry->interrupted = shutting_down_;
   }
-  changed_.notify_all();
+  NotifyChanged();
   return entry;
 }
 
@@ -780,8 +865,12 @@ absl::StatusOr<Statistics> JobService::RunKind(const std::shared_ptr<Entry>& ent
     Context& ctx;
     ~StageEnd() { ctx.Finish(); }
   } stage_end{ctx};
+  // Only the jobs the spec names, whose visibility to the submitter Submit checked.
+  const std::vector<std::string> referenced = kind->ReferencedJobs(record.spec);
   RunEnvironment env{sink, ctx, renderer_.get(), std::move(decoded),
-                     [this](const std::string& id, const std::string& name) -> absl::StatusOr<std::string> {
+                     [this, referenced](const std::string& id, const std::string& name) -> absl::StatusOr<std::string> {
+                       if (std::find(referenced.begin(), referenced.end(), id) == referenced.end())
+                         return NoSuchJob(id);
                        auto reader = OpenResult(id, name);
                        if (!reader.ok()) return reader.status();
                        return ReadAll(**reader);
@@ -804,7 +893,7 @@ void JobService::RunJob(const std::shared_ptr<Entry>& entry, std::shared_ptr<voi
   } else {
     spdlog::info("[job {}] started (attempt {})", id, entry->record.attempts);
     const auto start = std::chrono::steady_clock::now();
-    BlobSink sink(*blobs_, id);
+    BlobSink sink(*blobs_, id, [this, &entry](int64_t artifact_bytes) { return AdmitResults(entry, artifact_bytes); });
     absl::StatusOr<Statistics> result = RunKind(entry, sink, std::move(decoded));
     const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
     if (entry->lost) {
@@ -839,16 +928,19 @@ void JobService::RunJob(const std::shared_ptr<Entry>& entry, std::shared_ptr<voi
       });
       spdlog::info("[job {}] interrupted by shutdown; will resume on restart", id);
     } else if (result.status().code() == absl::StatusCode::kCancelled) {
-      Update(entry, [](JobRecord& r) {
+      // What it wrote stays with it (until it is deleted), so it counts as stored.
+      Update(entry, [&](JobRecord& r) {
         r.state = JobState::kCancelled;
         r.error = "cancelled by request";
         r.cancel_requested = false;
+        r.stored_bytes = r.input_bytes + sink.bytes();
       });
       spdlog::info("[job {}] cancelled after {:.2f} s", id, seconds);
     } else {
       Update(entry, [&](JobRecord& r) {
         r.state = JobState::kFailed;
         r.error = std::string(result.status().message());
+        r.stored_bytes = r.input_bytes + sink.bytes();
       });
       spdlog::warn("[job {}] failed: {}", id, result.status().ToString());
     }
@@ -872,7 +964,7 @@ void JobService::RunJob(const std::shared_ptr<Entry>& entry, std::shared_ptr<voi
     std::lock_guard lock(mutex_);
     Adopt(*std::move(stored));
   }
-  changed_.notify_all();
+  NotifyChanged();
 }
 
 absl::Status JobService::RecoverLapsed(bool every_running) {
@@ -928,7 +1020,7 @@ void JobService::SyncChanges() {
     synced_seq_ = changes->seq;
     if (queued) ++work_signal_;
   }
-  changed_.notify_all();
+  NotifyChanged();
   if (queued) work_available_.notify_all();
 }
 

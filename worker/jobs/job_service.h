@@ -53,6 +53,11 @@ namespace lsqsurf::jobs {
 
 struct SampledVolume;  // volume_job.h
 
+// What a job's results are reckoned to take until its run settles them: as much as its upload.
+// A reservation, counted against quotas and the store's limit from submission on, so that a user
+// cannot queue more work than its quota holds; the run is held to the quota as it writes.
+inline int64_t ResultReserve(int64_t upload_bytes) { return upload_bytes; }
+
 struct JobServiceOptions {
   std::string data_dir;                        // Holds jobs.db and one folder per job; created if missing.
   int workers = 1;                             // Jobs that run at once (each uses every core).
@@ -63,6 +68,9 @@ struct JobServiceOptions {
   int64_t max_input_bytes = int64_t{1} << 30;  // Largest accepted upload (all slots together).
   int max_attempts = 2;                        // Crashed starts before a job is failed.
   int max_renders = 2;                         // Render calls drawn at once; more get kResourceExhausted.
+  // Memory one Render may take for the grid of a volume picture (the rest of a picture is small);
+  // a resolution that needs more is refused before anything is allocated.
+  int64_t max_render_bytes = int64_t{1} << 30;
   // Where uploads and artifacts are kept; null: files under data_dir/jobs.
   std::shared_ptr<BlobStore> blobs;
   // Where job records are kept and claimed; null: SQLite in data_dir/jobs.db.
@@ -100,13 +108,14 @@ struct RenderedPicture {
   double grid_rms_error = 0, grid_max_error = 0;  // Volume fields: the sampled grid against the field.
 };
 
-// Who submits a job, and the limits that hold for them (0: none). Without tokens everyone is
-// the same unnamed submitter without limits.
+// Who submits a job or asks about one, and the limits that hold for them (0: none). Without
+// tokens everyone is the same unnamed submitter without limits, who sees every job.
 struct Submitter {
   std::string owner;             // Recorded as the job's owner.
   int max_active_jobs = 0;       // Their queued and running jobs.
   int64_t max_stored_bytes = 0;  // Their jobs' uploads and results, as stored.
   int64_t max_upload_bytes = 0;  // One job's upload (the server's limit holds as well).
+  bool sees_all = true;          // Sees every job (an admin); else only those it owns.
 };
 
 class JobService {
@@ -137,6 +146,13 @@ class JobService {
   int64_t StoredBytes() const;
 
   absl::StatusOr<JobRecord> Get(const std::string& id) const;
+  // The one answer to "may `who` see job `id`": the record when it is theirs (or they see all),
+  // else kNotFound word for word as for a missing job, so that nothing tells the two apart. Every
+  // path to a job goes through it: the rpcs that name one, and the jobs a spec refers to.
+  absl::StatusOr<JobRecord> GetFor(const Submitter& who, const std::string& id) const;
+  static bool MayView(const Submitter& who, const JobRecord& record) {
+    return who.sees_all || record.owner == who.owner;
+  }
   std::vector<JobRecord> List() const;  // Newest first.
   // Requests cancellation: a queued job ends at once (the returned record is CANCELLED); a
   // running one stops within about a second (the returned record is still RUNNING; CANCELLED
@@ -147,15 +163,23 @@ class JobService {
   // A result artifact for reading; an empty name means the job's first result. Errors:
   // kNotFound (job or artifact), kFailedPrecondition (not succeeded).
   absl::StatusOr<std::unique_ptr<BlobReader>> OpenResult(const std::string& id, const std::string& name) const;
-  // Draws a Draco artifact (a mesh or a point set) with view options from DefaultView().
-  // Errors: those of OpenResult, kInvalidArgument (bad view, not geometry), kUnavailable (no
-  // renderer), kResourceExhausted (max_renders pictures being drawn).
-  absl::StatusOr<RenderedPicture> Render(const std::string& id, const std::string& name, const core::ParamSet& view);
+  // Draws a Draco artifact (a mesh or a point set) or a volume field, with view options from
+  // DefaultView(), for `who` (another's job answers as a missing one). A named user holds at most
+  // half of the max_renders slots (rounded up), so that no one holds all of them; `ctx` (may be
+  // null) stops the drawing once its caller has gone. Errors: those of OpenResult,
+  // kInvalidArgument (bad view, not geometry), kUnavailable (no renderer), kResourceExhausted
+  // (the slots taken, or a volume grid past max_render_bytes), kCancelled.
+  absl::StatusOr<RenderedPicture> Render(const Submitter& who, const std::string& id, const std::string& name,
+                                         const core::ParamSet& view, const core::JobContext* ctx = nullptr);
 
   // Blocks until the job's version differs from `seen_version`, the timeout passes, or the
   // service shuts down; returns the current record. Errors: kNotFound.
   absl::StatusOr<JobRecord> WaitForChange(const std::string& id, uint64_t seen_version,
                                           std::chrono::milliseconds timeout) const;
+
+  // Blocks until any job changes after the count `seen` (0 at first), the timeout passes, or the
+  // service shuts down; returns the count of changes now. Lets one thread serve many watchers.
+  uint64_t WaitForAnyChange(uint64_t seen, std::chrono::milliseconds timeout) const;
 
   // Stops accepting work; running jobs are interrupted and put back in the queue on disk (their
   // interruption is counted, not held against them), so the next start resumes them. Idempotent.
@@ -199,7 +223,10 @@ class JobService {
   const JobKind* KindOf(const std::string& method) const;
   // A picture of a volume job's stored field (the Render path for field.lqvf).
   absl::StatusOr<RenderedPicture> RenderVolumeField(const std::string& id, const std::string& bytes,
-                                                    const render::RenderParams& params);
+                                                    const render::RenderParams& params, const core::JobContext* ctx);
+  // Takes one of the max_renders slots for `owner`; false when none is left to them.
+  bool TakeRenderSlot(const std::string& owner);
+  void ReleaseRenderSlot(const std::string& owner);
   // Shared stores: follows the others' changes, renews leases, recovers lapsed ones.
   void SyncLoop();
   void SyncChanges();
@@ -207,23 +234,30 @@ class JobService {
   // Requeues (or fails, or cancels) the jobs of runners whose lease lapsed; every running job
   // with `every_running`.
   absl::Status RecoverLapsed(bool every_running);
-  int QueuedJobs() const;  // mutex_ held.
+  void NotifyChanged();                              // Counts a change and wakes the watchers (mutex_ not held).
+  int QueuedJobs() const;                            // mutex_ held.
+  int QueuedJobsOf(const std::string& owner) const;  // mutex_ held.
+  // Admits a running job's artifacts that would take `artifact_bytes` in all: refused past the
+  // quota recorded with the job; counted in its stored bytes at once.
+  absl::Status AdmitResults(const std::shared_ptr<Entry>& entry, int64_t artifact_bytes);
   // At start with a store of its own: removes the files of jobs that are not on record (a crash
   // between an upload and its record, or during a deletion) and temporaries of cut writes.
   void RemoveOrphanedBlobs();
-  Usage OwnerUsage(const std::string& owner) const;                                 // mutex_ held.
-  absl::Status CheckQuota(const Submitter& submitter, int64_t upload_bytes) const;  // mutex_ held.
+  Usage OwnerUsage(const std::string& owner) const;                              // mutex_ held.
+  absl::Status CheckQuota(const Submitter& submitter, int64_t job_bytes) const;  // mutex_ held.
   // Refuses an upload that the store has no room for (max_store_bytes, min_free_bytes).
-  absl::Status CheckRoom(int64_t upload_bytes);
+  absl::Status CheckRoom(int64_t job_bytes);
 
   JobServiceOptions options_;
   std::string runner_;
   std::unique_ptr<render::SharedRenderer> renderer_;
   std::shared_ptr<JobStore> store_;
   std::shared_ptr<BlobStore> blobs_;
-  std::mutex store_mutex_;  // Orders store writes of records (never taken with mutex_ held).
-  std::atomic<int> renders_{0};
-  std::mutex volume_mutex_;  // Guards the two below: the last volume grid drawn and its key.
+  std::mutex store_mutex_;                    // Orders store writes of records (never taken with mutex_ held).
+  std::mutex render_mutex_;                   // Guards the two below.
+  int renders_ = 0;                           // Pictures being drawn.
+  std::map<std::string, int> owner_renders_;  // Of them, by named owner.
+  std::mutex volume_mutex_;                   // Guards the two below: the last volume grid drawn and its key.
   std::string volume_key_;
   std::shared_ptr<const SampledVolume> volume_grid_;
   mutable std::mutex mutex_;
@@ -231,6 +265,7 @@ class JobService {
   std::condition_variable work_available_;   // A job may have been queued, or shutdown began.
   mutable std::map<std::string, std::shared_ptr<Entry>> jobs_;
   uint64_t work_signal_ = 0;  // Bumped whenever a job may have been queued (mutex_).
+  uint64_t changes_ = 0;      // Bumped with every change watchers may see (mutex_).
   std::vector<std::thread> workers_;
   std::thread sync_thread_;
   std::thread sweep_thread_;            // With retain or max_store_bytes.

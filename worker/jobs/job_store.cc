@@ -17,8 +17,8 @@ int64_t NowMs() {
 
 // The schema version this build writes (PRAGMA user_version). 0: the unversioned tables of
 // earlier builds; 1: runners, leases, change numbers and the removals table; 2: owners and
-// stored sizes.
-constexpr int kSchemaVersion = 2;
+// stored sizes; 3: the owner's quota a job's results are held to.
+constexpr int kSchemaVersion = 3;
 
 }  // namespace
 
@@ -80,9 +80,10 @@ absl::Status SqliteJobStore::Migrate() {
   // so a database of any earlier version ends up alike.
   auto present = Query("SELECT name FROM pragma_table_info('jobs')");
   if (!present.ok()) return present.status();
-  for (const char* column : {"preview TEXT", "preview_color TEXT", "interruptions INTEGER", "progress REAL",
-                             "runner TEXT", "cancel_requested INTEGER", "seq INTEGER", "lease_expires_ms INTEGER",
-                             "owner TEXT NOT NULL DEFAULT ''", "stored_bytes INTEGER"}) {
+  for (const char* column :
+       {"preview TEXT", "preview_color TEXT", "interruptions INTEGER", "progress REAL", "runner TEXT",
+        "cancel_requested INTEGER", "seq INTEGER", "lease_expires_ms INTEGER", "owner TEXT NOT NULL DEFAULT ''",
+        "stored_bytes INTEGER", "quota_bytes INTEGER NOT NULL DEFAULT 0"}) {
     const std::string name(column, std::string_view(column).find(' '));
     const bool has = std::any_of(present->begin(), present->end(), [&](const Row& row) { return row[0] == name; });
     if (has) continue;
@@ -237,10 +238,12 @@ absl::StatusOr<JobRecord> SqliteJobStore::Cancel(const std::string& id, const st
   std::lock_guard lock(mutex_);
   const std::string now = std::to_string(NowMs());
   bool changed_here = false;
-  for (const char* sql : {"UPDATE jobs SET state = 4, error = ?2, updated_ms = ?3, seq = ?4 WHERE id = ?1 AND "
-                          "state = 0 RETURNING id",
-                          "UPDATE jobs SET cancel_requested = 1, updated_ms = ?3, seq = ?4 WHERE id = ?1 AND "
-                          "state = 1 RETURNING id"}) {
+  // A queued job wrote nothing: its stored bytes settle to its upload (the reserve goes).
+  for (const char* sql :
+       {"UPDATE jobs SET state = 4, error = ?2, updated_ms = ?3, seq = ?4, stored_bytes = input_bytes "
+        "WHERE id = ?1 AND state = 0 RETURNING id",
+        "UPDATE jobs SET cancel_requested = 1, updated_ms = ?3, seq = ?4 WHERE id = ?1 AND "
+        "state = 1 RETURNING id"}) {
     auto changed = Query(sql, {id, reason, now, std::to_string(seq_ + 1)});
     if (!changed.ok()) return changed.status();
     if (!changed->empty()) {

@@ -71,6 +71,10 @@ ALTER TABLE jobs ADD COLUMN owner TEXT NOT NULL DEFAULT '';
 ALTER TABLE jobs ADD COLUMN stored_bytes BIGINT NOT NULL DEFAULT 0;
 UPDATE jobs SET stored_bytes = input_bytes;
 )sql",
+    // 3: the owner's stored-bytes quota that a job's results are held to while it runs.
+    R"sql(
+ALTER TABLE jobs ADD COLUMN quota_bytes BIGINT NOT NULL DEFAULT 0;
+)sql",
 };
 constexpr int kSchemaVersion = sizeof(kMigrations) / sizeof(kMigrations[0]);
 
@@ -260,6 +264,7 @@ absl::StatusOr<std::vector<JobRecord>> PostgresJobStore::RecoverLapsed(bool ever
 absl::StatusOr<JobRecord> PostgresJobStore::Cancel(const std::string& id, const std::string& reason) {
   auto changed = pool_->Exec(core::StrCat("UPDATE jobs SET error = CASE WHEN state = 0 THEN $2 ELSE error END, "
                                           "cancel_requested = CASE WHEN state = 1 THEN 1 ELSE cancel_requested END, "
+                                          "stored_bytes = CASE WHEN state = 0 THEN input_bytes ELSE stored_bytes END, "
                                           "state = CASE WHEN state = 0 THEN 4 ELSE state END, updated_ms = $3 "
                                           "WHERE id = $1 AND state IN (0, 1) RETURNING ",
                                           rows::ColumnList()),

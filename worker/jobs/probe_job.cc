@@ -122,6 +122,11 @@ class ProbeKind final : public JobKind {
              {kInputUpload}}};
   }
 
+  std::vector<std::string> ReferencedJobs(const JobSpec& spec) const override {
+    const auto* p = spec.params.As<ProbeJobParams>();
+    return p == nullptr ? std::vector<std::string>{} : std::vector<std::string>{p->source};
+  }
+
   absl::StatusOr<CheckedInput> CheckUploads(const JobSpec& spec, const Uploads& uploads,
                                             const InputLimits& limits) const override {
     const auto* p = spec.params.As<ProbeJobParams>();

@@ -169,7 +169,7 @@ absl::StatusOr<VolumeResult> ReconstructVolume(const core::ParamSet& params, con
 }
 
 absl::StatusOr<SampledVolume> SampleVolumeForPicture(const volume::VolumeField& field, int resolution,
-                                                     const core::JobContext* ctx) {
+                                                     int64_t max_bytes, const core::JobContext* ctx) {
   SampledVolume out;
   render::VolumeGrid& g = out.grid;
   const core::Box3& box = field.bounds();
@@ -177,21 +177,31 @@ absl::StatusOr<SampledVolume> SampleVolumeForPicture(const volume::VolumeField& 
   for (int a = 0; a < 3; ++a) g.dims[a] = std::max(2, static_cast<int>(std::ceil(box.sizes()[a] / h)) + 1);
   g.origin = box.min();
   g.spacing = core::Vec3d::Constant(h);
-  std::vector<core::Vec3d> xs;
-  xs.reserve(static_cast<size_t>(g.dims[0]) * g.dims[1] * g.dims[2]);
+  const size_t count = static_cast<size_t>(g.dims[0]) * g.dims[1] * g.dims[2];
+  if (const int64_t bytes = static_cast<int64_t>(count * kPictureGridBytesPerPoint); bytes > max_bytes) {
+    return absl::ResourceExhaustedError(core::StrCat("a volume picture at resolution ", resolution, " needs a ",
+                                                     g.dims[0], "x", g.dims[1], "x", g.dims[2], " grid of ",
+                                                     bytes >> 20, " MiB; this server allows ", max_bytes >> 20,
+                                                     " MiB (lsqsurfd --max-render-mib): ask for a lower resolution"));
+  }
+  g.values.resize(count);
+  g.gradients.resize(count);
+  // One z-slab of points at a time: the grid itself is all that grows with the resolution.
+  const size_t slab = static_cast<size_t>(g.dims[0]) * g.dims[1];
+  std::vector<core::Vec3d> xs(slab);
+  std::vector<volume::VolumeField::Sample> samples(slab);
   for (int k = 0; k < g.dims[2]; ++k) {
     for (int j = 0; j < g.dims[1]; ++j) {
-      for (int i = 0; i < g.dims[0]; ++i) xs.push_back(g.origin + h * core::Vec3d(i, j, k));
+      for (int i = 0; i < g.dims[0]; ++i)
+        xs[static_cast<size_t>(j) * g.dims[0] + i] = g.origin + h * core::Vec3d(i, j, k);
     }
-  }
-  std::vector<volume::VolumeField::Sample> samples(xs.size());
-  LSQSURF_RETURN_IF_ERROR(field.EvaluateBatch(xs, 0, samples, ctx));
-  g.values.resize(xs.size());
-  g.gradients.resize(xs.size());
-  for (size_t i = 0; i < xs.size(); ++i) {
-    const bool inside = std::isfinite(samples[i].value) && field.InDomain(xs[i], samples[i].weight);
-    g.values[i] = inside ? static_cast<float>(samples[i].value) : std::numeric_limits<float>::quiet_NaN();
-    g.gradients[i] = samples[i].gradient.cast<float>();
+    LSQSURF_RETURN_IF_ERROR(field.EvaluateBatch(xs, 0, samples, ctx));
+    for (size_t s = 0; s < slab; ++s) {
+      const size_t i = static_cast<size_t>(k) * slab + s;
+      const bool inside = std::isfinite(samples[s].value) && field.InDomain(xs[s], samples[s].weight);
+      g.values[i] = inside ? static_cast<float>(samples[s].value) : std::numeric_limits<float>::quiet_NaN();
+      g.gradients[i] = samples[s].gradient.cast<float>();
+    }
   }
   // The grid's error where both it and the field are defined.
   std::mt19937_64 rng(5);

@@ -42,10 +42,13 @@ struct SampledVolume {
   render::VolumeGrid grid;
   double rms_error = 0, max_error = 0;  // Field units, at 2,000 random points inside the data.
 };
-// `resolution` grid points along the longest side of the field's box; NaN outside the data.
-// Errors: kCancelled.
+// `resolution` grid points along the longest side of the field's box; NaN outside the data. The
+// grid holds kPictureGridBytesPerPoint per point, at most `max_bytes` in all (the sampling adds a
+// slab of points, not a grid). Errors: kResourceExhausted (past max_bytes, said before anything
+// is allocated), kCancelled.
+inline constexpr int64_t kPictureGridBytesPerPoint = sizeof(float) * 4;  // A value and a gradient.
 absl::StatusOr<SampledVolume> SampleVolumeForPicture(const volume::VolumeField& field, int resolution,
-                                                     const core::JobContext* ctx = nullptr);
+                                                     int64_t max_bytes, const core::JobContext* ctx = nullptr);
 
 // The artifact that keeps a volume job's precomputed field (SerializeVolumeField).
 inline constexpr char kVolumeFieldArtifact[] = "field.lqvf";

@@ -1,0 +1,146 @@
+#include "server/streams.h"
+
+#include <grpcpp/server_context.h>
+#include <spdlog/spdlog.h>
+
+#include <cmath>
+
+#include "worker/core/strings.h"
+
+namespace lsqsurf::server {
+namespace {
+
+int64_t SteadyMs(std::chrono::steady_clock::time_point t) {
+  return std::chrono::duration_cast<std::chrono::milliseconds>(t.time_since_epoch()).count();
+}
+
+// The lsqsurfd option that sets each kind's bound, for the refusal.
+const char* OptionOf(StreamKind kind) {
+  switch (kind) {
+    case StreamKind::kUpload: return "--max-uploads";
+    case StreamKind::kDownload: return "--max-downloads";
+    case StreamKind::kWatch: return "--max-watches";
+    case StreamKind::kReflection: return "--max-reflection-streams";
+  }
+  return "";
+}
+
+}  // namespace
+
+const char* StreamKindName(StreamKind kind) {
+  switch (kind) {
+    case StreamKind::kUpload: return "uploads";
+    case StreamKind::kDownload: return "downloads";
+    case StreamKind::kWatch: return "watches";
+    case StreamKind::kReflection: return "reflection streams";
+  }
+  return "streams";
+}
+
+struct StreamGuard::Entry {
+  StreamKind kind;
+  std::string owner;
+  grpc::CallbackServerContext* context;
+  std::atomic<int64_t> last_ms;  // steady_clock milliseconds.
+  bool cancelled = false;        // By the sweeper (mutex_).
+};
+
+StreamGuard::Ticket::~Ticket() { guard_.Release(id_); }
+
+void StreamGuard::Ticket::Touch() { entry_->last_ms.store(SteadyMs(std::chrono::steady_clock::now())); }
+
+StreamGuard::StreamGuard(StreamLimits limits) : limits_(limits) {
+  sweeper_ = std::thread([this] {
+    std::unique_lock lock(stop_mutex_);
+    while (!stop_wake_.wait_for(lock, std::chrono::seconds(1), [this] { return stopping_; })) {
+      lock.unlock();
+      CancelIdle(std::chrono::steady_clock::now());
+      lock.lock();
+    }
+  });
+}
+
+StreamGuard::~StreamGuard() {
+  {
+    std::lock_guard lock(stop_mutex_);
+    stopping_ = true;
+  }
+  stop_wake_.notify_all();
+  sweeper_.join();
+}
+
+int StreamGuard::Limit(StreamKind kind) const {
+  switch (kind) {
+    case StreamKind::kUpload: return limits_.max_uploads;
+    case StreamKind::kDownload: return limits_.max_downloads;
+    case StreamKind::kWatch: return limits_.max_watches;
+    case StreamKind::kReflection: return limits_.max_reflection;
+  }
+  return 0;
+}
+
+absl::StatusOr<std::unique_ptr<StreamGuard::Ticket>> StreamGuard::Admit(StreamKind kind, const std::string& owner,
+                                                                      grpc::CallbackServerContext* context) {
+  std::lock_guard lock(mutex_);
+  const int limit = Limit(kind);
+  if (counts_[{kind, ""}] >= limit) {
+    return absl::ResourceExhaustedError(core::StrCat("this server has ", limit, " ", StreamKindName(kind),
+                                                     " open, its limit (lsqsurfd ", OptionOf(kind),
+                                                     "); try again shortly"));
+  }
+  if (!owner.empty()) {
+    const int share = std::max(1, static_cast<int>(std::ceil(limit * limits_.per_user_share)));
+    if (counts_[{kind, owner}] >= share) {
+      return absl::ResourceExhaustedError(core::StrCat("you have ", share, " ", StreamKindName(kind),
+                                                       " open, your share of this server's ", limit,
+                                                       "; finish one first"));
+    }
+    ++counts_[{kind, owner}];
+  }
+  ++counts_[{kind, ""}];
+  const uint64_t id = next_id_++;
+  auto entry = std::make_unique<Entry>();
+  entry->kind = kind;
+  entry->owner = owner;
+  entry->context = context;
+  entry->last_ms = SteadyMs(std::chrono::steady_clock::now());
+  Entry* raw = entry.get();
+  entries_.emplace(id, std::move(entry));
+  return std::unique_ptr<Ticket>(new Ticket(*this, id, raw));
+}
+
+void StreamGuard::Release(uint64_t id) {
+  std::lock_guard lock(mutex_);
+  auto it = entries_.find(id);
+  if (it == entries_.end()) return;
+  const Entry& e = *it->second;
+  --counts_[{e.kind, ""}];
+  if (!e.owner.empty() && --counts_[{e.kind, e.owner}] == 0) counts_.erase({e.kind, e.owner});
+  entries_.erase(it);
+}
+
+int StreamGuard::Open(StreamKind kind) const {
+  std::lock_guard lock(mutex_);
+  auto it = counts_.find({kind, ""});
+  return it == counts_.end() ? 0 : it->second;
+}
+
+int StreamGuard::CancelIdle(std::chrono::steady_clock::time_point now) {
+  const int64_t cutoff = SteadyMs(now) - limits_.idle.count();
+  std::lock_guard lock(mutex_);
+  std::vector<Entry*> idle;
+  for (const auto& [id, e] : entries_) {
+    if (e->kind != StreamKind::kWatch && !e->cancelled && e->last_ms.load() < cutoff) idle.push_back(e.get());
+  }
+  // A cancellation may release its entry on this thread (the mutex is recursive), so the loop
+  // runs over the list taken above; each entry is touched before its own cancellation only.
+  for (Entry* e : idle) {
+    e->cancelled = true;
+    spdlog::info("a stream of {} idle for over {} s is cancelled", e->owner.empty() ? "an unnamed client" : e->owner,
+                 limits_.idle.count() / 1000);
+    e->context->TryCancel();
+  }
+  return static_cast<int>(idle.size());
+}
+
+}  // namespace lsqsurf::server

@@ -8,6 +8,10 @@ cd "$(dirname "$0")/.."
 bash scripts/install-deps.sh
 bash scripts/check-style.sh
 
+# Compiler cache entries keyed by paths relative to the checkout, so that a fresh clone in
+# another folder (CI's) reuses what an earlier build compiled.
+export CCACHE_BASEDIR="$PWD" CCACHE_NOHASHDIR=true
+
 cmake --preset release
 cmake --build --preset release
 ctest --preset release

@@ -90,11 +90,23 @@ absl::StatusOr<jobs::JobRecord> ReconstructionService::Visible(const Caller& cal
   return jobs_.GetFor(caller.submitter, id);
 }
 
-absl::StatusOr<Caller> ReconstructionService::Begin(grpc::CallbackServerContext* context, CallRecord& call) const {
+absl::StatusOr<ReconstructionService::Admitted> ReconstructionService::Admit(grpc::CallbackServerContext* context,
+                                                                             CallRecord& call, StreamKind kind,
+                                                                             const std::string* job_id) {
   auto caller = Identify(*context);
   call.who = caller.ok() && !caller->name.empty() ? core::StrCat("'", caller->name, "'")
                                                   : core::StrCat("peer ", context->peer());
-  return caller;
+  if (!caller.ok()) return caller.status();
+  Admitted admitted{*std::move(caller), {}, nullptr};
+  if (job_id != nullptr) {
+    auto record = Visible(admitted.caller, *job_id);
+    if (!record.ok()) return record.status();
+    admitted.job = *std::move(record);
+  }
+  auto ticket = streams_.Admit(kind, admitted.caller.submitter.owner, context);
+  if (!ticket.ok()) return ticket.status();
+  admitted.ticket = *std::move(ticket);
+  return admitted;
 }
 
 ReconstructionService::ReconstructionService(jobs::JobService& jobs, CallObserver* calls, const TokenTable* tokens,
@@ -290,13 +302,13 @@ class ReconstructionService::Upload final : public grpc::ServerReadReactor<v1::S
 
 grpc::ServerReadReactor<v1::SubmitJobRequest>* ReconstructionService::SubmitJob(grpc::CallbackServerContext* context,
                                                                                 v1::Job* response) {
-  using Refused = Refusal<grpc::ServerReadReactor<v1::SubmitJobRequest>>;
   CallRecord call{"SubmitJob"};
-  auto caller = Begin(context, call);
-  if (!caller.ok()) return new Refused(Conclude(call, ToGrpcStatus(caller.status())));
-  auto ticket = streams_.Admit(StreamKind::kUpload, caller->submitter.owner, context);
-  if (!ticket.ok()) return new Refused(Conclude(call, ToGrpcStatus(ticket.status())));
-  return new Upload(*this, context, response, *std::move(caller), std::move(call), *std::move(ticket));
+  auto admitted = Admit(context, call, StreamKind::kUpload, nullptr);
+  if (!admitted.ok()) {
+    return new Refusal<grpc::ServerReadReactor<v1::SubmitJobRequest>>(Conclude(call, ToGrpcStatus(admitted.status())));
+  }
+  return new Upload(*this, context, response, std::move(admitted->caller), std::move(call),
+                    std::move(admitted->ticket));
 }
 
 // WatchJob: the job's record now, then every change until it ends. The watcher thread pokes
@@ -377,15 +389,12 @@ class ReconstructionService::Watch final : public grpc::ServerWriteReactor<v1::J
 
 grpc::ServerWriteReactor<v1::JobEvent>* ReconstructionService::WatchJob(grpc::CallbackServerContext* context,
                                                                         const v1::WatchJobRequest* request) {
-  using Refused = Refusal<grpc::ServerWriteReactor<v1::JobEvent>>;
   CallRecord call{"WatchJob"};
-  auto caller = Begin(context, call);
-  if (!caller.ok()) return new Refused(Conclude(call, ToGrpcStatus(caller.status())));
-  auto record = Visible(*caller, request->job_id());
-  if (!record.ok()) return new Refused(Conclude(call, ToGrpcStatus(record.status())));
-  auto ticket = streams_.Admit(StreamKind::kWatch, caller->submitter.owner, context);
-  if (!ticket.ok()) return new Refused(Conclude(call, ToGrpcStatus(ticket.status())));
-  auto* watch = new Watch(*this, record->id, std::move(call), *std::move(ticket));
+  auto admitted = Admit(context, call, StreamKind::kWatch, &request->job_id());
+  if (!admitted.ok()) {
+    return new Refusal<grpc::ServerWriteReactor<v1::JobEvent>>(Conclude(call, ToGrpcStatus(admitted.status())));
+  }
+  auto* watch = new Watch(*this, admitted->job->id, std::move(call), std::move(admitted->ticket));
   {
     std::lock_guard lock(watch_mutex_);
     watches_.insert(watch);
@@ -461,16 +470,11 @@ grpc::ServerWriteReactor<v1::ResultChunk>* ReconstructionService::FetchResult(gr
                                                                               const v1::FetchResultRequest* request) {
   using Refused = Refusal<grpc::ServerWriteReactor<v1::ResultChunk>>;
   CallRecord call{"FetchResult"};
-  auto caller = Begin(context, call);
-  if (!caller.ok()) return new Refused(Conclude(call, ToGrpcStatus(caller.status())));
-  if (auto visible = Visible(*caller, request->job_id()); !visible.ok()) {
-    return new Refused(Conclude(call, ToGrpcStatus(visible.status())));
-  }
+  auto admitted = Admit(context, call, StreamKind::kDownload, &request->job_id());
+  if (!admitted.ok()) return new Refused(Conclude(call, ToGrpcStatus(admitted.status())));
   auto reader = jobs_.OpenResult(request->job_id(), request->name());
   if (!reader.ok()) return new Refused(Conclude(call, ToGrpcStatus(reader.status())));
-  auto ticket = streams_.Admit(StreamKind::kDownload, caller->submitter.owner, context);
-  if (!ticket.ok()) return new Refused(Conclude(call, ToGrpcStatus(ticket.status())));
-  return new Download(*this, *std::move(reader), std::move(call), *std::move(ticket));
+  return new Download(*this, *std::move(reader), std::move(call), std::move(admitted->ticket));
 }
 
 grpc::Status ReconstructionService::GetJob(grpc::ServerContext* context, const v1::GetJobRequest* request,

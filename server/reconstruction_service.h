@@ -24,6 +24,7 @@
 #include <deque>
 #include <functional>
 #include <mutex>
+#include <optional>
 #include <set>
 #include <string>
 #include <thread>
@@ -94,8 +95,15 @@ class ReconstructionService final : public ReconstructionBase {
   // exception into a status and logs a refusal.
   template <class Body>
   grpc::Status Serve(const char* rpc, grpc::ServerContext* context, Body&& body);
-  // Identifies a streaming call's caller into `call`; its refusal otherwise.
-  absl::StatusOr<Caller> Begin(grpc::CallbackServerContext* context, CallRecord& call) const;
+  // A streaming call let in: its caller (named in `call`), the job it names if any (visible to
+  // the caller), and its place among the open streams. Errors: the refusal to answer with.
+  struct Admitted {
+    Caller caller;
+    std::optional<jobs::JobRecord> job;
+    std::unique_ptr<StreamGuard::Ticket> ticket;
+  };
+  absl::StatusOr<Admitted> Admit(grpc::CallbackServerContext* context, CallRecord& call, StreamKind kind,
+                                 const std::string* job_id);
   // The status a call ends with: its message bounded and made printable, a refusal logged, the
   // call counted.
   grpc::Status Conclude(const CallRecord& call, grpc::Status status) const;

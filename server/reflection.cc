@@ -40,7 +40,8 @@ void ReflectionService::Answer(const reflection::ServerReflectionRequest& reques
   const FileDescriptor* file = nullptr;
   switch (request.message_request_case()) {
     case reflection::ServerReflectionRequest::kListServices:
-      for (const std::string& name : services_) response->mutable_list_services_response()->add_service()->set_name(name);
+      for (const std::string& name : services_)
+        response->mutable_list_services_response()->add_service()->set_name(name);
       return;
     case reflection::ServerReflectionRequest::kFileByFilename:
       file = pool->FindFileByName(request.file_by_filename());
@@ -111,7 +112,8 @@ grpc::ServerBidiReactor<reflection::ServerReflectionRequest, reflection::ServerR
 ReflectionService::ServerReflectionInfo(grpc::CallbackServerContext* context) {
   auto ticket = streams_.Admit(StreamKind::kReflection, "", context);
   if (!ticket.ok()) {
-    return new Refusal<grpc::ServerBidiReactor<reflection::ServerReflectionRequest, reflection::ServerReflectionResponse>>(
+    return new Refusal<
+        grpc::ServerBidiReactor<reflection::ServerReflectionRequest, reflection::ServerReflectionResponse>>(
         grpc::Status(grpc::StatusCode::RESOURCE_EXHAUSTED, std::string(ticket.status().message())));
   }
   return new Stream(*this, *std::move(ticket));

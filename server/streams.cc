@@ -80,7 +80,7 @@ int StreamGuard::Limit(StreamKind kind) const {
 }
 
 absl::StatusOr<std::unique_ptr<StreamGuard::Ticket>> StreamGuard::Admit(StreamKind kind, const std::string& owner,
-                                                                      grpc::CallbackServerContext* context) {
+                                                                        grpc::CallbackServerContext* context) {
   std::lock_guard lock(mutex_);
   const int limit = Limit(kind);
   if (counts_[{kind, ""}] >= limit) {

@@ -88,8 +88,8 @@ TEST(JobIds, OnlyIdsAndArtifactNamesOfTheirFormPass) {
   for (const char* good : {"mesh.drc", "frame_00100.drc", "preview.png", "function.lqpu", "values.csv"}) {
     EXPECT_TRUE(IsArtifactNameForm(good)) << good;
   }
-  for (const std::string& bad : {std::string(), std::string(".hidden"), std::string("../mesh.drc"),
-                                 std::string("a/b"), std::string("line\nbreak"), std::string(129, 'a')}) {
+  for (const std::string& bad : {std::string(), std::string(".hidden"), std::string("../mesh.drc"), std::string("a/b"),
+                                 std::string("line\nbreak"), std::string(129, 'a')}) {
     EXPECT_FALSE(IsArtifactNameForm(bad)) << bad;
   }
 }

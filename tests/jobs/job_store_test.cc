@@ -98,6 +98,23 @@ TEST_P(JobStoreContract, RecordsRoundTripAndIdsAreUnique) {
   EXPECT_EQ(back->spec.preview.turntable_deg_per_frame, 2.5);
   EXPECT_GT(back->seq, 0);
   EXPECT_EQ(second_->Get("nothing").status().code(), absl::StatusCode::kNotFound);
+
+  // Text parameters come back byte for byte, control bytes and separators included (a NUL once
+  // cut the stored spec short, so that the job came back after a restart as another).
+  JobRecord text = Queued("a2", 101);
+  text.spec.method = "csg";
+  text.spec.params = DefaultParams("csg").value();
+  const std::string expression(
+      "sphere(r=1)\0;x=%41\n\x7f\x01"
+      "end",
+      24);
+  ASSERT_TRUE(text.spec.params.SetText("expression", expression).ok());
+  text.quota_bytes = int64_t{5} << 30;
+  ASSERT_TRUE(first_->Insert(text).ok());
+  auto text_back = second_->Get("a2");
+  ASSERT_TRUE(text_back.ok()) << text_back.status();
+  EXPECT_EQ(text_back->spec.params.GetText("expression").value_or(""), expression);
+  EXPECT_EQ(text_back->quota_bytes, int64_t{5} << 30);
 }
 
 TEST_P(JobStoreContract, ClaimsTakeTheOldestOnceAndOnlyTheHolderWrites) {

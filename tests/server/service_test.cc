@@ -189,6 +189,13 @@ TEST_F(ServiceTest, AVolumeMeshBecomesAnIsosurfaceAndBadVolumesAreRefused) {
   bool chosen = false;
   for (const auto& s : done->statistics()) chosen |= s.name() == "epsilon_chosen_by_cross_validation" && s.value() == 1;
   EXPECT_TRUE(chosen);
+  // A picture of the field whose sampled grid would pass the server's bound is refused before it
+  // is sampled (512³ points take 2 GiB; the default bound is 1 GiB).
+  v1::RenderOptions fine_grid;
+  fine_grid.set_volume_resolution(512);
+  const absl::Status too_big = client_->Render(job->id(), "field.lqvf", fine_grid).status();
+  EXPECT_EQ(too_big.code(), absl::StatusCode::kResourceExhausted) << too_big;
+  EXPECT_NE(too_big.message().find("--max-render-mib"), std::string::npos) << too_big;
 
   // A cell pointing past the vertices, a field that is not there, a missing cell stream's
   // corruption: INVALID_ARGUMENT with the reason; too many cells: RESOURCE_EXHAUSTED.

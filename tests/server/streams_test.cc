@@ -85,8 +85,8 @@ TEST_F(StreamsTest, IdleStreamsHoldNoThreadAndAreBounded) {
   auto reflection_stub = reflection::ServerReflection::NewStub(channel);
   auto stub = v1::Reconstruction::NewStub(channel);
   std::vector<std::unique_ptr<grpc::ClientContext>> contexts;
-  std::vector<std::unique_ptr<grpc::ClientReaderWriter<reflection::ServerReflectionRequest,
-                                                       reflection::ServerReflectionResponse>>>
+  std::vector<std::unique_ptr<
+      grpc::ClientReaderWriter<reflection::ServerReflectionRequest, reflection::ServerReflectionResponse>>>
       idle;
   std::vector<std::unique_ptr<grpc::ClientWriter<v1::SubmitJobRequest>>> stalled;
   std::vector<v1::Job> responses(limits.max_uploads + 1);

@@ -39,8 +39,8 @@ bool IsJobIdForm(std::string_view text) {
 bool IsArtifactNameForm(std::string_view text) {
   if (text.empty() || text.size() > 128 || text.front() == '.') return false;
   for (char c : text) {
-    const bool ok = (c >= '0' && c <= '9') || (c >= 'a' && c <= 'z') || (c >= 'A' && c <= 'Z') || c == '.' ||
-                    c == '_' || c == '-';
+    const bool ok =
+        (c >= '0' && c <= '9') || (c >= 'a' && c <= 'z') || (c >= 'A' && c <= 'Z') || c == '.' || c == '_' || c == '-';
     if (!ok) return false;
   }
   return true;

@@ -747,7 +747,8 @@ void JobService::NotifyChanged() {
 
 uint64_t JobService::WaitForAnyChange(uint64_t seen, std::chrono::milliseconds timeout) const {
   std::unique_lock lock(mutex_);
-  changed_.wait_for(lock, timeout, [&] { return changes_ != seen || shutting_down_; });
+  // A shutdown counts as a change (Shutdown notifies), once: waiting on it would not wait.
+  changed_.wait_for(lock, timeout, [&] { return changes_ != seen; });
   return changes_;
 }
 

@@ -1,0 +1,148 @@
+// lsqsurf-flood — holds many streams open against a running lsqsurfd, the way a client that means
+// harm would, and measures what that costs the server and whether it still answers.
+//
+//   lsqsurf-flood --server 127.0.0.1:50051 --server-pid PID --reflection 5000 --uploads 1000
+//
+// Opens `reflection` server-reflection streams that ask nothing (they need no token) and
+// `uploads` SubmitJob streams that send their spec and one chunk, then stall; spreads them over
+// connections of at most --per-connection streams. Then times --probes GetJob calls on a fresh
+// connection and prints their percentiles, how many streams the server admitted (the rest were
+// refused, which is also a right answer), and the server's threads and resident memory (from
+// /proc/PID/status) before and with the streams open. Nothing is measured until every stream has
+// been answered or is known open.
+#include <grpcpp/grpcpp.h>
+
+#include <CLI/CLI.hpp>
+#include <algorithm>
+#include <chrono>
+#include <cstdio>
+#include <fstream>
+#include <string>
+#include <vector>
+
+#include "client/client.h"
+#include "grpc/reflection/v1alpha/reflection.grpc.pb.h"
+#include "lsqsurf/v1/reconstruction.grpc.pb.h"
+
+namespace {
+
+namespace reflection = grpc::reflection::v1alpha;
+
+struct ProcessStatus {
+  int threads = -1;
+  long rss_kib = -1;
+};
+
+ProcessStatus ReadStatus(int pid) {
+  ProcessStatus s;
+  std::ifstream in("/proc/" + std::to_string(pid) + "/status");
+  for (std::string line; std::getline(in, line);) {
+    if (line.rfind("Threads:", 0) == 0) s.threads = std::stoi(line.substr(8));
+    if (line.rfind("VmRSS:", 0) == 0) s.rss_kib = std::stol(line.substr(6));
+  }
+  return s;
+}
+
+struct Options {
+  std::string server = "127.0.0.1:50051";
+  int server_pid = 0;
+  int reflection = 5000;
+  int uploads = 1000;
+  int per_connection = 90;
+  int chunk_kib = 64;
+  int probes = 2000;
+};
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  CLI::App app{"lsqsurf-flood: many idle streams against lsqsurfd, and GetJob latency meanwhile"};
+  Options o;
+  app.add_option("--server", o.server, "HOST:PORT")->capture_default_str();
+  app.add_option("--server-pid", o.server_pid, "the server's process id, to read its threads and memory");
+  app.add_option("--reflection", o.reflection, "idle reflection streams")->capture_default_str();
+  app.add_option("--uploads", o.uploads, "stalled uploads")->capture_default_str();
+  app.add_option("--per-connection", o.per_connection, "streams per connection")->capture_default_str();
+  app.add_option("--chunk-kib", o.chunk_kib, "bytes each upload sends before it stalls, KiB")->capture_default_str();
+  app.add_option("--probes", o.probes, "GetJob calls timed with the streams open")->capture_default_str();
+  CLI11_PARSE(app, argc, argv);
+
+  const ProcessStatus before = o.server_pid > 0 ? ReadStatus(o.server_pid) : ProcessStatus{};
+  std::vector<std::shared_ptr<grpc::Channel>> channels;
+  int on_channel = o.per_connection;
+  auto channel = [&] {
+    if (on_channel >= o.per_connection) {
+      grpc::ChannelArguments args;
+      args.SetInt(GRPC_ARG_USE_LOCAL_SUBCHANNEL_POOL, 1);  // A connection of its own.
+      channels.push_back(grpc::CreateCustomChannel(o.server, grpc::InsecureChannelCredentials(), args));
+      on_channel = 0;
+    }
+    ++on_channel;
+    return channels.back();
+  };
+  std::vector<std::unique_ptr<grpc::ClientContext>> contexts;
+  std::vector<std::unique_ptr<
+      grpc::ClientReaderWriter<reflection::ServerReflectionRequest, reflection::ServerReflectionResponse>>>
+      idle;
+  std::vector<std::unique_ptr<grpc::ClientWriter<lsqsurf::v1::SubmitJobRequest>>> stalled;
+  std::vector<lsqsurf::v1::Job> responses(static_cast<size_t>(o.uploads));
+  const auto open_start = std::chrono::steady_clock::now();
+  for (int i = 0; i < o.reflection; ++i) {
+    contexts.push_back(std::make_unique<grpc::ClientContext>());
+    idle.push_back(reflection::ServerReflection::NewStub(channel())->ServerReflectionInfo(contexts.back().get()));
+  }
+  lsqsurf::v1::SubmitJobRequest spec, chunk;
+  spec.mutable_spec()->mutable_iamls();
+  chunk.set_input_chunk(std::string(static_cast<size_t>(o.chunk_kib) << 10, 'x'));
+  int uploads_writing = 0;
+  for (int i = 0; i < o.uploads; ++i) {
+    contexts.push_back(std::make_unique<grpc::ClientContext>());
+    stalled.push_back(lsqsurf::v1::Reconstruction::NewStub(channel())->SubmitJob(contexts.back().get(),
+                                                                                 &responses[static_cast<size_t>(i)]));
+    // A refused upload's writes fail; an admitted one takes both.
+    uploads_writing += stalled.back()->Write(spec) && stalled.back()->Write(chunk);
+  }
+  const double open_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - open_start).count();
+
+  // Timed on a connection of its own. A few untimed calls first: what the streams sent is in.
+  lsqsurf::client::Client api(o.server);
+  for (int i = 0; i < 20; ++i) (void)api.List(1);
+  const std::string missing(32, '0');
+  std::vector<double> ms;
+  int answered = 0;
+  for (int i = 0; i < o.probes; ++i) {
+    const auto start = std::chrono::steady_clock::now();
+    const auto status = api.Get(missing).status();
+    ms.push_back(std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count());
+    answered += status.code() == absl::StatusCode::kNotFound;
+  }
+  std::sort(ms.begin(), ms.end());
+  const auto pct = [&](double p) { return ms.empty() ? 0.0 : ms[std::min(ms.size() - 1, static_cast<size_t>(p * static_cast<double>(ms.size())))]; };
+  const ProcessStatus during = o.server_pid > 0 ? ReadStatus(o.server_pid) : ProcessStatus{};
+
+  std::printf("streams: %d reflection and %d uploads opened in %.1f s over %zu connections; %d uploads still "
+              "writable after their chunk\n",
+              o.reflection, o.uploads, open_seconds, channels.size(), uploads_writing);
+  std::printf("GetJob: %d of %d answered NOT_FOUND; p50 %.2f ms, p99 %.2f ms, max %.2f ms\n", answered, o.probes,
+              pct(0.5), pct(0.99), ms.empty() ? 0.0 : ms.back());
+  if (o.server_pid > 0) {
+    std::printf("server: %d threads before, %d with the streams open; resident %.1f MiB before, %.1f MiB with them "
+                "(+%.1f MiB)\n",
+                before.threads, during.threads, static_cast<double>(before.rss_kib) / 1024.0,
+                static_cast<double>(during.rss_kib) / 1024.0, static_cast<double>(during.rss_kib - before.rss_kib) / 1024.0);
+  }
+  // Which were admitted: each stream is closed; a refused one ended with RESOURCE_EXHAUSTED at
+  // once, an admitted one ends now (a reflection stream with OK, an upload of junk refused as such).
+  int refused_reflection = 0, refused_uploads = 0;
+  for (auto& s : idle) {
+    s->WritesDone();
+    refused_reflection += s->Finish().error_code() == grpc::StatusCode::RESOURCE_EXHAUSTED;
+  }
+  for (auto& s : stalled) {
+    s->WritesDone();
+    refused_uploads += s->Finish().error_code() == grpc::StatusCode::RESOURCE_EXHAUSTED;
+  }
+  std::printf("refused at once: %d reflection streams, %d uploads (RESOURCE_EXHAUSTED)\n", refused_reflection,
+              refused_uploads);
+  return answered == o.probes ? 0 : 1;
+}

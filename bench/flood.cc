@@ -117,19 +117,23 @@ int main(int argc, char** argv) {
     answered += status.code() == absl::StatusCode::kNotFound;
   }
   std::sort(ms.begin(), ms.end());
-  const auto pct = [&](double p) { return ms.empty() ? 0.0 : ms[std::min(ms.size() - 1, static_cast<size_t>(p * static_cast<double>(ms.size())))]; };
+  const auto pct = [&](double p) {
+    return ms.empty() ? 0.0 : ms[std::min(ms.size() - 1, static_cast<size_t>(p * static_cast<double>(ms.size())))];
+  };
   const ProcessStatus during = o.server_pid > 0 ? ReadStatus(o.server_pid) : ProcessStatus{};
 
-  std::printf("streams: %d reflection and %d uploads opened in %.1f s over %zu connections; %d uploads still "
-              "writable after their chunk\n",
-              o.reflection, o.uploads, open_seconds, channels.size(), uploads_writing);
+  std::printf(
+      "streams: %d reflection and %d uploads opened in %.1f s over %zu connections; %d uploads still "
+      "writable after their chunk\n",
+      o.reflection, o.uploads, open_seconds, channels.size(), uploads_writing);
   std::printf("GetJob: %d of %d answered NOT_FOUND; p50 %.2f ms, p99 %.2f ms, max %.2f ms\n", answered, o.probes,
               pct(0.5), pct(0.99), ms.empty() ? 0.0 : ms.back());
   if (o.server_pid > 0) {
-    std::printf("server: %d threads before, %d with the streams open; resident %.1f MiB before, %.1f MiB with them "
-                "(+%.1f MiB)\n",
-                before.threads, during.threads, static_cast<double>(before.rss_kib) / 1024.0,
-                static_cast<double>(during.rss_kib) / 1024.0, static_cast<double>(during.rss_kib - before.rss_kib) / 1024.0);
+    std::printf(
+        "server: %d threads before, %d with the streams open; resident %.1f MiB before, %.1f MiB with them "
+        "(+%.1f MiB)\n",
+        before.threads, during.threads, static_cast<double>(before.rss_kib) / 1024.0,
+        static_cast<double>(during.rss_kib) / 1024.0, static_cast<double>(during.rss_kib - before.rss_kib) / 1024.0);
   }
   // Which were admitted: each stream is closed; a refused one ended with RESOURCE_EXHAUSTED at
   // once, an admitted one ends now (a reflection stream with OK, an upload of junk refused as such).

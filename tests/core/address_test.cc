@@ -7,8 +7,8 @@ namespace lsqsurf::core {
 namespace {
 
 TEST(Address, OnlyLoopbackAddressesCountAsLoopback) {
-  for (const char* loopback : {"127.0.0.1:50051", "127.1.2.3:0", "localhost:1", "[::1]:50051", "ipv4:127.0.0.1:5",
-                               "unix:/tmp/lsqsurf.sock"}) {
+  for (const char* loopback :
+       {"127.0.0.1:50051", "127.1.2.3:0", "localhost:1", "[::1]:50051", "ipv4:127.0.0.1:5", "unix:/tmp/lsqsurf.sock"}) {
     EXPECT_TRUE(IsLoopback(loopback)) << loopback;
   }
   // A host name that merely starts like a loopback address leads wherever its DNS says.

@@ -202,7 +202,7 @@ class ReconstructionService::Upload final : public grpc::ServerReadReactor<v1::S
 
   // The message just read: the spec, or a chunk for the spool.
   grpc::Status Take() {
-    try {
+    return Run("SubmitJob", [&] {
       if (!spec_.has_value()) {
         if (!message_.has_spec()) return InvalidArgument("the first SubmitJob message must carry the job spec");
         auto spec = FromProto(message_.spec());  // Fully checked: a bad spec fails before its upload.
@@ -234,9 +234,7 @@ class ReconstructionService::Upload final : public grpc::ServerReadReactor<v1::S
       }
       if (service_.calls_ != nullptr) service_.calls_->Received(static_cast<int64_t>(chunk.size()));
       return grpc::Status::OK;
-    } catch (const std::bad_alloc&) {
-      return grpc::Status(grpc::StatusCode::RESOURCE_EXHAUSTED, "the server ran out of memory for this call");
-    }
+    });
   }
 
   std::ofstream& FileOf(const std::string& slot) {
@@ -251,15 +249,7 @@ class ReconstructionService::Upload final : public grpc::ServerReadReactor<v1::S
   // On a submission thread: the token asked again (one revoked meanwhile may not have the job
   // accepted, and the quotas are those in force now), the spool read back, the job submitted.
   void Submit() {
-    grpc::Status status;
-    try {
-      status = Accept();
-    } catch (const std::bad_alloc&) {
-      status = grpc::Status(grpc::StatusCode::RESOURCE_EXHAUSTED, "the server ran out of memory for this call");
-    } catch (const std::exception& e) {
-      status = grpc::Status(grpc::StatusCode::INTERNAL, core::StrCat("SubmitJob failed: ", e.what()));
-    }
-    End(status);
+    End(Run("SubmitJob", [this] { return Accept(); }));
   }
 
   grpc::Status Accept() {

@@ -740,24 +740,20 @@ TEST_F(JobServiceTest, ShutdownRequeuesTheRunningJobWithoutHoldingItAgainstIt) {
   EXPECT_EQ(done.attempts, 2);
 }
 
-// A store that lets its server claim one job and then neither renew its lease nor claim
-// another, as for a server cut off from the database after it took a job; with `unreachable`
-// its server's looks for changes fail as well.
-class CutOffStore final : public JobStore {
+// A store that passes every call to another; the stores below change a few of them.
+class ForwardingStore : public JobStore {
  public:
-  explicit CutOffStore(std::shared_ptr<JobStore> inner) : inner_(std::move(inner)) {}
+  explicit ForwardingStore(std::shared_ptr<JobStore> inner) : inner_(std::move(inner)) {}
   bool shared() const override { return inner_->shared(); }
   absl::Status Insert(const JobRecord& r) override { return inner_->Insert(r); }
   absl::StatusOr<std::optional<JobRecord>> Claim(const std::string& runner, std::chrono::milliseconds lease) override {
-    if (claimed_) return absl::UnavailableError("claims are cut off");
-    auto claimed = inner_->Claim(runner, lease);
-    if (claimed.ok() && claimed->has_value()) claimed_ = true;
-    return claimed;
+    return inner_->Claim(runner, lease);
   }
   absl::StatusOr<int64_t> WriteHeld(const JobRecord& r) override { return inner_->WriteHeld(r); }
-  absl::StatusOr<std::vector<std::pair<std::string, bool>>> Renew(const std::string&, const std::vector<std::string>&,
-                                                                  std::chrono::milliseconds) override {
-    return absl::UnavailableError("renewals are cut off");
+  absl::StatusOr<std::vector<std::pair<std::string, bool>>> Renew(const std::string& runner,
+                                                                  const std::vector<std::string>& ids,
+                                                                  std::chrono::milliseconds lease) override {
+    return inner_->Renew(runner, ids, lease);
   }
   absl::StatusOr<std::vector<JobRecord>> RecoverLapsed(bool every_running,
                                                        const std::function<void(JobRecord&)>& recover) override {
@@ -768,17 +764,84 @@ class CutOffStore final : public JobStore {
   }
   absl::Status Remove(const std::string& id) override { return inner_->Remove(id); }
   absl::StatusOr<JobRecord> Get(const std::string& id) override { return inner_->Get(id); }
+  absl::StatusOr<JobChanges> ChangesSince(int64_t seq) override { return inner_->ChangesSince(seq); }
+  void WaitForOthers(std::chrono::milliseconds timeout) override { inner_->WaitForOthers(timeout); }
+
+ protected:
+  std::shared_ptr<JobStore> inner_;
+};
+
+// A store that lets its server claim one job and then neither renew its lease nor claim
+// another, as for a server cut off from the database after it took a job; with `unreachable`
+// its server's looks for changes fail as well.
+class CutOffStore final : public ForwardingStore {
+ public:
+  using ForwardingStore::ForwardingStore;
+  absl::StatusOr<std::optional<JobRecord>> Claim(const std::string& runner, std::chrono::milliseconds lease) override {
+    if (claimed_) return absl::UnavailableError("claims are cut off");
+    auto claimed = inner_->Claim(runner, lease);
+    if (claimed.ok() && claimed->has_value()) claimed_ = true;
+    return claimed;
+  }
+  absl::StatusOr<std::vector<std::pair<std::string, bool>>> Renew(const std::string&, const std::vector<std::string>&,
+                                                                  std::chrono::milliseconds) override {
+    return absl::UnavailableError("renewals are cut off");
+  }
   absl::StatusOr<JobChanges> ChangesSince(int64_t seq) override {
     if (unreachable) return absl::UnavailableError("the store does not answer");
     return inner_->ChangesSince(seq);
   }
-  void WaitForOthers(std::chrono::milliseconds timeout) override { inner_->WaitForOthers(timeout); }
 
   std::atomic<bool> unreachable{false};  // Its server's looks at the store fail too.
 
  private:
-  std::shared_ptr<JobStore> inner_;
   std::atomic<bool> claimed_{false};
+};
+
+// A store whose server's final write of a job is stored at once but answered only when the
+// test opens the gate, so that the test can act in between (as another server may); it also
+// counts its server's looks for changes.
+class FinalWriteGate final : public ForwardingStore {
+ public:
+  using ForwardingStore::ForwardingStore;
+  absl::StatusOr<int64_t> WriteHeld(const JobRecord& r) override {
+    auto seq = inner_->WriteHeld(r);
+    if (!IsTerminal(r.state)) return seq;
+    std::unique_lock lock(mutex_);
+    written_ = true;
+    changed_.notify_all();
+    changed_.wait(lock, [&] { return open_; });
+    return seq;
+  }
+  absl::StatusOr<JobChanges> ChangesSince(int64_t seq) override {
+    auto changes = inner_->ChangesSince(seq);
+    std::lock_guard lock(mutex_);
+    ++looks_;
+    changed_.notify_all();
+    return changes;
+  }
+  void WaitWritten() {
+    std::unique_lock lock(mutex_);
+    changed_.wait(lock, [&] { return written_; });
+  }
+  // Blocks until the server has finished two looks begun after this call (so one whole look
+  // saw everything stored before it).
+  void WaitTwoLooks() {
+    std::unique_lock lock(mutex_);
+    const int64_t target = looks_ + 2;
+    changed_.wait(lock, [&] { return looks_ >= target; });
+  }
+  void Open() {
+    std::lock_guard lock(mutex_);
+    open_ = true;
+    changed_.notify_all();
+  }
+
+ private:
+  std::mutex mutex_;
+  std::condition_variable changed_;
+  bool written_ = false, open_ = false;
+  int64_t looks_ = 0;
 };
 
 // Two services on one PostgreSQL database (a throwaway server this test process starts), as
@@ -820,8 +883,10 @@ class SharedJobServiceTest : public ::testing::Test {
   }
   static JobRecord WaitUntil(JobService& s, const std::string& id,
                              const std::function<bool(const absl::StatusOr<JobRecord>&)>& done) {
+    // The deadline only turns a defect that would hang into a failure; it times nothing.
+    const auto give_up = std::chrono::steady_clock::now() + std::chrono::minutes(2);
     absl::StatusOr<JobRecord> r = s.Get(id);
-    while (!done(r)) {
+    while (!done(r) && std::chrono::steady_clock::now() < give_up) {
       if (!r.ok()) return {};
       r = s.WaitForChange(id, r->version, std::chrono::seconds(1));
     }
@@ -871,6 +936,36 @@ TEST_F(SharedJobServiceTest, TwoServicesShareOneQueueAndAnswerForEachOthersJobs)
   WaitUntil(*b_, on_b, [](const auto& r) { return !r.ok(); });
   EXPECT_EQ(b_->Get(on_b).status().code(), absl::StatusCode::kNotFound);
   EXPECT_EQ(b_->List().size(), 1u);
+}
+
+TEST_F(SharedJobServiceTest, AJobDeletedElsewhereAsItsRunEndsLeavesNothingBehind) {
+  // B's final write reaches the store, and before B hears back A sees the outcome and deletes
+  // the job; B looks for changes meanwhile and sees both its own write and the deletion.
+  std::shared_ptr<FinalWriteGate> gate;
+  b_ = OpenService("b", &latch_b_, std::chrono::seconds(10), [&gate](std::shared_ptr<JobStore> inner) {
+    gate = std::make_shared<FinalWriteGate>(inner);
+    return gate;
+  });
+  ASSERT_TRUE(b_ && gate);
+  absl::Cleanup open_gate = [&gate] { gate->Open(); };
+  auto job = b_->Submit(Spec("iamls"), Input(Encode(testing::SphereCloud(1000))));
+  ASSERT_TRUE(job.ok()) << job.status();
+  latch_b_.WaitStarted(1);
+  a_ = OpenService("a", &latch_a_, std::chrono::seconds(10));
+  ASSERT_TRUE(a_);
+  latch_b_.Release();
+  gate->WaitWritten();
+  const JobRecord done = WaitUntil(*a_, job->id, [](const auto& r) { return r.ok() && IsTerminal(r->state); });
+  ASSERT_EQ(done.state, JobState::kSucceeded) << done.error;
+  ASSERT_TRUE(a_->Delete(job->id).ok());
+  gate->WaitTwoLooks();
+  gate->Open();
+  // B's run ends; the job is gone from B as from the store, and B says so to its watchers.
+  const JobRecord last = WaitUntil(*b_, job->id, [](const auto& r) { return !r.ok(); });
+  EXPECT_EQ(b_->Get(job->id).status().code(), absl::StatusCode::kNotFound);
+  EXPECT_TRUE(b_->List().empty());
+  EXPECT_EQ(a_->Get(job->id).status().code(), absl::StatusCode::kNotFound);
+  EXPECT_TRUE(last.id.empty());
 }
 
 TEST_F(SharedJobServiceTest, AJobWhoseServerStopsRenewingItsLeaseRunsOnAnother) {

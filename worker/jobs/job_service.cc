@@ -110,6 +110,12 @@ struct JobService::Entry {
   std::atomic<bool> cancel_requested{false};
   std::atomic<bool> interrupted{false};  // Shutdown: re-queue rather than cancel.
   std::atomic<bool> lost{false};         // The lease lapsed: another service may run it now.
+  // This run's writes to the store under way, and the newest change that arrived meanwhile
+  // looking like another service's (it may be one of them, stored but not yet recorded here);
+  // guarded by mutex_.
+  int writes_in_flight = 0;
+  int64_t seq_seen_while_writing = 0;
+  bool removed_elsewhere = false;  // Deleted through another service while held; guarded by mutex_.
 };
 
 // Progress of a running job, published to watchers at most every half percent, and written to
@@ -489,6 +495,10 @@ absl::Status JobService::AdmitResults(const std::shared_ptr<Entry>& entry, int64
   return absl::OkStatus();
 }
 
+void JobService::MarkLost(Entry& entry, const std::string& id) {
+  if (!entry.lost.exchange(true)) spdlog::warn("[job {}] lease lost; this run stops", id);
+}
+
 std::shared_ptr<JobService::Entry> JobService::Adopt(JobRecord record) {
   std::shared_ptr<Entry>& entry = jobs_[record.id];
   if (entry == nullptr) entry = std::make_shared<Entry>();
@@ -556,15 +566,20 @@ void JobService::Update(const std::shared_ptr<Entry>& entry, const std::function
   {
     std::lock_guard lock(mutex_);
     next = entry->record;
+    ++entry->writes_in_flight;
   }
   change(next);
   next.updated_ms = NowMs();
   const int64_t seq = Persist(entry, next);
   {
     std::lock_guard lock(mutex_);
+    // A change seen during the write that is newer than the write itself (or, when the write
+    // failed, than what this run had stored before) was another service's.
+    if (entry->seq_seen_while_writing > (seq != 0 ? seq : entry->record.seq)) MarkLost(*entry, next.id);
     next.version = entry->record.version + 1;
     next.seq = std::max(entry->record.seq, seq);
     entry->record = std::move(next);
+    if (--entry->writes_in_flight == 0) entry->seq_seen_while_writing = 0;
   }
   NotifyChanged();
 }
@@ -578,7 +593,7 @@ int64_t JobService::Persist(const std::shared_ptr<Entry>& entry, const JobRecord
   if (seq.ok()) return *seq;
   if (seq.status().code() == absl::StatusCode::kAborted) {
     // Its lease lapsed (this service stalled or lost the store): another service runs it now.
-    if (!entry->lost.exchange(true)) spdlog::warn("[job {}] lease lost; this run stops", record.id);
+    MarkLost(*entry, record.id);
   } else {
     spdlog::error("[job {}] cannot store its state: {}", record.id, seq.status().ToString());
   }
@@ -958,12 +973,21 @@ void JobService::RunJob(const std::shared_ptr<Entry>& entry, std::shared_ptr<voi
   {
     std::lock_guard lock(mutex_);
     entry->held = false;
-    if (!entry->lost) return;
+    if (!entry->lost && !entry->removed_elsewhere) return;
     entry->record.seq = 0;  // Whatever the store holds now replaces this run's view.
   }
-  if (auto stored = store_->Get(id); stored.ok()) {
+  auto stored = store_->Get(id);
+  {
     std::lock_guard lock(mutex_);
-    Adopt(*std::move(stored));
+    if (stored.ok()) {
+      Adopt(*std::move(stored));
+    } else if (stored.status().code() == absl::StatusCode::kNotFound) {
+      // Deleted elsewhere while it ran here: nothing of it stays on this server either.
+      if (auto it = jobs_.find(id); it != jobs_.end() && it->second == entry) {
+        ReleaseDecoded(id);
+        jobs_.erase(it);
+      }
+    }
   }
   NotifyChanged();
 }
@@ -1002,19 +1026,29 @@ void JobService::SyncChanges() {
       const bool ended_elsewhere =
           r.state != JobState::kRunning && known != jobs_.end() && known->second->record.state == JobState::kRunning;
       const bool taken = newer && (r.runner != runner_ || r.state == JobState::kQueued || ended_elsewhere);
+      const int64_t seq = r.seq;
       std::shared_ptr<Entry> entry = Adopt(std::move(r));
       if (entry->held) {
         // The runner learns of a cancellation asked of another service, and of a lease that
         // lapsed while it could not renew (the job went back to the queue or to another).
+        // While its own write is under way, that write may be what arrived: the write decides.
         if (cancel) entry->cancel_requested = true;
-        if (taken && !entry->interrupted && !entry->lost.exchange(true))
-          spdlog::warn("[job {}] lease lost; this run stops", entry->record.id);
+        if (taken && entry->writes_in_flight > 0) {
+          entry->seq_seen_while_writing = std::max(entry->seq_seen_while_writing, seq);
+        } else if (taken && !entry->interrupted) {
+          MarkLost(*entry, entry->record.id);
+        }
       }
       queued = queued || entry->record.state == JobState::kQueued;
     }
     for (const std::string& id : changes->removed) {
       auto it = jobs_.find(id);
-      if (it == jobs_.end() || it->second->held) continue;
+      if (it == jobs_.end()) continue;
+      if (it->second->held) {
+        // Its run ends by itself (its next write finds no lease); then the entry goes.
+        it->second->removed_elsewhere = true;
+        continue;
+      }
       ReleaseDecoded(id);
       jobs_.erase(it);
     }
@@ -1047,8 +1081,10 @@ void JobService::RenewLeases() {
   }
   for (const std::string& id : running) {
     auto it = jobs_.find(id);
-    // Held here but not in the store any more: taken over, or finished a moment ago.
-    if (it != jobs_.end() && it->second->held && it->second->record.state == JobState::kRunning && !ids.contains(id))
+    // Held here but not in the store any more: taken over, or finished a moment ago (its
+    // final write may be under way; if it was taken, that write is refused).
+    if (it != jobs_.end() && it->second->held && it->second->writes_in_flight == 0 &&
+        it->second->record.state == JobState::kRunning && !ids.contains(id))
       it->second->lost = true;
   }
 }

@@ -218,6 +218,8 @@ class JobService {
   // Takes a record read from the store unless this service's copy is as new (mutex_ held).
   // Returns the entry (made if missing).
   std::shared_ptr<Entry> Adopt(JobRecord record);
+  // The run's lease lapsed: it stops, logged once.
+  static void MarkLost(Entry& entry, const std::string& id);
   // The job's entry, read from the store when this service has not seen it yet.
   std::shared_ptr<Entry> Find(const std::string& id) const;
   const JobKind* KindOf(const std::string& method) const;

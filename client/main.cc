@@ -772,10 +772,11 @@ int PrintServerInfo(const Globals& g) {
   if (!info.ok()) return FailStatus("info", info.status());
   std::printf(
       "version          %s\nmax_points       %lld\nmin_points       %lld\nmax_upload_bytes %lld\n"
-      "max_queue        %d\nworkers          %d\nmax_renders      %d\ncan_render       %s\n",
+      "max_queue        %d\nworkers          %d\nmax_renders      %d\ncan_render       %s\n"
+      "max_job_memory   %lld\n",
       info->version().c_str(), static_cast<long long>(info->max_points()), static_cast<long long>(info->min_points()),
       static_cast<long long>(info->max_upload_bytes()), info->max_queue(), info->workers(), info->max_renders(),
-      info->can_render() ? "yes" : "no");
+      info->can_render() ? "yes" : "no", static_cast<long long>(info->max_job_memory_bytes()));
   if (!info->requires_token()) return 0;
   const v1::Account& a = info->account();
   const auto limit = [](int64_t value) { return value > 0 ? std::to_string(value) : std::string("none"); };

@@ -63,6 +63,7 @@ struct ServerFlags {
   double retain_days = 0, max_store_gib = 0;
   int64_t min_free_mib = 0;    // Set from JobServiceOptions::min_free_bytes, whose default it shows.
   int64_t max_render_mib = 0;  // Set from JobServiceOptions::max_render_bytes, whose default it shows.
+  int64_t max_job_mib = -1;    // JobServiceOptions::max_job_memory; -1: three quarters of the memory.
   lsqsurf::server::StreamLimits streams;
   double stream_idle_seconds = 0;  // Set from StreamLimits::idle, whose default it shows.
   int max_streams_per_connection = 100;
@@ -167,6 +168,12 @@ void DefineFlags(CLI::App& app, ServerFlags& flags, lsqsurf::jobs::JobServiceOpt
                  "resolution that needs more is refused")
       ->capture_default_str()
       ->check(CLI::Range(int64_t{16}, int64_t{1} << 20));
+  app.add_option("--max-job-mib", flags.max_job_mib,
+                 "memory one job may take, MiB: a job estimated to need more is refused at submission, and an "
+                 "extraction that grows past it stops; -1 = three quarters of the machine's (or container's) "
+                 "memory, 0 = no limit")
+      ->capture_default_str()
+      ->check(CLI::Range(int64_t{-1}, int64_t{1} << 30));
   app.add_option("--max-uploads", flags.streams.max_uploads,
                  "SubmitJob streams open at once (a named user holds at most half); more are refused")
       ->capture_default_str()
@@ -354,6 +361,7 @@ int main(int argc, char** argv) {
   options.max_store_bytes = static_cast<int64_t>(flags.max_store_gib * double(int64_t{1} << 30));
   options.min_free_bytes = flags.min_free_mib << 20;
   options.max_render_bytes = flags.max_render_mib << 20;
+  options.max_job_memory = flags.max_job_mib < 0 ? -1 : flags.max_job_mib << 20;
   flags.streams.idle = std::chrono::milliseconds(static_cast<int64_t>(flags.stream_idle_seconds * 1000));
 
   // Logs go to stderr; stdout carries only the "listening on" line that scripts wait for.

@@ -560,6 +560,7 @@ grpc::Status ReconstructionService::GetServerInfo(grpc::ServerContext* context, 
     response->set_max_queue(o.max_queue);
     response->set_workers(o.workers);
     response->set_max_renders(o.max_renders);
+    response->set_max_job_memory_bytes(o.max_job_memory);
     response->set_can_render(jobs_.CanRender());
     response->set_requires_token(tokens_ != nullptr);
     response->set_retain_seconds(o.retain.count());

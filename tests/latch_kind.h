@@ -20,7 +20,7 @@ class LatchKind final : public jobs::JobKind {
   std::vector<jobs::MethodInfo> Methods() const override { return {}; }
   absl::StatusOr<jobs::CheckedInput> CheckUploads(const jobs::JobSpec&, const jobs::Uploads&,
                                                   const jobs::InputLimits&) const override {
-    return jobs::CheckedInput{1, nullptr};
+    return jobs::CheckedInput{1, nullptr, {}};
   }
   absl::StatusOr<jobs::Statistics> Run(const jobs::JobSpec&, const jobs::Uploads&,
                                        jobs::RunEnvironment& env) const override {

@@ -316,7 +316,7 @@ class WritingKind final : public JobKind {
   std::string_view name() const override { return "writing"; }
   std::vector<MethodInfo> Methods() const override { return {}; }
   absl::StatusOr<CheckedInput> CheckUploads(const JobSpec&, const Uploads&, const InputLimits&) const override {
-    return CheckedInput{1, nullptr};
+    return CheckedInput{1, nullptr, {}};
   }
   absl::StatusOr<Statistics> Run(const JobSpec&, const Uploads&, RunEnvironment& env) const override {
     const absl::Status written = env.sink.Write("big.bin", std::string(static_cast<size_t>(bytes_), 'x'));
@@ -404,6 +404,48 @@ TEST_F(JobServiceTest, OneUserCannotFillTheQueue) {
   EXPECT_TRUE(s.Submit(Spec("iamls"), input, bob).ok());
   EXPECT_TRUE(s.Submit(Spec("iamls"), input, bob).ok());
   EXPECT_EQ(s.Submit(Spec("iamls"), input, bob).status().code(), absl::StatusCode::kResourceExhausted);  // Full.
+}
+
+// Jobs whose parameters would take more memory than a job may are refused at submission, saying
+// what to change; those whose extraction grows past it stop there rather than grow on.
+TEST_F(JobServiceTest, AJobThatWouldTakeMoreMemoryThanAllowedIsRefusedOrStopped) {
+  options_.max_job_memory = int64_t{64} << 20;
+  JobService& s = Open();
+  const Uploads input = Input(Encode(testing::SphereCloud(20000)));
+  // A hundred times the vertices a point of the default: gigabytes for 20k points.
+  const absl::Status fine = s.Submit(Spec("iamls", {{"cell_size", "0.1"}}), input).status();
+  EXPECT_EQ(fine.code(), absl::StatusCode::kResourceExhausted) << fine;
+  EXPECT_NE(fine.message().find("raise cell_size"), std::string::npos) << fine;
+  EXPECT_NE(fine.message().find("64 MiB a job may take"), std::string::npos) << fine;
+  // So is an explicit spacing far below the points' own (the surface would need as many cells).
+  EXPECT_EQ(s.Submit(Spec("ramls", {{"spacing", "1e-6"}}), input).status().code(),
+            absl::StatusCode::kResourceExhausted);
+  // A front allowed to grow past what memory holds, and a probe grid as large.
+  const absl::Status front = s.Submit(Spec("track", {{"max_points", "50000000"}}), {}).status();
+  EXPECT_EQ(front.code(), absl::StatusCode::kResourceExhausted) << front;
+  EXPECT_NE(front.message().find("lower max_points"), std::string::npos) << front;
+  EXPECT_TRUE(s.List().empty());
+  // The defaults fit.
+  auto job = s.Submit(Spec("iamls"), input);
+  ASSERT_TRUE(job.ok()) << job.status();
+  EXPECT_EQ(WaitTerminal(job->id).state, JobState::kSucceeded);
+}
+
+TEST_F(JobServiceTest, AnExtractionPastTheJobsMemoryStops) {
+  // PU's adaptive cells make its estimate low; the extraction holds the line: 4 MiB is 2048 leaves.
+  options_.max_job_memory = int64_t{4} << 20;
+  JobService& s = Open();
+  auto job = s.Submit(Spec("pu", {{"cell_size", "0.5"}}), Input(Encode(testing::SphereCloud(2000))));
+  ASSERT_TRUE(job.ok()) << job.status();
+  const JobRecord done = WaitTerminal(job->id);
+  EXPECT_EQ(done.state, JobState::kFailed);
+  EXPECT_NE(done.error.find("raise cell_size"), std::string::npos) << done.error;
+  // With the memory it needs, the same job succeeds.
+  options_.max_job_memory = 0;
+  JobService& unbounded = Open();
+  auto again = unbounded.Submit(Spec("pu", {{"cell_size", "0.5"}}), Input(Encode(testing::SphereCloud(2000))));
+  ASSERT_TRUE(again.ok()) << again.status();
+  EXPECT_EQ(WaitTerminal(again->id).state, JobState::kSucceeded);
 }
 
 TEST_F(JobServiceTest, RetentionDeletesTheOldestFinishedJobsAndNeverAQueuedOrRunningOne) {

@@ -40,6 +40,12 @@ const core::ParamTable<CsgJobParams>& CsgJobParamTable() {
   return *table;
 }
 
+// The extraction's parameters with its leaves bounded by the job's memory.
+csg::CsgParams Bounded(csg::CsgParams params, int64_t memory_bytes) {
+  params.max_leaves = LeavesWithin(memory_bytes, params.max_leaves);
+  return params;
+}
+
 class CsgKind final : public JobKind {
  public:
   std::string_view name() const override { return "csg"; }
@@ -57,16 +63,17 @@ class CsgKind final : public JobKind {
   // primitives alone is built here, so that one that is unbounded, too large, or would need more
   // cells than the extraction allows is refused now rather than failing (or growing) later;
   // with job references that waits for the run, which checks the same before it extracts.
-  absl::StatusOr<CheckedInput> CheckUploads(const JobSpec& spec, const Uploads&, const InputLimits&) const override {
+  absl::StatusOr<CheckedInput> CheckUploads(const JobSpec& spec, const Uploads&,
+                                            const InputLimits& limits) const override {
     const auto* p = spec.params.As<CsgJobParams>();
     if (p == nullptr) return absl::InternalError("not a csg job");
     LSQSURF_ASSIGN_OR_RETURN(csg::CsgNode root, csg::ParseCsg(p->expression));
-    if (!csg::ReferencedJobs(root).empty()) return CheckedInput{0, nullptr};
+    if (!csg::ReferencedJobs(root).empty()) return CheckedInput{0, nullptr, {}};
     LSQSURF_ASSIGN_OR_RETURN(auto function, csg::BuildCsg(root, [](const std::string&) -> absl::StatusOr<csg::Operand> {
                                return absl::InternalError("no job references here");
                              }));
-    LSQSURF_RETURN_IF_ERROR(csg::CheckExtractionSize(*function, p->extract));
-    return CheckedInput{0, nullptr};
+    LSQSURF_RETURN_IF_ERROR(csg::CheckExtractionSize(*function, Bounded(p->extract, limits.max_job_memory)));
+    return CheckedInput{0, nullptr, {}};
   }
 
   std::vector<std::string> ReferencedJobs(const JobSpec& spec) const override {
@@ -96,7 +103,7 @@ class CsgKind final : public JobKind {
     const auto extract_start = std::chrono::steady_clock::now();
     core::SubContext extract_ctx(env.context, "extracting the solid", 0.1, 0.97);
     csg::CsgStats csg_stats;
-    auto extracted = csg::ExtractCsg(**function, p->extract, extract_ctx, &csg_stats);
+    auto extracted = csg::ExtractCsg(**function, Bounded(p->extract, env.memory_bytes), extract_ctx, &csg_stats);
     if (!extracted.ok()) return extracted.status();
     stat("extract_seconds", core::SecondsSince(extract_start));
     stat("cell_size", csg_stats.cell_size);

@@ -71,7 +71,7 @@ class EditKind final : public JobKind {
   // No upload slots are listed, so the job service refuses any upload before this.
   absl::StatusOr<CheckedInput> CheckUploads(const JobSpec& spec, const Uploads&, const InputLimits&) const override {
     if (spec.params.As<EditJobParams>() == nullptr) return absl::InternalError("not an edit job");
-    return CheckedInput{0, nullptr};
+    return CheckedInput{0, nullptr, {}};
   }
 
   std::vector<std::string> ReferencedJobs(const JobSpec& spec) const override {
@@ -110,6 +110,7 @@ class EditKind final : public JobKind {
     core::SubContext extract_ctx(env.context, "extracting surface", 0.2, 0.95);
     pu::PuExtractParams extract = p->extract;
     extract.marching.trace = true;
+    extract.max_leaves = LeavesWithin(env.memory_bytes, extract.max_leaves);
     auto extracted = ExtractNearEdit(**base, **edited, edit_stats, extract, p->source, env, extract_ctx);
     base->reset();
     const bool local = extracted.ok();

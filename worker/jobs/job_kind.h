@@ -6,6 +6,7 @@
 // sink. The job service knows queues, states and recovery, never a kind's details.
 #pragma once
 
+#include <algorithm>
 #include <cstdint>
 #include <functional>
 #include <memory>
@@ -38,7 +39,20 @@ struct InputLimits {
   int64_t max_points = 20'000'000;
   int64_t min_points = 16;
   int64_t max_cells = 100'000'000;  // Volume meshes.
+  int64_t max_job_memory = 0;       // Bytes one job may take (0: no limit); see LeavesWithin.
 };
+
+// Memory of the extraction per visited J1a leaf, the tree, the corner values, the tetrahedra
+// and the output vertices together (measured on iaMLS and PU runs: 1.6 to 2 KiB), by which a
+// run's memory limit becomes the leaves its extraction may visit.
+inline constexpr int64_t kBytesPerExtractionLeaf = 2048;
+
+// The leaves an extraction may visit: the engine's own bound, lowered to what `memory_bytes`
+// holds (0: no memory limit).
+inline int64_t LeavesWithin(int64_t memory_bytes, int64_t engine_bound) {
+  if (memory_bytes <= 0) return engine_bound;
+  return std::max<int64_t>(1, std::min(engine_bound, memory_bytes / kBytesPerExtractionLeaf));
+}
 
 // Stores a job's artifacts; each write is atomic and the name is recorded in order.
 class ArtifactSink {
@@ -48,12 +62,20 @@ class ArtifactSink {
   virtual absl::Status Write(std::string_view name, std::string_view bytes) = 0;
 };
 
+// The memory a run is expected to take at its peak (0: not estimated), and what to change when
+// that is more than a job may take.
+struct MemoryEstimate {
+  int64_t bytes = 0;
+  std::string hint;
+};
+
 // What checking a job's uploads found: the input's size and, where the kind keeps it, the decoded
 // uploads (kind-specific, standing in for all of them), which the job service holds for the run
 // while memory allows, so that an upload is decoded once.
 struct CheckedInput {
   int64_t points = 0;
   std::shared_ptr<void> decoded;  // Null when nothing is kept.
+  MemoryEstimate memory;          // The job service refuses a job estimated past its memory limit.
 };
 
 struct RunEnvironment {
@@ -66,6 +88,8 @@ struct RunEnvironment {
   // A result of another, succeeded job (a kept precomputation). Errors: kNotFound (no such job
   // or result), kFailedPrecondition (the job has not succeeded), kUnavailable.
   std::function<absl::StatusOr<std::string>(const std::string& job_id, const std::string& name)> read_result;
+  // The memory a job may take (0: no limit); extractions visit at most LeavesWithin(it) leaves.
+  int64_t memory_bytes = 0;
 };
 
 class JobKind {

@@ -5,6 +5,7 @@
 
 #include <cmath>
 #include <filesystem>
+#include <fstream>
 #include <random>
 #include <set>
 #include <tuple>
@@ -20,6 +21,19 @@
 
 namespace lsqsurf::jobs {
 namespace {
+
+int64_t MiB(int64_t bytes) { return (bytes + (int64_t{1} << 20) - 1) >> 20; }
+
+// The memory this process may use: the machine's, or its container's limit where that is less
+// (cgroup v2); 0 when unknown (no limit then).
+int64_t PhysicalMemoryBytes() {
+  const long pages = sysconf(_SC_PHYS_PAGES), page = sysconf(_SC_PAGESIZE);
+  int64_t bytes = pages > 0 && page > 0 ? static_cast<int64_t>(pages) * page : 0;
+  std::ifstream cgroup("/sys/fs/cgroup/memory.max");
+  int64_t limit = 0;
+  if (cgroup >> limit && limit > 0) bytes = bytes > 0 ? std::min(bytes, limit) : limit;  // "max" reads as none.
+  return bytes;
+}
 
 // Where each upload slot is kept in a job's folder (names kept from earlier versions).
 const std::map<std::string, std::string>& UploadFiles() {
@@ -173,7 +187,9 @@ class JobService::Context : public core::JobContext {
 JobService::JobService(JobServiceOptions options)
     : options_(std::move(options)),
       runner_(RunnerName(options_.name)),
-      renderer_(std::make_unique<render::SharedRenderer>()) {}
+      renderer_(std::make_unique<render::SharedRenderer>()) {
+  if (options_.max_job_memory < 0) options_.max_job_memory = PhysicalMemoryBytes() / 4 * 3;
+}
 
 absl::StatusOr<std::unique_ptr<JobService>> JobService::Open(const JobServiceOptions& options) {
   if (options.data_dir.empty()) return absl::InvalidArgumentError("a data directory is required");
@@ -212,9 +228,11 @@ absl::StatusOr<std::unique_ptr<JobService>> JobService::Open(const JobServiceOpt
   service->synced_seq_ = all->seq;
   const bool shared = service->store_->shared();
   if (!shared) service->RemoveOrphanedBlobs();
-  spdlog::info("job service {}: {} jobs on record, {} queued, {} workers, data in {}{}", service->runner_,
-               service->jobs_.size(), service->QueuedJobs(), options.workers, options.data_dir,
-               shared ? ", store shared with other servers" : "");
+  const int64_t job_memory = service->options_.max_job_memory;
+  spdlog::info("job service {}: {} jobs on record, {} queued, {} workers, {}, data in {}{}", service->runner_,
+               service->jobs_.size(), service->QueuedJobs(), options.workers,
+               job_memory > 0 ? core::StrCat("at most ", MiB(job_memory), " MiB a job") : "no memory limit per job",
+               options.data_dir, shared ? ", store shared with other servers" : "");
   for (int i = 0; i < options.workers; ++i) service->workers_.emplace_back([s = service.get()] { s->WorkerLoop(); });
   if (shared) service->sync_thread_ = std::thread([s = service.get()] { s->SyncLoop(); });
   if (options.retain.count() > 0 || options.max_store_bytes > 0) {
@@ -289,8 +307,15 @@ absl::StatusOr<JobRecord> JobService::Submit(const JobSpec& spec, Uploads upload
   }
   LSQSURF_RETURN_IF_ERROR(CheckRoom(bytes + ResultReserve(bytes)));
   auto checked =
-      KindOf(spec.method)->CheckUploads(spec, uploads, {options_.max_points, options_.min_points, options_.max_cells});
+      KindOf(spec.method)
+          ->CheckUploads(spec, uploads,
+                         {options_.max_points, options_.min_points, options_.max_cells, options_.max_job_memory});
   if (!checked.ok()) return checked.status();
+  if (const int64_t limit = options_.max_job_memory; limit > 0 && checked->memory.bytes > limit) {
+    return absl::ResourceExhaustedError(core::StrCat("this job would take about ", MiB(checked->memory.bytes),
+                                                     " MiB of memory, more than the ", MiB(limit),
+                                                     " MiB a job may take on this server; ", checked->memory.hint));
+  }
   JobRecord r;
   r.id = NewJobId();
   r.spec = spec;
@@ -883,14 +908,18 @@ absl::StatusOr<Statistics> JobService::RunKind(const std::shared_ptr<Entry>& ent
   } stage_end{ctx};
   // Only the jobs the spec names, whose visibility to the submitter Submit checked.
   const std::vector<std::string> referenced = kind->ReferencedJobs(record.spec);
-  RunEnvironment env{sink, ctx, renderer_.get(), std::move(decoded),
+  RunEnvironment env{sink,
+                     ctx,
+                     renderer_.get(),
+                     std::move(decoded),
                      [this, referenced](const std::string& id, const std::string& name) -> absl::StatusOr<std::string> {
                        if (std::find(referenced.begin(), referenced.end(), id) == referenced.end())
                          return NoSuchJob(id);
                        auto reader = OpenResult(id, name);
                        if (!reader.ok()) return reader.status();
                        return ReadAll(**reader);
-                     }};
+                     },
+                     options_.max_job_memory};
   try {
     return kind->Run(record.spec, uploads, env);
   } catch (const std::bad_alloc&) {

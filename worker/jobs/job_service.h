@@ -71,6 +71,10 @@ struct JobServiceOptions {
   // Memory one Render may take for the grid of a volume picture (the rest of a picture is small);
   // a resolution that needs more is refused before anything is allocated.
   int64_t max_render_bytes = int64_t{1} << 30;
+  // Memory one job may take: a job whose kind estimates more at submission is refused, and its
+  // extraction stops past it (JobKind's LeavesWithin). -1: three quarters of this machine's
+  // memory; 0: no limit.
+  int64_t max_job_memory = -1;
   // Where uploads and artifacts are kept; null: files under data_dir/jobs.
   std::shared_ptr<BlobStore> blobs;
   // Where job records are kept and claimed; null: SQLite in data_dir/jobs.db.

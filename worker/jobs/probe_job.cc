@@ -109,6 +109,12 @@ std::string ImageVti(const std::array<int64_t, 3>& d, const Vec3d& origin, const
   return out;
 }
 
+// A probe holds per point its position, its sample (value, gradient, weight) and its line of the
+// output text: 24 + 40 + up to 80 bytes, and the text once more as it is written.
+MemoryEstimate ProbeMemory(int64_t points) {
+  return {points * 224, "probe fewer points or a coarser grid, in parts if need be"};
+}
+
 class ProbeKind final : public JobKind {
  public:
   std::string_view name() const override { return "probe"; }
@@ -140,13 +146,13 @@ class ProbeKind final : public JobKind {
             core::StrCat(points.size(), " probe points; this server accepts at most ", limits.max_points));
       }
       const auto n = static_cast<int64_t>(points.size());
-      return CheckedInput{n, std::make_shared<std::vector<Vec3d>>(std::move(points))};
+      return CheckedInput{n, std::make_shared<std::vector<Vec3d>>(std::move(points)), ProbeMemory(n)};
     }
     if (count > limits.max_points) {
       return absl::ResourceExhaustedError(
           core::StrCat("a ", p->grid, " grid has ", count, " points; this server accepts at most ", limits.max_points));
     }
-    return CheckedInput{count, nullptr};
+    return CheckedInput{count, nullptr, ProbeMemory(count)};
   }
 
   absl::StatusOr<Statistics> Run(const JobSpec& spec, const Uploads& uploads, RunEnvironment& env) const override {

@@ -112,6 +112,7 @@ struct ExtractionHints {
   double vertex_spacing = 0;  // Model units.
   int refine_steps = 3;
   SurfaceExtractor extractor = SurfaceExtractor::kJ1a;
+  int64_t memory_bytes = 0;  // The job's memory limit (RunEnvironment::memory_bytes).
 };
 
 absl::StatusOr<extract::IsosurfaceResult> ExtractShared(const core::ImplicitFunction& field,
@@ -120,16 +121,31 @@ absl::StatusOr<extract::IsosurfaceResult> ExtractShared(const core::ImplicitFunc
   extract::MarchingOptions marching;
   marching.refine_steps = hints.refine_steps;
   if (hints.extractor == SurfaceExtractor::kJ1a) {
-    return extract::ExtractIsosurfaceJ1a(field, cloud.positions, {2 * hints.vertex_spacing, 20'000'000, marching}, ctx);
+    return extract::ExtractIsosurfaceJ1a(
+        field, cloud.positions,
+        {2 * hints.vertex_spacing, LeavesWithin(hints.memory_bytes, extract::J1aIsosurfaceParams{}.max_leaves),
+         marching},
+        ctx);
   }
-  return extract::ExtractIsosurface(field, cloud.positions, {hints.vertex_spacing, 60'000'000, marching}, ctx);
+  // A grid cube holds about what a J1a leaf does (its corners, tetrahedra and crossings).
+  return extract::ExtractIsosurface(
+      field, cloud.positions,
+      {hints.vertex_spacing, LeavesWithin(hints.memory_bytes, extract::IsosurfaceParams{}.max_cells), marching}, ctx);
 }
 
 using StatFn = std::function<void(std::string, double)>;
 using KeepFn = std::function<void(std::string, std::string)>;  // An artifact to store beside the mesh.
 
+// What a method's run reports to and is bounded by besides its parameters.
+struct MethodRun {
+  StatFn stat;
+  KeepFn keep;
+  int64_t memory_bytes = 0;  // The job's memory limit (RunEnvironment::memory_bytes).
+};
+
 absl::StatusOr<extract::IsosurfaceResult> RunIamls(const IamlsJobParams& p, const core::PointCloud& cloud,
-                                                   core::JobContext& ctx, const StatFn& stat, const KeepFn&) {
+                                                   core::JobContext& ctx, const MethodRun& run) {
+  const StatFn& stat = run.stat;
   const auto start = std::chrono::steady_clock::now();
   core::SubContext build_ctx(ctx, "building iaMLS", 0.0, 0.3);
   auto field = mls::BuildIamls(cloud, p.fit, build_ctx);
@@ -151,8 +167,8 @@ absl::StatusOr<extract::IsosurfaceResult> RunIamls(const IamlsJobParams& p, cons
   if (!fit.residuals.empty()) stat("final_residual_over_h", fit.residuals.back());
   const auto extract_start = std::chrono::steady_clock::now();
   core::SubContext extract_ctx(ctx, "extracting surface", 0.3, 1.0);
-  auto extracted =
-      ExtractShared(**field, cloud, {p.cell_size * (*field)->spacing(), p.refine_steps, p.extractor}, extract_ctx);
+  auto extracted = ExtractShared(
+      **field, cloud, {p.cell_size * (*field)->spacing(), p.refine_steps, p.extractor, run.memory_bytes}, extract_ctx);
   if (!extracted.ok()) return extracted;
   stat("extract_seconds", core::SecondsSince(extract_start));
   if (p.min_component > 0) {
@@ -167,7 +183,9 @@ absl::StatusOr<extract::IsosurfaceResult> RunIamls(const IamlsJobParams& p, cons
 // extract it on J1a leaves sized by its spacing.
 template <class P, class Build>
 absl::StatusOr<extract::IsosurfaceResult> RunOnSharedExtractor(const P& p, const core::PointCloud& cloud,
-                                                               core::JobContext& ctx, const StatFn& stat, Build build) {
+                                                               core::JobContext& ctx, const MethodRun& run,
+                                                               Build build) {
+  const StatFn& stat = run.stat;
   core::SubContext build_ctx(ctx, "indexing points", 0.0, 0.05);
   auto field = build(cloud, p.fit, build_ctx);
   if (!field.ok()) return field.status();
@@ -175,21 +193,22 @@ absl::StatusOr<extract::IsosurfaceResult> RunOnSharedExtractor(const P& p, const
   const auto start = std::chrono::steady_clock::now();
   core::SubContext extract_ctx(ctx, "extracting surface", 0.05, 1.0);
   auto extracted = ExtractShared(
-      **field, cloud, {p.cell_size * (*field)->spacing(), p.refine_steps, SurfaceExtractor::kJ1a}, extract_ctx);
+      **field, cloud, {p.cell_size * (*field)->spacing(), p.refine_steps, SurfaceExtractor::kJ1a, run.memory_bytes},
+      extract_ctx);
   if (extracted.ok()) stat("extract_seconds", core::SecondsSince(start));
   return extracted;
 }
 
 template <mls::AlgebraicFit kFit>
 absl::StatusOr<extract::IsosurfaceResult> RunAlgebraic(const AlgebraicJobParams<kFit>& p, const core::PointCloud& cloud,
-                                                       core::JobContext& ctx, const StatFn& stat, const KeepFn&) {
-  return RunOnSharedExtractor(p, cloud, ctx, stat, &mls::BuildAlgebraicMls);
+                                                       core::JobContext& ctx, const MethodRun& run) {
+  return RunOnSharedExtractor(p, cloud, ctx, run, &mls::BuildAlgebraicMls);
 }
 
 template <mls::GaussianFit kFit>
 absl::StatusOr<extract::IsosurfaceResult> RunGaussian(const GaussianJobParams<kFit>& p, const core::PointCloud& cloud,
-                                                      core::JobContext& ctx, const StatFn& stat, const KeepFn&) {
-  return RunOnSharedExtractor(p, cloud, ctx, stat, &mls::BuildGaussianMls);
+                                                      core::JobContext& ctx, const MethodRun& run) {
+  return RunOnSharedExtractor(p, cloud, ctx, run, &mls::BuildGaussianMls);
 }
 
 void PuStatistics(const pu::PuStats& s, const StatFn& stat) {
@@ -213,7 +232,9 @@ void PuStatistics(const pu::PuStats& s, const StatFn& stat) {
 }
 
 absl::StatusOr<extract::IsosurfaceResult> RunPu(const PuJobParams& p, const core::PointCloud& cloud,
-                                                core::JobContext& ctx, const StatFn& stat, const KeepFn& keep) {
+                                                core::JobContext& ctx, const MethodRun& run) {
+  const StatFn& stat = run.stat;
+  const KeepFn& keep = run.keep;
   core::SubContext build_ctx(ctx, "fitting", 0.0, 0.4);
   auto field = pu::BuildPu(cloud, p.fit, build_ctx);
   if (!field.ok()) return field.status();
@@ -222,6 +243,7 @@ absl::StatusOr<extract::IsosurfaceResult> RunPu(const PuJobParams& p, const core
   core::SubContext extract_ctx(ctx, "extracting surface", 0.4, 1.0);
   pu::PuExtractParams extract = p.extract;
   extract.marching.trace = p.keep_function;  // Local edits re-extract only what they change.
+  extract.max_leaves = LeavesWithin(run.memory_bytes, extract.max_leaves);
   auto extracted = pu::Extract(**field, extract, extract_ctx);
   if (extracted.ok()) {
     stat("extract_seconds", core::SecondsSince(start));
@@ -246,29 +268,78 @@ absl::StatusOr<extract::IsosurfaceResult> RunPu(const PuJobParams& p, const core
   return extracted;
 }
 
-// One entry per method: its description and how its typed parameters run.
+// The peak memory of a surface job, from the cloud's size and the extraction cell: about
+// `per_point` bytes a point for the function and `per_vertex` a vertex of the mesh (measured on
+// the spot model at 50k to 800k points: iaMLS 425 and 400, PU 130 and 500). The vertices come
+// from the cell: the shared extractor puts 4.4 a point on a surface sampled at h = 2 spacings
+// with cells of h, scaling with the square of the cell; PU's adaptive cells are up to 8 times as
+// large where the surface is flat, so its count is taken at that coarsest size (a low estimate:
+// what is refused certainly would not fit).
+struct CloudSize {
+  int64_t points = 0;
+  double diagonal = 0;  // Of the bounding box.
+};
+
+struct MemoryModel {
+  double per_point = 0, per_vertex = 0;
+};
+
+// An explicit spacing h, in units of the cloud's spacing as estimated from its size alone (the
+// bounding box diagonal squared over the points, about a surface's area per point), taken 4
+// times more coarsely than that rough guess gives.
+double SpacingsOf(double h, const CloudSize& size) {
+  if (size.points <= 0 || size.diagonal <= 0) return 1;
+  return 2.0 * h / (0.5 * size.diagonal / std::sqrt(static_cast<double>(size.points)));
+}
+
+MemoryEstimate EstimateMemory(const MemoryModel& model, double vertices_per_point, const CloudSize& size,
+                              std::string hint) {
+  const double points = static_cast<double>(size.points);
+  const double bytes = points * (model.per_point + model.per_vertex * vertices_per_point);
+  return {static_cast<int64_t>(std::min(bytes, 9e18)), std::move(hint)};
+}
+
+template <class P>
+MemoryEstimate EstimateSharedExtraction(const P& p, const CloudSize& size) {
+  // h in spacings: spacing_scale, or an explicit spacing over the estimated one.
+  const double h = p.fit.spacing > 0 ? SpacingsOf(p.fit.spacing, size) : p.fit.spacing_scale;
+  const double cell = p.cell_size * h / 2;  // In units of the h = 2 spacings measured.
+  return EstimateMemory({425, 400}, 4.4 / (cell * cell), size, "raise cell_size or the spacing, or split the cloud");
+}
+
+MemoryEstimate EstimatePu(const PuJobParams& p, const CloudSize& size) {
+  const double coarsest = p.extract.cell_size * 8 / 5;  // Relative to the default cell of 5 spacings.
+  return EstimateMemory({130, 500}, 2.0 / (coarsest * coarsest), size, "raise cell_size, or split the cloud");
+}
+
+// One entry per method: its description, how its typed parameters run, and its memory.
 struct SurfaceMethod {
   MethodInfo info;
   std::function<absl::StatusOr<extract::IsosurfaceResult>(const core::ParamSet&, const core::PointCloud&,
-                                                          core::JobContext&, const StatFn&, const KeepFn&)>
+                                                          core::JobContext&, const MethodRun&)>
       run;
   std::function<const NormalsParams*(const core::ParamSet&)> normals;
+  std::function<MemoryEstimate(const core::ParamSet&, const CloudSize&)> memory;
 };
 
-template <class P, class Run>
+template <class P, class Run, class Memory>
 SurfaceMethod MakeMethod(std::string name, std::string description, const core::ParamTable<P>& table, Run run,
-                         std::vector<std::string> attributes = {}) {
+                         Memory memory, std::vector<std::string> attributes = {}) {
   SurfaceMethod m;
   m.info = {std::move(name), std::move(description), core::ParamSet(table), std::move(attributes), {kInputUpload}};
-  m.run = [run](const core::ParamSet& params, const core::PointCloud& cloud, core::JobContext& ctx, const StatFn& stat,
-                const KeepFn& keep) -> absl::StatusOr<extract::IsosurfaceResult> {
+  m.run = [run](const core::ParamSet& params, const core::PointCloud& cloud, core::JobContext& ctx,
+                const MethodRun& how) -> absl::StatusOr<extract::IsosurfaceResult> {
     const P* p = params.As<P>();
     if (p == nullptr) return absl::InternalError("parameters of another method");
-    return run(*p, cloud, ctx, stat, keep);
+    return run(*p, cloud, ctx, how);
   };
   m.normals = [](const core::ParamSet& params) -> const NormalsParams* {
     const P* p = params.As<P>();
     return p ? &p->normals : nullptr;
+  };
+  m.memory = [memory](const core::ParamSet& params, const CloudSize& size) {
+    const P* p = params.As<P>();
+    return p ? memory(*p, size) : MemoryEstimate{};
   };
   return m;
 }
@@ -276,29 +347,31 @@ SurfaceMethod MakeMethod(std::string name, std::string description, const core::
 const std::vector<SurfaceMethod>& SurfaceMethods() {
   static const auto* methods = new std::vector<SurfaceMethod>{
       MakeMethod("iamls", "iterated approximate MLS surface (seed §4), extracted on a tetrahedral grid", IamlsTable(),
-                 RunIamls),
+                 RunIamls, EstimateSharedExtraction<IamlsJobParams>),
       MakeMethod("pu",
                  "twofold adaptive partition-of-unity implicit (seed §2): orthogonal-polynomial fits of adaptive "
                  "degree on an adaptive octree, extracted on its J1a tetrahedra",
-                 PuTable(), RunPu, {"depth", "degree", "feature"}),
+                 PuTable(), RunPu, EstimatePu, {"depth", "degree", "feature"}),
       MakeMethod("ramls",
                  "robust algebraic MLS surface (seed §3): closed-form normal-driven sphere fits, extracted on J1a "
                  "tetrahedra",
                  MlsTable<RamlsJobParams>(mls::AlgebraicMlsParamTable(mls::AlgebraicFit::kRamls)),
-                 RunAlgebraic<mls::AlgebraicFit::kRamls>),
+                 RunAlgebraic<mls::AlgebraicFit::kRamls>, EstimateSharedExtraction<RamlsJobParams>),
       MakeMethod("apss",
                  "algebraic point set surface (Guennebaud & Gross): normal-constrained sphere fits weighted by beta, "
                  "extracted on J1a tetrahedra",
                  MlsTable<ApssJobParams>(mls::AlgebraicMlsParamTable(mls::AlgebraicFit::kApss)),
-                 RunAlgebraic<mls::AlgebraicFit::kApss>),
+                 RunAlgebraic<mls::AlgebraicFit::kApss>, EstimateSharedExtraction<ApssJobParams>),
       MakeMethod("aamls",
                  "Adamson-Alexa MLS surface: distance to the plane through the Gaussian-weighted centroid along the "
                  "weighted mean normal, extracted on J1a tetrahedra",
-                 MlsTable<AamlsJobParams>(mls::GaussianMlsParamTable()), RunGaussian<mls::GaussianFit::kAdamsonAlexa>),
+                 MlsTable<AamlsJobParams>(mls::GaussianMlsParamTable()), RunGaussian<mls::GaussianFit::kAdamsonAlexa>,
+                 EstimateSharedExtraction<AamlsJobParams>),
       MakeMethod("imls",
                  "Kolluri's implicit MLS surface: Gaussian-weighted mean of the points' tangent-plane distances, "
                  "extracted on J1a tetrahedra",
-                 MlsTable<ImlsJobParams>(mls::GaussianMlsParamTable()), RunGaussian<mls::GaussianFit::kKolluri>),
+                 MlsTable<ImlsJobParams>(mls::GaussianMlsParamTable()), RunGaussian<mls::GaussianFit::kKolluri>,
+                 EstimateSharedExtraction<ImlsJobParams>),
   };
   return *methods;
 }
@@ -368,8 +441,9 @@ class SurfaceKind final : public JobKind {
     auto cloud = DecodeCloud(uploads, limits.max_points);
     if (!cloud.ok()) return cloud.status();
     LSQSURF_RETURN_IF_ERROR(CheckCloud(*cloud, *m->normals(spec.params), limits));
-    const auto points = static_cast<int64_t>(cloud->size());
-    return CheckedInput{points, std::make_shared<core::PointCloud>(*std::move(cloud))};
+    const CloudSize size{static_cast<int64_t>(cloud->size()), core::BoundingBox(cloud->positions).diagonal().norm()};
+    MemoryEstimate memory = m->memory(spec.params, size);
+    return CheckedInput{size.points, std::make_shared<core::PointCloud>(*std::move(cloud)), std::move(memory)};
   }
 
   absl::StatusOr<Statistics> Run(const JobSpec& spec, const Uploads& uploads, RunEnvironment& env) const override {
@@ -380,7 +454,7 @@ class SurfaceKind final : public JobKind {
       cloud = DecodeCloud(uploads, io::DracoDecodeLimits{}.max_points);  // Its size was checked at submission.
       if (!cloud.ok()) return cloud.status();
     }
-    auto result = ReconstructSurface(spec.method, spec.params, *std::move(cloud), env.context);
+    auto result = ReconstructSurface(spec.method, spec.params, *std::move(cloud), env.context, env.memory_bytes);
     if (!result.ok()) return result.status();
     LSQSURF_RETURN_IF_ERROR(DeliverMesh(result->mesh, spec, env, &result->statistics));
     for (const auto& [name, bytes] : result->kept) LSQSURF_RETURN_IF_ERROR(env.sink.Write(name, bytes));
@@ -443,7 +517,7 @@ const JobKind& SurfaceJobKind() {
 }
 
 absl::StatusOr<SurfaceResult> ReconstructSurface(const std::string& method, const core::ParamSet& params,
-                                                 core::PointCloud cloud, core::JobContext& ctx) {
+                                                 core::PointCloud cloud, core::JobContext& ctx, int64_t memory_bytes) {
   const SurfaceMethod* m = FindSurfaceMethod(method);
   if (m == nullptr || m->normals(params) == nullptr) {
     return absl::InvalidArgumentError(core::StrCat("'", method, "' is not a surface method with these parameters"));
@@ -472,7 +546,7 @@ absl::StatusOr<SurfaceResult> ReconstructSurface(const std::string& method, cons
 
   core::SubContext engine_ctx(ctx, method, normals_share, 1.0);
   auto keep = [&](std::string name, std::string bytes) { result.kept.emplace_back(std::move(name), std::move(bytes)); };
-  auto extracted = m->run(params, cloud, engine_ctx, stat, keep);
+  auto extracted = m->run(params, cloud, engine_ctx, MethodRun{stat, keep, memory_bytes});
   if (!extracted.ok()) return extracted.status();
   result.mesh = std::move(extracted->mesh);
   if (result.mesh.faces.empty()) {

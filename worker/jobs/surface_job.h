@@ -98,10 +98,12 @@ struct SurfaceResult {
 
 // Reconstructs a cloud with a method's validated parameters (`params` from the method's
 // defaults): normals first when the cloud has none, then the method, then topology statistics.
-// The service and the benchmark's direct mode both run this. Errors: kInvalidArgument,
+// The service and the benchmark's direct mode both run this; the extraction stops past what
+// `memory_bytes` holds (0: the engines' own bounds). Errors: kInvalidArgument,
 // kResourceExhausted, kFailedPrecondition (no surface found), kCancelled.
 absl::StatusOr<SurfaceResult> ReconstructSurface(const std::string& method, const core::ParamSet& params,
-                                                 core::PointCloud cloud, core::JobContext& ctx);
+                                                 core::PointCloud cloud, core::JobContext& ctx,
+                                                 int64_t memory_bytes = 0);
 
 // The Draco bytes of a result mesh at `position_bits` (0: the fewest bits, 16 to 30, at which
 // Draco's quantization round trip keeps every distinct vertex position apart, so the decoded

@@ -179,6 +179,10 @@ class FrameWriter {
   std::string csv_;
 };
 
+// An allowance per front point: its position and normal, the four RK4 stages, the index and
+// the RAMLS fits' neighbour lists that the resampling builds over it.
+constexpr int64_t kTrackBytesPerPoint = 256;
+
 class TrackKind final : public JobKind {
  public:
   std::string_view name() const override { return "track"; }
@@ -200,7 +204,9 @@ class TrackKind final : public JobKind {
     auto input = DecodeInput(*p, uploads, limits.max_points);
     if (!input.ok()) return input.status();
     const auto points = static_cast<int64_t>(input->interface ? input->interface->size() : 0);
-    return CheckedInput{points, std::make_shared<TrackInput>(*std::move(input))};
+    // The engine stops a front that grows past max_points; that front must fit.
+    const MemoryEstimate memory{static_cast<int64_t>(p->tracking.max_points) * kTrackBytesPerPoint, "lower max_points"};
+    return CheckedInput{points, std::make_shared<TrackInput>(*std::move(input)), memory};
   }
 
   absl::StatusOr<Statistics> Run(const JobSpec& spec, const Uploads& uploads, RunEnvironment& env) const override {

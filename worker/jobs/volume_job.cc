@@ -83,7 +83,7 @@ class VolumeKind final : public JobKind {
       }
     }
     const auto vertices = static_cast<int64_t>(mesh.vertex_count());
-    return CheckedInput{vertices, std::make_shared<volume::VolumeMesh>(std::move(mesh))};
+    return CheckedInput{vertices, std::make_shared<volume::VolumeMesh>(std::move(mesh)), {}};
   }
 
   absl::StatusOr<Statistics> Run(const JobSpec& spec, const Uploads& uploads, RunEnvironment& env) const override {
@@ -94,7 +94,7 @@ class VolumeKind final : public JobKind {
       LSQSURF_ASSIGN_OR_RETURN(mesh, DecodeVolume(uploads, volume::kNoVolumeLimits.max_cells));
       LSQSURF_RETURN_IF_ERROR(volume::ValidateVolumeMesh(mesh, volume::kNoVolumeLimits));
     }
-    LSQSURF_ASSIGN_OR_RETURN(VolumeResult result, ReconstructVolume(spec.params, mesh, env.context));
+    LSQSURF_ASSIGN_OR_RETURN(VolumeResult result, ReconstructVolume(spec.params, mesh, env.context, env.memory_bytes));
     if (!result.mesh.empty()) {
       LSQSURF_ASSIGN_OR_RETURN(std::string encoded,
                                EncodeResultMesh(result.mesh, spec.mesh_position_bits, &result.statistics));
@@ -130,7 +130,7 @@ absl::StatusOr<std::vector<double>> ParseIsoValues(std::string_view text) {
 }
 
 absl::StatusOr<VolumeResult> ReconstructVolume(const core::ParamSet& params, const volume::VolumeMesh& mesh,
-                                               core::JobContext& ctx) {
+                                               core::JobContext& ctx, int64_t memory_bytes) {
   const auto* p = params.As<VolumeJobParams>();
   if (p == nullptr) return absl::InternalError("not volume parameters");
   std::vector<std::string> names = {p->field};
@@ -161,6 +161,7 @@ absl::StatusOr<VolumeResult> ReconstructVolume(const core::ParamSet& params, con
   volume::VolumeIsosurfaceParams iso;
   iso.iso_values = levels;
   iso.resolution = p->resolution;
+  iso.max_leaves = LeavesWithin(memory_bytes, iso.max_leaves);
   iso.color_field = p->color_by.empty() ? -1 : field->FieldIndex(p->color_by);
   LSQSURF_ASSIGN_OR_RETURN(result.mesh, volume::ExtractVolumeIsosurface(*field, iso, iso_ctx));
   result.statistics.emplace_back("triangles", static_cast<double>(result.mesh.faces.size()));

@@ -54,9 +54,10 @@ absl::StatusOr<SampledVolume> SampleVolumeForPicture(const volume::VolumeField& 
 inline constexpr char kVolumeFieldArtifact[] = "field.lqvf";
 
 // Reconstructs a validated volume with a `volume` method's parameters: the field, then the
-// isosurfaces. The service and the benchmark's direct mode both run this.
+// isosurfaces. The service and the benchmark's direct mode both run this; the extraction stops
+// past what `memory_bytes` holds (0: the engine's own bound).
 // Errors: kInvalidArgument, kResourceExhausted, kCancelled.
 absl::StatusOr<VolumeResult> ReconstructVolume(const core::ParamSet& params, const volume::VolumeMesh& mesh,
-                                               core::JobContext& ctx);
+                                               core::JobContext& ctx, int64_t memory_bytes = 0);
 
 }  // namespace lsqsurf::jobs

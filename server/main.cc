@@ -335,6 +335,18 @@ void Reload(Security& security) {
   }
 }
 
+// The flags given in user units (MiB, seconds, days) into the options' own.
+void ApplyUnits(ServerFlags& flags, lsqsurf::jobs::JobServiceOptions& options) {
+  options.max_input_bytes = flags.max_upload_mib << 20;
+  options.lease = std::chrono::milliseconds(static_cast<int64_t>(flags.lease_seconds * 1000));
+  options.retain = std::chrono::seconds(static_cast<int64_t>(flags.retain_days * 86400));
+  options.max_store_bytes = static_cast<int64_t>(flags.max_store_gib * double(int64_t{1} << 30));
+  options.min_free_bytes = flags.min_free_mib << 20;
+  options.max_render_bytes = flags.max_render_mib << 20;
+  options.max_job_memory = flags.max_job_mib < 0 ? -1 : flags.max_job_mib << 20;
+  flags.streams.idle = std::chrono::milliseconds(static_cast<int64_t>(flags.stream_idle_seconds * 1000));
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -355,14 +367,7 @@ int main(int argc, char** argv) {
     std::fputs(lsqsurf::jobs::ParameterReference().c_str(), stdout);
     return 0;
   }
-  options.max_input_bytes = flags.max_upload_mib << 20;
-  options.lease = std::chrono::milliseconds(static_cast<int64_t>(flags.lease_seconds * 1000));
-  options.retain = std::chrono::seconds(static_cast<int64_t>(flags.retain_days * 86400));
-  options.max_store_bytes = static_cast<int64_t>(flags.max_store_gib * double(int64_t{1} << 30));
-  options.min_free_bytes = flags.min_free_mib << 20;
-  options.max_render_bytes = flags.max_render_mib << 20;
-  options.max_job_memory = flags.max_job_mib < 0 ? -1 : flags.max_job_mib << 20;
-  flags.streams.idle = std::chrono::milliseconds(static_cast<int64_t>(flags.stream_idle_seconds * 1000));
+  ApplyUnits(flags, options);
 
   // Logs go to stderr; stdout carries only the "listening on" line that scripts wait for.
   spdlog::set_default_logger(spdlog::stderr_color_mt("lsqsurfd"));

@@ -7,6 +7,7 @@
 #include <prometheus/registry.h>
 
 #include <atomic>
+#include <cctype>
 #include <map>
 #include <mutex>
 
@@ -130,8 +131,26 @@ void Metrics::Stop() {
   state_->gauges->Watch(nullptr);
 }
 
+std::string StageLabel(std::string_view stage) {
+  std::string out;
+  for (size_t i = 0; i < stage.size();) {
+    // A number starts a word: a digit, or a sign or point before one.
+    const bool word_start = i == 0 || stage[i - 1] == ' ';
+    size_t j = i;
+    while (j < stage.size() && (stage[j] == '-' || stage[j] == '+' || stage[j] == '.')) ++j;
+    if (word_start && j < stage.size() && std::isdigit(static_cast<unsigned char>(stage[j]))) {
+      while (j < stage.size() && stage[j] != ' ' && stage[j] != ':' && stage[j] != ',') ++j;
+      out += '#';
+      i = j;
+      continue;
+    }
+    out += stage[i++];
+  }
+  return out;
+}
+
 void Metrics::StageEnded(const std::string& method, const std::string& stage, double seconds) {
-  state_->stage_seconds->Add({{"method", method}, {"stage", stage}}, JobBuckets()).Observe(seconds);
+  state_->stage_seconds->Add({{"method", method}, {"stage", StageLabel(stage)}}, JobBuckets()).Observe(seconds);
 }
 
 void Metrics::JobEnded(const std::string& method, jobs::JobState state, double seconds) {

@@ -38,6 +38,10 @@ class CallObserver {
   virtual void FrameRendered() = 0;
 };
 
+// A job stage as a metric label: its numbers (iso-values, levels, which a user's parameters
+// choose) become '#', so that the labels come from a fixed set ("volume: isosurface #: ...").
+std::string StageLabel(std::string_view stage);
+
 class Metrics final : public jobs::JobEvents, public CallObserver {
  public:
   // Serves /metrics on `address` (HOST:PORT; port 0 picks one). Errors: kUnavailable when the

@@ -10,6 +10,7 @@
 #include <sstream>
 
 #include "client/client.h"
+#include "server/metrics.h"
 #include "server/reconstruction_service.h"
 #include "tests/latch_kind.h"
 #include "tests/test_dir.h"
@@ -65,6 +66,16 @@ class ServiceTest : public ::testing::Test {
   std::string input_;
   v1::JobSpec spec_;
 };
+
+// Metric labels come from a fixed set: a stage's numbers, which users' parameters choose, go.
+TEST(StageLabel, KeepsTheWordsAndDropsTheNumbers) {
+  EXPECT_EQ(StageLabel("volume: isosurface 0.25: tracking surface"), "volume: isosurface #: tracking surface");
+  EXPECT_EQ(StageLabel("volume: isosurface -1e-07"), "volume: isosurface #");
+  EXPECT_EQ(StageLabel("pu: fitting level 12"), "pu: fitting level #");
+  EXPECT_EQ(StageLabel("iamls: extracting surface"), "iamls: extracting surface");
+  EXPECT_EQ(StageLabel("pu: J1a leaves"), "pu: J1a leaves");
+  EXPECT_EQ(StageLabel("volume: isosurface 0.1"), StageLabel("volume: isosurface 123456.75"));
+}
 
 TEST_F(ServiceTest, ARunningJobCanBeCancelledButNotDeletedOrFetched) {
   auto job = client_->Submit(spec_, input_);

@@ -11,7 +11,9 @@
 
 namespace lsqsurf::jobs {
 
-enum class JobState { kQueued, kRunning, kSucceeded, kFailed, kCancelled };
+// The values are what the stores keep: they never change (rows::WithStates puts them in SQL).
+enum class JobState { kQueued = 0, kRunning = 1, kSucceeded = 2, kFailed = 3, kCancelled = 4 };
+inline constexpr JobState kLastJobState = JobState::kCancelled;
 
 const char* JobStateName(JobState state);
 bool IsTerminal(JobState state);

@@ -4,6 +4,7 @@
 #include <charconv>
 #include <sstream>
 
+#include "absl/strings/str_replace.h"
 #include "worker/core/strings.h"
 #include "worker/jobs/method_registry.h"
 
@@ -76,6 +77,19 @@ double ToDouble(const std::string& text) {
 }
 
 }  // namespace
+
+std::string WithStates(std::string_view sql) {
+  const auto text = [](JobState state) { return std::to_string(static_cast<int>(state)); };
+  const std::vector<std::pair<std::string, std::string>> names = {
+      {"{queued}", text(JobState::kQueued)},
+      {"{running}", text(JobState::kRunning)},
+      {"{succeeded}", text(JobState::kSucceeded)},
+      {"{failed}", text(JobState::kFailed)},
+      {"{cancelled}", text(JobState::kCancelled)},
+      {"{finished}", core::StrCat("(", text(JobState::kSucceeded), ", ", text(JobState::kFailed), ", ",
+                                  text(JobState::kCancelled), ")")}};
+  return absl::StrReplaceAll(absl::string_view(sql.data(), sql.size()), names);
+}
 
 std::string Number(double value) {
   char buf[32];
@@ -162,7 +176,7 @@ JobRecord FromColumns(const std::vector<std::string>& c) {
     unusable = core::StrCat("this server has no method '", r.spec.method, "' any more");
   }
   r.spec.mesh_position_bits = static_cast<int>(ToInt(c[3]));
-  r.state = static_cast<JobState>(std::clamp<int64_t>(ToInt(c[4]), 0, 4));
+  r.state = static_cast<JobState>(std::clamp<int64_t>(ToInt(c[4]), 0, static_cast<int64_t>(kLastJobState)));
   r.stage = c[5];
   r.attempts = static_cast<int>(ToInt(c[6]));
   r.error = c[7];

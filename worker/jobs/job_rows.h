@@ -5,6 +5,7 @@
 #pragma once
 
 #include <string>
+#include <string_view>
 #include <vector>
 
 #include "worker/jobs/job.h"
@@ -53,6 +54,10 @@ std::vector<std::string> HeldColumns(const JobRecord& record);
 // The record a row of kColumnCount texts holds. A stored spec that no longer decodes (its
 // method is gone, or a value left its range) comes back failed with the reason.
 JobRecord FromColumns(const std::vector<std::string>& row);
+
+// `sql` with the states named instead of numbered: {queued}, {running}, {succeeded}, {failed},
+// {cancelled}, and {finished} for the list of the last three ("(2, 3, 4)").
+std::string WithStates(std::string_view sql);
 
 std::string Number(double value);  // Shortest text that reads back to the same double.
 int64_t ToInt(const std::string& text);

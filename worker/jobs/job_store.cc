@@ -165,9 +165,10 @@ absl::StatusOr<int64_t> SqliteJobStore::Replace(const JobRecord& record, const s
   values.push_back(std::to_string(seq));
   values.push_back(held_by);
   const size_t n = values.size();
-  auto r = Query(core::StrCat("UPDATE jobs SET ", rows::HeldAssignments('?'), ", seq = ?", n - 1,
-                              " WHERE id = ?1 AND state = 1 AND runner = ?", n, " RETURNING id"),
-                 values);
+  auto r =
+      Query(core::StrCat("UPDATE jobs SET ", rows::HeldAssignments('?'), ", seq = ?", n - 1,
+                         rows::WithStates(" WHERE id = ?1 AND state = {running} AND runner = ?"), n, " RETURNING id"),
+            values);
   if (!r.ok()) return r.status();
   if (r->empty()) return absl::AbortedError(core::StrCat("job ", record.id, " is not held by ", held_by));
   return seq;
@@ -177,12 +178,14 @@ absl::StatusOr<std::optional<JobRecord>> SqliteJobStore::Claim(const std::string
                                                                std::chrono::milliseconds lease) {
   std::lock_guard lock(mutex_);
   const int64_t now = NowMs();
-  auto claimed = Query(core::StrCat("UPDATE jobs SET state = 1, stage = 'starting', progress = 0, attempts = "
-                                    "attempts + 1, cancel_requested = 0, runner = ?1, lease_expires_ms = ?2, "
-                                    "updated_ms = ?3, seq = ?4 WHERE id = (SELECT id FROM jobs WHERE state = 0 "
-                                    "ORDER BY created_ms, id LIMIT 1) RETURNING ",
-                                    rows::ColumnList()),
-                       {runner, std::to_string(now + lease.count()), std::to_string(now), std::to_string(seq_ + 1)});
+  auto claimed =
+      Query(core::StrCat(rows::WithStates("UPDATE jobs SET state = {running}, stage = 'starting', progress = 0, "
+                                          "attempts = attempts + 1, cancel_requested = 0, runner = ?1, "
+                                          "lease_expires_ms = ?2, updated_ms = ?3, seq = ?4 WHERE id = (SELECT id "
+                                          "FROM jobs WHERE state = {queued} ORDER BY created_ms, id LIMIT 1) "
+                                          "RETURNING "),
+                         rows::ColumnList()),
+            {runner, std::to_string(now + lease.count()), std::to_string(now), std::to_string(seq_ + 1)});
   if (!claimed.ok()) return claimed.status();
   if (claimed->empty()) return std::optional<JobRecord>();
   ++seq_;
@@ -205,7 +208,8 @@ absl::StatusOr<std::vector<std::pair<std::string, bool>>> SqliteJobStore::Renew(
     params.push_back(id);
     core::StrAppend(&list, list.empty() ? "?" : ", ?", params.size());
   }
-  auto held = Query(core::StrCat("UPDATE jobs SET lease_expires_ms = ?2 WHERE state = 1 AND runner = ?1 AND id IN (",
+  auto held = Query(core::StrCat(rows::WithStates("UPDATE jobs SET lease_expires_ms = ?2 WHERE state = {running} AND "
+                                                  "runner = ?1 AND id IN ("),
                                  list, ") RETURNING id, cancel_requested"),
                     params);
   if (!held.ok()) return held.status();
@@ -218,7 +222,8 @@ absl::StatusOr<std::vector<JobRecord>> SqliteJobStore::RecoverLapsed(bool every_
                                                                      const std::function<void(JobRecord&)>& recover) {
   std::lock_guard lock(mutex_);
   auto lapsed =
-      QueryJobs(every_running ? "WHERE state = 1" : "WHERE state = 1 AND lease_expires_ms <= ?1",
+      QueryJobs(rows::WithStates(every_running ? "WHERE state = {running}"
+                                               : "WHERE state = {running} AND lease_expires_ms <= ?1"),
                 every_running ? std::vector<std::string>{} : std::vector<std::string>{std::to_string(NowMs())});
   if (!lapsed.ok()) return lapsed.status();
   std::vector<JobRecord> out;
@@ -240,11 +245,11 @@ absl::StatusOr<JobRecord> SqliteJobStore::Cancel(const std::string& id, const st
   bool changed_here = false;
   // A queued job wrote nothing: its stored bytes settle to its upload (the reserve goes).
   for (const char* sql :
-       {"UPDATE jobs SET state = 4, error = ?2, updated_ms = ?3, seq = ?4, stored_bytes = input_bytes "
-        "WHERE id = ?1 AND state = 0 RETURNING id",
+       {"UPDATE jobs SET state = {cancelled}, error = ?2, updated_ms = ?3, seq = ?4, stored_bytes = input_bytes "
+        "WHERE id = ?1 AND state = {queued} RETURNING id",
         "UPDATE jobs SET cancel_requested = 1, updated_ms = ?3, seq = ?4 WHERE id = ?1 AND "
-        "state = 1 RETURNING id"}) {
-    auto changed = Query(sql, {id, reason, now, std::to_string(seq_ + 1)});
+        "state = {running} RETURNING id"}) {
+    auto changed = Query(rows::WithStates(sql), {id, reason, now, std::to_string(seq_ + 1)});
     if (!changed.ok()) return changed.status();
     if (!changed->empty()) {
       ++seq_;
@@ -262,7 +267,7 @@ absl::StatusOr<JobRecord> SqliteJobStore::Cancel(const std::string& id, const st
 
 absl::Status SqliteJobStore::Remove(const std::string& id) {
   std::lock_guard lock(mutex_);
-  auto removed = Query("DELETE FROM jobs WHERE id = ?1 AND state IN (2, 3, 4) RETURNING id", {id});
+  auto removed = Query(rows::WithStates("DELETE FROM jobs WHERE id = ?1 AND state IN {finished} RETURNING id"), {id});
   if (!removed.ok()) return removed.status();
   if (removed->empty()) {
     auto found = QueryJobs("WHERE id = ?1", {id});

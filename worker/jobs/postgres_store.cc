@@ -31,8 +31,8 @@ CREATE TABLE jobs (
   progress DOUBLE PRECISION NOT NULL DEFAULT 0, runner TEXT NOT NULL DEFAULT '',
   cancel_requested INTEGER NOT NULL DEFAULT 0, seq BIGINT NOT NULL DEFAULT 0,
   lease_expires_ms BIGINT NOT NULL DEFAULT 0);
-CREATE INDEX jobs_queue ON jobs (created_ms, id) WHERE state = 0;
-CREATE INDEX jobs_running ON jobs (runner) WHERE state = 1;
+CREATE INDEX jobs_queue ON jobs (created_ms, id) WHERE state = {queued};
+CREATE INDEX jobs_running ON jobs (runner) WHERE state = {running};
 CREATE INDEX jobs_by_seq ON jobs (seq);
 CREATE TABLE job_removals (id TEXT PRIMARY KEY, seq BIGINT NOT NULL);
 CREATE INDEX job_removals_by_seq ON job_removals (seq);
@@ -107,7 +107,7 @@ absl::Status MigratePostgres(pg::Pool& pool) {
                                                         "; upgrade the server"));
     }
     for (int v = version + 1; v <= kSchemaVersion; ++v) {
-      if (auto r = pg::Exec(conn, kMigrations[v - 1]); !r.ok()) {
+      if (auto r = pg::Exec(conn, rows::WithStates(kMigrations[v - 1])); !r.ok()) {
         return absl::UnavailableError(core::StrCat("schema migration ", v, " failed: ", r.status().message()));
       }
       if (auto r = pg::Exec(conn, "DELETE FROM lsqsurf_schema"); !r.ok()) return r.status();
@@ -185,10 +185,11 @@ absl::Status PostgresJobStore::Insert(const JobRecord& record) {
 absl::StatusOr<std::optional<JobRecord>> PostgresJobStore::Claim(const std::string& runner,
                                                                  std::chrono::milliseconds lease) {
   auto claimed = pool_->Exec(
-      core::StrCat("UPDATE jobs SET state = 1, stage = 'starting', progress = 0, attempts = attempts + 1, "
-                   "cancel_requested = 0, runner = $1, lease_expires_ms = lsqsurf_now_ms() + $2, updated_ms = $3 "
-                   "WHERE id = (SELECT id FROM jobs WHERE state = 0 ORDER BY created_ms, id LIMIT 1 "
-                   "FOR UPDATE SKIP LOCKED) RETURNING ",
+      core::StrCat(rows::WithStates("UPDATE jobs SET state = {running}, stage = 'starting', progress = 0, attempts = "
+                                    "attempts + 1, cancel_requested = 0, runner = $1, lease_expires_ms = "
+                                    "lsqsurf_now_ms() + $2, updated_ms = $3 WHERE id = (SELECT id FROM jobs WHERE "
+                                    "state = {queued} ORDER BY created_ms, id LIMIT 1 FOR UPDATE SKIP LOCKED) "
+                                    "RETURNING "),
                    rows::ColumnList()),
       {runner, std::to_string(lease.count()), std::to_string(NowMs())});
   if (!claimed.ok()) return claimed.status();
@@ -203,9 +204,8 @@ absl::StatusOr<int64_t> WriteHeldOn(pg_conn* conn, const JobRecord& record, cons
   values.push_back(held_by);
   auto r = pg::Exec(conn,
                     core::StrCat("UPDATE jobs SET ", rows::HeldAssignments('$'),
-                                 " WHERE id = $1 AND state = 1 AND "
-                                 "runner = $",
-                                 values.size(), " RETURNING seq"),
+                                 rows::WithStates(" WHERE id = $1 AND state = {running} AND runner = $"), values.size(),
+                                 " RETURNING seq"),
                     Params(values));
   if (!r.ok()) return r.status();
   if (r->rows.empty()) return absl::AbortedError(core::StrCat("job ", record.id, " is not held by ", held_by));
@@ -227,8 +227,8 @@ absl::StatusOr<std::vector<std::pair<std::string, bool>>> PostgresJobStore::Rene
   for (const std::string& id : ids) core::StrAppend(&array, array.empty() ? "{" : ",", id);
   array += "}";
   auto held = pool_->Exec(
-      "UPDATE jobs SET lease_expires_ms = lsqsurf_now_ms() + $2 WHERE state = 1 AND runner = $1 "
-      "AND id = ANY($3::text[]) RETURNING id, cancel_requested",
+      rows::WithStates("UPDATE jobs SET lease_expires_ms = lsqsurf_now_ms() + $2 WHERE state = {running} AND "
+                       "runner = $1 AND id = ANY($3::text[]) RETURNING id, cancel_requested"),
       {runner, std::to_string(lease.count()), array});
   if (!held.ok()) return held.status();
   std::vector<std::pair<std::string, bool>> out;
@@ -242,9 +242,10 @@ absl::StatusOr<std::vector<JobRecord>> PostgresJobStore::RecoverLapsed(bool ever
   absl::Status s = pool_->Transaction([&](pg_conn* conn) -> absl::Status {
     // Rows another server is writing are skipped: their runner is alive. Locking every lapsed
     // row first means this transaction never waits for one while holding the change counter.
-    auto lapsed = pg::Exec(conn, core::StrCat("SELECT ", rows::ColumnList(), " FROM jobs WHERE state = 1",
-                                              every_running ? "" : " AND lease_expires_ms <= lsqsurf_now_ms()",
-                                              " FOR UPDATE SKIP LOCKED"));
+    auto lapsed = pg::Exec(
+        conn,
+        core::StrCat("SELECT ", rows::ColumnList(), rows::WithStates(" FROM jobs WHERE state = {running}"),
+                     every_running ? "" : " AND lease_expires_ms <= lsqsurf_now_ms()", " FOR UPDATE SKIP LOCKED"));
     if (!lapsed.ok()) return lapsed.status();
     for (const auto& row : lapsed->rows) {
       JobRecord r = rows::FromColumns(row);
@@ -262,13 +263,15 @@ absl::StatusOr<std::vector<JobRecord>> PostgresJobStore::RecoverLapsed(bool ever
 }
 
 absl::StatusOr<JobRecord> PostgresJobStore::Cancel(const std::string& id, const std::string& reason) {
-  auto changed = pool_->Exec(core::StrCat("UPDATE jobs SET error = CASE WHEN state = 0 THEN $2 ELSE error END, "
-                                          "cancel_requested = CASE WHEN state = 1 THEN 1 ELSE cancel_requested END, "
-                                          "stored_bytes = CASE WHEN state = 0 THEN input_bytes ELSE stored_bytes END, "
-                                          "state = CASE WHEN state = 0 THEN 4 ELSE state END, updated_ms = $3 "
-                                          "WHERE id = $1 AND state IN (0, 1) RETURNING ",
-                                          rows::ColumnList()),
-                             {id, reason, std::to_string(NowMs())});
+  auto changed = pool_->Exec(
+      core::StrCat(
+          rows::WithStates("UPDATE jobs SET error = CASE WHEN state = {queued} THEN $2 ELSE error END, "
+                           "cancel_requested = CASE WHEN state = {running} THEN 1 ELSE cancel_requested END, "
+                           "stored_bytes = CASE WHEN state = {queued} THEN input_bytes ELSE stored_bytes END, "
+                           "state = CASE WHEN state = {queued} THEN {cancelled} ELSE state END, updated_ms = $3 "
+                           "WHERE id = $1 AND state IN ({queued}, {running}) RETURNING "),
+          rows::ColumnList()),
+      {id, reason, std::to_string(NowMs())});
   if (!changed.ok()) return changed.status();
   if (!changed->rows.empty()) return rows::FromColumns(changed->rows.front());
   auto found = Get(id);
@@ -277,7 +280,7 @@ absl::StatusOr<JobRecord> PostgresJobStore::Cancel(const std::string& id, const 
 }
 
 absl::Status PostgresJobStore::Remove(const std::string& id) {
-  auto removed = pool_->Exec("DELETE FROM jobs WHERE id = $1 AND state IN (2, 3, 4)", {id});
+  auto removed = pool_->Exec(rows::WithStates("DELETE FROM jobs WHERE id = $1 AND state IN {finished}"), {id});
   if (!removed.ok()) return removed.status();
   if (removed->affected > 0) return absl::OkStatus();
   auto found = Get(id);

@@ -8,7 +8,7 @@
 #include <cstdio>
 #include <vector>
 
-#include "tests/sphere_mesh.h"
+#include "worker/core/sphere_mesh.h"
 #include "worker/render/render.h"
 
 namespace {
@@ -16,7 +16,7 @@ namespace {
 // A latitude–longitude sphere with about `triangles` faces.
 lsqsurf::core::TriangleMesh Sphere(double triangles) {
   const int rings = std::max(4, static_cast<int>(std::sqrt(triangles / 4)));
-  return lsqsurf::testing::SphereMesh(rings, 2 * rings);
+  return lsqsurf::core::SphereMesh(rings, 2 * rings);
 }
 
 }  // namespace

@@ -197,7 +197,7 @@ Client::Client(const std::string& address, const ConnectOptions& options)
 
 absl::StatusOr<VolumeUpload> EncodeVolumeFile(const std::string& path, const std::string& raw_layout,
                                               const std::vector<std::string>& fields) {
-  absl::StatusOr<volume::VolumeMesh> mesh = absl::UnknownError("");
+  absl::StatusOr<core::VolumeMesh> mesh = absl::UnknownError("");
   if (raw_layout.empty()) {
     mesh = io::ReadVolumeFile(path);
   } else {

@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
-# Style gates the test command runs: every C++ source formatted as .clang-format says, and no
-# function in the product longer than 120 lines. Fix formatting with: scripts/check-style.sh --fix
+# Style gates the test command runs: every C++ source formatted as .clang-format says, no
+# function in the product longer than 120 lines, and no include the layering forbids
+# (scripts/layering.py). Fix formatting with: scripts/check-style.sh --fix
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -10,4 +11,5 @@ if [[ "${1:-}" == "--fix" ]]; then
 fi
 clang-format --dry-run --Werror "${sources[@]}"
 python3 scripts/function_lengths.py --limit 120 worker server client bench
-echo "check-style: ${#sources[@]} files formatted, no function over 120 lines"
+python3 scripts/layering.py
+echo "check-style: ${#sources[@]} files formatted, no function over 120 lines, layering holds"

@@ -1,5 +1,7 @@
 #include "server/convert.h"
 
+#include <google/protobuf/unknown_field_set.h>
+
 #include "lsqsurf/v1/enum_names.h"
 #include "worker/core/status.h"
 #include "worker/core/strings.h"
@@ -34,6 +36,20 @@ absl::Status FillField(const Message& message, const FieldDescriptor& f, core::P
   return absl::InvalidArgumentError(core::StrCat(name, " is not a parameter value"));
 }
 
+// Fields this server's proto does not know (a client built from another version) are refused,
+// naming their numbers, rather than ignored: the job would otherwise run with the defaults.
+absl::Status RefuseUnknownFields(const Message& message) {
+  const google::protobuf::UnknownFieldSet& unknown = message.GetReflection()->GetUnknownFields(message);
+  if (unknown.empty()) return absl::OkStatus();
+  std::string numbers;
+  for (int i = 0; i < unknown.field_count(); ++i) {
+    core::StrAppend(&numbers, i == 0 ? "" : ", ", unknown.field(i).number());
+  }
+  return absl::InvalidArgumentError(core::StrCat(message.GetDescriptor()->name(), " has field number",
+                                                 unknown.field_count() > 1 ? "s " : " ", numbers,
+                                                 ", which this server does not know; check ListMethods"));
+}
+
 }  // namespace
 
 grpc::Status ToGrpcStatus(const absl::Status& status) {
@@ -42,6 +58,7 @@ grpc::Status ToGrpcStatus(const absl::Status& status) {
 }
 
 absl::Status FillParams(const Message& message, core::ParamSet* params) {
+  LSQSURF_RETURN_IF_ERROR(RefuseUnknownFields(message));
   std::vector<const FieldDescriptor*> fields;
   message.GetReflection()->ListFields(message, &fields);  // The fields that are set.
   for (const FieldDescriptor* f : fields) {
@@ -89,6 +106,7 @@ absl::StatusOr<jobs::JobSpec> FromProto(const v1::JobSpec& spec) {
     for (const auto& m : jobs::Methods()) core::StrAppend(&known, known.empty() ? "" : ", ", m.info.name);
     return absl::InvalidArgumentError(core::StrCat("the spec names no method; set one of: ", known));
   }
+  LSQSURF_RETURN_IF_ERROR(RefuseUnknownFields(spec));
   jobs::JobSpec out;
   out.method = method->name();
   auto params = jobs::DefaultParams(out.method);

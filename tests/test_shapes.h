@@ -9,10 +9,10 @@
 #include <random>
 
 #include "absl/status/statusor.h"
-#include "tests/sphere_mesh.h"
 #include "worker/core/geometry.h"
 #include "worker/core/implicit_function.h"
 #include "worker/core/job_context.h"
+#include "worker/core/sphere_mesh.h"
 
 namespace lsqsurf::testing {
 

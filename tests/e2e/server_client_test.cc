@@ -813,7 +813,7 @@ TEST(ClientTool, SamplesACloudOnTheMeshWithTheAskedNoise) {
   const fs::path dir = testing::FreshTestDir("lsqsurf-sample");
   fs::create_directories(dir);
   const std::string mesh = (dir / "sphere.obj").string(), cloud = (dir / "cloud.ply").string();
-  ASSERT_TRUE(io::WriteMeshFile(mesh, testing::SphereMesh(60, 120)).ok());
+  ASSERT_TRUE(io::WriteMeshFile(mesh, core::SphereMesh(60, 120)).ok());
   const std::string tool = LSQSURF_PATH;
   ASSERT_EQ(testing::Shell(tool + " sample " + mesh + " --points 5000 -o " + cloud).code, 0);
   auto exact = io::ReadPointCloudFile(cloud);

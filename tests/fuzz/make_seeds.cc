@@ -6,8 +6,8 @@
 #include <string>
 
 #include "lsqsurf/v1/reconstruction.pb.h"
-#include "tests/sphere_mesh.h"
 #include "tests/test_shapes.h"
+#include "worker/core/sphere_mesh.h"
 #include "worker/io/draco_codec.h"
 #include "worker/io/files.h"
 #include "worker/io/obj_xyz.h"
@@ -45,7 +45,7 @@ int main(int argc, char** argv) {
     return 2;
   }
   root = argv[1];
-  const core::TriangleMesh mesh = lsqsurf::testing::SphereMesh(4, 6);
+  const core::TriangleMesh mesh = core::SphereMesh(4, 6);
   const core::PointCloud cloud = lsqsurf::testing::SphereCloud(40);
   core::TriangleMesh cloud_mesh;
   cloud_mesh.vertices = cloud.positions;

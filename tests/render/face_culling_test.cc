@@ -4,8 +4,8 @@
 
 #include <utility>
 
-#include "tests/sphere_mesh.h"
 #include "worker/core/mesh_metrics.h"
+#include "worker/core/sphere_mesh.h"
 
 namespace lsqsurf::render {
 namespace {
@@ -18,7 +18,7 @@ void FlipFaces(core::TriangleMesh& m, size_t first, size_t last) {
 
 // Two spheres side by side in one mesh.
 core::TriangleMesh TwoSpheres() {
-  core::TriangleMesh a = testing::SphereMesh(12, 24), b = testing::SphereMesh(12, 24);
+  core::TriangleMesh a = core::SphereMesh(12, 24), b = core::SphereMesh(12, 24);
   const auto offset = static_cast<uint32_t>(a.vertices.size());
   for (const core::Vec3f& v : b.vertices) a.vertices.push_back(v + core::Vec3f(3, 0, 0));
   a.normals.insert(a.normals.end(), b.normals.begin(), b.normals.end());
@@ -28,7 +28,7 @@ core::TriangleMesh TwoSpheres() {
 
 TEST(FaceCulling, TheTestSphereIsClosedAndWoundOutwards) {
   // Independent truth: the sorting topology analysis and the divergence-theorem volume.
-  const core::TriangleMesh sphere = testing::SphereMesh(24, 48);
+  const core::TriangleMesh sphere = core::SphereMesh(24, 48);
   const core::MeshTopology topology = core::AnalyzeTopology(sphere);
   EXPECT_TRUE(topology.watertight());
   EXPECT_TRUE(topology.consistently_oriented());
@@ -38,7 +38,7 @@ TEST(FaceCulling, TheTestSphereIsClosedAndWoundOutwards) {
 }
 
 TEST(FaceCulling, ReversedWindingIsClockwise) {
-  core::TriangleMesh sphere = testing::SphereMesh(24, 48);
+  core::TriangleMesh sphere = core::SphereMesh(24, 48);
   FlipFaces(sphere, 0, sphere.faces.size());
   EXPECT_EQ(Winding(sphere), OutsideWinding::kClockwise);
   sphere.normals.clear();  // The volume's sign alone.
@@ -46,11 +46,11 @@ TEST(FaceCulling, ReversedWindingIsClockwise) {
 }
 
 TEST(FaceCulling, OpenOrInconsistentMeshesCullNothing) {
-  core::TriangleMesh holed = testing::SphereMesh(24, 48);
+  core::TriangleMesh holed = core::SphereMesh(24, 48);
   holed.faces.erase(holed.faces.begin() + 100);
   EXPECT_EQ(Winding(holed), OutsideWinding::kUnknown);
 
-  core::TriangleMesh one_flipped = testing::SphereMesh(24, 48);
+  core::TriangleMesh one_flipped = core::SphereMesh(24, 48);
   FlipFaces(one_flipped, 100, 101);
   EXPECT_EQ(Winding(one_flipped), OutsideWinding::kUnknown);
 
@@ -61,7 +61,7 @@ TEST(FaceCulling, OpenOrInconsistentMeshesCullNothing) {
   EXPECT_EQ(Winding(pair), OutsideWinding::kUnknown);
 
   // Normals pointing inwards contradict the volume: not trusted.
-  core::TriangleMesh inward = testing::SphereMesh(24, 48);
+  core::TriangleMesh inward = core::SphereMesh(24, 48);
   for (core::Vec3f& n : inward.normals) n = -n;
   EXPECT_EQ(Winding(inward), OutsideWinding::kUnknown);
 

@@ -55,7 +55,7 @@ TEST_F(RenderTest, SilhouetteMatchesTheProjectedSphere) {
   RenderParams p = SphereView(512);
   p.samples = 1;  // Whole pixels, so that covered pixels can be counted.
   p.transparent = true;
-  const core::TriangleMesh sphere = testing::SphereMesh(128, 256);
+  const core::TriangleMesh sphere = core::SphereMesh(128, 256);
   auto image = renderer_->RenderMesh(sphere, p);
   ASSERT_TRUE(image.ok()) << image.status();
   double covered = 0, cx = 0, cy = 0;
@@ -91,7 +91,7 @@ TEST_F(RenderTest, SilhouetteMatchesTheProjectedSphere) {
 TEST_F(RenderTest, ShadingFallsMonotonicallyAwayFromTheLight) {
   RenderParams p = SphereView(256);
   p.specular = 0;  // Lambert only: brightness = ambient + diffuse · max(0, n·l).
-  auto image = renderer_->RenderMesh(testing::SphereMesh(128, 256), p);
+  auto image = renderer_->RenderMesh(core::SphereMesh(128, 256), p);
   ASSERT_TRUE(image.ok()) << image.status();
   // The light comes from up-left of the camera: along the diagonal from the top-left to the
   // bottom-right of the disc, brightness rises to one peak in the top-left half, then falls.
@@ -111,7 +111,7 @@ TEST_F(RenderTest, ColouredAttributeFollowsTheLegend) {
   p.specular = 0;
   p.color_attribute = "height";
   RenderInfo info;
-  auto image = renderer_->RenderMesh(testing::SphereMesh(128, 256), p, &info);
+  auto image = renderer_->RenderMesh(core::SphereMesh(128, 256), p, &info);
   ASSERT_TRUE(image.ok()) << image.status();
   EXPECT_NEAR(info.color_min, -1, 1e-6);
   EXPECT_NEAR(info.color_max, 1, 1e-6);
@@ -146,7 +146,7 @@ TEST_F(RenderTest, CullingHiddenFacesLeavesThePictureUnchanged) {
   // far side is open, so every face is drawn. Only silhouette samples may differ (there a back
   // face can cover a sample that no front face does).
   RenderParams p = SphereView(256);
-  const core::TriangleMesh closed = testing::SphereMesh(96, 192);
+  const core::TriangleMesh closed = core::SphereMesh(96, 192);
   core::TriangleMesh open = closed;
   const auto far_face = std::find_if(open.faces.begin(), open.faces.end(), [&](const core::Triangle& f) {
     return open.vertices[f[0]].x() < -0.99f && open.vertices[f[1]].x() < -0.99f && open.vertices[f[2]].x() < -0.99f;
@@ -192,7 +192,7 @@ std::array<double, 4> Coverage(const Image& image) {
 
 TEST_F(RenderTest, TheUpAxisPointsUpInThePicture) {
   // An ellipsoid twice as long along y as along x and z, seen from the side at distance 12.
-  core::TriangleMesh ellipsoid = testing::SphereMesh(48, 96);
+  core::TriangleMesh ellipsoid = core::SphereMesh(48, 96);
   for (core::Vec3f& v : ellipsoid.vertices) v.y() *= 2;
   RenderParams p = SphereView(256);
   p.transparent = true;
@@ -224,7 +224,7 @@ TEST_F(RenderTest, AFramingBoxMovesTheAimPoint) {
   p.transparent = true;
   p.camera.distance = 10;
   p.camera.framing_box = core::Box3(core::Vec3d(-1, -0.5, -1), core::Vec3d(1, 1.5, 1));
-  auto image = renderer_->RenderMesh(testing::SphereMesh(64, 128), p);
+  auto image = renderer_->RenderMesh(core::SphereMesh(64, 128), p);
   ASSERT_TRUE(image.ok()) << image.status();
   const double focal = 128 / std::tan(0.5 * p.camera.fov_deg * kDegree);
   const double centre = std::atan(0.05), half = std::asin(1 / std::hypot(10.0, 0.5));
@@ -234,7 +234,7 @@ TEST_F(RenderTest, AFramingBoxMovesTheAimPoint) {
   EXPECT_NEAR(coverage[2], 0.5 * (left + right), 1);
   EXPECT_NEAR(coverage[3], 128, 1);
   p.camera.framing_box = core::Box3(core::Vec3d(0, 0, 0), core::Vec3d(NAN, 1, 1));
-  EXPECT_EQ(renderer_->RenderMesh(testing::SphereMesh(8, 16), p).status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(renderer_->RenderMesh(core::SphereMesh(8, 16), p).status().code(), absl::StatusCode::kInvalidArgument);
 }
 
 TEST_F(RenderTest, PointSplatsStayInsideTheSilhouette) {
@@ -261,7 +261,7 @@ TEST_F(RenderTest, PointSplatsStayInsideTheSilhouette) {
 }
 
 TEST_F(RenderTest, ConcurrentRequestsAllSucceedAndAgree) {
-  const core::TriangleMesh sphere = testing::SphereMesh(64, 128);
+  const core::TriangleMesh sphere = core::SphereMesh(64, 128);
   RenderParams p = SphereView(200);
   p.wireframe = true;
   p.shading = Shading::kFlat;
@@ -287,7 +287,7 @@ TEST_F(RenderTest, ConcurrentRequestsAllSucceedAndAgree) {
 }
 
 TEST_F(RenderTest, BadRequestsAreRefused) {
-  const core::TriangleMesh sphere = testing::SphereMesh(8, 16);
+  const core::TriangleMesh sphere = core::SphereMesh(8, 16);
   RenderParams p = SphereView(64);
   p.width = 5000;
   EXPECT_EQ(renderer_->RenderMesh(sphere, p).status().code(), absl::StatusCode::kInvalidArgument);
@@ -305,7 +305,7 @@ TEST_F(RenderTest, BadRequestsAreRefused) {
 }
 
 TEST_F(RenderTest, PngDecodesToTheSamePixels) {
-  auto image = renderer_->RenderMesh(testing::SphereMesh(16, 32), SphereView(64));
+  auto image = renderer_->RenderMesh(core::SphereMesh(16, 32), SphereView(64));
   ASSERT_TRUE(image.ok());
   auto png = EncodePng(*image);
   ASSERT_TRUE(png.ok()) << png.status();

@@ -2,6 +2,7 @@
 // keep their codes and messages.
 #include "server/convert.h"
 
+#include <google/protobuf/unknown_field_set.h>
 #include <gtest/gtest.h>
 
 #include <cctype>
@@ -137,7 +138,7 @@ TEST(Convert, RefusesWhatTheMethodDoesNotTake) {
     v1::JobSpec spec;
     const char* fragment;
   };
-  std::vector<Case> cases(5);
+  std::vector<Case> cases(7);
   cases[0] = {"no method", {}, "names no method"};
   cases[1].what = "beta is APSS's";
   cases[1].spec.mutable_ramls()->set_beta(10);
@@ -152,6 +153,19 @@ TEST(Convert, RefusesWhatTheMethodDoesNotTake) {
   cases[4].spec.mutable_iamls();
   cases[4].spec.mutable_preview()->mutable_options()->set_width(3);
   cases[4].fragment = "preview: width=3";
+  // Fields of a newer proto are refused, not ignored (the job would run with the defaults).
+  cases[5].what = "an unknown field in the method's message";
+  // As a client built from another version sends them: bytes this proto does not describe.
+  const auto add_unknown = [](google::protobuf::Message* m, int number, uint64_t value) {
+    m->GetReflection()->MutableUnknownFields(m)->AddVarint(number, value);
+  };
+  add_unknown(cases[5].spec.mutable_iamls(), 999, 5);
+  cases[5].fragment = "field number 999";
+  cases[6].what = "unknown fields in the spec";
+  cases[6].spec.mutable_iamls();
+  add_unknown(&cases[6].spec, 900, 1);
+  add_unknown(&cases[6].spec, 901, 2);
+  cases[6].fragment = "field numbers 900, 901";
   for (const Case& c : cases) {
     auto spec = FromProto(c.spec);
     ASSERT_FALSE(spec.ok()) << c.what;

@@ -16,6 +16,7 @@
 #include "tests/test_dir.h"
 #include "tests/test_shapes.h"
 #include "worker/core/mesh_metrics.h"
+#include "worker/core/strings.h"
 #include "worker/io/draco_codec.h"
 #include "worker/io/volume_codec.h"
 #include "worker/volume/synthetic.h"
@@ -224,6 +225,28 @@ TEST_F(ServiceTest, AVolumeMeshBecomesAnIsosurfaceAndBadVolumesAreRefused) {
   EXPECT_NE(missing.status().message().find("franke (scalar)"), std::string::npos) << missing.status();
   auto corrupt = client_->Submit(spec, *vertices, {}, cells.substr(0, cells.size() - 3));
   EXPECT_EQ(corrupt.status().code(), absl::StatusCode::kInvalidArgument) << corrupt.status();
+  // The same vertices coded with Draco's KD-tree method come back in another order, which the
+  // cells cannot follow: refused with that reason, not as inverted cells.
+  core::PointCloud reordering;
+  reordering.positions = mesh.positions;
+  reordering.attributes.push_back({"franke", mesh.FindField("franke")->values});
+  auto kd_coded = io::EncodeDracoPointCloud(reordering, io::DracoOptions{.speed = 5});
+  ASSERT_TRUE(kd_coded.ok()) << kd_coded.status();
+  auto kd_refused = client_->Submit(spec, *kd_coded, {}, cells);
+  ASSERT_FALSE(kd_refused.ok());
+  EXPECT_EQ(kd_refused.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(kd_refused.status().message().find("KD-tree"), std::string::npos) << kd_refused.status();
+  // An iso-value beyond every value of the field at the vertices would extract nothing: refused
+  // at submission with the field's range.
+  double highest = -1e300;
+  for (float v : mesh.FindField("franke")->values) highest = std::max<double>(highest, v);
+  v1::JobSpec beyond = spec;
+  beyond.mutable_volume()->set_iso(core::StrCat("0.4,", highest + 0.5));
+  auto empty_level = client_->Submit(beyond, *vertices, {}, cells);
+  ASSERT_FALSE(empty_level.ok());
+  EXPECT_EQ(empty_level.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(empty_level.status().message().find("lies outside the values of 'franke'"), std::string::npos)
+      << empty_level.status();
   // A picture of the kept field, drawn by the CPU ray caster from a sampled grid whose error is
   // reported.
   v1::RenderOptions view;

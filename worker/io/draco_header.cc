@@ -163,6 +163,7 @@ absl::StatusOr<DracoClaim> ReadDracoClaim(std::string_view bytes) {
     int32_t points = 0;
     if (!in.I32(points) || points < 0) return Corrupt("point count");
     claim.points = static_cast<uint64_t>(points);
+    claim.reorders_points = method == kKdTreeMethod;
     auto per_point = ReadAttributeBytesPerPoint(in);
     if (!per_point.ok()) return per_point.status();
     claim.attribute_bytes_per_point = *per_point;

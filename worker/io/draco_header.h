@@ -21,6 +21,9 @@ struct DracoClaim {
   // Bytes per point of the attributes the stream declares (point clouds; 0 for meshes, whose
   // attribute descriptors follow entropy-coded connectivity and are not read here).
   uint64_t attribute_bytes_per_point = 0;
+  // A point cloud coded with the KD-tree method: it decodes in another order than it was coded
+  // in, so anything that refers to points by index (a volume's cells) cannot use it.
+  bool reorders_points = false;
 };
 
 // Errors: kInvalidArgument (not Draco, truncated header, an unsupported bitstream version or

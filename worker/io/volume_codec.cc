@@ -59,16 +59,16 @@ absl::StatusOr<std::string> Inflate(std::string_view packed, uint64_t expected) 
 
 }  // namespace
 
-absl::StatusOr<std::string> EncodeVolumeVertices(const volume::VolumeMesh& mesh, std::span<const std::string> fields,
+absl::StatusOr<std::string> EncodeVolumeVertices(const core::VolumeMesh& mesh, std::span<const std::string> fields,
                                                  const VolumeCodecOptions& options) {
   if (mesh.vertex_count() == 0) return absl::InvalidArgumentError("the volume has no vertices");
   core::PointCloud cloud;
   cloud.positions = mesh.positions;
   for (const std::string& name : fields) {
-    const volume::VertexField* f = mesh.FindField(name);
+    const core::VertexField* f = mesh.FindField(name);
     if (f == nullptr || f->components != 1) {
       return absl::InvalidArgumentError(
-          core::StrCat("the volume has no scalar field '", name, "'; its fields: ", volume::DescribeFields(mesh)));
+          core::StrCat("the volume has no scalar field '", name, "'; its fields: ", core::DescribeFields(mesh)));
     }
     for (size_t i = 0; i < f->values.size(); ++i) {
       if (!std::isfinite(f->values[i])) {
@@ -84,7 +84,7 @@ absl::StatusOr<std::string> EncodeVolumeVertices(const volume::VolumeMesh& mesh,
   return EncodeDracoPointCloud(cloud, draco);
 }
 
-absl::Status DecodeVolumeVertices(std::string_view bytes, volume::VolumeMesh& mesh) {
+absl::Status DecodeVolumeVertices(std::string_view bytes, core::VolumeMesh& mesh) {
   LSQSURF_ASSIGN_OR_RETURN(core::PointCloud cloud, DecodeDracoPointCloud(bytes));
   mesh.positions = std::move(cloud.positions);
   mesh.fields.clear();
@@ -92,7 +92,7 @@ absl::Status DecodeVolumeVertices(std::string_view bytes, volume::VolumeMesh& me
   return absl::OkStatus();
 }
 
-std::string EncodeCellStream(const volume::VolumeMesh& mesh) {
+std::string EncodeCellStream(const core::VolumeMesh& mesh) {
   std::string payload;
   PutVarint(payload, mesh.cell_count());
   int64_t previous = 0;
@@ -114,7 +114,7 @@ std::string EncodeCellStream(const volume::VolumeMesh& mesh) {
   return out + packed;
 }
 
-absl::Status DecodeCellStream(std::string_view bytes, int64_t max_cells, volume::VolumeMesh& mesh) {
+absl::Status DecodeCellStream(std::string_view bytes, int64_t max_cells, core::VolumeMesh& mesh) {
   auto corrupt = [](std::string_view why) {
     return absl::InvalidArgumentError(core::StrCat("the cell stream is corrupt: ", why));
   };
@@ -149,9 +149,9 @@ absl::Status DecodeCellStream(std::string_view bytes, int64_t max_cells, volume:
   for (uint64_t c = 0; c < count; ++c) {
     if (pos >= payload->size()) return corrupt(core::StrCat("it ends at cell ", c, " of ", count));
     const auto type = static_cast<uint8_t>((*payload)[pos++]);
-    const int n = volume::CellVertexCount(type);
+    const int n = core::CellVertexCount(type);
     if (n == 0) {
-      return absl::InvalidArgumentError(core::StrCat("cell ", c, " is a ", volume::CellTypeName(type),
+      return absl::InvalidArgumentError(core::StrCat("cell ", c, " is a ", core::CellTypeName(type),
                                                      "; volume meshes may hold tetrahedra, hexahedra, wedges and "
                                                      "pyramids only"));
     }

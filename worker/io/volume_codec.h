@@ -15,7 +15,7 @@
 #include <string_view>
 
 #include "absl/status/statusor.h"
-#include "worker/volume/volume_mesh.h"
+#include "worker/core/volume_mesh.h"
 
 namespace lsqsurf::io {
 
@@ -26,15 +26,15 @@ struct VolumeCodecOptions {
 
 // Only the named scalar fields travel. Errors: kInvalidArgument (no vertices, a name that is not
 // a scalar field of the mesh, non-finite data), kInternal (Draco refused).
-absl::StatusOr<std::string> EncodeVolumeVertices(const volume::VolumeMesh& mesh, std::span<const std::string> fields,
+absl::StatusOr<std::string> EncodeVolumeVertices(const core::VolumeMesh& mesh, std::span<const std::string> fields,
                                                  const VolumeCodecOptions& options);
 // Positions and fields into `mesh` (its cells are left alone). Errors: kInvalidArgument.
-absl::Status DecodeVolumeVertices(std::string_view bytes, volume::VolumeMesh& mesh);
+absl::Status DecodeVolumeVertices(std::string_view bytes, core::VolumeMesh& mesh);
 
-std::string EncodeCellStream(const volume::VolumeMesh& mesh);
+std::string EncodeCellStream(const core::VolumeMesh& mesh);
 // Cells into `mesh`. Errors: kInvalidArgument (corrupt or truncated stream), kResourceExhausted
 // (more than `max_cells` cells). Indices are not checked against the vertices here
 // (ValidateVolumeMesh does).
-absl::Status DecodeCellStream(std::string_view bytes, int64_t max_cells, volume::VolumeMesh& mesh);
+absl::Status DecodeCellStream(std::string_view bytes, int64_t max_cells, core::VolumeMesh& mesh);
 
 }  // namespace lsqsurf::io

@@ -23,8 +23,8 @@ namespace {
 
 using core::Vec3d;
 using core::Vec3f;
-using volume::VertexField;
-using volume::VolumeMesh;
+using core::VertexField;
+using core::VolumeMesh;
 
 int TypeSize(std::string_view type) {
   if (type == "unsigned_char" || type == "char") return 1;
@@ -345,7 +345,7 @@ void AppendCell(uint8_t type, std::vector<uint32_t>& vertices, VolumeMesh& mesh)
   if (type == 11 && vertices.size() == 8) {
     std::swap(vertices[2], vertices[3]);
     std::swap(vertices[6], vertices[7]);
-    type = static_cast<uint8_t>(volume::CellType::kHexahedron);
+    type = static_cast<uint8_t>(core::CellType::kHexahedron);
   }
   if (mesh.cell_offsets.empty()) mesh.cell_offsets.push_back(0);
   mesh.cell_types.push_back(type);
@@ -426,7 +426,7 @@ absl::StatusOr<VolumeMesh> BuildMesh(VtkCursor& c, VtkContent& v) {
     }
   }
   if (structured) {
-    volume::AddStructuredHexahedra(mesh, static_cast<int>(d[0]), static_cast<int>(d[1]), static_cast<int>(d[2]));
+    core::AddStructuredHexahedra(mesh, static_cast<int>(d[0]), static_cast<int>(d[1]), static_cast<int>(d[2]));
   } else if (!v.cell_types.empty()) {
     LSQSURF_RETURN_IF_ERROR(AssembleCells(c, v, mesh));
   }
@@ -469,7 +469,7 @@ absl::StatusOr<VolumeMesh> ParseLegacyVtk(std::string_view bytes, std::string_vi
   }
   LSQSURF_RETURN_IF_ERROR(ReadSections(c, v, version5));
   LSQSURF_ASSIGN_OR_RETURN(VolumeMesh mesh, BuildMesh(c, v));
-  if (absl::Status s = volume::ValidateVolumeMesh(mesh, volume::kNoVolumeLimits); !s.ok()) {
+  if (absl::Status s = core::ValidateVolumeMesh(mesh, core::kNoVolumeLimits); !s.ok()) {
     return c.Error(std::string(s.message()));
   }
   return mesh;
@@ -834,7 +834,7 @@ absl::StatusOr<VolumeMesh> ParseVtu(std::string_view bytes, std::string_view nam
     }
   }
   if (mesh.positions.empty()) return fail("no <Piece> with points");
-  if (absl::Status s = volume::ValidateVolumeMesh(mesh, volume::kNoVolumeLimits); !s.ok()) {
+  if (absl::Status s = core::ValidateVolumeMesh(mesh, core::kNoVolumeLimits); !s.ok()) {
     return fail(std::string(s.message()));
   }
   return mesh;
@@ -916,7 +916,7 @@ absl::StatusOr<VolumeMesh> ParseRawVolume(std::string_view bytes, std::string_vi
     field.values[i] = static_cast<float>(value);
   }
   mesh.fields.push_back(std::move(field));
-  volume::AddStructuredHexahedra(mesh, d[0], d[1], d[2]);
+  core::AddStructuredHexahedra(mesh, d[0], d[1], d[2]);
   return mesh;
 }
 

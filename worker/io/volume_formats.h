@@ -14,32 +14,32 @@
 #include <string_view>
 
 #include "absl/status/statusor.h"
-#include "worker/volume/volume_mesh.h"
+#include "worker/core/volume_mesh.h"
 
 namespace lsqsurf::io {
 
 // `name` appears in error messages only.
-absl::StatusOr<volume::VolumeMesh> ParseLegacyVtk(std::string_view bytes, std::string_view name);
+absl::StatusOr<core::VolumeMesh> ParseLegacyVtk(std::string_view bytes, std::string_view name);
 
 // An UNSTRUCTURED_GRID file (version 4.2 layout) with every field as POINT_DATA.
-std::string EncodeLegacyVtk(const volume::VolumeMesh& mesh, bool binary);
+std::string EncodeLegacyVtk(const core::VolumeMesh& mesh, bool binary);
 
 // A headerless regular volume, x fastest. `layout`: "NXxNYxNZ:TYPE[:SPACING]", TYPE one of
 // uint8, int8, uint16, int16, uint32, int32, float32, float64 (little-endian), SPACING one
 // number or "sx,sy,sz" (default 1). The field is named `field_name`.
-absl::StatusOr<volume::VolumeMesh> ParseRawVolume(std::string_view bytes, std::string_view layout,
-                                                  std::string_view field_name);
+absl::StatusOr<core::VolumeMesh> ParseRawVolume(std::string_view bytes, std::string_view layout,
+                                                std::string_view field_name);
 
 // VTK XML unstructured grids (.vtu, what ParaView and most CFD/FEM codes write): every piece,
 // DataArrays in ascii, binary (base64) or appended (raw or base64) form, uncompressed or zlib
 // (vtkZLibDataCompressor), UInt32 or UInt64 headers, little-endian; point data by name; the
 // same cell types and checks as the legacy reader.
-absl::StatusOr<volume::VolumeMesh> ParseVtu(std::string_view bytes, std::string_view name);
+absl::StatusOr<core::VolumeMesh> ParseVtu(std::string_view bytes, std::string_view name);
 
 // A PLY point set whose vertex properties other than x, y, z become fields (faces are ignored).
-absl::StatusOr<volume::VolumeMesh> ParsePlyVolume(std::string_view bytes, std::string_view name);
+absl::StatusOr<core::VolumeMesh> ParsePlyVolume(std::string_view bytes, std::string_view name);
 
 // By extension: .vtk, .vtu, .ply; raw volumes need their layout and go through ParseRawVolume.
-absl::StatusOr<volume::VolumeMesh> ReadVolumeFile(const std::string& path);
+absl::StatusOr<core::VolumeMesh> ReadVolumeFile(const std::string& path);
 
 }  // namespace lsqsurf::io

@@ -2,10 +2,12 @@
 
 #include <charconv>
 #include <cmath>
+#include <limits>
 #include <random>
 
 #include "worker/core/status.h"
 #include "worker/core/strings.h"
+#include "worker/io/draco_header.h"
 #include "worker/io/volume_codec.h"
 #include "worker/jobs/surface_job.h"
 #include "worker/volume/volume_isosurface.h"
@@ -44,11 +46,39 @@ absl::StatusOr<volume::VolumeMesh> DecodeVolume(const Uploads& uploads, int64_t 
     return core::WithContext("input", s);
   }
   if (auto cells = uploads.find(kCellsUpload); cells != uploads.end() && !cells->second.empty()) {
+    if (auto claim = io::ReadDracoClaim(it->second); claim.ok() && claim->reorders_points) {
+      return absl::InvalidArgumentError(
+          "input: the vertices are a Draco point cloud coded with the KD-tree method, which does not keep their "
+          "order, and the cells refer to them by index; code them with the sequential method (Draco's "
+          "POINT_CLOUD_SEQUENTIAL_ENCODING, or encoding speed 10), as lsqsurf volume does");
+    }
     if (absl::Status s = io::DecodeCellStream(cells->second, max_cells, mesh); !s.ok()) {
       return absl::Status(s.code(), core::StrCat("cells: ", s.message()));
     }
   }
   return mesh;
+}
+
+// Every iso-value within the values the field takes at the vertices: one outside would extract
+// nothing, so it is refused now rather than found empty after the fit.
+absl::Status CheckIsoValues(const VolumeJobParams& p, const volume::VolumeMesh& mesh) {
+  LSQSURF_ASSIGN_OR_RETURN(const std::vector<double> levels, ParseIsoValues(p.iso));
+  const volume::VertexField* field = mesh.FindField(p.field);
+  if (levels.empty() || field == nullptr) return absl::OkStatus();
+  double lo = std::numeric_limits<double>::infinity(), hi = -lo;
+  for (float v : field->values) {
+    if (!std::isfinite(v)) continue;
+    lo = std::min<double>(lo, v);
+    hi = std::max<double>(hi, v);
+  }
+  for (double level : levels) {
+    if (level < lo || level > hi) {
+      return absl::InvalidArgumentError(core::StrCat("iso: ", level, " lies outside the values of '", p.field,
+                                                     "' at the vertices, [", lo, ", ", hi,
+                                                     "]; no isosurface would be found there"));
+    }
+  }
+  return absl::OkStatus();
 }
 
 class VolumeKind final : public JobKind {
@@ -82,6 +112,7 @@ class VolumeKind final : public JobKind {
             core::StrCat("the upload has no scalar field '", *name, "'; its fields: ", volume::DescribeFields(mesh)));
       }
     }
+    LSQSURF_RETURN_IF_ERROR(CheckIsoValues(*p, mesh));
     const auto vertices = static_cast<int64_t>(mesh.vertex_count());
     return CheckedInput{vertices, std::make_shared<volume::VolumeMesh>(std::move(mesh)), {}};
   }

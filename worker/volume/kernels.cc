@@ -37,14 +37,18 @@ constexpr size_t kLanes = 8;
 // kernels have zero weight).
 enum Row { kCx, kCy, kCz, kQ0, kQ1, kQ2, kQ3, kQ4, kQ5, kWeight, kG, kSx, kSy, kSz, kGx, kGy, kGz, kRows };
 
-Lanes Load(const float* p) {
+// The helpers on Lanes are always inlined: the vector clones of SumGroup below are compiled for
+// AVX, which passes a 32-byte vector in one register, while an out-of-line helper compiled for
+// the baseline takes it in memory; a call between the two reads garbage (seen at -O1, where
+// GCC did not inline them).
+[[gnu::always_inline]] inline Lanes Load(const float* p) {
   Lanes v;
   std::memcpy(&v, p, sizeof v);
   return v;
 }
 
 // ExpOfMinus on eight values at once (s ≥ 0).
-Lanes ExpOfMinusLanes(Lanes s) {
+[[gnu::always_inline]] inline Lanes ExpOfMinusLanes(Lanes s) {
   const Lanes t = s * 1.44269504f;
   const IntLanes k = __builtin_convertvector(t + 0.5f, IntLanes);  // Truncation is floor here.
   const IntLanes bits = (127 - k) << 23;

@@ -25,7 +25,7 @@ using core::Vec3f;
 // 2^r for r ∈ [−½, ½] by its Taylor polynomial of degree 6: for a float, or for the batch
 // path's vector of floats.
 template <class T>
-inline T TwoToThe(T r) {
+[[gnu::always_inline]] inline T TwoToThe(T r) {
   T p = r * 1.5403530e-4f + 1.3333558e-3f;
   p = p * r + 9.6181291e-3f;
   p = p * r + 5.5504109e-2f;

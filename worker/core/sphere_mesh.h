@@ -1,5 +1,5 @@
-// tests/sphere_mesh.h — a triangulated sphere with exact normals, shared by the renderer's tests
-// and its benchmark (no test framework needed).
+// worker/core/sphere_mesh.h — a triangulated sphere with exact normals: a reference shape for
+// the renderer's tests, its benchmark and the fuzzers' seeds.
 #pragma once
 
 #include <cmath>
@@ -7,16 +7,16 @@
 
 #include "worker/core/geometry.h"
 
-namespace lsqsurf::testing {
+namespace lsqsurf::core {
 
 // Latitude–longitude sphere mesh of radius `radius` at the origin: one vertex per pole, so the
 // mesh is closed and edge-manifold, faces wound counter-clockwise seen from outside, exact
 // vertex normals and a "height" attribute equal to z. 2·segments·(rings − 1) triangles.
-inline core::TriangleMesh SphereMesh(int rings, int segments, double radius = 1.0) {
-  core::TriangleMesh mesh;
-  core::ScalarAttribute height{"height", {}};
+inline TriangleMesh SphereMesh(int rings, int segments, double radius = 1.0) {
+  TriangleMesh mesh;
+  ScalarAttribute height{"height", {}};
   auto add_vertex = [&](double theta, double phi) {
-    const core::Vec3d d(std::sin(theta) * std::cos(phi), std::sin(theta) * std::sin(phi), std::cos(theta));
+    const Vec3d d(std::sin(theta) * std::cos(phi), std::sin(theta) * std::sin(phi), std::cos(theta));
     mesh.vertices.push_back((radius * d).cast<float>());
     mesh.normals.push_back(d.cast<float>());
     height.values.push_back(static_cast<float>(radius * d.z()));
@@ -43,4 +43,4 @@ inline core::TriangleMesh SphereMesh(int rings, int segments, double radius = 1.
   return mesh;
 }
 
-}  // namespace lsqsurf::testing
+}  // namespace lsqsurf::core

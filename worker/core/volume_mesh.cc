@@ -1,4 +1,4 @@
-#include "worker/volume/volume_mesh.h"
+#include "worker/core/volume_mesh.h"
 
 #include <algorithm>
 #include <array>
@@ -7,7 +7,7 @@
 #include "worker/core/status.h"
 #include "worker/core/strings.h"
 
-namespace lsqsurf::volume {
+namespace lsqsurf::core {
 namespace {
 
 using Tet = std::array<uint32_t, 4>;
@@ -220,4 +220,4 @@ absl::Status ValidateVolumeMesh(const VolumeMesh& mesh, const VolumeLimits& limi
   return absl::OkStatus();
 }
 
-}  // namespace lsqsurf::volume
+}  // namespace lsqsurf::core

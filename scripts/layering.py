@@ -1,0 +1,97 @@
+#!/usr/bin/env python3
+"""Fails when a source file includes what the project's layering forbids (STYLE.md, README's
+Layout): an engine including the job layer or the server, worker/io including an engine, anything
+under worker/ including gRPC or protobuf, the server including an engine or the renderer, the
+client including more than worker/io and worker/core, the benchmarks including the tests.
+
+Usage: layering.py [--root DIR]   (DIR: the checkout, default the current directory)
+Prints one line per forbidden include (file:line: what it includes, and why not) and exits 1
+when there is any.
+"""
+import argparse
+import os
+import re
+import sys
+
+INCLUDE = re.compile(r'^\s*#\s*include\s*[<"]([^>"]+)[>"]')
+
+# For each folder, the project folders it may include (its own always).
+WORKER_BELOW_JOBS = {
+    "worker/core": set(),
+    "worker/io": {"worker/core"},
+    "worker/extract": {"worker/core"},
+    "worker/mls": {"worker/core"},
+    "worker/render": {"worker/core"},
+    "worker/pu": {"worker/core", "worker/extract"},
+    "worker/csg": {"worker/core", "worker/extract"},
+    "worker/volume": {"worker/core", "worker/extract"},
+    "worker/front": {"worker/core", "worker/extract", "worker/mls"},
+}
+ALLOWED = dict(WORKER_BELOW_JOBS)
+ALLOWED["worker/jobs"] = set(WORKER_BELOW_JOBS)
+ALLOWED["server"] = {"worker/jobs", "worker/io", "worker/core", "proto"}
+ALLOWED["client"] = {"worker/io", "worker/core", "proto"}
+ALLOWED["bench"] = set(ALLOWED) | {"proto", "bench"}
+PROJECT_FOLDERS = sorted(set(ALLOWED) | {"proto", "tests", "bench"}, key=len, reverse=True)
+# Libraries only the wire layer may see.
+WIRE_LIBRARIES = ("grpc", "grpcpp/", "grpc++/", "google/protobuf/")
+
+
+def folder_of(path):
+    for folder in PROJECT_FOLDERS:
+        if path == folder or path.startswith(folder + "/"):
+            return folder
+    return None
+
+
+def violations(root):
+    found = []
+    for top in ("worker", "server", "client", "bench"):
+        for directory, _, files in os.walk(os.path.join(root, top)):
+            for name in sorted(files):
+                if not name.endswith((".h", ".cc")):
+                    continue
+                path = os.path.join(directory, name)
+                source = os.path.relpath(path, root)
+                home = folder_of(source)
+                if home is None:
+                    continue
+                with open(path, encoding="utf-8") as f:
+                    for number, line in enumerate(f, 1):
+                        match = INCLUDE.match(line)
+                        if not match:
+                            continue
+                        why = judge(home, match.group(1))
+                        if why:
+                            found.append(f"{source}:{number}: includes {match.group(1)}: {why}")
+    return found
+
+
+def judge(home, included):
+    if home.startswith("worker/") and included.startswith(WIRE_LIBRARIES):
+        return "nothing under worker/ sees gRPC or protobuf"
+    target = folder_of(included)
+    if target is None or target == home:
+        return None
+    if target == "tests":
+        return "product code and benchmarks do not include the tests"
+    if target not in ALLOWED[home]:
+        allowed = ", ".join(sorted(ALLOWED[home])) or "nothing outside itself"
+        return f"{home} may include {allowed}"
+    return None
+
+
+def main():
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--root", default=".")
+    found = violations(parser.parse_args().root)
+    for line in found:
+        print(line)
+    if found:
+        print(f"layering: {len(found)} forbidden include(s)", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,61 @@
+#!/usr/bin/env python3
+"""scripts/layering.py refuses each kind of forbidden include and passes the allowed ones, on a
+small tree made here; then it passes on the checkout itself.
+
+Usage: layering_test.py CHECKOUT
+"""
+import os
+import subprocess
+import sys
+import tempfile
+
+FILES = {
+    # Allowed: an engine on core and extract, the job layer on an engine, the client on io.
+    "worker/pu/fit.cc": '#include "worker/core/geometry.h"\n#include "worker/extract/j1a.h"\n',
+    "worker/jobs/kind.cc": '#include "worker/pu/pu.h"\n#include <vector>\n',
+    "client/main.cc": '#include "worker/io/files.h"\n',
+    # Forbidden, one of each kind.
+    "worker/io/bad_codec.cc": '#include "worker/core/geometry.h"\n#include "worker/volume/volume_field.h"\n',
+    "worker/mls/bad_wire.cc": "#include <grpcpp/grpcpp.h>\n",
+    "worker/front/bad_up.h": '#include "worker/jobs/job_kind.h"\n',
+    "client/bad_engine.cc": '#include "worker/pu/pu.h"\n',
+    "server/bad_render.cc": '#include "worker/render/render.h"\n',
+    "bench/bad_bench.cc": '#include "tests/test_shapes.h"\n',
+}
+EXPECTED = {
+    "worker/io/bad_codec.cc:2",
+    "worker/mls/bad_wire.cc:1",
+    "worker/front/bad_up.h:1",
+    "client/bad_engine.cc:1",
+    "server/bad_render.cc:1",
+    "bench/bad_bench.cc:1",
+}
+
+
+def run(script, root):
+    return subprocess.run([sys.executable, script, "--root", root], capture_output=True, text=True)
+
+
+def main():
+    checkout = sys.argv[1]
+    script = os.path.join(checkout, "scripts", "layering.py")
+    with tempfile.TemporaryDirectory() as root:
+        for name, text in FILES.items():
+            os.makedirs(os.path.join(root, os.path.dirname(name)), exist_ok=True)
+            with open(os.path.join(root, name), "w") as f:
+                f.write(text)
+        result = run(script, root)
+        reported = {line.split(": ")[0] for line in result.stdout.splitlines()}
+        if result.returncode != 1 or reported != EXPECTED:
+            print(f"expected exit 1 and {sorted(EXPECTED)}, got {result.returncode} and:\n{result.stdout}")
+            return 1
+    result = run(script, checkout)
+    if result.returncode != 0:
+        print(f"the checkout breaks its layering:\n{result.stdout}")
+        return 1
+    print("layering: forbidden includes refused, the checkout passes")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

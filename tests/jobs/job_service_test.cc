@@ -420,7 +420,7 @@ TEST_F(JobServiceTest, AJobThatWouldTakeMoreMemoryThanAllowedIsRefusedOrStopped)
   // So is an explicit spacing far below the points' own (the surface would need as many cells).
   EXPECT_EQ(s.Submit(Spec("ramls", {{"spacing", "1e-6"}}), input).status().code(),
             absl::StatusCode::kResourceExhausted);
-  // A front allowed to grow past what memory holds, and a probe grid as large.
+  // A front allowed to grow past what memory holds.
   const absl::Status front = s.Submit(Spec("track", {{"max_points", "50000000"}}), {}).status();
   EXPECT_EQ(front.code(), absl::StatusCode::kResourceExhausted) << front;
   EXPECT_NE(front.message().find("lower max_points"), std::string::npos) << front;

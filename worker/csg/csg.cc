@@ -311,7 +311,7 @@ struct CsgFunction::Impl {
   }
 };
 
-CsgFunction::CsgFunction() : impl_(std::make_unique<Impl>()) {}
+CsgFunction::CsgFunction(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
 CsgFunction::~CsgFunction() = default;
 
 core::FieldValue CsgFunction::Value(const Vec3d& x) const {
@@ -342,8 +342,8 @@ absl::Status Validate(const CsgParams& params) {
 }
 
 absl::StatusOr<std::unique_ptr<CsgFunction>> BuildCsg(const CsgNode& root, const OperandResolver& resolve) {
-  std::unique_ptr<CsgFunction> out(new CsgFunction());
-  CsgFunction::Impl& m = *out->impl_;
+  auto built = std::make_unique<CsgFunction::Impl>();
+  CsgFunction::Impl& m = *built;
   absl::flat_hash_map<std::string, int> job_index;
   LSQSURF_RETURN_IF_ERROR(m.Add(root, Similarity{}, resolve, job_index));
   const CsgFunction::Impl::Node& top = m.nodes[0];
@@ -357,7 +357,7 @@ absl::StatusOr<std::unique_ptr<CsgFunction>> BuildCsg(const CsgNode& root, const
                                                    " model units across; at most ", kMaxSolidExtent, " are supported"));
   }
   m.bounds = top.bounds;
-  return out;
+  return std::make_unique<CsgFunction>(std::move(built));
 }
 
 namespace {
@@ -518,7 +518,7 @@ double OwnArea(const CsgFunction::Impl::Node& n) {
 
 absl::StatusOr<double> EstimateSurfaceCells(const CsgFunction& function, const CsgParams& params) {
   LSQSURF_RETURN_IF_ERROR(Validate(params));
-  const CsgFunction::Impl& m = *function.impl_;
+  const CsgFunction::Impl& m = function.impl();
   const double cell = ExtractionCell(m, params);
   if (!(cell > 0)) return absl::InvalidArgumentError("the solid has no extent to size cells by");
   // A convex surface inside a box has at most the box's area there; a torus is two such sheets.
@@ -551,7 +551,7 @@ absl::Status CheckExtractionSize(const CsgFunction& function, const CsgParams& p
 absl::StatusOr<extract::IsosurfaceResult> ExtractCsg(const CsgFunction& function, const CsgParams& params,
                                                      core::JobContext& ctx, CsgStats* stats) {
   LSQSURF_RETURN_IF_ERROR(CheckExtractionSize(function, params));
-  const CsgFunction::Impl& m = *function.impl_;
+  const CsgFunction::Impl& m = function.impl();
   const double cell = ExtractionCell(m, params);
   // The seeds' cube: the solid's box with margin, at a power-of-two multiple of the cell.
   const double extent = m.bounds.sizes().maxCoeff() + 4 * cell;

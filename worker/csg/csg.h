@@ -78,14 +78,13 @@ class CsgFunction final : public core::ImplicitFunction {
   int operand_count() const;
   const core::Box3& bounds() const;  // Of the solid; finite.
 
+  // Defined in csg.cc: only BuildCsg makes one, so the constructor and accessor open nothing
+  // to other modules.
   struct Impl;
+  explicit CsgFunction(std::unique_ptr<Impl> impl);
+  const Impl& impl() const { return *impl_; }
 
  private:
-  friend absl::StatusOr<std::unique_ptr<CsgFunction>> BuildCsg(const CsgNode&, const OperandResolver&);
-  friend absl::StatusOr<double> EstimateSurfaceCells(const CsgFunction&, const CsgParams&);
-  friend absl::StatusOr<extract::IsosurfaceResult> ExtractCsg(const CsgFunction&, const CsgParams&, core::JobContext&,
-                                                              CsgStats*);
-  CsgFunction();
   std::unique_ptr<Impl> impl_;
 };
 

@@ -322,4 +322,9 @@ absl::StatusOr<IsosurfaceResult> MarchLeaves(const ImplicitFunction& field, cons
       corner_values.values(), position, traced, stats, ctx);
 }
 
+absl::Status FinishPatch(const ImplicitFunction& field, const MarchingOptions& marching, IsosurfaceResult& patch,
+                         JobContext& ctx, std::span<const char> fixed) {
+  return internal::FinishSurface(field, marching, patch, ctx, fixed);
+}
+
 }  // namespace lsqsurf::extract

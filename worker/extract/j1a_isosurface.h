@@ -69,4 +69,10 @@ absl::StatusOr<IsosurfaceResult> MarchLeaves(const ImplicitFunction& field, cons
                                              std::span<const OctreeCell> leaves, const MarchingOptions& marching,
                                              JobContext& ctx);
 
+// Creases and relaxation for a patch from MarchLeaves once PatchJoin has marked its seam: the
+// vertices flagged in `fixed` (one per patch vertex) neither move nor end a split edge, so the
+// patch still meets the kept mesh exactly. Errors: kCancelled.
+absl::Status FinishPatch(const ImplicitFunction& field, const MarchingOptions& marching, IsosurfaceResult& patch,
+                         JobContext& ctx, std::span<const char> fixed);
+
 }  // namespace lsqsurf::extract

@@ -219,7 +219,7 @@ const core::ParamTable<AlgebraicMlsParams>& AlgebraicMlsParamTable(AlgebraicFit 
 
 absl::Status Validate(const AlgebraicMlsParams& p) { return AlgebraicMlsParamTable(p.fit).Validate(p); }
 
-AlgebraicMlsFunction::AlgebraicMlsFunction() : impl_(std::make_unique<Impl>()) {}
+AlgebraicMlsFunction::AlgebraicMlsFunction(std::unique_ptr<Impl> impl) : impl_(std::move(impl)), h_(impl_->h) {}
 AlgebraicMlsFunction::~AlgebraicMlsFunction() = default;
 
 double AlgebraicMlsFunction::support_radius() const { return impl_->radius; }
@@ -248,14 +248,13 @@ absl::StatusOr<std::unique_ptr<AlgebraicMlsFunction>> BuildAlgebraicMls(const co
   auto points = IndexOrientedPoints(cloud, params.spacing, params.spacing_scale, "an algebraic MLS surface");
   if (!points.ok()) return points.status();
   LSQSURF_RETURN_IF_ERROR(ctx.CheckCancelled());
-  std::unique_ptr<AlgebraicMlsFunction> function(new AlgebraicMlsFunction());
-  AlgebraicMlsFunction::Impl& impl = *function->impl_;
+  auto built = std::make_unique<AlgebraicMlsFunction::Impl>();
+  AlgebraicMlsFunction::Impl& impl = *built;
   impl.params = params;
   impl.points = *std::move(points);
   impl.h = impl.points.spacing;
   impl.radius = params.support_factor * impl.h;
-  function->h_ = impl.h;
-  return function;
+  return std::make_unique<AlgebraicMlsFunction>(std::move(built));
 }
 
 }  // namespace lsqsurf::mls

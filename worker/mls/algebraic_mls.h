@@ -85,13 +85,12 @@ class AlgebraicMlsFunction final : public core::ImplicitFunction {
   double spacing() const { return h_; }
   double support_radius() const;
 
-  struct Impl;  // Defined in algebraic_mls.cc.
+  // Defined in the engine's .cc: only its builder can make one, so the public constructor opens
+  // nothing to other modules.
+  struct Impl;
+  explicit AlgebraicMlsFunction(std::unique_ptr<Impl> impl);
 
  private:
-  friend absl::StatusOr<std::unique_ptr<AlgebraicMlsFunction>> BuildAlgebraicMls(const core::PointCloud&,
-                                                                                 const AlgebraicMlsParams&,
-                                                                                 core::JobContext&);
-  AlgebraicMlsFunction();
   std::unique_ptr<Impl> impl_;
   double h_ = 0;
 };

@@ -102,7 +102,8 @@ const core::ParamTable<GaussianMlsParams>& GaussianMlsParamTable() {
 
 absl::Status Validate(const GaussianMlsParams& p) { return GaussianMlsParamTable().Validate(p); }
 
-GaussianMlsFunction::GaussianMlsFunction() : impl_(std::make_unique<Impl>()) {}
+GaussianMlsFunction::GaussianMlsFunction(std::unique_ptr<Impl> impl)
+    : impl_(std::move(impl)), h_(impl_->points.spacing) {}
 GaussianMlsFunction::~GaussianMlsFunction() = default;
 
 double GaussianMlsFunction::width() const { return 1 / std::sqrt(impl_->inv_sigma2); }
@@ -124,15 +125,14 @@ absl::StatusOr<std::unique_ptr<GaussianMlsFunction>> BuildGaussianMls(const core
                                     params.fit == GaussianFit::kKolluri ? "IMLS" : "the Adamson-Alexa surface");
   if (!points.ok()) return points.status();
   LSQSURF_RETURN_IF_ERROR(ctx.CheckCancelled());
-  std::unique_ptr<GaussianMlsFunction> function(new GaussianMlsFunction());
-  GaussianMlsFunction::Impl& impl = *function->impl_;
+  auto built = std::make_unique<GaussianMlsFunction::Impl>();
+  GaussianMlsFunction::Impl& impl = *built;
   impl.params = params;
   impl.points = *std::move(points);
   const double sigma = params.width * impl.points.spacing;
   impl.inv_sigma2 = 1 / (sigma * sigma);
   impl.radius = static_cast<float>(params.cutoff * sigma);
-  function->h_ = impl.points.spacing;
-  return function;
+  return std::make_unique<GaussianMlsFunction>(std::move(built));
 }
 
 }  // namespace lsqsurf::mls

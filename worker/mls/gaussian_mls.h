@@ -56,13 +56,12 @@ class GaussianMlsFunction final : public core::ImplicitFunction {
   double spacing() const { return h_; }
   double width() const;  // σ, model units.
 
-  struct Impl;  // Defined in gaussian_mls.cc.
+  // Defined in the engine's .cc: only its builder can make one, so the public constructor opens
+  // nothing to other modules.
+  struct Impl;
+  explicit GaussianMlsFunction(std::unique_ptr<Impl> impl);
 
  private:
-  friend absl::StatusOr<std::unique_ptr<GaussianMlsFunction>> BuildGaussianMls(const core::PointCloud&,
-                                                                               const GaussianMlsParams&,
-                                                                               core::JobContext&);
-  GaussianMlsFunction();
   std::unique_ptr<Impl> impl_;
   double h_ = 0;
 };

@@ -440,8 +440,7 @@ absl::StatusOr<std::unique_ptr<IamlsFunction>> BuildIamls(const core::PointCloud
   core::SubContext setup_ctx(ctx, "building iaMLS", 0.0, 0.4);
   auto points = IndexOrientedPoints(cloud, params.spacing, params.spacing_scale, "iaMLS");
   if (!points.ok()) return points.status();
-  auto fn = std::unique_ptr<IamlsFunction>(new IamlsFunction());
-  IamlsStats& stats = fn->stats_;
+  IamlsStats stats;
   ChooseParameters(params, *points, stats);
   auto impl = std::make_shared<IamlsFunction::Impl>();
   impl->positions = std::move(points->positions);
@@ -453,7 +452,6 @@ absl::StatusOr<std::unique_ptr<IamlsFunction>> BuildIamls(const core::PointCloud
   impl->scale = eps * eps * eps / std::pow(std::numbers::pi, 1.5);
   impl->radius = static_cast<float>(stats.cutoff * h / eps);
   setup_ctx.Report(0.2);
-  fn->h_ = h;
   stats.spacing = h;
   std::vector<double> c;
   LSQSURF_RETURN_IF_ERROR(stats.iterations <= 1 ? IterateStreamed(*impl, stats, c, ctx)
@@ -464,8 +462,7 @@ absl::StatusOr<std::unique_ptr<IamlsFunction>> BuildIamls(const core::PointCloud
   impl->inv_normal_sigma2 = stats.normal_sigma > 0 ? 1.0 / (stats.normal_sigma * stats.normal_sigma) : 0.0;
   impl->coefficient.assign(impl->positions.size(), 0.0f);
   for (size_t k = 0; k < c.size(); ++k) impl->coefficient[k] = static_cast<float>(c[k]);
-  fn->impl_ = std::move(impl);
-  return fn;
+  return std::make_unique<IamlsFunction>(std::move(impl), h, std::move(stats));
 }
 
 }  // namespace lsqsurf::mls

@@ -96,13 +96,11 @@ class IamlsFunction final : public core::ImplicitFunction {
   const IamlsStats& stats() const { return stats_; }
   double spacing() const { return h_; }
 
- private:
-  friend absl::StatusOr<std::unique_ptr<IamlsFunction>> BuildIamls(const core::PointCloud&, const IamlsParams&,
-                                                                   core::JobContext&);
-  IamlsFunction() = default;
-
- public:
-  struct Impl;  // Defined in iamls.cc.
+  // Defined in the engine's .cc: only its builder can make one, so the public constructor opens
+  // nothing to other modules.
+  struct Impl;
+  IamlsFunction(std::shared_ptr<const Impl> impl, double spacing, IamlsStats stats)
+      : impl_(std::move(impl)), h_(spacing), stats_(std::move(stats)) {}
 
  private:
   std::shared_ptr<const Impl> impl_;

@@ -119,25 +119,16 @@ class PuFunction final : public core::ImplicitFunction {
   // finest cells).
   bool NearCrease(const core::Vec3d& x) const;
 
-  const PuStats& stats() const { return stats_; }
+  const PuStats& stats() const;
 
-  struct Impl;  // Defined in pu.cc.
+  // The function's state, defined in pu_internal.h: only the engine's own files can make or read
+  // one, so the constructor and accessor below open nothing to other modules.
+  struct Impl;
+  explicit PuFunction(std::unique_ptr<Impl> impl);
+  const Impl& impl() const { return *impl_; }
 
  private:
-  friend absl::StatusOr<std::unique_ptr<PuFunction>> BuildPu(const core::PointCloud&, const PuParams&,
-                                                             core::JobContext&);
-  friend absl::StatusOr<extract::IsosurfaceResult> Extract(const PuFunction&, const PuExtractParams&,
-                                                           core::JobContext&);
-  friend std::string SerializePu(const PuFunction&);
-  friend absl::StatusOr<std::unique_ptr<PuFunction>> EditPu(const PuFunction&, const struct PuEdit&, core::JobContext&,
-                                                            struct PuEditStats*);
-  friend absl::StatusOr<std::unique_ptr<PuFunction>> DeserializePu(std::string_view);
-  friend absl::StatusOr<extract::IsosurfaceResult> ExtractEdited(const PuFunction&, const PuFunction&,
-                                                                 const struct PuEditStats&, struct KeptSurface,
-                                                                 const PuExtractParams&, core::JobContext&);
-  PuFunction();
   std::unique_ptr<Impl> impl_;
-  PuStats stats_;
 };
 
 // Builds F for an oriented cloud (copied). Errors: kInvalidArgument (no normals, fewer than 4

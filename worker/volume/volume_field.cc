@@ -347,11 +347,15 @@ const core::ParamTable<VolumeFieldParams>& VolumeFieldParamTable() {
 
 absl::Status Validate(const VolumeFieldParams& params) { return VolumeFieldParamTable().Validate(params); }
 
+VolumeField::VolumeField(Description description, std::shared_ptr<const Impl> impl,
+                         std::unique_ptr<CellLocator> locator)
+    : description_(std::move(description)), impl_(std::move(impl)), locator_(std::move(locator)) {}
+
 VolumeField::Sample VolumeField::ToSample(const KernelSum& sum) const {
   Sample out;
   if (sum.weight == 0) return out;
-  out.value = normalize_ ? sum.value / sum.weight : sum.value;
-  out.gradient = normalize_ ? Vec3d(sum.gradient / sum.weight) : sum.gradient;
+  out.value = description_.normalize ? sum.value / sum.weight : sum.value;
+  out.gradient = description_.normalize ? Vec3d(sum.gradient / sum.weight) : sum.gradient;
   out.weight = sum.weight;
   return out;
 }
@@ -362,7 +366,7 @@ VolumeField::Sample VolumeField::Evaluate(const Vec3d& x, int field) const {
 
 bool VolumeField::InDomain(const Vec3d& x, double weight) const {
   if (locator_ != nullptr) return locator_->Contains(x);
-  return weight >= min_weight_;
+  return weight >= description_.min_weight;
 }
 
 absl::Status VolumeField::EvaluateBatch(std::span<const Vec3d> xs, int field, std::span<Sample> out,
@@ -374,8 +378,8 @@ absl::Status VolumeField::EvaluateBatch(std::span<const Vec3d> xs, int field, st
 }
 
 int VolumeField::FieldIndex(std::string_view name) const {
-  for (size_t f = 0; f < field_names_.size(); ++f) {
-    if (field_names_[f] == name) return static_cast<int>(f);
+  for (size_t f = 0; f < description_.field_names.size(); ++f) {
+    if (description_.field_names[f] == name) return static_cast<int>(f);
   }
   return -1;
 }
@@ -437,13 +441,14 @@ absl::StatusOr<std::unique_ptr<VolumeField>> BuildVolumeField(const VolumeMesh& 
   star_params.max_anisotropy = params.max_anisotropy;
   LSQSURF_ASSIGN_OR_RETURN(VertexStars stars, AnalyseStars(mesh, fields, star_params, star_ctx));
 
-  auto out = std::unique_ptr<VolumeField>(new VolumeField());
-  out->field_names_.assign(field_names.begin(), field_names.end());
-  out->min_weight_ = params.min_weight;
-  out->normalize_ = params.normalize;
-  out->linear_terms_ = params.linear_terms;
-  if (mesh.has_cells()) out->locator_ = std::make_unique<CellLocator>(mesh);
-  VolumeFieldStats& st = out->stats_;
+  VolumeField::Description description;
+  description.field_names.assign(field_names.begin(), field_names.end());
+  description.min_weight = params.min_weight;
+  description.normalize = params.normalize;
+  description.linear_terms = params.linear_terms;
+  std::unique_ptr<CellLocator> locator;
+  if (mesh.has_cells()) locator = std::make_unique<CellLocator>(mesh);
+  VolumeFieldStats& st = description.stats;
   st.mean_star_size = stars.mean_star_size;
   st.widened_stars = stars.widened_stars;
   st.singular_stars = stars.singular_stars;
@@ -461,7 +466,7 @@ absl::StatusOr<std::unique_ptr<VolumeField>> BuildVolumeField(const VolumeMesh& 
   for (size_t r = 0; r < n; ++r) {
     const uint32_t i = order[r];
     impl->positions[r] = mesh.positions[i];
-    out->bounds_.extend(mesh.positions[i].cast<double>());
+    description.bounds.extend(mesh.positions[i].cast<double>());
     metric[r] = stars.metric[i];
     // A vertex no cell uses still needs a volume: its spacing cubed.
     volume[r] = stars.volume[i] > 0 ? stars.volume[i] : std::pow(stars.mean_edge[i], 3.0f);
@@ -517,8 +522,7 @@ absl::StatusOr<std::unique_ptr<VolumeField>> BuildVolumeField(const VolumeMesh& 
   st.iterations = iterations;
   st.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   impl->Pack(params.linear_terms);
-  out->impl_ = std::move(impl);
-  return out;
+  return std::make_unique<VolumeField>(std::move(description), std::move(impl), std::move(locator));
 }
 
 constexpr std::string_view kFieldMagic = "LQVF0001";
@@ -528,15 +532,16 @@ bool IsStoredVolumeField(std::string_view bytes) {
 }
 
 std::string SerializeVolumeField(const VolumeField& field) {
-  const VolumeField::Impl& m = *field.impl_;
-  const VolumeFieldStats& st = field.stats_;
+  const VolumeField::Impl& m = field.impl();
+  const VolumeField::Description& d = field.description();
+  const VolumeFieldStats& st = d.stats;
   core::BinaryWriter w;
   w.Array<char>(std::span<const char>(kFieldMagic.data(), kFieldMagic.size()));
-  w.Scalar<uint64_t>(field.field_names_.size());
-  for (const std::string& name : field.field_names_) w.Text(name);
-  w.Scalar(field.min_weight_);
-  w.Scalar<uint8_t>(field.normalize_);
-  w.Scalar<uint8_t>(field.linear_terms_);
+  w.Scalar<uint64_t>(d.field_names.size());
+  for (const std::string& name : d.field_names) w.Text(name);
+  w.Scalar(d.min_weight);
+  w.Scalar<uint8_t>(d.normalize);
+  w.Scalar<uint8_t>(d.linear_terms);
   for (double v : {st.epsilon, static_cast<double>(st.iterations), st.chosen_by_cross_validation ? 1.0 : 0.0,
                    st.cross_validation_rms, static_cast<double>(st.cross_validation_points), st.spectral_radius,
                    st.kernels_per_vertex, st.median_spacing, st.mean_star_size, st.seconds}) {
@@ -546,13 +551,13 @@ std::string SerializeVolumeField(const VolumeField& field) {
   w.Array<KernelRecord>(m.kernels->records());
   w.Array<Vec3f>(m.positions);
   w.Array<float>(m.spacing);
-  for (size_t f = 0; f < field.field_names_.size(); ++f) {
+  for (size_t f = 0; f < d.field_names.size(); ++f) {
     w.Array<float>(m.values[f]);
     w.Array<Vec3f>(m.gradients[f]);
     w.Array<float>(m.g[f]);
     w.Array<Vec3f>(m.big_g[f]);
   }
-  const CellLocator* locator = field.locator_.get();
+  const CellLocator* locator = field.locator();
   w.Array<Vec3f>(locator != nullptr ? locator->positions() : std::span<const Vec3f>());
   w.Array<std::array<uint32_t, 4>>(locator != nullptr ? locator->tets() : std::span<const std::array<uint32_t, 4>>());
   return w.Take();
@@ -565,23 +570,23 @@ absl::StatusOr<std::unique_ptr<VolumeField>> DeserializeVolumeField(std::string_
   core::BinaryReader r(bytes);
   std::vector<char> magic;
   if (!r.Array(magic) || std::string_view(magic.data(), magic.size()) != kFieldMagic) return bad("wrong header");
-  auto out = std::unique_ptr<VolumeField>(new VolumeField());
+  VolumeField::Description d;
   auto impl = std::make_shared<VolumeField::Impl>();
   uint64_t fields = 0;
   if (!r.Scalar(fields) || fields == 0 || fields > 64) return bad("field count");
-  out->field_names_.resize(fields);
-  for (std::string& name : out->field_names_) {
+  d.field_names.resize(fields);
+  for (std::string& name : d.field_names) {
     if (!r.Text(name)) return bad("field names");
   }
   uint8_t normalize = 0, linear = 0;
-  if (!r.Scalar(out->min_weight_) || !r.Scalar(normalize) || !r.Scalar(linear)) return bad("flags");
-  out->normalize_ = normalize != 0;
-  out->linear_terms_ = linear != 0;
+  if (!r.Scalar(d.min_weight) || !r.Scalar(normalize) || !r.Scalar(linear)) return bad("flags");
+  d.normalize = normalize != 0;
+  d.linear_terms = linear != 0;
   std::array<double, 10> st{};
   for (double& v : st) {
     if (!r.Scalar(v)) return bad("statistics");
   }
-  VolumeFieldStats& s = out->stats_;
+  VolumeFieldStats& s = d.stats;
   s.epsilon = st[0];
   s.iterations = static_cast<int>(st[1]);
   s.chosen_by_cross_validation = st[2] != 0;
@@ -615,12 +620,12 @@ absl::StatusOr<std::unique_ptr<VolumeField>> DeserializeVolumeField(std::string_
       if (v >= cell_positions.size()) return bad("a tetrahedron refers to a missing vertex");
     }
   }
-  for (const Vec3f& p : impl->positions) out->bounds_.extend(p.cast<double>());
-  if (!tets.empty()) out->locator_ = std::make_unique<CellLocator>(std::move(cell_positions), std::move(tets));
+  for (const Vec3f& p : impl->positions) d.bounds.extend(p.cast<double>());
+  std::unique_ptr<CellLocator> locator;
+  if (!tets.empty()) locator = std::make_unique<CellLocator>(std::move(cell_positions), std::move(tets));
   impl->kernels = std::make_unique<Kernels>(std::move(records), cutoff2);
-  impl->Pack(out->linear_terms_);
-  out->impl_ = std::move(impl);
-  return out;
+  impl->Pack(d.linear_terms);
+  return std::make_unique<VolumeField>(std::move(d), std::move(impl), std::move(locator));
 }
 
 }  // namespace lsqsurf::volume

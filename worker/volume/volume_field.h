@@ -107,10 +107,10 @@ class VolumeField {
   absl::Status EvaluateBatch(std::span<const Vec3d> xs, int field, std::span<Sample> out,
                              const core::JobContext* ctx = nullptr) const;
 
-  const std::vector<std::string>& field_names() const { return field_names_; }
+  const std::vector<std::string>& field_names() const { return description_.field_names; }
   int FieldIndex(std::string_view name) const;  // −1 when absent.
-  const VolumeFieldStats& stats() const { return stats_; }
-  const core::Box3& bounds() const { return bounds_; }
+  const VolumeFieldStats& stats() const { return description_.stats; }
+  const core::Box3& bounds() const { return description_.bounds; }
   // The input vertices and, per field, their data values and least-squares gradients.
   std::span<const Vec3f> positions() const;
   std::span<const float> data_values(int field) const;
@@ -118,23 +118,27 @@ class VolumeField {
   std::span<const float> data_spacing() const;  // Mean star edge per vertex.
   const CellLocator* locator() const { return locator_.get(); }
 
+  // What a field is besides its kernels and cells.
+  struct Description {
+    std::vector<std::string> field_names;
+    VolumeFieldStats stats;
+    core::Box3 bounds;
+    double min_weight = 0.5;
+    bool normalize = true;
+    bool linear_terms = true;
+  };
+  // The kernels and coefficients, defined in volume_field.cc: only BuildVolumeField and
+  // DeserializeVolumeField make them, so the constructor and accessor open nothing to other modules.
   struct Impl;
+  VolumeField(Description description, std::shared_ptr<const Impl> impl, std::unique_ptr<CellLocator> locator);
+  const Description& description() const { return description_; }
+  const Impl& impl() const { return *impl_; }
 
  private:
   Sample ToSample(const KernelSum& sum) const;
-  friend absl::StatusOr<std::unique_ptr<VolumeField>> BuildVolumeField(const VolumeMesh&, std::span<const std::string>,
-                                                                       const VolumeFieldParams&, core::JobContext&);
-  friend std::string SerializeVolumeField(const VolumeField&);
-  friend absl::StatusOr<std::unique_ptr<VolumeField>> DeserializeVolumeField(std::string_view);
-  VolumeField() = default;
+  Description description_;
   std::shared_ptr<const Impl> impl_;
   std::unique_ptr<CellLocator> locator_;
-  std::vector<std::string> field_names_;
-  VolumeFieldStats stats_;
-  core::Box3 bounds_;
-  double min_weight_ = 0.5;
-  bool normalize_ = true;
-  bool linear_terms_ = true;
 };
 
 // Reconstructs the named scalar fields (all of them share the kernels; the first drives the

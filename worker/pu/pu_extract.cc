@@ -1,0 +1,278 @@
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+
+#include "absl/container/flat_hash_set.h"
+#include "worker/core/parallel.h"
+#include "worker/core/status.h"
+#include "worker/extract/j1a.h"
+#include "worker/extract/j1a_isosurface.h"
+#include "worker/extract/stitch.h"
+#include "worker/pu/pu_internal.h"
+
+namespace lsqsurf::pu {
+
+namespace {
+
+// Around the data, extraction cells are at most 2^this times the finest (8×: 40 spacings by
+// default) where the surface is flat; one level more changed nothing on the bench shapes.
+constexpr int kCoarseExtractionLevels = 3;
+
+int ExtractionDepth(double root_edge, double target) {
+  return std::clamp(static_cast<int>(std::lround(std::log2(root_edge / target))), 2,
+                    extract::AdaptiveOctree::kMaxDepth);
+}
+
+// The extraction cells of levels [from, to) that a sharp fit's support meets: creases go to the
+// finest cells, where the crease splitting places them (their curvature is not a chord's).
+absl::flat_hash_set<uint64_t> CellsNearSharpFits(const PuFunction::Impl& impl, const extract::AdaptiveOctree& tree,
+                                                 int from, int to, const core::Box3* region) {
+  absl::flat_hash_set<uint64_t> cells;
+  for (const LocalFit& fit : impl.fits) {
+    if (fit.feature == Feature::kSmooth) continue;
+    const Vec3d reach = Vec3d::Constant(fit.support_radius);
+    if (region != nullptr && (((fit.centre + reach).array() < region->min().array()).any() ||
+                              ((fit.centre - reach).array() > region->max().array()).any())) {
+      continue;
+    }
+    for (int level = from; level < to; ++level) {
+      const double edge = tree.CellEdge(level);
+      const int64_t n = int64_t{1} << level;
+      const auto index = [&](double v) { return std::clamp<int64_t>(static_cast<int64_t>(std::floor(v)), 0, n - 1); };
+      const Vec3d lo = (fit.centre - tree.origin()) / edge - Vec3d::Constant(fit.support_radius / edge);
+      const Vec3d hi = (fit.centre - tree.origin()) / edge + Vec3d::Constant(fit.support_radius / edge);
+      for (int64_t z = index(lo.z()); z <= index(hi.z()); ++z)
+        for (int64_t y = index(lo.y()); y <= index(hi.y()); ++y)
+          for (int64_t x = index(lo.x()); x <= index(hi.x()); ++x) {
+            cells.insert(extract::CellKey(
+                {level, static_cast<uint32_t>(x), static_cast<uint32_t>(y), static_cast<uint32_t>(z)}));
+          }
+    }
+  }
+  return cells;
+}
+
+// Extract's J1a tree (2:1 balanced) and the finest cells that hold points (where tracking starts).
+struct ExtractionTree {
+  explicit ExtractionTree(const core::Box3& root, int depth) : tree(root, depth) {}
+  extract::AdaptiveOctree tree;
+  std::vector<extract::OctreeCell> start;
+};
+
+// Extract's finest level (from `cell_size`) and the coarsest it allows around the data.
+struct ExtractionLevels {
+  int finest = 0;
+  int band = 0;
+};
+absl::StatusOr<ExtractionLevels> LevelsFor(const PuFunction& function, const PuExtractParams& params) {
+  if (!(params.cell_size > 0) || !std::isfinite(params.cell_size)) {
+    return absl::InvalidArgumentError("cell_size must be a positive number");
+  }
+  const double target = params.cell_size * function.stats().mean_spacing;
+  if (!(target > 0)) return absl::InvalidArgumentError("the points have no spacing to size cells by");
+  const int finest = ExtractionDepth(function.stats().root_edge, target);
+  return ExtractionLevels{finest, std::max(1, finest - kCoarseExtractionLevels)};
+}
+
+// The finest extraction level comes from `cell_size`; around the data the tree is refined to at
+// least kCoarseExtractionLevels levels above it, and finer where flat triangles would stray from
+// the surface by more than `chord_error`, or where a sharp fit makes a crease. With `region`, only
+// the points and sharp fits in that box are looked at: inside it, away from its sides by a few
+// coarse cells, the tree is the whole one's (every decision is local).
+absl::StatusOr<std::unique_ptr<ExtractionTree>> BuildExtractionTree(const PuFunction& function,
+                                                                    const PuFunction::Impl& impl,
+                                                                    const PuExtractParams& params,
+                                                                    const core::Box3* region, core::JobContext& ctx) {
+  const auto levels = LevelsFor(function, params);
+  if (!levels.ok()) return levels.status();
+  const int depth = levels->finest, band_level = levels->band;
+  auto built =
+      std::make_unique<ExtractionTree>(core::Box3(impl.origin, impl.origin + Vec3d::Constant(impl.root_edge)), depth);
+  extract::AdaptiveOctree& tree = built->tree;
+  std::vector<Vec3f> local_points;
+  std::span<const Vec3f> points = impl.cloud->positions;
+  if (region != nullptr) {
+    for (const Vec3f& p : impl.cloud->positions) {
+      if (region->contains(p.cast<double>())) local_points.push_back(p);
+    }
+    points = local_points;
+  }
+  extract::SurfaceBand band = extract::MarkSurfaceBand(tree, points, band_level);
+  extract::SurfaceBand fine_band = extract::MarkSurfaceBand(tree, points, depth);
+  band.occupied.clear();
+  const double chord_bound = params.chord_error * core::Diagonal(core::BoundingBox(impl.cloud->positions));
+  const absl::flat_hash_set<uint64_t> crease_cells = CellsNearSharpFits(impl, tree, band_level, depth, region);
+  LSQSURF_RETURN_IF_ERROR(extract::RefineSurfaceBand(
+      tree, band, band_level, fine_band,
+      [&](const extract::OctreeCell& c) {
+        if (crease_cells.contains(extract::CellKey(c))) return true;
+        return extract::EstimateChordError(function, tree.CellCentre(c), tree.CellEdge(c.level)) > chord_bound;
+      },
+      ctx));
+  band.ancestors.clear();
+  fine_band.ancestors.clear();
+  tree.Balance();
+  LSQSURF_RETURN_IF_ERROR(ctx.CheckCancelled());
+  built->start.reserve(fine_band.occupied.size());
+  for (uint64_t key : fine_band.occupied) built->start.push_back(extract::CellFromKey(key));
+  return built;
+}
+
+// Adds the vertex attributes "depth", "degree" and "feature" (the dominant fit's) to `mesh`.
+absl::Status LabelVertices(const PuFunction& function, core::TriangleMesh& mesh, core::JobContext& ctx) {
+  core::ScalarAttribute depth_attribute{"depth", std::vector<float>(mesh.vertices.size())};
+  core::ScalarAttribute degree_attribute{"degree", std::vector<float>(mesh.vertices.size())};
+  core::ScalarAttribute feature_attribute{"feature", std::vector<float>(mesh.vertices.size())};
+  LSQSURF_RETURN_IF_ERROR(core::ParallelFor(
+      mesh.vertices.size(), 1024,
+      [&](size_t b, size_t e) {
+        for (size_t i = b; i < e; ++i) {
+          const FitLabel label = function.DominantFit(mesh.vertices[i].cast<double>());
+          depth_attribute.values[i] = static_cast<float>(label.depth);
+          degree_attribute.values[i] = static_cast<float>(label.degree);
+          feature_attribute.values[i] = static_cast<float>(label.feature);
+        }
+      },
+      &ctx));
+  mesh.vertex_attributes.push_back(std::move(depth_attribute));
+  mesh.vertex_attributes.push_back(std::move(degree_attribute));
+  mesh.vertex_attributes.push_back(std::move(feature_attribute));
+  return absl::OkStatus();
+}
+
+// The leaves of `tree` whose cube meets one of the balls: a descent from the root that carries the
+// balls meeting each cell.
+std::vector<extract::OctreeCell> LeavesMeetingBalls(const extract::AdaptiveOctree& tree,
+                                                    std::span<const PuEditStats::Ball> balls) {
+  auto meets = [&](const extract::OctreeCell& c, const PuEditStats::Ball& ball) {
+    const double edge = tree.CellEdge(c.level);
+    const Vec3d lo = tree.origin() + edge * Vec3d(c.x, c.y, c.z);
+    const Vec3d nearest = ball.centre.cwiseMax(lo).cwiseMin(lo + Vec3d::Constant(edge));
+    return (nearest - ball.centre).squaredNorm() <= ball.radius * ball.radius;
+  };
+  std::vector<extract::OctreeCell> leaves;
+  std::vector<std::pair<extract::OctreeCell, std::vector<uint32_t>>> stack;
+  std::vector<uint32_t> all(balls.size());
+  for (uint32_t i = 0; i < all.size(); ++i) all[i] = i;
+  stack.push_back({extract::OctreeCell{}, std::move(all)});
+  while (!stack.empty()) {
+    auto [cell, near] = std::move(stack.back());
+    stack.pop_back();
+    const extract::OctreeCell here = cell;  // Lambdas capture no structured binding before clang 16.
+    std::erase_if(near, [&](uint32_t i) { return !meets(here, balls[i]); });
+    if (near.empty()) continue;
+    if (!tree.IsSubdivided(cell)) {
+      if (tree.IsLeaf(cell)) leaves.push_back(cell);
+      continue;
+    }
+    for (uint32_t k = 0; k < 8; ++k) {
+      stack.push_back(
+          {{cell.level + 1, 2 * cell.x + (k & 1), 2 * cell.y + ((k >> 1) & 1), 2 * cell.z + (k >> 2)}, near});
+    }
+  }
+  return leaves;
+}
+
+bool SameExtraction(const PuExtractParams& a, const PuExtractParams& b) {
+  const extract::MarchingOptions &x = a.marching, &y = b.marching;
+  return a.cell_size == b.cell_size && a.chord_error == b.chord_error && a.label_vertices == b.label_vertices &&
+         x.refine_steps == y.refine_steps && x.max_patch_triangles == y.max_patch_triangles &&
+         x.crease_angle == y.crease_angle && x.snap_share == y.snap_share && x.relax_steps == y.relax_steps &&
+         x.vertex_normals == y.vertex_normals;
+}
+
+// Only sharp fits make creases; without them there is nothing to split edges on.
+extract::MarchingOptions MarchingFor(const PuFunction::Impl& impl, const PuExtractParams& params) {
+  extract::MarchingOptions marching = params.marching;
+  if (impl.sharp_fits.empty()) marching.crease_angle = 0;
+  return marching;
+}
+
+}  // namespace
+
+double FinestExtractionCell(const PuFunction& function, const PuExtractParams& params) {
+  const double root_edge = function.stats().root_edge;
+  return std::ldexp(root_edge, -ExtractionDepth(root_edge, params.cell_size * function.stats().mean_spacing));
+}
+
+absl::StatusOr<extract::IsosurfaceResult> Extract(const PuFunction& function, const PuExtractParams& params,
+                                                  core::JobContext& ctx) {
+  const PuFunction::Impl& impl = function.impl();
+  core::SubContext build_ctx(ctx, "building the J1a tree", 0.0, 0.1);
+  const auto tree_start = std::chrono::steady_clock::now();
+  auto built = BuildExtractionTree(function, impl, params, nullptr, build_ctx);
+  if (!built.ok()) return built.status();
+  const double tree_seconds = core::SecondsSince(tree_start);
+  core::SubContext extract_ctx(ctx, "extracting surface", 0.1, 0.95);
+  auto result = extract::ExtractIsosurfaceOnTree(function, (*built)->tree, (*built)->start, params.max_leaves,
+                                                 MarchingFor(impl, params), extract_ctx);
+  built->reset();
+  if (result.ok()) result->stats.tree_seconds = tree_seconds;
+  if (!result.ok() || !params.label_vertices) return result;
+  LSQSURF_RETURN_IF_ERROR(LabelVertices(function, result->mesh, ctx));
+  return result;
+}
+
+absl::StatusOr<extract::IsosurfaceResult> ExtractEdited(const PuFunction& before, const PuFunction& after,
+                                                        const PuEditStats& edit_stats, KeptSurface kept,
+                                                        const PuExtractParams& requested, core::JobContext& ctx) {
+  const PuExtractParams& params = kept.params;
+  if (!SameExtraction(params, requested)) {
+    return absl::FailedPreconditionError("the kept surface was extracted with other parameters");
+  }
+  // A snapped corner's place depends on every tetrahedron around it, some beyond the patch.
+  if (params.marching.snap_share > 0) {
+    return absl::FailedPreconditionError("a kept surface with snapped corners is extracted whole");
+  }
+  const PuFunction::Impl& b = before.impl();
+  if (edit_stats.changed.empty()) return absl::FailedPreconditionError("the edit names no changed region");
+  const auto tree_start = std::chrono::steady_clock::now();
+  const auto levels = LevelsFor(before, params);
+  if (!levels.ok()) return levels.status();
+  const double coarse_cell = std::ldexp(b.root_edge, -levels->band);
+  core::Box3 changed;
+  for (const PuEditStats::Ball& ball : edit_stats.changed) {
+    changed.extend(ball.centre - Vec3d::Constant(ball.radius));
+    changed.extend(ball.centre + Vec3d::Constant(ball.radius));
+  }
+  // Balancing and the band's neighbours reach about two coarse cells; four keep the tree exact.
+  const Vec3d margin = Vec3d::Constant(4 * coarse_cell);
+  const core::Box3 region(changed.min() - margin, changed.max() + margin);
+  core::SubContext build_ctx(ctx, "building the J1a tree near the edit", 0.0, 0.2);
+  auto built = BuildExtractionTree(before, b, params, &region, build_ctx);
+  if (!built.ok()) return built.status();
+  const extract::AdaptiveOctree& tree = (*built)->tree;
+  std::vector<extract::OctreeCell> leaves = LeavesMeetingBalls(tree, edit_stats.changed);
+  absl::flat_hash_set<uint64_t> cells;
+  for (const extract::OctreeCell& c : leaves) cells.insert(extract::CellKey(c));
+  // Every kept face near the change must come from a leaf of this tree (else the tree is not the
+  // one the kept surface was made on, and the join would not be exact).
+  for (uint64_t key : kept.trace.face_cells) {
+    if (cells.contains(key)) continue;
+    const extract::OctreeCell c = extract::CellFromKey(key);
+    const Vec3d centre = tree.CellCentre(c);
+    if (changed.contains(centre) && !tree.IsLeaf(c)) {
+      return absl::FailedPreconditionError("the kept surface was made on another tree");
+    }
+  }
+  const double tree_seconds = core::SecondsSince(tree_start);
+  core::SubContext march_ctx(ctx, "extracting the edited part", 0.2, 0.8);
+  const extract::MarchingOptions marching = MarchingFor(after.impl(), params);
+  auto patch = extract::MarchLeaves(after, tree, leaves, marching, march_ctx);
+  if (!patch.ok()) return patch.status();
+  built->reset();
+  auto join = extract::PatchJoin::Prepare(kept.mesh, kept.trace, cells, *patch);
+  if (!join.ok()) return join.status();
+  core::SubContext finish_ctx(ctx, "finishing the edited part", 0.8, 0.95);
+  LSQSURF_RETURN_IF_ERROR(extract::FinishPatch(after, marching, *patch, finish_ctx, join->fixed()));
+  if (!kept.mesh.vertex_attributes.empty()) LSQSURF_RETURN_IF_ERROR(LabelVertices(after, patch->mesh, ctx));
+  extract::IsosurfaceResult result;
+  result.stats = patch->stats;
+  result.stats.tree_seconds = tree_seconds;
+  result.stats.replaced_faces = join->removed_faces();
+  result.stats.seam_edges = join->seam_edges();
+  result.mesh = join->Merge(std::move(kept.mesh), std::move(kept.trace), *patch, result.trace);
+  return result;
+}
+
+}  // namespace lsqsurf::pu

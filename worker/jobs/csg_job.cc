@@ -46,7 +46,7 @@ csg::CsgParams Bounded(csg::CsgParams params, int64_t memory_bytes) {
   return params;
 }
 
-class CsgKind final : public JobKind {
+class CsgKind final : public TypedJobKind<CsgJobParams, NoInput> {
  public:
   std::string_view name() const override { return "csg"; }
 
@@ -63,29 +63,26 @@ class CsgKind final : public JobKind {
   // primitives alone is built here, so that one that is unbounded, too large, or would need more
   // cells than the extraction allows is refused now rather than failing (or growing) later;
   // with job references that waits for the run, which checks the same before it extracts.
-  absl::StatusOr<CheckedInput> CheckUploads(const JobSpec& spec, const Uploads&,
-                                            const InputLimits& limits) const override {
-    const auto* p = spec.params.As<CsgJobParams>();
-    if (p == nullptr) return absl::InternalError("not a csg job");
+  absl::StatusOr<Checked> Decode(const JobSpec&, const CsgJobParams& params, const Uploads&,
+                                 const InputLimits& limits) const override {
+    const CsgJobParams* p = &params;
     LSQSURF_ASSIGN_OR_RETURN(csg::CsgNode root, csg::ParseCsg(p->expression));
-    if (!csg::ReferencedJobs(root).empty()) return CheckedInput{0, nullptr, {}};
+    if (!csg::ReferencedJobs(root).empty()) return Checked{};
     LSQSURF_ASSIGN_OR_RETURN(auto function, csg::BuildCsg(root, [](const std::string&) -> absl::StatusOr<csg::Operand> {
                                return absl::InternalError("no job references here");
                              }));
     LSQSURF_RETURN_IF_ERROR(csg::CheckExtractionSize(*function, Bounded(p->extract, limits.max_job_memory)));
-    return CheckedInput{0, nullptr, {}};
+    return Checked{};
   }
 
-  std::vector<std::string> ReferencedJobs(const JobSpec& spec) const override {
-    const auto* p = spec.params.As<CsgJobParams>();
-    if (p == nullptr) return {};
-    auto root = csg::ParseCsg(p->expression);
+  std::vector<std::string> Referenced(const CsgJobParams& p) const override {
+    auto root = csg::ParseCsg(p.expression);
     return root.ok() ? csg::ReferencedJobs(*root) : std::vector<std::string>{};
   }
 
-  absl::StatusOr<Statistics> Run(const JobSpec& spec, const Uploads&, RunEnvironment& env) const override {
-    const auto* p = spec.params.As<CsgJobParams>();
-    if (p == nullptr) return absl::InternalError("not a csg job");
+  absl::StatusOr<Statistics> RunDecoded(const JobSpec& spec, const CsgJobParams& params, NoInput,
+                                        RunEnvironment& env) const override {
+    const CsgJobParams* p = &params;
     LSQSURF_ASSIGN_OR_RETURN(csg::CsgNode root, csg::ParseCsg(p->expression));
     Statistics stats;
     auto stat = [&](std::string name, double value) { stats.emplace_back(std::move(name), value); };

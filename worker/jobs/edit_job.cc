@@ -55,7 +55,7 @@ absl::StatusOr<extract::IsosurfaceResult> ExtractNearEdit(const pu::PuFunction& 
   return pu::ExtractEdited(before, after, edit_stats, *std::move(kept), params, ctx);
 }
 
-class EditKind final : public JobKind {
+class EditKind final : public TypedJobKind<EditJobParams, NoInput> {
  public:
   std::string_view name() const override { return "edit"; }
 
@@ -69,19 +69,16 @@ class EditKind final : public JobKind {
   }
 
   // No upload slots are listed, so the job service refuses any upload before this.
-  absl::StatusOr<CheckedInput> CheckUploads(const JobSpec& spec, const Uploads&, const InputLimits&) const override {
-    if (spec.params.As<EditJobParams>() == nullptr) return absl::InternalError("not an edit job");
-    return CheckedInput{0, nullptr, {}};
+  absl::StatusOr<Checked> Decode(const JobSpec&, const EditJobParams&, const Uploads&,
+                                 const InputLimits&) const override {
+    return Checked{};
   }
 
-  std::vector<std::string> ReferencedJobs(const JobSpec& spec) const override {
-    const auto* p = spec.params.As<EditJobParams>();
-    return p == nullptr ? std::vector<std::string>{} : std::vector<std::string>{p->source};
-  }
+  std::vector<std::string> Referenced(const EditJobParams& p) const override { return {p.source}; }
 
-  absl::StatusOr<Statistics> Run(const JobSpec& spec, const Uploads&, RunEnvironment& env) const override {
-    const auto* p = spec.params.As<EditJobParams>();
-    if (p == nullptr) return absl::InternalError("not an edit job");
+  absl::StatusOr<Statistics> RunDecoded(const JobSpec& spec, const EditJobParams& params, NoInput,
+                                        RunEnvironment& env) const override {
+    const EditJobParams* p = &params;
     Statistics stats;
     auto stat = [&](std::string name, double value) { stats.emplace_back(std::move(name), value); };
     auto start = std::chrono::steady_clock::now();

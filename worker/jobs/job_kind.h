@@ -9,14 +9,18 @@
 #include <algorithm>
 #include <cstdint>
 #include <functional>
+#include <limits>
 #include <memory>
 #include <string>
 #include <string_view>
+#include <type_traits>
+#include <utility>
 #include <vector>
 
 #include "absl/status/statusor.h"
 #include "worker/core/job_context.h"
 #include "worker/core/params.h"
+#include "worker/io/draco_codec.h"
 #include "worker/jobs/job.h"
 
 namespace lsqsurf::render {
@@ -69,13 +73,19 @@ struct MemoryEstimate {
   std::string hint;
 };
 
+// A job's decoded uploads, of its kind's own type (see TypedJobKind): the job service holds them
+// from submission to the run while memory allows, so that an upload is decoded once.
+class DecodedInput {
+ public:
+  virtual ~DecodedInput() = default;
+};
+
 // What checking a job's uploads found: the input's size and, where the kind keeps it, the decoded
-// uploads (kind-specific, standing in for all of them), which the job service holds for the run
-// while memory allows, so that an upload is decoded once.
+// uploads standing in for all of them.
 struct CheckedInput {
   int64_t points = 0;
-  std::shared_ptr<void> decoded;  // Null when nothing is kept.
-  MemoryEstimate memory;          // The job service refuses a job estimated past its memory limit.
+  std::shared_ptr<DecodedInput> decoded;  // Null when nothing is kept.
+  MemoryEstimate memory;                  // The job service refuses a job estimated past its memory limit.
 };
 
 struct RunEnvironment {
@@ -84,7 +94,7 @@ struct RunEnvironment {
   render::SharedRenderer* renderer = nullptr;  // For previews; nullptr: none can be drawn.
   // CheckUploads' `decoded` of this job when the service still holds it (not after a restart);
   // the kind may move from it.
-  std::shared_ptr<void> decoded;
+  std::shared_ptr<DecodedInput> decoded;
   // A result of another, succeeded job (a kept precomputation). Errors: kNotFound (no such job
   // or result), kFailedPrecondition (the job has not succeeded), kUnavailable.
   std::function<absl::StatusOr<std::string>(const std::string& job_id, const std::string& name)> read_result;
@@ -107,6 +117,85 @@ class JobKind {
   // Runs an accepted job; the artifacts go through `env.sink`. Returns the final statistics.
   // Errors: kCancelled, or the engine's own (kInvalidArgument, kResourceExhausted, ...).
   virtual absl::StatusOr<Statistics> Run(const JobSpec& spec, const Uploads& uploads, RunEnvironment& env) const = 0;
+};
+
+// The limits a job accepted before a restart is decoded under again: it met the server's at
+// submission, and a server restarted with lower ones still runs what it accepted.
+inline constexpr InputLimits kAcceptedInputLimits{.max_points = io::DracoDecodeLimits{}.max_points,
+                                                  .min_points = 0,
+                                                  .max_cells = std::numeric_limits<int64_t>::max(),
+                                                  .max_job_memory = 0};
+
+// A kind with nothing to decode from uploads.
+struct NoInput {};
+
+// A kind whose parameters are one struct (`Params`; core::ParamSet for a kind whose methods have
+// different ones) and whose uploads decode into `Input`, once: at submission, kept by the job
+// service, or at run time for a job accepted before a restart. Run never sees raw uploads.
+template <typename Params, typename Input>
+class TypedJobKind : public JobKind {
+ public:
+  struct Checked {
+    int64_t points = 0;
+    Input input;
+    MemoryEstimate memory;
+  };
+
+  absl::StatusOr<CheckedInput> CheckUploads(const JobSpec& spec, const Uploads& uploads,
+                                            const InputLimits& limits) const final {
+    const Params* params = ParamsOf(spec);
+    if (params == nullptr) return MissingParams();
+    absl::StatusOr<Checked> checked = Decode(spec, *params, uploads, limits);
+    if (!checked.ok()) return checked.status();
+    CheckedInput out{checked->points, nullptr, std::move(checked->memory)};
+    if constexpr (!std::is_same_v<Input, NoInput>) out.decoded = std::make_shared<Held>(std::move(checked->input));
+    return out;
+  }
+
+  std::vector<std::string> ReferencedJobs(const JobSpec& spec) const final {
+    const Params* params = ParamsOf(spec);
+    return params == nullptr ? std::vector<std::string>{} : Referenced(*params);
+  }
+
+  absl::StatusOr<Statistics> Run(const JobSpec& spec, const Uploads& uploads, RunEnvironment& env) const final {
+    const Params* params = ParamsOf(spec);
+    if (params == nullptr) return MissingParams();
+    Input input{};
+    if constexpr (!std::is_same_v<Input, NoInput>) {
+      if (auto* held = dynamic_cast<Held*>(env.decoded.get()); held != nullptr) {
+        input = std::move(held->input);
+      } else {
+        absl::StatusOr<Checked> checked = Decode(spec, *params, uploads, kAcceptedInputLimits);
+        if (!checked.ok()) return checked.status();
+        input = std::move(checked->input);
+      }
+    }
+    return RunDecoded(spec, *params, std::move(input), env);
+  }
+
+ protected:
+  // Decodes and checks the uploads against `limits`. Errors: as CheckUploads.
+  virtual absl::StatusOr<Checked> Decode(const JobSpec& spec, const Params& params, const Uploads& uploads,
+                                         const InputLimits& limits) const = 0;
+  virtual std::vector<std::string> Referenced(const Params&) const { return {}; }
+  virtual absl::StatusOr<Statistics> RunDecoded(const JobSpec& spec, const Params& params, Input input,
+                                                RunEnvironment& env) const = 0;
+
+ private:
+  struct Held final : DecodedInput {
+    explicit Held(Input decoded) : input(std::move(decoded)) {}
+    Input input;
+  };
+  static const Params* ParamsOf(const JobSpec& spec) {
+    if constexpr (std::is_same_v<Params, core::ParamSet>) {
+      return &spec.params;
+    } else {
+      return spec.params.template As<Params>();
+    }
+  }
+  absl::Status MissingParams() const {
+    return absl::InternalError(std::string("a ") + std::string(name()) + " job without its parameters");
+  }
 };
 
 }  // namespace lsqsurf::jobs

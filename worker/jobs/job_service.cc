@@ -823,16 +823,16 @@ void JobService::Shutdown() {
   if (sync_thread_.joinable()) sync_thread_.join();
 }
 
-std::shared_ptr<void> JobService::ReleaseDecoded(const std::string& id) {
+std::shared_ptr<DecodedInput> JobService::ReleaseDecoded(const std::string& id) {
   auto it = decoded_.find(id);
   if (it == decoded_.end()) return nullptr;
   decoded_points_ -= it->second.points;
-  std::shared_ptr<void> input = std::move(it->second.input);
+  std::shared_ptr<DecodedInput> input = std::move(it->second.input);
   decoded_.erase(it);
   return input;
 }
 
-std::shared_ptr<JobService::Entry> JobService::ClaimNext(std::shared_ptr<void>* decoded) {
+std::shared_ptr<JobService::Entry> JobService::ClaimNext(std::shared_ptr<DecodedInput>* decoded) {
   auto claimed = store_->Claim(runner_, options_.lease);
   if (!claimed.ok()) {
     // Once per outage, not at every poll of every worker.
@@ -868,7 +868,7 @@ void JobService::WorkerLoop() {
       if (shutting_down_) return;
       signal = work_signal_;
     }
-    std::shared_ptr<void> decoded;
+    std::shared_ptr<DecodedInput> decoded;
     if (std::shared_ptr<Entry> entry = ClaimNext(&decoded)) {
       RunJob(entry, std::move(decoded));
       continue;
@@ -883,7 +883,7 @@ void JobService::WorkerLoop() {
 }
 
 absl::StatusOr<Statistics> JobService::RunKind(const std::shared_ptr<Entry>& entry, BlobSink& sink,
-                                               std::shared_ptr<void> decoded) {
+                                               std::shared_ptr<DecodedInput> decoded) {
   // The run works on its own copy: the record is replaced whenever its state is stored.
   JobRecord record;
   {
@@ -929,7 +929,7 @@ absl::StatusOr<Statistics> JobService::RunKind(const std::shared_ptr<Entry>& ent
   }
 }
 
-void JobService::RunJob(const std::shared_ptr<Entry>& entry, std::shared_ptr<void> decoded) {
+void JobService::RunJob(const std::shared_ptr<Entry>& entry, std::shared_ptr<DecodedInput> decoded) {
   const std::string id = entry->record.id;
   const auto run_start = std::chrono::steady_clock::now();
   if (entry->record.state == JobState::kFailed) {

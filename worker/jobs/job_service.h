@@ -208,12 +208,12 @@ class JobService {
   explicit JobService(JobServiceOptions options);
   void WorkerLoop();
   // Claims the oldest queued job; null when none is queued or the store failed.
-  std::shared_ptr<Entry> ClaimNext(std::shared_ptr<void>* decoded);
-  void RunJob(const std::shared_ptr<Entry>& entry, std::shared_ptr<void> decoded);
+  std::shared_ptr<Entry> ClaimNext(std::shared_ptr<DecodedInput>* decoded);
+  void RunJob(const std::shared_ptr<Entry>& entry, std::shared_ptr<DecodedInput> decoded);
   // Takes a job's decoded input out of the memory budget; null if none is kept (mutex_ held).
-  std::shared_ptr<void> ReleaseDecoded(const std::string& id);
+  std::shared_ptr<DecodedInput> ReleaseDecoded(const std::string& id);
   absl::StatusOr<Statistics> RunKind(const std::shared_ptr<Entry>& entry, class BlobSink& sink,
-                                     std::shared_ptr<void> decoded);
+                                     std::shared_ptr<DecodedInput> decoded);
   // Applies `change` to the record and wakes watchers; with `persist`, stores the changed record
   // first (a held job's), so that what watchers see is in the store already.
   void Update(const std::shared_ptr<Entry>& entry, const std::function<void(JobRecord&)>& change, bool persist = true);
@@ -281,13 +281,13 @@ class JobService {
   std::atomic<bool> claims_failing_{false};
   int64_t synced_seq_ = 0;  // The store's change number this service has seen (sync thread).
   bool shutting_down_ = false;
-  struct DecodedInput {
-    std::shared_ptr<void> input;
+  struct HeldInput {
+    std::shared_ptr<DecodedInput> input;
     int64_t points = 0;
   };
-  std::map<std::string, DecodedInput> decoded_;  // Queued jobs' decoded inputs by id (mutex_).
-  int64_t decoded_points_ = 0;                   // Their points (mutex_).
-  std::map<std::string, Usage> pending_;         // Submissions being stored, by owner (mutex_).
+  std::map<std::string, HeldInput> decoded_;  // Queued jobs' decoded inputs by id (mutex_).
+  int64_t decoded_points_ = 0;                // Their points (mutex_).
+  std::map<std::string, Usage> pending_;      // Submissions being stored, by owner (mutex_).
 };
 
 }  // namespace lsqsurf::jobs

@@ -115,7 +115,7 @@ MemoryEstimate ProbeMemory(int64_t points) {
   return {points * 224, "probe fewer points or a coarser grid, in parts if need be"};
 }
 
-class ProbeKind final : public JobKind {
+class ProbeKind final : public TypedJobKind<ProbeJobParams, std::vector<Vec3d>> {
  public:
   std::string_view name() const override { return "probe"; }
 
@@ -128,15 +128,12 @@ class ProbeKind final : public JobKind {
              {kInputUpload}}};
   }
 
-  std::vector<std::string> ReferencedJobs(const JobSpec& spec) const override {
-    const auto* p = spec.params.As<ProbeJobParams>();
-    return p == nullptr ? std::vector<std::string>{} : std::vector<std::string>{p->source};
-  }
+  std::vector<std::string> Referenced(const ProbeJobParams& p) const override { return {p.source}; }
 
-  absl::StatusOr<CheckedInput> CheckUploads(const JobSpec& spec, const Uploads& uploads,
-                                            const InputLimits& limits) const override {
-    const auto* p = spec.params.As<ProbeJobParams>();
-    if (p == nullptr) return absl::InternalError("not a probe");
+  // The input is the uploaded points; empty for a grid, which the run makes from the field's bounds.
+  absl::StatusOr<Checked> Decode(const JobSpec&, const ProbeJobParams& params, const Uploads& uploads,
+                                 const InputLimits& limits) const override {
+    const ProbeJobParams* p = &params;
     LSQSURF_ASSIGN_OR_RETURN(auto grid, ParseGrid(p->grid));
     const int64_t count = p->grid.empty() ? 0 : grid[0] * grid[1] * grid[2];
     if (p->grid.empty()) {
@@ -146,18 +143,18 @@ class ProbeKind final : public JobKind {
             core::StrCat(points.size(), " probe points; this server accepts at most ", limits.max_points));
       }
       const auto n = static_cast<int64_t>(points.size());
-      return CheckedInput{n, std::make_shared<std::vector<Vec3d>>(std::move(points)), ProbeMemory(n)};
+      return Checked{n, std::move(points), ProbeMemory(n)};
     }
     if (count > limits.max_points) {
       return absl::ResourceExhaustedError(
           core::StrCat("a ", p->grid, " grid has ", count, " points; this server accepts at most ", limits.max_points));
     }
-    return CheckedInput{count, nullptr, ProbeMemory(count)};
+    return Checked{count, {}, ProbeMemory(count)};
   }
 
-  absl::StatusOr<Statistics> Run(const JobSpec& spec, const Uploads& uploads, RunEnvironment& env) const override {
-    const auto* p = spec.params.As<ProbeJobParams>();
-    if (p == nullptr) return absl::InternalError("not a probe");
+  absl::StatusOr<Statistics> RunDecoded(const JobSpec&, const ProbeJobParams& params, std::vector<Vec3d> points,
+                                        RunEnvironment& env) const override {
+    const ProbeJobParams* p = &params;
     env.context.ReportProgress("reading the field", 0.0);
     auto stored = env.read_result ? env.read_result(p->source, kVolumeFieldArtifact)
                                   : absl::StatusOr<std::string>(absl::UnavailableError("no job store"));
@@ -174,16 +171,9 @@ class ProbeKind final : public JobKind {
           core::StrCat("job ", p->source, " has no field '", p->field, "'; its fields: ", names));
     }
     LSQSURF_ASSIGN_OR_RETURN(auto grid, ParseGrid(p->grid));
-    std::vector<Vec3d> xs;
+    std::vector<Vec3d> xs = std::move(points);
     Vec3d origin = field->bounds().min(), spacing = Vec3d::Zero();
-    if (p->grid.empty()) {
-      if (env.decoded != nullptr) {
-        xs = std::move(*std::static_pointer_cast<std::vector<Vec3d>>(env.decoded));
-      } else {
-        // Its size was checked at submission.
-        LSQSURF_ASSIGN_OR_RETURN(xs, DecodePoints(uploads, io::DracoDecodeLimits{}.max_points));
-      }
-    } else {
+    if (!p->grid.empty()) {
       for (int a = 0; a < 3; ++a) spacing[a] = field->bounds().sizes()[a] / static_cast<double>(grid[a] - 1);
       xs.reserve(static_cast<size_t>(grid[0] * grid[1] * grid[2]));
       for (int64_t k = 0; k < grid[2]; ++k) {

@@ -424,7 +424,7 @@ absl::StatusOr<core::PointCloud> DecodeCloud(const Uploads& uploads, int64_t max
   return cloud;
 }
 
-class SurfaceKind final : public JobKind {
+class SurfaceKind final : public TypedJobKind<core::ParamSet, core::PointCloud> {
  public:
   std::string_view name() const override { return "surface"; }
 
@@ -434,27 +434,21 @@ class SurfaceKind final : public JobKind {
     return out;
   }
 
-  absl::StatusOr<CheckedInput> CheckUploads(const JobSpec& spec, const Uploads& uploads,
-                                            const InputLimits& limits) const override {
+  absl::StatusOr<Checked> Decode(const JobSpec& spec, const core::ParamSet& params, const Uploads& uploads,
+                                 const InputLimits& limits) const override {
     const SurfaceMethod* m = FindSurfaceMethod(spec.method);
-    if (m == nullptr || m->normals(spec.params) == nullptr) return absl::InternalError("not a surface method");
+    if (m == nullptr || m->normals(params) == nullptr) return absl::InternalError("not a surface method");
     auto cloud = DecodeCloud(uploads, limits.max_points);
     if (!cloud.ok()) return cloud.status();
-    LSQSURF_RETURN_IF_ERROR(CheckCloud(*cloud, *m->normals(spec.params), limits));
+    LSQSURF_RETURN_IF_ERROR(CheckCloud(*cloud, *m->normals(params), limits));
     const CloudSize size{static_cast<int64_t>(cloud->size()), core::BoundingBox(cloud->positions).diagonal().norm()};
-    MemoryEstimate memory = m->memory(spec.params, size);
-    return CheckedInput{size.points, std::make_shared<core::PointCloud>(*std::move(cloud)), std::move(memory)};
+    MemoryEstimate memory = m->memory(params, size);
+    return Checked{size.points, *std::move(cloud), std::move(memory)};
   }
 
-  absl::StatusOr<Statistics> Run(const JobSpec& spec, const Uploads& uploads, RunEnvironment& env) const override {
-    absl::StatusOr<core::PointCloud> cloud = absl::UnknownError("");
-    if (env.decoded != nullptr) {
-      cloud = std::move(*std::static_pointer_cast<core::PointCloud>(env.decoded));  // Decoded at submission.
-    } else {
-      cloud = DecodeCloud(uploads, io::DracoDecodeLimits{}.max_points);  // Its size was checked at submission.
-      if (!cloud.ok()) return cloud.status();
-    }
-    auto result = ReconstructSurface(spec.method, spec.params, *std::move(cloud), env.context, env.memory_bytes);
+  absl::StatusOr<Statistics> RunDecoded(const JobSpec& spec, const core::ParamSet& params, core::PointCloud cloud,
+                                        RunEnvironment& env) const override {
+    auto result = ReconstructSurface(spec.method, params, std::move(cloud), env.context, env.memory_bytes);
     if (!result.ok()) return result.status();
     LSQSURF_RETURN_IF_ERROR(DeliverMesh(result->mesh, spec, env, &result->statistics));
     for (const auto& [name, bytes] : result->kept) LSQSURF_RETURN_IF_ERROR(env.sink.Write(name, bytes));

@@ -179,11 +179,17 @@ class FrameWriter {
   std::string csv_;
 };
 
+// The uploads a track job's parameters call for, decoded and checked.
+struct TrackInput {
+  std::optional<core::PointCloud> interface;  // interface=uploaded.
+  std::optional<io::VectorGrid> grid;         // field=uploaded.
+};
+
 // An allowance per front point: its position and normal, the four RK4 stages, the index and
 // the RAMLS fits' neighbour lists that the resampling builds over it.
 constexpr int64_t kTrackBytesPerPoint = 256;
 
-class TrackKind final : public JobKind {
+class TrackKind final : public TypedJobKind<TrackJobParams, TrackInput> {
  public:
   std::string_view name() const override { return "track"; }
 
@@ -197,40 +203,24 @@ class TrackKind final : public JobKind {
              {kInputUpload, kVelocityUpload}}};
   }
 
-  absl::StatusOr<CheckedInput> CheckUploads(const JobSpec& spec, const Uploads& uploads,
-                                            const InputLimits& limits) const override {
-    const TrackJobParams* p = spec.params.As<TrackJobParams>();
-    if (p == nullptr) return absl::InternalError("not a track job");
-    auto input = DecodeInput(*p, uploads, limits.max_points);
+  absl::StatusOr<Checked> Decode(const JobSpec&, const TrackJobParams& p, const Uploads& uploads,
+                                 const InputLimits& limits) const override {
+    auto input = DecodeInput(p, uploads, limits.max_points);
     if (!input.ok()) return input.status();
     const auto points = static_cast<int64_t>(input->interface ? input->interface->size() : 0);
     // The engine stops a front that grows past max_points; that front must fit.
-    const MemoryEstimate memory{static_cast<int64_t>(p->tracking.max_points) * kTrackBytesPerPoint, "lower max_points"};
-    return CheckedInput{points, std::make_shared<TrackInput>(*std::move(input)), memory};
+    const MemoryEstimate memory{static_cast<int64_t>(p.tracking.max_points) * kTrackBytesPerPoint, "lower max_points"};
+    return Checked{points, *std::move(input), memory};
   }
 
-  absl::StatusOr<Statistics> Run(const JobSpec& spec, const Uploads& uploads, RunEnvironment& env) const override {
-    const TrackJobParams* p = spec.params.As<TrackJobParams>();
-    if (p == nullptr) return absl::InternalError("not a track job");
+  absl::StatusOr<Statistics> RunDecoded(const JobSpec& spec, const TrackJobParams& p, TrackInput input,
+                                        RunEnvironment& env) const override {
     LSQSURF_RETURN_IF_ERROR(spec.params.Validate());
-    absl::StatusOr<TrackInput> input = absl::UnknownError("");
-    if (env.decoded != nullptr) {
-      input = std::move(*std::static_pointer_cast<TrackInput>(env.decoded));  // Decoded at submission.
-    } else {
-      input = DecodeInput(*p, uploads, std::numeric_limits<int64_t>::max());  // Accepted before a restart.
-    }
-    if (!input.ok()) return input.status();
-    return Track(*p, spec.preview, input->interface ? &*input->interface : nullptr,
-                 input->grid ? &*input->grid : nullptr, env);
+    return Track(p, spec.preview, input.interface ? &*input.interface : nullptr, input.grid ? &*input.grid : nullptr,
+                 env);
   }
 
  private:
-  // The uploads a job's parameters call for, decoded and checked.
-  struct TrackInput {
-    std::optional<core::PointCloud> interface;  // interface=uploaded.
-    std::optional<io::VectorGrid> grid;         // field=uploaded.
-  };
-
   static absl::StatusOr<TrackInput> DecodeInput(const TrackJobParams& p, const Uploads& uploads, int64_t max_points) {
     TrackInput input;
     const bool has_input = uploads.contains(kInputUpload) && !uploads.at(kInputUpload).empty();

@@ -81,7 +81,7 @@ absl::Status CheckIsoValues(const VolumeJobParams& p, const volume::VolumeMesh& 
   return absl::OkStatus();
 }
 
-class VolumeKind final : public JobKind {
+class VolumeKind final : public TypedJobKind<VolumeJobParams, volume::VolumeMesh> {
  public:
   std::string_view name() const override { return "volume"; }
 
@@ -94,10 +94,9 @@ class VolumeKind final : public JobKind {
              {kInputUpload, kCellsUpload}}};
   }
 
-  absl::StatusOr<CheckedInput> CheckUploads(const JobSpec& spec, const Uploads& uploads,
-                                            const InputLimits& limits) const override {
-    const auto* p = spec.params.As<VolumeJobParams>();
-    if (p == nullptr) return absl::InternalError("not a volume method");
+  absl::StatusOr<Checked> Decode(const JobSpec&, const VolumeJobParams& params, const Uploads& uploads,
+                                 const InputLimits& limits) const override {
+    const VolumeJobParams* p = &params;
     LSQSURF_ASSIGN_OR_RETURN(volume::VolumeMesh mesh, DecodeVolume(uploads, limits.max_cells));
     LSQSURF_RETURN_IF_ERROR(volume::ValidateVolumeMesh(mesh, {limits.max_points, limits.max_cells}));
     if (static_cast<int64_t>(mesh.vertex_count()) < limits.min_points) {
@@ -114,17 +113,11 @@ class VolumeKind final : public JobKind {
     }
     LSQSURF_RETURN_IF_ERROR(CheckIsoValues(*p, mesh));
     const auto vertices = static_cast<int64_t>(mesh.vertex_count());
-    return CheckedInput{vertices, std::make_shared<volume::VolumeMesh>(std::move(mesh)), {}};
+    return Checked{vertices, std::move(mesh), {}};
   }
 
-  absl::StatusOr<Statistics> Run(const JobSpec& spec, const Uploads& uploads, RunEnvironment& env) const override {
-    volume::VolumeMesh mesh;
-    if (env.decoded != nullptr) {
-      mesh = std::move(*std::static_pointer_cast<volume::VolumeMesh>(env.decoded));  // Checked at submission.
-    } else {
-      LSQSURF_ASSIGN_OR_RETURN(mesh, DecodeVolume(uploads, volume::kNoVolumeLimits.max_cells));
-      LSQSURF_RETURN_IF_ERROR(volume::ValidateVolumeMesh(mesh, volume::kNoVolumeLimits));
-    }
+  absl::StatusOr<Statistics> RunDecoded(const JobSpec& spec, const VolumeJobParams&, volume::VolumeMesh mesh,
+                                        RunEnvironment& env) const override {
     LSQSURF_ASSIGN_OR_RETURN(VolumeResult result, ReconstructVolume(spec.params, mesh, env.context, env.memory_bytes));
     if (!result.mesh.empty()) {
       LSQSURF_ASSIGN_OR_RETURN(std::string encoded,

@@ -51,7 +51,7 @@ struct RenderParams;
 
 namespace lsqsurf::jobs {
 
-struct SampledVolume;  // volume_job.h
+class VolumePictures;  // volume_job.h
 
 // What a job's results are reckoned to take until its run settles them: as much as its upload.
 // A reservation, counted against quotas and the store's limit from submission on, so that a user
@@ -263,9 +263,7 @@ class JobService {
   std::mutex render_mutex_;                   // Guards the two below.
   int renders_ = 0;                           // Pictures being drawn.
   std::map<std::string, int> owner_renders_;  // Of them, by named owner.
-  std::mutex volume_mutex_;                   // Guards the two below: the last volume grid drawn and its key.
-  std::string volume_key_;
-  std::shared_ptr<const SampledVolume> volume_grid_;
+  std::unique_ptr<VolumePictures> volume_pictures_;
   mutable std::mutex mutex_;
   mutable std::condition_variable changed_;  // Any job changed (watchers).
   std::condition_variable work_available_;   // A job may have been queued, or shutdown began.

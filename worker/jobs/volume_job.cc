@@ -251,4 +251,38 @@ const JobKind& VolumeJobKind() {
   return kind;
 }
 
+absl::StatusOr<VolumePicture> VolumePictures::Draw(const std::string& job_id, std::string_view bytes,
+                                                   const render::RenderParams& params, render::SharedRenderer& renderer,
+                                                   const core::JobContext* ctx) {
+  const std::string key = core::StrCat(job_id, "/", params.volume_resolution);
+  std::shared_ptr<const SampledVolume> sampled;
+  {
+    std::lock_guard lock(mutex_);
+    if (key_ == key) sampled = grid_;
+  }
+  if (sampled == nullptr) {
+    LSQSURF_ASSIGN_OR_RETURN(std::unique_ptr<volume::VolumeField> field, volume::DeserializeVolumeField(bytes));
+    LSQSURF_ASSIGN_OR_RETURN(SampledVolume grid,
+                             SampleVolumeForPicture(*field, params.volume_resolution, max_grid_bytes_, ctx));
+    sampled = std::make_shared<const SampledVolume>(std::move(grid));
+    std::lock_guard lock(mutex_);
+    key_ = key;
+    grid_ = sampled;
+  }
+  // The GL's shader on a GPU; on Mesa's software rasterizer (or without a GL) the C++ ray
+  // caster, which draws the same picture twice as fast there (measured: 0.24 s against 0.53 s
+  // for 512² frames of the 384k-tetrahedra Marschner–Lobb mesh).
+  VolumePicture picture;
+  auto gl = renderer.Get();
+  const bool gpu = gl.ok() && (*gl)->description().find("llvmpipe") == std::string::npos &&
+                   (*gl)->description().find("softpipe") == std::string::npos;
+  auto image = gpu ? (*gl)->RenderVolume(sampled->grid, params, &picture.info)
+                   : render::RaycastVolume(sampled->grid, params, &picture.info);
+  if (!image.ok()) return image.status();
+  LSQSURF_ASSIGN_OR_RETURN(picture.png, render::EncodePng(*image));
+  picture.grid_rms_error = sampled->rms_error;
+  picture.grid_max_error = sampled->max_error;
+  return picture;
+}
+
 }  // namespace lsqsurf::jobs

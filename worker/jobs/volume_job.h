@@ -7,7 +7,9 @@
 #pragma once
 
 #include <memory>
+#include <mutex>
 #include <string>
+#include <string_view>
 
 #include "absl/status/statusor.h"
 #include "worker/core/job_context.h"
@@ -49,6 +51,31 @@ struct SampledVolume {
 inline constexpr int64_t kPictureGridBytesPerPoint = sizeof(float) * 4;  // A value and a gradient.
 absl::StatusOr<SampledVolume> SampleVolumeForPicture(const volume::VolumeField& field, int resolution,
                                                      int64_t max_bytes, const core::JobContext* ctx = nullptr);
+
+// A picture of a volume job's kept field, and the sampled grid's error against the field.
+struct VolumePicture {
+  std::string png;
+  render::RenderInfo info;
+  double grid_rms_error = 0, grid_max_error = 0;
+};
+
+// Draws kept volume fields. The sampled grid of the last field drawn is kept, so the frames of a
+// turntable share it. Thread-safe.
+class VolumePictures {
+ public:
+  explicit VolumePictures(int64_t max_grid_bytes) : max_grid_bytes_(max_grid_bytes) {}
+  // `job_id` names the field (SerializeVolumeField's `bytes`) in the cache. Errors: kInvalidArgument
+  // (unreadable field), kResourceExhausted (a grid past max_grid_bytes), kCancelled, the renderer's.
+  absl::StatusOr<VolumePicture> Draw(const std::string& job_id, std::string_view bytes,
+                                     const render::RenderParams& params, render::SharedRenderer& renderer,
+                                     const core::JobContext* ctx);
+
+ private:
+  const int64_t max_grid_bytes_;
+  std::mutex mutex_;  // Guards the two below.
+  std::string key_;
+  std::shared_ptr<const SampledVolume> grid_;
+};
 
 // The artifact that keeps a volume job's precomputed field (SerializeVolumeField).
 inline constexpr char kVolumeFieldArtifact[] = "field.lqvf";

@@ -1,0 +1,226 @@
+#include <spdlog/spdlog.h>
+#include <unistd.h>
+
+#include <cmath>
+#include <filesystem>
+#include <fstream>
+#include <random>
+#include <set>
+#include <tuple>
+
+#include "absl/cleanup/cleanup.h"
+#include "worker/core/status.h"
+#include "worker/core/strings.h"
+#include "worker/io/draco_codec.h"
+#include "worker/jobs/job_ids.h"
+#include "worker/jobs/job_service.h"
+#include "worker/jobs/job_service_internal.h"
+#include "worker/jobs/method_registry.h"
+#include "worker/jobs/volume_job.h"
+#include "worker/render/render.h"
+
+namespace lsqsurf::jobs {
+
+absl::StatusOr<JobRecord> JobService::Submit(const JobSpec& spec, Uploads uploads, const Submitter& submitter) {
+  LSQSURF_RETURN_IF_ERROR(ValidateSpec(spec));
+  // A job that reads another's results may name only jobs its submitter may see; the run reads
+  // no others (RunKind).
+  for (const std::string& referenced : KindOf(spec.method)->ReferencedJobs(spec)) {
+    if (!IsJobIdForm(referenced)) return absl::InvalidArgumentError(core::StrCat("a referenced ", kNotAJobId));
+    LSQSURF_RETURN_IF_ERROR(GetFor(submitter, referenced).status());
+  }
+  if (spec.preview.enabled) {
+    if (auto r = renderer_->Get(); !r.ok()) {
+      return absl::UnavailableError(
+          core::StrCat("this server cannot draw previews (", r.status().message(), "); submit the job without one"));
+    }
+  }
+  const MethodEntry* method = FindMethod(spec.method);
+  int64_t bytes = 0;
+  for (auto it = uploads.begin(); it != uploads.end();) {
+    if (it->second.empty()) {
+      it = uploads.erase(it);
+      continue;
+    }
+    const auto& accepted = method->info.uploads;
+    if (std::find(accepted.begin(), accepted.end(), it->first) == accepted.end()) {
+      return absl::InvalidArgumentError(core::StrCat("the ", spec.method, " method takes no '", it->first, "' upload"));
+    }
+    bytes += static_cast<int64_t>(it->second.size());
+    ++it;
+  }
+  if (const int64_t limit = MaxUploadBytes(submitter); bytes > limit) {
+    return absl::ResourceExhaustedError(core::StrCat(
+        "the upload has ", bytes, " bytes; ",
+        limit < options_.max_input_bytes ? "your quota allows" : "this server accepts", " at most ", limit));
+  }
+  LSQSURF_RETURN_IF_ERROR(CheckRoom(bytes + ResultReserve(bytes)));
+  auto checked =
+      KindOf(spec.method)
+          ->CheckUploads(spec, uploads,
+                         {options_.max_points, options_.min_points, options_.max_cells, options_.max_job_memory});
+  if (!checked.ok()) return checked.status();
+  if (const int64_t limit = options_.max_job_memory; limit > 0 && checked->memory.bytes > limit) {
+    return absl::ResourceExhaustedError(core::StrCat("this job would take about ", MiB(checked->memory.bytes),
+                                                     " MiB of memory, more than the ", MiB(limit),
+                                                     " MiB a job may take on this server; ", checked->memory.hint));
+  }
+  JobRecord r;
+  r.id = NewJobId();
+  r.spec = spec;
+  r.owner = submitter.owner;
+  r.created_ms = r.updated_ms = NowMs();
+  r.input_points = checked->points;
+  r.input_bytes = bytes;
+  // Its results are still to come: a reservation counts them until the run settles what they took.
+  r.stored_bytes = bytes + ResultReserve(bytes);
+  r.quota_bytes = submitter.max_stored_bytes;
+  {
+    std::lock_guard lock(mutex_);
+    if (shutting_down_) return absl::UnavailableError("the server is shutting down");
+    if (const int queued = QueuedJobs(); queued >= options_.max_queue) {
+      return absl::ResourceExhaustedError(
+          core::StrCat("the job queue is full (", queued, " jobs waiting); try again later"));
+    }
+    // A named user may fill half of the queue (rounded up), so that others still get in.
+    if (!submitter.owner.empty() && 2 * QueuedJobsOf(submitter.owner) >= options_.max_queue) {
+      return absl::ResourceExhaustedError(core::StrCat("you have ", QueuedJobsOf(submitter.owner),
+                                                       " jobs waiting, half of this server's queue; submit more once "
+                                                       "they have started"));
+    }
+    LSQSURF_RETURN_IF_ERROR(CheckQuota(submitter, r.stored_bytes));
+    // Held against the quota until the job's entry counts itself.
+    Usage& pending = pending_[submitter.owner];
+    ++pending.active_jobs;
+    pending.stored_bytes += r.stored_bytes;
+  }
+  const absl::Cleanup release_pending = [&] {
+    std::lock_guard lock(mutex_);
+    Usage& pending = pending_[submitter.owner];
+    --pending.active_jobs;
+    pending.stored_bytes -= r.stored_bytes;
+    if (pending.active_jobs == 0) pending_.erase(submitter.owner);
+  };
+  for (const auto& [slot, data] : uploads) {
+    if (absl::Status s = blobs_->Put(r.id, UploadFiles().at(slot), data); !s.ok()) {
+      (void)blobs_->RemoveJob(r.id);
+      return s;
+    }
+  }
+  {
+    // The decoded input waits with the job while the waiting ones hold at most max_points
+    // points. It is in place before the job is stored: a worker may claim it at once.
+    std::lock_guard lock(mutex_);
+    if (checked->decoded != nullptr && decoded_points_ + r.input_points <= options_.max_points) {
+      decoded_[r.id] = {std::move(checked->decoded), r.input_points};
+      decoded_points_ += r.input_points;
+    }
+  }
+  // Stored before it is visible: a job the caller hears of survives a crash.
+  if (absl::Status s = store_->Insert(r); !s.ok()) {
+    (void)blobs_->RemoveJob(r.id);
+    std::lock_guard lock(mutex_);
+    ReleaseDecoded(r.id);
+    return s;
+  }
+  {
+    std::lock_guard lock(mutex_);
+    std::shared_ptr<Entry>& entry = jobs_[r.id];
+    // A worker may have claimed the job already; its entry stays.
+    if (entry == nullptr) {
+      entry = std::make_shared<Entry>();
+      entry->record = r;
+    }
+    ++work_signal_;
+  }
+  work_available_.notify_one();
+  spdlog::info("[job {}] accepted: method {}, {} points, {} bytes", r.id, spec.method, r.input_points, r.input_bytes);
+  return r;
+}
+
+int64_t JobService::MaxUploadBytes(const Submitter& submitter) const {
+  return submitter.max_upload_bytes > 0 ? std::min(submitter.max_upload_bytes, options_.max_input_bytes)
+                                        : options_.max_input_bytes;
+}
+
+JobService::Usage JobService::UsageOf(const std::string& owner) const {
+  std::lock_guard lock(mutex_);
+  return OwnerUsage(owner);
+}
+
+JobService::Usage JobService::OwnerUsage(const std::string& owner) const {
+  Usage usage;
+  if (auto it = pending_.find(owner); it != pending_.end()) usage = it->second;
+  for (const auto& [id, e] : jobs_) {
+    if (e->record.owner != owner) continue;
+    usage.active_jobs += !IsTerminal(e->record.state);
+    usage.stored_bytes += e->record.stored_bytes;
+  }
+  return usage;
+}
+
+absl::Status JobService::CheckQuota(const Submitter& submitter, int64_t job_bytes) const {
+  if (submitter.max_active_jobs <= 0 && submitter.max_stored_bytes <= 0) return absl::OkStatus();
+  const Usage usage = OwnerUsage(submitter.owner);
+  if (submitter.max_active_jobs > 0 && usage.active_jobs >= submitter.max_active_jobs) {
+    return absl::ResourceExhaustedError(core::StrCat(
+        "you have ", usage.active_jobs, " jobs queued or running, your quota's limit; wait for one to end"));
+  }
+  if (submitter.max_stored_bytes > 0 && usage.stored_bytes + job_bytes > submitter.max_stored_bytes) {
+    return absl::ResourceExhaustedError(
+        core::StrCat("your jobs keep ", usage.stored_bytes, " bytes and this job needs ", job_bytes,
+                     " (its upload, and a reserve for its results); your quota allows ", submitter.max_stored_bytes,
+                     " in all: delete finished jobs to make room"));
+  }
+  return absl::OkStatus();
+}
+
+absl::Status JobService::CheckRoom(int64_t job_bytes) {
+  if (options_.max_store_bytes > 0 && StoredBytes() + job_bytes > options_.max_store_bytes) {
+    SweepFinished(NowMs(), job_bytes);
+    if (const int64_t kept = StoredBytes(); kept + job_bytes > options_.max_store_bytes) {
+      return absl::ResourceExhaustedError(core::StrCat(
+          "the server's store is full: its jobs keep ", kept, " of ", options_.max_store_bytes,
+          " bytes and this job needs ", job_bytes,
+          " (its upload and a reserve for its results); try again once jobs have finished and been deleted"));
+    }
+  }
+  if (const int64_t available = blobs_->AvailableBytes();
+      available >= 0 && available - job_bytes < options_.min_free_bytes) {
+    return absl::ResourceExhaustedError(core::StrCat("the server's disk is nearly full (", available >> 20,
+                                                     " MiB free, ", options_.min_free_bytes >> 20,
+                                                     " MiB kept for running jobs); try again later"));
+  }
+  return absl::OkStatus();
+}
+
+int JobService::QueuedJobs() const {
+  int queued = 0;
+  for (const auto& [id, e] : jobs_) queued += e->record.state == JobState::kQueued;
+  return queued;
+}
+
+int JobService::QueuedJobsOf(const std::string& owner) const {
+  int queued = 0;
+  for (const auto& [id, e] : jobs_) queued += e->record.state == JobState::kQueued && e->record.owner == owner;
+  return queued;
+}
+
+absl::Status JobService::AdmitResults(const std::shared_ptr<Entry>& entry, int64_t artifact_bytes) {
+  std::lock_guard lock(mutex_);
+  JobRecord& r = entry->record;
+  const int64_t total = r.input_bytes + artifact_bytes;
+  if (r.quota_bytes > 0) {
+    const int64_t others = OwnerUsage(r.owner).stored_bytes - r.stored_bytes;
+    if (others + total > r.quota_bytes) {
+      return absl::ResourceExhaustedError(core::StrCat("the job's results would take your jobs past your quota of ",
+                                                       r.quota_bytes, " stored bytes (the others keep ", others,
+                                                       "); delete finished jobs to make room"));
+    }
+  }
+  // The reservation stands until the run settles; past it, what was written counts at once.
+  r.stored_bytes = std::max(r.stored_bytes, total);
+  return absl::OkStatus();
+}
+
+}  // namespace lsqsurf::jobs

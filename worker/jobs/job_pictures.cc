@@ -1,0 +1,98 @@
+#include <spdlog/spdlog.h>
+#include <unistd.h>
+
+#include <cmath>
+#include <filesystem>
+#include <fstream>
+#include <random>
+#include <set>
+#include <tuple>
+
+#include "absl/cleanup/cleanup.h"
+#include "worker/core/status.h"
+#include "worker/core/strings.h"
+#include "worker/io/draco_codec.h"
+#include "worker/jobs/job_ids.h"
+#include "worker/jobs/job_service.h"
+#include "worker/jobs/job_service_internal.h"
+#include "worker/jobs/method_registry.h"
+#include "worker/jobs/volume_job.h"
+#include "worker/render/render.h"
+
+namespace lsqsurf::jobs {
+
+bool JobService::TakeRenderSlot(const std::string& owner) {
+  std::lock_guard lock(render_mutex_);
+  if (renders_ >= options_.max_renders) return false;
+  if (!owner.empty()) {
+    int& mine = owner_renders_[owner];
+    if (mine >= (options_.max_renders + 1) / 2) {
+      if (mine == 0) owner_renders_.erase(owner);
+      return false;
+    }
+    ++mine;
+  }
+  ++renders_;
+  return true;
+}
+
+void JobService::ReleaseRenderSlot(const std::string& owner) {
+  std::lock_guard lock(render_mutex_);
+  --renders_;
+  if (auto it = owner_renders_.find(owner); it != owner_renders_.end() && --it->second == 0) owner_renders_.erase(it);
+}
+
+absl::StatusOr<RenderedPicture> JobService::Render(const Submitter& who, const std::string& id, const std::string& name,
+                                                   const core::ParamSet& view, const core::JobContext* ctx) {
+  LSQSURF_RETURN_IF_ERROR(GetFor(who, id).status());
+  const auto* params = view.As<render::RenderParams>();
+  if (params == nullptr) return absl::InternalError("view options of another type");
+  // Checked before any file is read or a context is made.
+  LSQSURF_RETURN_IF_ERROR(render::Validate(*params));
+  if (!TakeRenderSlot(who.owner)) {
+    return absl::ResourceExhaustedError(core::StrCat("the pictures this server draws at once (", options_.max_renders,
+                                                     ", half of them per user) are being drawn; "
+                                                     "try again shortly"));
+  }
+  const absl::Cleanup release = [&] { ReleaseRenderSlot(who.owner); };
+  auto reader = OpenResult(id, name);
+  if (!reader.ok()) return reader.status();
+  auto read = ReadAll(**reader);
+  if (!read.ok()) return read.status();
+  const std::string& bytes = *read;
+  if (volume::IsStoredVolumeField(bytes)) return RenderVolumeField(id, bytes, *params, ctx);
+  auto geometry = io::PeekDracoGeometry(bytes);
+  if (!geometry.ok()) {
+    return absl::InvalidArgumentError(
+        core::StrCat("artifact '", name, "' is not a Draco mesh or point set; only those can be rendered"));
+  }
+  auto renderer = renderer_->Get();
+  if (!renderer.ok()) return renderer.status();
+  render::RenderInfo info;
+  absl::StatusOr<render::Image> image = absl::InvalidArgumentError("");
+  if (*geometry == io::DracoGeometry::kTriangleMesh) {
+    auto mesh = io::DecodeDracoMesh(bytes);
+    if (!mesh.ok()) return mesh.status();
+    image = (*renderer)->RenderMesh(*mesh, *params, &info);
+  } else {
+    auto cloud = io::DecodeDracoPointCloud(bytes);
+    if (!cloud.ok()) return cloud.status();
+    image = (*renderer)->RenderPoints(*cloud, *params, &info);
+  }
+  if (!image.ok()) return image.status();
+  auto png = render::EncodePng(*image);
+  if (!png.ok()) return png.status();
+  return RenderedPicture{*std::move(png), info.color_min, info.color_max, info.renderer};
+}
+
+absl::StatusOr<RenderedPicture> JobService::RenderVolumeField(const std::string& id, const std::string& bytes,
+                                                              const render::RenderParams& params,
+                                                              const core::JobContext* ctx) {
+  LSQSURF_ASSIGN_OR_RETURN(VolumePicture picture, volume_pictures_->Draw(id, bytes, params, *renderer_, ctx));
+  return RenderedPicture{std::move(picture.png), picture.info.color_min, picture.info.color_max,
+                         picture.info.renderer,  picture.grid_rms_error, picture.grid_max_error};
+}
+
+bool JobService::CanRender() { return renderer_->Get().ok(); }
+
+}  // namespace lsqsurf::jobs

@@ -1,0 +1,314 @@
+#include <spdlog/spdlog.h>
+#include <unistd.h>
+
+#include <cmath>
+#include <filesystem>
+#include <fstream>
+#include <random>
+#include <set>
+#include <tuple>
+
+#include "absl/cleanup/cleanup.h"
+#include "worker/core/status.h"
+#include "worker/core/strings.h"
+#include "worker/io/draco_codec.h"
+#include "worker/jobs/job_ids.h"
+#include "worker/jobs/job_service.h"
+#include "worker/jobs/job_service_internal.h"
+#include "worker/jobs/method_registry.h"
+#include "worker/jobs/volume_job.h"
+#include "worker/render/render.h"
+
+namespace lsqsurf::jobs {
+
+// Writes a job's artifacts into the blob store, recording their names in order.
+// Each write is first admitted with what all the job's artifacts would then take (quotas).
+class BlobSink final : public ArtifactSink {
+ public:
+  using Admit = std::function<absl::Status(int64_t artifact_bytes)>;
+  BlobSink(BlobStore& blobs, std::string job_id, Admit admit)
+      : blobs_(blobs), job_id_(std::move(job_id)), admit_(std::move(admit)) {}
+  absl::Status Write(std::string_view name, std::string_view bytes) override {
+    {
+      std::lock_guard lock(mutex_);
+      int64_t after = static_cast<int64_t>(bytes.size());
+      for (const auto& [kept, size] : sizes_) after += kept == name ? 0 : size;
+      LSQSURF_RETURN_IF_ERROR(admit_(after));
+    }
+    LSQSURF_RETURN_IF_ERROR(blobs_.Put(job_id_, name, bytes));
+    std::lock_guard lock(mutex_);
+    if (std::find(names_.begin(), names_.end(), name) == names_.end()) names_.emplace_back(name);
+    sizes_[std::string(name)] = static_cast<int64_t>(bytes.size());
+    return absl::OkStatus();
+  }
+  std::vector<std::string> names() const {
+    std::lock_guard lock(mutex_);
+    return names_;
+  }
+  int64_t bytes() const {  // Of the artifacts as last written.
+    std::lock_guard lock(mutex_);
+    int64_t total = 0;
+    for (const auto& [name, size] : sizes_) total += size;
+    return total;
+  }
+
+ private:
+  BlobStore& blobs_;
+  std::string job_id_;
+  Admit admit_;
+  mutable std::mutex mutex_;
+  std::vector<std::string> names_;
+  std::map<std::string, int64_t> sizes_;
+};
+
+// Progress of a running job, published to watchers at most every half percent, and written to
+// a shared store (for the other services' watchers) at most twice a second.
+class JobService::Context : public core::JobContext {
+ public:
+  Context(JobService& service, std::shared_ptr<Entry> entry, std::string method)
+      : service_(service), entry_(std::move(entry)), method_(std::move(method)) {}
+  void ReportProgress(std::string_view stage, double fraction) override {
+    std::lock_guard lock(mutex_);
+    if (stage == last_stage_ && std::abs(fraction - last_fraction_) < 0.005) return;
+    const auto now = std::chrono::steady_clock::now();
+    if (stage != last_stage_) EndStage(now);
+    last_stage_.assign(stage);
+    last_fraction_ = fraction;
+    const bool persist = service_.store_->shared() && now - last_persisted_ >= std::chrono::milliseconds(500);
+    if (persist) last_persisted_ = now;
+    service_.Update(
+        entry_,
+        [&](JobRecord& r) {
+          r.stage = last_stage_;
+          r.progress = std::clamp(fraction, 0.0, 1.0);
+        },
+        persist);
+  }
+  bool IsCancelled() const override {
+    return entry_->cancel_requested.load() || entry_->interrupted.load() || entry_->lost.load();
+  }
+  // Reports the stage in progress as ended (at the end of the run).
+  void Finish() {
+    std::lock_guard lock(mutex_);
+    EndStage(std::chrono::steady_clock::now());
+    last_stage_.clear();
+  }
+
+ private:
+  void EndStage(std::chrono::steady_clock::time_point now) {  // mutex_ held.
+    if (!last_stage_.empty() && service_.options_.events != nullptr) {
+      service_.options_.events->StageEnded(method_, last_stage_,
+                                           std::chrono::duration<double>(now - stage_start_).count());
+    }
+    stage_start_ = now;
+  }
+
+  JobService& service_;
+  std::shared_ptr<Entry> entry_;
+  const std::string method_;
+  std::mutex mutex_;
+  std::string last_stage_;
+  double last_fraction_ = -1;
+  std::chrono::steady_clock::time_point last_persisted_{};
+  std::chrono::steady_clock::time_point stage_start_ = std::chrono::steady_clock::now();
+};
+
+std::shared_ptr<DecodedInput> JobService::ReleaseDecoded(const std::string& id) {
+  auto it = decoded_.find(id);
+  if (it == decoded_.end()) return nullptr;
+  decoded_points_ -= it->second.points;
+  std::shared_ptr<DecodedInput> input = std::move(it->second.input);
+  decoded_.erase(it);
+  return input;
+}
+
+std::shared_ptr<JobService::Entry> JobService::ClaimNext(std::shared_ptr<DecodedInput>* decoded) {
+  auto claimed = store_->Claim(runner_, options_.lease);
+  if (!claimed.ok()) {
+    // Once per outage, not at every poll of every worker.
+    if (!claims_failing_.exchange(true))
+      spdlog::error("cannot take jobs from the store: {}", claimed.status().ToString());
+    return nullptr;
+  }
+  claims_failing_ = false;
+  if (!claimed->has_value()) return nullptr;
+  std::shared_ptr<Entry> entry;
+  {
+    std::lock_guard lock(mutex_);
+    *decoded = ReleaseDecoded((*claimed)->id);
+    entry = Adopt(**std::move(claimed));
+    entry->held = true;
+    // A cancellation that reached the store between the claim and this line is in the record
+    // kept (Adopt keeps the newer one); the run must see it, as no one will tell it again.
+    entry->cancel_requested = entry->record.cancel_requested;
+    entry->lost = false;
+    // A shutdown that began during the claim has marked the held jobs already: this one goes
+    // back to the queue at once instead of running until it ends.
+    entry->interrupted = shutting_down_;
+  }
+  NotifyChanged();
+  return entry;
+}
+
+void JobService::WorkerLoop() {
+  for (;;) {
+    uint64_t signal = 0;
+    {
+      std::lock_guard lock(mutex_);
+      if (shutting_down_) return;
+      signal = work_signal_;
+    }
+    std::shared_ptr<DecodedInput> decoded;
+    if (std::shared_ptr<Entry> entry = ClaimNext(&decoded)) {
+      RunJob(entry, std::move(decoded));
+      continue;
+    }
+    // Nothing to claim: wait for a submission, another service's job, or the next poll.
+    std::unique_lock lock(mutex_);
+    const auto woken = [&] { return shutting_down_ || work_signal_ != signal; };
+    // A store of its own gets jobs only through Submit; the long wait there only guards
+    // against a claim that failed.
+    work_available_.wait_for(lock, store_->shared() ? options_.poll : std::chrono::milliseconds(10'000), woken);
+  }
+}
+
+absl::StatusOr<Statistics> JobService::RunKind(const std::shared_ptr<Entry>& entry, BlobSink& sink,
+                                               std::shared_ptr<DecodedInput> decoded) {
+  // The run works on its own copy: the record is replaced whenever its state is stored.
+  JobRecord record;
+  {
+    std::lock_guard lock(mutex_);
+    record = entry->record;
+  }
+  Uploads uploads;
+  // A decoded input stands in for the uploads; without one they are read back.
+  for (const auto& [slot, blob] : UploadFiles()) {
+    if (decoded != nullptr) break;
+    if (!blobs_->Exists(record.id, blob)) continue;
+    auto bytes = blobs_->Read(record.id, blob);
+    if (!bytes.ok()) return bytes.status();
+    uploads[slot] = *std::move(bytes);
+  }
+  const JobKind* kind = KindOf(record.spec.method);
+  if (kind == nullptr) return absl::FailedPreconditionError(core::StrCat("no method '", record.spec.method, "'"));
+  Context ctx(*this, entry, record.spec.method);
+  struct StageEnd {
+    Context& ctx;
+    ~StageEnd() { ctx.Finish(); }
+  } stage_end{ctx};
+  // Only the jobs the spec names, whose visibility to the submitter Submit checked.
+  const std::vector<std::string> referenced = kind->ReferencedJobs(record.spec);
+  RunEnvironment env{sink,
+                     ctx,
+                     renderer_.get(),
+                     std::move(decoded),
+                     [this, referenced](const std::string& id, const std::string& name) -> absl::StatusOr<std::string> {
+                       if (std::find(referenced.begin(), referenced.end(), id) == referenced.end())
+                         return NoSuchJob(id);
+                       auto reader = OpenResult(id, name);
+                       if (!reader.ok()) return reader.status();
+                       return ReadAll(**reader);
+                     },
+                     options_.max_job_memory};
+  try {
+    return kind->Run(record.spec, uploads, env);
+  } catch (const std::bad_alloc&) {
+    return absl::ResourceExhaustedError("the job ran out of memory");
+  } catch (const std::exception& e) {
+    return absl::InternalError(core::StrCat("engine error: ", e.what()));
+  }
+}
+
+void JobService::RunJob(const std::shared_ptr<Entry>& entry, std::shared_ptr<DecodedInput> decoded) {
+  const std::string id = entry->record.id;
+  const auto run_start = std::chrono::steady_clock::now();
+  if (entry->record.state == JobState::kFailed) {
+    // Its stored spec no longer decodes here: the claim read it back failed, with the reason.
+    Update(entry, [](JobRecord&) {});
+  } else {
+    spdlog::info("[job {}] started (attempt {})", id, entry->record.attempts);
+    const auto start = std::chrono::steady_clock::now();
+    BlobSink sink(*blobs_, id, [this, &entry](int64_t artifact_bytes) { return AdmitResults(entry, artifact_bytes); });
+    absl::StatusOr<Statistics> result = RunKind(entry, sink, std::move(decoded));
+    const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+    if (entry->lost) {
+      spdlog::warn("[job {}] ran {:.2f} s under a lapsed lease; its outcome is dropped", id, seconds);
+      // Should the store still show it as this server's, it goes back to the queue, not held
+      // against it; otherwise the write is refused and the store's state stands.
+      Update(entry, [](JobRecord& r) {
+        r.state = JobState::kQueued;
+        r.stage.clear();
+        r.progress = 0;
+        ++r.interruptions;
+      });
+    } else if (result.ok()) {
+      Update(entry, [&](JobRecord& r) {
+        r.state = JobState::kSucceeded;
+        r.stage = "done";
+        r.progress = 1;
+        r.statistics = *std::move(result);
+        r.statistics.emplace_back("wall_seconds", seconds);
+        r.results = sink.names();
+        r.stored_bytes = r.input_bytes + sink.bytes();
+      });
+      spdlog::info("[job {}] succeeded in {:.2f} s", id, seconds);
+    } else if (entry->interrupted && !entry->cancel_requested &&
+               result.status().code() == absl::StatusCode::kCancelled) {
+      // Interrupted by a shutdown, and nobody asked to cancel it: it runs again later.
+      Update(entry, [](JobRecord& r) {
+        r.state = JobState::kQueued;
+        r.stage.clear();
+        r.progress = 0;
+        ++r.interruptions;  // A shutdown is not the job's fault.
+      });
+      spdlog::info("[job {}] interrupted by shutdown; will resume on restart", id);
+    } else if (result.status().code() == absl::StatusCode::kCancelled) {
+      // What it wrote stays with it (until it is deleted), so it counts as stored.
+      Update(entry, [&](JobRecord& r) {
+        r.state = JobState::kCancelled;
+        r.error = "cancelled by request";
+        r.cancel_requested = false;
+        r.stored_bytes = r.input_bytes + sink.bytes();
+      });
+      spdlog::info("[job {}] cancelled after {:.2f} s", id, seconds);
+    } else {
+      Update(entry, [&](JobRecord& r) {
+        r.state = JobState::kFailed;
+        r.error = std::string(result.status().message());
+        r.stored_bytes = r.input_bytes + sink.bytes();
+      });
+      spdlog::warn("[job {}] failed: {}", id, result.status().ToString());
+    }
+  }
+  if (options_.events != nullptr) {
+    JobRecord ended;
+    {
+      std::lock_guard lock(mutex_);
+      ended = entry->record;
+    }
+    options_.events->JobEnded(ended.spec.method, ended.state,
+                              std::chrono::duration<double>(std::chrono::steady_clock::now() - run_start).count());
+  }
+  {
+    std::lock_guard lock(mutex_);
+    entry->held = false;
+    if (!entry->lost && !entry->removed_elsewhere) return;
+    entry->record.seq = 0;  // Whatever the store holds now replaces this run's view.
+  }
+  auto stored = store_->Get(id);
+  {
+    std::lock_guard lock(mutex_);
+    if (stored.ok()) {
+      Adopt(*std::move(stored));
+    } else if (stored.status().code() == absl::StatusCode::kNotFound) {
+      // Deleted elsewhere while it ran here: nothing of it stays on this server either.
+      if (auto it = jobs_.find(id); it != jobs_.end() && it->second == entry) {
+        ReleaseDecoded(id);
+        jobs_.erase(it);
+      }
+    }
+  }
+  NotifyChanged();
+}
+
+}  // namespace lsqsurf::jobs

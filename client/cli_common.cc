@@ -1,0 +1,213 @@
+#include <unistd.h>
+
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <cstdlib>
+
+#include "client/cli.h"
+#include "worker/core/address.h"
+#include "worker/io/draco_codec.h"
+#include "worker/io/files.h"
+
+namespace lsqsurf::cli {
+
+int Fail(const std::string& message, int code) {
+  std::fprintf(stderr, "lsqsurf: %s\n", message.c_str());
+  return code;
+}
+
+int FailStatus(const char* what, const absl::Status& s) {
+  const int code =
+      s.code() == absl::StatusCode::kUnavailable || s.code() == absl::StatusCode::kAborted ? kExitLocal : kExitFailed;
+  return Fail(StrCat(what, ": ", s.message(), " (", static_cast<int>(s.code()), ")"), code);
+}
+
+void ConnectionFlags::AddTo(CLI::App& app) {
+  app.add_option("--tls-ca", ca, "PEM certificates to trust for the server's ($LSQSURF_TLS_CA; default: the system's)");
+  app.add_option("--tls-cert", cert, "PEM client certificate, for mutual TLS ($LSQSURF_TLS_CERT)");
+  app.add_option("--tls-key", key, "PEM private key of --tls-cert ($LSQSURF_TLS_KEY)");
+  app.add_option("--tls-server-name", server_name,
+                 "name the server's certificate must carry, when not the address's host ($LSQSURF_TLS_SERVER_NAME)");
+  app.add_flag("--tls", tls, "use TLS with the system's roots (implied by --tls-*, and for non-loopback servers)");
+  app.add_flag("--plaintext", plaintext, "talk to a non-loopback server without TLS");
+  app.add_option("--token-file", token_file,
+                 "file holding the token for a server with tokens (default: $LSQSURF_TOKEN)");
+}
+
+absl::StatusOr<client::ConnectOptions> ConnectionFlags::Resolve(const std::string& server) {
+  const auto from_env = [](std::string& value, const char* name) {
+    const char* env = std::getenv(name);
+    if (value.empty() && env != nullptr) value = env;
+  };
+  from_env(ca, "LSQSURF_TLS_CA");
+  from_env(cert, "LSQSURF_TLS_CERT");
+  from_env(key, "LSQSURF_TLS_KEY");
+  from_env(server_name, "LSQSURF_TLS_SERVER_NAME");
+  client::ConnectOptions options;
+  options.server_name = server_name;
+  for (auto [path, pem] : {std::pair{&ca, &options.ca_pem}, {&cert, &options.cert_pem}, {&key, &options.key_pem}}) {
+    if (path->empty()) continue;
+    auto bytes = lsqsurf::io::ReadFileBytes(*path);
+    if (!bytes.ok()) return bytes.status();
+    *pem = *std::move(bytes);
+  }
+  if (options.cert_pem.empty() != options.key_pem.empty()) {
+    return absl::InvalidArgumentError("--tls-cert and --tls-key go together");
+  }
+  if (plaintext && (tls || options.uses_tls())) return absl::InvalidArgumentError("--plaintext contradicts --tls*");
+  options.tls = tls || (!plaintext && !lsqsurf::core::IsLoopback(server));
+  if (!token_file.empty()) {
+    auto token = lsqsurf::io::ReadFileBytes(token_file);
+    if (!token.ok()) return token.status();
+    options.token = *std::move(token);
+  } else if (const char* env = std::getenv("LSQSURF_TOKEN"); env != nullptr) {
+    options.token = env;
+  }
+  while (!options.token.empty() && std::isspace(static_cast<unsigned char>(options.token.back()))) {
+    options.token.pop_back();
+  }
+  if (!options.token.empty()) {
+    if (absl::Status s = client::CheckToken(options.token); !s.ok()) return s;
+  }
+  return options;
+}
+
+client::Client Connect(const Globals& g) { return client::Client(g.server, g.connect); }
+
+// The Draco bytes of a cloud file: .drc as it is, other formats read and encoded with unit normals.
+absl::StatusOr<std::string> CloudBytes(const std::string& path) {
+  if (path.empty()) return std::string();
+  if (lsqsurf::io::FormatFromPath(path).value_or(lsqsurf::io::FileFormat::kPly) == lsqsurf::io::FileFormat::kDraco) {
+    return lsqsurf::io::ReadFileBytes(path);
+  }
+  auto cloud = lsqsurf::io::ReadPointCloudFile(path);
+  if (!cloud.ok()) return cloud.status();
+  // The server takes unit normals; files often carry unnormalized ones.
+  for (auto& n : cloud->normals) {
+    if (n.norm() > 0) n.normalize();
+  }
+  auto encoded = lsqsurf::io::EncodeDracoPointCloud(*cloud, {});
+  if (!encoded.ok()) return absl::InvalidArgumentError(StrCat(path, ": ", encoded.status().message()));
+  return encoded;
+}
+
+namespace {
+
+class ProgressPrinter {
+ public:
+  explicit ProgressPrinter(bool quiet) : quiet_(quiet), tty_(!quiet && isatty(STDERR_FILENO)) {}
+  ~ProgressPrinter() {
+    if (tty_ && printed_) std::fprintf(stderr, "\n");
+  }
+  void operator()(const v1::Job& job) {
+    if (quiet_) return;
+    printed_ = true;
+    if (tty_) {
+      const int width = 30;
+      const int filled = static_cast<int>(std::lround(job.progress() * width));
+      std::fprintf(stderr, "\r[%s%s] %3d%% %-28s", std::string(static_cast<size_t>(filled), '#').c_str(),
+                   std::string(static_cast<size_t>(width - filled), '.').c_str(),
+                   static_cast<int>(std::lround(job.progress() * 100)),
+                   job.state() == v1::JOB_STATE_RUNNING ? job.stage().c_str() : client::StateName(job.state()));
+      std::fflush(stderr);
+      return;
+    }
+    // Plain lines: one per state or stage change, and per 10 % step.
+    const std::string line =
+        StrCat(client::StateName(job.state()), " ", job.stage(), " ", static_cast<int>(job.progress() * 10) * 10, "%");
+    if (line != last_) std::fprintf(stderr, "%s\n", line.c_str());
+    last_ = line;
+  }
+
+ private:
+  bool quiet_, tty_, printed_ = false;
+  std::string last_;
+};
+
+}  // namespace
+
+// Follows a job to its end; returns the exit code and the final job through `out`.
+int Watch(const Globals& g, const std::string& id, v1::Job* out) {
+  client::Client c = Connect(g);
+  absl::StatusOr<v1::Job> job;
+  {
+    ProgressPrinter progress(g.quiet);
+    job = c.Watch(id, std::ref(progress));
+  }
+  if (!job.ok()) return FailStatus("watch", job.status());
+  *out = *job;
+  if (job->state() == v1::JOB_STATE_FAILED) return Fail(StrCat("job ", id, " failed: ", job->error()), kExitFailed);
+  if (job->state() == v1::JOB_STATE_CANCELLED) {
+    return Fail(StrCat("job ", id, " was cancelled: ", job->error()), kExitCancelled);
+  }
+  return 0;
+}
+
+// Writes a fetched artifact to `path`: Draco meshes convert to the extension's format;
+// pictures, tables and text are written as they are.
+int WriteResult(const std::string& bytes, const std::string& name, const std::string& path) {
+  absl::Status s;
+  auto format = lsqsurf::io::FormatFromPath(path);
+  if ((!name.empty() && !name.ends_with(".drc")) || (format.ok() && *format == lsqsurf::io::FileFormat::kDraco)) {
+    s = lsqsurf::io::WriteFileAtomically(path, bytes);
+  } else if (!format.ok()) {
+    return Fail(std::string(format.status().message()));
+  } else {
+    auto mesh = lsqsurf::io::DecodeDracoMesh(bytes);
+    if (!mesh.ok()) return Fail(StrCat("the result cannot be decoded: ", mesh.status().message()));
+    s = lsqsurf::io::WriteMeshFile(path, *mesh);
+  }
+  if (!s.ok()) return Fail(std::string(s.message()));
+  return 0;
+}
+
+void PrintStatistics(const v1::Job& job) {
+  for (const auto& s : job.statistics()) std::fprintf(stderr, "  %s = %g\n", s.name().c_str(), s.value());
+}
+
+void PrintJob(const v1::Job& job) {
+  std::printf("id         %s\nmethod     %s\nstate      %s\n", job.id().c_str(), client::MethodOf(job.spec()).c_str(),
+              client::StateName(job.state()));
+  if (job.state() == v1::JOB_STATE_RUNNING)
+    std::printf("progress   %.0f%% (%s)\n", job.progress() * 100, job.stage().c_str());
+  if (!job.error().empty()) std::printf("error      %s\n", job.error().c_str());
+  std::printf("input      %lld points, %lld bytes\nattempts   %d\n", static_cast<long long>(job.input_points()),
+              static_cast<long long>(job.input_bytes()), job.attempts());
+  if (!job.runner().empty()) std::printf("runner     %s\n", job.runner().c_str());
+  if (!job.owner().empty()) std::printf("owner      %s\n", job.owner().c_str());
+  // The parameters as run, in the text form --param takes.
+  const auto& spec = job.spec();
+  if (const auto* f =
+          spec.GetReflection()->GetOneofFieldDescriptor(spec, v1::JobSpec::descriptor()->FindOneofByName("method"))) {
+    std::string text = spec.GetReflection()->GetMessage(spec, f).ShortDebugString();
+    std::printf("params     %s\n", text.c_str());
+  }
+  for (const auto& s : job.statistics()) std::printf("stat       %s=%g\n", s.name().c_str(), s.value());
+  for (const auto& r : job.results()) std::printf("result     %s\n", r.c_str());
+}
+
+int RenderToFile(const Globals& g, const std::string& id, const std::string& name, const v1::RenderOptions& view,
+                 const std::string& path) {
+  const auto start = std::chrono::steady_clock::now();
+  auto response = Connect(g).Render(id, name, view);
+  const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  if (!response.ok()) return FailStatus("render", response.status());
+  if (absl::Status s = lsqsurf::io::WriteFileAtomically(path, response->png()); !s.ok())
+    return Fail(std::string(s.message()));
+  if (!g.quiet) {
+    std::fprintf(stderr, "wrote %s in %.2f s (%s", path.c_str(), seconds, response->renderer().c_str());
+    if (!view.color().empty() || name == kVolumeField) {
+      std::fprintf(stderr, "; %s from %g to %g", view.color().empty() ? "values" : view.color().c_str(),
+                   response->color_min(), response->color_max());
+    }
+    if (name == kVolumeField) {
+      std::fprintf(stderr, "; sampled grid error RMS %.3g, max %.3g", response->grid_rms_error(),
+                   response->grid_max_error());
+    }
+    std::fprintf(stderr, ")\n");
+  }
+  return 0;
+}
+
+}  // namespace lsqsurf::cli

@@ -2,7 +2,11 @@
 """Fails when a source file includes what the project's layering forbids (STYLE.md, README's
 Layout): an engine including the job layer or the server, worker/io including an engine, anything
 under worker/ including gRPC or protobuf, the server including an engine or the renderer, the
-client including more than worker/io and worker/core, the benchmarks including the tests.
+client including more than worker/io and worker/core, the benchmarks including the tests, a
+folder's private header (NAME_internal.h) included from another folder. And the shape rules that
+keep modules apart: no product source over 800 lines, no `friend` under worker/ (an engine's
+state is an opaque Impl its own files define), no `shared_ptr<void>`, and nothing outside
+worker/extract naming `extract::internal`.
 
 Usage: layering.py [--root DIR]   (DIR: the checkout, default the current directory)
 Prints one line per forbidden include (file:line: what it includes, and why not) and exits 1
@@ -44,6 +48,28 @@ def folder_of(path):
     return None
 
 
+MAX_LINES = 800
+SHAPE_RULES = (
+    (re.compile(r"\bfriend\b"), lambda home: home.startswith("worker/"),
+     "no friend under worker/: give the class a constructor from its opaque Impl"),
+    (re.compile(r"shared_ptr<void>"), lambda home: True, "no shared_ptr<void>: type it (TypedJobKind)"),
+    (re.compile(r"extract::internal"), lambda home: home != "worker/extract",
+     "extract::internal is worker/extract's own; use its public API"),
+)
+
+
+def shape_violations(source, home, lines):
+    found = []
+    if len(lines) > MAX_LINES:
+        found.append(f"{source}:{len(lines)}: {len(lines)} lines: at most {MAX_LINES} per product source")
+    for number, line in enumerate(lines, 1):
+        code = line.split("//", 1)[0]
+        for pattern, applies, why in SHAPE_RULES:
+            if applies(home) and pattern.search(code):
+                found.append(f"{source}:{number}: {why}")
+    return found
+
+
 def violations(root):
     found = []
     for top in ("worker", "server", "client", "bench"):
@@ -57,13 +83,17 @@ def violations(root):
                 if home is None:
                     continue
                 with open(path, encoding="utf-8") as f:
-                    for number, line in enumerate(f, 1):
-                        match = INCLUDE.match(line)
-                        if not match:
-                            continue
-                        why = judge(home, match.group(1))
-                        if why:
-                            found.append(f"{source}:{number}: includes {match.group(1)}: {why}")
+                    lines = f.read().split("\n")
+                if lines and lines[-1] == "":
+                    lines.pop()
+                found += shape_violations(source, home, lines)
+                for number, line in enumerate(lines, 1):
+                    match = INCLUDE.match(line)
+                    if not match:
+                        continue
+                    why = judge(home, match.group(1))
+                    if why:
+                        found.append(f"{source}:{number}: includes {match.group(1)}: {why}")
     return found
 
 
@@ -71,6 +101,8 @@ def judge(home, included):
     if home.startswith("worker/") and included.startswith(WIRE_LIBRARIES):
         return "nothing under worker/ sees gRPC or protobuf"
     target = folder_of(included)
+    if target is not None and target != home and included.endswith("_internal.h"):
+        return f"{included} is private to {target}"
     if target is None or target == home:
         return None
     if target == "tests":
@@ -88,7 +120,7 @@ def main():
     for line in found:
         print(line)
     if found:
-        print(f"layering: {len(found)} forbidden include(s)", file=sys.stderr)
+        print(f"layering: {len(found)} violation(s)", file=sys.stderr)
         return 1
     return 0
 

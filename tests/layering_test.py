@@ -21,6 +21,13 @@ FILES = {
     "client/bad_engine.cc": '#include "worker/pu/pu.h"\n',
     "server/bad_render.cc": '#include "worker/render/render.h"\n',
     "bench/bad_bench.cc": '#include "tests/test_shapes.h"\n',
+    "worker/jobs/bad_private.cc": '#include "worker/pu/pu_internal.h"\n',
+    # Shape rules: a friend, an untyped pointer, another module's internals, a file too long.
+    "worker/mls/bad_friend.h": "class A {\n  friend void F();\n};\n",
+    "worker/jobs/bad_void.cc": "// shared_ptr<void> in a comment is fine\nstd::shared_ptr<void> held;\n",
+    "worker/pu/bad_reach.cc": "void F() { extract::internal::FinishSurface(); }\n",
+    "server/bad_long.cc": "int x;\n" * 801,
+    "worker/extract/own.cc": "namespace extract::internal {}\n" + "int y;\n" * 790,
 }
 EXPECTED = {
     "worker/io/bad_codec.cc:2",
@@ -29,6 +36,11 @@ EXPECTED = {
     "client/bad_engine.cc:1",
     "server/bad_render.cc:1",
     "bench/bad_bench.cc:1",
+    "worker/jobs/bad_private.cc:1",
+    "worker/mls/bad_friend.h:2",
+    "worker/jobs/bad_void.cc:2",
+    "worker/pu/bad_reach.cc:1",
+    "server/bad_long.cc:801",
 }
 
 

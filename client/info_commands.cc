@@ -20,7 +20,9 @@ int PrintMethods(const Globals& g) {
       } else if (p.type() == v1::Parameter::TYPE_FLAG) {
         range = "true | false";
       } else {
-        range = StrCat("[", p.min_value(), ", ", p.max_value(), "]", p.unit().empty() ? "" : " ", p.unit());
+        for (const auto& s : p.special_values()) range += StrCat(s.value(), " (", s.meaning(), "), ");
+        if (!range.empty()) range.replace(range.size() - 2, 2, " or ");
+        range += StrCat("[", p.min_value(), ", ", p.max_value(), "]", p.unit().empty() ? "" : " ", p.unit());
       }
       const std::string def = p.type() == v1::Parameter::TYPE_CHOICE ? p.default_choice()
                               : p.type() == v1::Parameter::TYPE_FLAG ? (p.default_value() != 0 ? "true" : "false")

@@ -193,6 +193,11 @@ void ToProto(const core::ParamInfo& p, v1::Parameter* out) {
   out->set_integer(p.type == core::ParamType::kInteger);
   out->set_help(p.help);
   out->set_unit(p.unit);
+  for (const core::ParamSpecial& s : p.special) {
+    v1::Parameter::Special* special = out->add_special_values();
+    special->set_value(s.value);
+    special->set_meaning(s.meaning);
+  }
   for (const auto& c : p.choices) {
     v1::Parameter::Choice* choice = out->add_choices();
     choice->set_name(c.name);

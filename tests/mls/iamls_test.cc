@@ -202,7 +202,8 @@ TEST(Iamls, RejectsBadParametersWithActionableMessages) {
   p.epsilon = 0.01;  // Neither 0 (chosen) nor within [0.05, 3].
   auto tiny = BuildIamls(cloud, p, ctx);
   ASSERT_EQ(tiny.status().code(), absl::StatusCode::kInvalidArgument);
-  EXPECT_NE(std::string(tiny.status().message()).find("0 (chosen)"), std::string::npos);
+  EXPECT_NE(std::string(tiny.status().message()).find("0 (chosen from the noise) or [0.05, 3]"), std::string::npos)
+      << tiny.status();
   p = {};
   p.normal_sigma = 0.1;  // Neither -1 (chosen), 0 (off) nor within [0.2, 2].
   auto narrow = BuildIamls(cloud, p, ctx);

@@ -6,6 +6,7 @@
 #include <gtest/gtest.h>
 
 #include <cctype>
+#include <cmath>
 #include <fstream>
 #include <map>
 #include <set>
@@ -204,12 +205,48 @@ TEST(Convert, ListedParametersDescribeTheirTables) {
       EXPECT_EQ(wire.name(), p.name);
       EXPECT_EQ(wire.default_value(), p.default_value) << m.info.name << "." << p.name;
       EXPECT_EQ(wire.choices_size(), static_cast<int>(p.choices.size()));
-      if (p.type == core::ParamType::kReal || p.type == core::ParamType::kInteger) {
+      EXPECT_EQ(wire.special_values_size(), static_cast<int>(p.special.size()));
+      // A default outside the range is one of the special values (0 = chosen, -1 = estimated).
+      if ((p.type == core::ParamType::kReal || p.type == core::ParamType::kInteger) && !p.IsSpecial(p.default_value)) {
         EXPECT_LE(wire.min_value(), wire.default_value()) << m.info.name << "." << p.name;
         EXPECT_GE(wire.max_value(), wire.default_value()) << m.info.name << "." << p.name;
       }
     }
   }
+}
+
+// A client that checks values against ListMethods alone (the range, or one of the special
+// values) accepts exactly what the server's tables accept: probed at the ends of each range,
+// just outside them, at every special value and next to it, and in between.
+TEST(Convert, AClientValidatingFromTheListingAgreesWithTheServer) {
+  int probed = 0;
+  for (const auto& m : jobs::Methods()) {
+    for (const auto& p : m.info.defaults.Describe()) {
+      if (p.type != core::ParamType::kReal && p.type != core::ParamType::kInteger) continue;
+      v1::Parameter wire;
+      ToProto(p, &wire);
+      const auto listed_valid = [&](double v) {
+        if (v >= wire.min_value() && v <= wire.max_value() && (!wire.integer() || v == std::floor(v))) return true;
+        for (const auto& special : wire.special_values()) {
+          if (special.value() == v) return true;
+        }
+        return false;
+      };
+      const double step = wire.integer() ? 1.0 : std::max(1e-9, 1e-3 * (wire.max_value() - wire.min_value()));
+      std::vector<double> values = {wire.min_value(), wire.max_value(), 0.5 * (wire.min_value() + wire.max_value()),
+                                    wire.min_value() - step, wire.max_value() + step};
+      for (const auto& special : wire.special_values()) {
+        values.insert(values.end(), {special.value(), special.value() - step, special.value() + step});
+      }
+      for (double v : values) {
+        core::ParamSet set = m.info.defaults;
+        const absl::Status accepted = set.Set(p.name, v);
+        EXPECT_EQ(accepted.ok(), listed_valid(v)) << m.info.name << "." << p.name << "=" << v << ": " << accepted;
+        ++probed;
+      }
+    }
+  }
+  EXPECT_GT(probed, 500);
 }
 
 // The proto's comments state each field's default, "(default X)", and each enum's

@@ -1,5 +1,6 @@
 #include "worker/core/params.h"
 
+#include <algorithm>
 #include <charconv>
 #include <cmath>
 #include <cstdlib>
@@ -70,11 +71,19 @@ const ParamChoice* ParamInfo::FindChoice(int value) const {
   return nullptr;
 }
 
+bool ParamInfo::IsSpecial(double value) const {
+  return std::any_of(special.begin(), special.end(), [&](const ParamSpecial& s) { return s.value == value; });
+}
+
 std::string ParamInfo::RangeText() const {
   switch (type) {
     case ParamType::kReal:
-    case ParamType::kInteger:
-      return StrCat("[", Number(min_value), ", ", Number(max_value), "]", unit.empty() ? "" : " ", unit);
+    case ParamType::kInteger: {
+      std::string specials;
+      for (const ParamSpecial& s : special) StrAppend(&specials, Number(s.value), " (", s.meaning, "), ");
+      if (!specials.empty()) specials.replace(specials.size() - 2, 2, " or ");
+      return StrCat(specials, "[", Number(min_value), ", ", Number(max_value), "]", unit.empty() ? "" : " ", unit);
+    }
     case ParamType::kFlag: return "true or false";
     case ParamType::kChoice: {
       std::string names;
@@ -101,6 +110,9 @@ absl::Status CheckValue(const ParamInfo& info, double value) {
         StrCat(info.name, "=", info.FormatValue(value), " ", why, "; expected ", info.RangeText()));
   };
   if (!std::isfinite(value)) return fail("is not a finite number");
+  if ((info.type == ParamType::kReal || info.type == ParamType::kInteger) && info.IsSpecial(value)) {
+    return absl::OkStatus();
+  }
   switch (info.type) {
     case ParamType::kInteger:
       if (value != std::floor(value)) return fail("is not a whole number");

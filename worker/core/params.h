@@ -42,6 +42,13 @@ struct ParamChoice {
   std::string help;
 };
 
+// A value outside a number's range that is accepted with a meaning of its own, such as
+// 0 = chosen by the engine.
+struct ParamSpecial {
+  double value = 0;
+  std::string meaning;  // "chosen from the noise".
+};
+
 // Everything a user or a tool needs to know about one parameter.
 struct ParamInfo {
   std::string name;
@@ -52,11 +59,13 @@ struct ParamInfo {
   std::string unit;                     // Empty for dimensionless values.
   std::string help;                     // Meaning; the range and unit are not repeated in it.
   std::vector<ParamChoice> choices;     // kChoice only.
+  std::vector<ParamSpecial> special;    // kReal and kInteger: accepted besides [min_value, max_value].
 
   // The choice called `name` / with `value`, or nullptr.
   const ParamChoice* FindChoice(std::string_view choice_name) const;
   const ParamChoice* FindChoice(int value) const;
-  // "[1e-06, 0.1] share of the diagonal", "one of: markers, gridlines", "0 or 1".
+  bool IsSpecial(double value) const;
+  // "[1e-06, 0.1] share of the diagonal", "0 (chosen) or [0.05, 3]", "one of: markers, gridlines".
   std::string RangeText() const;
   // The value as a user writes it: a number, true/false, or a choice's name.
   std::string FormatValue(double value) const;
@@ -82,29 +91,35 @@ class ParamTable {
   template <auto Member>
   ParamTable& Real(std::string name, double min_value, double max_value, std::string unit, std::string help) {
     return Add(Numeric<Member>(
-        {std::move(name), ParamType::kReal, 0, {}, min_value, max_value, std::move(unit), std::move(help), {}}));
+        {std::move(name), ParamType::kReal, 0, {}, min_value, max_value, std::move(unit), std::move(help), {}, {}}));
   }
   template <auto Member>
   ParamTable& Integer(std::string name, double min_value, double max_value, std::string unit, std::string help) {
     return Add(Numeric<Member>(
-        {std::move(name), ParamType::kInteger, 0, {}, min_value, max_value, std::move(unit), std::move(help), {}}));
+        {std::move(name), ParamType::kInteger, 0, {}, min_value, max_value, std::move(unit), std::move(help), {}, {}}));
   }
   template <auto Member>
   ParamTable& Flag(std::string name, std::string help) {
-    return Add(Numeric<Member>({std::move(name), ParamType::kFlag, 0, {}, 0, 1, {}, std::move(help), {}}));
+    return Add(Numeric<Member>({std::move(name), ParamType::kFlag, 0, {}, 0, 1, {}, std::move(help), {}, {}}));
   }
   template <auto Member>
   ParamTable& Choice(std::string name, std::vector<ParamChoice> choices, std::string help) {
-    return Add(
-        Numeric<Member>({std::move(name), ParamType::kChoice, 0, {}, 0, 0, {}, std::move(help), std::move(choices)}));
+    return Add(Numeric<Member>(
+        {std::move(name), ParamType::kChoice, 0, {}, 0, 0, {}, std::move(help), std::move(choices), {}}));
   }
   template <auto Member>
   ParamTable& Text(std::string name, std::string help) {
     Field f;
-    f.info = {std::move(name), ParamType::kText, 0, {}, 0, 0, {}, std::move(help), {}};
+    f.info = {std::move(name), ParamType::kText, 0, {}, 0, 0, {}, std::move(help), {}, {}};
     f.get_text = [](const P& p) { return std::string(p.*Member); };
     f.set_text = [](P& p, std::string v) { p.*Member = std::move(v); };
     return Add(std::move(f));
+  }
+  // Accepts `value` for the field added last, besides its range, meaning `meaning` (e.g. 0,
+  // "chosen from the noise").
+  ParamTable& Or(double value, std::string meaning) {
+    fields_.back().info.special.push_back({value, std::move(meaning)});
+    return *this;
   }
   // A numeric value reached through accessors (a nested member, or a value stored in another
   // form, such as a shading enum shown as a flag).

@@ -59,44 +59,27 @@ struct IamlsFunction::Impl {
 const core::ParamTable<IamlsParams>& IamlsParamTable() {
   static const auto* table = [] {
     auto* t = new core::ParamTable<IamlsParams>();
-    t->Real<&IamlsParams::epsilon>("epsilon", 0, 3, "",
-                                   "kernel shape parameter; larger = more detail; 0 = chosen from the noise")
-        .Integer<&IamlsParams::iterations>("iterations", -1, 20, "",
-                                           "residual-correction iterations; more = closer fit; -1 = chosen from the "
-                                           "noise")
+    t->Real<&IamlsParams::epsilon>("epsilon", 0.05, 3, "", "kernel shape parameter; larger = more detail")
+        .Or(0, "chosen from the noise")
+        .Integer<&IamlsParams::iterations>("iterations", 0, 20, "", "residual-correction iterations; more = closer fit")
+        .Or(-1, "chosen from the noise")
         .Real<&IamlsParams::spacing>("spacing", 0, 1e30, "model units",
                                      "kernel spacing h; 0 = spacing_scale x mean nearest-neighbour distance")
         .Real<&IamlsParams::spacing_scale>("spacing_scale", 0.25, 8, "", "multiplier of the measured spacing")
-        .Real<&IamlsParams::cutoff>("cutoff", 0, 8, "", "kernel truncation at epsilon*r = cutoff; 0 = chosen")
+        .Real<&IamlsParams::cutoff>("cutoff", 2, 8, "", "kernel truncation at epsilon*r = cutoff")
+        .Or(0, "chosen from epsilon")
         .Real<&IamlsParams::min_weight>("min_weight", 0, 0.99, "",
                                         "ghost-sheet guard: no surface where the kernel sum is below this share of "
                                         "its mean at the samples")
-        .Real<&IamlsParams::noise_level>("noise_level", -1, 0.1, "share of the diagonal",
-                                         "noise sigma for the choice of epsilon, iterations and cutoff: -1 estimates "
-                                         "it, 0 declares the data exact")
-        .Real<&IamlsParams::normal_sigma>("normal_sigma", -1, 2, "",
+        .Real<&IamlsParams::noise_level>("noise_level", 0, 0.1, "share of the diagonal",
+                                         "noise sigma for the choice of epsilon, iterations and cutoff; 0 declares "
+                                         "the data exact")
+        .Or(-1, "estimated from the data")
+        .Real<&IamlsParams::normal_sigma>("normal_sigma", 0.2, 2, "",
                                           "crease-keeping refit: samples whose normals differ from the local mean "
-                                          "normal by much more than this weigh less; -1 = chosen from the noise "
-                                          "(0.5 when noisy), 0 = off")
-        .AddRule([](const IamlsParams& p) {
-          if (p.normal_sigma != -1 && p.normal_sigma != 0 && p.normal_sigma < 0.2) {
-            return absl::InvalidArgumentError(
-                core::StrCat("normal_sigma=", p.normal_sigma, " must be -1 (chosen), 0 (off) or within [0.2, 2]"));
-          }
-          if (p.epsilon != 0 && p.epsilon < 0.05) {
-            return absl::InvalidArgumentError(
-                core::StrCat("epsilon=", p.epsilon, " must be 0 (chosen) or within [0.05, 3]"));
-          }
-          if (p.cutoff != 0 && p.cutoff < 2) {
-            return absl::InvalidArgumentError(
-                core::StrCat("cutoff=", p.cutoff, " must be 0 (chosen) or within [2, 8]"));
-          }
-          if (p.noise_level != -1 && p.noise_level < 0) {
-            return absl::InvalidArgumentError(
-                core::StrCat("noise_level=", p.noise_level, " must be -1 (estimate it) or within [0, 0.1]"));
-          }
-          return absl::OkStatus();
-        });
+                                          "normal by much more than this weigh less")
+        .Or(-1, "chosen from the noise: 0.5 when noisy, else off")
+        .Or(0, "off");
     return t;
   }();
   return *table;

@@ -24,20 +24,15 @@ const core::ParamTable<PuParams>& PuParamTable() {
                                           "neighbour) of a data point")
         .Flag<&PuParams::orientation_check>("orientation_check",
                                             "reject fits whose gradient opposes their points' normals")
-        .Real<&PuParams::noise_level>("noise_level", -1, 0.1, "share of the diagonal",
-                                      "scan noise sigma; -1 estimates it, 0 declares the data exact; above "
-                                      "error_threshold the threshold becomes 3 sigma and min_points at least 80")
+        .Real<&PuParams::noise_level>("noise_level", 0, 0.1, "share of the diagonal",
+                                      "scan noise sigma; 0 declares the data exact; above error_threshold the "
+                                      "threshold becomes 3 sigma and min_points at least 80")
+        .Or(-1, "estimated from the data")
         .Flag<&PuParams::sharp>("sharp",
                                 "sharp edges and corners: where a cell's smooth fit fails and its normals split "
                                 "into clusters, one sheet per cluster combined by max/min")
         .Real<&PuParams::sharp_angle>("sharp_angle", 5, 90, "degrees",
-                                      "normals of one cell wider apart than this show an edge")
-        .AddRule([](const PuParams& p) {
-          return p.noise_level == -1 || p.noise_level >= 0
-                     ? absl::OkStatus()
-                     : absl::InvalidArgumentError(
-                           core::StrCat("noise_level=", p.noise_level, " must be -1 (estimate it) or within [0, 0.1]"));
-        });
+                                      "normals of one cell wider apart than this show an edge");
     return t;
   }();
   return *table;

@@ -13,7 +13,7 @@ namespace {
 
 // Camera fields live one level down; the table reaches them through these accessors.
 core::ParamInfo CameraReal(std::string name, double lo, double hi, std::string help) {
-  return {std::move(name), core::ParamType::kReal, 0, {}, lo, hi, "degrees", std::move(help), {}};
+  return {std::move(name), core::ParamType::kReal, 0, {}, lo, hi, "degrees", std::move(help), {}, {}};
 }
 
 }  // namespace
@@ -40,6 +40,7 @@ const core::ParamTable<RenderParams>& ViewParamTable() {
              1e30,
              "model units",
              "camera distance from the centre of the box; 0 frames the whole model",
+             {},
              {}},
             [](const RenderParams& p) { return p.camera.distance; },
             [](RenderParams& p, double v) { p.camera.distance = v; })
@@ -58,7 +59,8 @@ const core::ParamTable<RenderParams>& ViewParamTable() {
              "the axis that points up in the picture",
              {{"x", static_cast<int>(UpAxis::kX), "azimuth turns from +y towards +z"},
               {"y", static_cast<int>(UpAxis::kY), "azimuth turns from +z towards +x (most scans)"},
-              {"z", static_cast<int>(UpAxis::kZ), "azimuth turns from +x towards +y"}}},
+              {"z", static_cast<int>(UpAxis::kZ), "azimuth turns from +x towards +y"}},
+             {}},
             [](const RenderParams& p) { return static_cast<double>(static_cast<int>(p.camera.up)); },
             [](RenderParams& p, double v) { p.camera.up = static_cast<UpAxis>(static_cast<int>(v)); })
         .Text<&RenderParams::color_attribute>("color",
@@ -67,7 +69,7 @@ const core::ParamTable<RenderParams>& ViewParamTable() {
                                         "colour map bounds; the data's range unless color_min < color_max")
         .Real<&RenderParams::color_max>("color_max", -1e300, 1e300, "", "see color_min")
         .Custom(
-            {"flat_shading", core::ParamType::kFlag, 0, {}, 0, 1, {}, "one normal per triangle", {}},
+            {"flat_shading", core::ParamType::kFlag, 0, {}, 0, 1, {}, "one normal per triangle", {}, {}},
             [](const RenderParams& p) { return p.shading == Shading::kFlat ? 1.0 : 0.0; },
             [](RenderParams& p, double v) { p.shading = v != 0 ? Shading::kFlat : Shading::kSmooth; })
         .Flag<&RenderParams::wireframe>("wireframe", "dark triangle edges over the faces")

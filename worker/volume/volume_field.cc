@@ -304,11 +304,10 @@ struct VolumeField::Impl {
 const core::ParamTable<VolumeFieldParams>& VolumeFieldParamTable() {
   static const auto* table = [] {
     auto* t = new core::ParamTable<VolumeFieldParams>();
-    t->Real<&VolumeFieldParams::epsilon>("epsilon", 0, 2.5, "",
-                                         "kernel shape (larger = narrower, more detail); 0 = chosen by "
-                                         "cross-validation, else within [0.3, 2.5]")
-        .Integer<&VolumeFieldParams::iterations>("iterations", -1, 20, "",
-                                                 "residual-correction iterations; -1 = chosen by cross-validation")
+    t->Real<&VolumeFieldParams::epsilon>("epsilon", 0.3, 2.5, "", "kernel shape (larger = narrower, more detail)")
+        .Or(0, "chosen by cross-validation")
+        .Integer<&VolumeFieldParams::iterations>("iterations", 0, 20, "", "residual-correction iterations")
+        .Or(-1, "chosen by cross-validation")
         .Real<&VolumeFieldParams::spacing>("spacing", 0, 1e30, "model units",
                                            "kernel spacing H for every vertex; 0 = spacing_scale x the cube root of "
                                            "the volume each vertex stands for")
@@ -332,14 +331,7 @@ const core::ParamTable<VolumeFieldParams>& VolumeFieldParamTable() {
         .Integer<&VolumeFieldParams::neighbors>("neighbors", 6, 64, "",
                                                 "nearest neighbours forming a vertex's star when there are no cells")
         .Real<&VolumeFieldParams::min_weight>("min_weight", 0.05, 1, "",
-                                              "point sets: the domain is where the kernel sum reaches this value")
-        .AddRule([](const VolumeFieldParams& p) {
-          if (p.epsilon != 0 && p.epsilon < 0.3) {
-            return absl::InvalidArgumentError(
-                core::StrCat("epsilon=", p.epsilon, " must be 0 (automatic) or within [0.3, 2.5]"));
-          }
-          return absl::OkStatus();
-        });
+                                              "point sets: the domain is where the kernel sum reaches this value");
     return t;
   }();
   return *table;

@@ -21,7 +21,7 @@
 #include "worker/core/strings.h"
 #include "worker/jobs/job_service.h"
 #include "worker/jobs/method_registry.h"
-#include "worker/jobs/postgres_store.h"
+#include "worker/jobs/store/postgres_store.h"
 
 namespace {
 

@@ -15,7 +15,7 @@
 #include <string>
 
 #include "tests/test_dir.h"
-#include "worker/jobs/postgres_connection.h"
+#include "worker/jobs/store/postgres_connection.h"
 
 namespace lsqsurf::testing {
 

@@ -1,6 +1,6 @@
 // The blob store contract, held by files in a folder and by chunks in PostgreSQL (on a
 // throwaway server this test process starts).
-#include "worker/jobs/blob_store.h"
+#include "worker/jobs/store/blob_store.h"
 
 #include <gtest/gtest.h>
 
@@ -8,7 +8,7 @@
 
 #include "tests/postgres_cluster.h"
 #include "tests/test_dir.h"
-#include "worker/jobs/postgres_store.h"
+#include "worker/jobs/store/postgres_store.h"
 
 namespace lsqsurf::jobs {
 namespace {

@@ -21,7 +21,7 @@
 #include "worker/io/draco_codec.h"
 #include "worker/io/files.h"
 #include "worker/jobs/method_registry.h"
-#include "worker/jobs/postgres_store.h"
+#include "worker/jobs/store/postgres_store.h"
 #include "worker/jobs/surface_job.h"
 #include "worker/jobs/track_job.h"
 

@@ -1,7 +1,7 @@
 // The job store contract, held by both stores: SQLite (one server) and PostgreSQL (shared, on a
 // throwaway server this test process starts). Two "servers" are two runner names; on PostgreSQL
 // they also use two store objects, i.e. two connection pools, as two processes would.
-#include "worker/jobs/job_store.h"
+#include "worker/jobs/store/job_store.h"
 
 #include <gtest/gtest.h>
 
@@ -14,7 +14,7 @@
 #include "tests/test_dir.h"
 #include "worker/core/strings.h"
 #include "worker/jobs/method_registry.h"
-#include "worker/jobs/postgres_store.h"
+#include "worker/jobs/store/postgres_store.h"
 
 namespace lsqsurf::jobs {
 namespace {

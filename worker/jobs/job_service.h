@@ -38,11 +38,11 @@
 #include <vector>
 
 #include "absl/status/statusor.h"
-#include "worker/jobs/blob_store.h"
 #include "worker/jobs/job.h"
 #include "worker/jobs/job_events.h"
 #include "worker/jobs/job_kind.h"
-#include "worker/jobs/job_store.h"
+#include "worker/jobs/store/blob_store.h"
+#include "worker/jobs/store/job_store.h"
 
 namespace lsqsurf::render {
 class SharedRenderer;

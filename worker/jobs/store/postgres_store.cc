@@ -1,4 +1,4 @@
-#include "worker/jobs/postgres_store.h"
+#include "worker/jobs/store/postgres_store.h"
 
 #include <libpq-fe.h>
 #include <poll.h>
@@ -6,7 +6,7 @@
 #include <thread>
 
 #include "worker/core/strings.h"
-#include "worker/jobs/job_rows.h"
+#include "worker/jobs/store/job_rows.h"
 
 namespace lsqsurf::jobs {
 namespace {

@@ -1,4 +1,4 @@
-#include "worker/jobs/job_rows.h"
+#include "worker/jobs/store/job_rows.h"
 
 #include <algorithm>
 #include <charconv>

@@ -1,4 +1,4 @@
-// worker/jobs/postgres_connection.h — a small pool of libpq connections and a query helper.
+// worker/jobs/store/postgres_connection.h — a small pool of libpq connections and a query helper.
 //
 // libpq's own C API is used directly: its errors become absl::Status values like the rest of
 // the service, and LISTEN needs the raw socket. A connection is used by one thread at a time;

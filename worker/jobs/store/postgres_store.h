@@ -1,4 +1,4 @@
-// worker/jobs/postgres_store.h — jobs and their bytes in PostgreSQL, shared by several servers.
+// worker/jobs/store/postgres_store.h — jobs and their bytes in PostgreSQL, shared by several servers.
 //
 // PostgresJobStore keeps the JobStore contract for any number of servers on one database:
 //  - a job is claimed with SELECT ... FOR UPDATE SKIP LOCKED, so two servers never take the
@@ -21,9 +21,9 @@
 #include <mutex>
 #include <string>
 
-#include "worker/jobs/blob_store.h"
-#include "worker/jobs/job_store.h"
-#include "worker/jobs/postgres_connection.h"
+#include "worker/jobs/store/blob_store.h"
+#include "worker/jobs/store/job_store.h"
+#include "worker/jobs/store/postgres_connection.h"
 
 namespace lsqsurf::jobs {
 

@@ -1,4 +1,4 @@
-// worker/jobs/job_rows.h — a job record as the columns both job stores keep, in text.
+// worker/jobs/store/job_rows.h — a job record as the columns both job stores keep, in text.
 //
 // Both stores bind and read every column as text (SQLite converts by column affinity,
 // PostgreSQL by column type), so one conversion serves both and their rows stay alike.

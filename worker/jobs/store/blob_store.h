@@ -1,4 +1,4 @@
-// worker/jobs/blob_store.h — where a job's bytes live: its uploads and its artifacts.
+// worker/jobs/store/blob_store.h — where a job's bytes live: its uploads and its artifacts.
 //
 // Blobs are named per job ("input.drc", "mesh.drc", ...). A write is atomic: readers see the old
 // blob or the whole new one. Reads stream in chunks, so a large artifact never has to sit in

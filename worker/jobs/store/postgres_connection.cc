@@ -1,4 +1,4 @@
-#include "worker/jobs/postgres_connection.h"
+#include "worker/jobs/store/postgres_connection.h"
 
 #include <libpq-fe.h>
 

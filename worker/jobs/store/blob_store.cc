@@ -1,4 +1,4 @@
-#include "worker/jobs/blob_store.h"
+#include "worker/jobs/store/blob_store.h"
 
 #include <sys/statvfs.h>
 

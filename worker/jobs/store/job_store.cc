@@ -1,11 +1,11 @@
-#include "worker/jobs/job_store.h"
+#include "worker/jobs/store/job_store.h"
 
 #include <sqlite3.h>
 
 #include <thread>
 
 #include "worker/core/strings.h"
-#include "worker/jobs/job_rows.h"
+#include "worker/jobs/store/job_rows.h"
 
 namespace lsqsurf::jobs {
 namespace {

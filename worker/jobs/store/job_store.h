@@ -1,4 +1,4 @@
-// worker/jobs/job_store.h — durable job records, and who runs which job.
+// worker/jobs/store/job_store.h — durable job records, and who runs which job.
 //
 // The store is where servers agree on the jobs: a job is claimed from it by one server at a
 // time, under a lease that server renews; a server that dies stops renewing, and another one

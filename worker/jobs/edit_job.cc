@@ -15,26 +15,10 @@ const core::ParamTable<EditJobParams>& EditJobParamTable() {
   static const auto* table = [] {
     auto* t = new core::ParamTable<EditJobParams>();
     t->Text<&EditJobParams::source>("source", "id of a succeeded pu or edit job with a kept function (required)")
-        .Real<&EditJobParams::center_x>("center_x", -1e12, 1e12, "model units", "x of the ball's centre")
-        .Real<&EditJobParams::center_y>("center_y", -1e12, 1e12, "model units", "y of the ball's centre")
-        .Real<&EditJobParams::center_z>("center_z", -1e12, 1e12, "model units", "z of the ball's centre")
-        .Real<&EditJobParams::radius>("radius", 0, 1e12, "model units", "the ball's radius (required)")
-        .Choice<&EditJobParams::action>(
-            "action",
-            {{"set_degree", static_cast<int>(pu::PuEditAction::kSetDegree),
-              "refit the local fits meeting the ball at `degree`"},
-             {"refit", static_cast<int>(pu::PuEditAction::kRefit), "grow their cells again under `error_threshold`"},
-             {"remove", static_cast<int>(pu::PuEditAction::kRemove),
-              "drop the points in the ball and the fits centred there (a hole)"}},
-            "what the edit does")
-        .Integer<&EditJobParams::degree>("degree", 0, 4, "", "set_degree: the polynomial degree")
-        .Real<&EditJobParams::error_threshold>("error_threshold", 1e-6, 0.1, "diagonal",
-                                               "refit: the largest Taubin distance accepted")
+        .Include(&EditJobParams::edit, pu::PuEditParamTable())
         .Include(&EditJobParams::extract, pu::PuExtractParamTable())
         .AddRule([](const EditJobParams& p) {
-          if (p.source.empty()) return absl::InvalidArgumentError("name the job to edit (source=ID)");
-          if (!(p.radius > 0)) return absl::InvalidArgumentError("give the ball's radius (radius > 0)");
-          return absl::OkStatus();
+          return p.source.empty() ? absl::InvalidArgumentError("name the job to edit (source=ID)") : absl::OkStatus();
         });
     return t;
   }();
@@ -88,12 +72,7 @@ class EditKind final : public TypedJobKind<EditJobParams, NoInput> {
       return absl::Status(base.status().code(), core::StrCat("source job ", p->source, ": ", base.status().message()));
     stat("load_seconds", core::SecondsSince(start));
     start = std::chrono::steady_clock::now();
-    pu::PuEdit edit;
-    edit.centre = core::Vec3d(p->center_x, p->center_y, p->center_z);
-    edit.radius = p->radius;
-    edit.action = p->action;
-    edit.degree = p->degree;
-    edit.error_threshold = p->error_threshold;
+    const pu::PuEdit& edit = p->edit;
     pu::PuEditStats edit_stats;
     core::SubContext edit_ctx(env.context, "editing the fits", 0.05, 0.2);
     auto edited = pu::EditPu(**base, edit, edit_ctx, &edit_stats);

@@ -16,12 +16,8 @@
 namespace lsqsurf::jobs {
 
 struct EditJobParams {
-  std::string source;                               // Id of a succeeded pu or edit job with a kept function (required).
-  double center_x = 0, center_y = 0, center_z = 0;  // The ball's centre, model units.
-  double radius = 0;                                // The ball's radius, model units (required, > 0).
-  pu::PuEditAction action = pu::PuEditAction::kSetDegree;
-  int degree = 1;                 // set_degree: 0..4.
-  double error_threshold = 1e-4;  // refit: share of the diagonal.
+  std::string source;  // Id of a succeeded pu or edit job with a kept function (required).
+  pu::PuEdit edit;
   pu::PuExtractParams extract;
 };
 

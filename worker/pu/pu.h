@@ -176,12 +176,17 @@ enum class PuEditAction {
 };
 
 struct PuEdit {
-  core::Vec3d centre = core::Vec3d::Zero();  // Of the ball, model units.
-  double radius = 0;                         // > 0, model units.
+  core::Vec3d centre = core::Vec3d::Zero();  // Of the ball.
+  double radius = 0;                         // Of the ball; required.
   PuEditAction action = PuEditAction::kSetDegree;
   int degree = 1;                 // kSetDegree.
-  double error_threshold = 1e-4;  // kRefit: share of the bounding-box diagonal, 1e-6..0.1.
+  double error_threshold = 1e-4;  // kRefit.
 };
+
+// The one description of every PuEdit field (the centre as center_x, center_y, center_z);
+// Validate() checks it.
+const core::ParamTable<PuEdit>& PuEditParamTable();
+absl::Status Validate(const PuEdit& edit);
 
 struct PuEditStats {
   int64_t fits_replaced = 0;   // Fits whose support met the ball.

@@ -32,20 +32,6 @@ std::vector<int32_t> CompactFits(PuFunction::Impl& m) {
   return new_index;
 }
 
-absl::Status CheckEdit(const PuEdit& edit) {
-  if (!edit.centre.allFinite() || !(edit.radius > 0) || !std::isfinite(edit.radius)) {
-    return absl::InvalidArgumentError("the edit needs a ball: a finite centre and a positive radius");
-  }
-  if (edit.action == PuEditAction::kSetDegree && (edit.degree < 0 || edit.degree > kMaxDegree)) {
-    return absl::InvalidArgumentError(core::StrCat("degree ", edit.degree, " must be within [0, ", kMaxDegree, "]"));
-  }
-  if (edit.action == PuEditAction::kRefit && !(edit.error_threshold >= 1e-6 && edit.error_threshold <= 0.1)) {
-    return absl::InvalidArgumentError(
-        core::StrCat("error_threshold ", edit.error_threshold, " must be within [1e-06, 0.1]"));
-  }
-  return absl::OkStatus();
-}
-
 // The indices of the points inside a node's cube (the split rule's half-open octants).
 void PointsInCube(const PuFunction::Impl& m, const Node& n, std::vector<core::Neighbor>& scratch,
                   std::vector<uint32_t>& out) {
@@ -88,9 +74,49 @@ absl::Status RemovePoints(const PuFunction::Impl& b, PuFunction::Impl& m, const 
 
 }  // namespace
 
+const core::ParamTable<PuEdit>& PuEditParamTable() {
+  static const auto* table = [] {
+    auto* t = new core::ParamTable<PuEdit>();
+    for (int axis = 0; axis < 3; ++axis) {
+      const std::string name = std::string("center_") + "xyz"[axis];
+      t->Custom(
+          {name,
+           core::ParamType::kReal,
+           0,
+           {},
+           -1e12,
+           1e12,
+           "model units",
+           std::string(1, "xyz"[axis]) + " of the ball's centre",
+           {},
+           {}},
+          [axis](const PuEdit& e) { return e.centre[axis]; }, [axis](PuEdit& e, double v) { e.centre[axis] = v; });
+    }
+    t->Real<&PuEdit::radius>("radius", 0, 1e12, "model units", "the ball's radius (required, more than 0)")
+        .Choice<&PuEdit::action>(
+            "action",
+            {{"set_degree", static_cast<int>(PuEditAction::kSetDegree),
+              "refit the local fits meeting the ball at `degree`"},
+             {"refit", static_cast<int>(PuEditAction::kRefit), "grow their cells again under `error_threshold`"},
+             {"remove", static_cast<int>(PuEditAction::kRemove),
+              "drop the points in the ball and the fits centred there (a hole)"}},
+            "what the edit does")
+        .Integer<&PuEdit::degree>("degree", 0, kMaxDegree, "", "set_degree: the polynomial degree")
+        .Real<&PuEdit::error_threshold>("error_threshold", 1e-6, 0.1, "share of the diagonal",
+                                        "refit: the largest Taubin distance accepted")
+        .AddRule([](const PuEdit& e) {
+          return e.radius > 0 ? absl::OkStatus() : absl::InvalidArgumentError("give the ball's radius (radius > 0)");
+        });
+    return t;
+  }();
+  return *table;
+}
+
+absl::Status Validate(const PuEdit& edit) { return PuEditParamTable().Validate(edit); }
+
 absl::StatusOr<std::unique_ptr<PuFunction>> EditPu(const PuFunction& base, const PuEdit& edit, core::JobContext& ctx,
                                                    PuEditStats* stats) {
-  LSQSURF_RETURN_IF_ERROR(CheckEdit(edit));
+  LSQSURF_RETURN_IF_ERROR(Validate(edit));
   const PuFunction::Impl& b = base.impl();
   auto edited = std::make_unique<PuFunction::Impl>();
   PuFunction::Impl& m = *edited;

@@ -9,6 +9,7 @@
 #include <cmath>
 #include <fstream>
 #include <map>
+#include <regex>
 #include <set>
 #include <sstream>
 #include <tuple>
@@ -269,13 +270,17 @@ std::string After(const std::string& comment, const std::string& marker, const s
   return rest.substr(0, rest.find_first_of(ends));
 }
 
-std::map<std::string, std::map<std::string, std::string>> StatedDefaults() {
+// Per message, the type and comment of each optional field; per enum, its stated default.
+struct ProtoComments {
+  std::map<std::string, std::map<std::string, std::pair<std::string, std::string>>> fields;
+  std::map<std::string, std::string> enum_default;
+};
+
+ProtoComments ReadProtoComments() {
   std::ifstream in(LSQSURF_SOURCE_DIR "/proto/lsqsurf/v1/reconstruction.proto");
   EXPECT_TRUE(in.good());
-  std::map<std::string, std::map<std::string, std::string>> out;
-  std::vector<std::string> scopes;                                             // Enclosing message and enum names.
-  std::map<std::string, std::string> enum_default;                             // Enum type -> its stated default.
-  std::vector<std::tuple<std::string, std::string, std::string>> enum_fields;  // Message, field, type.
+  ProtoComments out;
+  std::vector<std::string> scopes;  // Enclosing message and enum names.
   for (std::string line; std::getline(in, line);) {
     const auto [words, comment] = SplitProtoLine(line);
     if (words.size() >= 3 && (words[0] == "message" || words[0] == "enum") && words[2] == "{") {
@@ -283,14 +288,36 @@ std::map<std::string, std::map<std::string, std::string>> StatedDefaults() {
     } else if (!words.empty() && words[0] == "}" && !scopes.empty()) {
       scopes.pop_back();
     } else if (!scopes.empty() && !words.empty() && words[0].ends_with("_UNSPECIFIED")) {
-      if (auto d = After(comment, "The default: ", "."); !d.empty()) enum_default[scopes.back()] = d;
+      if (auto d = After(comment, "The default: ", "."); !d.empty()) out.enum_default[scopes.back()] = d;
     } else if (!scopes.empty() && words.size() >= 3 && words[0] == "optional") {
-      if (auto d = After(comment, "(default ", "),"); !d.empty()) out[scopes.back()][words[2]] = d;
-      enum_fields.emplace_back(scopes.back(), words[2], words[1]);
+      out.fields[scopes.back()][words[2]] = {words[1], comment};
     }
   }
-  for (const auto& [message, field, type] : enum_fields) {
-    if (enum_default.contains(type)) out[message][field] = enum_default[type];
+  return out;
+}
+
+std::map<std::string, std::map<std::string, std::string>> StatedDefaults() {
+  const ProtoComments proto = ReadProtoComments();
+  std::map<std::string, std::map<std::string, std::string>> out;
+  for (const auto& [message, fields] : proto.fields) {
+    for (const auto& [field, typed] : fields) {
+      const auto& [type, comment] = typed;
+      if (auto d = After(comment, "(default ", "),"); !d.empty()) out[message][field] = d;
+      if (auto e = proto.enum_default.find(type); e != proto.enum_default.end()) out[message][field] = e->second;
+    }
+  }
+  return out;
+}
+
+// Per message, field name -> the range its comment states as "A..B".
+std::map<std::string, std::map<std::string, std::pair<double, double>>> StatedRanges() {
+  static const std::regex range(R"((-?[0-9][0-9.e+-]*)\.\.(-?[0-9][0-9.e+-]*))");
+  std::map<std::string, std::map<std::string, std::pair<double, double>>> out;
+  for (const auto& [message, fields] : ReadProtoComments().fields) {
+    for (const auto& [field, typed] : fields) {
+      std::smatch m;
+      if (std::regex_search(typed.second, m, range)) out[message][field] = {std::stod(m[1]), std::stod(m[2])};
+    }
   }
   return out;
 }
@@ -335,6 +362,31 @@ TEST(Convert, TheProtoStatesTheTablesDefaults) {
   ASSERT_TRUE(stated.contains("RenderOptions"));
   ExpectStatedDefaultsMatch(stated.at("RenderOptions"), jobs::DefaultView().Describe(), "RenderOptions");
   EXPECT_GT(checked, 40u);  // The parser found the comments.
+}
+
+// A range a proto comment states ("0.05..3") is the table's: comments do not drift from the one
+// description, and ListMethods says the same as the proto.
+TEST(Convert, TheProtoStatesTheTablesRanges) {
+  const auto stated = StatedRanges();
+  size_t checked = 0;
+  const auto expect_ranges = [&](const std::map<std::string, std::pair<double, double>>& ranges,
+                                 const std::vector<core::ParamInfo>& table, const std::string& what) {
+    for (const core::ParamInfo& p : table) {
+      auto it = ranges.find(p.name);
+      if (it == ranges.end() || (p.type != core::ParamType::kReal && p.type != core::ParamType::kInteger)) continue;
+      EXPECT_NEAR(it->second.first, p.min_value, 1e-12 * std::abs(p.min_value)) << what << "." << p.name;
+      EXPECT_NEAR(it->second.second, p.max_value, 1e-12 * std::abs(p.max_value)) << what << "." << p.name;
+      ++checked;
+    }
+  };
+  for (const auto& m : jobs::Methods()) {
+    const std::string message = MethodMessage(m.info.name).name();
+    if (stated.contains(message)) expect_ranges(stated.at(message), m.info.defaults.Describe(), m.info.name);
+  }
+  if (stated.contains("RenderOptions")) {
+    expect_ranges(stated.at("RenderOptions"), jobs::DefaultView().Describe(), "RenderOptions");
+  }
+  EXPECT_GT(checked, 50u);  // The parser found the ranges.
 }
 
 }  // namespace

@@ -8,6 +8,7 @@
 #include <numbers>
 
 #include "worker/core/kd_tree.h"
+#include "worker/core/kernel_matrix.h"
 #include "worker/core/noise.h"
 #include "worker/core/parallel.h"
 #include "worker/core/status.h"
@@ -20,25 +21,7 @@ namespace {
 using core::Vec3d;
 using core::Vec3f;
 
-// Sparse symmetric kernel matrix A_ki = Ψ_i(x_k) in CSR form (float values: the iteration
-// needs ~1e-6 relative accuracy at most, and this halves the largest buffer).
-struct KernelMatrix {
-  std::vector<uint64_t> row_start;
-  std::vector<uint32_t> column;
-  std::vector<float> value;
-
-  void Multiply(const std::vector<double>& in, std::vector<double>& out) const {
-    const size_t n = row_start.size() - 1;
-    out.assign(n, 0.0);
-    (void)core::ParallelFor(n, 4096, [&](size_t begin, size_t end) {
-      for (size_t k = begin; k < end; ++k) {
-        double sum = 0;
-        for (uint64_t e = row_start[k]; e < row_start[k + 1]; ++e) sum += value[e] * in[column[e]];
-        out[k] = sum;
-      }
-    });
-  }
-};
+using core::KernelMatrix;
 
 }  // namespace
 
@@ -214,41 +197,26 @@ double KernelRow(const IamlsFunction::Impl& impl, size_t k, std::vector<core::Ne
   return sk;
 }
 
-// Kernel matrix rows and the right-hand side s. Two passes (count, then fill) build the CSR
-// arrays in place: at a million points the matrix holds ~140 million entries, and a per-row
-// staging copy would double the peak.
-absl::Status FillKernelMatrix(const IamlsFunction::Impl& impl, KernelMatrix& a, std::vector<double>& s,
-                              core::SubContext& setup_ctx, core::JobContext& ctx) {
-  const size_t n = impl.positions.size();
-  a.row_start.assign(n + 1, 0);
-  LSQSURF_RETURN_IF_ERROR(core::ParallelFor(
-      n, 1024,
-      [&](size_t begin, size_t end) {
-        std::vector<core::Neighbor> nn;
-        for (size_t k = begin; k < end; ++k) {
-          impl.tree->Radius(impl.positions[k], impl.radius, nn);
-          a.row_start[k + 1] = nn.size();
+// Kernel matrix rows (symmetric: A_ki = Ψ_i(x_k) at the samples) and the right-hand side s.
+absl::StatusOr<KernelMatrix> FillKernelMatrix(const IamlsFunction::Impl& impl, std::vector<double>& s,
+                                              core::SubContext& setup_ctx, core::JobContext& ctx) {
+  return core::BuildKernelMatrix(
+      impl.positions.size(),
+      [&](size_t k) {
+        thread_local std::vector<core::Neighbor> nn;
+        impl.tree->Radius(impl.positions[k], impl.radius, nn);
+        return static_cast<uint64_t>(nn.size());
+      },
+      [&](size_t k, uint32_t* column, float* value) {
+        thread_local std::vector<core::Neighbor> nn;
+        thread_local std::vector<double> psi;
+        s[k] = KernelRow(impl, k, nn, psi);
+        for (size_t j = 0; j < nn.size(); ++j) {
+          column[j] = nn[j].index;
+          value[j] = static_cast<float>(psi[j]);
         }
       },
-      &ctx, [&](double f) { setup_ctx.Report(0.2 + 0.3 * f); }));
-  for (size_t k = 0; k < n; ++k) a.row_start[k + 1] += a.row_start[k];
-  a.column.resize(a.row_start[n]);
-  a.value.resize(a.row_start[n]);
-  return core::ParallelFor(
-      n, 1024,
-      [&](size_t begin, size_t end) {
-        std::vector<core::Neighbor> nn;
-        std::vector<double> psi;
-        for (size_t k = begin; k < end; ++k) {
-          s[k] = KernelRow(impl, k, nn, psi);
-          uint64_t e = a.row_start[k];
-          for (size_t j = 0; j < nn.size(); ++j, ++e) {
-            a.column[e] = nn[j].index;
-            a.value[e] = static_cast<float>(psi[j]);
-          }
-        }
-      },
-      &ctx, [&](double f) { setup_ctx.Report(0.5 + 0.5 * f); });
+      &ctx, [&](double f) { setup_ctx.Report(0.2 + 0.8 * f); });
 }
 
 // The kernel matrix's rows one at a time, never stored: with c empty, s, the row sums ΣΨ at the
@@ -352,9 +320,8 @@ absl::Status IterateWithMatrix(const IamlsFunction::Impl& impl, IamlsStats& stat
                                core::SubContext& setup_ctx, core::JobContext& ctx) {
   const size_t n = impl.positions.size();
   const double h = stats.spacing;
-  KernelMatrix a;
   std::vector<double> s(n);
-  LSQSURF_RETURN_IF_ERROR(FillKernelMatrix(impl, a, s, setup_ctx, ctx));
+  LSQSURF_ASSIGN_OR_RETURN(KernelMatrix a, FillKernelMatrix(impl, s, setup_ctx, ctx));
   stats.mean_neighbors = static_cast<double>(a.row_start[n]) / static_cast<double>(n);
   double weight_sum = 0;
   for (float v : a.value) weight_sum += v;

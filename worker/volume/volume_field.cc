@@ -12,6 +12,7 @@
 
 #include "worker/core/binary.h"
 #include "worker/core/kd_tree.h"
+#include "worker/core/kernel_matrix.h"
 #include "worker/core/parallel.h"
 #include "worker/core/status.h"
 #include "worker/core/strings.h"
@@ -32,67 +33,32 @@ constexpr double kCvTolerance = 1.02;
 
 const std::array<double, 5> kEpsilonCandidates = {0.7, 0.85, 1.0, 1.2, 1.45};
 
-// Rows of Ψ_i(x_k) for query points x_k (CSR, float values).
-struct KernelMatrix {
-  std::vector<uint64_t> row_start;
-  std::vector<uint32_t> column;
-  std::vector<float> value;
+using core::KernelMatrix;
 
-  // out = A · in for `columns` interleaved columns (in: kernels × columns, out: rows × columns).
-  void Multiply(const std::vector<double>& in, int columns, std::vector<double>& out) const {
-    const size_t rows = row_start.size() - 1;
-    out.assign(rows * columns, 0.0);
-    (void)core::ParallelFor(rows, 2048, [&](size_t begin, size_t end) {
-      for (size_t k = begin; k < end; ++k) {
-        double* o = &out[k * columns];
-        for (uint64_t e = row_start[k]; e < row_start[k + 1]; ++e) {
-          const double v = value[e];
-          const double* x = &in[static_cast<size_t>(column[e]) * columns];
-          for (int c = 0; c < columns; ++c) o[c] += v * x[c];
-        }
-      }
-    });
-  }
-};
-
+// Rows of Ψ_i(x_k) for query points x_k.
 // `normalized`: each row divided by its sum (Shepard normalisation of the quasi-interpolant).
 absl::StatusOr<KernelMatrix> BuildMatrix(const Kernels& kernels, std::span<const Vec3f> queries, bool normalized,
                                          const core::JobContext* ctx) {
-  KernelMatrix a;
-  const size_t n = queries.size();
-  a.row_start.assign(n + 1, 0);
-  LSQSURF_RETURN_IF_ERROR(core::ParallelFor(
-      n, 1024,
-      [&](size_t begin, size_t end) {
-        for (size_t k = begin; k < end; ++k) {
-          uint64_t count = 0;
-          kernels.ForEach(queries[k].cast<double>(), [&](uint32_t, float, const Vec3f&) { ++count; });
-          a.row_start[k + 1] = count;
+  return core::BuildKernelMatrix(
+      queries.size(),
+      [&](size_t k) {
+        uint64_t count = 0;
+        kernels.ForEach(queries[k].cast<double>(), [&](uint32_t, float, const Vec3f&) { ++count; });
+        return count;
+      },
+      [&](size_t k, uint32_t* column, float* value) {
+        size_t e = 0;
+        double sum = 0;
+        kernels.ForEach(queries[k].cast<double>(), [&](uint32_t i, float psi, const Vec3f&) {
+          column[e] = i;
+          value[e++] = psi;
+          sum += psi;
+        });
+        if (normalized && sum > 0) {
+          for (size_t q = 0; q < e; ++q) value[q] = static_cast<float>(value[q] / sum);
         }
       },
-      ctx));
-  for (size_t k = 0; k < n; ++k) a.row_start[k + 1] += a.row_start[k];
-  a.column.resize(a.row_start[n]);
-  a.value.resize(a.row_start[n]);
-  LSQSURF_RETURN_IF_ERROR(core::ParallelFor(
-      n, 1024,
-      [&](size_t begin, size_t end) {
-        for (size_t k = begin; k < end; ++k) {
-          const uint64_t first = a.row_start[k];
-          uint64_t e = first;
-          double sum = 0;
-          kernels.ForEach(queries[k].cast<double>(), [&](uint32_t i, float psi, const Vec3f&) {
-            a.column[e] = i;
-            a.value[e++] = psi;
-            sum += psi;
-          });
-          if (normalized && sum > 0) {
-            for (uint64_t q = first; q < e; ++q) a.value[q] = static_cast<float>(a.value[q] / sum);
-          }
-        }
-      },
-      ctx));
-  return a;
+      ctx);
 }
 
 // The spectral radius of I − A by power steps: the growth rate of ‖(I − A)ᵏ v‖ over the last steps.
@@ -110,7 +76,7 @@ double SpectralRadius(const KernelMatrix& a) {
   for (int step = 0; step < kSteps; ++step) {
     const double before = norm();
     for (double& x : v) x /= before;
-    a.Multiply(v, 1, av);
+    a.Multiply(v, av, 1);
     for (size_t k = 0; k < n; ++k) v[k] -= av[k];
     if (step >= kSteps - kMeasured) log_growth += std::log(std::max(norm(), 1e-300));
   }
@@ -144,7 +110,7 @@ std::vector<double> Iterate(const KernelMatrix& a, const std::vector<double>& f,
   std::vector<double> g = f, ag;
   for (int it = 0; it <= iterations; ++it) {
     if (residuals == nullptr && it == iterations) break;
-    a.Multiply(g, columns, ag);
+    a.Multiply(g, ag, columns);
     double worst = 0;
     for (size_t k = 0; k < f.size(); ++k) {
       const double r = f[k] - ag[k] - (offset != nullptr ? (*offset)[k] : 0.0);
@@ -241,7 +207,7 @@ absl::StatusOr<CvChoice> CrossValidate(std::span<const Vec3f> positions, std::sp
     std::vector<double> g = train_f, ag, pred;
     double previous_residual = 1e300;
     for (int it = 0; it <= max_iterations; ++it) {
-      b.Multiply(g, 1, pred);
+      b.Multiply(g, pred, 1);
       double sum = 0;
       for (size_t h = 0; h < held_f.size(); ++h) {
         sum += (pred[h] + held_s[h] - held_f[h]) * (pred[h] + held_s[h] - held_f[h]);
@@ -249,7 +215,7 @@ absl::StatusOr<CvChoice> CrossValidate(std::span<const Vec3f> positions, std::sp
       if (p.iterations < 0 || it == p.iterations) {
         scores.push_back({eps, it, std::sqrt(sum / static_cast<double>(held_f.size()))});
       }
-      a.Multiply(g, 1, ag);
+      a.Multiply(g, ag, 1);
       double residual = 0;
       for (size_t k = 0; k < g.size(); ++k) {
         const double r = train_f[k] - ag[k] - train_s[k];

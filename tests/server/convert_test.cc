@@ -7,9 +7,11 @@
 
 #include <cctype>
 #include <cmath>
+#include <cstdlib>
+#include <cstring>
 #include <fstream>
 #include <map>
-#include <regex>
+#include <optional>
 #include <set>
 #include <sstream>
 #include <tuple>
@@ -309,14 +311,30 @@ std::map<std::string, std::map<std::string, std::string>> StatedDefaults() {
   return out;
 }
 
+// The first range "A..B" in a comment: two numbers joined by two dots.
+std::optional<std::pair<double, double>> RangeIn(const std::string& comment) {
+  const auto numeric = [](char c) { return std::isdigit(static_cast<unsigned char>(c)) || std::strchr(".e+-", c); };
+  for (size_t dots = comment.find(".."); dots != std::string::npos; dots = comment.find("..", dots + 2)) {
+    size_t begin = dots;
+    while (begin > 0 && numeric(comment[begin - 1])) --begin;
+    const std::string left = comment.substr(begin, dots - begin);
+    const char* right = comment.c_str() + dots + 2;
+    char* end = nullptr;
+    const double high = std::strtod(right, &end);
+    if (left.empty() || end == right || !(std::isdigit(static_cast<unsigned char>(left[0])) || left[0] == '-')) {
+      continue;
+    }
+    return std::pair{std::stod(left), high};
+  }
+  return std::nullopt;
+}
+
 // Per message, field name -> the range its comment states as "A..B".
 std::map<std::string, std::map<std::string, std::pair<double, double>>> StatedRanges() {
-  static const std::regex range(R"((-?[0-9][0-9.e+-]*)\.\.(-?[0-9][0-9.e+-]*))");
   std::map<std::string, std::map<std::string, std::pair<double, double>>> out;
   for (const auto& [message, fields] : ReadProtoComments().fields) {
     for (const auto& [field, typed] : fields) {
-      std::smatch m;
-      if (std::regex_search(typed.second, m, range)) out[message][field] = {std::stod(m[1]), std::stod(m[2])};
+      if (auto range = RangeIn(typed.second)) out[message][field] = *range;
     }
   }
   return out;

@@ -10,7 +10,6 @@
 #include <cmath>
 #include <memory>
 #include <span>
-#include <unordered_map>
 #include <vector>
 
 #include "absl/container/flat_hash_map.h"

@@ -14,7 +14,6 @@ namespace lsqsurf::io {
 namespace {
 
 using core::Vec3d;
-using core::Vec3f;
 using core::VertexField;
 using core::VolumeMesh;
 

@@ -17,7 +17,6 @@ namespace lsqsurf::io {
 namespace {
 
 using core::Vec3d;
-using core::Vec3f;
 using core::VertexField;
 using core::VolumeMesh;
 

@@ -1,23 +1,11 @@
 #include <spdlog/spdlog.h>
-#include <unistd.h>
 
-#include <cmath>
-#include <filesystem>
-#include <fstream>
-#include <random>
+#include <algorithm>
 #include <set>
 #include <tuple>
 
-#include "absl/cleanup/cleanup.h"
-#include "worker/core/status.h"
-#include "worker/core/strings.h"
-#include "worker/io/draco_codec.h"
-#include "worker/jobs/job_ids.h"
 #include "worker/jobs/job_service.h"
 #include "worker/jobs/job_service_internal.h"
-#include "worker/jobs/method_registry.h"
-#include "worker/jobs/volume_job.h"
-#include "worker/render/render.h"
 
 namespace lsqsurf::jobs {
 

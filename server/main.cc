@@ -1,7 +1,4 @@
 // lsqsurfd — the reconstruction server. Parses flags, wires the job service to gRPC, waits.
-#include <grpcpp/grpcpp.h>
-#include <grpcpp/health_check_service_interface.h>
-#include <grpcpp/resource_quota.h>
 #include <spdlog/sinks/stdout_color_sinks.h>
 #include <spdlog/spdlog.h>
 
@@ -13,8 +10,7 @@
 #include <thread>
 
 #include "server/metrics.h"
-#include "server/reconstruction_service.h"
-#include "server/reflection.h"
+#include "server/server.h"
 #include "server/tls.h"
 #include "server/tokens.h"
 #include "worker/core/address.h"
@@ -298,24 +294,6 @@ absl::StatusOr<Security> OpenSecurity(const ServerFlags& flags, const std::strin
   return security;
 }
 
-// The gRPC server with the services and the bounds the flags give; `port` is the one bound.
-std::unique_ptr<grpc::Server> StartServer(const ServerFlags& flags,
-                                          const std::shared_ptr<grpc::ServerCredentials>& credentials,
-                                          const std::vector<grpc::Service*>& services, int* port) {
-  grpc::EnableDefaultHealthCheckService(true);
-  grpc::ServerBuilder builder;
-  builder.AddListeningPort(flags.listen, credentials, port);
-  for (grpc::Service* service : services) builder.RegisterService(service);
-  builder.SetMaxReceiveMessageSize(16 << 20);
-  builder.SetMaxSendMessageSize(16 << 20);
-  builder.AddChannelArgument(GRPC_ARG_MAX_CONCURRENT_STREAMS, flags.max_streams_per_connection);
-  // The synchronous calls' threads are bounded; the streams run on the callback API and hold none.
-  grpc::ResourceQuota quota("lsqsurfd");
-  quota.SetMaxThreads(flags.max_threads);
-  builder.SetResourceQuota(quota);
-  return builder.BuildAndStart();
-}
-
 // SIGHUP: the token file and the certificate are read again; a bad one is refused and logged,
 // and the one in use stays.
 void Reload(Security& security) {
@@ -408,45 +386,28 @@ int main(int argc, char** argv) {
     return 1;
   }
   if (metrics != nullptr) metrics->Watch(jobs->get());
-  lsqsurf::server::ReconstructionService service(**jobs, metrics.get(), security->tokens.get(), flags.streams);
-  lsqsurf::server::ReflectionService reflection(
-      {lsqsurf::server::ReconstructionService::kServiceName, "grpc.health.v1.Health",
-       lsqsurf::server::ReflectionService::kServiceName},
-      service.streams());
-  int port = 0;
-  std::unique_ptr<grpc::Server> server = StartServer(flags, security->credentials, {&service, &reflection}, &port);
-  if (!server || port == 0) {
-    spdlog::critical("cannot listen on {}", flags.listen);
+  lsqsurf::server::ServerOptions server_options;
+  server_options.listen = flags.listen;
+  server_options.credentials = security->credentials;
+  server_options.tokens = security->tokens.get();
+  server_options.calls = metrics.get();
+  server_options.streams = flags.streams;
+  server_options.max_streams_per_connection = flags.max_streams_per_connection;
+  server_options.max_threads = flags.max_threads;
+  auto server = lsqsurf::server::Server::Start(**jobs, server_options);
+  if (!server.ok()) {
+    spdlog::critical("cannot start: {}", server.status().message());
     return 1;
   }
-  server->GetHealthCheckService()->SetServingStatus(lsqsurf::server::ReconstructionService::kServiceName, true);
-  const std::string host = flags.listen.substr(0, flags.listen.rfind(':'));
-  std::printf("listening on %s:%d\n", host.c_str(), port);
+  std::printf("listening on %s\n", (*server)->address().c_str());
   std::fflush(stdout);
-  spdlog::info("serving on {}:{}", host, port);
+  spdlog::info("serving on {}", (*server)->address());
 
-  // Readiness (the API's health status) follows the store; liveness (the server's) does not.
-  std::atomic<bool> stopping{false};
-  std::thread readiness([&] {
-    bool serving = true;
-    while (!stopping) {
-      std::this_thread::sleep_for(std::chrono::milliseconds(500));
-      if (stopping) break;
-      const bool reachable = (*jobs)->StoreReachable();
-      if (reachable == serving) continue;
-      serving = reachable;
-      server->GetHealthCheckService()->SetServingStatus(lsqsurf::server::ReconstructionService::kServiceName, serving);
-    }
-  });
   std::thread waiter([&] {
     int signal = 0;
     while (sigwait(&signals, &signal) == 0 && signal == SIGHUP) Reload(*security);
     spdlog::info("signal {} received: shutting down", signal);
-    stopping = true;
-    readiness.join();
-    // Interrupted jobs go back to the queue on disk first, then open streams are closed.
-    server->GetHealthCheckService()->SetServingStatus(false);
-    (*jobs)->Shutdown();
+    (*server)->Drain();
     // Nothing is lost past this point. gRPC's teardown has been seen to hang for good after its
     // threads ran out (in the TLS credentials' destructor): the process then ends regardless.
     std::thread([] {
@@ -455,9 +416,9 @@ int main(int argc, char** argv) {
       spdlog::default_logger()->flush();
       std::_Exit(0);
     }).detach();
-    server->Shutdown(std::chrono::system_clock::now() + std::chrono::seconds(3));
+    (*server)->Shutdown(std::chrono::system_clock::now() + std::chrono::seconds(3));
   });
-  server->Wait();
+  (*server)->Wait();
   waiter.join();
   if (metrics != nullptr) metrics->Stop();
   spdlog::info("stopped");

@@ -9,7 +9,7 @@
 #include <thread>
 
 #include "client/client.h"
-#include "server/reconstruction_service.h"
+#include "server/server.h"
 #include "server/tls.h"
 #include "server/tokens.h"
 #include "tests/latch_kind.h"
@@ -129,22 +129,19 @@ class SecureServer {
     auto jobs = jobs::JobService::Open(options);
     if (!jobs.ok()) throw std::runtime_error(std::string(jobs.status().message()));
     jobs_ = *std::move(jobs);
-    service_ = std::make_unique<ReconstructionService>(*jobs_, nullptr, tokens);
-    grpc::EnableDefaultHealthCheckService(true);
-    grpc::ServerBuilder builder;
-    builder.AddListeningPort("127.0.0.1:0", credentials, &port_);
-    builder.RegisterService(service_.get());
-    server_ = builder.BuildAndStart();
-    if (server_ == nullptr) throw std::runtime_error("no server");
+    ServerOptions server_options;
+    server_options.credentials = std::move(credentials);
+    server_options.tokens = tokens;
+    auto server = Server::Start(*jobs_, server_options);
+    if (!server.ok()) throw std::runtime_error(std::string(server.status().message()));
+    server_ = *std::move(server);
   }
   ~SecureServer() {
     latch_.Release();
-    server_->Shutdown();
-    server_.reset();
-    service_.reset();  // Before the job service it follows.
+    server_.reset();  // Before the job service it serves.
     jobs_.reset();
   }
-  std::string address() const { return "127.0.0.1:" + std::to_string(port_); }
+  std::string address() const { return server_->address(); }
   client::Client Connect(const std::string& token, client::ConnectOptions options = {}) const {
     options.token = token;
     return client::Client(address(), options);
@@ -154,9 +151,7 @@ class SecureServer {
  private:
   testing::LatchKind latch_;
   std::unique_ptr<jobs::JobService> jobs_;
-  std::unique_ptr<ReconstructionService> service_;
-  std::unique_ptr<grpc::Server> server_;
-  int port_ = 0;
+  std::unique_ptr<Server> server_;
 };
 
 class IsolationTest : public ::testing::Test {

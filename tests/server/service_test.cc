@@ -11,7 +11,7 @@
 
 #include "client/client.h"
 #include "server/metrics.h"
-#include "server/reconstruction_service.h"
+#include "server/server.h"
 #include "tests/latch_kind.h"
 #include "tests/test_dir.h"
 #include "tests/test_shapes.h"
@@ -35,14 +35,10 @@ class ServiceTest : public ::testing::Test {
     auto jobs = jobs::JobService::Open(options_);
     ASSERT_TRUE(jobs.ok()) << jobs.status();
     jobs_ = *std::move(jobs);
-    service_ = std::make_unique<ReconstructionService>(*jobs_);
-    grpc::ServerBuilder builder;
-    int port = 0;
-    builder.AddListeningPort("127.0.0.1:0", grpc::InsecureServerCredentials(), &port);
-    builder.RegisterService(service_.get());
-    server_ = builder.BuildAndStart();
-    ASSERT_NE(server_, nullptr);
-    client_ = std::make_unique<client::Client>("127.0.0.1:" + std::to_string(port));
+    auto server = Server::Start(*jobs_, {});
+    ASSERT_TRUE(server.ok()) << server.status();
+    server_ = *std::move(server);
+    client_ = std::make_unique<client::Client>(server_->address());
     auto input = io::EncodeDracoPointCloud(testing::SphereCloud(2000), {});
     ASSERT_TRUE(input.ok());
     input_ = *input;
@@ -50,9 +46,7 @@ class ServiceTest : public ::testing::Test {
   }
   void TearDown() override {
     latch_.Release();
-    if (server_) server_->Shutdown();
-    server_.reset();
-    service_.reset();  // Before the job service it follows.
+    server_.reset();  // Before the job service it serves.
     jobs_.reset();
     std::filesystem::remove_all(dir_);
   }
@@ -61,8 +55,7 @@ class ServiceTest : public ::testing::Test {
   jobs::JobServiceOptions options_;
   testing::LatchKind latch_;
   std::unique_ptr<jobs::JobService> jobs_;
-  std::unique_ptr<ReconstructionService> service_;
-  std::unique_ptr<grpc::Server> server_;
+  std::unique_ptr<Server> server_;
   std::unique_ptr<client::Client> client_;
   std::string input_;
   v1::JobSpec spec_;

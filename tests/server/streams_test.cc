@@ -10,8 +10,7 @@
 
 #include "client/client.h"
 #include "grpc/reflection/v1alpha/reflection.grpc.pb.h"
-#include "server/reconstruction_service.h"
-#include "server/reflection.h"
+#include "server/server.h"
 #include "tests/test_dir.h"
 
 namespace lsqsurf::server {
@@ -37,22 +36,16 @@ class StreamsTest : public ::testing::Test {
     auto jobs = jobs::JobService::Open(options);
     ASSERT_TRUE(jobs.ok()) << jobs.status();
     jobs_ = *std::move(jobs);
-    service_ = std::make_unique<ReconstructionService>(*jobs_, nullptr, nullptr, limits);
-    reflection_ = std::make_unique<ReflectionService>(
-        std::vector<std::string>{ReconstructionService::kServiceName, ReflectionService::kServiceName},
-        service_->streams());
-    grpc::ServerBuilder builder;
-    builder.AddListeningPort("127.0.0.1:0", grpc::InsecureServerCredentials(), &port_);
-    builder.RegisterService(service_.get());
-    builder.RegisterService(reflection_.get());
-    server_ = builder.BuildAndStart();
-    ASSERT_NE(server_, nullptr);
+    ServerOptions server_options;
+    server_options.streams = limits;
+    // The tests open their streams on one connection; the per-connection bound is not under test.
+    server_options.max_streams_per_connection = 1000;
+    auto server = Server::Start(*jobs_, server_options);
+    ASSERT_TRUE(server.ok()) << server.status();
+    server_ = *std::move(server);
   }
   void TearDown() override {
-    if (server_) server_->Shutdown();
-    server_.reset();
-    reflection_.reset();
-    service_.reset();
+    server_.reset();  // Before the job service it serves.
     jobs_.reset();
     std::filesystem::remove_all(dir_);
   }
@@ -62,14 +55,11 @@ class StreamsTest : public ::testing::Test {
     args.SetInt(GRPC_ARG_USE_LOCAL_SUBCHANNEL_POOL, 1);
     return grpc::CreateCustomChannel(address(), grpc::InsecureChannelCredentials(), args);
   }
-  std::string address() const { return "127.0.0.1:" + std::to_string(port_); }
+  std::string address() const { return server_->address(); }
 
   std::filesystem::path dir_;
   std::unique_ptr<jobs::JobService> jobs_;
-  std::unique_ptr<ReconstructionService> service_;
-  std::unique_ptr<ReflectionService> reflection_;
-  std::unique_ptr<grpc::Server> server_;
-  int port_ = 0;
+  std::unique_ptr<Server> server_;
 };
 
 TEST_F(StreamsTest, IdleStreamsHoldNoThreadAndAreBounded) {
@@ -103,13 +93,14 @@ TEST_F(StreamsTest, IdleStreamsHoldNoThreadAndAreBounded) {
   }
   // Every one is open on the server (counted there) before anything is measured.
   client::Client api(address());
-  for (int round = 0; round < 1000 && (service_->streams().Open(StreamKind::kReflection) < limits.max_reflection ||
-                                       service_->streams().Open(StreamKind::kUpload) < limits.max_uploads);
+  for (int round = 0;
+       round < 1000 && (server_->service().streams().Open(StreamKind::kReflection) < limits.max_reflection ||
+                        server_->service().streams().Open(StreamKind::kUpload) < limits.max_uploads);
        ++round) {
     ASSERT_TRUE(api.List(0).ok());  // A round trip: what the server had received is in by its answer.
   }
-  EXPECT_EQ(service_->streams().Open(StreamKind::kReflection), limits.max_reflection);
-  EXPECT_EQ(service_->streams().Open(StreamKind::kUpload), limits.max_uploads);
+  EXPECT_EQ(server_->service().streams().Open(StreamKind::kReflection), limits.max_reflection);
+  EXPECT_EQ(server_->service().streams().Open(StreamKind::kUpload), limits.max_uploads);
 
   // The API answers, and the threads did not grow with the streams (a synchronous server held
   // one for each of the 210).
@@ -153,8 +144,10 @@ TEST_F(StreamsTest, AnIdleStreamIsCancelledAndTheReflectionServiceAnswers) {
   ASSERT_TRUE(asking->Write(request));
   reflection::ServerReflectionResponse response;
   ASSERT_TRUE(asking->Read(&response));
-  ASSERT_EQ(response.list_services_response().service_size(), 2);
+  // The services lsqsurfd serves: the API, health and reflection.
+  ASSERT_EQ(response.list_services_response().service_size(), 3);
   EXPECT_EQ(response.list_services_response().service(0).name(), ReconstructionService::kServiceName);
+  EXPECT_EQ(response.list_services_response().service(1).name(), "grpc.health.v1.Health");
   request.set_file_containing_symbol(ReconstructionService::kServiceName);
   ASSERT_TRUE(asking->Write(request));
   ASSERT_TRUE(asking->Read(&response));

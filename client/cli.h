@@ -11,6 +11,7 @@
 #include <vector>
 
 #include "client/client.h"
+#include "client/generated_flags.h"
 #include "worker/core/strings.h"
 #include "worker/io/files.h"
 
@@ -32,91 +33,27 @@ int Fail(const std::string& message, int code = kExitLocal);
 int FailStatus(const char* what, const absl::Status& s);
 
 // View options shared by render, reconstruct --preview, submit --job-preview and track
-// --pictures. Options left out are not sent: the server's defaults apply. Defaults and ranges
-// are not repeated here: they are the tables' (docs/parameters.md, lsqsurf methods).
+// --pictures: generated from RenderOptions and the view table. Options left out are not sent:
+// the server's defaults apply.
 struct ViewFlags {
-  std::optional<int> size, samples;
-  std::optional<double> azimuth, elevation, distance, fov;
-  std::optional<std::string> up, color;
-  bool flat = false, wireframe = false, transparent = false;
+  std::optional<int> size;
+  GeneratedFlags fields{"view", *v1::RenderOptions::descriptor()};
 
-  void AddTo(CLI::App* cmd) {
-    cmd->add_option("--size", size, "picture width and height in pixels");
-    cmd->add_option("--up", up, "axis pointing up in the picture: x, y or z (scans are often y)")
-        ->check(CLI::IsMember({"x", "y", "z"}));
-    cmd->add_option("--azimuth", azimuth, "camera degrees about the up axis");
-    cmd->add_option("--elevation", elevation, "camera degrees above the plane normal to the up axis");
-    cmd->add_option("--distance", distance, "camera distance from the box centre (unset: frame the model)");
-    cmd->add_option("--fov", fov, "vertical field of view in degrees");
-    cmd->add_option("--color", color, "per-vertex attribute to colour by, e.g. degree or depth (PU meshes)");
-    cmd->add_flag("--flat", flat, "flat shading (one normal per triangle)");
-    cmd->add_flag("--wireframe", wireframe, "draw the triangle edges");
-    cmd->add_flag("--transparent", transparent, "transparent background");
-    cmd->add_option("--samples", samples, "MSAA samples per pixel: 1, 2, 4 or 8");
-  }
-
-  v1::RenderOptions Options() const {
-    v1::RenderOptions view;
-    if (size) view.set_width(*size), view.set_height(*size);
-    if (azimuth) view.set_azimuth_deg(*azimuth);
-    if (elevation) view.set_elevation_deg(*elevation);
-    if (distance) view.set_distance(*distance);
-    if (fov) view.set_fov_deg(*fov);
-    if (up)
-      view.set_up_axis(*up == "x"   ? v1::RenderOptions::UP_AXIS_X
-                       : *up == "y" ? v1::RenderOptions::UP_AXIS_Y
-                                    : v1::RenderOptions::UP_AXIS_Z);
-    if (color) view.set_color(*color);
-    if (flat) view.set_flat_shading(true);
-    if (wireframe) view.set_wireframe(true);
-    if (transparent) view.set_transparent(true);
-    if (samples) view.set_samples(*samples);
-    return view;
-  }
+  void AddTo(CLI::App* cmd);
+  // Errors: kInvalidArgument naming a flag whose value has the wrong type.
+  absl::StatusOr<v1::RenderOptions> Options() const;
 };
 
 // render --volume: how a volume job's field is drawn. Options left out keep the server's defaults.
 struct VolumeViewFlags {
   bool volume = false;
-  std::optional<double> iso_ray, step;
-  std::optional<int> resolution;
+  std::optional<double> iso_ray;
   std::string opacity, transfer;
+  GeneratedFlags fields{"view", *v1::RenderOptions::descriptor()};
 
-  void AddTo(CLI::App* cmd) {
-    cmd->add_flag("--volume", volume, "draw a volume job's field by direct volume rendering");
-    cmd->add_option("--iso-ray", iso_ray, "draw the isosurface of this value by ray casting instead");
-    cmd->add_option("--opacity", opacity, "opacity transfer function t:alpha,... (t over the colour range)");
-    cmd->add_option("--transfer", transfer, "file with the opacity points, one 't alpha' or 't:alpha' per line");
-    cmd->add_option("--resolution", resolution, "grid points along the longest side of the field's box");
-    cmd->add_option("--step", step, "ray step in grid cells");
-  }
-  bool Requested() const { return volume || iso_ray || !opacity.empty() || !transfer.empty(); }
-  absl::Status Apply(v1::RenderOptions* view) const {
-    std::string points = opacity;
-    if (!transfer.empty()) {
-      auto text = lsqsurf::io::ReadFileBytes(transfer);
-      if (!text.ok()) return text.status();
-      points.clear();
-      std::string line;
-      for (char c : *text + "\n") {
-        if (c != '\n') {
-          line += c == ' ' || c == '\t' ? ':' : c;
-          continue;
-        }
-        while (!line.empty() && (line.back() == ':' || line.back() == '\r')) line.pop_back();
-        if (!line.empty() && line[0] != '#') points += (points.empty() ? "" : ",") + line;
-        line.clear();
-      }
-    }
-    if (!points.empty()) view->set_opacity(points);
-    if (iso_ray) {
-      view->set_volume_mode(v1::RenderOptions::VOLUME_MODE_ISOSURFACE);
-      view->set_iso_value(*iso_ray);
-    }
-    if (resolution) view->set_volume_resolution(*resolution);
-    if (step) view->set_ray_step(*step);
-    return absl::OkStatus();
-  }
+  void AddTo(CLI::App* cmd);
+  bool Requested() const { return volume || iso_ray || !opacity.empty() || !transfer.empty() || !fields.empty(); }
+  absl::Status Apply(v1::RenderOptions* view) const;
 };
 
 // How to reach the server: TLS, and the token. Flags win over LSQSURF_* variables.
@@ -264,14 +201,14 @@ struct ProbeCommand {
   int Run(const Globals& g) const;
 };
 
-// track: every option the user leaves out keeps the server's default.
+// track: the parameters' flags are generated from TrackParams; every one left out keeps the
+// server's default. The interface, the field and the grid take names or files, and h, by hand.
 struct TrackCommand {
-  std::string interface, field, modulation, resampling, output;
-  std::optional<double> period, h, dt, merge_distance, support, marker_spacing, marker_gap, regeneration_stretch;
-  std::optional<int> steps, stride;
-  std::optional<int64_t> max_points;
-  bool meshes = false, pictures = false;
+  std::string interface, field, output;
+  std::optional<double> h;
+  bool pictures = false;
   double turntable = 0;
+  GeneratedFlags params{"track", *v1::TrackParams::descriptor()};
   ViewFlags view;
 
   void AddTo(CLI::App* track);

@@ -4,9 +4,11 @@
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
+#include <set>
 
 #include "client/cli.h"
 #include "worker/core/address.h"
+#include "worker/core/status.h"
 #include "worker/io/draco_codec.h"
 #include "worker/io/files.h"
 
@@ -208,6 +210,67 @@ int RenderToFile(const Globals& g, const std::string& id, const std::string& nam
     std::fprintf(stderr, ")\n");
   }
   return 0;
+}
+
+}  // namespace lsqsurf::cli
+
+namespace lsqsurf::cli {
+namespace {
+
+// The fields of RenderOptions that draw a volume field: `render --volume` names them.
+const std::set<std::string> kVolumeViewFields = {"volume_mode", "opacity", "iso_value", "volume_resolution",
+                                                 "ray_step"};
+
+}  // namespace
+
+void ViewFlags::AddTo(CLI::App* cmd) {
+  cmd->add_option("--size", size, "picture width and height in pixels (--width and --height set one)");
+  fields.AddTo(cmd, {.aliases = {{"up_axis", "--up"},
+                                 {"azimuth_deg", "--azimuth"},
+                                 {"elevation_deg", "--elevation"},
+                                 {"fov_deg", "--fov"},
+                                 {"flat_shading", "--flat"}},
+                     .skip = kVolumeViewFields});
+}
+
+absl::StatusOr<v1::RenderOptions> ViewFlags::Options() const {
+  v1::RenderOptions view;
+  if (size) view.set_width(*size), view.set_height(*size);
+  LSQSURF_RETURN_IF_ERROR(fields.Apply(&view));
+  return view;
+}
+
+void VolumeViewFlags::AddTo(CLI::App* cmd) {
+  cmd->add_flag("--volume", volume, "draw a volume job's field by direct volume rendering");
+  cmd->add_option("--iso-ray", iso_ray, "draw the isosurface of this value by ray casting instead");
+  cmd->add_option("--opacity", opacity, StrCat(TableHelp("view", "opacity"), " (e.g. 0:0,0.5:0.2,1:0.8)"));
+  cmd->add_option("--transfer", transfer, "file with the opacity points, one 't alpha' or 't:alpha' per line");
+  fields.AddTo(cmd, {.aliases = {{"volume_resolution", "--resolution"}, {"ray_step", "--step"}},
+                     .only = {"volume_resolution", "ray_step"}});
+}
+
+absl::Status VolumeViewFlags::Apply(v1::RenderOptions* view) const {
+  std::string points = opacity;
+  if (!transfer.empty()) {
+    LSQSURF_ASSIGN_OR_RETURN(const std::string text, lsqsurf::io::ReadFileBytes(transfer));
+    points.clear();
+    std::string line;
+    for (char c : text + "\n") {
+      if (c != '\n') {
+        line += c == ' ' || c == '\t' ? ':' : c;
+        continue;
+      }
+      while (!line.empty() && (line.back() == ':' || line.back() == '\r')) line.pop_back();
+      if (!line.empty() && line[0] != '#') points += (points.empty() ? "" : ",") + line;
+      line.clear();
+    }
+  }
+  if (!points.empty()) view->set_opacity(points);
+  if (iso_ray) {
+    view->set_volume_mode(v1::RenderOptions::VOLUME_MODE_ISOSURFACE);
+    view->set_iso_value(*iso_ray);
+  }
+  return fields.Apply(view);
 }
 
 }  // namespace lsqsurf::cli

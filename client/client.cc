@@ -50,9 +50,32 @@ absl::Status SetEnum(Message* m, const FieldDescriptor& f, std::string_view valu
   return absl::OkStatus();
 }
 
+// A list parameter (`iso=0.5,0.7`): numbers separated by commas; an empty text is no value.
+absl::Status SetListField(Message* m, const FieldDescriptor& f, std::string_view value) {
+  const auto* r = m->GetReflection();
+  r->ClearField(m, &f);
+  for (std::string_view rest = value; !rest.empty();) {
+    const size_t comma = rest.find(',');
+    const std::string item(rest.substr(0, comma));
+    rest = comma == std::string_view::npos ? std::string_view() : rest.substr(comma + 1);
+    char* end = nullptr;
+    const double v = std::strtod(item.c_str(), &end);
+    if (item.empty() || *end != '\0') {
+      return absl::InvalidArgumentError(
+          StrCat(f.name(), ": '", item, "' is not a number (give numbers separated by commas, e.g. 0.5,0.7)"));
+    }
+    r->AddDouble(m, &f, v);
+  }
+  return absl::OkStatus();
+}
+
 absl::Status SetField(Message* m, const FieldDescriptor& f, std::string_view value) {
   const auto* r = m->GetReflection();
   const std::string text(value);
+  if (f.is_repeated()) {
+    if (f.cpp_type() == FieldDescriptor::CPPTYPE_DOUBLE) return SetListField(m, f, value);
+    return absl::InvalidArgumentError(StrCat(f.name(), " is not a parameter"));
+  }
   if (f.cpp_type() == FieldDescriptor::CPPTYPE_ENUM) return SetEnum(m, f, value);
   if (f.cpp_type() == FieldDescriptor::CPPTYPE_STRING) {
     r->SetString(m, &f, text);
@@ -142,8 +165,7 @@ absl::Status SetParam(v1::JobSpec* spec, std::string_view name, std::string_view
   const FieldDescriptor* method = spec->GetReflection()->GetOneofFieldDescriptor(*spec, &MethodOneof());
   if (method == nullptr) return absl::InvalidArgumentError("set a method before its parameters");
   Message* params = spec->GetReflection()->MutableMessage(spec, method);
-  const FieldDescriptor* f = params->GetDescriptor()->FindFieldByName(std::string(name));
-  if (f == nullptr) {
+  if (params->GetDescriptor()->FindFieldByName(std::string(name)) == nullptr) {
     std::string valid;
     for (int i = 0; i < params->GetDescriptor()->field_count(); ++i) {
       core::StrAppend(&valid, i ? ", " : "", params->GetDescriptor()->field(i)->name());
@@ -151,7 +173,15 @@ absl::Status SetParam(v1::JobSpec* spec, std::string_view name, std::string_view
     return absl::InvalidArgumentError(
         StrCat("unknown parameter '", name, "' for method ", method->name(), "; valid parameters: ", valid));
   }
-  return SetField(params, *f, value);
+  return SetMessageField(params, name, value);
+}
+
+absl::Status SetMessageField(Message* message, std::string_view name, std::string_view value) {
+  const FieldDescriptor* f = message->GetDescriptor()->FindFieldByName(std::string(name));
+  if (f == nullptr) {
+    return absl::InvalidArgumentError(StrCat(message->GetDescriptor()->name(), " has no field '", name, "'"));
+  }
+  return SetField(message, *f, value);
 }
 
 absl::Status SetParamAssignment(v1::JobSpec* spec, std::string_view assignment) {

@@ -27,6 +27,8 @@ absl::Status SetMethod(v1::JobSpec* spec, const std::string& method);
 // for flags, a choice's name (e.g. "gridlines") for enums. Ranges are the server's to check.
 // Errors: kInvalidArgument naming the field (unknown, or a value of the wrong type).
 absl::Status SetParam(v1::JobSpec* spec, std::string_view name, std::string_view value);
+// Sets the field `name` of any parameter message (a method's, or RenderOptions) the same way.
+absl::Status SetMessageField(google::protobuf::Message* message, std::string_view name, std::string_view value);
 // "name=value" as given to --param.
 absl::Status SetParamAssignment(v1::JobSpec* spec, std::string_view assignment);
 

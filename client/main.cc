@@ -101,12 +101,13 @@ int main(int argc, char** argv) {
   if (*track) return track_command.Run(g);
   if (*probe) return probe_command.Run(g);
   if (*render) {
-    v1::RenderOptions options = render_view.Options();
+    auto options = render_view.Options();
+    if (!options.ok()) return Fail(std::string(options.status().message()));
     if (volume_view.Requested()) {
-      if (absl::Status s = volume_view.Apply(&options); !s.ok()) return Fail(std::string(s.message()));
+      if (absl::Status s = volume_view.Apply(&*options); !s.ok()) return Fail(std::string(s.message()));
       name = kVolumeField;
     }
-    return RenderToFile(g, id, name, options, output);
+    return RenderToFile(g, id, name, *options, output);
   }
   for (CLI::App* command : id_commands) {
     if (*command) return JobCommand(g, command->get_name(), id);

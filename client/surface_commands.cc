@@ -52,14 +52,12 @@ int SurfaceCommand::Run(const Globals& g, bool wait) const {
   if (job.method == "edit") {
     if (absl::Status s = ApplyEdit(&*spec); !s.ok()) return Fail(std::string(s.message()));
   }
-  if (job_preview) *spec->mutable_preview()->mutable_options() = view.Options();
+  const auto view_options = view.Options();
+  if (!view_options.ok()) return Fail(std::string(view_options.status().message()));
+  if (job_preview) *spec->mutable_preview()->mutable_options() = *view_options;
   absl::StatusOr<Upload> upload = absl::UnknownError("");
   if (job.method == "volume") {
-    if (!iso.empty()) {
-      std::string text;
-      for (double v : iso) text += StrCat(text.empty() ? "" : ",", v);
-      spec->mutable_volume()->set_iso(text);
-    }
+    for (double v : iso) spec->mutable_volume()->add_iso(v);
     upload = volume.Encode(input, &*spec);
   } else {
     auto bytes = CloudBytes(input);
@@ -94,7 +92,7 @@ int SurfaceCommand::Run(const Globals& g, bool wait) const {
     PrintStatistics(done);
     for (const auto& path : outputs) std::fprintf(stderr, "wrote %s\n", path.c_str());
   }
-  if (!preview.empty()) return RenderToFile(g, done.id(), "", view.Options(), preview);
+  if (!preview.empty()) return RenderToFile(g, done.id(), "", *view_options, preview);
   return 0;
 }
 

@@ -18,6 +18,14 @@ using google::protobuf::Reflection;
 absl::Status FillField(const Message& message, const FieldDescriptor& f, core::ParamSet* params) {
   const Reflection& r = *message.GetReflection();
   const std::string& name = f.name();
+  if (f.is_repeated()) {
+    if (f.cpp_type() != FieldDescriptor::CPPTYPE_DOUBLE) {
+      return absl::InvalidArgumentError(core::StrCat(name, " is not a parameter value"));
+    }
+    std::vector<double> values(static_cast<size_t>(r.FieldSize(message, &f)));
+    for (size_t i = 0; i < values.size(); ++i) values[i] = r.GetRepeatedDouble(message, &f, static_cast<int>(i));
+    return params->SetList(name, std::move(values));
+  }
   switch (f.cpp_type()) {
     case FieldDescriptor::CPPTYPE_DOUBLE: return params->Set(name, r.GetDouble(message, &f));
     case FieldDescriptor::CPPTYPE_FLOAT: return params->Set(name, r.GetFloat(message, &f));
@@ -75,6 +83,12 @@ void ParamsToProto(const core::ParamSet& params, Message* message) {
     if (info.type == core::ParamType::kText) {
       if (f->cpp_type() == FieldDescriptor::CPPTYPE_STRING)
         r.SetString(message, f, params.GetText(info.name).value_or(""));
+      continue;
+    }
+    if (info.type == core::ParamType::kRealList) {
+      if (!f->is_repeated() || f->cpp_type() != FieldDescriptor::CPPTYPE_DOUBLE) continue;
+      r.ClearField(message, f);
+      for (double v : params.GetList(info.name).value_or(std::vector<double>{})) r.AddDouble(message, f, v);
       continue;
     }
     const double v = params.Get(info.name).value_or(0);
@@ -186,7 +200,9 @@ void ToProto(const core::ParamInfo& p, v1::Parameter* out) {
     case core::ParamType::kFlag: out->set_type(v1::Parameter::TYPE_FLAG); break;
     case core::ParamType::kChoice: out->set_type(v1::Parameter::TYPE_CHOICE); break;
     case core::ParamType::kText: out->set_type(v1::Parameter::TYPE_TEXT); break;
+    case core::ParamType::kRealList: out->set_type(v1::Parameter::TYPE_REAL_LIST); break;
   }
+  out->set_max_count(p.max_count);
   out->set_default_value(p.default_value);
   out->set_min_value(p.type == core::ParamType::kFlag ? 0 : p.min_value);
   out->set_max_value(p.type == core::ParamType::kFlag ? 1 : p.max_value);

@@ -3,6 +3,10 @@
 
 #include <gtest/gtest.h>
 
+#include <cmath>
+#include <limits>
+#include <vector>
+
 namespace lsqsurf::core {
 namespace {
 
@@ -108,6 +112,48 @@ TEST(Params, TheStoredFormRoundTrips) {
   EXPECT_TRUE(back.Decode("retired=3;count=5;").ok());
   EXPECT_EQ(back.Get("count"), 5);
   EXPECT_FALSE(back.Decode("count=500;").ok());
+}
+
+struct Levels {
+  std::vector<double> any;           // Any finite numbers.
+  std::vector<double> unit = {0.5};  // Each within [0, 1].
+};
+
+const ParamTable<Levels>& LevelsTable() {
+  static const auto* table = [] {
+    auto* t = new ParamTable<Levels>();
+    const double inf = std::numeric_limits<double>::infinity();
+    t->RealList<&Levels::any>("any", 3, -inf, inf, "", "levels").RealList<&Levels::unit>("unit", 2, 0, 1, "", "shares");
+    return t;
+  }();
+  return *table;
+}
+
+TEST(Params, ListsAreCountedCheckedParsedAndStored) {
+  const auto infos = LevelsTable().Describe();
+  EXPECT_EQ(infos[0].RangeText(), "up to 3 values, each any number");
+  EXPECT_EQ(infos[1].RangeText(), "up to 2 values, each [0, 1]");
+  EXPECT_EQ(infos[1].default_list, std::vector<double>{0.5});
+  ParamSet set(LevelsTable());
+  ASSERT_TRUE(set.Parse("any", "-1e300, 0.1,2").ok());
+  EXPECT_EQ(set.GetList("any"), (std::vector<double>{-1e300, 0.1, 2}));
+  const absl::Status too_many = set.SetList("any", {1, 2, 3, 4});
+  EXPECT_EQ(too_many.code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(too_many.message().find("4 values; it takes at most 3"), std::string_view::npos) << too_many;
+  EXPECT_NE(set.SetList("any", {1, std::nan("")}).message().find("value 2 of any=nan is not a finite number"),
+            std::string_view::npos)
+      << set.SetList("any", {1, std::nan("")});
+  EXPECT_NE(set.Parse("unit", "0.2,1.5").message().find("unit=1.5 is out of range"), std::string_view::npos);
+  EXPECT_NE(set.Parse("any", "0.5;0.7").message().find("'0.5;0.7' is not a number"), std::string_view::npos);
+  EXPECT_EQ(set.GetList("any"), (std::vector<double>{-1e300, 0.1, 2}));  // Refused lists left the last good one.
+  ASSERT_TRUE(set.Set("unit", 0.25).ok());                               // One number is a list of one.
+  ParamSet back(LevelsTable());
+  ASSERT_TRUE(back.Decode(set.Encode()).ok()) << set.Encode();
+  EXPECT_EQ(back.GetList("any"), set.GetList("any"));
+  EXPECT_EQ(back.GetList("unit"), std::vector<double>{0.25});
+  ASSERT_TRUE(back.Parse("any", "").ok());  // An empty list is one.
+  EXPECT_TRUE(back.GetList("any")->empty());
+  EXPECT_FALSE(back.Decode("unit=0.1,0.2,0.3;").ok());
 }
 
 TEST(Params, CopiesAreIndependentAndTypesAreKept) {

@@ -35,7 +35,8 @@ std::vector<double> Outside(const core::ParamInfo& info) {
       return {static_cast<double>(largest + 1)};
     }
     case core::ParamType::kFlag:
-    case core::ParamType::kText: return {};
+    case core::ParamType::kText:
+    case core::ParamType::kRealList: return {};
   }
   return {};
 }

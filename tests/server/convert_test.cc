@@ -34,6 +34,7 @@ bool Carries(const FieldDescriptor& f, core::ParamType type) {
     case core::ParamType::kFlag: return f.cpp_type() == FieldDescriptor::CPPTYPE_BOOL;
     case core::ParamType::kChoice: return f.cpp_type() == FieldDescriptor::CPPTYPE_ENUM;
     case core::ParamType::kText: return f.cpp_type() == FieldDescriptor::CPPTYPE_STRING;
+    case core::ParamType::kRealList: return f.cpp_type() == FieldDescriptor::CPPTYPE_DOUBLE;
   }
   return false;
 }
@@ -47,7 +48,12 @@ void ExpectMessageCarriesTable(const Descriptor& message, const std::vector<core
     const FieldDescriptor* f = message.FindFieldByName(p.name);
     ASSERT_NE(f, nullptr) << what << ": " << message.name() << " has no field " << p.name;
     EXPECT_TRUE(Carries(*f, p.type)) << what << "." << p.name << " is a " << f->cpp_type_name();
-    EXPECT_TRUE(f->has_presence()) << what << "." << p.name << " must be optional";
+    // Unset means the default: an `optional` field, or an empty repeated one for a list.
+    if (p.type == core::ParamType::kRealList) {
+      EXPECT_TRUE(f->is_repeated()) << what << "." << p.name << " must be repeated";
+    } else {
+      EXPECT_TRUE(f->has_presence()) << what << "." << p.name << " must be optional";
+    }
     if (p.type != core::ParamType::kChoice) continue;
     EXPECT_NE(f->enum_type()->FindValueByNumber(0), nullptr);
     EXPECT_EQ(f->enum_type()->FindValueByNumber(0)->name(), v1::EnumValueName(*f->enum_type(), "unspecified"));
@@ -108,6 +114,12 @@ TEST(Convert, ParametersRoundTripThroughTheWire) {
         case core::ParamType::kFlag: ASSERT_TRUE(changed.Set(p.name, 1 - p.default_value).ok()); break;
         case core::ParamType::kChoice: ASSERT_TRUE(changed.Set(p.name, p.choices.back().value).ok()); break;
         case core::ParamType::kText: ASSERT_TRUE(changed.SetText(p.name, "x").ok()); break;
+        case core::ParamType::kRealList: {
+          std::vector<double> values(static_cast<size_t>(p.max_count));
+          for (size_t i = 0; i < values.size(); ++i) values[i] = 0.25 * static_cast<double>(i) - 1;
+          ASSERT_TRUE(changed.SetList(p.name, values).ok());
+          break;
+        }
       }
     }
     v1::JobSpec wire;
@@ -358,7 +370,8 @@ void ExpectStatedDefaultsMatch(const std::map<std::string, std::string>& stated,
         EXPECT_EQ(text, upper) << what << "." << p.name;
         break;
       }
-      case core::ParamType::kText: break;
+      case core::ParamType::kText:
+      case core::ParamType::kRealList: break;
       default: {
         const std::string number = text.substr(0, text.find_first_of(" :"));
         EXPECT_NEAR(std::stod(number), p.default_value, 1e-12 * std::abs(p.default_value))

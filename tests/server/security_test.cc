@@ -249,7 +249,7 @@ TEST_F(IsolationTest, AJobCannotReferToAnotherUsersJob) {
   const std::vector<std::string> fields = {"franke"};
   v1::JobSpec volume_spec;
   volume_spec.mutable_volume()->set_field("franke");
-  volume_spec.mutable_volume()->set_iso("0.4");
+  volume_spec.mutable_volume()->add_iso(0.4);
   auto field = alice.Submit(volume_spec, *io::EncodeVolumeVertices(mesh, fields, {}), {}, io::EncodeCellStream(mesh));
   ASSERT_TRUE(field.ok()) << field.status();
   ASSERT_EQ(alice.Watch(fitted->id())->state(), v1::JOB_STATE_SUCCEEDED);

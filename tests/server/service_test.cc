@@ -179,7 +179,7 @@ TEST_F(ServiceTest, AVolumeMeshBecomesAnIsosurfaceAndBadVolumesAreRefused) {
   const std::string cells = io::EncodeCellStream(mesh);
   v1::JobSpec spec;
   spec.mutable_volume()->set_field("franke");
-  spec.mutable_volume()->set_iso("0.4");
+  spec.mutable_volume()->add_iso(0.4);
   auto job = client_->Submit(spec, *vertices, {}, cells);
   ASSERT_TRUE(job.ok()) << job.status();
   EXPECT_EQ(job->input_points(), static_cast<int64_t>(mesh.vertex_count()));
@@ -234,7 +234,7 @@ TEST_F(ServiceTest, AVolumeMeshBecomesAnIsosurfaceAndBadVolumesAreRefused) {
   double highest = -1e300;
   for (float v : mesh.FindField("franke")->values) highest = std::max<double>(highest, v);
   v1::JobSpec beyond = spec;
-  beyond.mutable_volume()->set_iso(core::StrCat("0.4,", highest + 0.5));
+  beyond.mutable_volume()->add_iso(highest + 0.5);
   auto empty_level = client_->Submit(beyond, *vertices, {}, cells);
   ASSERT_FALSE(empty_level.ok());
   EXPECT_EQ(empty_level.status().code(), absl::StatusCode::kInvalidArgument);

@@ -5,6 +5,7 @@
 #include <cmath>
 #include <cstdlib>
 
+#include "worker/core/status.h"
 #include "worker/core/strings.h"
 
 namespace lsqsurf::core {
@@ -44,6 +45,37 @@ std::string Unescape(std::string_view text) {
   return out;
 }
 
+// "0.5,0.7": the list as Parse() and Decode() read it back.
+std::string JoinNumbers(const std::vector<double>& values) {
+  std::string out;
+  for (double v : values) StrAppend(&out, out.empty() ? "" : ",", Number(v));
+  return out;
+}
+
+// Numbers separated by commas or spaces. Errors: kInvalidArgument naming the item that is not one.
+absl::StatusOr<std::vector<double>> SplitNumbers(std::string_view name, std::string_view text) {
+  std::vector<double> out;
+  size_t pos = 0;
+  while (pos < text.size()) {
+    if (text[pos] == ',' || text[pos] == ' ') {
+      ++pos;
+      continue;
+    }
+    size_t end = text.find_first_of(", ", pos);
+    if (end == std::string_view::npos) end = text.size();
+    const std::string item(text.substr(pos, end - pos));
+    char* item_end = nullptr;
+    const double v = std::strtod(item.c_str(), &item_end);
+    if (*item_end != '\0') {
+      return absl::InvalidArgumentError(
+          StrCat(name, ": '", item, "' is not a number (give numbers separated by commas, e.g. 0.5,0.7)"));
+    }
+    out.push_back(v);
+    pos = end;
+  }
+  return out;
+}
+
 }  // namespace
 
 const char* ParamTypeName(ParamType type) {
@@ -53,6 +85,7 @@ const char* ParamTypeName(ParamType type) {
     case ParamType::kFlag: return "flag";
     case ParamType::kChoice: return "choice";
     case ParamType::kText: return "text";
+    case ParamType::kRealList: return "real list";
   }
   return "unknown";
 }
@@ -78,11 +111,16 @@ bool ParamInfo::IsSpecial(double value) const {
 std::string ParamInfo::RangeText() const {
   switch (type) {
     case ParamType::kReal:
-    case ParamType::kInteger: {
+    case ParamType::kInteger:
+    case ParamType::kRealList: {
       std::string specials;
       for (const ParamSpecial& s : special) StrAppend(&specials, Number(s.value), " (", s.meaning, "), ");
       if (!specials.empty()) specials.replace(specials.size() - 2, 2, " or ");
-      return StrCat(specials, "[", Number(min_value), ", ", Number(max_value), "]", unit.empty() ? "" : " ", unit);
+      const std::string interval = std::isinf(min_value) && std::isinf(max_value)
+                                       ? std::string("any number")
+                                       : StrCat("[", Number(min_value), ", ", Number(max_value), "]");
+      const std::string values = StrCat(specials, interval, unit.empty() ? "" : " ", unit);
+      return type == ParamType::kRealList ? StrCat("up to ", max_count, " values, each ", values) : values;
     }
     case ParamType::kFlag: return "true or false";
     case ParamType::kChoice: {
@@ -118,6 +156,7 @@ absl::Status CheckValue(const ParamInfo& info, double value) {
       if (value != std::floor(value)) return fail("is not a whole number");
       [[fallthrough]];
     case ParamType::kReal:
+    case ParamType::kRealList:
       if (value < info.min_value || value > info.max_value) return fail("is out of range");
       return absl::OkStatus();
     case ParamType::kFlag:
@@ -129,6 +168,19 @@ absl::Status CheckValue(const ParamInfo& info, double value) {
       }
       return absl::OkStatus();
     case ParamType::kText: return absl::OkStatus();
+  }
+  return absl::OkStatus();
+}
+
+absl::Status CheckList(const ParamInfo& info, const std::vector<double>& values) {
+  if (values.size() > static_cast<size_t>(info.max_count)) {
+    return absl::InvalidArgumentError(
+        StrCat(info.name, " has ", values.size(), " values; it takes at most ", info.max_count));
+  }
+  for (size_t i = 0; i < values.size(); ++i) {
+    if (absl::Status s = CheckValue(info, values[i]); !s.ok()) {
+      return absl::InvalidArgumentError(StrCat("value ", i + 1, " of ", s.message()));
+    }
   }
   return absl::OkStatus();
 }
@@ -148,6 +200,7 @@ absl::Status ParamSet::Set(std::string_view name, double value) {
   const ParamInfo* info = Info(name);
   if (info == nullptr) return UnknownName(name);
   if (info->type == ParamType::kText) return absl::InvalidArgumentError(StrCat(name, " takes text, not a number"));
+  if (info->type == ParamType::kRealList) return SetList(name, {value});
   if (absl::Status s = CheckValue(*info, value); !s.ok()) return s;
   holder_->SetNumber(name, value);
   return absl::OkStatus();
@@ -165,11 +218,27 @@ absl::Status ParamSet::SetText(std::string_view name, std::string value) {
   return absl::OkStatus();
 }
 
+absl::Status ParamSet::SetList(std::string_view name, std::vector<double> values) {
+  const ParamInfo* info = Info(name);
+  if (info == nullptr) return UnknownName(name);
+  if (info->type != ParamType::kRealList) {
+    if (values.size() != 1) return absl::InvalidArgumentError(StrCat(name, " takes one value, not a list"));
+    return Set(name, values.front());
+  }
+  LSQSURF_RETURN_IF_ERROR(CheckList(*info, values));
+  holder_->SetList(name, std::move(values));
+  return absl::OkStatus();
+}
+
 absl::Status ParamSet::Parse(std::string_view name, std::string_view text) {
   const ParamInfo* info = Info(name);
   if (info == nullptr) return UnknownName(name);
   switch (info->type) {
     case ParamType::kText: return SetText(name, std::string(text));
+    case ParamType::kRealList: {
+      LSQSURF_ASSIGN_OR_RETURN(std::vector<double> values, SplitNumbers(name, text));
+      return SetList(name, std::move(values));
+    }
     case ParamType::kChoice:
       if (const ParamChoice* c = info->FindChoice(text)) return Set(name, c->value);
       return absl::InvalidArgumentError(
@@ -200,6 +269,10 @@ std::optional<std::string> ParamSet::GetText(std::string_view name) const {
   return holder_ ? holder_->GetText(name) : std::nullopt;
 }
 
+std::optional<std::vector<double>> ParamSet::GetList(std::string_view name) const {
+  return holder_ ? holder_->GetList(name) : std::nullopt;
+}
+
 absl::Status ParamSet::Validate() const { return holder_ ? holder_->Validate() : absl::OkStatus(); }
 
 std::string ParamSet::Encode() const {
@@ -207,6 +280,8 @@ std::string ParamSet::Encode() const {
   for (const auto& p : Describe()) {
     if (p.type == ParamType::kText) {
       StrAppend(&out, p.name, "=", Escape(GetText(p.name).value_or("")), ";");
+    } else if (p.type == ParamType::kRealList) {
+      StrAppend(&out, p.name, "=", JoinNumbers(GetList(p.name).value_or(std::vector<double>{})), ";");
     } else {
       StrAppend(&out, p.name, "=", Number(Get(p.name).value_or(0)), ";");
     }
@@ -224,6 +299,8 @@ absl::Status ParamSet::Decode(std::string_view text) {
       if (const ParamInfo* info = Info(name)) {
         if (info->type == ParamType::kText) {
           holder_->SetText(name, Unescape(value));
+        } else if (info->type == ParamType::kRealList) {
+          LSQSURF_RETURN_IF_ERROR(Parse(name, value));
         } else {
           double v = 0;
           std::from_chars(value.data(), value.data() + value.size(), v);
@@ -240,8 +317,9 @@ absl::Status ParamSet::Decode(std::string_view text) {
 std::string ParamReferenceMarkdown(const std::vector<ParamInfo>& params) {
   std::string out = "| parameter | type | default | range | unit | meaning |\n|---|---|---|---|---|---|\n";
   for (const auto& p : params) {
-    const std::string def =
-        p.type == ParamType::kText ? StrCat("'", p.default_text, "'") : p.FormatValue(p.default_value);
+    std::string def = p.FormatValue(p.default_value);
+    if (p.type == ParamType::kText) def = StrCat("'", p.default_text, "'");
+    if (p.type == ParamType::kRealList) def = p.default_list.empty() ? "none" : JoinNumbers(p.default_list);
     std::string meaning = p.help;
     if (p.type == ParamType::kChoice) {
       for (const auto& c : p.choices) StrAppend(&meaning, "<br>`", c.name, "`: ", c.help);

@@ -23,15 +23,17 @@
 #include <vector>
 
 #include "absl/status/status.h"
+#include "worker/core/status.h"
 
 namespace lsqsurf::core {
 
 enum class ParamType {
-  kReal,     // A finite number within [min_value, max_value].
-  kInteger,  // A whole number within [min_value, max_value].
-  kFlag,     // 0 or 1 (false / true).
-  kChoice,   // One of `choices`, by name on the wire and in text, by value in the struct.
-  kText,     // A string (e.g. a vertex attribute's name).
+  kReal,      // A finite number within [min_value, max_value].
+  kInteger,   // A whole number within [min_value, max_value].
+  kFlag,      // 0 or 1 (false / true).
+  kChoice,    // One of `choices`, by name on the wire and in text, by value in the struct.
+  kText,      // A string (e.g. a vertex attribute's name).
+  kRealList,  // Up to `max_count` finite numbers, each within [min_value, max_value].
 };
 
 const char* ParamTypeName(ParamType type);
@@ -51,21 +53,24 @@ struct ParamSpecial {
 
 // Everything a user or a tool needs to know about one parameter.
 struct ParamInfo {
-  std::string name;
+  std::string name{};
   ParamType type = ParamType::kReal;
   double default_value = 0;             // Numbers, flags (0/1) and choices (the value).
-  std::string default_text;             // kText only.
-  double min_value = 0, max_value = 0;  // Inclusive; kReal and kInteger only.
-  std::string unit;                     // Empty for dimensionless values.
-  std::string help;                     // Meaning; the range and unit are not repeated in it.
-  std::vector<ParamChoice> choices;     // kChoice only.
-  std::vector<ParamSpecial> special;    // kReal and kInteger: accepted besides [min_value, max_value].
+  std::string default_text{};           // kText only.
+  std::vector<double> default_list{};   // kRealList only.
+  double min_value = 0, max_value = 0;  // Inclusive; kReal, kInteger and each of a kRealList.
+  std::string unit{};                   // Empty for dimensionless values.
+  std::string help{};                   // Meaning; the range and unit are not repeated in it.
+  std::vector<ParamChoice> choices{};   // kChoice only.
+  std::vector<ParamSpecial> special{};  // kReal and kInteger: accepted besides [min_value, max_value].
+  int max_count = 0;                    // kRealList: the most values it takes.
 
   // The choice called `name` / with `value`, or nullptr.
   const ParamChoice* FindChoice(std::string_view choice_name) const;
   const ParamChoice* FindChoice(int value) const;
   bool IsSpecial(double value) const;
-  // "[1e-06, 0.1] share of the diagonal", "0 (chosen) or [0.05, 3]", "one of: markers, gridlines".
+  // "[1e-06, 0.1] share of the diagonal", "0 (chosen) or [0.05, 3]", "one of: markers, gridlines",
+  // "up to 16 values, each any number".
   std::string RangeText() const;
   // The value as a user writes it: a number, true/false, or a choice's name.
   std::string FormatValue(double value) const;
@@ -73,46 +78,76 @@ struct ParamInfo {
 
 // Checks one value against its description; the message names the parameter and its range.
 absl::Status CheckValue(const ParamInfo& info, double value);
+// Checks a kRealList's values: their count and each value.
+absl::Status CheckList(const ParamInfo& info, const std::vector<double>& values);
 
 // The table of a parameter struct P. Fields are added in the order users should read them.
 template <class P>
 class ParamTable {
  public:
   struct Field {
-    ParamInfo info;
-    std::function<double(const P&)> get;            // Not kText.
-    std::function<void(P&, double)> set;            // Not kText; the value is already checked.
-    std::function<std::string(const P&)> get_text;  // kText only.
-    std::function<void(P&, std::string)> set_text;  // kText only.
+    ParamInfo info{};
+    std::function<double(const P&)> get{};                    // kReal, kInteger, kFlag, kChoice.
+    std::function<void(P&, double)> set{};                    // Those; the value is already checked.
+    std::function<std::string(const P&)> get_text{};          // kText only.
+    std::function<void(P&, std::string)> set_text{};          // kText only.
+    std::function<std::vector<double>(const P&)> get_list{};  // kRealList only.
+    std::function<void(P&, std::vector<double>)> set_list{};  // kRealList only; already checked.
   };
   using Rule = std::function<absl::Status(const P&)>;
 
   // A direct member of P (`&P::member`), numeric or bool or enum.
   template <auto Member>
   ParamTable& Real(std::string name, double min_value, double max_value, std::string unit, std::string help) {
-    return Add(Numeric<Member>(
-        {std::move(name), ParamType::kReal, 0, {}, min_value, max_value, std::move(unit), std::move(help), {}, {}}));
+    return Add(Numeric<Member>({.name = std::move(name),
+                                .type = ParamType::kReal,
+                                .min_value = min_value,
+                                .max_value = max_value,
+                                .unit = std::move(unit),
+                                .help = std::move(help)}));
   }
   template <auto Member>
   ParamTable& Integer(std::string name, double min_value, double max_value, std::string unit, std::string help) {
-    return Add(Numeric<Member>(
-        {std::move(name), ParamType::kInteger, 0, {}, min_value, max_value, std::move(unit), std::move(help), {}, {}}));
+    return Add(Numeric<Member>({.name = std::move(name),
+                                .type = ParamType::kInteger,
+                                .min_value = min_value,
+                                .max_value = max_value,
+                                .unit = std::move(unit),
+                                .help = std::move(help)}));
   }
   template <auto Member>
   ParamTable& Flag(std::string name, std::string help) {
-    return Add(Numeric<Member>({std::move(name), ParamType::kFlag, 0, {}, 0, 1, {}, std::move(help), {}, {}}));
+    return Add(
+        Numeric<Member>({.name = std::move(name), .type = ParamType::kFlag, .max_value = 1, .help = std::move(help)}));
   }
   template <auto Member>
   ParamTable& Choice(std::string name, std::vector<ParamChoice> choices, std::string help) {
     return Add(Numeric<Member>(
-        {std::move(name), ParamType::kChoice, 0, {}, 0, 0, {}, std::move(help), std::move(choices), {}}));
+        {.name = std::move(name), .type = ParamType::kChoice, .help = std::move(help), .choices = std::move(choices)}));
   }
   template <auto Member>
   ParamTable& Text(std::string name, std::string help) {
     Field f;
-    f.info = {std::move(name), ParamType::kText, 0, {}, 0, 0, {}, std::move(help), {}, {}};
+    f.info = {.name = std::move(name), .type = ParamType::kText, .help = std::move(help)};
     f.get_text = [](const P& p) { return std::string(p.*Member); };
     f.set_text = [](P& p, std::string v) { p.*Member = std::move(v); };
+    return Add(std::move(f));
+  }
+  // A `std::vector<double>` member: up to `max_count` values, each within [min_value, max_value]
+  // (infinite bounds: any finite number).
+  template <auto Member>
+  ParamTable& RealList(std::string name, int max_count, double min_value, double max_value, std::string unit,
+                       std::string help) {
+    Field f;
+    f.info = {.name = std::move(name),
+              .type = ParamType::kRealList,
+              .min_value = min_value,
+              .max_value = max_value,
+              .unit = std::move(unit),
+              .help = std::move(help),
+              .max_count = max_count};
+    f.get_list = [](const P& p) { return p.*Member; };
+    f.set_list = [](P& p, std::vector<double> v) { p.*Member = std::move(v); };
     return Add(std::move(f));
   }
   // Accepts `value` for the field added last, besides its range, meaning `meaning` (e.g. 0,
@@ -124,7 +159,7 @@ class ParamTable {
   // A numeric value reached through accessors (a nested member, or a value stored in another
   // form, such as a shading enum shown as a flag).
   ParamTable& Custom(ParamInfo info, std::function<double(const P&)> get, std::function<void(P&, double)> set) {
-    return Add({std::move(info), std::move(get), std::move(set), {}, {}});
+    return Add({.info = std::move(info), .get = std::move(get), .set = std::move(set)});
   }
   // Every field and rule of `inner`, reached through `member`, except the names in `skip`.
   template <class Inner>
@@ -137,6 +172,10 @@ class ParamTable {
       if (f.set) g.set = [member, set = f.set](P& p, double v) { set(p.*member, v); };
       if (f.get_text) g.get_text = [member, get = f.get_text](const P& p) { return get(p.*member); };
       if (f.set_text) g.set_text = [member, set = f.set_text](P& p, std::string v) { set(p.*member, std::move(v)); };
+      if (f.get_list) g.get_list = [member, get = f.get_list](const P& p) { return get(p.*member); };
+      if (f.set_list) {
+        g.set_list = [member, set = f.set_list](P& p, std::vector<double> v) { set(p.*member, std::move(v)); };
+      }
       Add(std::move(g));
     }
     for (const auto& rule : inner.rules()) {
@@ -167,6 +206,7 @@ class ParamTable {
       ParamInfo info = f.info;
       if (f.get) info.default_value = f.get(defaults);
       if (f.get_text) info.default_text = f.get_text(defaults);
+      if (f.get_list) info.default_list = f.get_list(defaults);
       out.push_back(std::move(info));
     }
     return out;
@@ -175,8 +215,8 @@ class ParamTable {
   // Every field in range, then every rule. Errors: kInvalidArgument naming the field and range.
   absl::Status Validate(const P& p) const {
     for (const auto& f : fields_) {
-      if (!f.get) continue;
-      if (absl::Status s = CheckValue(f.info, f.get(p)); !s.ok()) return s;
+      if (f.get) LSQSURF_RETURN_IF_ERROR(CheckValue(f.info, f.get(p)));
+      if (f.get_list) LSQSURF_RETURN_IF_ERROR(CheckList(f.info, f.get_list(p)));
     }
     for (const auto& rule : rules_) {
       if (absl::Status s = rule(p); !s.ok()) return s;
@@ -257,11 +297,14 @@ class ParamSet {
   // name (listing the valid ones), a value out of range, a text value for a number.
   absl::Status Set(std::string_view name, double value);
   absl::Status SetText(std::string_view name, std::string value);
-  // Parses `text` as the parameter's type: a number, true/false/0/1, or a choice's name.
+  absl::Status SetList(std::string_view name, std::vector<double> values);
+  // Parses `text` as the parameter's type: a number, true/false/0/1, a choice's name, or numbers
+  // separated by commas.
   absl::Status Parse(std::string_view name, std::string_view text);
   // The current value (choices by value); nullopt for an unknown name or a text field.
   std::optional<double> Get(std::string_view name) const;
   std::optional<std::string> GetText(std::string_view name) const;
+  std::optional<std::vector<double>> GetList(std::string_view name) const;
 
   // Ranges of every field, then the cross-field rules.
   absl::Status Validate() const;
@@ -294,8 +337,10 @@ class ParamSet {
     virtual const ParamInfo* Info(std::string_view name) const = 0;
     virtual void SetNumber(std::string_view name, double value) = 0;
     virtual void SetText(std::string_view name, std::string value) = 0;
+    virtual void SetList(std::string_view name, std::vector<double> values) = 0;
     virtual std::optional<double> GetNumber(std::string_view name) const = 0;
     virtual std::optional<std::string> GetText(std::string_view name) const = 0;
+    virtual std::optional<std::vector<double>> GetList(std::string_view name) const = 0;
     virtual absl::Status Validate() const = 0;
   };
   template <class P>
@@ -314,6 +359,9 @@ class ParamSet {
     void SetText(std::string_view name, std::string v) override {
       if (const auto* f = table.Find(name); f && f->set_text) f->set_text(value, std::move(v));
     }
+    void SetList(std::string_view name, std::vector<double> v) override {
+      if (const auto* f = table.Find(name); f && f->set_list) f->set_list(value, std::move(v));
+    }
     std::optional<double> GetNumber(std::string_view name) const override {
       const auto* f = table.Find(name);
       if (f == nullptr || !f->get) return std::nullopt;
@@ -323,6 +371,11 @@ class ParamSet {
       const auto* f = table.Find(name);
       if (f == nullptr || !f->get_text) return std::nullopt;
       return f->get_text(value);
+    }
+    std::optional<std::vector<double>> GetList(std::string_view name) const override {
+      const auto* f = table.Find(name);
+      if (f == nullptr || !f->get_list) return std::nullopt;
+      return f->get_list(value);
     }
     absl::Status Validate() const override { return table.Validate(value); }
     const ParamTable<P>& table;

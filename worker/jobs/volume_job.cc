@@ -1,6 +1,5 @@
 #include "worker/jobs/volume_job.h"
 
-#include <charconv>
 #include <cmath>
 #include <limits>
 #include <random>
@@ -16,19 +15,24 @@ namespace lsqsurf::jobs {
 namespace {
 
 constexpr char kMeshArtifact[] = "mesh.drc";
+// Isosurfaces one job extracts at most: each is a full extraction.
+constexpr int kMaxIsoValues = 16;
+constexpr double kAnyNumber = std::numeric_limits<double>::infinity();
 
 const core::ParamTable<VolumeJobParams>& VolumeJobParamTable() {
   static const auto* table = [] {
     auto* t = new core::ParamTable<VolumeJobParams>();
     t->Text<&VolumeJobParams::field>("field", "the scalar field to reconstruct (required)")
-        .Text<&VolumeJobParams::iso>("iso", "iso-values of the isosurface, separated by commas; empty = none")
+        .RealList<&VolumeJobParams::iso>("iso", kMaxIsoValues, -kAnyNumber, kAnyNumber, "",
+                                         "iso-values of the isosurfaces, each within the values the field takes "
+                                         "at the vertices; none = no isosurface")
         .Text<&VolumeJobParams::color_by>("color_by", "a second field sampled on the isosurface, to colour by")
         .Real<&VolumeJobParams::resolution>("resolution", 0.05, 2, "",
                                             "finest extraction cube edge, share of the median vertex spacing")
         .Include(&VolumeJobParams::fit, volume::VolumeFieldParamTable())
         .AddRule([](const VolumeJobParams& p) {
           if (p.field.empty()) return absl::InvalidArgumentError("name the scalar field to reconstruct (field=NAME)");
-          return ParseIsoValues(p.iso).status();
+          return absl::OkStatus();
         });
     return t;
   }();
@@ -62,7 +66,7 @@ absl::StatusOr<volume::VolumeMesh> DecodeVolume(const Uploads& uploads, int64_t 
 // Every iso-value within the values the field takes at the vertices: one outside would extract
 // nothing, so it is refused now rather than found empty after the fit.
 absl::Status CheckIsoValues(const VolumeJobParams& p, const volume::VolumeMesh& mesh) {
-  LSQSURF_ASSIGN_OR_RETURN(const std::vector<double> levels, ParseIsoValues(p.iso));
+  const std::vector<double>& levels = p.iso;
   const volume::VertexField* field = mesh.FindField(p.field);
   if (levels.empty() || field == nullptr) return absl::OkStatus();
   double lo = std::numeric_limits<double>::infinity(), hi = -lo;
@@ -132,34 +136,13 @@ class VolumeKind final : public TypedJobKind<VolumeJobParams, volume::VolumeMesh
 
 }  // namespace
 
-absl::StatusOr<std::vector<double>> ParseIsoValues(std::string_view text) {
-  std::vector<double> out;
-  size_t pos = 0;
-  while (pos < text.size()) {
-    while (pos < text.size() && (text[pos] == ',' || text[pos] == ' ')) ++pos;
-    size_t end = pos;
-    while (end < text.size() && text[end] != ',' && text[end] != ' ') ++end;
-    if (end == pos) break;
-    double v = 0;
-    auto [p, ec] = std::from_chars(text.data() + pos, text.data() + end, v);
-    if (ec != std::errc() || p != text.data() + end || !std::isfinite(v)) {
-      return absl::InvalidArgumentError(
-          core::StrCat("iso: '", text.substr(pos, end - pos), "' is not a number (give values like 0.5,0.7)"));
-    }
-    out.push_back(v);
-    pos = end;
-  }
-  if (out.size() > 16) return absl::InvalidArgumentError("iso: at most 16 iso-values per job");
-  return out;
-}
-
 absl::StatusOr<VolumeResult> ReconstructVolume(const core::ParamSet& params, const volume::VolumeMesh& mesh,
                                                core::JobContext& ctx, int64_t memory_bytes) {
   const auto* p = params.As<VolumeJobParams>();
   if (p == nullptr) return absl::InternalError("not volume parameters");
   std::vector<std::string> names = {p->field};
   if (!p->color_by.empty() && p->color_by != p->field) names.push_back(p->color_by);
-  LSQSURF_ASSIGN_OR_RETURN(std::vector<double> levels, ParseIsoValues(p->iso));
+  const std::vector<double>& levels = p->iso;
   core::SubContext fit_ctx(ctx, "reconstructing the field", 0.0, levels.empty() ? 1.0 : 0.6);
   LSQSURF_ASSIGN_OR_RETURN(std::unique_ptr<volume::VolumeField> field,
                            volume::BuildVolumeField(mesh, names, p->fit, fit_ctx));

@@ -22,16 +22,13 @@ namespace lsqsurf::jobs {
 
 struct VolumeJobParams {
   std::string field;        // The scalar field to reconstruct; required.
-  std::string iso;          // Iso-values, separated by commas or spaces; empty = no isosurface.
+  std::vector<double> iso;  // Iso-values; empty = no isosurface.
   std::string color_by;     // A second scalar field sampled on the isosurface; empty = none.
   double resolution = 0.5;  // Finest extraction cube edge, share of the median vertex spacing.
   volume::VolumeFieldParams fit;
 };
 
 const JobKind& VolumeJobKind();
-
-// The iso-values of a VolumeJobParams::iso text. Errors: kInvalidArgument naming the bad entry.
-absl::StatusOr<std::vector<double>> ParseIsoValues(std::string_view text);
 
 struct VolumeResult {
   core::TriangleMesh mesh;  // Empty when no iso-value was asked for.

@@ -80,16 +80,12 @@ const core::ParamTable<PuEdit>& PuEditParamTable() {
     for (int axis = 0; axis < 3; ++axis) {
       const std::string name = std::string("center_") + "xyz"[axis];
       t->Custom(
-          {name,
-           core::ParamType::kReal,
-           0,
-           {},
-           -1e12,
-           1e12,
-           "model units",
-           std::string(1, "xyz"[axis]) + " of the ball's centre",
-           {},
-           {}},
+          {.name = name,
+           .type = core::ParamType::kReal,
+           .min_value = -1e12,
+           .max_value = 1e12,
+           .unit = "model units",
+           .help = std::string(1, "xyz"[axis]) + " of the ball's centre"},
           [axis](const PuEdit& e) { return e.centre[axis]; }, [axis](PuEdit& e, double v) { e.centre[axis] = v; });
     }
     t->Real<&PuEdit::radius>("radius", 0, 1e12, "model units", "the ball's radius (required, more than 0)")

@@ -13,7 +13,12 @@ namespace {
 
 // Camera fields live one level down; the table reaches them through these accessors.
 core::ParamInfo CameraReal(std::string name, double lo, double hi, std::string help) {
-  return {std::move(name), core::ParamType::kReal, 0, {}, lo, hi, "degrees", std::move(help), {}, {}};
+  return {.name = std::move(name),
+          .type = core::ParamType::kReal,
+          .min_value = lo,
+          .max_value = hi,
+          .unit = "degrees",
+          .help = std::move(help)};
 }
 
 }  // namespace
@@ -32,16 +37,11 @@ const core::ParamTable<RenderParams>& ViewParamTable() {
             [](const RenderParams& p) { return p.camera.elevation_deg; },
             [](RenderParams& p, double v) { p.camera.elevation_deg = v; })
         .Custom(
-            {"distance",
-             core::ParamType::kReal,
-             0,
-             {},
-             0,
-             1e30,
-             "model units",
-             "camera distance from the centre of the box; 0 frames the whole model",
-             {},
-             {}},
+            {.name = "distance",
+             .type = core::ParamType::kReal,
+             .max_value = 1e30,
+             .unit = "model units",
+             .help = "camera distance from the centre of the box; 0 frames the whole model"},
             [](const RenderParams& p) { return p.camera.distance; },
             [](RenderParams& p, double v) { p.camera.distance = v; })
         .Custom(
@@ -49,18 +49,12 @@ const core::ParamTable<RenderParams>& ViewParamTable() {
             [](const RenderParams& p) { return p.camera.fov_deg; },
             [](RenderParams& p, double v) { p.camera.fov_deg = v; })
         .Custom(
-            {"up_axis",
-             core::ParamType::kChoice,
-             0,
-             {},
-             0,
-             0,
-             {},
-             "the axis that points up in the picture",
-             {{"x", static_cast<int>(UpAxis::kX), "azimuth turns from +y towards +z"},
-              {"y", static_cast<int>(UpAxis::kY), "azimuth turns from +z towards +x (most scans)"},
-              {"z", static_cast<int>(UpAxis::kZ), "azimuth turns from +x towards +y"}},
-             {}},
+            {.name = "up_axis",
+             .type = core::ParamType::kChoice,
+             .help = "the axis that points up in the picture",
+             .choices = {{"x", static_cast<int>(UpAxis::kX), "azimuth turns from +y towards +z"},
+                         {"y", static_cast<int>(UpAxis::kY), "azimuth turns from +z towards +x (most scans)"},
+                         {"z", static_cast<int>(UpAxis::kZ), "azimuth turns from +x towards +y"}}},
             [](const RenderParams& p) { return static_cast<double>(static_cast<int>(p.camera.up)); },
             [](RenderParams& p, double v) { p.camera.up = static_cast<UpAxis>(static_cast<int>(v)); })
         .Text<&RenderParams::color_attribute>("color",
@@ -69,7 +63,7 @@ const core::ParamTable<RenderParams>& ViewParamTable() {
                                         "colour map bounds; the data's range unless color_min < color_max")
         .Real<&RenderParams::color_max>("color_max", -1e300, 1e300, "", "see color_min")
         .Custom(
-            {"flat_shading", core::ParamType::kFlag, 0, {}, 0, 1, {}, "one normal per triangle", {}, {}},
+            {.name = "flat_shading", .type = core::ParamType::kFlag, .max_value = 1, .help = "one normal per triangle"},
             [](const RenderParams& p) { return p.shading == Shading::kFlat ? 1.0 : 0.0; },
             [](RenderParams& p, double v) { p.shading = v != 0 ? Shading::kFlat : Shading::kSmooth; })
         .Flag<&RenderParams::wireframe>("wireframe", "dark triangle edges over the faces")

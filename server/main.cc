@@ -17,7 +17,9 @@
 #include "worker/core/strings.h"
 #include "worker/jobs/job_service.h"
 #include "worker/jobs/method_registry.h"
+#if LSQSURF_WITH_POSTGRESQL
 #include "worker/jobs/store/postgres_store.h"
+#endif
 
 namespace {
 
@@ -38,11 +40,18 @@ absl::Status OpenStores(const std::string& store, const std::string& blob_dir, i
   if (store.rfind("postgresql://", 0) != 0 && store.rfind("postgres://", 0) != 0) {
     return absl::InvalidArgumentError("--store takes 'sqlite' or a postgresql://user@host:port/database URL");
   }
+#if LSQSURF_WITH_POSTGRESQL
   auto shared = jobs::PostgresJobStore::Open(store, connections);
   if (!shared.ok()) return shared.status();
   if (options.blobs == nullptr) options.blobs = std::make_shared<jobs::PostgresBlobStore>((*shared)->pool());
   options.store = *std::move(shared);
   return absl::OkStatus();
+#else
+  (void)connections;
+  return absl::FailedPreconditionError(
+      "this lsqsurfd was built without PostgreSQL (LSQSURF_WITH_POSTGRESQL=OFF): use --store sqlite, or a build "
+      "with it");
+#endif
 }
 
 // The command line: the job service's options, and the server's own.

@@ -77,10 +77,10 @@ TEST(VtkGrid, RefusesMalformedFilesWithTheLine) {
   expect_error(ascii.substr(0, ascii.size() - 4), "truncated");
   std::string unstructured = ascii;
   unstructured.replace(unstructured.find("STRUCTURED_POINTS"), 17, "UNSTRUCTURED_GRID");
-  expect_error(unstructured, "line 4");
+  expect_error(unstructured, "STRUCTURED_POINTS");
   std::string count = ascii;
   count.replace(count.find("POINT_DATA 4"), 12, "POINT_DATA 5");
-  expect_error(count, "POINT_DATA must equal");
+  expect_error(count, "must equal nx·ny·nz = 4");
   std::string nan = ascii;
   nan.replace(nan.find("7 8 9"), 5, "7 nan 9");
   expect_error(nan, "not");
@@ -95,6 +95,23 @@ TEST(VtkGrid, RefusesMalformedFilesWithTheLine) {
       "POINT_DATA 2\nVECTORS v double\n" +
       std::string(40, '\0');
   expect_error(binary, "truncated");
+  std::string scalars_only = ascii;
+  scalars_only.replace(scalars_only.find("VECTORS v float"), 15, "SCALARS s float 3\nLOOKUP_TABLE default");
+  expect_error(scalars_only, "no VECTORS");
+}
+
+// What the volume reader takes, a velocity grid takes too: scalars before the vectors, cell
+// data, a VTK 5 header; the first VECTORS array is the field.
+TEST(VtkGrid, ReadsWhatTheVolumeReaderReads) {
+  const std::string file =
+      "# vtk DataFile Version 5.1\nexported\nASCII\nDATASET STRUCTURED_POINTS\nORIGIN 0 0 0\n"
+      "DIMENSIONS 2 1 1\nSPACING 1 1 1\nCELL_DATA 1\nSCALARS c int 1\nLOOKUP_TABLE default\n7\n"
+      "POINT_DATA 2\nSCALARS p double 1\nLOOKUP_TABLE default\n0.5 0.25\nVECTORS u double\n"
+      "0.1 0.2 0.3 -1 -2 -3\nVECTORS w float\n9 9 9 9 9 9\n";
+  auto grid = ParseVtkVectorGrid(file, "exported.vtk");
+  ASSERT_TRUE(grid.ok()) << grid.status();
+  EXPECT_EQ(grid->values[0], Vec3d(0.1, 0.2, 0.3));  // Doubles stay doubles.
+  EXPECT_EQ(grid->values[1], Vec3d(-1, -2, -3));
 }
 
 }  // namespace

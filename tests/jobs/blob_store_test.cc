@@ -6,9 +6,13 @@
 
 #include <filesystem>
 
+#if LSQSURF_WITH_POSTGRESQL
 #include "tests/postgres_cluster.h"
+#endif
 #include "tests/test_dir.h"
+#if LSQSURF_WITH_POSTGRESQL
 #include "worker/jobs/store/postgres_store.h"
+#endif
 
 namespace lsqsurf::jobs {
 namespace {
@@ -23,12 +27,16 @@ class BlobStoreContract : public ::testing::TestWithParam<std::string> {
       blobs_ = *std::move(blobs);
       return;
     }
+#if LSQSURF_WITH_POSTGRESQL
     std::string why_not;
     testing::PostgresCluster* cluster = testing::SharedPostgresCluster(&why_not);
     if (cluster == nullptr) GTEST_SKIP() << why_not;
     auto store = PostgresJobStore::Open(cluster->NewDatabase());  // Makes the tables.
     ASSERT_TRUE(store.ok()) << store.status();
     blobs_ = std::make_unique<PostgresBlobStore>((*store)->pool());
+#else
+    GTEST_SKIP() << "built without PostgreSQL (LSQSURF_WITH_POSTGRESQL=OFF)";
+#endif
   }
   void TearDown() override {
     if (!root_.empty()) std::filesystem::remove_all(root_);
@@ -36,6 +44,13 @@ class BlobStoreContract : public ::testing::TestWithParam<std::string> {
   std::filesystem::path root_;
   std::unique_ptr<BlobStore> blobs_;
 };
+
+// Sizes around the PostgreSQL store's chunk (files have none: any size tests them).
+#if LSQSURF_WITH_POSTGRESQL
+constexpr size_t kStoreChunk = PostgresBlobStore::kChunkBytes;
+#else
+constexpr size_t kStoreChunk = size_t{1} << 20;
+#endif
 
 std::string BinaryBytes(size_t n) {
   std::string bytes;
@@ -74,7 +89,7 @@ TEST_P(BlobStoreContract, StoresStreamsReplacesAndRemoves) {
 
 TEST_P(BlobStoreContract, LargeBlobsComeBackWhole) {
   // Several of the database's 1 MiB chunks, the last one partial, and an empty blob.
-  const std::string bytes = BinaryBytes(PostgresBlobStore::kChunkBytes * 5 / 2);
+  const std::string bytes = BinaryBytes(kStoreChunk * 5 / 2);
   ASSERT_TRUE(blobs_->Put("job3", "input.drc", bytes).ok());
   auto back = blobs_->Read("job3", "input.drc");
   ASSERT_TRUE(back.ok()) << back.status();
@@ -84,17 +99,17 @@ TEST_P(BlobStoreContract, LargeBlobsComeBackWhole) {
 }
 
 TEST_P(BlobStoreContract, AReaderOfAReplacedBlobFailsRatherThanMixTwoVersions) {
-  const std::string bytes = BinaryBytes(PostgresBlobStore::kChunkBytes * 2);
+  const std::string bytes = BinaryBytes(kStoreChunk * 2);
   ASSERT_TRUE(blobs_->Put("job4", "mesh.drc", bytes).ok());
   auto reader = blobs_->Open("job4", "mesh.drc");
   ASSERT_TRUE(reader.ok());
-  auto first = (*reader)->Next(PostgresBlobStore::kChunkBytes);
+  auto first = (*reader)->Next(kStoreChunk);
   ASSERT_TRUE(first.ok());
   ASSERT_TRUE(blobs_->Put("job4", "mesh.drc", BinaryBytes(10)).ok());
   std::string rest;
   absl::Status status;
   for (;;) {
-    auto chunk = (*reader)->Next(PostgresBlobStore::kChunkBytes);
+    auto chunk = (*reader)->Next(kStoreChunk);
     if (!chunk.ok()) {
       status = chunk.status();
       break;

@@ -14,14 +14,18 @@
 
 #include "absl/cleanup/cleanup.h"
 #include "tests/latch_kind.h"
+#if LSQSURF_WITH_POSTGRESQL
 #include "tests/postgres_cluster.h"
+#endif
 #include "tests/test_dir.h"
 #include "tests/test_shapes.h"
 #include "worker/core/mesh_metrics.h"
 #include "worker/io/draco_codec.h"
 #include "worker/io/files.h"
 #include "worker/jobs/method_registry.h"
+#if LSQSURF_WITH_POSTGRESQL
 #include "worker/jobs/store/postgres_store.h"
+#endif
 #include "worker/jobs/surface_job.h"
 #include "worker/jobs/track_job.h"
 
@@ -782,6 +786,7 @@ TEST_F(JobServiceTest, ShutdownRequeuesTheRunningJobWithoutHoldingItAgainstIt) {
   EXPECT_EQ(done.attempts, 2);
 }
 
+#if LSQSURF_WITH_POSTGRESQL  // Servers sharing a store need PostgreSQL.
 // A store that passes every call to another; the stores below change a few of them.
 class ForwardingStore : public JobStore {
  public:
@@ -1054,6 +1059,8 @@ TEST_F(SharedJobServiceTest, AServiceSaysWhenItsStoreStopsAnswering) {
   faulty->unreachable = false;
   EXPECT_TRUE(wait_for(true));
 }
+
+#endif  // LSQSURF_WITH_POSTGRESQL
 
 }  // namespace
 }  // namespace lsqsurf::jobs

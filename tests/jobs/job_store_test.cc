@@ -10,11 +10,15 @@
 #include <set>
 #include <thread>
 
+#if LSQSURF_WITH_POSTGRESQL
 #include "tests/postgres_cluster.h"
+#endif
 #include "tests/test_dir.h"
 #include "worker/core/strings.h"
 #include "worker/jobs/method_registry.h"
+#if LSQSURF_WITH_POSTGRESQL
 #include "worker/jobs/store/postgres_store.h"
+#endif
 
 namespace lsqsurf::jobs {
 namespace {
@@ -44,6 +48,7 @@ class JobStoreContract : public ::testing::TestWithParam<std::string> {
       second_ = first_;  // One server: both names share the one store.
       return;
     }
+#if LSQSURF_WITH_POSTGRESQL
     std::string why_not;
     testing::PostgresCluster* cluster = testing::SharedPostgresCluster(&why_not);
     if (cluster == nullptr) GTEST_SKIP() << why_not;
@@ -55,6 +60,9 @@ class JobStoreContract : public ::testing::TestWithParam<std::string> {
     ASSERT_TRUE(b.ok()) << b.status();
     first_ = *std::move(a);
     second_ = *std::move(b);
+#else
+    GTEST_SKIP() << "built without PostgreSQL (LSQSURF_WITH_POSTGRESQL=OFF)";
+#endif
   }
   void TearDown() override {
     first_.reset();
@@ -297,6 +305,7 @@ TEST_P(JobStoreContract, AnotherServersWriteWakesAWaiter) {
   EXPECT_LT(waited.get(), std::chrono::seconds(30));
 }
 
+#if LSQSURF_WITH_POSTGRESQL
 TEST(PostgresUrl, PasswordsNeverReachMessages) {
   EXPECT_EQ(pg::Redacted("postgresql://lsqsurf:s3cret@db:5432/jobs"), "postgresql://lsqsurf:***@db:5432/jobs");
   EXPECT_EQ(pg::Redacted("postgresql://lsqsurf@db/jobs"), "postgresql://lsqsurf@db/jobs");
@@ -307,6 +316,7 @@ TEST(PostgresUrl, PasswordsNeverReachMessages) {
   EXPECT_EQ(refused.status().code(), absl::StatusCode::kUnavailable);
   EXPECT_EQ(std::string(refused.status().message()).find("s3cret"), std::string::npos) << refused.status();
 }
+#endif
 
 INSTANTIATE_TEST_SUITE_P(Stores, JobStoreContract, ::testing::Values("sqlite", "postgresql"),
                          [](const ::testing::TestParamInfo<std::string>& param) { return param.param; });

@@ -3,6 +3,7 @@
 #include <cctype>
 #include <charconv>
 #include <cmath>
+#include <cstdio>
 #include <cstring>
 #include <limits>
 #include <span>
@@ -11,6 +12,7 @@
 #include "worker/core/strings.h"
 #include "worker/io/volume_cells.h"
 #include "worker/io/volume_formats.h"
+#include "worker/io/vtk_grid.h"
 
 namespace lsqsurf::io {
 namespace {
@@ -128,6 +130,7 @@ class VtkCursor {
     out.resize(static_cast<size_t>(count));
     if (!binary_) {
       for (int64_t i = 0; i < count; ++i) {
+        if (AtEnd()) return Error(core::StrCat(what, ": the data is truncated: ", i, " of ", count, " values"));
         LSQSURF_ASSIGN_OR_RETURN(std::string_view tok, Token(what));
         LSQSURF_ASSIGN_OR_RETURN(out[static_cast<size_t>(i)], ParseNumber(tok, what));
       }
@@ -183,6 +186,11 @@ struct VtkContent {
   bool cells_with_offsets = false;  // Version 5 layout: OFFSETS + CONNECTIVITY.
   int64_t point_count = -1;         // From POINT_DATA.
   std::vector<VertexField> fields;
+  // Velocity grids: the first VECTORS array of the point data, kept in double precision, and
+  // the most points the data may have (a bound on what is read before the grid is checked).
+  bool keep_vectors = false;
+  std::vector<double> vectors;
+  int64_t max_points = kMaxCount;
 };
 
 absl::Status ReadPointArray(VtkCursor& c, VtkContent& v, std::string name, std::string_view type, int components,
@@ -218,6 +226,9 @@ absl::Status ReadAttribute(VtkCursor& c, VtkContent& v, std::string_view key, bo
   if (key == "VECTORS" || key == "NORMALS" || key == "TENSORS") {
     LSQSURF_ASSIGN_OR_RETURN(std::string_view name, c.Token("the array name"));
     LSQSURF_ASSIGN_OR_RETURN(std::string_view type, c.Token("the data type"));
+    if (key == "VECTORS" && keep && v.keep_vectors && v.vectors.empty()) {
+      return c.Values(type, std::max<int64_t>(0, v.point_count) * 3, core::StrCat("VECTORS ", name), v.vectors);
+    }
     return ReadPointArray(c, v, std::string(name), type, key == "TENSORS" ? 9 : 3, keep);
   }
   if (key == "TEXTURE_COORDINATES") {
@@ -306,6 +317,20 @@ absl::Status ReadSections(VtkCursor& c, VtkContent& v, bool version5) {
     } else if (key == "POINT_DATA" || key == "CELL_DATA") {
       LSQSURF_ASSIGN_OR_RETURN(int64_t n, c.Count("the count"));
       in_cell_data = key == "CELL_DATA";
+      // In double: three dimensions of up to 2^31 overflow 64 bits.
+      const double grid_points = static_cast<double>(v.dimensions[0]) * static_cast<double>(v.dimensions[1]) *
+                                 static_cast<double>(v.dimensions[2]);
+      if (!in_cell_data && grid_points > static_cast<double>(v.max_points)) {
+        return c.Error(core::StrCat("the grid has more than ", v.max_points, " points (DIMENSIONS ", v.dimensions[0],
+                                    " ", v.dimensions[1], " ", v.dimensions[2], "); at most that many are accepted"));
+      }
+      if (!in_cell_data && v.dataset != "UNSTRUCTURED_GRID" && grid_points > 0 &&
+          static_cast<double>(n) != grid_points) {
+        return c.Error(core::StrCat("POINT_DATA ", n, ": it must equal nx·ny·nz = ", grid_points));
+      }
+      if (!in_cell_data && n > v.max_points) {
+        return c.Error(core::StrCat("POINT_DATA ", n, " is more than the ", v.max_points, " points accepted"));
+      }
       if (!in_cell_data) v.point_count = n;
       if (in_cell_data) v.point_count = -n - 1;  // Arrays of n tuples, skipped.
     } else if (key == "METADATA") {
@@ -416,10 +441,8 @@ absl::StatusOr<VolumeMesh> BuildMesh(VtkCursor& c, VtkContent& v) {
   return mesh;
 }
 
-}  // namespace
-
-absl::StatusOr<VolumeMesh> ParseLegacyVtk(std::string_view bytes, std::string_view name) {
-  VtkCursor c(bytes, name);
+// The header up to the dataset's type (in `v`); whether the file is of version 5.
+absl::StatusOr<bool> ReadHeader(VtkCursor& c, VtkContent& v) {
   const std::string_view magic = c.Line();
   if (magic.rfind("# vtk DataFile Version", 0) != 0) {
     return c.Error("not a legacy VTK file (the first line must be '# vtk DataFile Version x.y')");
@@ -434,9 +457,17 @@ absl::StatusOr<VolumeMesh> ParseLegacyVtk(std::string_view bytes, std::string_vi
   c.set_binary(format == "BINARY");
   LSQSURF_ASSIGN_OR_RETURN(std::string_view dataset_key, c.Token("DATASET"));
   if (dataset_key != "DATASET") return c.Error(core::StrCat("expected DATASET, found '", dataset_key, "'"));
-  VtkContent v;
   LSQSURF_ASSIGN_OR_RETURN(std::string_view dataset, c.Token("the dataset type"));
   v.dataset = std::string(dataset);
+  return version5;
+}
+
+}  // namespace
+
+absl::StatusOr<VolumeMesh> ParseLegacyVtk(std::string_view bytes, std::string_view name) {
+  VtkCursor c(bytes, name);
+  VtkContent v;
+  LSQSURF_ASSIGN_OR_RETURN(const bool version5, ReadHeader(c, v));
   if (v.dataset != "UNSTRUCTURED_GRID" && v.dataset != "STRUCTURED_GRID" && v.dataset != "STRUCTURED_POINTS" &&
       v.dataset != "RECTILINEAR_GRID") {
     return c.Error(core::StrCat("dataset ", v.dataset,
@@ -449,6 +480,44 @@ absl::StatusOr<VolumeMesh> ParseLegacyVtk(std::string_view bytes, std::string_vi
     return c.Error(std::string(s.message()));
   }
   return mesh;
+}
+
+absl::StatusOr<VectorGrid> ParseVtkVectorGrid(std::string_view bytes, std::string_view name) {
+  VtkCursor c(bytes, name);
+  VtkContent v;
+  v.keep_vectors = true;
+  v.max_points = kMaxVectorGridNodes;
+  LSQSURF_ASSIGN_OR_RETURN(const bool version5, ReadHeader(c, v));
+  if (v.dataset != "STRUCTURED_POINTS") {
+    return c.Error(core::StrCat("a velocity grid is DATASET STRUCTURED_POINTS (a regular grid), not ", v.dataset));
+  }
+  LSQSURF_RETURN_IF_ERROR(ReadSections(c, v, version5));
+  // The product is bounded factor by factor: three large dimensions overflow even 64 bits.
+  int64_t nodes = 1;
+  for (int a = 0; a < 3; ++a) {
+    if (v.dimensions[a] < 1) return c.Error("DIMENSIONS must be given and positive");
+    nodes *= v.dimensions[a];
+    if (nodes > kMaxVectorGridNodes) {
+      return c.Error(core::StrCat("the grid has more than ", kMaxVectorGridNodes, " nodes (DIMENSIONS ",
+                                  v.dimensions[0], " ", v.dimensions[1], " ", v.dimensions[2],
+                                  "); at most that many are accepted"));
+    }
+  }
+  if (v.point_count != nodes) return c.Error(core::StrCat("POINT_DATA must equal nx·ny·nz = ", nodes));
+  if (!v.origin.allFinite() || !v.spacing.allFinite() || !(v.spacing.minCoeff() > 0)) {
+    return c.Error("ORIGIN must be finite and SPACING positive");
+  }
+  if (v.vectors.empty()) return c.Error("the point data holds no VECTORS array");
+  VectorGrid grid;
+  for (int a = 0; a < 3; ++a) grid.dims[a] = static_cast<int>(v.dimensions[a]);
+  grid.origin = v.origin;
+  grid.spacing = v.spacing;
+  grid.values.resize(static_cast<size_t>(nodes));
+  for (size_t i = 0; i < grid.values.size(); ++i) {
+    grid.values[i] = Vec3d(v.vectors[3 * i], v.vectors[3 * i + 1], v.vectors[3 * i + 2]);
+    if (!grid.values[i].allFinite()) return c.Error(core::StrCat("vector ", i, " is not finite"));
+  }
+  return grid;
 }
 
 namespace {
@@ -503,6 +572,23 @@ std::string EncodeLegacyVtk(const VolumeMesh& mesh, bool binary) {
     }
     AppendValues<float>(out, f.values, binary);
   }
+  return out;
+}
+
+std::string EncodeVtkVectorGrid(const VectorGrid& grid, bool binary) {
+  std::string out = core::StrCat("# vtk DataFile Version 3.0\nvelocity\n", binary ? "BINARY" : "ASCII",
+                                 "\nDATASET STRUCTURED_POINTS\nDIMENSIONS ", grid.dims[0], " ", grid.dims[1], " ",
+                                 grid.dims[2], "\n");
+  for (const auto& [key, v] : {std::pair{"ORIGIN", grid.origin}, std::pair{"SPACING", grid.spacing}}) {
+    char line[128];
+    std::snprintf(line, sizeof(line), "%s %.17g %.17g %.17g\n", key, v.x(), v.y(), v.z());
+    out += line;
+  }
+  core::StrAppend(&out, "POINT_DATA ", grid.values.size(), "\nVECTORS velocity float\n");
+  std::vector<float> values;
+  values.reserve(grid.values.size() * 3);
+  for (const Vec3d& v : grid.values) values.insert(values.end(), {float(v.x()), float(v.y()), float(v.z())});
+  AppendValues<float>(out, values, binary);
   return out;
 }
 

@@ -1,18 +1,11 @@
 // worker/io/vtk_grid.h — vector fields on regular grids in the legacy VTK format.
 //
-// The accepted subset is what ParaView, VTK and pyvista write for an image of vectors:
-//
-//   # vtk DataFile Version 2.0..5.1
-//   <title line>
-//   ASCII | BINARY
-//   DATASET STRUCTURED_POINTS
-//   DIMENSIONS nx ny nz          (ORIGIN, SPACING or ASPECT_RATIO in any order; defaults 0 and 1)
-//   POINT_DATA nx·ny·nz
-//   VECTORS <name> float|double
-//   <nx·ny·nz·3 values, x fastest; big-endian in BINARY files>
-//
-// Anything else (other datasets, scalars before the vectors, cell data) is refused with
-// kInvalidArgument naming the line and what was expected, so a user can fix the export.
+// Read by the same legacy VTK reader as volume files (legacy_vtk.cc), so the same files pass:
+// ASCII or big-endian BINARY, versions 2 to 5.1, DATASET STRUCTURED_POINTS with DIMENSIONS,
+// ORIGIN and SPACING (or ASPECT_RATIO) in any order, and the point data's first VECTORS array
+// (float or double, x fastest) as the field; other arrays, cell data and metadata are skipped.
+// Anything else (another dataset, no VECTORS, a count that does not match the grid) is refused
+// with kInvalidArgument saying what was expected, so a user can fix the export.
 #pragma once
 
 #include <array>

@@ -10,6 +10,11 @@
 // refused, which is also a right answer), and the server's threads and resident memory (from
 // /proc/PID/status) before and with the streams open. Nothing is measured until every stream has
 // been answered or is known open.
+//
+// --watches N follows one long-running job (a front-tracking run, cancelled at the end) with N
+// WatchJob streams, so GetJob is timed while a worker computes. --upload-mib M first sends one
+// upload of M MiB (bytes that are no cloud, refused once spooled) and reports how far it moved
+// the server's peak resident memory (VmHWM).
 #include <grpcpp/grpcpp.h>
 
 #include <CLI/CLI.hpp>
@@ -31,6 +36,7 @@ namespace reflection = grpc::reflection::v1alpha;
 struct ProcessStatus {
   int threads = -1;
   long rss_kib = -1;
+  long peak_kib = -1;  // VmHWM: the most it was ever resident.
 };
 
 ProcessStatus ReadStatus(int pid) {
@@ -39,6 +45,7 @@ ProcessStatus ReadStatus(int pid) {
   for (std::string line; std::getline(in, line);) {
     if (line.rfind("Threads:", 0) == 0) s.threads = std::stoi(line.substr(8));
     if (line.rfind("VmRSS:", 0) == 0) s.rss_kib = std::stol(line.substr(6));
+    if (line.rfind("VmHWM:", 0) == 0) s.peak_kib = std::stol(line.substr(6));
   }
   return s;
 }
@@ -51,7 +58,41 @@ struct Options {
   int per_connection = 90;
   int chunk_kib = 64;
   int probes = 2000;
+  int watches = 0;      // WatchJob streams on one running job.
+  int upload_mib = 0;   // One upload of this size, sent whole before the streams open.
 };
+
+// Sends `mib` MiB in 1 MiB chunks as one upload (bytes that are no cloud: the server spools them
+// and then refuses them, so what is measured is the transport) and returns the server's answer.
+grpc::Status BigUpload(const std::string& server, int mib, int pid, ProcessStatus* streamed) {
+  auto stub = lsqsurf::v1::Reconstruction::NewStub(grpc::CreateChannel(server, grpc::InsecureChannelCredentials()));
+  grpc::ClientContext context;
+  lsqsurf::v1::Job response;
+  auto writer = stub->SubmitJob(&context, &response);
+  lsqsurf::v1::SubmitJobRequest request;
+  request.mutable_spec()->mutable_iamls();
+  writer->Write(request);
+  request.Clear();
+  request.set_input_chunk(std::string(size_t{1} << 20, 'x'));
+  for (int i = 0; i < mib && writer->Write(request); ++i) {
+  }
+  // Every chunk is in once the server answers another call: what streaming alone cost.
+  (void)lsqsurf::client::Client(server).List(1);
+  if (pid > 0) *streamed = ReadStatus(pid);
+  writer->WritesDone();
+  return writer->Finish();
+}
+
+// A job that runs for minutes (a long front-tracking run), for watchers to follow.
+absl::StatusOr<std::string> LongJob(lsqsurf::client::Client& api) {
+  lsqsurf::v1::JobSpec spec;
+  spec.mutable_track()->set_interface(lsqsurf::v1::TrackParams::INTERFACE_SPHERE);
+  spec.mutable_track()->set_steps(100000);
+  spec.mutable_track()->set_stride(100000);
+  auto job = api.Submit(spec, "");
+  if (!job.ok()) return job.status();
+  return job->id();
+}
 
 }  // namespace
 
@@ -65,8 +106,36 @@ int main(int argc, char** argv) {
   app.add_option("--per-connection", o.per_connection, "streams per connection")->capture_default_str();
   app.add_option("--chunk-kib", o.chunk_kib, "bytes each upload sends before it stalls, KiB")->capture_default_str();
   app.add_option("--probes", o.probes, "GetJob calls timed with the streams open")->capture_default_str();
+  app.add_option("--watches", o.watches, "WatchJob streams on one long-running job")->capture_default_str();
+  app.add_option("--upload-mib", o.upload_mib, "first, one upload of this many MiB (its peak memory is reported)")
+      ->capture_default_str();
   CLI11_PARSE(app, argc, argv);
 
+  if (o.upload_mib > 0) {
+    const ProcessStatus start = o.server_pid > 0 ? ReadStatus(o.server_pid) : ProcessStatus{};
+    const auto upload_start = std::chrono::steady_clock::now();
+    ProcessStatus streamed;
+    const grpc::Status answer = BigUpload(o.server, o.upload_mib, o.server_pid, &streamed);
+    const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - upload_start).count();
+    const ProcessStatus end = o.server_pid > 0 ? ReadStatus(o.server_pid) : ProcessStatus{};
+    const auto mib = [](long kib) { return static_cast<double>(kib) / 1024.0; };
+    std::printf(
+        "upload: %d MiB in %.1f s, answered %d (%s); server peak %.1f MiB before, %.1f MiB once streamed "
+        "(+%.1f MiB), %.1f MiB after its end (+%.1f MiB)\n",
+        o.upload_mib, seconds, static_cast<int>(answer.error_code()), answer.error_message().substr(0, 80).c_str(),
+        mib(start.peak_kib), mib(streamed.peak_kib), mib(streamed.peak_kib - start.peak_kib), mib(end.peak_kib),
+        mib(end.peak_kib - start.peak_kib));
+  }
+  lsqsurf::client::Client watched_api(o.server);
+  std::string watched;
+  if (o.watches > 0) {
+    auto id = LongJob(watched_api);
+    if (!id.ok()) {
+      std::fprintf(stderr, "lsqsurf-flood: could not submit the job to watch: %s\n", std::string(id.status().message()).c_str());
+      return 1;
+    }
+    watched = *id;
+  }
   const ProcessStatus before = o.server_pid > 0 ? ReadStatus(o.server_pid) : ProcessStatus{};
   std::vector<std::shared_ptr<grpc::Channel>> channels;
   int on_channel = o.per_connection;
@@ -102,6 +171,19 @@ int main(int argc, char** argv) {
     // A refused upload's writes fail; an admitted one takes both.
     uploads_writing += stalled.back()->Write(spec) && stalled.back()->Write(chunk);
   }
+  std::vector<std::unique_ptr<grpc::ClientReader<lsqsurf::v1::JobEvent>>> watchers;
+  lsqsurf::v1::WatchJobRequest watch_request;
+  watch_request.set_job_id(watched);
+  for (int i = 0; i < o.watches; ++i) {
+    contexts.push_back(std::make_unique<grpc::ClientContext>());
+    watchers.push_back(
+        lsqsurf::v1::Reconstruction::NewStub(channel())->WatchJob(contexts.back().get(), watch_request));
+  }
+  int watching = 0;
+  for (auto& w : watchers) {
+    lsqsurf::v1::JobEvent first;
+    watching += w->Read(&first);  // Each admitted watcher gets the job's state at once.
+  }
   const double open_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - open_start).count();
 
   // Timed on a connection of its own. A few untimed calls first: what the streams sent is in.
@@ -123,9 +205,9 @@ int main(int argc, char** argv) {
   const ProcessStatus during = o.server_pid > 0 ? ReadStatus(o.server_pid) : ProcessStatus{};
 
   std::printf(
-      "streams: %d reflection and %d uploads opened in %.1f s over %zu connections; %d uploads still "
-      "writable after their chunk\n",
-      o.reflection, o.uploads, open_seconds, channels.size(), uploads_writing);
+      "streams: %d reflection, %d uploads and %d watches (%d answered) opened in %.1f s over %zu connections; %d "
+      "uploads still writable after their chunk\n",
+      o.reflection, o.uploads, o.watches, watching, open_seconds, channels.size(), uploads_writing);
   std::printf("GetJob: %d of %d answered NOT_FOUND; p50 %.2f ms, p99 %.2f ms, max %.2f ms\n", answered, o.probes,
               pct(0.5), pct(0.99), ms.empty() ? 0.0 : ms.back());
   if (o.server_pid > 0) {
@@ -148,5 +230,10 @@ int main(int argc, char** argv) {
   }
   std::printf("refused at once: %d reflection streams, %d uploads (RESOURCE_EXHAUSTED)\n", refused_reflection,
               refused_uploads);
+  if (!watched.empty()) {
+    (void)watched_api.Cancel(watched);
+    for (auto& c : contexts) c->TryCancel();
+    for (auto& w : watchers) (void)w->Finish();
+  }
   return answered == o.probes ? 0 : 1;
 }

@@ -58,8 +58,8 @@ struct Options {
   int per_connection = 90;
   int chunk_kib = 64;
   int probes = 2000;
-  int watches = 0;      // WatchJob streams on one running job.
-  int upload_mib = 0;   // One upload of this size, sent whole before the streams open.
+  int watches = 0;     // WatchJob streams on one running job.
+  int upload_mib = 0;  // One upload of this size, sent whole before the streams open.
 };
 
 // Sends `mib` MiB in 1 MiB chunks as one upload (bytes that are no cloud: the server spools them
@@ -131,7 +131,8 @@ int main(int argc, char** argv) {
   if (o.watches > 0) {
     auto id = LongJob(watched_api);
     if (!id.ok()) {
-      std::fprintf(stderr, "lsqsurf-flood: could not submit the job to watch: %s\n", std::string(id.status().message()).c_str());
+      std::fprintf(stderr, "lsqsurf-flood: could not submit the job to watch: %s\n",
+                   std::string(id.status().message()).c_str());
       return 1;
     }
     watched = *id;
@@ -176,8 +177,7 @@ int main(int argc, char** argv) {
   watch_request.set_job_id(watched);
   for (int i = 0; i < o.watches; ++i) {
     contexts.push_back(std::make_unique<grpc::ClientContext>());
-    watchers.push_back(
-        lsqsurf::v1::Reconstruction::NewStub(channel())->WatchJob(contexts.back().get(), watch_request));
+    watchers.push_back(lsqsurf::v1::Reconstruction::NewStub(channel())->WatchJob(contexts.back().get(), watch_request));
   }
   int watching = 0;
   for (auto& w : watchers) {

@@ -94,6 +94,39 @@ absl::StatusOr<std::string> LongJob(lsqsurf::client::Client& api) {
   return job->id();
 }
 
+// Sends one upload of --upload-mib and prints how far it moved the server's peak memory.
+void ReportBigUpload(const Options& o) {
+  const ProcessStatus start = o.server_pid > 0 ? ReadStatus(o.server_pid) : ProcessStatus{};
+  const auto upload_start = std::chrono::steady_clock::now();
+  ProcessStatus streamed;
+  const grpc::Status answer = BigUpload(o.server, o.upload_mib, o.server_pid, &streamed);
+  const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - upload_start).count();
+  const ProcessStatus end = o.server_pid > 0 ? ReadStatus(o.server_pid) : ProcessStatus{};
+  const auto mib = [](long kib) { return static_cast<double>(kib) / 1024.0; };
+  std::printf(
+      "upload: %d MiB in %.1f s, answered %d (%s); server peak %.1f MiB before, %.1f MiB once streamed "
+      "(+%.1f MiB), %.1f MiB after its end (+%.1f MiB)\n",
+      o.upload_mib, seconds, static_cast<int>(answer.error_code()), answer.error_message().substr(0, 80).c_str(),
+      mib(start.peak_kib), mib(streamed.peak_kib), mib(streamed.peak_kib - start.peak_kib), mib(end.peak_kib),
+      mib(end.peak_kib - start.peak_kib));
+}
+
+// Times --probes GetJob calls of a missing id, in milliseconds; `answered` counts the NOT_FOUND.
+// On a connection of its own, after a few untimed calls: what the streams sent is in by then.
+std::vector<double> TimeGetJob(const Options& o, int* answered) {
+  lsqsurf::client::Client api(o.server);
+  for (int i = 0; i < 20; ++i) (void)api.List(1);
+  const std::string missing(32, '0');
+  std::vector<double> ms;
+  for (int i = 0; i < o.probes; ++i) {
+    const auto start = std::chrono::steady_clock::now();
+    const auto status = api.Get(missing).status();
+    ms.push_back(std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count());
+    *answered += status.code() == absl::StatusCode::kNotFound;
+  }
+  return ms;
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -111,21 +144,7 @@ int main(int argc, char** argv) {
       ->capture_default_str();
   CLI11_PARSE(app, argc, argv);
 
-  if (o.upload_mib > 0) {
-    const ProcessStatus start = o.server_pid > 0 ? ReadStatus(o.server_pid) : ProcessStatus{};
-    const auto upload_start = std::chrono::steady_clock::now();
-    ProcessStatus streamed;
-    const grpc::Status answer = BigUpload(o.server, o.upload_mib, o.server_pid, &streamed);
-    const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - upload_start).count();
-    const ProcessStatus end = o.server_pid > 0 ? ReadStatus(o.server_pid) : ProcessStatus{};
-    const auto mib = [](long kib) { return static_cast<double>(kib) / 1024.0; };
-    std::printf(
-        "upload: %d MiB in %.1f s, answered %d (%s); server peak %.1f MiB before, %.1f MiB once streamed "
-        "(+%.1f MiB), %.1f MiB after its end (+%.1f MiB)\n",
-        o.upload_mib, seconds, static_cast<int>(answer.error_code()), answer.error_message().substr(0, 80).c_str(),
-        mib(start.peak_kib), mib(streamed.peak_kib), mib(streamed.peak_kib - start.peak_kib), mib(end.peak_kib),
-        mib(end.peak_kib - start.peak_kib));
-  }
+  if (o.upload_mib > 0) ReportBigUpload(o);
   lsqsurf::client::Client watched_api(o.server);
   std::string watched;
   if (o.watches > 0) {
@@ -186,18 +205,8 @@ int main(int argc, char** argv) {
   }
   const double open_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - open_start).count();
 
-  // Timed on a connection of its own. A few untimed calls first: what the streams sent is in.
-  lsqsurf::client::Client api(o.server);
-  for (int i = 0; i < 20; ++i) (void)api.List(1);
-  const std::string missing(32, '0');
-  std::vector<double> ms;
   int answered = 0;
-  for (int i = 0; i < o.probes; ++i) {
-    const auto start = std::chrono::steady_clock::now();
-    const auto status = api.Get(missing).status();
-    ms.push_back(std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count());
-    answered += status.code() == absl::StatusCode::kNotFound;
-  }
+  std::vector<double> ms = TimeGetJob(o, &answered);
   std::sort(ms.begin(), ms.end());
   const auto pct = [&](double p) {
     return ms.empty() ? 0.0 : ms[std::min(ms.size() - 1, static_cast<size_t>(p * static_cast<double>(ms.size())))];

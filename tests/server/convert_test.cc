@@ -5,11 +5,13 @@
 #include <google/protobuf/unknown_field_set.h>
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cctype>
 #include <cmath>
 #include <cstdlib>
 #include <cstring>
 #include <fstream>
+#include <limits>
 #include <map>
 #include <optional>
 #include <set>
@@ -262,6 +264,38 @@ TEST(Convert, AClientValidatingFromTheListingAgreesWithTheServer) {
     }
   }
   EXPECT_GT(probed, 500);
+}
+
+// The same for list parameters: a count up to max_count, each value finite and within the bounds.
+TEST(Convert, AClientValidatingAListFromTheListingAgreesWithTheServer) {
+  int probed = 0;
+  for (const auto& m : jobs::Methods()) {
+    for (const auto& p : m.info.defaults.Describe()) {
+      if (p.type != core::ParamType::kRealList) continue;
+      v1::Parameter wire;
+      ToProto(p, &wire);
+      ASSERT_EQ(wire.type(), v1::Parameter::TYPE_REAL_LIST);
+      ASSERT_GT(wire.max_count(), 0);
+      const auto listed_valid = [&](const std::vector<double>& values) {
+        if (static_cast<int>(values.size()) > wire.max_count()) return false;
+        return std::all_of(values.begin(), values.end(), [&](double v) {
+          return std::isfinite(v) && v >= wire.min_value() && v <= wire.max_value();
+        });
+      };
+      const auto count = static_cast<size_t>(wire.max_count());
+      for (const std::vector<double>& values :
+           {std::vector<double>{}, std::vector<double>(count, 0.5), std::vector<double>(count + 1, 0.5),
+            std::vector<double>{-1e300, 1e300}, std::vector<double>{0, std::nan("")},
+            std::vector<double>{std::numeric_limits<double>::infinity()}}) {
+        core::ParamSet set = m.info.defaults;
+        const absl::Status accepted = set.SetList(p.name, values);
+        EXPECT_EQ(accepted.ok(), listed_valid(values))
+            << m.info.name << "." << p.name << " with " << values.size() << " values: " << accepted;
+        ++probed;
+      }
+    }
+  }
+  EXPECT_GE(probed, 6);  // Volume's iso at least.
 }
 
 // The proto's comments state each field's default, "(default X)", and each enum's

@@ -50,6 +50,9 @@ StreamGuard::Ticket::~Ticket() { guard_.Release(id_); }
 void StreamGuard::Ticket::Touch() { entry_->last_ms.store(SteadyMs(std::chrono::steady_clock::now())); }
 
 StreamGuard::StreamGuard(StreamLimits limits) : limits_(limits) {
+  for (StreamKind kind : {StreamKind::kUpload, StreamKind::kDownload, StreamKind::kWatch, StreamKind::kReflection}) {
+    slots_.emplace(kind, core::FairSlots(Limit(kind), limits_.per_user_share));
+  }
   sweeper_ = std::thread([this] {
     std::unique_lock lock(stop_mutex_);
     while (!stop_wake_.wait_for(lock, std::chrono::seconds(1), [this] { return stopping_; })) {
@@ -82,22 +85,18 @@ int StreamGuard::Limit(StreamKind kind) const {
 absl::StatusOr<std::unique_ptr<StreamGuard::Ticket>> StreamGuard::Admit(StreamKind kind, const std::string& owner,
                                                                         grpc::CallbackServerContext* context) {
   std::lock_guard lock(mutex_);
-  const int limit = Limit(kind);
-  if (counts_[{kind, ""}] >= limit) {
-    return absl::ResourceExhaustedError(core::StrCat("this server has ", limit, " ", StreamKindName(kind),
-                                                     " open, its limit (lsqsurfd ", OptionOf(kind),
-                                                     "); try again shortly"));
-  }
-  if (!owner.empty()) {
-    const int share = std::max(1, static_cast<int>(std::ceil(limit * limits_.per_user_share)));
-    if (counts_[{kind, owner}] >= share) {
-      return absl::ResourceExhaustedError(core::StrCat("you have ", share, " ", StreamKindName(kind),
-                                                       " open, your share of this server's ", limit,
+  core::FairSlots& slots = slots_.at(kind);
+  switch (slots.TryTake(owner)) {
+    case core::FairSlots::Refusal::kFull:
+      return absl::ResourceExhaustedError(core::StrCat("this server has ", slots.limit(), " ", StreamKindName(kind),
+                                                       " open, its limit (lsqsurfd ", OptionOf(kind),
+                                                       "); try again shortly"));
+    case core::FairSlots::Refusal::kOwnerFull:
+      return absl::ResourceExhaustedError(core::StrCat("you have ", slots.owner_share(), " ", StreamKindName(kind),
+                                                       " open, your share of this server's ", slots.limit(),
                                                        "; finish one first"));
-    }
-    ++counts_[{kind, owner}];
+    case core::FairSlots::Refusal::kNone: break;
   }
-  ++counts_[{kind, ""}];
   const uint64_t id = next_id_++;
   auto entry = std::make_unique<Entry>();
   entry->kind = kind;
@@ -114,15 +113,13 @@ void StreamGuard::Release(uint64_t id) {
   auto it = entries_.find(id);
   if (it == entries_.end()) return;
   const Entry& e = *it->second;
-  --counts_[{e.kind, ""}];
-  if (!e.owner.empty() && --counts_[{e.kind, e.owner}] == 0) counts_.erase({e.kind, e.owner});
+  slots_.at(e.kind).Release(e.owner);
   entries_.erase(it);
 }
 
 int StreamGuard::Open(StreamKind kind) const {
   std::lock_guard lock(mutex_);
-  auto it = counts_.find({kind, ""});
-  return it == counts_.end() ? 0 : it->second;
+  return slots_.at(kind).held();
 }
 
 int StreamGuard::CancelIdle(std::chrono::steady_clock::time_point now) {

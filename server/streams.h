@@ -22,6 +22,7 @@
 #include <thread>
 
 #include "absl/status/statusor.h"
+#include "worker/core/fair_slots.h"
 
 namespace grpc {
 class CallbackServerContext;
@@ -89,7 +90,7 @@ class StreamGuard {
   // thread itself.
   mutable std::recursive_mutex mutex_;
   std::map<uint64_t, std::unique_ptr<Entry>> entries_;
-  std::map<std::pair<StreamKind, std::string>, int> counts_;  // By kind and owner ("" for all).
+  std::map<StreamKind, core::FairSlots> slots_;  // By kind.
   uint64_t next_id_ = 1;
   std::mutex stop_mutex_;
   std::condition_variable stop_wake_;

@@ -11,23 +11,12 @@ namespace lsqsurf::jobs {
 
 bool JobService::TakeRenderSlot(const std::string& owner) {
   std::lock_guard lock(render_mutex_);
-  if (renders_ >= options_.max_renders) return false;
-  if (!owner.empty()) {
-    int& mine = owner_renders_[owner];
-    if (mine >= (options_.max_renders + 1) / 2) {
-      if (mine == 0) owner_renders_.erase(owner);
-      return false;
-    }
-    ++mine;
-  }
-  ++renders_;
-  return true;
+  return render_slots_.TryTake(owner) == core::FairSlots::Refusal::kNone;
 }
 
 void JobService::ReleaseRenderSlot(const std::string& owner) {
   std::lock_guard lock(render_mutex_);
-  --renders_;
-  if (auto it = owner_renders_.find(owner); it != owner_renders_.end() && --it->second == 0) owner_renders_.erase(it);
+  render_slots_.Release(owner);
 }
 
 absl::StatusOr<RenderedPicture> JobService::Render(const Submitter& who, const std::string& id, const std::string& name,

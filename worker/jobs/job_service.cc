@@ -74,6 +74,7 @@ JobService::JobService(JobServiceOptions options)
     : options_(std::move(options)),
       runner_(RunnerName(options_.name)),
       renderer_(std::make_unique<render::SharedRenderer>()),
+      render_slots_(options_.max_renders),
       volume_pictures_(std::make_unique<VolumePictures>(options_.max_render_bytes)) {
   if (options_.max_job_memory < 0) options_.max_job_memory = PhysicalMemoryBytes() / 4 * 3;
 }

@@ -38,6 +38,7 @@
 #include <vector>
 
 #include "absl/status/statusor.h"
+#include "worker/core/fair_slots.h"
 #include "worker/jobs/job.h"
 #include "worker/jobs/job_events.h"
 #include "worker/jobs/job_kind.h"
@@ -259,10 +260,9 @@ class JobService {
   std::unique_ptr<render::SharedRenderer> renderer_;
   std::shared_ptr<JobStore> store_;
   std::shared_ptr<BlobStore> blobs_;
-  std::mutex store_mutex_;                    // Orders store writes of records (never taken with mutex_ held).
-  std::mutex render_mutex_;                   // Guards the two below.
-  int renders_ = 0;                           // Pictures being drawn.
-  std::map<std::string, int> owner_renders_;  // Of them, by named owner.
+  std::mutex store_mutex_;        // Orders store writes of records (never taken with mutex_ held).
+  std::mutex render_mutex_;       // Guards render_slots_.
+  core::FairSlots render_slots_;  // Pictures being drawn, max_renders of them.
   std::unique_ptr<VolumePictures> volume_pictures_;
   mutable std::mutex mutex_;
   mutable std::condition_variable changed_;  // Any job changed (watchers).

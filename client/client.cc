@@ -7,6 +7,8 @@
 
 #include "grpc/health/v1/health.grpc.pb.h"
 #include "lsqsurf/v1/enum_names.h"
+#include "worker/core/number_list.h"
+#include "worker/core/status.h"
 #include "worker/core/strings.h"
 #include "worker/io/files.h"
 #include "worker/io/volume_codec.h"
@@ -50,22 +52,12 @@ absl::Status SetEnum(Message* m, const FieldDescriptor& f, std::string_view valu
   return absl::OkStatus();
 }
 
-// A list parameter (`iso=0.5,0.7`): numbers separated by commas; an empty text is no value.
+// A list parameter (`iso=0.5,0.7`), in the tables' text form; an empty text is no value.
 absl::Status SetListField(Message* m, const FieldDescriptor& f, std::string_view value) {
+  LSQSURF_ASSIGN_OR_RETURN(const std::vector<double> values, core::ParseNumberList(f.name(), value));
   const auto* r = m->GetReflection();
   r->ClearField(m, &f);
-  for (std::string_view rest = value; !rest.empty();) {
-    const size_t comma = rest.find(',');
-    const std::string item(rest.substr(0, comma));
-    rest = comma == std::string_view::npos ? std::string_view() : rest.substr(comma + 1);
-    char* end = nullptr;
-    const double v = std::strtod(item.c_str(), &end);
-    if (item.empty() || *end != '\0') {
-      return absl::InvalidArgumentError(
-          StrCat(f.name(), ": '", item, "' is not a number (give numbers separated by commas, e.g. 0.5,0.7)"));
-    }
-    r->AddDouble(m, &f, v);
-  }
+  for (double v : values) r->AddDouble(m, &f, v);
   return absl::OkStatus();
 }
 

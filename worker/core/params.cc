@@ -5,6 +5,7 @@
 #include <cmath>
 #include <cstdlib>
 
+#include "worker/core/number_list.h"
 #include "worker/core/status.h"
 #include "worker/core/strings.h"
 
@@ -49,30 +50,6 @@ std::string Unescape(std::string_view text) {
 std::string JoinNumbers(const std::vector<double>& values) {
   std::string out;
   for (double v : values) StrAppend(&out, out.empty() ? "" : ",", Number(v));
-  return out;
-}
-
-// Numbers separated by commas or spaces. Errors: kInvalidArgument naming the item that is not one.
-absl::StatusOr<std::vector<double>> SplitNumbers(std::string_view name, std::string_view text) {
-  std::vector<double> out;
-  size_t pos = 0;
-  while (pos < text.size()) {
-    if (text[pos] == ',' || text[pos] == ' ') {
-      ++pos;
-      continue;
-    }
-    size_t end = text.find_first_of(", ", pos);
-    if (end == std::string_view::npos) end = text.size();
-    const std::string item(text.substr(pos, end - pos));
-    char* item_end = nullptr;
-    const double v = std::strtod(item.c_str(), &item_end);
-    if (*item_end != '\0') {
-      return absl::InvalidArgumentError(
-          StrCat(name, ": '", item, "' is not a number (give numbers separated by commas, e.g. 0.5,0.7)"));
-    }
-    out.push_back(v);
-    pos = end;
-  }
   return out;
 }
 
@@ -236,7 +213,7 @@ absl::Status ParamSet::Parse(std::string_view name, std::string_view text) {
   switch (info->type) {
     case ParamType::kText: return SetText(name, std::string(text));
     case ParamType::kRealList: {
-      LSQSURF_ASSIGN_OR_RETURN(std::vector<double> values, SplitNumbers(name, text));
+      LSQSURF_ASSIGN_OR_RETURN(std::vector<double> values, ParseNumberList(name, text));
       return SetList(name, std::move(values));
     }
     case ParamType::kChoice:

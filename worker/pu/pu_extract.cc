@@ -2,6 +2,7 @@
 #include <chrono>
 #include <cmath>
 
+#include "absl/container/flat_hash_map.h"
 #include "absl/container/flat_hash_set.h"
 #include "worker/core/parallel.h"
 #include "worker/core/status.h"
@@ -100,7 +101,7 @@ absl::StatusOr<std::unique_ptr<ExtractionTree>> BuildExtractionTree(const PuFunc
   extract::SurfaceBand band = extract::MarkSurfaceBand(tree, points, band_level);
   extract::SurfaceBand fine_band = extract::MarkSurfaceBand(tree, points, depth);
   band.occupied.clear();
-  const double chord_bound = params.chord_error * core::Diagonal(core::BoundingBox(impl.cloud->positions));
+  const double chord_bound = params.chord_error * impl.Diagonal();
   const absl::flat_hash_set<uint64_t> crease_cells = CellsNearSharpFits(impl, tree, band_level, depth, region);
   LSQSURF_RETURN_IF_ERROR(extract::RefineSurfaceBand(
       tree, band, band_level, fine_band,
@@ -189,6 +190,84 @@ extract::MarchingOptions MarchingFor(const PuFunction::Impl& impl, const PuExtra
 }
 
 }  // namespace
+
+double ExtractionReach(double root_edge, double mean_spacing, const PuExtractParams& params) {
+  const int band = std::max(1, ExtractionDepth(root_edge, params.cell_size * mean_spacing) - kCoarseExtractionLevels);
+  // Balancing and the band's neighbours reach about two coarse cells; four keep the tree exact.
+  return 4 * std::ldexp(root_edge, -band);
+}
+
+namespace {
+
+// The faces of `marched` whose leaf's centre lies in `core` (half-open, so that every leaf has
+// one owner), their vertices renumbered; `seam` flags the vertices on edges of one kept face.
+extract::IsosurfaceResult KeepOwnedFaces(const extract::AdaptiveOctree& tree, const core::Box3& core,
+                                         extract::IsosurfaceResult& marched, std::vector<char>& seam) {
+  auto owned = [&](uint64_t key) {
+    const Vec3d c = tree.CellCentre(extract::CellFromKey(key));
+    return (c.array() >= core.min().array()).all() && (c.array() < core.max().array()).all();
+  };
+  const core::TriangleMesh& mesh = marched.mesh;
+  extract::IsosurfaceResult kept;
+  kept.stats = marched.stats;
+  std::vector<uint32_t> renumber(mesh.vertices.size(), UINT32_MAX);
+  absl::flat_hash_map<std::pair<uint32_t, uint32_t>, int> edge_faces;
+  for (size_t f = 0; f < mesh.faces.size(); ++f) {
+    if (!owned(marched.trace.face_cells[f])) continue;
+    core::Triangle t = mesh.faces[f];
+    for (uint32_t& v : t) {
+      if (renumber[v] == UINT32_MAX) {
+        renumber[v] = static_cast<uint32_t>(kept.mesh.vertices.size());
+        kept.mesh.vertices.push_back(mesh.vertices[v]);
+        if (!mesh.normals.empty()) kept.mesh.normals.push_back(mesh.normals[v]);
+        kept.trace.vertex_edges.push_back(marched.trace.vertex_edges[v]);
+      }
+      v = renumber[v];
+    }
+    for (size_t k = 0; k < 3; ++k) {
+      ++edge_faces[std::minmax(t[k], t[(k + 1) % 3])];
+    }
+    kept.mesh.faces.push_back(t);
+    kept.trace.face_cells.push_back(marched.trace.face_cells[f]);
+  }
+  seam.assign(kept.mesh.vertices.size(), 0);
+  for (const auto& [edge, count] : edge_faces) {
+    if (count == 1) seam[edge.first] = seam[edge.second] = 1;
+  }
+  kept.stats.crossings = static_cast<int64_t>(kept.mesh.vertices.size());
+  return kept;
+}
+
+}  // namespace
+
+absl::StatusOr<TileSurface> ExtractTile(const PuFunction& function, const PuExtractParams& params,
+                                        const core::Box3& core, core::JobContext& ctx) {
+  const PuFunction::Impl& impl = function.impl();
+  const double reach = ExtractionReach(impl.root_edge, function.stats().mean_spacing, params);
+  const core::Box3 region(core.min() - Vec3d::Constant(reach), core.max() + Vec3d::Constant(reach));
+  core::SubContext build_ctx(ctx, "building the tile's J1a tree", 0.0, 0.2);
+  auto built = BuildExtractionTree(function, impl, params, &region, build_ctx);
+  if (!built.ok()) return built.status();
+  TileSurface tile;
+  if ((*built)->start.empty()) return tile;
+  extract::MarchingOptions raw = params.marching;
+  raw.trace = true;
+  raw.relax_steps = 0;
+  raw.crease_angle = 0;
+  core::SubContext extract_ctx(ctx, "extracting the tile", 0.2, 0.7);
+  auto marched =
+      extract::ExtractIsosurfaceOnTree(function, (*built)->tree, (*built)->start, params.max_leaves, raw, extract_ctx);
+  if (!marched.ok()) return marched.status();
+  tile.surface = KeepOwnedFaces((*built)->tree, core, *marched, tile.seam);
+  built->reset();
+  *marched = {};
+  core::SubContext finish_ctx(ctx, "finishing the tile", 0.7, 0.95);
+  LSQSURF_RETURN_IF_ERROR(
+      extract::FinishPatch(function, MarchingFor(impl, params), tile.surface, finish_ctx, tile.seam));
+  tile.seam.resize(tile.surface.mesh.vertices.size(), 0);
+  if (params.label_vertices) LSQSURF_RETURN_IF_ERROR(LabelVertices(function, tile.surface.mesh, ctx));
+  return tile;
+}
 
 double FinestExtractionCell(const PuFunction& function, const PuExtractParams& params) {
   const double root_edge = function.stats().root_edge;

@@ -10,6 +10,7 @@
 #include "worker/core/status.h"
 #include "worker/core/strings.h"
 #include "worker/pu/pu_internal.h"
+#include "worker/pu/pu_tiles.h"
 
 namespace lsqsurf::pu {
 namespace {
@@ -201,6 +202,48 @@ std::optional<SharpOutcome> TrySharp(const BuildContext& bc, double fit_radius, 
   return out;
 }
 
+bool BallMeetsBox(const Vec3d& centre, double radius, const core::Box3& box) {
+  const Vec3d nearest = centre.cwiseMax(box.min()).cwiseMin(box.max());
+  return (nearest - centre).squaredNorm() <= radius * radius;
+}
+
+// Neighbours by distance, ties by position and normal: an order that depends only on the points
+// themselves, not on the kd-tree or on which other points it holds, so that a tile's sums over
+// them are the whole cloud's to the last bit.
+void CanonicalOrder(std::span<const Vec3f> positions, std::span<const Vec3f> normals,
+                    std::vector<core::Neighbor>& neighbors) {
+  auto key = [&](const core::Neighbor& n) {
+    const Vec3f& p = positions[n.index];
+    const Vec3f& q = normals[n.index];
+    return std::array<float, 7>{n.distance2, p.x(), p.y(), p.z(), q.x(), q.y(), q.z()};
+  };
+  std::sort(neighbors.begin(), neighbors.end(), [&](const core::Neighbor& a, const core::Neighbor& b) {
+    if (a.distance2 != b.distance2) return a.distance2 < b.distance2;
+    return key(a) < key(b);
+  });
+}
+
+enum class TiledGate { kProcess, kSplit, kLeaf };
+
+// What a tiled build does with a cell before any fit: a cell whose support (or, when capped,
+// every support below it) cannot reach the region stays an empty leaf; a cell whose support
+// exceeds max_support is split wherever a fit below it could find points.
+TiledGate GateTiledCell(const BuildContext& bc, const Node& node, const Vec3d& centre, double support,
+                        bool holds_points) {
+  const double half_diagonal = 0.5 * kSqrt3 * bc.impl.Edge(node.level);
+  const bool capped = support > bc.max_support && node.level < bc.params.max_depth;
+  // Every support below a capped cell lies within its cube grown by max_support.
+  const double reach = capped ? half_diagonal + bc.max_support : support;
+  if (bc.region != nullptr && !BallMeetsBox(centre, reach, *bc.region)) return TiledGate::kLeaf;
+  if (!capped) return TiledGate::kProcess;
+  // A fit below this cell would read points within kMaxRadiusGrowth supports of its centre.
+  const double data_reach = half_diagonal + kMaxRadiusGrowth * bc.max_support;
+  if (holds_points || bc.impl.cloud->kd_tree->Nearest(centre.cast<float>()).distance2 <= data_reach * data_reach) {
+    return TiledGate::kSplit;
+  }
+  return TiledGate::kLeaf;
+}
+
 void UseSharp(CellOutcome& out, SharpOutcome&& sharp) {
   out.fit.feature = sharp.fit.feature;
   int degree = 0;
@@ -227,10 +270,16 @@ CellOutcome ProcessCell(const BuildContext& bc, const Node& node, std::span<uint
     PartitionOctants(inside, impl.cloud->positions, centre, out.child_ranges, begin);
     return out;
   };
+  if (bc.region != nullptr || support > bc.max_support) {
+    const TiledGate gate = GateTiledCell(bc, node, centre, support, !inside.empty());
+    if (gate == TiledGate::kSplit) return split();
+    if (gate == TiledGate::kLeaf) return out;
+  }
   if (inside.size() > kMaxPointsToFit && node.level < params.max_depth) return split();
 
   const Vec3f query = centre.cast<float>();
   impl.cloud->kd_tree->Radius(query, static_cast<float>(support), s.neighbors);
+  if (bc.canonical_order) CanonicalOrder(impl.cloud->positions, bc.normals, s.neighbors);
   // Splitting helps only while the support holds enough points; past that the fitting ball
   // has to grow, and smaller cells would see the same points.
   const bool can_split = node.level < params.max_depth && s.neighbors.size() >= static_cast<size_t>(params.min_points);
@@ -240,6 +289,7 @@ CellOutcome ProcessCell(const BuildContext& bc, const Node& node, std::span<uint
     fit_radius =
         std::min(kMaxRadiusGrowth * support, 1.05 * std::sqrt(static_cast<double>(s.neighbors.back().distance2)));
     impl.cloud->kd_tree->Radius(query, static_cast<float>(fit_radius), s.neighbors);
+    if (bc.canonical_order) CanonicalOrder(impl.cloud->positions, bc.normals, s.neighbors);
   }
   const size_t n = s.neighbors.size();
   s.weight.resize(n);
@@ -330,7 +380,9 @@ namespace {
 
 // The point spacing statistics: with coverage checks, one neighbour query per point gives both
 // the local spacing (kept for evaluation) and the nearest distance (averaged for the stats).
-absl::Status MeasureSpacing(PuFunction::Impl& impl, bool coverage_check, PuStats& stats, core::JobContext& ctx) {
+// `spacing_cap` bounds the local spacing (tiles: so that it reads no point beyond their margin).
+absl::Status MeasureSpacing(PuFunction::Impl& impl, bool coverage_check, float spacing_cap, PuStats& stats,
+                            core::JobContext& ctx) {
   if (!coverage_check) {
     stats.mean_spacing = core::MeanNearestNeighborDistance(*impl.cloud->kd_tree);
     return absl::OkStatus();
@@ -343,7 +395,7 @@ absl::Status MeasureSpacing(PuFunction::Impl& impl, bool coverage_check, PuStats
         std::vector<core::Neighbor> knn;
         for (size_t i = b; i < e; ++i) {
           impl.cloud->kd_tree->Knn(impl.cloud->positions[i], kSpacingNeighbors + 1, knn);
-          impl.cloud->local_spacing[i] = std::sqrt(knn.back().distance2);
+          impl.cloud->local_spacing[i] = std::min(std::sqrt(knn.back().distance2), spacing_cap);
           nearest[i] = std::sqrt(knn[1].distance2);
         }
       },
@@ -357,10 +409,10 @@ absl::Status MeasureSpacing(PuFunction::Impl& impl, bool coverage_check, PuStats
 // Noise-aware bounds: a largest-error test cannot pass below about 3σ on noisy points, and fits
 // over few noisy points follow the noise (blobs, bumps), so where the noise exceeds the requested
 // accuracy both are raised.
-PuParams NoiseAwareParams(const PuFunction::Impl& impl, std::span<const Vec3f> normals, const PuParams& params,
+PuParams NoiseAwareParams(const core::KdTree& kd_tree, std::span<const Vec3f> normals, const PuParams& params,
                           double diagonal, PuStats& stats) {
-  const core::NoiseEstimate noise = core::EstimateNoise(*impl.cloud->kd_tree, normals,
-                                                        params.noise_level >= 0 ? params.noise_level * diagonal : -1.0);
+  const core::NoiseEstimate noise =
+      core::EstimateNoise(kd_tree, normals, params.noise_level >= 0 ? params.noise_level * diagonal : -1.0);
   stats.noise_estimate = noise.sigma / diagonal;
   PuParams effective = params;
   if (stats.noise_estimate > params.error_threshold) {
@@ -455,43 +507,37 @@ absl::Status GrowFittingTree(const BuildContext& bc, PuFunction::Impl& impl, siz
   return GrowSubtrees(bc, impl, order, ranges, {0}, max_depth, stats, ctx);
 }
 
-}  // namespace
+// The cloud in Morton (Z-curve) order: points close in space are close in memory, which makes the
+// index build and every neighbour query cache-friendly (4M points: the spacing pass 2.5× faster).
+std::unique_ptr<PuFunction::Impl> OrderedCopy(const core::PointCloud& cloud) {
+  auto built = std::make_unique<PuFunction::Impl>();
+  const std::vector<uint32_t> order = core::MortonOrder(cloud.positions);
+  built->cloud->positions.resize(cloud.size());
+  built->cloud->normals.resize(cloud.size());
+  for (size_t i = 0; i < order.size(); ++i) {
+    built->cloud->positions[i] = cloud.positions[order[i]];
+    built->cloud->normals[i] = cloud.normals[order[i]];
+  }
+  built->cloud->kd_tree = std::make_unique<core::KdTree>(built->cloud->positions);
+  return built;
+}
 
-absl::StatusOr<std::unique_ptr<PuFunction>> BuildPu(const core::PointCloud& cloud, const PuParams& params,
-                                                    core::JobContext& ctx) {
-  LSQSURF_RETURN_IF_ERROR(Validate(params));
+absl::Status CheckCloud(const core::PointCloud& cloud) {
   if (!cloud.has_normals()) return absl::InvalidArgumentError("PU surfaces need oriented normals");
   if (cloud.size() < 4) return absl::InvalidArgumentError("PU surfaces need at least 4 points");
   if (cloud.size() >= std::numeric_limits<uint32_t>::max()) return absl::InvalidArgumentError("too many points");
-  const auto start = std::chrono::steady_clock::now();
-  auto built = std::make_unique<PuFunction::Impl>();
+  return absl::OkStatus();
+}
+
+// The fitting tree and its index, once the points, the root cube and the parameters are set.
+absl::StatusOr<std::unique_ptr<PuFunction>> GrowAndIndex(const BuildContext& bc,
+                                                         std::unique_ptr<PuFunction::Impl> built,
+                                                         std::chrono::steady_clock::time_point start,
+                                                         core::JobContext& ctx) {
   PuFunction::Impl& impl = *built;
   PuStats& stats = impl.stats;
-  // Morton (Z-curve) order: points close in space are close in memory, which makes the index
-  // build and every neighbour query cache-friendly (4M points: the spacing pass 2.5× faster).
-  const std::vector<uint32_t> order = core::MortonOrder(cloud.positions);
-  impl.cloud->positions.resize(cloud.size());
-  impl.cloud->normals.resize(cloud.size());
-  for (size_t i = 0; i < order.size(); ++i) {
-    impl.cloud->positions[i] = cloud.positions[order[i]];
-    impl.cloud->normals[i] = cloud.normals[order[i]];
-  }
-  impl.cloud->kd_tree = std::make_unique<core::KdTree>(impl.cloud->positions);
-  impl.coverage_check = params.coverage_check;
-  impl.coverage_factor = params.coverage_factor;
-  LSQSURF_RETURN_IF_ERROR(MeasureSpacing(impl, params.coverage_check, stats, ctx));
-  stats.spacing_seconds = core::SecondsSince(start);
-  const core::Box3 box = core::BoundingBox(impl.cloud->positions);
-  const double diagonal = core::Diagonal(box);
-  if (!(diagonal > 0)) return absl::InvalidArgumentError("all points coincide");
-  // The root cube: 1.2 × the largest side, as in MPU, so that boundary cells have margin.
-  impl.root_edge = 1.2 * box.sizes().maxCoeff();
-  impl.origin = box.center() - Vec3d::Constant(impl.root_edge / 2);
   stats.root_edge = impl.root_edge;
-  const PuParams effective = NoiseAwareParams(impl, impl.cloud->normals, params, diagonal, stats);
-  impl.params = effective;
-  const BuildContext bc(effective, impl, impl.cloud->normals, effective.error_threshold * diagonal);
-  LSQSURF_RETURN_IF_ERROR(GrowFittingTree(bc, impl, cloud.size(), params.max_depth, stats, ctx));
+  LSQSURF_RETURN_IF_ERROR(GrowFittingTree(bc, impl, impl.cloud->positions.size(), bc.params.max_depth, stats, ctx));
   stats.fit_seconds = core::SecondsSince(start);
   const auto index_start = std::chrono::steady_clock::now();
   LSQSURF_RETURN_IF_ERROR(IndexInfluence(impl, ctx));
@@ -499,6 +545,86 @@ absl::StatusOr<std::unique_ptr<PuFunction>> BuildPu(const core::PointCloud& clou
   LSQSURF_RETURN_IF_ERROR(ctx.CheckCancelled());
   if (impl.fits.empty()) return absl::FailedPreconditionError("no local fit could be made");
   return std::make_unique<PuFunction>(std::move(built));
+}
+
+// The root cube: 1.2 × the largest side, as in MPU, so that boundary cells have margin.
+void RootCube(const core::Box3& box, Vec3d& origin, double& edge) {
+  edge = 1.2 * box.sizes().maxCoeff();
+  origin = box.center() - Vec3d::Constant(edge / 2);
+}
+
+}  // namespace
+
+absl::StatusOr<std::unique_ptr<PuFunction>> BuildPu(const core::PointCloud& cloud, const PuParams& params,
+                                                    core::JobContext& ctx) {
+  LSQSURF_RETURN_IF_ERROR(Validate(params));
+  LSQSURF_RETURN_IF_ERROR(CheckCloud(cloud));
+  const auto start = std::chrono::steady_clock::now();
+  std::unique_ptr<PuFunction::Impl> built = OrderedCopy(cloud);
+  PuFunction::Impl& impl = *built;
+  PuStats& stats = impl.stats;
+  impl.coverage_check = params.coverage_check;
+  impl.coverage_factor = params.coverage_factor;
+  LSQSURF_RETURN_IF_ERROR(
+      MeasureSpacing(impl, params.coverage_check, std::numeric_limits<float>::infinity(), stats, ctx));
+  stats.spacing_seconds = core::SecondsSince(start);
+  const core::Box3 box = core::BoundingBox(impl.cloud->positions);
+  const double diagonal = core::Diagonal(box);
+  if (!(diagonal > 0)) return absl::InvalidArgumentError("all points coincide");
+  RootCube(box, impl.origin, impl.root_edge);
+  impl.params = NoiseAwareParams(*impl.cloud->kd_tree, impl.cloud->normals, params, diagonal, stats);
+  const BuildContext bc(impl.params, impl, impl.cloud->normals, impl.params.error_threshold * diagonal);
+  return GrowAndIndex(bc, std::move(built), start, ctx);
+}
+
+absl::StatusOr<PuFrame> MeasureFrame(const core::PointCloud& cloud, const PuParams& params, double support_cap,
+                                     core::JobContext& ctx) {
+  LSQSURF_RETURN_IF_ERROR(Validate(params));
+  LSQSURF_RETURN_IF_ERROR(CheckCloud(cloud));
+  if (!(support_cap > 0)) return absl::InvalidArgumentError("support_cap must be positive");
+  std::unique_ptr<PuFunction::Impl> ordered = OrderedCopy(cloud);
+  const PointData& points = *ordered->cloud;
+  PuFrame frame;
+  const core::Box3 box = core::BoundingBox(points.positions);
+  frame.diagonal = core::Diagonal(box);
+  if (!(frame.diagonal > 0)) return absl::InvalidArgumentError("all points coincide");
+  RootCube(box, frame.origin, frame.root_edge);
+  frame.mean_spacing = core::MeanNearestNeighborDistance(*points.kd_tree);
+  LSQSURF_RETURN_IF_ERROR(ctx.CheckCancelled());
+  PuStats stats;
+  frame.params = NoiseAwareParams(*points.kd_tree, points.normals, params, frame.diagonal, stats);
+  frame.noise_estimate = stats.noise_estimate;
+  // Never below the support of the deepest cells, which cannot be split further.
+  const double deepest_support = params.support_factor * kSqrt3 * std::ldexp(frame.root_edge, -params.max_depth);
+  frame.max_support = std::max(support_cap * frame.mean_spacing, deepest_support * (1 + 1e-9));
+  return frame;
+}
+
+absl::StatusOr<std::unique_ptr<PuFunction>> BuildPuInFrame(const core::PointCloud& cloud, const PuFrame& frame,
+                                                           const core::Box3* region, core::JobContext& ctx) {
+  LSQSURF_RETURN_IF_ERROR(Validate(frame.params));
+  LSQSURF_RETURN_IF_ERROR(CheckCloud(cloud));
+  const auto start = std::chrono::steady_clock::now();
+  std::unique_ptr<PuFunction::Impl> built = OrderedCopy(cloud);
+  PuFunction::Impl& impl = *built;
+  PuStats& stats = impl.stats;
+  impl.params = frame.params;
+  impl.coverage_check = frame.params.coverage_check;
+  impl.coverage_factor = frame.params.coverage_factor;
+  impl.frame_diagonal = frame.diagonal;
+  impl.origin = frame.origin;
+  impl.root_edge = frame.root_edge;
+  LSQSURF_RETURN_IF_ERROR(MeasureSpacing(impl, impl.coverage_check, static_cast<float>(frame.max_support), stats, ctx));
+  stats.spacing_seconds = core::SecondsSince(start);
+  stats.mean_spacing = frame.mean_spacing;
+  stats.noise_estimate = frame.noise_estimate;
+  stats.error_threshold = frame.params.error_threshold;
+  stats.min_points = frame.params.min_points;
+  BuildContext bc(impl.params, impl, impl.cloud->normals, impl.params.error_threshold * frame.diagonal);
+  bc.max_support = frame.max_support;
+  bc.canonical_order = true;
+  bc.region = region;
+  return GrowAndIndex(bc, std::move(built), start, ctx);
 }
 
 }  // namespace lsqsurf::pu

@@ -121,6 +121,13 @@ struct PuFunction::Impl {
   std::vector<uint32_t> influence;
   bool coverage_check = true;
   double coverage_factor = 1.25;
+  // The length ε0 and the chord error are shares of: the points' bounding-box diagonal, or, for a
+  // tile's function, the whole cloud's (0 = the points' own).
+  double frame_diagonal = 0;
+
+  double Diagonal() const {
+    return frame_diagonal > 0 ? frame_diagonal : core::Diagonal(core::BoundingBox(cloud->positions));
+  }
 
   double Edge(int level) const { return std::ldexp(root_edge, -level); }
   Vec3d Centre(const Node& n) const { return origin + (Vec3d(n.x, n.y, n.z) + Vec3d::Constant(0.5)) * Edge(n.level); }
@@ -212,6 +219,13 @@ struct BuildContext {
   double error_bound;  // ε0 in model units.
   double cos_max_angle;
   SharpParams sharp;
+  // Tiled builds (pu_tiles.h): no cell whose support radius exceeds `max_support` is fitted, so
+  // that every decision reads only points within 5 × max_support of the region it serves;
+  // neighbours are taken in a canonical order, so that sums do not depend on which points the
+  // kd-tree holds besides; and with `region`, cells whose supports cannot reach it are not grown.
+  double max_support = std::numeric_limits<double>::infinity();
+  bool canonical_order = false;
+  const core::Box3* region = nullptr;
 };
 
 struct CellOutcome {
@@ -258,5 +272,21 @@ absl::Status IndexInfluence(PuFunction::Impl& impl, core::JobContext& ctx);
 absl::Status UpdateInfluence(const PuFunction::Impl& before, PuFunction::Impl& after, std::span<const int32_t> touched,
                              std::span<const int32_t> new_fits, std::span<const int32_t> renumber,
                              core::JobContext& ctx);
+
+// How far beyond a box the extraction tree must be built for its leaves inside the box to be the
+// whole tree's: four cells of the coarsest level Extract keeps around the data (pu_extract.cc).
+double ExtractionReach(double root_edge, double mean_spacing, const PuExtractParams& params);
+
+// One tile's part of Extract: the faces whose J1a leaf has its centre in `core` (half-open), marched
+// on a tree built over `core` and its ExtractionReach, so that they are the whole surface's faces
+// there; then creases and relaxation with the tile's border vertices (`seam`) fixed, so that
+// neighbouring tiles meet on the same vertices (named by trace.vertex_edges). `function` must be
+// exact over `core` grown by ExtractionReach (BuildPuInFrame with that region).
+struct TileSurface {
+  extract::IsosurfaceResult surface;  // Traced.
+  std::vector<char> seam;             // Per vertex.
+};
+absl::StatusOr<TileSurface> ExtractTile(const PuFunction& function, const PuExtractParams& params,
+                                        const core::Box3& core, core::JobContext& ctx);
 
 }  // namespace lsqsurf::pu

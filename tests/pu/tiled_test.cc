@@ -1,0 +1,133 @@
+// Tiled PU: forced into many small tiles, a build gives the untiled surface of the same frame,
+// face for face, and the welded mesh is closed across every seam.
+#include <gtest/gtest.h>
+
+#include <algorithm>
+#include <array>
+#include <cstdio>
+
+#include "absl/container/flat_hash_map.h"
+#include "tests/test_shapes.h"
+#include "worker/core/kd_tree.h"
+#include "worker/core/mesh_metrics.h"
+#include "worker/pu/pu.h"
+#include "worker/pu/pu_tiles.h"
+
+namespace lsqsurf::pu {
+namespace {
+
+struct Runs {
+  core::TriangleMesh whole, tiled;
+  TiledStats stats;
+  double diagonal = 0;
+};
+
+Runs RunBoth(const core::PointCloud& cloud, const PuExtractParams& extract, const PuTileParams& tiles) {
+  Runs runs;
+  core::LocalJobContext ctx;
+  auto frame = MeasureFrame(cloud, PuParams{}, tiles.support_cap, ctx);
+  EXPECT_TRUE(frame.ok()) << frame.status();
+  if (!frame.ok()) return runs;
+  runs.diagonal = frame->diagonal;
+  auto function = BuildPuInFrame(cloud, *frame, nullptr, ctx);
+  EXPECT_TRUE(function.ok()) << function.status();
+  if (!function.ok()) return runs;
+  auto whole = Extract(**function, extract, ctx);
+  EXPECT_TRUE(whole.ok()) << whole.status();
+  if (whole.ok()) runs.whole = std::move(whole->mesh);
+  int64_t parts = 0;
+  auto tiled = ExtractTiled(cloud, *frame, extract, tiles, ctx, &runs.stats, [&](const TilePart& part) {
+    EXPECT_LE(part.first_face, part.mesh->faces.size());
+    ++parts;
+  });
+  EXPECT_TRUE(tiled.ok()) << tiled.status();
+  if (tiled.ok()) runs.tiled = std::move(tiled->mesh);
+  EXPECT_EQ(parts, runs.stats.tiles);
+  std::printf(
+      "  %zu points: %lld tiles at level %d (largest %lld points, margin %.3g), %zu / %zu faces, %lld seam "
+      "vertices\n",
+      cloud.size(), static_cast<long long>(runs.stats.tiles), runs.stats.tile_level,
+      static_cast<long long>(runs.stats.largest_tile), runs.stats.margin, runs.tiled.faces.size(),
+      runs.whole.faces.size(), static_cast<long long>(runs.stats.seam_vertices));
+  return runs;
+}
+
+// Every vertex of `b` within `tolerance` of one of `a`, one to one, and the faces the same triples.
+void ExpectSameMesh(const core::TriangleMesh& a, const core::TriangleMesh& b, double tolerance) {
+  ASSERT_EQ(a.vertices.size(), b.vertices.size());
+  ASSERT_EQ(a.faces.size(), b.faces.size());
+  core::KdTree index(a.vertices);
+  std::vector<uint32_t> to_a(b.vertices.size());
+  std::vector<char> used(a.vertices.size(), 0);
+  double worst = 0;
+  for (size_t v = 0; v < b.vertices.size(); ++v) {
+    const core::Neighbor n = index.Nearest(b.vertices[v]);
+    worst = std::max(worst, static_cast<double>(std::sqrt(n.distance2)));
+    to_a[v] = n.index;
+    EXPECT_FALSE(used[n.index]) << "two vertices near vertex " << n.index;
+    used[n.index] = 1;
+  }
+  EXPECT_LE(worst, tolerance);
+  auto sorted = [](core::Triangle t) {
+    // The same triangle up to a rotation of its corners (orientation kept).
+    const auto first = std::min_element(t.begin(), t.end()) - t.begin();
+    std::rotate(t.begin(), t.begin() + first, t.end());
+    return t;
+  };
+  std::vector<core::Triangle> fa, fb;
+  for (const core::Triangle& t : a.faces) fa.push_back(sorted(t));
+  for (core::Triangle t : b.faces) {
+    for (uint32_t& v : t) v = to_a[v];
+    fb.push_back(sorted(t));
+  }
+  std::sort(fa.begin(), fa.end());
+  std::sort(fb.begin(), fb.end());
+  EXPECT_TRUE(fa == fb) << "the tiled faces are not the untiled ones";
+}
+
+void ExpectClosed(const core::TriangleMesh& mesh, int euler) {
+  const core::MeshTopology welded = core::AnalyzeTopology(core::WeldByPosition(mesh));
+  EXPECT_TRUE(welded.watertight());
+  EXPECT_TRUE(welded.consistently_oriented());
+  EXPECT_EQ(welded.components, 1);
+  EXPECT_EQ(welded.euler_characteristic(), euler);
+}
+
+PuExtractParams RawMarching() {
+  PuExtractParams extract;
+  extract.marching.relax_steps = 0;
+  extract.marching.crease_angle = 0;
+  return extract;
+}
+
+TEST(PuTiles, ASphereInManyTilesIsTheUntiledSphere) {
+  const core::PointCloud cloud = testing::SphereCloud(20'000);
+  const Runs raw = RunBoth(cloud, RawMarching(), {.tile_points = 4'000, .support_cap = 8});
+  EXPECT_EQ(raw.stats.tiles, 8);
+  ExpectSameMesh(raw.whole, raw.tiled, 1e-9 * raw.diagonal);
+  ExpectClosed(raw.tiled, 2);
+  // Finished per tile, the seams fixed: still closed, the same surface.
+  const Runs finished = RunBoth(cloud, PuExtractParams{}, {.tile_points = 4'000, .support_cap = 8});
+  ExpectClosed(finished.tiled, 2);
+  EXPECT_EQ(finished.tiled.faces.size(), finished.whole.faces.size());
+  double worst = 0;
+  for (const core::Vec3f& v : finished.tiled.vertices) worst = std::max(worst, std::abs(v.cast<double>().norm() - 1));
+  EXPECT_LT(worst, 1e-3);
+}
+
+// A CAD part longer than its margins: the tiles at one end never see the other end's points.
+TEST(PuTiles, ALongDrilledBlockInManyTilesIsTheUntiledBlock) {
+  const core::PointCloud cloud = testing::DrilledBlockCloud(30'000, 4.0, 0.6, 0.3, 0.3);
+  const Runs raw = RunBoth(cloud, RawMarching(), {.tile_points = 5'000, .support_cap = 8});
+  EXPECT_GE(raw.stats.tiles, 8);
+  EXPECT_LT(raw.stats.largest_tile, static_cast<int64_t>(cloud.size()));
+  ExpectSameMesh(raw.whole, raw.tiled, 1e-9 * raw.diagonal);
+  ExpectClosed(raw.tiled, 0);
+  const Runs finished = RunBoth(cloud, PuExtractParams{}, {.tile_points = 5'000, .support_cap = 8});
+  ExpectClosed(finished.tiled, 0);
+  EXPECT_NEAR(core::EnclosedVolume(finished.tiled), core::EnclosedVolume(finished.whole),
+              1e-4 * core::EnclosedVolume(finished.whole));
+}
+
+}  // namespace
+}  // namespace lsqsurf::pu

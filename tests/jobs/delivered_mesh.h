@@ -21,10 +21,14 @@ inline double Statistic(const Statistics& statistics, const std::string& name) {
   return NAN;
 }
 
-inline void ExpectDeliveredKeepsTopology(const std::string& method, const core::PointCloud& cloud, int genus) {
+// `params`: the method's defaults when null. The engine's statistics go to `engine_statistics`.
+inline void ExpectDeliveredKeepsTopology(const std::string& method, const core::PointCloud& cloud, int genus,
+                                         const core::ParamSet* params = nullptr,
+                                         Statistics* engine_statistics = nullptr) {
   core::LocalJobContext ctx;
-  auto result = ReconstructSurface(method, *DefaultParams(method), cloud, ctx);
+  auto result = ReconstructSurface(method, params ? *params : *DefaultParams(method), cloud, ctx);
   ASSERT_TRUE(result.ok()) << result.status();
+  if (engine_statistics != nullptr) *engine_statistics = result->statistics;
   const core::MeshTopology engine = core::AnalyzeTopology(result->mesh);
   ASSERT_TRUE(engine.watertight()) << "the engine's own mesh is open: nothing to keep";
   EXPECT_EQ(engine.euler_characteristic(), 2 - 2 * genus);

@@ -22,6 +22,18 @@ TEST(DeliveredMesh, ACadPartFromOneHundredThousandPoints) {
   ExpectDeliveredKeepsTopology("pu", testing::DrilledBlockCloud(100'000), /*genus=*/1);
 }
 
+// A cloud over tile_points goes tile by tile; the client still gets one closed mesh.
+TEST(DeliveredMesh, ATiledCadPartIsOneClosedMesh) {
+  core::ParamSet params = *DefaultParams("pu");
+  ASSERT_TRUE(params.Set("tile_points", 3000).ok());
+  ASSERT_TRUE(params.Set("support_cap", 8).ok());
+  Statistics statistics;
+  ExpectDeliveredKeepsTopology("pu", testing::DrilledBlockCloud(20'000, 2.0, 0.6, 0.3, 0.3), /*genus=*/1, &params,
+                               &statistics);
+  EXPECT_GE(Statistic(statistics, "tiles"), 4);
+  EXPECT_GT(Statistic(statistics, "seam_vertices"), 0);
+}
+
 TEST(DeliveredMesh, ExplicitBitsAreKeptAsAsked) {
   core::LocalJobContext ctx;
   auto result = ReconstructSurface("iamls", *DefaultParams("iamls"), testing::SphereCloud(3000), ctx);

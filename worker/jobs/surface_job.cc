@@ -86,6 +86,7 @@ const core::ParamTable<PuJobParams>& PuTable() {
     auto* t = new core::ParamTable<PuJobParams>();
     t->Include(&PuJobParams::fit, pu::PuParamTable())
         .Include(&PuJobParams::extract, pu::PuExtractParamTable())
+        .Include(&PuJobParams::tiles, pu::PuTileParamTable())
         .Include(&PuJobParams::normals, NormalsTable())
         .Flag<&PuJobParams::keep_function>("keep_function",
                                            "keep the fitted function with the results (function.lqpu) so that csg "
@@ -231,8 +232,45 @@ void PuStatistics(const pu::PuStats& s, const StatFn& stat) {
   }
 }
 
+void ExtractionStatistics(const extract::IsosurfaceStats& s, const StatFn& stat) {
+  stat("tetrahedra", static_cast<double>(s.tetrahedra));
+  stat("crease_vertices", static_cast<double>(s.crease_vertices));
+  stat("crease_corners", static_cast<double>(s.crease_corners));
+  stat("snapped_corners", static_cast<double>(s.snapped_corners));
+  stat("relaxed_vertices", static_cast<double>(s.relaxed_vertices));
+  stat("flipped_edges", static_cast<double>(s.flipped_edges));
+}
+
+// A cloud of more than tile_points points, tile by tile (pu_tiles.h). No function is kept: there
+// is none whole, and csg and edit jobs need one.
+absl::StatusOr<extract::IsosurfaceResult> RunTiledPu(const PuJobParams& p, const core::PointCloud& cloud,
+                                                     core::JobContext& ctx, const MethodRun& run) {
+  const StatFn& stat = run.stat;
+  const auto start = std::chrono::steady_clock::now();
+  core::SubContext frame_ctx(ctx, "measuring the cloud", 0.0, 0.05);
+  auto frame = pu::MeasureFrame(cloud, p.fit, p.tiles.support_cap, frame_ctx);
+  if (!frame.ok()) return frame.status();
+  stat("frame_seconds", core::SecondsSince(start));
+  pu::PuExtractParams extract = p.extract;
+  extract.max_leaves = LeavesWithin(run.memory_bytes, extract.max_leaves);
+  pu::TiledStats tiled;
+  core::SubContext tiles_ctx(ctx, "fitting and extracting tiles", 0.05, 1.0);
+  auto result = pu::ExtractTiled(cloud, *frame, extract, p.tiles, tiles_ctx, &tiled);
+  if (!result.ok()) return result.status();
+  PuStatistics(tiled.fit, stat);
+  stat("tiles", static_cast<double>(tiled.tiles));
+  stat("tile_level", tiled.tile_level);
+  stat("largest_tile_points", static_cast<double>(tiled.largest_tile));
+  stat("tile_margin", tiled.margin);
+  stat("seam_vertices", static_cast<double>(tiled.seam_vertices));
+  stat("max_support", frame->max_support);
+  ExtractionStatistics(result->stats, stat);
+  return result;
+}
+
 absl::StatusOr<extract::IsosurfaceResult> RunPu(const PuJobParams& p, const core::PointCloud& cloud,
                                                 core::JobContext& ctx, const MethodRun& run) {
+  if (static_cast<int64_t>(cloud.size()) > p.tiles.tile_points) return RunTiledPu(p, cloud, ctx, run);
   const StatFn& stat = run.stat;
   const KeepFn& keep = run.keep;
   core::SubContext build_ctx(ctx, "fitting", 0.0, 0.4);
@@ -247,12 +285,7 @@ absl::StatusOr<extract::IsosurfaceResult> RunPu(const PuJobParams& p, const core
   auto extracted = pu::Extract(**field, extract, extract_ctx);
   if (extracted.ok()) {
     stat("extract_seconds", core::SecondsSince(start));
-    stat("tetrahedra", static_cast<double>(extracted->stats.tetrahedra));
-    stat("crease_vertices", static_cast<double>(extracted->stats.crease_vertices));
-    stat("crease_corners", static_cast<double>(extracted->stats.crease_corners));
-    stat("snapped_corners", static_cast<double>(extracted->stats.snapped_corners));
-    stat("relaxed_vertices", static_cast<double>(extracted->stats.relaxed_vertices));
-    stat("flipped_edges", static_cast<double>(extracted->stats.flipped_edges));
+    ExtractionStatistics(extracted->stats, stat);
     if (p.keep_function) {
       const auto keep_start = std::chrono::steady_clock::now();
       std::string bytes = pu::SerializePu(**field);

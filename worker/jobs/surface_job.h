@@ -22,6 +22,7 @@
 #include "worker/mls/gaussian_mls.h"
 #include "worker/mls/iamls.h"
 #include "worker/pu/pu.h"
+#include "worker/pu/pu_tiles.h"
 
 namespace lsqsurf::jobs {
 
@@ -68,6 +69,7 @@ using ImlsJobParams = GaussianJobParams<mls::GaussianFit::kKolluri>;
 struct PuJobParams {
   pu::PuParams fit;
   pu::PuExtractParams extract;
+  pu::PuTileParams tiles;
   NormalsParams normals;
   bool keep_function = true;  // Store the fitted function (kPuFunctionArtifact) and the traced surface
                               // (kPuSurfaceArtifact) for csg and edit jobs.

@@ -192,9 +192,16 @@ void KeepCrossedTetrahedra(const AdaptiveOctree& tree, const absl::flat_hash_map
 
 absl::StatusOr<IsosurfaceResult> ExtractIsosurfaceOnTree(const ImplicitFunction& field, const AdaptiveOctree& tree,
                                                          std::span<const OctreeCell> start, int64_t max_leaves,
-                                                         const MarchingOptions& marching, JobContext& ctx) {
+                                                         const MarchingOptions& marching, JobContext& ctx,
+                                                         const Box3* within) {
   LSQSURF_RETURN_IF_ERROR(Validate(marching));
   if (start.empty()) return absl::InvalidArgumentError("isosurface extraction needs start cells");
+  auto inside = [&](const OctreeCell& c) {
+    if (within == nullptr) return true;
+    const double edge = tree.CellEdge(c.level);
+    const Vec3d lo = tree.origin() + edge * Vec3d(c.x, c.y, c.z);
+    return (lo.array() <= within->max().array()).all() && ((lo.array() + edge) >= within->min().array()).all();
+  };
   // Follow the surface from leaf to leaf, a batch of leaves at a time: the tetrahedra and
   // neighbours of a leaf are found in parallel, only the shared vertex cache is filled serially.
   core::SubContext track_ctx(ctx, "tracking surface", 0.0, 0.75);
@@ -203,7 +210,8 @@ absl::StatusOr<IsosurfaceResult> ExtractIsosurfaceOnTree(const ImplicitFunction&
   absl::flat_hash_set<uint64_t> visited;
   std::vector<OctreeCell> frontier;
   for (const OctreeCell& cell : start) {
-    if (const OctreeCell* leaf = tree.LeafContaining(cell); leaf && visited.insert(CellKey(*leaf)).second) {
+    if (const OctreeCell* leaf = tree.LeafContaining(cell);
+        leaf && inside(*leaf) && visited.insert(CellKey(*leaf)).second) {
       frontier.push_back(*leaf);
     }
   }
@@ -262,7 +270,7 @@ absl::StatusOr<IsosurfaceResult> ExtractIsosurfaceOnTree(const ImplicitFunction&
         crossed_tets.insert(crossed_tets.end(), w.tets.begin(), w.tets.end());
         if (marching.trace) crossed_cells.resize(crossed_tets.size(), CellKey(leaves[i]));
         for (const OctreeCell& c : w.neighbors) {
-          if (visited.insert(CellKey(c)).second) next.push_back(c);
+          if (inside(c) && visited.insert(CellKey(c)).second) next.push_back(c);
         }
       }
     }

@@ -56,11 +56,13 @@ absl::Status RefineSurfaceBand(AdaptiveOctree& tree, const SurfaceBand& coarse, 
                                JobContext& ctx);
 
 // Extraction on a caller-built, 2:1-balanced tree: follows the surface from the `start` leaves
-// across every leaf that touches a crossed one. Errors: kInvalidArgument (no start leaves),
-// kResourceExhausted (more than `max_leaves` visited), kCancelled.
+// across every leaf that touches a crossed one (with `within`, only leaves whose cube meets it).
+// Errors: kInvalidArgument (no start leaves), kResourceExhausted (more than `max_leaves` visited),
+// kCancelled.
 absl::StatusOr<IsosurfaceResult> ExtractIsosurfaceOnTree(const ImplicitFunction& field, const AdaptiveOctree& tree,
                                                          std::span<const OctreeCell> start, int64_t max_leaves,
-                                                         const MarchingOptions& marching, JobContext& ctx);
+                                                         const MarchingOptions& marching, JobContext& ctx,
+                                                         const Box3* within = nullptr);
 
 // Marching tetrahedra on every tetrahedron of `leaves` (leaves of a balanced tree), traced (each
 // face names its leaf by CellKey), not finished: no creases, no relaxation (PatchJoin comes first).

@@ -255,8 +255,12 @@ absl::StatusOr<TileSurface> ExtractTile(const PuFunction& function, const PuExtr
   raw.relax_steps = 0;
   raw.crease_angle = 0;
   core::SubContext extract_ctx(ctx, "extracting the tile", 0.2, 0.7);
-  auto marched =
-      extract::ExtractIsosurfaceOnTree(function, (*built)->tree, (*built)->start, params.max_leaves, raw, extract_ctx);
+  // Marching is local: the faces in `core` need only the leaves there, plus a coarse cell for the
+  // pinhole and speck rules, which judge clusters of a few leaves.
+  const double context = reach / 4;
+  const core::Box3 marched_box(core.min() - Vec3d::Constant(context), core.max() + Vec3d::Constant(context));
+  auto marched = extract::ExtractIsosurfaceOnTree(function, (*built)->tree, (*built)->start, params.max_leaves, raw,
+                                                  extract_ctx, &marched_box);
   if (!marched.ok()) return marched.status();
   tile.surface = KeepOwnedFaces((*built)->tree, core, *marched, tile.seam);
   built->reset();

@@ -236,8 +236,9 @@ TiledGate GateTiledCell(const BuildContext& bc, const Node& node, const Vec3d& c
   const double reach = capped ? half_diagonal + bc.max_support : support;
   if (bc.region != nullptr && !BallMeetsBox(centre, reach, *bc.region)) return TiledGate::kLeaf;
   if (!capped) return TiledGate::kProcess;
-  // A fit below this cell would read points within kMaxRadiusGrowth supports of its centre.
-  const double data_reach = half_diagonal + kMaxRadiusGrowth * bc.max_support;
+  // A fit below this cell would read points within max_support of its centre (fitting balls
+  // grow no farther in a tiled build).
+  const double data_reach = half_diagonal + bc.max_support;
   if (holds_points || bc.impl.cloud->kd_tree->Nearest(centre.cast<float>()).distance2 <= data_reach * data_reach) {
     return TiledGate::kSplit;
   }
@@ -286,8 +287,8 @@ CellOutcome ProcessCell(const BuildContext& bc, const Node& node, std::span<uint
   double fit_radius = support;
   if (s.neighbors.size() < static_cast<size_t>(params.min_points)) {
     impl.cloud->kd_tree->Knn(query, static_cast<size_t>(params.min_points), s.neighbors);
-    fit_radius =
-        std::min(kMaxRadiusGrowth * support, 1.05 * std::sqrt(static_cast<double>(s.neighbors.back().distance2)));
+    fit_radius = std::min({kMaxRadiusGrowth * support, std::max(support, bc.max_support),
+                           1.05 * std::sqrt(static_cast<double>(s.neighbors.back().distance2))});
     impl.cloud->kd_tree->Radius(query, static_cast<float>(fit_radius), s.neighbors);
     if (bc.canonical_order) CanonicalOrder(impl.cloud->positions, bc.normals, s.neighbors);
   }

@@ -219,8 +219,9 @@ struct BuildContext {
   double error_bound;  // ε0 in model units.
   double cos_max_angle;
   SharpParams sharp;
-  // Tiled builds (pu_tiles.h): no cell whose support radius exceeds `max_support` is fitted, so
-  // that every decision reads only points within 5 × max_support of the region it serves;
+  // Tiled builds (pu_tiles.h): no cell whose support radius exceeds `max_support` is fitted and
+  // no fitting ball grows beyond it, so that every decision reads only points within
+  // 2 × max_support of the region it serves;
   // neighbours are taken in a canonical order, so that sums do not depend on which points the
   // kd-tree holds besides; and with `region`, cells whose supports cannot reach it are not grown.
   double max_support = std::numeric_limits<double>::infinity();

@@ -17,8 +17,9 @@ const core::ParamTable<PuTileParams>& PuTileParamTable() {
     t->Integer<&PuTileParams::tile_points>("tile_points", 1000, 1'000'000'000, "points",
                                            "clouds of more points are reconstructed tile by tile, each tile holding "
                                            "at most this many; memory per tile follows it");
-    t->Real<&PuTileParams::support_cap>("support_cap", 8, 512, "mean point spacings",
-                                        "largest support radius of a tiled build; tile margins are about 5 of these");
+    t->Real<&PuTileParams::support_cap>(
+        "support_cap", 8, 512, "mean point spacings",
+        "largest support radius of a tiled build; fitting balls grow no farther; tile margins are about 2 of these");
     return t;
   }();
   return *table;
@@ -176,8 +177,8 @@ absl::StatusOr<extract::IsosurfaceResult> ExtractTiled(const core::PointCloud& c
   s = {};
   const TileGrid grid = ChooseTiles(cloud, frame, tiles.tile_points);
   const double reach = ExtractionReach(frame.root_edge, frame.mean_spacing, params);
-  // F over a tile and its extraction reach reads points within 5 max_support of that.
-  s.margin = reach + 5 * frame.max_support * (1 + 1e-9);
+  // F over a tile and its extraction reach reads points within 2 max_support of that.
+  s.margin = reach + 2 * frame.max_support * (1 + 1e-9);
   s.tile_level = grid.level;
   // Faces come from leaves near the data: within the reach of a point, or the coverage distance.
   const double near = reach + 1.25 * frame.max_support;

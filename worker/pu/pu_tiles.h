@@ -4,7 +4,7 @@
 // it, and each fit only on the points near its cell. A tiled build fixes what is global once
 // (the frame: root cube, diagonal, mean spacing, noise and the effective parameters) and bounds
 // every support by `max_support`, so that a cell's decisions read only points within
-// 5 × max_support of the region its support meets. A tile (a cube of the fitting octree) then
+// 2 × max_support of the region its support meets. A tile (a cube of the fitting octree) then
 // builds F from the points within its margin and gets, over its cube, the whole cloud's F to the
 // last bit; its J1a extraction tree, grown over the cube and ExtractionReach, has the whole
 // tree's leaves inside the cube. Each tile keeps the faces of the leaves centred in its cube:
@@ -31,8 +31,9 @@ struct PuTileParams {
   // Memory per tile follows it (about 2 KB a point for build and extraction).
   int64_t tile_points = 4'000'000;
   // The largest support radius of a tiled build, in mean point spacings (8..512). Larger cells
-  // are split without a fit; margins are 5 of these plus four coarse extraction cells.
-  double support_cap = 32;
+  // are split without a fit and no fitting ball grows past it; margins are 2 of these plus four
+  // coarse extraction cells.
+  double support_cap = 64;
 };
 
 const core::ParamTable<PuTileParams>& PuTileParamTable();
@@ -54,7 +55,7 @@ absl::StatusOr<PuFrame> MeasureFrame(const core::PointCloud& cloud, const PuPara
                                      core::JobContext& ctx);
 
 // F of `cloud` in `frame`: with `region`, exact over it (equal to the build over the whole cloud)
-// when `cloud` holds every point within 5 × max_support of it; cells whose supports cannot reach
+// when `cloud` holds every point within 2 × max_support of it; cells whose supports cannot reach
 // it are not grown. Errors: as BuildPu.
 absl::StatusOr<std::unique_ptr<PuFunction>> BuildPuInFrame(const core::PointCloud& cloud, const PuFrame& frame,
                                                            const core::Box3* region, core::JobContext& ctx);

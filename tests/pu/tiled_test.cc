@@ -25,24 +25,21 @@ struct Runs {
 Runs RunBoth(const core::PointCloud& cloud, const PuExtractParams& extract, const PuTileParams& tiles) {
   Runs runs;
   core::LocalJobContext ctx;
-  auto frame = MeasureFrame(cloud, PuParams{}, tiles.support_cap, ctx);
-  EXPECT_TRUE(frame.ok()) << frame.status();
-  if (!frame.ok()) return runs;
-  runs.diagonal = frame->diagonal;
-  auto function = BuildPuInFrame(cloud, *frame, nullptr, ctx);
+  MeshSink sink;
+  auto tiled = ReconstructTiled(CloudSource(cloud, 7000), PuParams{}, extract, tiles, sink, ctx);
+  EXPECT_TRUE(tiled.ok()) << tiled.status();
+  if (!tiled.ok()) return runs;
+  runs.stats = *tiled;
+  runs.tiled = std::move(sink.mesh());
+  EXPECT_EQ(static_cast<int64_t>(runs.tiled.faces.size()), runs.stats.faces);
+  runs.diagonal = runs.stats.frame.diagonal;
+  // The same frame, untiled.
+  auto function = BuildPuInFrame(cloud, runs.stats.frame, nullptr, ctx);
   EXPECT_TRUE(function.ok()) << function.status();
   if (!function.ok()) return runs;
   auto whole = Extract(**function, extract, ctx);
   EXPECT_TRUE(whole.ok()) << whole.status();
   if (whole.ok()) runs.whole = std::move(whole->mesh);
-  int64_t parts = 0;
-  auto tiled = ExtractTiled(cloud, *frame, extract, tiles, ctx, &runs.stats, [&](const TilePart& part) {
-    EXPECT_LE(part.first_face, part.mesh->faces.size());
-    ++parts;
-  });
-  EXPECT_TRUE(tiled.ok()) << tiled.status();
-  if (tiled.ok()) runs.tiled = std::move(tiled->mesh);
-  EXPECT_EQ(parts, runs.stats.tiles);
   std::printf(
       "  %zu points: %lld tiles at level %d (largest %lld points, margin %.3g), %zu / %zu faces, %lld seam "
       "vertices\n",

@@ -246,25 +246,24 @@ void ExtractionStatistics(const extract::IsosurfaceStats& s, const StatFn& stat)
 absl::StatusOr<extract::IsosurfaceResult> RunTiledPu(const PuJobParams& p, const core::PointCloud& cloud,
                                                      core::JobContext& ctx, const MethodRun& run) {
   const StatFn& stat = run.stat;
-  const auto start = std::chrono::steady_clock::now();
-  core::SubContext frame_ctx(ctx, "measuring the cloud", 0.0, 0.05);
-  auto frame = pu::MeasureFrame(cloud, p.fit, p.tiles.support_cap, frame_ctx);
-  if (!frame.ok()) return frame.status();
-  stat("frame_seconds", core::SecondsSince(start));
   pu::PuExtractParams extract = p.extract;
   extract.max_leaves = LeavesWithin(run.memory_bytes, extract.max_leaves);
-  pu::TiledStats tiled;
-  core::SubContext tiles_ctx(ctx, "fitting and extracting tiles", 0.05, 1.0);
-  auto result = pu::ExtractTiled(cloud, *frame, extract, p.tiles, tiles_ctx, &tiled);
-  if (!result.ok()) return result.status();
-  PuStatistics(tiled.fit, stat);
-  stat("tiles", static_cast<double>(tiled.tiles));
-  stat("tile_level", tiled.tile_level);
-  stat("largest_tile_points", static_cast<double>(tiled.largest_tile));
-  stat("tile_margin", tiled.margin);
-  stat("seam_vertices", static_cast<double>(tiled.seam_vertices));
-  stat("max_support", frame->max_support);
-  ExtractionStatistics(result->stats, stat);
+  pu::MeshSink sink;
+  auto tiled = pu::ReconstructTiled(pu::CloudSource(cloud), p.fit, extract, p.tiles, sink, ctx);
+  if (!tiled.ok()) return tiled.status();
+  PuStatistics(tiled->fit, stat);
+  stat("measure_seconds", tiled->measure_seconds);
+  stat("tiles", static_cast<double>(tiled->tiles));
+  stat("tile_level", tiled->tile_level);
+  stat("largest_tile_points", static_cast<double>(tiled->largest_tile));
+  stat("tile_margin", tiled->margin);
+  stat("tile_scratch_bytes", static_cast<double>(tiled->scratch_bytes));
+  stat("seam_vertices", static_cast<double>(tiled->seam_vertices));
+  stat("max_support", tiled->frame.max_support);
+  ExtractionStatistics(tiled->extract, stat);
+  extract::IsosurfaceResult result;
+  result.stats = tiled->extract;
+  result.mesh = std::move(sink.mesh());
   return result;
 }
 

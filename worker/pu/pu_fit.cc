@@ -407,13 +407,19 @@ absl::Status MeasureSpacing(PuFunction::Impl& impl, bool coverage_check, float s
   return absl::OkStatus();
 }
 
-// Noise-aware bounds: a largest-error test cannot pass below about 3σ on noisy points, and fits
-// over few noisy points follow the noise (blobs, bumps), so where the noise exceeds the requested
-// accuracy both are raised.
 PuParams NoiseAwareParams(const core::KdTree& kd_tree, std::span<const Vec3f> normals, const PuParams& params,
                           double diagonal, PuStats& stats) {
   const core::NoiseEstimate noise =
       core::EstimateNoise(kd_tree, normals, params.noise_level >= 0 ? params.noise_level * diagonal : -1.0);
+  return EffectiveParams(params, noise, diagonal, stats);
+}
+
+}  // namespace
+
+// Noise-aware bounds: a largest-error test cannot pass below about 3σ on noisy points, and fits
+// over few noisy points follow the noise (blobs, bumps), so where the noise exceeds the requested
+// accuracy both are raised.
+PuParams EffectiveParams(const PuParams& params, const core::NoiseEstimate& noise, double diagonal, PuStats& stats) {
   stats.noise_estimate = noise.sigma / diagonal;
   PuParams effective = params;
   if (stats.noise_estimate > params.error_threshold) {
@@ -427,8 +433,6 @@ PuParams NoiseAwareParams(const core::KdTree& kd_tree, std::span<const Vec3f> no
   stats.min_points = effective.min_points;
   return effective;
 }
-
-}  // namespace
 
 // The fitting tree below the `current` leaves, level by level: every cell of a level is fitted in
 // parallel, then split or kept (with its fit) in order, so the tree does not depend on the thread
@@ -576,29 +580,6 @@ absl::StatusOr<std::unique_ptr<PuFunction>> BuildPu(const core::PointCloud& clou
   impl.params = NoiseAwareParams(*impl.cloud->kd_tree, impl.cloud->normals, params, diagonal, stats);
   const BuildContext bc(impl.params, impl, impl.cloud->normals, impl.params.error_threshold * diagonal);
   return GrowAndIndex(bc, std::move(built), start, ctx);
-}
-
-absl::StatusOr<PuFrame> MeasureFrame(const core::PointCloud& cloud, const PuParams& params, double support_cap,
-                                     core::JobContext& ctx) {
-  LSQSURF_RETURN_IF_ERROR(Validate(params));
-  LSQSURF_RETURN_IF_ERROR(CheckCloud(cloud));
-  if (!(support_cap > 0)) return absl::InvalidArgumentError("support_cap must be positive");
-  std::unique_ptr<PuFunction::Impl> ordered = OrderedCopy(cloud);
-  const PointData& points = *ordered->cloud;
-  PuFrame frame;
-  const core::Box3 box = core::BoundingBox(points.positions);
-  frame.diagonal = core::Diagonal(box);
-  if (!(frame.diagonal > 0)) return absl::InvalidArgumentError("all points coincide");
-  RootCube(box, frame.origin, frame.root_edge);
-  frame.mean_spacing = core::MeanNearestNeighborDistance(*points.kd_tree);
-  LSQSURF_RETURN_IF_ERROR(ctx.CheckCancelled());
-  PuStats stats;
-  frame.params = NoiseAwareParams(*points.kd_tree, points.normals, params, frame.diagonal, stats);
-  frame.noise_estimate = stats.noise_estimate;
-  // Never below the support of the deepest cells, which cannot be split further.
-  const double deepest_support = params.support_factor * kSqrt3 * std::ldexp(frame.root_edge, -params.max_depth);
-  frame.max_support = std::max(support_cap * frame.mean_spacing, deepest_support * (1 + 1e-9));
-  return frame;
 }
 
 absl::StatusOr<std::unique_ptr<PuFunction>> BuildPuInFrame(const core::PointCloud& cloud, const PuFrame& frame,

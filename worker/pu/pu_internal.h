@@ -13,6 +13,7 @@
 #include <vector>
 
 #include "worker/core/kd_tree.h"
+#include "worker/core/noise.h"
 #include "worker/pu/orthogonal_fit.h"
 #include "worker/pu/pu.h"
 #include "worker/pu/sharp_fit.h"
@@ -273,6 +274,11 @@ absl::Status IndexInfluence(PuFunction::Impl& impl, core::JobContext& ctx);
 absl::Status UpdateInfluence(const PuFunction::Impl& before, PuFunction::Impl& after, std::span<const int32_t> touched,
                              std::span<const int32_t> new_fits, std::span<const int32_t> renumber,
                              core::JobContext& ctx);
+
+// The parameters the fits use on a cloud of scan noise `noise`: where σ exceeds error_threshold,
+// the threshold becomes 3σ, min_points at least 80 and sharp fits are off (pu_fit.cc). Fills the
+// noise, threshold and min_points of `stats`.
+PuParams EffectiveParams(const PuParams& params, const core::NoiseEstimate& noise, double diagonal, PuStats& stats);
 
 // How far beyond a box the extraction tree must be built for its leaves inside the box to be the
 // whole tree's: four cells of the coarsest level Extract keeps around the data (pu_extract.cc).

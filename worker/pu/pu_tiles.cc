@@ -1,13 +1,17 @@
 #include "worker/pu/pu_tiles.h"
 
 #include <algorithm>
+#include <chrono>
 #include <cmath>
 
 #include "absl/container/flat_hash_map.h"
 #include "absl/container/flat_hash_set.h"
+#include "worker/core/kd_tree.h"
+#include "worker/core/noise.h"
 #include "worker/core/status.h"
 #include "worker/core/strings.h"
 #include "worker/pu/pu_internal.h"
+#include "worker/pu/tile_files.h"
 
 namespace lsqsurf::pu {
 
@@ -17,120 +21,271 @@ const core::ParamTable<PuTileParams>& PuTileParamTable() {
     t->Integer<&PuTileParams::tile_points>("tile_points", 1000, 1'000'000'000, "points",
                                            "clouds of more points are reconstructed tile by tile, each tile holding "
                                            "at most this many; memory per tile follows it");
-    t->Real<&PuTileParams::support_cap>(
-        "support_cap", 8, 512, "mean point spacings",
-        "largest support radius of a tiled build; fitting balls grow no farther; tile margins are about 2 of these");
+    t->Real<&PuTileParams::support_cap>("support_cap", 8, 512, "mean point spacings",
+                                        "largest support radius of a tiled build; fitting balls grow no farther; "
+                                        "tile margins are about 2 of these");
     return t;
   }();
   return *table;
 }
 
-namespace {
-
-// Deepest level the tiles may have: 2^30 cells per axis keep the keys in 64 bits.
-constexpr int kMaxTileLevel = 20;
-
-struct TileGrid {
-  core::Vec3d origin;
-  double edge = 0;
-  int level = 0;
-  int64_t cells = 1;  // Per axis.
-
-  std::array<int64_t, 3> CellOf(const core::Vec3d& p) const {
-    std::array<int64_t, 3> c{};
-    for (int k = 0; k < 3; ++k) {
-      c[static_cast<size_t>(k)] =
-          std::clamp<int64_t>(static_cast<int64_t>(std::floor((p[k] - origin[k]) / edge)), 0, cells - 1);
+absl::Status CloudSource::ForEachChunk(const std::function<absl::Status(const core::PointCloud&)>& visit) const {
+  core::PointCloud chunk;
+  for (size_t begin = 0; begin < cloud_.size(); begin += chunk_points_) {
+    const size_t end = std::min(cloud_.size(), begin + chunk_points_);
+    chunk.positions.assign(cloud_.positions.begin() + static_cast<ptrdiff_t>(begin),
+                           cloud_.positions.begin() + static_cast<ptrdiff_t>(end));
+    chunk.normals.clear();
+    if (cloud_.has_normals()) {
+      chunk.normals.assign(cloud_.normals.begin() + static_cast<ptrdiff_t>(begin),
+                           cloud_.normals.begin() + static_cast<ptrdiff_t>(end));
     }
-    return c;
+    LSQSURF_RETURN_IF_ERROR(visit(chunk));
   }
-  uint64_t Key(const std::array<int64_t, 3>& c) const {
-    return static_cast<uint64_t>(c[0]) | static_cast<uint64_t>(c[1]) << 21 | static_cast<uint64_t>(c[2]) << 42;
-  }
-  std::array<int64_t, 3> FromKey(uint64_t key) const {
-    constexpr uint64_t kMask = (uint64_t{1} << 21) - 1;
-    return {static_cast<int64_t>(key & kMask), static_cast<int64_t>(key >> 21 & kMask),
-            static_cast<int64_t>(key >> 42)};
-  }
-  // Computed from the integer corner alone, so that neighbours agree on their common side.
-  core::Box3 Cube(const std::array<int64_t, 3>& c) const {
-    const core::Vec3d lo =
-        origin + edge * core::Vec3d(static_cast<double>(c[0]), static_cast<double>(c[1]), static_cast<double>(c[2]));
-    const core::Vec3d hi = origin + edge * core::Vec3d(static_cast<double>(c[0] + 1), static_cast<double>(c[1] + 1),
-                                                       static_cast<double>(c[2] + 1));
-    return core::Box3(lo, hi);
-  }
-  // Calls visit(key) for every cell whose cube grown by `reach` holds p.
-  template <typename Visit>
-  void ForEachCellNear(const core::Vec3d& p, double reach, Visit&& visit) const {
-    const auto lo = CellOf(p - core::Vec3d::Constant(reach));
-    const auto hi = CellOf(p + core::Vec3d::Constant(reach));
-    for (int64_t z = lo[2]; z <= hi[2]; ++z)
-      for (int64_t y = lo[1]; y <= hi[1]; ++y)
-        for (int64_t x = lo[0]; x <= hi[0]; ++x) visit(Key({x, y, z}));
-  }
-};
-
-// The shallowest level of the fitting octree at which no cube holds more than `tile_points`.
-TileGrid ChooseTiles(const core::PointCloud& cloud, const PuFrame& frame, int64_t tile_points) {
-  TileGrid grid{frame.origin, frame.root_edge, 0, 1};
-  while (grid.level < kMaxTileLevel) {
-    int64_t largest = 0;
-    if (grid.level > 0) {
-      absl::flat_hash_map<uint64_t, int64_t> counts;
-      for (const core::Vec3f& p : cloud.positions) {
-        largest = std::max(largest, ++counts[grid.Key(grid.CellOf(p.cast<double>()))]);
-      }
-    } else {
-      largest = static_cast<int64_t>(cloud.size());
-    }
-    if (largest <= tile_points) break;
-    ++grid.level;
-    grid.edge /= 2;
-    grid.cells *= 2;
-  }
-  return grid;
+  return absl::OkStatus();
 }
 
-// Appends a tile's finished surface to the merged mesh, welding its border vertices to those the
-// neighbouring tiles already gave (by lattice edge).
+absl::Status MeshSink::AddTile(const TileOutput& tile) {
+  if (tile.first_vertex + static_cast<int64_t>(tile.vertices.size()) > int64_t{UINT32_MAX}) {
+    return absl::ResourceExhaustedError("the surface has more than 2^32 vertices; write it tile by tile");
+  }
+  mesh_.vertices.insert(mesh_.vertices.end(), tile.vertices.begin(), tile.vertices.end());
+  mesh_.normals.insert(mesh_.normals.end(), tile.normals.begin(), tile.normals.end());
+  if (mesh_.vertex_attributes.empty()) {
+    for (const core::ScalarAttribute& a : tile.attributes) mesh_.vertex_attributes.push_back({a.name, {}});
+  }
+  for (size_t a = 0; a < mesh_.vertex_attributes.size() && a < tile.attributes.size(); ++a) {
+    mesh_.vertex_attributes[a].values.insert(mesh_.vertex_attributes[a].values.end(), tile.attributes[a].values.begin(),
+                                             tile.attributes[a].values.end());
+  }
+  for (const auto& f : tile.faces) {
+    mesh_.faces.push_back({static_cast<uint32_t>(f[0]), static_cast<uint32_t>(f[1]), static_cast<uint32_t>(f[2])});
+  }
+  return absl::OkStatus();
+}
+
+namespace {
+
+// Deepest level the tiles and the histogram may have (21-bit keys per axis).
+constexpr int kMaxTileLevel = 20;
+// The histogram's cells hold about this many points on a surface filling its bounding box.
+constexpr double kHistogramCellPoints = 256;
+
+struct Bounds {
+  int64_t points = 0;
+  core::Box3 box;
+};
+
+absl::StatusOr<Bounds> ScanBounds(const PointSource& source, core::JobContext& ctx) {
+  Bounds bounds;
+  LSQSURF_RETURN_IF_ERROR(source.ForEachChunk([&](const core::PointCloud& chunk) -> absl::Status {
+    if (!chunk.has_normals()) return absl::InvalidArgumentError("PU surfaces need oriented normals");
+    if (const int64_t bad = core::FindNonFinite(chunk.positions); bad >= 0) {
+      return absl::InvalidArgumentError(
+          core::StrCat("point ", bounds.points + bad, " has a coordinate that is not a finite number"));
+    }
+    bounds.box.extend(core::BoundingBox(chunk.positions));
+    bounds.points += static_cast<int64_t>(chunk.size());
+    return ctx.CheckCancelled();
+  }));
+  if (bounds.points < 4) return absl::InvalidArgumentError("PU surfaces need at least 4 points");
+  if (!(core::Diagonal(bounds.box) > 0)) return absl::InvalidArgumentError("all points coincide");
+  return bounds;
+}
+
+// The level whose cells hold about kHistogramCellPoints points of a surface as large as the
+// bounding box's sides: fine enough to place tiles, coarse enough to keep few cells.
+int HistogramLevel(const Bounds& bounds, double root_edge) {
+  const core::Vec3d size = bounds.box.sizes();
+  const double area = std::max(2 * (size.x() * size.y() + size.y() * size.z() + size.z() * size.x()),
+                               size.maxCoeff() * size.maxCoeff());
+  const double edge = std::sqrt(area * kHistogramCellPoints / static_cast<double>(bounds.points));
+  return std::clamp(static_cast<int>(std::lround(std::log2(root_edge / edge))), 1, kMaxTileLevel);
+}
+
+absl::StatusOr<absl::flat_hash_map<uint64_t, int64_t>> Histogram(const PointSource& source, const TileGrid& grid,
+                                                                 core::JobContext& ctx) {
+  absl::flat_hash_map<uint64_t, int64_t> counts;
+  LSQSURF_RETURN_IF_ERROR(source.ForEachChunk([&](const core::PointCloud& chunk) {
+    for (const core::Vec3f& p : chunk.positions) ++counts[TileGrid::Key(grid.CellOf(p.cast<double>()))];
+    return ctx.CheckCancelled();
+  }));
+  return counts;
+}
+
+// The shallowest level at which no cube holds more than `tile_points` (at most the histogram's).
+int TileLevel(const absl::flat_hash_map<uint64_t, int64_t>& histogram, int histogram_level, int64_t tile_points) {
+  for (int level = 0; level < histogram_level; ++level) {
+    const int shift = histogram_level - level;
+    absl::flat_hash_map<uint64_t, int64_t> counts;
+    int64_t largest = 0;
+    for (const auto& [key, count] : histogram) {
+      auto c = TileGrid::FromKey(key);
+      for (int64_t& v : c) v >>= shift;
+      largest = std::max(largest, counts[TileGrid::Key(c)] += count);
+    }
+    if (largest <= tile_points) return level;
+  }
+  return histogram_level;
+}
+
+// The tiles' margins for a mean spacing: four coarse extraction cells for the J1a tree, and two
+// support caps for the fits (BuildPuInFrame); and the reach of the data, within which a tile may
+// own faces.
+struct Margins {
+  double max_support = 0;
+  double extraction = 0;
+  double data = 0;
+  double near = 0;
+};
+
+Margins MarginsFor(double spacing, const PuFrame& frame, const PuParams& fit, const PuExtractParams& extract,
+                   const PuTileParams& tiles) {
+  Margins m;
+  // Never below the support of the deepest cells, which cannot be split further.
+  const double deepest_support = fit.support_factor * kSqrt3 * std::ldexp(frame.root_edge, -fit.max_depth);
+  m.max_support = std::max(tiles.support_cap * spacing, deepest_support * (1 + 1e-9));
+  m.extraction = ExtractionReach(frame.root_edge, spacing, extract);
+  m.data = m.extraction + 2 * m.max_support * (1 + 1e-9);
+  m.near = m.extraction + 1.25 * m.max_support;
+  return m;
+}
+
+// A weighted median: the value below which half the weight lies.
+double WeightedMedian(std::vector<std::pair<double, double>> values) {
+  if (values.empty()) return 0;
+  std::sort(values.begin(), values.end());
+  double total = 0;
+  for (const auto& [value, weight] : values) total += weight;
+  double below = 0;
+  for (const auto& [value, weight] : values) {
+    below += weight;
+    if (below >= total / 2) return value;
+  }
+  return values.back().first;
+}
+
+// The tiles of `grid` near the data and their point files: every tile whose cube, grown by the
+// data margin, holds a point, filled in one pass over the source.
+struct Bucketed {
+  std::vector<uint64_t> keys;  // Sorted.
+  std::unique_ptr<TileBuckets> buckets;
+};
+
+absl::StatusOr<Bucketed> Bucket(const PointSource& source, const TileGrid& grid, const TileGrid& histogram_grid,
+                                const absl::flat_hash_map<uint64_t, int64_t>& histogram, const Margins& margins,
+                                const std::string& directory, core::JobContext& ctx) {
+  absl::flat_hash_set<uint64_t> near;
+  for (const auto& [key, count] : histogram) {
+    grid.ForEachCellMeeting(histogram_grid.Cube(TileGrid::FromKey(key)), margins.near,
+                            [&](uint64_t tile) { near.insert(tile); });
+  }
+  Bucketed out;
+  out.keys.assign(near.begin(), near.end());
+  std::sort(out.keys.begin(), out.keys.end());
+  out.buckets = std::make_unique<TileBuckets>(directory, out.keys);
+  LSQSURF_RETURN_IF_ERROR(source.ForEachChunk([&](const core::PointCloud& chunk) -> absl::Status {
+    for (size_t i = 0; i < chunk.size(); ++i) {
+      absl::Status status;
+      grid.ForEachCellNear(chunk.positions[i].cast<double>(), margins.data, [&](uint64_t key) {
+        if (status.ok()) status = out.buckets->Add(key, chunk.positions[i], chunk.normals[i]);
+      });
+      LSQSURF_RETURN_IF_ERROR(status);
+    }
+    return ctx.CheckCancelled();
+  }));
+  LSQSURF_RETURN_IF_ERROR(out.buckets->Flush());
+  return out;
+}
+
+// The mean nearest-neighbour distance over the points each tile owns, and the scan noise as the
+// median of the tiles' estimates weighted by the points they own.
+struct Measured {
+  double mean_spacing = 0;
+  core::NoiseEstimate noise;
+};
+
+absl::StatusOr<Measured> MeasureTiles(const Bucketed& tiles, const TileGrid& grid, double known_sigma,
+                                      core::JobContext& ctx) {
+  double distance_sum = 0;
+  int64_t counted = 0;
+  std::vector<std::pair<double, double>> sigmas, balls;
+  for (size_t t = 0; t < tiles.keys.size(); ++t) {
+    auto cloud = tiles.buckets->Read(tiles.keys[t]);
+    if (!cloud.ok()) return cloud.status();
+    if (cloud->size() < 2) continue;
+    const core::Box3 cube = grid.Cube(TileGrid::FromKey(tiles.keys[t]));
+    const core::KdTree tree(cloud->positions);
+    int64_t owned = 0;
+    std::vector<core::Neighbor> knn;
+    for (const core::Vec3f& p : cloud->positions) {
+      const core::Vec3d q = p.cast<double>();
+      if (!((q.array() >= cube.min().array()).all() && (q.array() < cube.max().array()).all())) continue;
+      tree.Knn(p, 2, knn);
+      distance_sum += std::sqrt(static_cast<double>(knn.back().distance2));
+      ++owned;
+    }
+    counted += owned;
+    if (owned == 0) continue;
+    const core::NoiseEstimate noise = core::EstimateNoise(tree, cloud->normals, known_sigma);
+    sigmas.emplace_back(noise.sigma, static_cast<double>(owned));
+    balls.emplace_back(noise.points_in_ball, static_cast<double>(owned));
+    ctx.ReportProgress("measuring the tiles", static_cast<double>(t + 1) / static_cast<double>(tiles.keys.size()));
+    LSQSURF_RETURN_IF_ERROR(ctx.CheckCancelled());
+  }
+  if (counted == 0) return absl::InvalidArgumentError("the points have no spacing to size cells by");
+  Measured m;
+  m.mean_spacing = distance_sum / static_cast<double>(counted);
+  m.noise.sigma = known_sigma >= 0 ? known_sigma : WeightedMedian(std::move(sigmas));
+  m.noise.points_in_ball = WeightedMedian(std::move(balls));
+  return m;
+}
+
+// Numbers a tile's vertices in the whole mesh, the border ones shared with the tiles before it
+// (by lattice edge), and hands the tile to the sink.
 class TileWelder {
  public:
-  void Add(TileSurface& tile) {
-    const core::TriangleMesh& mesh = tile.surface.mesh;
-    std::vector<uint32_t> index(mesh.vertices.size());
-    if (merged_.vertex_attributes.empty()) {
-      for (const core::ScalarAttribute& a : mesh.vertex_attributes) merged_.vertex_attributes.push_back({a.name, {}});
-    }
+  explicit TileWelder(SurfaceSink& sink) : sink_(sink) {}
+
+  absl::Status Add(int64_t tile, const TileSurface& part) {
+    const core::TriangleMesh& mesh = part.surface.mesh;
+    std::vector<int64_t> number(mesh.vertices.size());
+    vertices_.clear(), normals_.clear(), faces_.clear();
+    attributes_.assign(mesh.vertex_attributes.size(), {});
+    for (size_t a = 0; a < attributes_.size(); ++a) attributes_[a].name = mesh.vertex_attributes[a].name;
+    const int64_t first = next_;
     for (size_t v = 0; v < mesh.vertices.size(); ++v) {
-      const uint64_t edge = tile.surface.trace.vertex_edges[v];
-      if (tile.seam[v] && edge != 0) {
-        const auto [it, inserted] = seam_.try_emplace(edge, static_cast<uint32_t>(merged_.vertices.size()));
+      const uint64_t edge = part.surface.trace.vertex_edges[v];
+      if (part.seam[v] && edge != 0) {
+        const auto [it, inserted] = seam_.try_emplace(edge, next_);
         if (!inserted) {
-          index[v] = it->second;
+          number[v] = it->second;
           ++shared_;
           continue;
         }
       }
-      index[v] = static_cast<uint32_t>(merged_.vertices.size());
-      merged_.vertices.push_back(mesh.vertices[v]);
-      if (!mesh.normals.empty()) merged_.normals.push_back(mesh.normals[v]);
-      for (size_t a = 0; a < merged_.vertex_attributes.size() && a < mesh.vertex_attributes.size(); ++a) {
-        merged_.vertex_attributes[a].values.push_back(mesh.vertex_attributes[a].values[v]);
+      number[v] = next_++;
+      vertices_.push_back(mesh.vertices[v]);
+      if (!mesh.normals.empty()) normals_.push_back(mesh.normals[v]);
+      for (size_t a = 0; a < attributes_.size(); ++a) {
+        attributes_[a].values.push_back(mesh.vertex_attributes[a].values[v]);
       }
     }
-    for (core::Triangle t : mesh.faces) {
-      for (uint32_t& v : t) v = index[v];
-      merged_.faces.push_back(t);
-    }
+    for (const core::Triangle& t : mesh.faces) faces_.push_back({number[t[0]], number[t[1]], number[t[2]]});
+    faces_total_ += static_cast<int64_t>(faces_.size());
+    return sink_.AddTile(TileOutput{tile, first, vertices_, normals_, attributes_, faces_});
   }
-  core::TriangleMesh& mesh() { return merged_; }
   int64_t shared() const { return shared_; }
+  int64_t vertices() const { return next_; }
+  int64_t faces() const { return faces_total_; }
 
  private:
-  core::TriangleMesh merged_;
-  absl::flat_hash_map<uint64_t, uint32_t> seam_;
-  int64_t shared_ = 0;
+  SurfaceSink& sink_;
+  absl::flat_hash_map<uint64_t, int64_t> seam_;
+  int64_t next_ = 0, shared_ = 0, faces_total_ = 0;
+  std::vector<core::Vec3f> vertices_, normals_;
+  std::vector<core::ScalarAttribute> attributes_;
+  std::vector<std::array<int64_t, 3>> faces_;
 };
 
 void AddStats(const extract::IsosurfaceStats& tile, extract::IsosurfaceStats& sum) {
@@ -143,6 +298,7 @@ void AddStats(const extract::IsosurfaceStats& tile, extract::IsosurfaceStats& su
   sum.restored_triangles += tile.restored_triangles;
   sum.crease_vertices += tile.crease_vertices;
   sum.crease_corners += tile.crease_corners;
+  sum.snapped_corners += tile.snapped_corners;
   sum.relaxed_vertices += tile.relaxed_vertices;
   sum.flipped_edges += tile.flipped_edges;
   sum.tree_seconds += tile.tree_seconds;
@@ -164,87 +320,110 @@ void AddFitStats(const PuStats& tile, PuStats& sum) {
   sum.index_seconds += tile.index_seconds;
 }
 
-}  // namespace
-
-absl::StatusOr<extract::IsosurfaceResult> ExtractTiled(const core::PointCloud& cloud, const PuFrame& frame,
-                                                       const PuExtractParams& params, const PuTileParams& tiles,
-                                                       core::JobContext& ctx, TiledStats* stats,
-                                                       const std::function<void(const TilePart&)>& on_tile) {
-  LSQSURF_RETURN_IF_ERROR(PuTileParamTable().Validate(tiles));
-  LSQSURF_RETURN_IF_ERROR(PuExtractParamTable().Validate(params));
-  TiledStats local_stats;
-  TiledStats& s = stats != nullptr ? *stats : local_stats;
-  s = {};
-  const TileGrid grid = ChooseTiles(cloud, frame, tiles.tile_points);
-  const double reach = ExtractionReach(frame.root_edge, frame.mean_spacing, params);
-  // F over a tile and its extraction reach reads points within 2 max_support of that.
-  s.margin = reach + 2 * frame.max_support * (1 + 1e-9);
-  s.tile_level = grid.level;
-  // Faces come from leaves near the data: within the reach of a point, or the coverage distance.
-  const double near = reach + 1.25 * frame.max_support;
-  absl::flat_hash_map<uint64_t, std::vector<uint32_t>> tile_points;
-  absl::flat_hash_set<uint64_t> near_data;
-  for (size_t i = 0; i < cloud.size(); ++i) {
-    const core::Vec3d p = cloud.positions[i].cast<double>();
-    grid.ForEachCellNear(p, near, [&](uint64_t key) { near_data.insert(key); });
-  }
-  for (size_t i = 0; i < cloud.size(); ++i) {
-    const core::Vec3d p = cloud.positions[i].cast<double>();
-    grid.ForEachCellNear(p, s.margin, [&](uint64_t key) {
-      if (near_data.contains(key)) tile_points[key].push_back(static_cast<uint32_t>(i));
-    });
-  }
-  std::vector<uint64_t> keys(near_data.begin(), near_data.end());
-  std::sort(keys.begin(), keys.end());
-  near_data = {};
-  TileWelder welder;
-  extract::IsosurfaceResult result;
-  for (size_t t = 0; t < keys.size(); ++t) {
-    core::SubContext tile_ctx(ctx, core::StrCat("tile ", t + 1, " of ", keys.size()),
-                              static_cast<double>(t) / static_cast<double>(keys.size()),
-                              static_cast<double>(t + 1) / static_cast<double>(keys.size()));
-    std::vector<uint32_t> indices = std::move(tile_points[keys[t]]);
-    tile_points.erase(keys[t]);
+// Fits and extracts every bucketed tile in key order, handing each part to the welder.
+absl::Status RunTiles(const Bucketed& tiles, const TileGrid& grid, const Margins& margins,
+                      const PuExtractParams& extract, TiledStats& s, TileWelder& welder, core::JobContext& ctx) {
+  const PuFrame& frame = s.frame;
+  const double count = static_cast<double>(tiles.keys.size());
+  for (size_t t = 0; t < tiles.keys.size(); ++t) {
+    core::SubContext tile_ctx(ctx, core::StrCat("tile ", t + 1, " of ", tiles.keys.size()),
+                              static_cast<double>(t) / count, static_cast<double>(t + 1) / count);
     ++s.tiles_examined;
-    if (indices.size() < 4) continue;
-    core::PointCloud part;
-    part.positions.reserve(indices.size());
-    part.normals.reserve(indices.size());
-    for (uint32_t i : indices) {
-      part.positions.push_back(cloud.positions[i]);
-      part.normals.push_back(cloud.normals[i]);
-    }
-    indices = {};
-    s.largest_tile = std::max(s.largest_tile, static_cast<int64_t>(part.size()));
-    const core::Box3 cube = grid.Cube(grid.FromKey(keys[t]));
-    const core::Box3 region(cube.min() - core::Vec3d::Constant(reach), cube.max() + core::Vec3d::Constant(reach));
+    const core::Box3 cube = grid.Cube(TileGrid::FromKey(tiles.keys[t]));
+    // The bucket's margin was sized by the first spacing estimate: only the exact one is read.
+    const core::Vec3d data = core::Vec3d::Constant(margins.data);
+    const core::Box3 needed(cube.min() - data, cube.max() + data);
+    auto part = tiles.buckets->Read(tiles.keys[t], &needed);
+    if (!part.ok()) return part.status();
+    if (part->size() < 4) continue;
+    s.largest_tile = std::max(s.largest_tile, static_cast<int64_t>(part->size()));
+    const core::Vec3d reach = core::Vec3d::Constant(margins.extraction);
+    const core::Box3 region(cube.min() - reach, cube.max() + reach);
     core::SubContext fit_ctx(tile_ctx, "fitting", 0.0, 0.5);
-    auto function = BuildPuInFrame(part, frame, &region, fit_ctx);
+    auto function = BuildPuInFrame(*part, frame, &region, fit_ctx);
     if (!function.ok() && absl::IsFailedPrecondition(function.status())) continue;  // No fit near it.
     if (!function.ok()) return function.status();
-    part = {};
+    *part = {};
     AddFitStats((*function)->stats(), s.fit);
     core::SubContext extract_ctx(tile_ctx, "extracting", 0.5, 1.0);
-    auto surface = ExtractTile(**function, params, cube, extract_ctx);
+    auto surface = ExtractTile(**function, extract, cube, extract_ctx);
     if (!surface.ok()) return surface.status();
     function->reset();
     if (surface->surface.mesh.faces.empty()) continue;
-    ++s.tiles;
-    AddStats(surface->surface.stats, result.stats);
-    const size_t first_face = welder.mesh().faces.size();
-    welder.Add(*surface);
-    if (on_tile) on_tile(TilePart{static_cast<int64_t>(t), &welder.mesh(), first_face});
+    AddStats(surface->surface.stats, s.extract);
+    LSQSURF_RETURN_IF_ERROR(welder.Add(s.tiles++, *surface));
   }
-  LSQSURF_RETURN_IF_ERROR(ctx.CheckCancelled());
+  return ctx.CheckCancelled();
+}
+
+}  // namespace
+
+absl::StatusOr<TiledStats> ReconstructTiled(const PointSource& source, const PuParams& fit,
+                                            const PuExtractParams& extract, const PuTileParams& tiles,
+                                            SurfaceSink& sink, core::JobContext& ctx,
+                                            const std::string& scratch_parent) {
+  LSQSURF_RETURN_IF_ERROR(Validate(fit));
+  LSQSURF_RETURN_IF_ERROR(PuTileParamTable().Validate(tiles));
+  LSQSURF_RETURN_IF_ERROR(PuExtractParamTable().Validate(extract));
+  const auto start = std::chrono::steady_clock::now();
+  TiledStats s;
+  core::SubContext measure_ctx(ctx, "measuring the cloud", 0.0, 0.15);
+  const auto bounds = ScanBounds(source, measure_ctx);
+  if (!bounds.ok()) return bounds.status();
+  s.points = bounds->points;
+  PuFrame& frame = s.frame;
+  frame.diagonal = core::Diagonal(bounds->box);
+  frame.root_edge = 1.2 * bounds->box.sizes().maxCoeff();  // As BuildPu's root cube.
+  frame.origin = bounds->box.center() - core::Vec3d::Constant(frame.root_edge / 2);
+  const int histogram_level = HistogramLevel(*bounds, frame.root_edge);
+  const TileGrid histogram_grid = TileGrid::AtLevel(frame.origin, frame.root_edge, histogram_level);
+  auto histogram = Histogram(source, histogram_grid, measure_ctx);
+  if (!histogram.ok()) return histogram.status();
+  const TileGrid grid =
+      TileGrid::AtLevel(frame.origin, frame.root_edge, TileLevel(*histogram, histogram_level, tiles.tile_points));
+  s.tile_level = grid.level;
+  // A first spacing from the histogram: the area of its occupied cells over the points. It
+  // overestimates the mean nearest-neighbour distance, so margins sized by it hold.
+  double spacing =
+      histogram_grid.edge * std::sqrt(static_cast<double>(histogram->size()) / static_cast<double>(bounds->points));
+  auto scratch = ScratchDir::Create(scratch_parent);
+  if (!scratch.ok()) return scratch.status();
+  const double known_sigma = fit.noise_level >= 0 ? fit.noise_level * frame.diagonal : -1.0;
+  Bucketed bucketed;
+  Measured measured;
+  Margins margins;
+  for (int attempt = 0;; ++attempt) {
+    const Margins bucketed_for = MarginsFor(spacing, frame, fit, extract, tiles);
+    auto b = Bucket(source, grid, histogram_grid, *histogram, bucketed_for, scratch->path(), measure_ctx);
+    if (!b.ok()) return b.status();
+    bucketed = std::move(*b);
+    auto m = MeasureTiles(bucketed, grid, known_sigma, measure_ctx);
+    if (!m.ok()) return m.status();
+    measured = *m;
+    margins = MarginsFor(measured.mean_spacing, frame, fit, extract, tiles);
+    if (margins.data <= bucketed_for.data && margins.near <= bucketed_for.near) break;
+    if (attempt == 2) return absl::InternalError("the tiles' margins do not settle");
+    LSQSURF_RETURN_IF_ERROR(bucketed.buckets->Clear());
+    spacing = 1.1 * measured.mean_spacing;
+  }
+  histogram->clear();
+  frame.mean_spacing = measured.mean_spacing;
+  frame.params = EffectiveParams(fit, measured.noise, frame.diagonal, s.fit);
+  frame.noise_estimate = s.fit.noise_estimate;
+  frame.max_support = margins.max_support;
+  s.margin = margins.data;
+  s.scratch_bytes = bucketed.buckets->TotalBytes();
+  s.measure_seconds = core::SecondsSince(start);
+  TileWelder welder(sink);
+  core::SubContext tiles_ctx(ctx, "fitting and extracting tiles", 0.15, 1.0);
+  LSQSURF_RETURN_IF_ERROR(RunTiles(bucketed, grid, margins, extract, s, welder, tiles_ctx));
   s.seam_vertices = welder.shared();
+  s.vertices = welder.vertices();
+  s.faces = welder.faces();
   s.fit.mean_spacing = frame.mean_spacing;
-  s.fit.noise_estimate = frame.noise_estimate;
-  s.fit.error_threshold = frame.params.error_threshold;
-  s.fit.min_points = frame.params.min_points;
   s.fit.root_edge = frame.root_edge;
-  result.mesh = std::move(welder.mesh());
-  if (result.mesh.faces.empty()) return absl::FailedPreconditionError("no surface could be extracted from the tiles");
-  return result;
+  if (s.faces == 0) return absl::FailedPreconditionError("no surface could be extracted from the tiles");
+  return s;
 }
 
 }  // namespace lsqsurf::pu

@@ -16,11 +16,14 @@
 #include <cstdint>
 #include <functional>
 #include <memory>
+#include <span>
+#include <string>
 
 #include "absl/status/statusor.h"
 #include "worker/core/geometry.h"
 #include "worker/core/job_context.h"
 #include "worker/core/params.h"
+#include "worker/extract/isosurface.h"
 #include "worker/pu/pu.h"
 
 namespace lsqsurf::pu {
@@ -38,7 +41,7 @@ struct PuTileParams {
 
 const core::ParamTable<PuTileParams>& PuTileParamTable();
 
-// What a tiled build fixes for every tile (MeasureFrame).
+// What a tiled build fixes for every tile.
 struct PuFrame {
   core::Vec3d origin = core::Vec3d::Zero();  // The fitting octree's root cube.
   double root_edge = 0;
@@ -49,39 +52,86 @@ struct PuFrame {
   double max_support = 0;     // Model units.
 };
 
-// The frame of `cloud` for `params`, with max_support = support_cap mean spacings (at least the
-// support of the deepest cells). Errors: kInvalidArgument (as BuildPu), kCancelled.
-absl::StatusOr<PuFrame> MeasureFrame(const core::PointCloud& cloud, const PuParams& params, double support_cap,
-                                     core::JobContext& ctx);
-
 // F of `cloud` in `frame`: with `region`, exact over it (equal to the build over the whole cloud)
 // when `cloud` holds every point within 2 × max_support of it; cells whose supports cannot reach
 // it are not grown. Errors: as BuildPu.
 absl::StatusOr<std::unique_ptr<PuFunction>> BuildPuInFrame(const core::PointCloud& cloud, const PuFrame& frame,
                                                            const core::Box3* region, core::JobContext& ctx);
 
+// A cloud read in chunks, as many times as asked: the parts of an upload, a file, a sampler.
+class PointSource {
+ public:
+  virtual ~PointSource() = default;
+  // Calls `visit` with successive chunks of oriented points, the same chunks in the same order on
+  // every call; stops at the first error `visit` returns.
+  virtual absl::Status ForEachChunk(const std::function<absl::Status(const core::PointCloud&)>& visit) const = 0;
+};
+
+// A cloud in memory, in chunks of `chunk_points`.
+class CloudSource final : public PointSource {
+ public:
+  explicit CloudSource(const core::PointCloud& cloud, size_t chunk_points = 1 << 20)
+      : cloud_(cloud), chunk_points_(chunk_points) {}
+  absl::Status ForEachChunk(const std::function<absl::Status(const core::PointCloud&)>& visit) const override;
+
+ private:
+  const core::PointCloud& cloud_;
+  size_t chunk_points_;
+};
+
+// One tile's part of the welded surface: the vertices first seen in this tile (their numbers in
+// the whole mesh follow on from the previous tile's) and its faces in the whole mesh's numbers.
+struct TileOutput {
+  int64_t tile = 0;          // In the order the tiles ran.
+  int64_t first_vertex = 0;  // The whole mesh's number of vertices[0].
+  std::span<const core::Vec3f> vertices;
+  std::span<const core::Vec3f> normals;  // Empty, or one per vertex.
+  std::span<const core::ScalarAttribute> attributes;
+  std::span<const std::array<int64_t, 3>> faces;
+};
+
+// Receives the surface tile by tile (a file writer, a result store, a mesh in memory).
+class SurfaceSink {
+ public:
+  virtual ~SurfaceSink() = default;
+  virtual absl::Status AddTile(const TileOutput& tile) = 0;
+};
+
+// Collects the tiles into one mesh. Errors: kResourceExhausted past 2^32 vertices.
+class MeshSink final : public SurfaceSink {
+ public:
+  absl::Status AddTile(const TileOutput& tile) override;
+  core::TriangleMesh& mesh() { return mesh_; }
+
+ private:
+  core::TriangleMesh mesh_;
+};
+
 struct TiledStats {
+  PuFrame frame;
+  int64_t points = 0;
   int64_t tiles = 0;           // Tiles that made faces.
   int64_t tiles_examined = 0;  // Tiles near the data.
   int tile_level = 0;          // Of the fitting octree.
   int64_t largest_tile = 0;    // Points one tile read, its margin included.
   int64_t seam_vertices = 0;   // Vertices two or more tiles shared.
-  double margin = 0;           // Model units.
-  PuStats fit;                 // Summed over the tiles (fits of margins counted once per tile).
+  int64_t vertices = 0, faces = 0;
+  double margin = 0;                 // Model units.
+  int64_t scratch_bytes = 0;         // The tiles' point files.
+  double measure_seconds = 0;        // Bounds, tiles, bucketing, spacing and noise.
+  PuStats fit;                       // Summed over the tiles (fits of margins counted once per tile).
+  extract::IsosurfaceStats extract;  // Summed over the tiles.
 };
 
-// The surface of `cloud` in `frame`, tile by tile (cloud in memory: the tiles' functions and
-// trees are what stays bounded). Every tile's part is passed to `on_tile` (when set) as soon as it
-// is done, its vertices already numbered as in the final mesh (so a sink can write them out).
-// Errors: as BuildPu and Extract.
-struct TilePart {
-  int64_t index = 0;
-  const core::TriangleMesh* mesh = nullptr;  // The merged mesh so far.
-  size_t first_face = 0;                     // This tile's faces: [first_face, mesh->faces.size()).
-};
-absl::StatusOr<extract::IsosurfaceResult> ExtractTiled(const core::PointCloud& cloud, const PuFrame& frame,
-                                                       const PuExtractParams& params, const PuTileParams& tiles,
-                                                       core::JobContext& ctx, TiledStats* stats = nullptr,
-                                                       const std::function<void(const TilePart&)>& on_tile = {});
+// The PU surface of `source`, tile by tile, with memory bounded by the tile size: the cloud is
+// read three times (bounds; a histogram that sets the tiles; the points bucketed into one file
+// per tile with its margin, under `scratch_parent`), the frame is measured over the tiles (mean
+// nearest-neighbour distance exactly, noise as the median of the tiles'), then each tile is fitted
+// and extracted and its part of the surface handed to `sink`. Errors: kInvalidArgument (no
+// normals, non-finite points, fewer than 4), as BuildPu and Extract, kCancelled.
+absl::StatusOr<TiledStats> ReconstructTiled(const PointSource& source, const PuParams& fit,
+                                            const PuExtractParams& extract, const PuTileParams& tiles,
+                                            SurfaceSink& sink, core::JobContext& ctx,
+                                            const std::string& scratch_parent = "");
 
 }  // namespace lsqsurf::pu

@@ -35,6 +35,7 @@
 #include "worker/io/files.h"
 #include "worker/jobs/method_registry.h"
 #include "worker/jobs/surface_job.h"
+#include "worker/pu/pu_tiles.h"
 #if LSQSURF_WITH_POISSON
 #include "bench/poisson_open3d.h"
 #endif
@@ -158,6 +159,7 @@ struct BenchOptions {
   bool server = false;
   bool drop_normals = false;
   bool show_statistics = false;
+  bool streamed = false;
   std::string save_dir;
   std::string bin_dir;
   int poisson_depth = 0;
@@ -211,6 +213,58 @@ CaseResult RunDirect(const BenchOptions& o, const core::ParamSet& params, const 
       std::fflush(stdout);
     }
     Measure(c.truth, result->mesh, o.samples, r);
+    return r;
+  });
+}
+
+// A cloud sampled from a mesh chunk by chunk (each chunk its own seed), never whole in memory.
+class SampledSource final : public pu::PointSource {
+ public:
+  SampledSource(const core::TriangleMesh& mesh, size_t points, double noise_sigma)
+      : mesh_(mesh), points_(points), noise_sigma_(noise_sigma) {}
+  absl::Status ForEachChunk(const std::function<absl::Status(const core::PointCloud&)>& visit) const override {
+    constexpr size_t kChunk = 1 << 20;
+    for (size_t begin = 0, chunk = 0; begin < points_; begin += kChunk, ++chunk) {
+      LSQSURF_RETURN_IF_ERROR(
+          visit(core::SampleCloud(mesh_, std::min(kChunk, points_ - begin), 1234 + chunk, noise_sigma_)));
+    }
+    return absl::OkStatus();
+  }
+
+ private:
+  const core::TriangleMesh& mesh_;
+  size_t points_;
+  double noise_sigma_;
+};
+
+// The tiled PU engine on a cloud streamed from the sampler (pu_tiles.h): the cloud never sits in
+// memory, so the peak is the engine's own plus the mesh it returns.
+CaseResult RunStreamed(const BenchOptions& o, const core::ParamSet& params, const BenchCase& c) {
+  return InChild([&] {
+    CaseResult r;
+    const auto* p = params.As<jobs::PuJobParams>();
+    if (p == nullptr) return CaseResult{.error = "--streamed runs the pu method only"};
+    core::LocalJobContext ctx;
+    const double diagonal = core::Diagonal(core::BoundingBox(c.truth.vertices));
+    const SampledSource source(c.truth, c.points, c.noise * diagonal);
+    pu::MeshSink sink;
+    const auto start = Clock::now();
+    auto tiled = pu::ReconstructTiled(source, p->fit, p->extract, p->tiles, sink, ctx);
+    r.seconds = Since(start);
+    r.peak_mib = PeakMibSoFar();
+    if (!tiled.ok()) return CaseResult{.error = std::string(tiled.status().message())};
+    std::printf(
+        "  streamed: %.2f s per million points, %lld tiles at level %d (largest %lld points), measuring %.1f s "
+        "(reading and bucketing %.1f s, spacing and noise %.1f s), fitting %.1f s, extracting %.1f s, %.0f MiB "
+        "of tile files, %lld seam vertices\n",
+        r.seconds * 1e6 / static_cast<double>(c.points), static_cast<long long>(tiled->tiles), tiled->tile_level,
+        static_cast<long long>(tiled->largest_tile), tiled->measure_seconds, tiled->scan_seconds,
+        tiled->spacing_seconds, tiled->fit.fit_seconds,
+        tiled->extract.tree_seconds + tiled->extract.tracking_seconds + tiled->extract.marching_seconds +
+            tiled->extract.crease_seconds + tiled->extract.relax_seconds,
+        static_cast<double>(tiled->scratch_bytes) / (1 << 20), static_cast<long long>(tiled->seam_vertices));
+    std::fflush(stdout);
+    Measure(c.truth, sink.mesh(), o.samples, r);
     return r;
   });
 }
@@ -429,6 +483,9 @@ int main(int argc, char** argv) {
   app.add_flag("--server", o.server, "also run every case through lsqsurfd and the lsqsurf client");
   app.add_option("--save", o.save_dir, "write every direct result to DIR/<model>-<points>-<noise>.ply");
   app.add_flag("--stats", o.show_statistics, "print the engine's statistics of every direct run");
+  app.add_flag("--streamed", o.streamed,
+               "pu only: sample each cloud chunk by chunk into the tiled engine (never whole in memory) instead of "
+               "the direct and server runs");
   app.add_flag("--no-normals", o.drop_normals, "drop the sampled normals (the engines estimate them)");
   app.add_option("--bin", o.bin_dir, "folder with lsqsurfd and lsqsurf (default: beside this program)");
   app.add_option("--poisson-depth", o.poisson_depth,
@@ -474,10 +531,14 @@ int main(int argc, char** argv) {
     const double diag = core::Diagonal(core::BoundingBox(truth->vertices));
     for (size_t n : o.sizes) {
       for (double noise : o.noises) {
-        core::PointCloud cloud = core::SampleCloud(*truth, n, 1234, noise * diag);
+        core::PointCloud cloud = o.streamed ? core::PointCloud{} : core::SampleCloud(*truth, n, 1234, noise * diag);
         if (o.drop_normals) cloud.normals.clear();
         for (size_t m = 0; m < o.methods.size(); ++m) {
           const BenchCase c{*truth, cloud, model, n, noise, o.methods[m]};
+          if (o.streamed) {
+            Print(c, "stream", RunStreamed(o, params[m].params, c));
+            continue;
+          }
           const CaseResult direct = RunDirect(o, params[m].params, c);
           Print(c, "direct", direct);
           summary.push_back({core::StrCat(model, "/", n, "/", noise), o.methods[m], direct});

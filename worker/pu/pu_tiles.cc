@@ -8,6 +8,7 @@
 #include "absl/container/flat_hash_set.h"
 #include "worker/core/kd_tree.h"
 #include "worker/core/noise.h"
+#include "worker/core/parallel.h"
 #include "worker/core/status.h"
 #include "worker/core/strings.h"
 #include "worker/pu/pu_internal.h"
@@ -198,46 +199,105 @@ absl::StatusOr<Bucketed> Bucket(const PointSource& source, const TileGrid& grid,
   return out;
 }
 
-// The mean nearest-neighbour distance over the points each tile owns, and the scan noise as the
-// median of the tiles' estimates weighted by the points they own.
+// The mean nearest-neighbour distance and the scan noise, measured on an even sample of the data:
+// the histogram cells whose key hashes to 0 modulo kProbeShare (every cell when a tile has none),
+// with their neighbourhood of half a cell. Both are statistics of the whole cloud, fixed once for
+// every tile; a sample of an eighth of the surface measures them within a fraction of a percent
+// at an eighth of the cost (the kd-trees and queries of every point took longer than reading and
+// bucketing the cloud).
+constexpr uint64_t kProbeShare = 8;
+
+bool IsProbeCell(uint64_t key) { return ((key * 0x9E3779B97F4A7C15ull) >> 32) % kProbeShare == 0; }
+
 struct Measured {
   double mean_spacing = 0;
   core::NoiseEstimate noise;
 };
 
-absl::StatusOr<Measured> MeasureTiles(const Bucketed& tiles, const TileGrid& grid, double known_sigma,
-                                      core::JobContext& ctx) {
+struct ProbeSums {
   double distance_sum = 0;
-  int64_t counted = 0;
-  std::vector<std::pair<double, double>> sigmas, balls;
+  int64_t probes = 0;
+  std::vector<std::pair<double, double>> sigmas, balls;  // Weighted by probes.
+};
+
+// One tile's share: its points near probe cells, the nearest-neighbour distance of those inside
+// them, and the noise of that sample.
+absl::Status MeasureTile(const core::PointCloud& cloud, const core::Box3& cube, const TileGrid& histogram_grid,
+                         const absl::flat_hash_set<uint64_t>& probe_cells, double known_sigma, ProbeSums& sums,
+                         core::JobContext& ctx) {
+  const double reach = histogram_grid.edge / 2;
+  core::PointCloud sample;
+  std::vector<char> probe;
+  for (size_t i = 0; i < cloud.size(); ++i) {
+    const core::Vec3d p = cloud.positions[i].cast<double>();
+    bool near = false;
+    histogram_grid.ForEachCellNear(p, reach, [&](uint64_t key) { near = near || probe_cells.contains(key); });
+    if (!near) continue;
+    sample.positions.push_back(cloud.positions[i]);
+    sample.normals.push_back(cloud.normals[i]);
+    const bool owned = (p.array() >= cube.min().array()).all() && (p.array() < cube.max().array()).all();
+    probe.push_back(owned && probe_cells.contains(TileGrid::Key(histogram_grid.CellOf(p))));
+  }
+  if (sample.size() < 2) return absl::OkStatus();
+  const core::KdTree tree(sample.positions);
+  std::vector<double> distance(sample.size(), -1);
+  LSQSURF_RETURN_IF_ERROR(core::ParallelFor(
+      sample.size(), 4096,
+      [&](size_t b, size_t e) {
+        std::vector<core::Neighbor> knn;
+        for (size_t i = b; i < e; ++i) {
+          if (!probe[i]) continue;
+          tree.Knn(sample.positions[i], 2, knn);
+          distance[i] = std::sqrt(static_cast<double>(knn.back().distance2));
+        }
+      },
+      &ctx));
+  int64_t probes = 0;
+  for (double d : distance) {
+    if (d < 0) continue;
+    sums.distance_sum += d;
+    ++probes;
+  }
+  if (probes == 0) return absl::OkStatus();
+  sums.probes += probes;
+  const core::NoiseEstimate noise = core::EstimateNoise(tree, sample.normals, known_sigma);
+  sums.sigmas.emplace_back(noise.sigma, static_cast<double>(probes));
+  sums.balls.emplace_back(noise.points_in_ball, static_cast<double>(probes));
+  return absl::OkStatus();
+}
+
+absl::StatusOr<Measured> MeasureTiles(const Bucketed& tiles, const TileGrid& grid, const TileGrid& histogram_grid,
+                                      const absl::flat_hash_map<uint64_t, int64_t>& histogram, double known_sigma,
+                                      core::JobContext& ctx) {
+  // The probe cells of each tile: its hashed share, or all of its cells where that is none.
+  absl::flat_hash_map<uint64_t, std::vector<uint64_t>> cells_of_tile;
+  for (const auto& [key, count] : histogram) {
+    const core::Box3 cell = histogram_grid.Cube(TileGrid::FromKey(key));
+    cells_of_tile[TileGrid::Key(grid.CellOf(cell.center()))].push_back(key);
+  }
+  ProbeSums sums;
   for (size_t t = 0; t < tiles.keys.size(); ++t) {
-    auto cloud = tiles.buckets->Read(tiles.keys[t]);
-    if (!cloud.ok()) return cloud.status();
-    if (cloud->size() < 2) continue;
-    const core::Box3 cube = grid.Cube(TileGrid::FromKey(tiles.keys[t]));
-    const core::KdTree tree(cloud->positions);
-    int64_t owned = 0;
-    std::vector<core::Neighbor> knn;
-    for (const core::Vec3f& p : cloud->positions) {
-      const core::Vec3d q = p.cast<double>();
-      if (!((q.array() >= cube.min().array()).all() && (q.array() < cube.max().array()).all())) continue;
-      tree.Knn(p, 2, knn);
-      distance_sum += std::sqrt(static_cast<double>(knn.back().distance2));
-      ++owned;
+    const auto cells = cells_of_tile.find(tiles.keys[t]);
+    if (cells == cells_of_tile.end()) continue;
+    absl::flat_hash_set<uint64_t> probe_cells;
+    for (uint64_t key : cells->second) {
+      if (IsProbeCell(key)) probe_cells.insert(key);
     }
-    counted += owned;
-    if (owned == 0) continue;
-    const core::NoiseEstimate noise = core::EstimateNoise(tree, cloud->normals, known_sigma);
-    sigmas.emplace_back(noise.sigma, static_cast<double>(owned));
-    balls.emplace_back(noise.points_in_ball, static_cast<double>(owned));
+    if (probe_cells.empty()) probe_cells.insert(cells->second.begin(), cells->second.end());
+    const core::Box3 cube = grid.Cube(TileGrid::FromKey(tiles.keys[t]));
+    const core::Vec3d reach = core::Vec3d::Constant(histogram_grid.edge);
+    const core::Box3 needed(cube.min() - reach, cube.max() + reach);
+    auto cloud = tiles.buckets->Read(tiles.keys[t], &needed);
+    if (!cloud.ok()) return cloud.status();
+    LSQSURF_RETURN_IF_ERROR(MeasureTile(*cloud, cube, histogram_grid, probe_cells, known_sigma, sums, ctx));
     ctx.ReportProgress("measuring the tiles", static_cast<double>(t + 1) / static_cast<double>(tiles.keys.size()));
     LSQSURF_RETURN_IF_ERROR(ctx.CheckCancelled());
   }
-  if (counted == 0) return absl::InvalidArgumentError("the points have no spacing to size cells by");
+  if (sums.probes == 0) return absl::InvalidArgumentError("the points have no spacing to size cells by");
   Measured m;
-  m.mean_spacing = distance_sum / static_cast<double>(counted);
-  m.noise.sigma = known_sigma >= 0 ? known_sigma : WeightedMedian(std::move(sigmas));
-  m.noise.points_in_ball = WeightedMedian(std::move(balls));
+  m.mean_spacing = sums.distance_sum / static_cast<double>(sums.probes);
+  m.noise.sigma = known_sigma >= 0 ? known_sigma : WeightedMedian(std::move(sums.sigmas));
+  m.noise.points_in_ball = WeightedMedian(std::move(sums.balls));
   return m;
 }
 
@@ -397,7 +457,10 @@ absl::StatusOr<TiledStats> ReconstructTiled(const PointSource& source, const PuP
     auto b = Bucket(source, grid, histogram_grid, *histogram, bucketed_for, scratch->path(), measure_ctx);
     if (!b.ok()) return b.status();
     bucketed = std::move(*b);
-    auto m = MeasureTiles(bucketed, grid, known_sigma, measure_ctx);
+    s.scan_seconds = core::SecondsSince(start) - s.spacing_seconds;
+    const auto spacing_start = std::chrono::steady_clock::now();
+    auto m = MeasureTiles(bucketed, grid, histogram_grid, *histogram, known_sigma, measure_ctx);
+    s.spacing_seconds += core::SecondsSince(spacing_start);
     if (!m.ok()) return m.status();
     measured = *m;
     margins = MarginsFor(measured.mean_spacing, frame, fit, extract, tiles);

@@ -118,7 +118,9 @@ struct TiledStats {
   int64_t vertices = 0, faces = 0;
   double margin = 0;                 // Model units.
   int64_t scratch_bytes = 0;         // The tiles' point files.
-  double measure_seconds = 0;        // Bounds, tiles, bucketing, spacing and noise.
+  double measure_seconds = 0;        // Bounds, tiles, bucketing, spacing and noise; of which
+  double scan_seconds = 0;           //   the passes over the source (bounds, histogram, buckets),
+  double spacing_seconds = 0;        //   and the spacing and noise over the tiles.
   PuStats fit;                       // Summed over the tiles (fits of margins counted once per tile).
   extract::IsosurfaceStats extract;  // Summed over the tiles.
 };

@@ -5,6 +5,7 @@
 #include <algorithm>
 #include <array>
 #include <cstdio>
+#include <random>
 
 #include "absl/container/flat_hash_map.h"
 #include "tests/test_shapes.h"
@@ -124,6 +125,33 @@ TEST(PuTiles, ALongDrilledBlockInManyTilesIsTheUntiledBlock) {
   ExpectClosed(finished.tiled, 0);
   EXPECT_NEAR(core::EnclosedVolume(finished.tiled), core::EnclosedVolume(finished.whole),
               1e-4 * core::EnclosedVolume(finished.whole));
+}
+
+// The frame's noise is the median of the tiles' estimates: on a noisy sphere it is the untiled
+// estimate's, the effective parameters follow it, and the tiles still close.
+TEST(PuTiles, ANoisySphereGetsTheNoiseOfTheWholeCloud) {
+  core::PointCloud cloud = testing::SphereCloud(20'000);
+  std::mt19937_64 rng(3);
+  const double sigma = 0.004;  // 0.12 % of the diagonal (2 sqrt 3).
+  std::normal_distribution<double> noise(0, sigma);
+  for (size_t i = 0; i < cloud.size(); ++i) {
+    cloud.positions[i] += (noise(rng) * cloud.normals[i].cast<double>()).cast<float>();
+  }
+  core::LocalJobContext ctx;
+  auto whole = BuildPu(cloud, PuParams{}, ctx);
+  ASSERT_TRUE(whole.ok()) << whole.status();
+  MeshSink sink;
+  auto tiled = ReconstructTiled(CloudSource(cloud), PuParams{}, PuExtractParams{}, {.tile_points = 4'000}, sink, ctx);
+  ASSERT_TRUE(tiled.ok()) << tiled.status();
+  const double truth = sigma / tiled->frame.diagonal;
+  std::printf("  noise: true %.3g, untiled %.3g, tiled %.3g; threshold %.3g\n", truth, (*whole)->stats().noise_estimate,
+              tiled->frame.noise_estimate, tiled->frame.params.error_threshold);
+  EXPECT_NEAR(tiled->frame.noise_estimate, (*whole)->stats().noise_estimate, 0.15 * truth);
+  EXPECT_NEAR(tiled->frame.noise_estimate, truth, 0.3 * truth);
+  EXPECT_EQ(tiled->frame.params.error_threshold, 3 * tiled->frame.noise_estimate);
+  EXPECT_NEAR(tiled->frame.mean_spacing, (*whole)->stats().mean_spacing, 0.03 * (*whole)->stats().mean_spacing);
+  EXPECT_GE(tiled->tiles, 8);
+  ExpectClosed(sink.mesh(), 2);
 }
 
 }  // namespace

@@ -26,7 +26,7 @@ TEST(DeliveredMesh, ACadPartFromOneHundredThousandPoints) {
 TEST(DeliveredMesh, ATiledCadPartIsOneClosedMesh) {
   core::ParamSet params = *DefaultParams("pu");
   ASSERT_TRUE(params.Set("tile_points", 3000).ok());
-  ASSERT_TRUE(params.Set("support_cap", 8).ok());
+  ASSERT_TRUE(params.Set("support_cap", 16).ok());
   Statistics statistics;
   ExpectDeliveredKeepsTopology("pu", testing::DrilledBlockCloud(20'000, 2.0, 0.6, 0.3, 0.3), /*genus=*/1, &params,
                                &statistics);

@@ -100,12 +100,12 @@ PuExtractParams RawMarching() {
 
 TEST(PuTiles, ASphereInManyTilesIsTheUntiledSphere) {
   const core::PointCloud cloud = testing::SphereCloud(20'000);
-  const Runs raw = RunBoth(cloud, RawMarching(), {.tile_points = 4'000, .support_cap = 8});
+  const Runs raw = RunBoth(cloud, RawMarching(), {.tile_points = 4'000, .support_cap = 16});
   EXPECT_EQ(raw.stats.tiles, 8);
   ExpectSameMesh(raw.whole, raw.tiled, 1e-9 * raw.diagonal);
   ExpectClosed(raw.tiled, 2);
   // Finished per tile, the seams fixed: still closed, the same surface.
-  const Runs finished = RunBoth(cloud, PuExtractParams{}, {.tile_points = 4'000, .support_cap = 8});
+  const Runs finished = RunBoth(cloud, PuExtractParams{}, {.tile_points = 4'000, .support_cap = 16});
   ExpectClosed(finished.tiled, 2);
   EXPECT_EQ(finished.tiled.faces.size(), finished.whole.faces.size());
   double worst = 0;
@@ -116,12 +116,12 @@ TEST(PuTiles, ASphereInManyTilesIsTheUntiledSphere) {
 // A CAD part longer than its margins: the tiles at one end never see the other end's points.
 TEST(PuTiles, ALongDrilledBlockInManyTilesIsTheUntiledBlock) {
   const core::PointCloud cloud = testing::DrilledBlockCloud(30'000, 4.0, 0.6, 0.3, 0.3);
-  const Runs raw = RunBoth(cloud, RawMarching(), {.tile_points = 5'000, .support_cap = 8});
+  const Runs raw = RunBoth(cloud, RawMarching(), {.tile_points = 5'000, .support_cap = 16});
   EXPECT_GE(raw.stats.tiles, 8);
   EXPECT_LT(raw.stats.largest_tile, static_cast<int64_t>(cloud.size()));
   ExpectSameMesh(raw.whole, raw.tiled, 1e-9 * raw.diagonal);
   ExpectClosed(raw.tiled, 0);
-  const Runs finished = RunBoth(cloud, PuExtractParams{}, {.tile_points = 5'000, .support_cap = 8});
+  const Runs finished = RunBoth(cloud, PuExtractParams{}, {.tile_points = 5'000, .support_cap = 16});
   ExpectClosed(finished.tiled, 0);
   EXPECT_NEAR(core::EnclosedVolume(finished.tiled), core::EnclosedVolume(finished.whole),
               1e-4 * core::EnclosedVolume(finished.whole));

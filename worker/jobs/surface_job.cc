@@ -341,7 +341,17 @@ MemoryEstimate EstimateSharedExtraction(const P& p, const CloudSize& size) {
 
 MemoryEstimate EstimatePu(const PuJobParams& p, const CloudSize& size) {
   const double coarsest = p.extract.cell_size * 8 / 5;  // Relative to the default cell of 5 spacings.
-  return EstimateMemory({130, 500}, 2.0 / (coarsest * coarsest), size, "raise cell_size, or split the cloud");
+  const double vertices_per_point = 2.0 / (coarsest * coarsest);
+  if (size.points <= p.tiles.tile_points) {
+    return EstimateMemory({130, 500}, vertices_per_point, size, "raise cell_size, or split the cloud");
+  }
+  // Tiled: the decoded cloud (24 bytes a point), one tile at a time with its margin (at most
+  // about 1.75 times its points on the bench's scans), and the welded mesh (about 60 bytes a
+  // vertex with its faces, normal and labels).
+  const double points = static_cast<double>(size.points);
+  const double tile = 1.75 * static_cast<double>(p.tiles.tile_points);
+  const double bytes = 24 * points + tile * (130 + 500 * vertices_per_point) + 60 * vertices_per_point * points;
+  return {static_cast<int64_t>(std::min(bytes, 9e18)), "lower tile_points or raise cell_size"};
 }
 
 // One entry per method: its description, how its typed parameters run, and its memory.

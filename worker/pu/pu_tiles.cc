@@ -22,7 +22,7 @@ const core::ParamTable<PuTileParams>& PuTileParamTable() {
     t->Integer<&PuTileParams::tile_points>("tile_points", 1000, 1'000'000'000, "points",
                                            "clouds of more points are reconstructed tile by tile, each tile holding "
                                            "at most this many; memory per tile follows it");
-    t->Real<&PuTileParams::support_cap>("support_cap", 8, 512, "mean point spacings",
+    t->Real<&PuTileParams::support_cap>("support_cap", 16, 512, "mean point spacings",
                                         "largest support radius of a tiled build; fitting balls grow no farther; "
                                         "tile margins are about 2 of these");
     return t;

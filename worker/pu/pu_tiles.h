@@ -33,7 +33,7 @@ struct PuTileParams {
   // enough to hold at most this many points each (their margins add about a third on a surface).
   // Memory per tile follows it (about 2 KB a point for build and extraction).
   int64_t tile_points = 4'000'000;
-  // The largest support radius of a tiled build, in mean point spacings (8..512). Larger cells
+  // The largest support radius of a tiled build, in mean point spacings (16..512). Larger cells
   // are split without a fit and no fitting ball grows past it; margins are 2 of these plus four
   // coarse extraction cells.
   double support_cap = 64;

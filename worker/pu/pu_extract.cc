@@ -65,15 +65,23 @@ struct ExtractionLevels {
   int finest = 0;
   int band = 0;
 };
+ExtractionLevels LevelsAt(double root_edge, double mean_spacing, const PuExtractParams& params) {
+  const int finest = ExtractionDepth(root_edge, params.cell_size * mean_spacing);
+  return ExtractionLevels{finest, std::max(1, finest - kCoarseExtractionLevels)};
+}
+
 absl::StatusOr<ExtractionLevels> LevelsFor(const PuFunction& function, const PuExtractParams& params) {
   if (!(params.cell_size > 0) || !std::isfinite(params.cell_size)) {
     return absl::InvalidArgumentError("cell_size must be a positive number");
   }
-  const double target = params.cell_size * function.stats().mean_spacing;
-  if (!(target > 0)) return absl::InvalidArgumentError("the points have no spacing to size cells by");
-  const int finest = ExtractionDepth(function.stats().root_edge, target);
-  return ExtractionLevels{finest, std::max(1, finest - kCoarseExtractionLevels)};
+  if (!(params.cell_size * function.stats().mean_spacing > 0)) {
+    return absl::InvalidArgumentError("the points have no spacing to size cells by");
+  }
+  return LevelsAt(function.stats().root_edge, function.stats().mean_spacing, params);
 }
+
+// Balancing and the band's neighbours reach about two coarse cells; four keep the tree exact.
+constexpr int kReachCoarseCells = 4;
 
 // The finest extraction level comes from `cell_size`; around the data the tree is refined to at
 // least kCoarseExtractionLevels levels above it, and finer where flat triangles would stray from
@@ -192,9 +200,7 @@ extract::MarchingOptions MarchingFor(const PuFunction::Impl& impl, const PuExtra
 }  // namespace
 
 double ExtractionReach(double root_edge, double mean_spacing, const PuExtractParams& params) {
-  const int band = std::max(1, ExtractionDepth(root_edge, params.cell_size * mean_spacing) - kCoarseExtractionLevels);
-  // Balancing and the band's neighbours reach about two coarse cells; four keep the tree exact.
-  return 4 * std::ldexp(root_edge, -band);
+  return kReachCoarseCells * std::ldexp(root_edge, -LevelsAt(root_edge, mean_spacing, params).band);
 }
 
 namespace {
@@ -205,7 +211,7 @@ extract::IsosurfaceResult KeepOwnedFaces(const extract::AdaptiveOctree& tree, co
                                          extract::IsosurfaceResult& marched, std::vector<char>& seam) {
   auto owned = [&](uint64_t key) {
     const Vec3d c = tree.CellCentre(extract::CellFromKey(key));
-    return (c.array() >= core.min().array()).all() && (c.array() < core.max().array()).all();
+    return InHalfOpenBox(core, c);
   };
   const core::TriangleMesh& mesh = marched.mesh;
   extract::IsosurfaceResult kept;
@@ -257,7 +263,7 @@ absl::StatusOr<TileSurface> ExtractTile(const PuFunction& function, const PuExtr
   core::SubContext extract_ctx(ctx, "extracting the tile", 0.2, 0.7);
   // Marching is local: the faces in `core` need only the leaves there, plus a coarse cell for the
   // pinhole and speck rules, which judge clusters of a few leaves.
-  const double context = reach / 4;
+  const double context = reach / kReachCoarseCells;
   const core::Box3 marched_box(core.min() - Vec3d::Constant(context), core.max() + Vec3d::Constant(context));
   auto marched = extract::ExtractIsosurfaceOnTree(function, (*built)->tree, (*built)->start, params.max_leaves, raw,
                                                   extract_ctx, &marched_box);
@@ -310,16 +316,13 @@ absl::StatusOr<extract::IsosurfaceResult> ExtractEdited(const PuFunction& before
   const PuFunction::Impl& b = before.impl();
   if (edit_stats.changed.empty()) return absl::FailedPreconditionError("the edit names no changed region");
   const auto tree_start = std::chrono::steady_clock::now();
-  const auto levels = LevelsFor(before, params);
-  if (!levels.ok()) return levels.status();
-  const double coarse_cell = std::ldexp(b.root_edge, -levels->band);
+  if (const auto levels = LevelsFor(before, params); !levels.ok()) return levels.status();
   core::Box3 changed;
   for (const PuEditStats::Ball& ball : edit_stats.changed) {
     changed.extend(ball.centre - Vec3d::Constant(ball.radius));
     changed.extend(ball.centre + Vec3d::Constant(ball.radius));
   }
-  // Balancing and the band's neighbours reach about two coarse cells; four keep the tree exact.
-  const Vec3d margin = Vec3d::Constant(4 * coarse_cell);
+  const Vec3d margin = Vec3d::Constant(ExtractionReach(before.stats().root_edge, before.stats().mean_spacing, params));
   const core::Box3 region(changed.min() - margin, changed.max() + margin);
   core::SubContext build_ctx(ctx, "building the J1a tree near the edit", 0.0, 0.2);
   auto built = BuildExtractionTree(before, b, params, &region, build_ctx);

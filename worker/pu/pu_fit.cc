@@ -552,13 +552,13 @@ absl::StatusOr<std::unique_ptr<PuFunction>> GrowAndIndex(const BuildContext& bc,
   return std::make_unique<PuFunction>(std::move(built));
 }
 
+}  // namespace
+
 // The root cube: 1.2 × the largest side, as in MPU, so that boundary cells have margin.
 void RootCube(const core::Box3& box, Vec3d& origin, double& edge) {
   edge = 1.2 * box.sizes().maxCoeff();
   origin = box.center() - Vec3d::Constant(edge / 2);
 }
-
-}  // namespace
 
 absl::StatusOr<std::unique_ptr<PuFunction>> BuildPu(const core::PointCloud& cloud, const PuParams& params,
                                                     core::JobContext& ctx) {

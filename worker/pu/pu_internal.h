@@ -275,6 +275,15 @@ absl::Status UpdateInfluence(const PuFunction::Impl& before, PuFunction::Impl& a
                              std::span<const int32_t> new_fits, std::span<const int32_t> renumber,
                              core::JobContext& ctx);
 
+// The fitting tree's root cube for points in `box` (pu_fit.cc).
+void RootCube(const core::Box3& box, Vec3d& origin, double& edge);
+
+// Whether `p` lies in `box` with its upper sides left out, so that boxes tiling space own every
+// point once.
+inline bool InHalfOpenBox(const core::Box3& box, const Vec3d& p) {
+  return (p.array() >= box.min().array()).all() && (p.array() < box.max().array()).all();
+}
+
 // The parameters the fits use on a cloud of scan noise `noise`: where σ exceeds error_threshold,
 // the threshold becomes 3σ, min_points at least 80 and sharp fits are off (pu_fit.cc). Fills the
 // noise, threshold and min_points of `stats`.

@@ -147,8 +147,11 @@ Margins MarginsFor(double spacing, const PuFrame& frame, const PuParams& fit, co
   const double deepest_support = fit.support_factor * kSqrt3 * std::ldexp(frame.root_edge, -fit.max_depth);
   m.max_support = std::max(tiles.support_cap * spacing, deepest_support * (1 + 1e-9));
   m.extraction = ExtractionReach(frame.root_edge, spacing, extract);
-  m.data = m.extraction + 2 * m.max_support * (1 + 1e-9);
-  m.near = m.extraction + 1.25 * m.max_support;
+  // A point is covered within coverage_factor local spacings of its nearest point, and local
+  // spacings are capped at max_support: the nearest point must be in the tile when that decides.
+  const double covered = fit.coverage_factor * m.max_support;
+  m.data = m.extraction + std::max(2 * m.max_support, covered) * (1 + 1e-9);
+  m.near = m.extraction + covered;
   return m;
 }
 
@@ -235,7 +238,7 @@ absl::Status MeasureTile(const core::PointCloud& cloud, const core::Box3& cube, 
     if (!near) continue;
     sample.positions.push_back(cloud.positions[i]);
     sample.normals.push_back(cloud.normals[i]);
-    const bool owned = (p.array() >= cube.min().array()).all() && (p.array() < cube.max().array()).all();
+    const bool owned = InHalfOpenBox(cube, p);
     probe.push_back(owned && probe_cells.contains(TileGrid::Key(histogram_grid.CellOf(p))));
   }
   if (sample.size() < 2) return absl::OkStatus();
@@ -433,8 +436,7 @@ absl::StatusOr<TiledStats> ReconstructTiled(const PointSource& source, const PuP
   s.points = bounds->points;
   PuFrame& frame = s.frame;
   frame.diagonal = core::Diagonal(bounds->box);
-  frame.root_edge = 1.2 * bounds->box.sizes().maxCoeff();  // As BuildPu's root cube.
-  frame.origin = bounds->box.center() - core::Vec3d::Constant(frame.root_edge / 2);
+  RootCube(bounds->box, frame.origin, frame.root_edge);
   const int histogram_level = HistogramLevel(*bounds, frame.root_edge);
   const TileGrid histogram_grid = TileGrid::AtLevel(frame.origin, frame.root_edge, histogram_level);
   auto histogram = Histogram(source, histogram_grid, measure_ctx);

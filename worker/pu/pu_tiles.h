@@ -34,8 +34,8 @@ struct PuTileParams {
   // Memory per tile follows it (about 2 KB a point for build and extraction).
   int64_t tile_points = 4'000'000;
   // The largest support radius of a tiled build, in mean point spacings (16..512). Larger cells
-  // are split without a fit and no fitting ball grows past it; margins are 2 of these plus four
-  // coarse extraction cells.
+  // are split without a fit and no fitting ball grows past it; margins are 2 of these (or
+  // coverage_factor of these, if more) plus four coarse extraction cells.
   double support_cap = 64;
 };
 
@@ -53,7 +53,8 @@ struct PuFrame {
 };
 
 // F of `cloud` in `frame`: with `region`, exact over it (equal to the build over the whole cloud)
-// when `cloud` holds every point within 2 × max_support of it; cells whose supports cannot reach
+// when `cloud` holds every point within 2 × max_support of it (and within coverage_factor ×
+// max_support, the coverage test's reach, where that is more); cells whose supports cannot reach
 // it are not grown. Errors: as BuildPu.
 absl::StatusOr<std::unique_ptr<PuFunction>> BuildPuInFrame(const core::PointCloud& cloud, const PuFrame& frame,
                                                            const core::Box3* region, core::JobContext& ctx);

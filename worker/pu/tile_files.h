@@ -5,6 +5,7 @@
 #include <array>
 #include <cstdint>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "absl/container/flat_hash_map.h"
@@ -40,11 +41,7 @@ struct TileGrid {
   // Calls visit(key) for every cell whose cube grown by `reach` holds p.
   template <typename Visit>
   void ForEachCellNear(const core::Vec3d& p, double reach, Visit&& visit) const {
-    const auto lo = CellOf(p - core::Vec3d::Constant(reach));
-    const auto hi = CellOf(p + core::Vec3d::Constant(reach));
-    for (int64_t z = lo[2]; z <= hi[2]; ++z)
-      for (int64_t y = lo[1]; y <= hi[1]; ++y)
-        for (int64_t x = lo[0]; x <= hi[0]; ++x) visit(Key({x, y, z}));
+    ForEachCellMeeting(core::Box3(p, p), reach, std::forward<Visit>(visit));
   }
 };
 

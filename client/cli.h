@@ -117,7 +117,11 @@ struct JobFlags {
   }
 };
 
-// The Draco bytes of a cloud file: .drc as it is, other formats read and encoded with unit normals.
+// A cloud file's upload: .drc as it is (one part), other formats read and encoded with unit
+// normals in parts of client::kPointsPerPart points. An empty path uploads nothing.
+absl::StatusOr<client::PartSource> CloudUpload(const std::string& path);
+// The same as one part, for jobs that take their cloud whole (track). Errors: kInvalidArgument
+// for a cloud of more than one part.
 absl::StatusOr<std::string> CloudBytes(const std::string& path);
 
 // Follows a job to its end; returns the exit code and the final job through `out`.

@@ -77,11 +77,25 @@ absl::StatusOr<client::ConnectOptions> ConnectionFlags::Resolve(const std::strin
 
 client::Client Connect(const Globals& g) { return client::Client(g.server, g.connect); }
 
-// The Draco bytes of a cloud file: .drc as it is, other formats read and encoded with unit normals.
 absl::StatusOr<std::string> CloudBytes(const std::string& path) {
-  if (path.empty()) return std::string();
+  auto parts = CloudUpload(path);
+  if (!parts.ok()) return parts.status();
+  auto bytes = (*parts)();
+  if (!bytes.ok()) return bytes.status();
+  if (auto more = (*parts)(); !more.ok() || !more->empty()) {
+    return absl::InvalidArgumentError(
+        StrCat(path, ": more than ", client::kPointsPerPart, " points; this command takes a cloud in one part"));
+  }
+  return bytes;
+}
+
+absl::StatusOr<client::PartSource> CloudUpload(const std::string& path) {
+  if (path.empty()) return client::PartSource([] { return absl::StatusOr<std::string>(std::string()); });
   if (lsqsurf::io::FormatFromPath(path).value_or(lsqsurf::io::FileFormat::kPly) == lsqsurf::io::FileFormat::kDraco) {
-    return lsqsurf::io::ReadFileBytes(path);
+    auto bytes = lsqsurf::io::ReadFileBytes(path);
+    if (!bytes.ok()) return bytes.status();
+    auto held = std::make_shared<std::string>(*std::move(bytes));
+    return client::PartSource([held]() -> absl::StatusOr<std::string> { return std::exchange(*held, {}); });
   }
   auto cloud = lsqsurf::io::ReadPointCloudFile(path);
   if (!cloud.ok()) return cloud.status();
@@ -89,9 +103,12 @@ absl::StatusOr<std::string> CloudBytes(const std::string& path) {
   for (auto& n : cloud->normals) {
     if (n.norm() > 0) n.normalize();
   }
-  auto encoded = lsqsurf::io::EncodeDracoPointCloud(*cloud, {});
-  if (!encoded.ok()) return absl::InvalidArgumentError(StrCat(path, ": ", encoded.status().message()));
-  return encoded;
+  auto parts = client::CloudParts(std::make_shared<const lsqsurf::core::PointCloud>(*std::move(cloud)));
+  return client::PartSource([parts, path]() -> absl::StatusOr<std::string> {
+    auto part = parts();
+    if (!part.ok()) return absl::InvalidArgumentError(StrCat(path, ": ", part.status().message()));
+    return part;
+  });
 }
 
 namespace {

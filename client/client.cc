@@ -2,8 +2,10 @@
 
 #include <grpcpp/grpcpp.h>
 
+#include <algorithm>
 #include <cctype>
 #include <cstdlib>
+#include <utility>
 
 #include "grpc/health/v1/health.grpc.pb.h"
 #include "lsqsurf/v1/enum_names.h"
@@ -236,8 +238,40 @@ absl::StatusOr<VolumeUpload> EncodeVolumeFile(const std::string& path, const std
   return out;
 }
 
+PartSource CloudParts(std::shared_ptr<const core::PointCloud> cloud, const io::DracoOptions& options,
+                      int64_t points_per_part) {
+  auto next = std::make_shared<size_t>(0);
+  const auto per_part = static_cast<size_t>(std::max<int64_t>(1, points_per_part));
+  return [cloud = std::move(cloud), options, next, per_part]() -> absl::StatusOr<std::string> {
+    if (*next >= cloud->size()) return std::string();
+    const size_t begin = *next, end = std::min(cloud->size(), begin + per_part);
+    *next = end;
+    if (begin == 0 && end == cloud->size()) return io::EncodeDracoPointCloud(*cloud, options);
+    core::PointCloud part;
+    part.positions.assign(cloud->positions.begin() + static_cast<ptrdiff_t>(begin),
+                          cloud->positions.begin() + static_cast<ptrdiff_t>(end));
+    if (cloud->has_normals()) {
+      part.normals.assign(cloud->normals.begin() + static_cast<ptrdiff_t>(begin),
+                          cloud->normals.begin() + static_cast<ptrdiff_t>(end));
+    }
+    return io::EncodeDracoPointCloud(part, options);
+  };
+}
+
 absl::StatusOr<v1::Job> Client::Submit(const v1::JobSpec& spec, std::string_view input, std::string_view velocity,
                                        std::string_view cells) {
+  bool sent = false;
+  return SubmitParts(
+      spec,
+      [&]() -> absl::StatusOr<std::string> {
+        if (std::exchange(sent, true)) return std::string();
+        return std::string(input);
+      },
+      velocity, cells);
+}
+
+absl::StatusOr<v1::Job> Client::SubmitParts(const v1::JobSpec& spec, const PartSource& input, std::string_view velocity,
+                                            std::string_view cells) {
   auto ctx = NewContext();
   v1::Job job;
   auto writer = stub_->SubmitJob(ctx.get(), &job);
@@ -245,18 +279,29 @@ absl::StatusOr<v1::Job> Client::Submit(const v1::JobSpec& spec, std::string_view
   *request.mutable_spec() = spec;
   bool open = writer->Write(request);
   constexpr size_t kChunk = size_t{1} << 20;
-  for (size_t offset = 0; open && offset < input.size(); offset += kChunk) {
-    request.set_input_chunk(std::string(input.substr(offset, kChunk)));
-    open = writer->Write(request);
+  // `chunk` picks the payload field a chunk goes in.
+  auto send = [&](std::string_view bytes, std::string* (v1::SubmitJobRequest::*chunk)()) {
+    for (size_t offset = 0; open && offset < bytes.size(); offset += kChunk) {
+      (request.*chunk)()->assign(bytes.substr(offset, kChunk));
+      open = writer->Write(request);
+    }
+  };
+  for (int64_t part = 0; open; ++part) {
+    auto bytes = input();
+    if (!bytes.ok()) {
+      ctx->TryCancel();
+      (void)writer->Finish();
+      return bytes.status();
+    }
+    if (bytes->empty()) break;
+    if (part > 0) {
+      request.set_input_part_end(true);
+      open = writer->Write(request);
+    }
+    send(*bytes, &v1::SubmitJobRequest::mutable_input_chunk);
   }
-  for (size_t offset = 0; open && offset < velocity.size(); offset += kChunk) {
-    request.set_velocity_chunk(std::string(velocity.substr(offset, kChunk)));
-    open = writer->Write(request);
-  }
-  for (size_t offset = 0; open && offset < cells.size(); offset += kChunk) {
-    request.set_cells_chunk(std::string(cells.substr(offset, kChunk)));
-    open = writer->Write(request);
-  }
+  send(velocity, &v1::SubmitJobRequest::mutable_velocity_chunk);
+  send(cells, &v1::SubmitJobRequest::mutable_cells_chunk);
   writer->WritesDone();
   if (grpc::Status s = writer->Finish(); !s.ok()) return FromGrpc(s);
   return job;

@@ -13,6 +13,8 @@
 
 #include "absl/status/statusor.h"
 #include "lsqsurf/v1/reconstruction.grpc.pb.h"
+#include "worker/core/geometry.h"
+#include "worker/io/draco_codec.h"
 
 namespace lsqsurf::client {
 
@@ -42,6 +44,18 @@ struct VolumeUpload {
 };
 absl::StatusOr<VolumeUpload> EncodeVolumeFile(const std::string& path, const std::string& raw_layout,
                                               const std::vector<std::string>& fields);
+
+// A cloud's upload one Draco part at a time (SubmitJobRequest.input_part_end): each call returns
+// the next part's bytes, and an empty string after the last. An error ends the upload.
+using PartSource = std::function<absl::StatusOr<std::string>()>;
+// Points per part that CloudParts uses: small enough that neither side holds much at once, large
+// enough that the parts cost nothing next to the points.
+inline constexpr int64_t kPointsPerPart = int64_t{1} << 20;
+// The parts of `cloud`, at most `points_per_part` points each, encoded (with `options`) only when
+// asked for, so that one part's Draco bytes are held at a time. A cloud within one part gives
+// one part: what any server accepts.
+PartSource CloudParts(std::shared_ptr<const core::PointCloud> cloud, const io::DracoOptions& options = {},
+                      int64_t points_per_part = kPointsPerPart);
 
 // Display names: "queued", "running", ...
 const char* StateName(v1::JobState state);
@@ -75,6 +89,9 @@ class Client {
   // `cells`: a volume's cell stream (VolumeParams).
   absl::StatusOr<v1::Job> Submit(const v1::JobSpec& spec, std::string_view input, std::string_view velocity = {},
                                  std::string_view cells = {});
+  // The same with the input in parts, each asked for when the previous one is sent.
+  absl::StatusOr<v1::Job> SubmitParts(const v1::JobSpec& spec, const PartSource& input, std::string_view velocity = {},
+                                      std::string_view cells = {});
   // Follows the job until it ends, calling `on_event` with every state; returns the final job.
   // Errors: the RPC's, or kAborted when the stream ended before the job did.
   absl::StatusOr<v1::Job> Watch(const std::string& id, const std::function<void(const v1::Job&)>& on_event = {});

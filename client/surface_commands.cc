@@ -55,18 +55,18 @@ int SurfaceCommand::Run(const Globals& g, bool wait) const {
   const auto view_options = view.Options();
   if (!view_options.ok()) return Fail(std::string(view_options.status().message()));
   if (job_preview) *spec->mutable_preview()->mutable_options() = *view_options;
-  absl::StatusOr<Upload> upload = absl::UnknownError("");
+  client::Client c = Connect(g);
+  absl::StatusOr<v1::Job> accepted = absl::UnknownError("");
   if (job.method == "volume") {
     for (double v : iso) spec->mutable_volume()->add_iso(v);
-    upload = volume.Encode(input, &*spec);
+    auto upload = volume.Encode(input, &*spec);
+    if (!upload.ok()) return Fail(std::string(upload.status().message()));
+    accepted = c.Submit(*spec, upload->input, {}, upload->cells);
   } else {
-    auto bytes = CloudBytes(input);
-    if (bytes.ok()) upload = Upload{*std::move(bytes), {}};
-    if (!bytes.ok()) upload = bytes.status();
+    auto parts = CloudUpload(input);
+    if (!parts.ok()) return Fail(std::string(parts.status().message()));
+    accepted = c.SubmitParts(*spec, *parts);
   }
-  if (!upload.ok()) return Fail(std::string(upload.status().message()));
-  client::Client c = Connect(g);
-  auto accepted = c.Submit(*spec, upload->input, {}, upload->cells);
   if (!accepted.ok()) return FailStatus("submit", accepted.status());
   if (!wait) {
     std::printf("%s\n", accepted->id().c_str());

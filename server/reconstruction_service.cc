@@ -211,9 +211,10 @@ class ReconstructionService::Upload final : public grpc::ServerReadReactor<v1::S
         return grpc::Status::OK;
       }
       if (message_.has_spec()) return InvalidArgument("only the first message may carry a spec");
-      const char* slot = message_.has_velocity_chunk() ? jobs::kVelocityUpload
-                         : message_.has_cells_chunk()  ? jobs::kCellsUpload
-                                                       : jobs::kInputUpload;
+      if (message_.has_input_part_end()) return EndInputPart();
+      const std::string slot = message_.has_velocity_chunk() ? jobs::kVelocityUpload
+                               : message_.has_cells_chunk()  ? jobs::kCellsUpload
+                                                             : jobs::InputPartSlot(input_part_);
       const std::string& chunk = message_.has_velocity_chunk() ? message_.velocity_chunk()
                                  : message_.has_cells_chunk()  ? message_.cells_chunk()
                                                                : message_.input_chunk();
@@ -225,6 +226,7 @@ class ReconstructionService::Upload final : public grpc::ServerReadReactor<v1::S
                                          limit_, " bytes"));
       }
       received_ += chunk.size();
+      if (message_.has_input_chunk()) input_part_bytes_ += chunk.size();
       std::ofstream& file = FileOf(slot);
       file.write(chunk.data(), static_cast<std::streamsize>(chunk.size()));
       file.flush();
@@ -235,6 +237,20 @@ class ReconstructionService::Upload final : public grpc::ServerReadReactor<v1::S
       if (service_.calls_ != nullptr) service_.calls_->Received(static_cast<int64_t>(chunk.size()));
       return grpc::Status::OK;
     });
+  }
+
+  grpc::Status EndInputPart() {
+    if (input_part_bytes_ == 0) {
+      return InvalidArgument(core::StrCat("input part ", input_part_,
+                                          " ended before any of its chunks came; end a part only after its data"));
+    }
+    if (input_part_ + 1 >= jobs::kMaxInputParts) {
+      return InvalidArgument(core::StrCat("an input has at most ", jobs::kMaxInputParts, " parts"));
+    }
+    files_.erase(jobs::InputPartSlot(input_part_));  // Closed: no more chunks come for it.
+    ++input_part_;
+    input_part_bytes_ = 0;
+    return grpc::Status::OK;
   }
 
   std::ofstream& FileOf(const std::string& slot) {
@@ -286,6 +302,8 @@ class ReconstructionService::Upload final : public grpc::ServerReadReactor<v1::S
   v1::SubmitJobRequest message_;
   std::optional<jobs::JobSpec> spec_;
   size_t received_ = 0;
+  int64_t input_part_ = 0;       // The input part chunks go to now...
+  size_t input_part_bytes_ = 0;  // ...and its bytes so far.
   std::map<std::string, std::string> paths_;
   std::map<std::string, std::unique_ptr<std::ofstream>> files_;
 };

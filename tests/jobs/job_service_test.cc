@@ -626,6 +626,100 @@ TEST_F(JobServiceTest, AnUploadIsDecodedOnceUnlessTheServerRestarted) {
   EXPECT_EQ(blobs->opened("input.drc"), 3);  // Both read their stored upload after the restart.
 }
 
+// `cloud` in parts of `per_part` points, coded losslessly and in order, so that the parts
+// joined are the cloud.
+Uploads InParts(const core::PointCloud& cloud, size_t per_part) {
+  io::DracoOptions exact;
+  exact.position_bits = 0;
+  exact.speed = 10;
+  Uploads uploads;
+  for (size_t begin = 0, part = 0; begin < cloud.size(); begin += per_part, ++part) {
+    const size_t end = std::min(cloud.size(), begin + per_part);
+    core::PointCloud piece;
+    piece.positions.assign(cloud.positions.begin() + begin, cloud.positions.begin() + end);
+    if (cloud.has_normals()) piece.normals.assign(cloud.normals.begin() + begin, cloud.normals.begin() + end);
+    auto bytes = io::EncodeDracoPointCloud(piece, exact);
+    EXPECT_TRUE(bytes.ok());
+    uploads[InputPartSlot(static_cast<int64_t>(part))] = bytes.ok() ? *bytes : std::string();
+  }
+  return uploads;
+}
+
+// A PU job over tile_points reads a cloud in parts one part at a time, and gets the mesh of the
+// cloud whole, also when it runs from the stored parts after a restart.
+TEST_F(JobServiceTest, ACloudInPartsIsStreamedAndGivesTheMeshOfTheCloudWhole) {
+  const core::PointCloud cloud = testing::DrilledBlockCloud(12'000, 2.0, 0.6, 0.3, 0.3);
+  const JobSpec spec = Spec("pu", {{"tile_points", "3000"}, {"support_cap", "16"}});
+  JobService& s = Open();
+  auto whole = s.Submit(spec, InParts(cloud, cloud.size()));
+  auto parts = s.Submit(spec, InParts(cloud, 2500));
+  ASSERT_TRUE(whole.ok() && parts.ok()) << whole.status() << parts.status();
+  EXPECT_EQ(parts->input_points, 12'000);
+  const JobRecord whole_done = WaitTerminal(whole->id), parts_done = WaitTerminal(parts->id);
+  ASSERT_EQ(whole_done.state, JobState::kSucceeded) << whole_done.error;
+  ASSERT_EQ(parts_done.state, JobState::kSucceeded) << parts_done.error;
+  EXPECT_EQ(Statistic(parts_done, "input_streamed"), 1);
+  EXPECT_GE(Statistic(parts_done, "tiles"), 4);
+  auto expected = io::DecodeDracoMesh(ReadResult(whole->id, "mesh.drc"));
+  auto streamed = io::DecodeDracoMesh(ReadResult(parts->id, "mesh.drc"));
+  ASSERT_TRUE(expected.ok() && streamed.ok());
+  EXPECT_EQ(streamed->faces.size(), expected->faces.size());
+  EXPECT_EQ(streamed->vertices.size(), expected->vertices.size());
+  EXPECT_TRUE(core::AnalyzeTopology(core::WeldByPosition(*streamed)).watertight());
+
+  // Queued when the server stops, it runs from the parts as stored.
+  options_.kind_overrides["pu"] = &latch_;
+  JobService& held = Open();
+  auto first = held.Submit(spec, InParts(cloud, 2500));
+  auto second = held.Submit(spec, InParts(cloud, 2500));
+  ASSERT_TRUE(first.ok() && second.ok());
+  latch_.WaitStarted(1);
+  held.Shutdown();
+  options_.kind_overrides.clear();
+  Open();
+  for (const std::string& id : {first->id, second->id}) {
+    const JobRecord done = WaitTerminal(id);
+    ASSERT_EQ(done.state, JobState::kSucceeded) << done.error;
+    EXPECT_EQ(Statistic(done, "input_streamed"), 1);
+    EXPECT_EQ(Statistic(done, "triangles"), static_cast<double>(expected->faces.size()));
+  }
+}
+
+// Other methods, and clouds without normals, join the parts; parts that do not fit are refused.
+TEST_F(JobServiceTest, PartsAreJoinedWhereTheyCannotStreamAndMustAgree) {
+  JobService& s = Open();
+  const core::PointCloud sphere = testing::SphereCloud(3000);
+  auto whole = s.Submit(Spec("iamls"), InParts(sphere, sphere.size()));
+  auto parts = s.Submit(Spec("iamls"), InParts(sphere, 1000));
+  core::PointCloud bare = sphere;
+  bare.normals.clear();
+  auto unoriented = s.Submit(Spec("pu", {{"tile_points", "1000"}}), InParts(bare, 1000));
+  ASSERT_TRUE(whole.ok() && parts.ok() && unoriented.ok());
+  const JobRecord whole_done = WaitTerminal(whole->id), parts_done = WaitTerminal(parts->id);
+  ASSERT_EQ(parts_done.state, JobState::kSucceeded) << parts_done.error;
+  EXPECT_EQ(Statistic(parts_done, "triangles"), Statistic(whole_done, "triangles"));
+  const JobRecord unoriented_done = WaitTerminal(unoriented->id);
+  ASSERT_EQ(unoriented_done.state, JobState::kSucceeded) << unoriented_done.error;
+  EXPECT_GT(Statistic(unoriented_done, "normals_seconds"), 0);  // Joined, so its normals could be estimated.
+
+  Uploads mixed = InParts(sphere, 1000);
+  mixed[InputPartSlot(1)] = InParts(bare, 1000)[InputPartSlot(1)];
+  const absl::Status mixed_status = s.Submit(Spec("pu"), mixed).status();
+  EXPECT_EQ(mixed_status.code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(mixed_status.message().find("input part 1 lacks normals"), std::string::npos) << mixed_status;
+  Uploads gap = InParts(sphere, 1000);
+  gap.erase(InputPartSlot(1));
+  const absl::Status gap_status = s.Submit(Spec("pu"), gap).status();
+  EXPECT_NE(gap_status.message().find("without a gap"), std::string::npos) << gap_status;
+  Uploads too_many = InParts(sphere, 1000);
+  options_.max_points = 2500;
+  JobService& small = Open();
+  const absl::Status over = small.Submit(Spec("pu"), too_many).status();
+  EXPECT_EQ(over.code(), absl::StatusCode::kResourceExhausted) << over;
+  const absl::Status volume = small.Submit(Spec("volume", {{"field", "p"}}), InParts(sphere, 1000)).status();
+  EXPECT_NE(volume.message().find("takes no 'input.1' upload"), std::string::npos) << volume;
+}
+
 TEST_F(JobServiceTest, JobsSurviveARestart) {
   JobService& s = Open();
   auto job = s.Submit(Spec("iamls", {{"iterations", "2"}}), Input(Encode(testing::SphereCloud(3000))));

@@ -137,6 +137,54 @@ TEST_F(ServiceTest, LimitsAreDiscoverable) {
   EXPECT_EQ(client_->Submit(pu, *too_many).status().code(), absl::StatusCode::kResourceExhausted);
 }
 
+// A cloud sent in parts, each its own Draco stream, is one job; a PU job over tile_points reads
+// the parts one at a time and delivers one closed mesh.
+TEST_F(ServiceTest, ACloudUploadedInPartsIsOneJob) {
+  io::DracoOptions exact;
+  exact.position_bits = 0;
+  const auto cloud = std::make_shared<const core::PointCloud>(testing::DrilledBlockCloud(12'000, 2.0, 0.6, 0.3, 0.3));
+  v1::JobSpec pu;
+  pu.mutable_pu()->set_tile_points(3000);
+  pu.mutable_pu()->set_support_cap(16);
+  auto job = client_->SubmitParts(pu, client::CloudParts(cloud, exact, 2500));
+  ASSERT_TRUE(job.ok()) << job.status();
+  EXPECT_EQ(job->input_points(), 12'000);
+  auto done = client_->Watch(job->id());
+  ASSERT_TRUE(done.ok()) << done.status();
+  ASSERT_EQ(done->state(), v1::JOB_STATE_SUCCEEDED) << done->error();
+  std::map<std::string, double> stats;
+  for (const auto& s : done->statistics()) stats[s.name()] = s.value();
+  EXPECT_EQ(stats["input_streamed"], 1);
+  EXPECT_GE(stats["tiles"], 4);
+  auto mesh = io::DecodeDracoMesh(*client_->Fetch(job->id(), "mesh.drc"));
+  ASSERT_TRUE(mesh.ok()) << mesh.status();
+  const core::MeshTopology topology = core::AnalyzeTopology(core::WeldByPosition(*mesh));
+  EXPECT_TRUE(topology.watertight());
+  EXPECT_EQ(topology.euler_characteristic(), 0);  // One hole through the block.
+
+  // All parts together count against max_points, though each is below it.
+  const auto big = std::make_shared<const core::PointCloud>(testing::SphereCloud(200'000));
+  const absl::Status too_many = client_->SubmitParts(pu, client::CloudParts(big, {}, 100'000)).status();
+  EXPECT_EQ(too_many.code(), absl::StatusCode::kResourceExhausted);
+  EXPECT_NE(too_many.message().find("parts 0 to 1 of the cloud hold 200000 points"), std::string::npos) << too_many;
+
+  // A part must have chunks before it ends.
+  auto stub = v1::Reconstruction::NewStub(grpc::CreateChannel(server_->address(), grpc::InsecureChannelCredentials()));
+  grpc::ClientContext context;
+  v1::Job response;
+  auto writer = stub->SubmitJob(&context, &response);
+  v1::SubmitJobRequest request;
+  *request.mutable_spec() = pu;
+  ASSERT_TRUE(writer->Write(request));
+  request.set_input_part_end(true);
+  (void)writer->Write(request);
+  writer->WritesDone();
+  const grpc::Status ended_empty = writer->Finish();
+  EXPECT_EQ(ended_empty.error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+  EXPECT_NE(ended_empty.error_message().find("input part 0 ended before any of its chunks"), std::string::npos)
+      << ended_empty.error_message();
+}
+
 TEST_F(ServiceTest, BadSpecsAreRefusedBeforeTheUpload) {
   v1::JobSpec bad;
   bad.mutable_pu()->set_noise_level(-0.5);

@@ -4,6 +4,7 @@
 #include <cstdint>
 #include <map>
 #include <string>
+#include <string_view>
 #include <utility>
 #include <vector>
 
@@ -40,6 +41,15 @@ using Uploads = std::map<std::string, std::string>;
 inline constexpr char kInputUpload[] = "input";
 inline constexpr char kVelocityUpload[] = "velocity";
 inline constexpr char kCellsUpload[] = "cells";  // Volume meshes: the cell stream (io/volume_codec.h).
+
+// A cloud may come in several Draco parts, each its own upload and blob, never concatenated:
+// part 0 in kInputUpload, part n > 0 in "input.n".
+inline constexpr int64_t kMaxInputParts = 4096;
+std::string InputPartSlot(int64_t part);
+// The part number of an input slot ("input" 0, "input.7" 7); -1 for any other slot.
+int64_t InputPartOf(std::string_view slot);
+// The input parts present, in order; a gap ends them.
+std::vector<std::string_view> InputParts(const Uploads& uploads);
 
 using Statistics = std::vector<std::pair<std::string, double>>;  // Name (units in it), value.
 

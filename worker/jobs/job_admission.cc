@@ -13,6 +13,37 @@
 
 namespace lsqsurf::jobs {
 
+namespace {
+
+// Drops empty uploads and checks that the method takes the rest, input parts numbered without a
+// gap. Returns the bytes uploaded.
+absl::StatusOr<int64_t> CheckUploadSlots(const JobSpec& spec, const MethodInfo& method, Uploads& uploads) {
+  int64_t bytes = 0;
+  int64_t input_parts = 0;
+  for (auto it = uploads.begin(); it != uploads.end();) {
+    if (it->second.empty()) {
+      it = uploads.erase(it);
+      continue;
+    }
+    const auto& accepted = method.uploads;
+    const int64_t part = InputPartOf(it->first);
+    const bool in_parts = part > 0 && method.input_in_parts;
+    if (!in_parts && std::find(accepted.begin(), accepted.end(), it->first) == accepted.end()) {
+      return absl::InvalidArgumentError(core::StrCat("the ", spec.method, " method takes no '", it->first, "' upload",
+                                                     part > 0 ? " (its input comes in one part)" : ""));
+    }
+    if (part >= 0) ++input_parts;
+    bytes += static_cast<int64_t>(it->second.size());
+    ++it;
+  }
+  if (input_parts != static_cast<int64_t>(InputParts(uploads).size())) {
+    return absl::InvalidArgumentError("the input parts are not numbered 0, 1, 2, ... without a gap");
+  }
+  return bytes;
+}
+
+}  // namespace
+
 absl::StatusOr<JobRecord> JobService::Submit(const JobSpec& spec, Uploads uploads, const Submitter& submitter) {
   LSQSURF_RETURN_IF_ERROR(ValidateSpec(spec));
   // A job that reads another's results may name only jobs its submitter may see; the run reads
@@ -28,19 +59,9 @@ absl::StatusOr<JobRecord> JobService::Submit(const JobSpec& spec, Uploads upload
     }
   }
   const MethodEntry* method = FindMethod(spec.method);
-  int64_t bytes = 0;
-  for (auto it = uploads.begin(); it != uploads.end();) {
-    if (it->second.empty()) {
-      it = uploads.erase(it);
-      continue;
-    }
-    const auto& accepted = method->info.uploads;
-    if (std::find(accepted.begin(), accepted.end(), it->first) == accepted.end()) {
-      return absl::InvalidArgumentError(core::StrCat("the ", spec.method, " method takes no '", it->first, "' upload"));
-    }
-    bytes += static_cast<int64_t>(it->second.size());
-    ++it;
-  }
+  auto upload_bytes = CheckUploadSlots(spec, method->info, uploads);
+  if (!upload_bytes.ok()) return upload_bytes.status();
+  const int64_t bytes = *upload_bytes;
   if (const int64_t limit = MaxUploadBytes(submitter); bytes > limit) {
     return absl::ResourceExhaustedError(core::StrCat(
         "the upload has ", bytes, " bytes; ",
@@ -94,7 +115,7 @@ absl::StatusOr<JobRecord> JobService::Submit(const JobSpec& spec, Uploads upload
     if (pending.active_jobs == 0) pending_.erase(submitter.owner);
   };
   for (const auto& [slot, data] : uploads) {
-    if (absl::Status s = blobs_->Put(r.id, UploadFiles().at(slot), data); !s.ok()) {
+    if (absl::Status s = blobs_->Put(r.id, UploadBlob(slot), data); !s.ok()) {
       (void)blobs_->RemoveJob(r.id);
       return s;
     }

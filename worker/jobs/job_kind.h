@@ -36,6 +36,7 @@ struct MethodInfo {
   core::ParamSet defaults;              // The method's parameter struct with its defaults.
   std::vector<std::string> attributes;  // Per-vertex scalars on its result meshes (to colour by).
   std::vector<std::string> uploads;     // Upload slots it accepts (kInputUpload, kVelocityUpload).
+  bool input_in_parts = false;          // Takes the input in parts (InputPartSlot).
 };
 
 // Server limits a kind checks uploads against.

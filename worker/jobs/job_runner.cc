@@ -171,12 +171,23 @@ absl::StatusOr<Statistics> JobService::RunKind(const std::shared_ptr<Entry>& ent
   }
   Uploads uploads;
   // A decoded input stands in for the uploads; without one they are read back.
-  for (const auto& [slot, blob] : UploadFiles()) {
-    if (decoded != nullptr) break;
-    if (!blobs_->Exists(record.id, blob)) continue;
+  auto read_back = [&](const std::string& slot) -> absl::StatusOr<bool> {
+    const std::string blob = UploadBlob(slot);
+    if (!blobs_->Exists(record.id, blob)) return false;
     auto bytes = blobs_->Read(record.id, blob);
     if (!bytes.ok()) return bytes.status();
     uploads[slot] = *std::move(bytes);
+    return true;
+  };
+  for (const auto& [slot, blob] : UploadFiles()) {
+    if (decoded != nullptr) break;
+    if (auto read = read_back(slot); !read.ok()) return read.status();
+  }
+  // The input's further parts, up to the first missing.
+  for (int64_t part = 1; decoded == nullptr && uploads.contains(kInputUpload) && part < kMaxInputParts; ++part) {
+    auto read = read_back(InputPartSlot(part));
+    if (!read.ok()) return read.status();
+    if (!*read) break;
   }
   const JobKind* kind = KindOf(record.spec.method);
   if (kind == nullptr) return absl::FailedPreconditionError(core::StrCat("no method '", record.spec.method, "'"));

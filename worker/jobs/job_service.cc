@@ -48,6 +48,38 @@ const std::map<std::string, std::string>& UploadFiles() {
   return *files;
 }
 
+std::string UploadBlob(const std::string& slot) {
+  if (const int64_t part = InputPartOf(slot); part > 0) return core::StrCat(slot, ".drc");
+  return UploadFiles().at(slot);
+}
+
+std::string InputPartSlot(int64_t part) { return part == 0 ? kInputUpload : core::StrCat(kInputUpload, ".", part); }
+
+int64_t InputPartOf(std::string_view slot) {
+  const std::string_view input = kInputUpload;
+  if (slot == input) return 0;
+  if (!slot.starts_with(input) || slot.size() < input.size() + 2 || slot[input.size()] != '.') return -1;
+  const std::string_view digits = slot.substr(input.size() + 1);
+  // Canonical numbers only: "input.01" would be a second name for part 1.
+  if (digits.size() > 6 || digits[0] == '0') return -1;
+  int64_t part = 0;
+  for (const char c : digits) {
+    if (c < '0' || c > '9') return -1;
+    part = 10 * part + (c - '0');
+  }
+  return part < kMaxInputParts ? part : -1;
+}
+
+std::vector<std::string_view> InputParts(const Uploads& uploads) {
+  std::vector<std::string_view> parts;
+  for (int64_t part = 0; part < kMaxInputParts; ++part) {
+    auto it = uploads.find(InputPartSlot(part));
+    if (it == uploads.end()) break;
+    parts.push_back(it->second);
+  }
+  return parts;
+}
+
 int64_t NowMs() {
   return std::chrono::duration_cast<std::chrono::milliseconds>(std::chrono::system_clock::now().time_since_epoch())
       .count();

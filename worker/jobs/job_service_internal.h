@@ -19,6 +19,8 @@ int64_t NowMs();
 
 // Where each upload slot is kept in a job's folder (names kept from earlier versions).
 const std::map<std::string, std::string>& UploadFiles();
+// The blob of an upload slot: UploadFiles(), and "input.n.drc" for input part n > 0.
+std::string UploadBlob(const std::string& slot);
 
 // The new state of a job whose runner stopped while it ran: cancelled if that was asked for,
 // queued again, or failed once such stops add up to `max_attempts`.

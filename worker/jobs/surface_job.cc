@@ -18,6 +18,7 @@
 #include "worker/extract/j1a_isosurface.h"
 #include "worker/io/draco_codec.h"
 #include "worker/jobs/pictures.h"
+#include "worker/jobs/surface_input.h"
 #include "worker/render/render.h"
 
 namespace lsqsurf::jobs {
@@ -142,6 +143,9 @@ struct MethodRun {
   StatFn stat;
   KeepFn keep;
   int64_t memory_bytes = 0;  // The job's memory limit (RunEnvironment::memory_bytes).
+  // The cloud read part by part, for methods that stream it (SurfaceMethod::streams); the cloud
+  // handed over beside it is then empty.
+  const pu::PointSource* source = nullptr;
 };
 
 absl::StatusOr<extract::IsosurfaceResult> RunIamls(const IamlsJobParams& p, const core::PointCloud& cloud,
@@ -243,13 +247,13 @@ void ExtractionStatistics(const extract::IsosurfaceStats& s, const StatFn& stat)
 
 // A cloud of more than tile_points points, tile by tile (pu_tiles.h). No function is kept: there
 // is none whole, and csg and edit jobs need one.
-absl::StatusOr<extract::IsosurfaceResult> RunTiledPu(const PuJobParams& p, const core::PointCloud& cloud,
+absl::StatusOr<extract::IsosurfaceResult> RunTiledPu(const PuJobParams& p, const pu::PointSource& source,
                                                      core::JobContext& ctx, const MethodRun& run) {
   const StatFn& stat = run.stat;
   pu::PuExtractParams extract = p.extract;
   extract.max_leaves = LeavesWithin(run.memory_bytes, extract.max_leaves);
   pu::MeshSink sink;
-  auto tiled = pu::ReconstructTiled(pu::CloudSource(cloud), p.fit, extract, p.tiles, sink, ctx);
+  auto tiled = pu::ReconstructTiled(source, p.fit, extract, p.tiles, sink, ctx);
   if (!tiled.ok()) return tiled.status();
   PuStatistics(tiled->fit, stat);
   stat("measure_seconds", tiled->measure_seconds);
@@ -269,7 +273,8 @@ absl::StatusOr<extract::IsosurfaceResult> RunTiledPu(const PuJobParams& p, const
 
 absl::StatusOr<extract::IsosurfaceResult> RunPu(const PuJobParams& p, const core::PointCloud& cloud,
                                                 core::JobContext& ctx, const MethodRun& run) {
-  if (static_cast<int64_t>(cloud.size()) > p.tiles.tile_points) return RunTiledPu(p, cloud, ctx, run);
+  if (run.source != nullptr) return RunTiledPu(p, *run.source, ctx, run);
+  if (static_cast<int64_t>(cloud.size()) > p.tiles.tile_points) return RunTiledPu(p, pu::CloudSource(cloud), ctx, run);
   const StatFn& stat = run.stat;
   const KeepFn& keep = run.keep;
   core::SubContext build_ctx(ctx, "fitting", 0.0, 0.4);
@@ -309,7 +314,8 @@ absl::StatusOr<extract::IsosurfaceResult> RunPu(const PuJobParams& p, const core
 // what is refused certainly would not fit).
 struct CloudSize {
   int64_t points = 0;
-  double diagonal = 0;  // Of the bounding box.
+  double diagonal = 0;         // Of the bounding box.
+  int64_t streamed_bytes = 0;  // The Draco parts a streamed cloud is read from (0: decoded whole).
 };
 
 struct MemoryModel {
@@ -345,12 +351,13 @@ MemoryEstimate EstimatePu(const PuJobParams& p, const CloudSize& size) {
   if (size.points <= p.tiles.tile_points) {
     return EstimateMemory({130, 500}, vertices_per_point, size, "raise cell_size, or split the cloud");
   }
-  // Tiled: the decoded cloud (24 bytes a point), one tile at a time with its margin (at most
-  // about 1.75 times its points on the bench's scans), and the welded mesh (about 60 bytes a
-  // vertex with its faces, normal and labels).
+  // Tiled: the decoded cloud (24 bytes a point) or the parts it streams from, one tile at a
+  // time with its margin (at most about 1.75 times its points on the bench's scans), and the
+  // welded mesh (about 60 bytes a vertex with its faces, normal and labels).
   const double points = static_cast<double>(size.points);
+  const double cloud = size.streamed_bytes > 0 ? static_cast<double>(size.streamed_bytes) : 24 * points;
   const double tile = 1.75 * static_cast<double>(p.tiles.tile_points);
-  const double bytes = 24 * points + tile * (130 + 500 * vertices_per_point) + 60 * vertices_per_point * points;
+  const double bytes = cloud + tile * (130 + 500 * vertices_per_point) + 60 * vertices_per_point * points;
   return {static_cast<int64_t>(std::min(bytes, 9e18)), "lower tile_points or raise cell_size"};
 }
 
@@ -362,6 +369,9 @@ struct SurfaceMethod {
       run;
   std::function<const NormalsParams*(const core::ParamSet&)> normals;
   std::function<MemoryEstimate(const core::ParamSet&, const CloudSize&)> memory;
+  // Whether a cloud of this many points in parts is read part by part (MethodRun::source) rather
+  // than decoded whole; null: never.
+  std::function<bool(const core::ParamSet&, int64_t points)> streams;
 };
 
 template <class P, class Run, class Memory>
@@ -369,6 +379,7 @@ SurfaceMethod MakeMethod(std::string name, std::string description, const core::
                          Memory memory, std::vector<std::string> attributes = {}) {
   SurfaceMethod m;
   m.info = {std::move(name), std::move(description), core::ParamSet(table), std::move(attributes), {kInputUpload}};
+  m.info.input_in_parts = true;  // Parts after the first are concatenated, or streamed (Streaming).
   m.run = [run](const core::ParamSet& params, const core::PointCloud& cloud, core::JobContext& ctx,
                 const MethodRun& how) -> absl::StatusOr<extract::IsosurfaceResult> {
     const P* p = params.As<P>();
@@ -386,14 +397,25 @@ SurfaceMethod MakeMethod(std::string name, std::string description, const core::
   return m;
 }
 
+template <class P>
+SurfaceMethod Streaming(SurfaceMethod m, bool (*streams)(const P&, int64_t)) {
+  m.streams = [streams](const core::ParamSet& params, int64_t points) {
+    const P* p = params.As<P>();
+    return p != nullptr && streams(*p, points);
+  };
+  return m;
+}
+
 const std::vector<SurfaceMethod>& SurfaceMethods() {
   static const auto* methods = new std::vector<SurfaceMethod>{
       MakeMethod("iamls", "iterated approximate MLS surface (seed §4), extracted on a tetrahedral grid", IamlsTable(),
                  RunIamls, EstimateSharedExtraction<IamlsJobParams>),
-      MakeMethod("pu",
-                 "twofold adaptive partition-of-unity implicit (seed §2): orthogonal-polynomial fits of adaptive "
-                 "degree on an adaptive octree, extracted on its J1a tetrahedra",
-                 PuTable(), RunPu, EstimatePu, {"depth", "degree", "feature"}),
+      Streaming<PuJobParams>(
+          MakeMethod("pu",
+                     "twofold adaptive partition-of-unity implicit (seed §2): orthogonal-polynomial fits of "
+                     "adaptive degree on an adaptive octree, extracted on its J1a tetrahedra",
+                     PuTable(), RunPu, EstimatePu, {"depth", "degree", "feature"}),
+          [](const PuJobParams& p, int64_t points) { return points > p.tiles.tile_points; }),
       MakeMethod("ramls",
                  "robust algebraic MLS surface (seed §3): closed-form normal-driven sphere fits, extracted on J1a "
                  "tetrahedra",
@@ -425,48 +447,7 @@ const SurfaceMethod* FindSurfaceMethod(const std::string& name) {
   return nullptr;
 }
 
-absl::Status CheckCloud(const core::PointCloud& cloud, const NormalsParams& normals, const InputLimits& limits) {
-  if (cloud.empty()) return absl::InvalidArgumentError("the point cloud is empty");
-  if (static_cast<int64_t>(cloud.size()) > limits.max_points) {
-    return absl::ResourceExhaustedError(
-        core::StrCat("the cloud has ", cloud.size(), " points; this server accepts at most ", limits.max_points));
-  }
-  if (const int64_t bad = core::FindNonFinite(cloud.positions); bad >= 0) {
-    return absl::InvalidArgumentError(core::StrCat("point ", bad, " has a NaN or infinite coordinate"));
-  }
-  if (cloud.has_normals()) {
-    for (size_t i = 0; i < cloud.size(); ++i) {
-      const float len = cloud.normals[i].norm();
-      // Draco's octahedral coding keeps unit normals within about 1e-3.
-      if (!std::isfinite(len) || std::abs(len - 1.0f) > 0.01f) {
-        return absl::InvalidArgumentError(core::StrCat(
-            "normal ", i, " has length ", len, "; normals must be unit vectors (normalize them before upload)"));
-      }
-    }
-  } else if (!normals.estimate_normals) {
-    return absl::InvalidArgumentError(
-        "the cloud has no normals and estimate_normals is false; upload normals or allow estimation");
-  }
-  if (static_cast<int64_t>(cloud.size()) < limits.min_points) {
-    return absl::InvalidArgumentError(
-        core::StrCat("the cloud has only ", cloud.size(), " points; at least ", limits.min_points, " are needed"));
-  }
-  return absl::OkStatus();
-}
-
-// Decodes the upload; a Draco mesh is refused rather than read as its vertices.
-absl::StatusOr<core::PointCloud> DecodeCloud(const Uploads& uploads, int64_t max_points) {
-  auto it = uploads.find(kInputUpload);
-  if (it == uploads.end() || it->second.empty()) return absl::InvalidArgumentError("no input data was uploaded");
-  if (auto type = io::PeekDracoGeometry(it->second); type.ok() && *type == io::DracoGeometry::kTriangleMesh) {
-    return absl::InvalidArgumentError("input: the upload is a Draco triangle mesh; upload a Draco point cloud");
-  }
-  auto cloud = io::DecodeDracoPointCloud(it->second, {.max_points = max_points});
-  if (!cloud.ok()) return core::WithContext("input", cloud.status());
-  return cloud;
-}
-
-class SurfaceKind final : public TypedJobKind<core::ParamSet, core::PointCloud> {
+class SurfaceKind final : public TypedJobKind<core::ParamSet, SurfaceInput> {
  public:
   std::string_view name() const override { return "surface"; }
 
@@ -480,17 +461,21 @@ class SurfaceKind final : public TypedJobKind<core::ParamSet, core::PointCloud> 
                                  const InputLimits& limits) const override {
     const SurfaceMethod* m = FindSurfaceMethod(spec.method);
     if (m == nullptr || m->normals(params) == nullptr) return absl::InternalError("not a surface method");
-    auto cloud = DecodeCloud(uploads, limits.max_points);
-    if (!cloud.ok()) return cloud.status();
-    LSQSURF_RETURN_IF_ERROR(CheckCloud(*cloud, *m->normals(params), limits));
-    const CloudSize size{static_cast<int64_t>(cloud->size()), core::BoundingBox(cloud->positions).diagonal().norm()};
+    const auto streams = [&](int64_t points) { return m->streams && m->streams(params, points); };
+    auto input = DecodeSurfaceInput(uploads, *m->normals(params), limits, streams);
+    if (!input.ok()) return input.status();
+    CloudSize size{input->points, input->diagonal, 0};
+    for (const std::string& part : input->parts) size.streamed_bytes += static_cast<int64_t>(part.size());
     MemoryEstimate memory = m->memory(params, size);
-    return Checked{size.points, *std::move(cloud), std::move(memory)};
+    return Checked{size.points, *std::move(input), std::move(memory)};
   }
 
-  absl::StatusOr<Statistics> RunDecoded(const JobSpec& spec, const core::ParamSet& params, core::PointCloud cloud,
+  absl::StatusOr<Statistics> RunDecoded(const JobSpec& spec, const core::ParamSet& params, SurfaceInput input,
                                         RunEnvironment& env) const override {
-    auto result = ReconstructSurface(spec.method, params, std::move(cloud), env.context, env.memory_bytes);
+    auto result = input.parts.empty()
+                      ? ReconstructSurface(spec.method, params, std::move(input.cloud), env.context, env.memory_bytes)
+                      : ReconstructStreamed(spec.method, params, DracoPartsSource(input.parts), input.points,
+                                            env.context, env.memory_bytes);
     if (!result.ok()) return result.status();
     LSQSURF_RETURN_IF_ERROR(DeliverMesh(result->mesh, spec, env, &result->statistics));
     for (const auto& [name, bytes] : result->kept) LSQSURF_RETURN_IF_ERROR(env.sink.Write(name, bytes));
@@ -552,17 +537,42 @@ const JobKind& SurfaceJobKind() {
   return kind;
 }
 
-absl::StatusOr<SurfaceResult> ReconstructSurface(const std::string& method, const core::ParamSet& params,
-                                                 core::PointCloud cloud, core::JobContext& ctx, int64_t memory_bytes) {
+namespace {
+
+absl::StatusOr<const SurfaceMethod*> CheckedMethod(const std::string& method, const core::ParamSet& params) {
   const SurfaceMethod* m = FindSurfaceMethod(method);
   if (m == nullptr || m->normals(params) == nullptr) {
     return absl::InvalidArgumentError(core::StrCat("'", method, "' is not a surface method with these parameters"));
   }
   LSQSURF_RETURN_IF_ERROR(params.Validate());
-  const NormalsParams& normals = *m->normals(params);
-  SurfaceResult result;
+  return m;
+}
+
+// The method run on a cloud with normals (or on `source`), the mesh and its statistics into `result`.
+absl::Status RunMethod(const SurfaceMethod& m, const core::ParamSet& params, const core::PointCloud& cloud,
+                       const pu::PointSource* source, core::JobContext& ctx, int64_t memory_bytes,
+                       SurfaceResult& result) {
   auto stat = [&](std::string name, double value) { result.statistics.emplace_back(std::move(name), value); };
-  stat("input_points", static_cast<double>(cloud.size()));
+  auto keep = [&](std::string name, std::string bytes) { result.kept.emplace_back(std::move(name), std::move(bytes)); };
+  auto extracted = m.run(params, cloud, ctx, MethodRun{stat, keep, memory_bytes, source});
+  if (!extracted.ok()) return extracted.status();
+  result.mesh = std::move(extracted->mesh);
+  if (result.mesh.faces.empty()) {
+    return absl::FailedPreconditionError("no surface was found: the points may be too sparse for the chosen spacing");
+  }
+  AddMeshStatistics(result.mesh, extracted->stats, &result.statistics);
+  return absl::OkStatus();
+}
+
+}  // namespace
+
+absl::StatusOr<SurfaceResult> ReconstructSurface(const std::string& method, const core::ParamSet& params,
+                                                 core::PointCloud cloud, core::JobContext& ctx, int64_t memory_bytes) {
+  auto m = CheckedMethod(method, params);
+  if (!m.ok()) return m.status();
+  const NormalsParams& normals = *(*m)->normals(params);
+  SurfaceResult result;
+  result.statistics.emplace_back("input_points", static_cast<double>(cloud.size()));
 
   double normals_share = 0.0;
   if (!cloud.has_normals()) {
@@ -577,18 +587,25 @@ absl::StatusOr<SurfaceResult> ReconstructSurface(const std::string& method, cons
     auto estimated = core::EstimateNormals(cloud.positions, np, sub);
     if (!estimated.ok()) return estimated.status();
     cloud.normals = *std::move(estimated);
-    stat("normals_seconds", core::SecondsSince(start));
+    result.statistics.emplace_back("normals_seconds", core::SecondsSince(start));
   }
 
   core::SubContext engine_ctx(ctx, method, normals_share, 1.0);
-  auto keep = [&](std::string name, std::string bytes) { result.kept.emplace_back(std::move(name), std::move(bytes)); };
-  auto extracted = m->run(params, cloud, engine_ctx, MethodRun{stat, keep, memory_bytes});
-  if (!extracted.ok()) return extracted.status();
-  result.mesh = std::move(extracted->mesh);
-  if (result.mesh.faces.empty()) {
-    return absl::FailedPreconditionError("no surface was found: the points may be too sparse for the chosen spacing");
-  }
-  AddMeshStatistics(result.mesh, extracted->stats, &result.statistics);
+  LSQSURF_RETURN_IF_ERROR(RunMethod(**m, params, cloud, nullptr, engine_ctx, memory_bytes, result));
+  return result;
+}
+
+absl::StatusOr<SurfaceResult> ReconstructStreamed(const std::string& method, const core::ParamSet& params,
+                                                  const pu::PointSource& source, int64_t points, core::JobContext& ctx,
+                                                  int64_t memory_bytes) {
+  auto m = CheckedMethod(method, params);
+  if (!m.ok()) return m.status();
+  if (!(*m)->streams) return absl::InvalidArgumentError(core::StrCat("'", method, "' cannot stream a cloud"));
+  SurfaceResult result;
+  result.statistics.emplace_back("input_points", static_cast<double>(points));
+  result.statistics.emplace_back("input_streamed", 1);
+  core::SubContext engine_ctx(ctx, method, 0.0, 1.0);
+  LSQSURF_RETURN_IF_ERROR(RunMethod(**m, params, core::PointCloud{}, &source, engine_ctx, memory_bytes, result));
   return result;
 }
 

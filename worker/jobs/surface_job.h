@@ -106,6 +106,11 @@ struct SurfaceResult {
 absl::StatusOr<SurfaceResult> ReconstructSurface(const std::string& method, const core::ParamSet& params,
                                                  core::PointCloud cloud, core::JobContext& ctx,
                                                  int64_t memory_bytes = 0);
+// The same for a cloud with normals read in chunks from `source` (`points` in all), by a method
+// that streams (pu, tiled): the cloud is never whole in memory. Errors: as above.
+absl::StatusOr<SurfaceResult> ReconstructStreamed(const std::string& method, const core::ParamSet& params,
+                                                  const pu::PointSource& source, int64_t points, core::JobContext& ctx,
+                                                  int64_t memory_bytes = 0);
 
 // The Draco bytes of a result mesh at `position_bits` (0: the fewest bits, 16 to 30, at which
 // Draco's quantization round trip keeps every distinct vertex position apart, so the decoded

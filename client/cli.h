@@ -120,8 +120,7 @@ struct JobFlags {
 // A cloud file's upload: .drc as it is (one part), other formats read and encoded with unit
 // normals in parts of client::kPointsPerPart points. An empty path uploads nothing.
 absl::StatusOr<client::PartSource> CloudUpload(const std::string& path);
-// The same as one part, for jobs that take their cloud whole (track). Errors: kInvalidArgument
-// for a cloud of more than one part.
+// The same in one part, for jobs that take their cloud whole (track); "" for an empty path.
 absl::StatusOr<std::string> CloudBytes(const std::string& path);
 
 // Follows a job to its end; returns the exit code and the final job through `out`.

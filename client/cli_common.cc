@@ -4,6 +4,7 @@
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
+#include <limits>
 #include <set>
 
 #include "client/cli.h"
@@ -77,19 +78,10 @@ absl::StatusOr<client::ConnectOptions> ConnectionFlags::Resolve(const std::strin
 
 client::Client Connect(const Globals& g) { return client::Client(g.server, g.connect); }
 
-absl::StatusOr<std::string> CloudBytes(const std::string& path) {
-  auto parts = CloudUpload(path);
-  if (!parts.ok()) return parts.status();
-  auto bytes = (*parts)();
-  if (!bytes.ok()) return bytes.status();
-  if (auto more = (*parts)(); !more.ok() || !more->empty()) {
-    return absl::InvalidArgumentError(
-        StrCat(path, ": more than ", client::kPointsPerPart, " points; this command takes a cloud in one part"));
-  }
-  return bytes;
-}
+namespace {
 
-absl::StatusOr<client::PartSource> CloudUpload(const std::string& path) {
+// `points_per_part` points at most in a part; a .drc file is one part as it is.
+absl::StatusOr<client::PartSource> CloudFileParts(const std::string& path, int64_t points_per_part) {
   if (path.empty()) return client::PartSource([] { return absl::StatusOr<std::string>(std::string()); });
   if (lsqsurf::io::FormatFromPath(path).value_or(lsqsurf::io::FileFormat::kPly) == lsqsurf::io::FileFormat::kDraco) {
     auto bytes = lsqsurf::io::ReadFileBytes(path);
@@ -97,18 +89,28 @@ absl::StatusOr<client::PartSource> CloudUpload(const std::string& path) {
     auto held = std::make_shared<std::string>(*std::move(bytes));
     return client::PartSource([held]() -> absl::StatusOr<std::string> { return std::exchange(*held, {}); });
   }
-  auto cloud = lsqsurf::io::ReadPointCloudFile(path);
-  if (!cloud.ok()) return cloud.status();
-  // The server takes unit normals; files often carry unnormalized ones.
-  for (auto& n : cloud->normals) {
-    if (n.norm() > 0) n.normalize();
-  }
-  auto parts = client::CloudParts(std::make_shared<const lsqsurf::core::PointCloud>(*std::move(cloud)));
+  // Read as it is sent: the client holds one part of a cloud larger than its memory.
+  auto points = lsqsurf::io::OpenPointStream(path);
+  if (!points.ok()) return points.status();
+  auto parts = client::StreamParts(*std::move(points), {}, points_per_part);
+  // Errors name the file (the readers' do already).
   return client::PartSource([parts, path]() -> absl::StatusOr<std::string> {
     auto part = parts();
-    if (!part.ok()) return absl::InvalidArgumentError(StrCat(path, ": ", part.status().message()));
-    return part;
+    if (part.ok() || std::string(part.status().message()).starts_with(path)) return part;
+    return absl::Status(part.status().code(), StrCat(path, ": ", part.status().message()));
   });
+}
+
+}  // namespace
+
+absl::StatusOr<std::string> CloudBytes(const std::string& path) {
+  auto parts = CloudFileParts(path, std::numeric_limits<int64_t>::max());
+  if (!parts.ok()) return parts.status();
+  return (*parts)();
+}
+
+absl::StatusOr<client::PartSource> CloudUpload(const std::string& path) {
+  return CloudFileParts(path, client::kPointsPerPart);
 }
 
 namespace {

@@ -258,6 +258,20 @@ PartSource CloudParts(std::shared_ptr<const core::PointCloud> cloud, const io::D
   };
 }
 
+PartSource StreamParts(std::shared_ptr<io::PointStream> points, const io::DracoOptions& options,
+                       int64_t points_per_part) {
+  const auto per_part = static_cast<size_t>(std::max<int64_t>(1, points_per_part));
+  return [points = std::move(points), options, per_part]() -> absl::StatusOr<std::string> {
+    auto part = points->Next(per_part);
+    if (!part.ok()) return part.status();
+    if (part->empty()) return std::string();
+    for (auto& n : part->normals) {
+      if (n.norm() > 0) n.normalize();
+    }
+    return io::EncodeDracoPointCloud(*part, options);
+  };
+}
+
 absl::StatusOr<v1::Job> Client::Submit(const v1::JobSpec& spec, std::string_view input, std::string_view velocity,
                                        std::string_view cells) {
   bool sent = false;

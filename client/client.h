@@ -15,6 +15,7 @@
 #include "lsqsurf/v1/reconstruction.grpc.pb.h"
 #include "worker/core/geometry.h"
 #include "worker/io/draco_codec.h"
+#include "worker/io/point_stream.h"
 
 namespace lsqsurf::client {
 
@@ -56,6 +57,10 @@ inline constexpr int64_t kPointsPerPart = int64_t{1} << 20;
 // one part: what any server accepts.
 PartSource CloudParts(std::shared_ptr<const core::PointCloud> cloud, const io::DracoOptions& options = {},
                       int64_t points_per_part = kPointsPerPart);
+// The parts of a cloud read from `points` as they are asked for (a file streamed holds one part
+// at a time). Normals are scaled to unit length, as the server takes them.
+PartSource StreamParts(std::shared_ptr<io::PointStream> points, const io::DracoOptions& options = {},
+                       int64_t points_per_part = kPointsPerPart);
 
 // Display names: "queued", "running", ...
 const char* StateName(v1::JobState state);

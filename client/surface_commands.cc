@@ -65,7 +65,14 @@ int SurfaceCommand::Run(const Globals& g, bool wait) const {
   } else {
     auto parts = CloudUpload(input);
     if (!parts.ok()) return Fail(std::string(parts.status().message()));
-    accepted = c.SubmitParts(*spec, *parts);
+    // A file that turns out unreadable while it is sent is this side's failure, not the server's.
+    absl::Status unreadable;
+    accepted = c.SubmitParts(*spec, [&]() -> absl::StatusOr<std::string> {
+      auto part = (*parts)();
+      if (!part.ok()) unreadable = part.status();
+      return part;
+    });
+    if (!unreadable.ok()) return Fail(std::string(unreadable.message()));
   }
   if (!accepted.ok()) return FailStatus("submit", accepted.status());
   if (!wait) {

@@ -1,5 +1,8 @@
 #include "worker/io/obj_xyz.h"
 
+#include <cstdint>
+
+#include "worker/core/status.h"
 #include "worker/core/strings.h"
 #include "worker/io/text_scan.h"
 
@@ -93,36 +96,41 @@ std::string EncodeObj(const core::TriangleMesh& mesh) {
 
 absl::StatusOr<core::PointCloud> ParseXyz(std::string_view text, std::string_view name) {
   core::PointCloud cloud;
-  LineReader lines(text);
+  XyzReader reader(text, name);
+  LSQSURF_RETURN_IF_ERROR(reader.Read(SIZE_MAX, cloud));
+  return cloud;
+}
+
+absl::Status XyzReader::Read(size_t max_points, core::PointCloud& cloud) {
   std::string_view line;
-  int columns = 0;
-  while (lines.Next(line)) {
+  for (size_t read = 0; read < max_points && lines_.Next(line);) {
     line = line.substr(0, line.find('#'));
     std::string_view rest = line;
     double v[7];
     int n = 0;
     for (std::string_view tok = NextToken(rest); !tok.empty(); tok = NextToken(rest)) {
-      if (n == 6) return LineError(name, lines.line_number(), "more than 6 values on a line");
+      if (n == 6) return LineError(name_, lines_.line_number(), "more than 6 values on a line");
       if (!ParseNumber(tok, v[n])) {
-        return LineError(name, lines.line_number(), core::StrCat("'", tok, "' is not a number"));
+        return LineError(name_, lines_.line_number(), core::StrCat("'", tok, "' is not a number"));
       }
       ++n;
     }
     if (n == 0) continue;
     if (n != 3 && n != 6) {
-      return LineError(name, lines.line_number(), core::StrCat("expected 3 or 6 values, found ", n));
+      return LineError(name_, lines_.line_number(), core::StrCat("expected 3 or 6 values, found ", n));
     }
-    if (columns == 0) columns = n;
-    if (n != columns) {
-      return LineError(name, lines.line_number(),
-                       core::StrCat("expected ", columns, " values like the lines before, found ", n));
+    if (columns_ == 0) columns_ = n;
+    if (n != columns_) {
+      return LineError(name_, lines_.line_number(),
+                       core::StrCat("expected ", columns_, " values like the lines before, found ", n));
     }
     cloud.positions.emplace_back(static_cast<float>(v[0]), static_cast<float>(v[1]), static_cast<float>(v[2]));
     if (n == 6)
       cloud.normals.emplace_back(static_cast<float>(v[3]), static_cast<float>(v[4]), static_cast<float>(v[5]));
+    ++read;
   }
-  if (cloud.empty()) return absl::InvalidArgumentError(core::StrCat(name, ": no points in XYZ file"));
-  return cloud;
+  if (columns_ == 0) return absl::InvalidArgumentError(core::StrCat(name_, ": no points in XYZ file"));
+  return absl::OkStatus();
 }
 
 std::string EncodeXyz(const core::PointCloud& cloud) {

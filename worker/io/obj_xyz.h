@@ -12,6 +12,7 @@
 
 #include "absl/status/statusor.h"
 #include "worker/core/geometry.h"
+#include "worker/io/text_scan.h"
 
 namespace lsqsurf::io {
 
@@ -19,6 +20,21 @@ absl::StatusOr<core::TriangleMesh> ParseObj(std::string_view text, std::string_v
 std::string EncodeObj(const core::TriangleMesh& mesh);
 
 absl::StatusOr<core::PointCloud> ParseXyz(std::string_view text, std::string_view name);
+
+// An XYZ list read a chunk at a time (ParseXyz reads it in one).
+class XyzReader {
+ public:
+  XyzReader(std::string_view text, std::string_view name) : lines_(text), name_(name) {}
+  // Appends up to `max_points` points to `cloud` (none at the end of the text). Errors: as
+  // ParseXyz, a file without points included.
+  absl::Status Read(size_t max_points, core::PointCloud& cloud);
+  size_t offset() const { return lines_.offset(); }  // Bytes read so far.
+
+ private:
+  internal::LineReader lines_;
+  std::string name_;
+  int columns_ = 0;  // 3 or 6 once a point was read.
+};
 // Writes "x y z" or, with normals, "x y z nx ny nz" lines.
 std::string EncodeXyz(const core::PointCloud& cloud);
 

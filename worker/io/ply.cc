@@ -1,5 +1,6 @@
 #include "worker/io/ply.h"
 
+#include <algorithm>
 #include <bit>
 #include <cmath>
 #include <cstring>
@@ -7,6 +8,7 @@
 
 #include "worker/core/status.h"
 #include "worker/core/strings.h"
+#include "worker/io/point_stream.h"
 #include "worker/io/text_scan.h"
 
 namespace lsqsurf::io {
@@ -119,6 +121,7 @@ class BodyReader {
     return core::StrCat("byte ", body_offset_ + pos_);
   }
   size_t remaining() const { return body_.size() - pos_; }
+  size_t consumed() const { return format_ == PlyFormat::kAscii ? lines_.offset() : pos_; }  // Bytes of the body.
   PlyFormat format() const { return format_; }
 
  private:
@@ -256,11 +259,38 @@ class ElementReader {
       : name_(name), e_(e), layout_(e), body_(body), mesh_(mesh), scalars_(e.properties.size()) {}
 
   absl::Status Read(bool& saw_vertex) {
-    // Every record takes at least one byte (binary) or two characters (ascii): a count larger
-    // than that allows is a corrupt header, refused before any allocation.
+    LSQSURF_RETURN_IF_ERROR(CheckCount());
+    if (MinRecordBytes() == 0) return absl::OkStatus();  // Nothing to read (CheckCount).
+    if (layout_.is_vertex) {
+      if (saw_vertex) return Fail("two vertex elements");
+      saw_vertex = true;
+      LSQSURF_RETURN_IF_ERROR(SizeVertices(e_.count, /*with_attributes=*/true));
+    }
+    if (layout_.is_face && layout_.face_list < 0) return Fail("PLY face element has no vertex_indices list");
+    for (uint64_t r = 0; r < e_.count; ++r) LSQSURF_RETURN_IF_ERROR(ReadRecord(r));
+    return absl::OkStatus();
+  }
+
+  // Streaming a vertex element: CheckCount() first, then records [first, first + n) into the
+  // mesh's first n vertices, without their other properties.
+  absl::Status ReadVertices(uint64_t first, uint64_t n) {
+    LSQSURF_RETURN_IF_ERROR(SizeVertices(n, /*with_attributes=*/false));
+    first_ = first;
+    for (uint64_t r = first; r < first + n; ++r) LSQSURF_RETURN_IF_ERROR(ReadRecord(r));
+    return absl::OkStatus();
+  }
+
+  // Every record takes at least one byte (binary) or two characters (ascii): a count larger
+  // than that allows is a corrupt header, refused before any allocation.
+  size_t MinRecordBytes() const {
     size_t min_record = 0;
     for (const Property& p : e_.properties) min_record += p.is_list ? TypeSize(p.count_type) : TypeSize(p.type);
     if (body_.format() == PlyFormat::kAscii) min_record = std::max<size_t>(1, 2 * e_.properties.size());
+    return min_record;
+  }
+
+  absl::Status CheckCount() {
+    const size_t min_record = MinRecordBytes();
     // Binary records without properties take no bytes: there is nothing to read, however many
     // the header declares (a loop over a count from the file would run for hours; fuzzing).
     if (min_record == 0)
@@ -269,18 +299,6 @@ class ElementReader {
       return Fail(core::StrCat("PLY element '", e_.name, "' declares ", e_.count,
                                " records but the file is too short for them (truncated?)"));
     }
-    if (layout_.is_vertex) {
-      if (saw_vertex) return Fail("two vertex elements");
-      saw_vertex = true;
-      if (layout_.x < 0 || layout_.y < 0 || layout_.z < 0) return Fail("PLY vertex element lacks x, y or z");
-      mesh_.vertices.resize(e_.count);
-      if (layout_.has_normals()) mesh_.normals.resize(e_.count);
-      for (int k : layout_.extra) {
-        mesh_.vertex_attributes.push_back({e_.properties[static_cast<size_t>(k)].name, std::vector<float>(e_.count)});
-      }
-    }
-    if (layout_.is_face && layout_.face_list < 0) return Fail("PLY face element has no vertex_indices list");
-    for (uint64_t r = 0; r < e_.count; ++r) LSQSURF_RETURN_IF_ERROR(ReadRecord(r));
     return absl::OkStatus();
   }
 
@@ -290,6 +308,17 @@ class ElementReader {
     return Fail(core::StrCat(where, ": ", e_.name, " ", r, what));
   }
   float Scalar(int index) const { return static_cast<float>(scalars_[static_cast<size_t>(index)]); }
+
+  absl::Status SizeVertices(uint64_t n, bool with_attributes) {
+    if (layout_.x < 0 || layout_.y < 0 || layout_.z < 0) return Fail("PLY vertex element lacks x, y or z");
+    mesh_.vertices.resize(n);
+    if (layout_.has_normals()) mesh_.normals.resize(n);
+    if (!with_attributes) layout_.extra.clear();
+    for (int k : layout_.extra) {
+      mesh_.vertex_attributes.push_back({e_.properties[static_cast<size_t>(k)].name, std::vector<float>(n)});
+    }
+    return absl::OkStatus();
+  }
 
   absl::Status ReadRecord(uint64_t r) {
     if (!body_.BeginRecord()) return Fail(core::StrCat("unexpected end of file in ", e_.name, " ", r));
@@ -306,10 +335,11 @@ class ElementReader {
     }
     if (!body_.EndRecord()) return FailAt(body_.Where(), r, " has more values than the header declares");
     if (layout_.is_vertex) {
-      mesh_.vertices[r] = core::Vec3f(Scalar(layout_.x), Scalar(layout_.y), Scalar(layout_.z));
+      const uint64_t v = r - first_;
+      mesh_.vertices[v] = core::Vec3f(Scalar(layout_.x), Scalar(layout_.y), Scalar(layout_.z));
       if (!mesh_.normals.empty())
-        mesh_.normals[r] = core::Vec3f(Scalar(layout_.nx), Scalar(layout_.ny), Scalar(layout_.nz));
-      for (size_t a = 0; a < layout_.extra.size(); ++a) mesh_.vertex_attributes[a].values[r] = Scalar(layout_.extra[a]);
+        mesh_.normals[v] = core::Vec3f(Scalar(layout_.nx), Scalar(layout_.ny), Scalar(layout_.nz));
+      for (size_t a = 0; a < layout_.extra.size(); ++a) mesh_.vertex_attributes[a].values[v] = Scalar(layout_.extra[a]);
     }
     return absl::OkStatus();
   }
@@ -344,9 +374,52 @@ class ElementReader {
   core::TriangleMesh& mesh_;
   std::vector<double> scalars_;
   std::vector<uint32_t> polygon_;
+  uint64_t first_ = 0;  // The record that lands in vertex 0 (streaming).
+};
+
+// The vertex element, first in its file, a chunk at a time; the pages read are released.
+class PlyVertexStream final : public PointStream {
+ public:
+  PlyVertexStream(std::shared_ptr<const MappedFile> file, PlyHeader header)
+      : file_(std::move(file)),
+        header_(std::move(header)),
+        body_(file_->bytes().substr(std::min(header_.body_offset, file_->bytes().size())), header_.format,
+              header_.body_offset, header_.lines),
+        reader_(file_->path(), header_.elements[0], body_, chunk_) {}
+
+  absl::Status Check() { return reader_.CheckCount(); }
+
+  absl::StatusOr<core::PointCloud> Next(size_t max_points) override {
+    const uint64_t n = std::min<uint64_t>(std::max<size_t>(max_points, 1), header_.elements[0].count - next_);
+    LSQSURF_RETURN_IF_ERROR(reader_.ReadVertices(next_, n));
+    next_ += n;
+    file_->Release(header_.body_offset + body_.consumed());
+    core::PointCloud cloud;
+    cloud.positions = std::move(chunk_.vertices);
+    cloud.normals = std::move(chunk_.normals);
+    chunk_ = {};
+    return cloud;
+  }
+
+ private:
+  std::shared_ptr<const MappedFile> file_;
+  PlyHeader header_;
+  BodyReader body_;
+  core::TriangleMesh chunk_;
+  ElementReader reader_;
+  uint64_t next_ = 0;
 };
 
 }  // namespace
+
+absl::StatusOr<std::unique_ptr<PointStream>> StreamPlyVertices(std::shared_ptr<const MappedFile> file) {
+  auto header = ParseHeader(file->bytes(), file->path());
+  if (!header.ok()) return header.status();
+  if (header->elements.empty() || header->elements[0].name != "vertex") return nullptr;
+  auto stream = std::make_unique<PlyVertexStream>(std::move(file), *std::move(header));
+  LSQSURF_RETURN_IF_ERROR(stream->Check());
+  return stream;
+}
 
 absl::StatusOr<core::TriangleMesh> ParsePly(std::string_view bytes, std::string_view name) {
   auto header = ParseHeader(bytes, name);

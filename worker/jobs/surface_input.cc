@@ -53,8 +53,7 @@ absl::StatusOr<core::PointCloud> DecodePart(std::string_view bytes, const std::s
 
 }  // namespace
 
-absl::Status DracoPartsSource::ForEachChunk(
-    const std::function<absl::Status(const core::PointCloud&)>& visit) const {
+absl::Status DracoPartsSource::ForEachChunk(const std::function<absl::Status(const core::PointCloud&)>& visit) const {
   for (size_t i = 0; i < parts_.size(); ++i) {
     auto cloud = DecodePart(parts_[i], core::StrCat("input part ", i), io::DracoDecodeLimits{}.max_points);
     if (!cloud.ok()) return cloud.status();

@@ -15,6 +15,7 @@
 #include <CLI/CLI.hpp>
 #include <algorithm>
 #include <atomic>
+#include <bit>
 #include <chrono>
 #include <csignal>
 #include <cstdio>
@@ -136,6 +137,21 @@ void Measure(const core::TriangleMesh& truth, const core::TriangleMesh& mesh, si
 
 int RunTool(const std::string& cmd) { return std::system((cmd + " > /dev/null 2>&1").c_str()); }
 
+// RunTool, also giving the largest resident set of the command and of what it waited for.
+int RunToolMeasured(const std::string& cmd, double* peak_mib) {
+  const std::string line = cmd + " > /dev/null 2>&1";
+  const pid_t pid = ::fork();
+  if (pid == 0) {
+    ::execl("/bin/sh", "sh", "-c", line.c_str(), static_cast<char*>(nullptr));
+    ::_exit(127);
+  }
+  int status = 0;
+  rusage usage{};
+  if (pid < 0 || ::wait4(pid, &status, 0, &usage) != pid) return -1;
+  *peak_mib = static_cast<double>(usage.ru_maxrss) / 1024.0;
+  return WIFEXITED(status) ? WEXITSTATUS(status) : -1;
+}
+
 // Runs a command and returns its first output line (empty on failure).
 std::string FirstLine(const std::string& cmd) {
   FILE* p = ::popen((cmd + " 2>/dev/null").c_str(), "r");
@@ -188,6 +204,14 @@ void Print(const BenchCase& c, const char* mode, const CaseResult& r) {
   std::fflush(stdout);
 }
 
+void SaveResult(const BenchOptions& o, const BenchCase& c, const core::TriangleMesh& mesh) {
+  if (o.save_dir.empty()) return;
+  const auto path = fs::path(o.save_dir) / core::StrCat(c.model, "-", c.points, "-", c.noise, "-", c.method, ".ply");
+  if (absl::Status s = io::WriteMeshFile(path.string(), mesh); !s.ok()) {
+    std::fprintf(stderr, "%s\n", s.ToString().c_str());
+  }
+}
+
 // The engine called in this process's child, as the service's worker calls it.
 CaseResult RunDirect(const BenchOptions& o, const core::ParamSet& params, const BenchCase& c) {
   return InChild([&] {
@@ -201,13 +225,7 @@ CaseResult RunDirect(const BenchOptions& o, const core::ParamSet& params, const 
       r.error = std::string(result.status().message());
       return r;
     }
-    if (!o.save_dir.empty()) {
-      const auto path =
-          fs::path(o.save_dir) / core::StrCat(c.model, "-", c.points, "-", c.noise, "-", c.method, ".ply");
-      if (absl::Status s = io::WriteMeshFile(path.string(), result->mesh); !s.ok()) {
-        std::fprintf(stderr, "%s\n", s.ToString().c_str());
-      }
-    }
+    SaveResult(o, c, result->mesh);
     if (o.show_statistics) {
       for (const auto& [name, value] : result->statistics) std::printf("  %s=%g\n", name.c_str(), value);
       std::fflush(stdout);
@@ -264,6 +282,7 @@ CaseResult RunStreamed(const BenchOptions& o, const core::ParamSet& params, cons
             tiled->extract.crease_seconds + tiled->extract.relax_seconds,
         static_cast<double>(tiled->scratch_bytes) / (1 << 20), static_cast<long long>(tiled->seam_vertices));
     std::fflush(stdout);
+    SaveResult(o, c, sink.mesh());
     Measure(c.truth, sink.mesh(), o.samples, r);
     return r;
   });
@@ -297,13 +316,13 @@ void RunPoisson(const BenchOptions& o, const BenchCase& c, const CaseResult& dir
 // A real lsqsurfd on a free loopback port, in its own data folder; stopped on destruction.
 class BenchServer {
  public:
-  BenchServer(const std::string& bin_dir, const fs::path& work) : work_(work) {
+  BenchServer(const std::string& bin_dir, const fs::path& work, const std::string& flags = "") : work_(work) {
     const std::string data = (work / "server-data").string();
     fs::remove_all(data);
     const std::string addr_file = (work / "address").string();
     fs::remove(addr_file);
     const std::string start =
-        core::StrCat("(", bin_dir, "/lsqsurfd --listen 127.0.0.1:0 --data-dir ", data, " 2>/dev/null & echo $! > ",
+        core::StrCat("(", bin_dir, "/lsqsurfd --listen 127.0.0.1:0 --data-dir ", data, " ", flags, " 2>/dev/null & echo $! > ",
                      work.string(), "/pid; wait) | head -1 > ", addr_file, " &");
     (void)std::system(start.c_str());
     // The server prints "listening on ADDRESS" once it serves; the shell writes it on exit of head.
@@ -334,6 +353,12 @@ class BenchServer {
   std::string address_;
   long pid_ = 0;
 };
+
+void PrintNewestJobStatistics(const std::string& address) {
+  auto listed = client::Client(address).List(1);
+  if (!listed.ok() || listed->jobs_size() == 0) return;
+  for (const auto& st : listed->jobs(0).statistics()) std::printf("  service %s=%g\n", st.name().c_str(), st.value());
+}
 
 // The same cloud through a real server and the real client: upload, reconstruct, download.
 void RunService(const BenchOptions& o, const BenchCase& c, const std::vector<std::string>& params,
@@ -374,13 +399,7 @@ void RunService(const BenchOptions& o, const BenchCase& c, const std::vector<std
   const double seconds = Since(t_e2e);
   polling = false;
   poller.join();
-  if (o.show_statistics) {  // The timed job is the newest one.
-    auto listed = client::Client(server.address()).List(1);
-    if (listed.ok() && listed->jobs_size() > 0) {
-      for (const auto& st : listed->jobs(0).statistics())
-        std::printf("  service %s=%g\n", st.name().c_str(), st.value());
-    }
-  }
+  if (o.show_statistics) PrintNewestJobStatistics(server.address());  // The timed job.
   const double peak = server.PeakMib();
   CaseResult r;
   if (rc != 0 || submitted.empty()) {
@@ -411,6 +430,77 @@ void RunService(const BenchOptions& o, const BenchCase& c, const std::vector<std
     std::printf("    GetJob during upload and run: %zu calls, median %.2f ms, p99 %.2f ms, max %.2f ms\n",
                 latencies_ms.size(), at(0.5), at(0.99), latencies_ms.back());
   }
+}
+
+// The sampled cloud as a binary PLY with normals, written chunk by chunk as a scanner would.
+absl::Status WriteSampledPly(const SampledSource& source, size_t points, const std::string& path) {
+  static_assert(std::endian::native == std::endian::little, "the PLY body is written in native order");
+  std::ofstream out(path, std::ios::binary | std::ios::trunc);
+  out << "ply\nformat binary_little_endian 1.0\nelement vertex " << points
+      << "\nproperty float x\nproperty float y\nproperty float z\nproperty float nx\nproperty float ny\n"
+         "property float nz\nend_header\n";
+  std::vector<float> rows;
+  LSQSURF_RETURN_IF_ERROR(source.ForEachChunk([&](const core::PointCloud& chunk) {
+    rows.clear();
+    for (size_t i = 0; i < chunk.size(); ++i) {
+      rows.insert(rows.end(), chunk.positions[i].data(), chunk.positions[i].data() + 3);
+      rows.insert(rows.end(), chunk.normals[i].data(), chunk.normals[i].data() + 3);
+    }
+    out.write(reinterpret_cast<const char*>(rows.data()), static_cast<std::streamsize>(rows.size() * sizeof(float)));
+    return out ? absl::OkStatus() : absl::DataLossError(core::StrCat(path, ": write failed (disk full?)"));
+  }));
+  out.close();
+  return out ? absl::OkStatus() : absl::DataLossError(core::StrCat(path, ": write failed (disk full?)"));
+}
+
+// A sampled cloud written to a PLY file, sent by the real client in parts to a real server,
+// and the mesh fetched: time, the peaks of both processes, and the mesh's accuracy.
+void RunStreamedService(const BenchOptions& o, const BenchCase& c, const std::vector<std::string>& params,
+                        const fs::path& work) {
+  const std::string cloud_path = (work / "cloud.ply").string(), mesh_path = (work / "mesh.drc").string();
+  const double diagonal = core::Diagonal(core::BoundingBox(c.truth.vertices));
+  const auto t_write = Clock::now();
+  if (absl::Status s = WriteSampledPly(SampledSource(c.truth, c.points, c.noise * diagonal), c.points, cloud_path);
+      !s.ok()) {
+    std::printf("  %s\n", std::string(s.message()).c_str());
+    return;
+  }
+  const double write_s = Since(t_write);
+  BenchServer server(o.bin_dir, work, "--max-points 2000000000 --max-upload-mib 65536");
+  std::string param_args;
+  for (const auto& p : params) param_args += " --param " + p;
+  double client_peak = 0;
+  const auto start = Clock::now();
+  const int rc = RunToolMeasured(core::StrCat(o.bin_dir, "/lsqsurf -q --server ", server.address(), " reconstruct ",
+                                              cloud_path, " -o ", mesh_path, " --method ", c.method, param_args),
+                                 &client_peak);
+  const double seconds = Since(start);
+  const double server_peak = server.PeakMib();
+  fs::remove(cloud_path);
+  if (o.show_statistics) PrintNewestJobStatistics(server.address());
+  CaseResult r;
+  if (rc != 0) {
+    r.error = core::StrCat("the client failed (exit ", rc, ")");
+  } else {
+    r = InChild([&] {
+      CaseResult m;
+      auto mesh = io::ReadMeshFile(mesh_path);
+      if (!mesh.ok())
+        m.error = std::string(mesh.status().message());
+      else
+        Measure(c.truth, *mesh, o.samples, m);
+      return m;
+    });
+  }
+  r.seconds = seconds;
+  r.peak_mib = server_peak;
+  Print(c, "served", r);
+  std::printf("    through the service: %.2f s per million points; peak memory: server %.0f MiB, client %.0f MiB "
+              "(the PLY file, %.0f MiB, written in %.1f s)\n",
+              seconds * 1e6 / static_cast<double>(c.points), server_peak, client_peak,
+              static_cast<double>(c.points) * 24.0 / (1 << 20), write_s);
+  std::fflush(stdout);
+  fs::remove(mesh_path);
 }
 
 // A method's parameters and the name=value texts it took: each text goes to the methods whose
@@ -481,11 +571,12 @@ int main(int argc, char** argv) {
   app.add_option("--param", o.params, "method parameter name=value (repeatable)");
   app.add_option("--samples", o.samples, "samples per surface for the distances")->capture_default_str();
   app.add_flag("--server", o.server, "also run every case through lsqsurfd and the lsqsurf client");
-  app.add_option("--save", o.save_dir, "write every direct result to DIR/<model>-<points>-<noise>.ply");
+  app.add_option("--save", o.save_dir, "write every direct (or --streamed) result to DIR/<model>-<points>-<noise>-<method>.ply");
   app.add_flag("--stats", o.show_statistics, "print the engine's statistics of every direct run");
   app.add_flag("--streamed", o.streamed,
                "pu only: sample each cloud chunk by chunk into the tiled engine (never whole in memory) instead of "
-               "the direct and server runs");
+               "the direct and server runs; with --server, write it chunk by chunk to a PLY file that the client "
+               "sends in parts to lsqsurfd (the peaks of both are printed)");
   app.add_flag("--no-normals", o.drop_normals, "drop the sampled normals (the engines estimate them)");
   app.add_option("--bin", o.bin_dir, "folder with lsqsurfd and lsqsurf (default: beside this program)");
   app.add_option("--poisson-depth", o.poisson_depth,
@@ -536,7 +627,11 @@ int main(int argc, char** argv) {
         for (size_t m = 0; m < o.methods.size(); ++m) {
           const BenchCase c{*truth, cloud, model, n, noise, o.methods[m]};
           if (o.streamed) {
-            Print(c, "stream", RunStreamed(o, params[m].params, c));
+            if (o.server) {
+              RunStreamedService(o, c, params[m].texts, work);
+            } else {
+              Print(c, "stream", RunStreamed(o, params[m].params, c));
+            }
             continue;
           }
           const CaseResult direct = RunDirect(o, params[m].params, c);

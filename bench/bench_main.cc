@@ -322,8 +322,8 @@ class BenchServer {
     const std::string addr_file = (work / "address").string();
     fs::remove(addr_file);
     const std::string start =
-        core::StrCat("(", bin_dir, "/lsqsurfd --listen 127.0.0.1:0 --data-dir ", data, " ", flags, " 2>/dev/null & echo $! > ",
-                     work.string(), "/pid; wait) | head -1 > ", addr_file, " &");
+        core::StrCat("(", bin_dir, "/lsqsurfd --listen 127.0.0.1:0 --data-dir ", data, " ", flags,
+                     " 2>/dev/null & echo $! > ", work.string(), "/pid; wait) | head -1 > ", addr_file, " &");
     (void)std::system(start.c_str());
     // The server prints "listening on ADDRESS" once it serves; the shell writes it on exit of head.
     for (int i = 0; i < 100 && address_.empty(); ++i) {
@@ -495,10 +495,11 @@ void RunStreamedService(const BenchOptions& o, const BenchCase& c, const std::ve
   r.seconds = seconds;
   r.peak_mib = server_peak;
   Print(c, "served", r);
-  std::printf("    through the service: %.2f s per million points; peak memory: server %.0f MiB, client %.0f MiB "
-              "(the PLY file, %.0f MiB, written in %.1f s)\n",
-              seconds * 1e6 / static_cast<double>(c.points), server_peak, client_peak,
-              static_cast<double>(c.points) * 24.0 / (1 << 20), write_s);
+  std::printf(
+      "    through the service: %.2f s per million points; peak memory: server %.0f MiB, client %.0f MiB "
+      "(the PLY file, %.0f MiB, written in %.1f s)\n",
+      seconds * 1e6 / static_cast<double>(c.points), server_peak, client_peak,
+      static_cast<double>(c.points) * 24.0 / (1 << 20), write_s);
   std::fflush(stdout);
   fs::remove(mesh_path);
 }
@@ -571,7 +572,8 @@ int main(int argc, char** argv) {
   app.add_option("--param", o.params, "method parameter name=value (repeatable)");
   app.add_option("--samples", o.samples, "samples per surface for the distances")->capture_default_str();
   app.add_flag("--server", o.server, "also run every case through lsqsurfd and the lsqsurf client");
-  app.add_option("--save", o.save_dir, "write every direct (or --streamed) result to DIR/<model>-<points>-<noise>-<method>.ply");
+  app.add_option("--save", o.save_dir,
+                 "write every direct (or --streamed) result to DIR/<model>-<points>-<noise>-<method>.ply");
   app.add_flag("--stats", o.show_statistics, "print the engine's statistics of every direct run");
   app.add_flag("--streamed", o.streamed,
                "pu only: sample each cloud chunk by chunk into the tiled engine (never whole in memory) instead of "

@@ -119,12 +119,19 @@ struct JobFlags {
 
 // A cloud file's upload: .drc as it is (one part), other formats read and encoded with unit
 // normals in parts of client::kPointsPerPart points. An empty path uploads nothing.
-absl::StatusOr<client::PartSource> CloudUpload(const std::string& path);
+absl::StatusOr<client::PartSource> CloudUpload(const std::string& path,
+                                               int64_t points_per_part = client::kPointsPerPart);
 // The same in one part, for jobs that take their cloud whole (track); "" for an empty path.
 absl::StatusOr<std::string> CloudBytes(const std::string& path);
 
 // Follows a job to its end; returns the exit code and the final job through `out`.
 int Watch(const Globals& g, const std::string& id, v1::Job* out);
+
+// Downloads the artifact `name` of job `id` to `path` through WriteResult; the mesh ("") of a job
+// that delivered it in parts is joined as it comes (client::WriteMeshParts). `job`: the job's
+// record when the caller has it. Returns the exit code.
+int FetchToFile(const Globals& g, const std::string& id, const std::string& name, const std::string& path,
+                const v1::Job* job = nullptr);
 
 // Writes a fetched artifact to `path`: Draco meshes convert to the extension's format;
 // pictures, tables and text are written as they are.
@@ -179,6 +186,7 @@ struct SurfaceCommand {
   VolumeFlags volume;
   std::vector<double> iso;
   std::string csg_expression;  // Method csg: the solid (no upload).
+  int64_t part_points = client::kPointsPerPart;  // Points per upload part (SubmitJobRequest.input_part_end).
   struct EditFlags {
     std::string source, ball, set, refit;
     bool remove = false;
@@ -188,6 +196,14 @@ struct SurfaceCommand {
   absl::Status ApplyEdit(v1::JobSpec* spec) const;
 
   int Run(const Globals& g, bool wait) const;
+  void AddPartFlag(CLI::App* command) {
+    command
+        ->add_option("--part-points", part_points,
+                     "points per upload part: a cloud is read and sent a part at a time (a PU job over tile_points "
+                     "then also delivers its mesh in parts, joined as they come)")
+        ->capture_default_str()
+        ->check(CLI::Range(int64_t{1000}, int64_t{1} << 30));
+  }
 };
 
 // csg: a solid from an expression, run through the surface command's upload-free path.

@@ -109,8 +109,8 @@ absl::StatusOr<std::string> CloudBytes(const std::string& path) {
   return (*parts)();
 }
 
-absl::StatusOr<client::PartSource> CloudUpload(const std::string& path) {
-  return CloudFileParts(path, client::kPointsPerPart);
+absl::StatusOr<client::PartSource> CloudUpload(const std::string& path, int64_t points_per_part) {
+  return CloudFileParts(path, points_per_part);
 }
 
 namespace {
@@ -181,6 +181,25 @@ int WriteResult(const std::string& bytes, const std::string& name, const std::st
   }
   if (!s.ok()) return Fail(std::string(s.message()));
   return 0;
+}
+
+int FetchToFile(const Globals& g, const std::string& id, const std::string& name, const std::string& path,
+                const v1::Job* job) {
+  client::Client c = Connect(g);
+  std::vector<std::string> parts;
+  if (name.empty()) {  // The mesh: one artifact, or parts to join as they come.
+    absl::StatusOr<v1::Job> got = job != nullptr ? absl::StatusOr<v1::Job>(*job) : c.Get(id);
+    if (!got.ok()) return FailStatus("fetch", got.status());
+    parts = client::MeshParts(*got);
+  }
+  if (!parts.empty()) {
+    const absl::Status s =
+        client::WriteMeshParts(parts.size(), [&](size_t i) { return c.Fetch(id, parts[i]); }, path);
+    return s.ok() ? 0 : FailStatus("fetch", s);
+  }
+  auto bytes = c.Fetch(id, name);
+  if (!bytes.ok()) return FailStatus("fetch", bytes.status());
+  return WriteResult(*bytes, name, path);
 }
 
 void PrintStatistics(const v1::Job& job) {

@@ -10,6 +10,7 @@
 #include <memory>
 #include <string>
 #include <string_view>
+#include <vector>
 
 #include "absl/status/statusor.h"
 #include "lsqsurf/v1/reconstruction.grpc.pb.h"
@@ -61,6 +62,17 @@ PartSource CloudParts(std::shared_ptr<const core::PointCloud> cloud, const io::D
 // at a time). Normals are scaled to unit length, as the server takes them.
 PartSource StreamParts(std::shared_ptr<io::PointStream> points, const io::DracoOptions& options = {},
                        int64_t points_per_part = kPointsPerPart);
+
+// A result mesh delivered in parts (a PU job streamed from an input in parts; see
+// FetchResultRequest): the names of its parts, in order; empty for any other job.
+std::vector<std::string> MeshParts(const v1::Job& job);
+// Writes a mesh from its `parts` parts, `fetch` giving part i's bytes: .ply (binary) and .obj are
+// written as the parts come (the vertices and faces go to files beside `path` until the counts
+// are known), so that the mesh is never whole in memory; .drc and other formats take it whole.
+// Errors: those of `fetch`, kInvalidArgument (an unknown extension, a corrupt part), kDataLoss
+// (parts that do not follow on), kResourceExhausted (a full disk).
+absl::Status WriteMeshParts(size_t parts, const std::function<absl::StatusOr<std::string>(size_t part)>& fetch,
+                            const std::string& path);
 
 // Display names: "queued", "running", ...
 const char* StateName(v1::JobState state);

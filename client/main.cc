@@ -17,11 +17,13 @@ int main(int argc, char** argv) {
   reconstruct->add_option("-o,--output", surface.outputs, "mesh to write (.ply .obj .drc); repeat for several")
       ->required();
   surface.job.AddTo(reconstruct);
+  surface.AddPartFlag(reconstruct);
   reconstruct->add_option("--preview", surface.preview, "also render the mesh to this PNG file (view options below)");
   surface.view.AddTo(reconstruct);
   auto* submit = app.add_subcommand("submit", "upload a cloud and print the job id");
   submit->add_option("input", surface.input, "point cloud")->required();
   surface.job.AddTo(submit);
+  surface.AddPartFlag(submit);
   surface.volume.AddTo(submit);
   submit->add_flag("--job-preview", surface.job_preview,
                    "the job also draws preview.png into its results (view options below)");
@@ -113,11 +115,7 @@ int main(int argc, char** argv) {
     if (*command) return JobCommand(g, command->get_name(), id);
   }
   if (*list) return List(g, limit);
-  if (*fetch) {
-    auto bytes = Connect(g).Fetch(id, name);
-    if (!bytes.ok()) return FailStatus("fetch", bytes.status());
-    return WriteResult(*bytes, name, output);
-  }
+  if (*fetch) return FetchToFile(g, id, name, output);
   if (*methods) return PrintMethods(g);
   if (*info) return PrintServerInfo(g);
   if (*health) return health_command.Run(g);

@@ -63,7 +63,7 @@ int SurfaceCommand::Run(const Globals& g, bool wait) const {
     if (!upload.ok()) return Fail(std::string(upload.status().message()));
     accepted = c.Submit(*spec, upload->input, {}, upload->cells);
   } else {
-    auto parts = CloudUpload(input);
+    auto parts = CloudUpload(input, part_points);
     if (!parts.ok()) return Fail(std::string(parts.status().message()));
     // A file that turns out unreadable while it is sent is this side's failure, not the server's.
     absl::Status unreadable;
@@ -90,10 +90,8 @@ int SurfaceCommand::Run(const Globals& g, bool wait) const {
     std::printf("%s\n", done.id().c_str());
     return 0;
   }
-  auto mesh = c.Fetch(done.id(), "");
-  if (!mesh.ok()) return FailStatus("fetch", mesh.status());
   for (const auto& path : outputs) {
-    if (int rc = WriteResult(*mesh, "", path); rc != 0) return rc;
+    if (int rc = FetchToFile(g, done.id(), "", path, &done); rc != 0) return rc;
   }
   if (!g.quiet) {
     PrintStatistics(done);

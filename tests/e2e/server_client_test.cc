@@ -151,6 +151,36 @@ TEST_F(EndToEnd, PuMeshCarriesDepthAndDegreeToThePly) {
   EXPECT_LE(ranges["degree"].second, 5.0f);
 }
 
+// A cloud larger than a part goes up in parts; a PU job over tile_points then streams it and
+// delivers its mesh in parts, which the client joins into one file as they come.
+TEST_F(EndToEnd, ACloudSentInPartsComesBackAsOneClosedMesh) {
+  Server server;
+  ASSERT_NO_FATAL_FAILURE(server.Start(dir_ / "data"));
+  const std::string in = WriteCloud("block.ply", testing::DrilledBlockCloud(12'000, 2.0, 0.6, 0.3, 0.3));
+  const std::string out = (dir_ / "block-out.ply").string(), again = (dir_ / "block-again.obj").string();
+  const ClientRun r = Client(server.address(), "reconstruct " + in + " -o " + out +
+                                                   " --method pu --part-points 2500 --param tile_points=3000 "
+                                                   "--param support_cap=16");
+  ASSERT_EQ(r.code, 0) << r.output;
+  EXPECT_NE(r.output.find("input_streamed = 1"), std::string::npos) << r.output;
+  auto mesh = io::ReadMeshFile(out);
+  ASSERT_TRUE(mesh.ok()) << mesh.status();
+  const core::MeshTopology topology = core::AnalyzeTopology(core::WeldByPosition(*mesh));
+  EXPECT_TRUE(topology.watertight());
+  EXPECT_EQ(topology.euler_characteristic(), 0);
+  EXPECT_NEAR(core::EnclosedVolume(*mesh), 8 * 2.0 * 0.6 * 0.3 - M_PI * 0.3 * 0.3 * 2 * 0.3, 0.02);  // Box less hole.
+  bool has_degree = false;
+  for (const auto& a : mesh->vertex_attributes) has_degree |= a.name == "degree";
+  EXPECT_TRUE(has_degree);
+  // `lsqsurf fetch` joins the parts the same way.
+  const std::string id = r.output.substr(r.output.find("job ") + 4, 32);
+  const ClientRun fetched = Client(server.address(), "fetch " + id + " -o " + again);
+  ASSERT_EQ(fetched.code, 0) << fetched.output;
+  auto obj = io::ReadMeshFile(again);
+  ASSERT_TRUE(obj.ok()) << obj.status();
+  EXPECT_EQ(obj->faces.size(), mesh->faces.size());
+}
+
 // A PU job keeps its function; `lsqsurf csg` halves it with a plane by reference and `lsqsurf
 // edit` changes it in a ball.
 TEST_F(EndToEnd, CsgAndEditOfAKeptPuResultThroughTheCli) {

@@ -8,6 +8,7 @@
 #include "tests/test_dir.h"
 #include "tests/test_shapes.h"
 #include "worker/io/files.h"
+#include "worker/io/mesh_part.h"
 #include "worker/io/obj_xyz.h"
 #include "worker/io/ply.h"
 
@@ -120,6 +121,27 @@ TEST_F(PointStreamTest, BrokenFilesNameTheFileAndThePlace) {
   EXPECT_EQ(third.code(), absl::StatusCode::kInvalidArgument);
   EXPECT_NE(third.message().find("line 3"), std::string::npos) << third;
   EXPECT_EQ(OpenPointStream((dir_ / "missing.ply").string()).status().code(), absl::StatusCode::kNotFound);
+}
+
+TEST(MeshPart, RoundTripsAndRefusesWhatDoesNotFollowOn) {
+  const std::vector<core::Vec3f> vertices = {{0, 0, 0}, {1, 0, 0}, {0, 1, 0}};
+  const std::vector<core::Vec3f> normals(3, core::Vec3f(0, 0, 1));
+  const std::vector<core::ScalarAttribute> attributes = {{"degree", {1, 2, 3}}};
+  const std::vector<std::array<int64_t, 3>> faces = {{7, 10, 11}, {10, 11, 12}};  // 7: a vertex of an earlier part.
+  const std::string bytes = EncodeMeshPart(10, vertices, normals, attributes, faces);
+  auto part = DecodeMeshPart(bytes);
+  ASSERT_TRUE(part.ok()) << part.status();
+  EXPECT_EQ(part->first_vertex, 10);
+  EXPECT_EQ(part->vertices, vertices);
+  EXPECT_EQ(part->normals, normals);
+  ASSERT_EQ(part->attributes.size(), 1u);
+  EXPECT_EQ(part->attributes[0].name, "degree");
+  EXPECT_EQ(part->attributes[0].values, attributes[0].values);
+  EXPECT_EQ(part->faces, faces);
+  // A face naming a vertex of a later part, and every truncation, are refused.
+  const std::vector<std::array<int64_t, 3>> ahead = {{10, 11, 13}};
+  EXPECT_FALSE(DecodeMeshPart(EncodeMeshPart(10, vertices, normals, attributes, ahead)).ok());
+  for (size_t cut = 0; cut < bytes.size(); cut += 7) EXPECT_FALSE(DecodeMeshPart(bytes.substr(0, cut)).ok()) << cut;
 }
 
 }  // namespace

@@ -18,6 +18,7 @@
 #include "worker/core/mesh_metrics.h"
 #include "worker/core/strings.h"
 #include "worker/io/draco_codec.h"
+#include "worker/io/files.h"
 #include "worker/io/volume_codec.h"
 #include "worker/volume/synthetic.h"
 
@@ -156,8 +157,16 @@ TEST_F(ServiceTest, ACloudUploadedInPartsIsOneJob) {
   for (const auto& s : done->statistics()) stats[s.name()] = s.value();
   EXPECT_EQ(stats["input_streamed"], 1);
   EXPECT_GE(stats["tiles"], 4);
-  auto mesh = io::DecodeDracoMesh(*client_->Fetch(job->id(), "mesh.drc"));
+  // The mesh comes back in parts too, joined into a file as they come.
+  const std::vector<std::string> parts = client::MeshParts(*done);
+  EXPECT_EQ(static_cast<double>(parts.size()), stats["mesh_parts"]);
+  const std::string path = (dir_ / "block.ply").string();
+  ASSERT_TRUE(client::WriteMeshParts(
+                  parts.size(), [&](size_t i) { return client_->Fetch(job->id(), parts[i]); }, path)
+                  .ok());
+  auto mesh = io::ReadMeshFile(path);
   ASSERT_TRUE(mesh.ok()) << mesh.status();
+  EXPECT_EQ(static_cast<double>(mesh->faces.size()), stats["triangles"]);
   const core::MeshTopology topology = core::AnalyzeTopology(core::WeldByPosition(*mesh));
   EXPECT_TRUE(topology.watertight());
   EXPECT_EQ(topology.euler_characteristic(), 0);  // One hole through the block.

@@ -10,6 +10,7 @@
 #include <cmath>
 #include <functional>
 #include <limits>
+#include <optional>
 
 #include "worker/core/mesh_metrics.h"
 #include "worker/core/status.h"
@@ -17,6 +18,7 @@
 #include "worker/extract/isosurface.h"
 #include "worker/extract/j1a_isosurface.h"
 #include "worker/io/draco_codec.h"
+#include "worker/io/mesh_part.h"
 #include "worker/jobs/pictures.h"
 #include "worker/jobs/surface_input.h"
 #include "worker/render/render.h"
@@ -146,6 +148,32 @@ struct MethodRun {
   // The cloud read part by part, for methods that stream it (SurfaceMethod::streams); the cloud
   // handed over beside it is then empty.
   const pu::PointSource* source = nullptr;
+  // Where given, a streamed cloud's mesh is delivered in parts (kMeshPartArtifact) as they are
+  // made, never whole; their count goes to *parts_written and the mesh returned is empty.
+  ArtifactWriteFn write;
+  int64_t* parts_written = nullptr;
+};
+
+// Each tile's part of the surface an artifact as soon as it is made (io/mesh_part.h).
+class PartArtifactSink final : public pu::SurfaceSink {
+ public:
+  explicit PartArtifactSink(const ArtifactWriteFn& write) : write_(write) {}
+  absl::Status AddTile(const pu::TileOutput& tile) override {
+    const std::string bytes =
+        io::EncodeMeshPart(tile.first_vertex, tile.vertices, tile.normals, tile.attributes, tile.faces);
+    LSQSURF_RETURN_IF_ERROR(write_(MeshPartArtifact(parts_), bytes));
+    ++parts_;
+    vertices_ += static_cast<int64_t>(tile.vertices.size());
+    faces_ += static_cast<int64_t>(tile.faces.size());
+    return absl::OkStatus();
+  }
+  int64_t parts() const { return parts_; }
+  int64_t vertices() const { return vertices_; }
+  int64_t faces() const { return faces_; }
+
+ private:
+  const ArtifactWriteFn& write_;
+  int64_t parts_ = 0, vertices_ = 0, faces_ = 0;
 };
 
 absl::StatusOr<extract::IsosurfaceResult> RunIamls(const IamlsJobParams& p, const core::PointCloud& cloud,
@@ -252,9 +280,18 @@ absl::StatusOr<extract::IsosurfaceResult> RunTiledPu(const PuJobParams& p, const
   const StatFn& stat = run.stat;
   pu::PuExtractParams extract = p.extract;
   extract.max_leaves = LeavesWithin(run.memory_bytes, extract.max_leaves);
-  pu::MeshSink sink;
+  pu::MeshSink mesh;
+  std::optional<PartArtifactSink> parts;
+  if (run.source != nullptr && run.write) parts.emplace(run.write);
+  pu::SurfaceSink& sink = parts.has_value() ? static_cast<pu::SurfaceSink&>(*parts) : mesh;
   auto tiled = pu::ReconstructTiled(source, p.fit, extract, p.tiles, sink, ctx);
   if (!tiled.ok()) return tiled.status();
+  if (parts.has_value()) {
+    stat("mesh_parts", static_cast<double>(parts->parts()));
+    stat("triangles", static_cast<double>(parts->faces()));
+    stat("vertices", static_cast<double>(parts->vertices()));
+    if (run.parts_written != nullptr) *run.parts_written = parts->parts();
+  }
   PuStatistics(tiled->fit, stat);
   stat("measure_seconds", tiled->measure_seconds);
   stat("tiles", static_cast<double>(tiled->tiles));
@@ -267,7 +304,7 @@ absl::StatusOr<extract::IsosurfaceResult> RunTiledPu(const PuJobParams& p, const
   ExtractionStatistics(tiled->extract, stat);
   extract::IsosurfaceResult result;
   result.stats = tiled->extract;
-  result.mesh = std::move(sink.mesh());
+  result.mesh = std::move(mesh.mesh());
   return result;
 }
 
@@ -471,13 +508,21 @@ class SurfaceKind final : public TypedJobKind<core::ParamSet, SurfaceInput> {
   }
 
   absl::StatusOr<Statistics> RunDecoded(const JobSpec& spec, const core::ParamSet& params, SurfaceInput input,
-                                        RunEnvironment& env) const override {
+                                        RunEnvironment& env) const override {    const ArtifactWriteFn write = [&env](const std::string& name, std::string_view bytes) {
+      return env.sink.Write(name, bytes);
+    };
     auto result = input.parts.empty()
                       ? ReconstructSurface(spec.method, params, std::move(input.cloud), env.context, env.memory_bytes)
                       : ReconstructStreamed(spec.method, params, DracoPartsSource(input.parts), input.points,
-                                            env.context, env.memory_bytes);
+                                            env.context, env.memory_bytes, write);
     if (!result.ok()) return result.status();
-    LSQSURF_RETURN_IF_ERROR(DeliverMesh(result->mesh, spec, env, &result->statistics));
+    if (result->mesh_parts == 0) {
+      LSQSURF_RETURN_IF_ERROR(DeliverMesh(result->mesh, spec, env, &result->statistics));
+    } else if (spec.preview.enabled) {
+      // A picture needs the mesh whole, which a mesh delivered in parts never is here.
+      spdlog::warn("no preview: the mesh was delivered in {} parts", result->mesh_parts);
+      result->statistics.emplace_back("preview_failures", 1);
+    }
     for (const auto& [name, bytes] : result->kept) LSQSURF_RETURN_IF_ERROR(env.sink.Write(name, bytes));
     return std::move(result->statistics);
   }
@@ -532,6 +577,21 @@ absl::Status DeliverMesh(const core::TriangleMesh& mesh, const JobSpec& spec, Ru
   return absl::OkStatus();
 }
 
+std::string MeshPartArtifact(int64_t part) { return fmt::format("mesh-part-{:05d}.lqm", part); }
+
+int64_t MeshPartOf(std::string_view name) {
+  constexpr std::string_view kPrefix = "mesh-part-", kSuffix = ".lqm";
+  if (!name.starts_with(kPrefix) || !name.ends_with(kSuffix)) return -1;
+  const std::string_view digits = name.substr(kPrefix.size(), name.size() - kPrefix.size() - kSuffix.size());
+  int64_t part = 0;
+  if (digits.size() < 5 || digits.size() > 12) return -1;
+  for (const char c : digits) {
+    if (c < '0' || c > '9') return -1;
+    part = 10 * part + (c - '0');
+  }
+  return MeshPartArtifact(part) == name ? part : -1;
+}
+
 const JobKind& SurfaceJobKind() {
   static const SurfaceKind kind;
   return kind;
@@ -548,15 +608,17 @@ absl::StatusOr<const SurfaceMethod*> CheckedMethod(const std::string& method, co
   return m;
 }
 
-// The method run on a cloud with normals (or on `source`), the mesh and its statistics into `result`.
+// The method run on a cloud with normals (or on `source`, its mesh through `write` where given),
+// the mesh and its statistics into `result`.
 absl::Status RunMethod(const SurfaceMethod& m, const core::ParamSet& params, const core::PointCloud& cloud,
-                       const pu::PointSource* source, core::JobContext& ctx, int64_t memory_bytes,
-                       SurfaceResult& result) {
+                       const pu::PointSource* source, const ArtifactWriteFn& write, core::JobContext& ctx,
+                       int64_t memory_bytes, SurfaceResult& result) {
   auto stat = [&](std::string name, double value) { result.statistics.emplace_back(std::move(name), value); };
   auto keep = [&](std::string name, std::string bytes) { result.kept.emplace_back(std::move(name), std::move(bytes)); };
-  auto extracted = m.run(params, cloud, ctx, MethodRun{stat, keep, memory_bytes, source});
+  auto extracted = m.run(params, cloud, ctx, MethodRun{stat, keep, memory_bytes, source, write, &result.mesh_parts});
   if (!extracted.ok()) return extracted.status();
   result.mesh = std::move(extracted->mesh);
+  if (result.mesh_parts > 0) return absl::OkStatus();  // Its statistics are the parts' (RunTiledPu).
   if (result.mesh.faces.empty()) {
     return absl::FailedPreconditionError("no surface was found: the points may be too sparse for the chosen spacing");
   }
@@ -590,22 +652,21 @@ absl::StatusOr<SurfaceResult> ReconstructSurface(const std::string& method, cons
     result.statistics.emplace_back("normals_seconds", core::SecondsSince(start));
   }
 
-  core::SubContext engine_ctx(ctx, method, normals_share, 1.0);
-  LSQSURF_RETURN_IF_ERROR(RunMethod(**m, params, cloud, nullptr, engine_ctx, memory_bytes, result));
+  core::SubContext engine_ctx(ctx, method, normals_share, 1.0);  LSQSURF_RETURN_IF_ERROR(RunMethod(**m, params, cloud, nullptr, nullptr, engine_ctx, memory_bytes, result));
   return result;
 }
 
 absl::StatusOr<SurfaceResult> ReconstructStreamed(const std::string& method, const core::ParamSet& params,
-                                                  const pu::PointSource& source, int64_t points, core::JobContext& ctx,
-                                                  int64_t memory_bytes) {
+                                                  const pu::PointSource& source, int64_t points,
+                                                  core::JobContext& ctx, int64_t memory_bytes,
+                                                  const ArtifactWriteFn& write) {
   auto m = CheckedMethod(method, params);
   if (!m.ok()) return m.status();
   if (!(*m)->streams) return absl::InvalidArgumentError(core::StrCat("'", method, "' cannot stream a cloud"));
   SurfaceResult result;
   result.statistics.emplace_back("input_points", static_cast<double>(points));
   result.statistics.emplace_back("input_streamed", 1);
-  core::SubContext engine_ctx(ctx, method, 0.0, 1.0);
-  LSQSURF_RETURN_IF_ERROR(RunMethod(**m, params, core::PointCloud{}, &source, engine_ctx, memory_bytes, result));
+  core::SubContext engine_ctx(ctx, method, 0.0, 1.0);  LSQSURF_RETURN_IF_ERROR(RunMethod(**m, params, core::PointCloud{}, &source, write, engine_ctx, memory_bytes, result));
   return result;
 }
 

@@ -7,8 +7,10 @@
 // the one shared extractor given the method's hints (the others).
 #pragma once
 
+#include <functional>
 #include <memory>
 #include <string>
+#include <string_view>
 #include <utility>
 #include <vector>
 
@@ -92,8 +94,17 @@ absl::StatusOr<std::unique_ptr<pu::PuFunction>> ReadKeptPuFunction(RunEnvironmen
 
 const JobKind& SurfaceJobKind();
 
+// Writes a job's artifact at once (ArtifactSink::Write).
+using ArtifactWriteFn = std::function<absl::Status(const std::string& name, std::string_view bytes)>;
+
+// The parts of a mesh delivered in parts (io/mesh_part.h), numbered from 0: "mesh-part-00000.lqm".
+std::string MeshPartArtifact(int64_t part);
+// The part number of such a name; -1 for any other.
+int64_t MeshPartOf(std::string_view name);
+
 struct SurfaceResult {
-  core::TriangleMesh mesh;
+  core::TriangleMesh mesh;  // Empty when delivered in parts.
+  int64_t mesh_parts = 0;   // Parts written through ReconstructStreamed's `write`.
   Statistics statistics;
   std::vector<std::pair<std::string, std::string>> kept;  // Artifacts beside the mesh: name, bytes.
 };
@@ -107,10 +118,13 @@ absl::StatusOr<SurfaceResult> ReconstructSurface(const std::string& method, cons
                                                  core::PointCloud cloud, core::JobContext& ctx,
                                                  int64_t memory_bytes = 0);
 // The same for a cloud with normals read in chunks from `source` (`points` in all), by a method
-// that streams (pu, tiled): the cloud is never whole in memory. Errors: as above.
+// that streams (pu, tiled): the cloud is never whole in memory. With `write`, the mesh is not
+// whole either: each tile's part goes out through it as soon as it is made (mesh_parts, and
+// the statistics triangles, vertices and mesh_parts). Errors: as above.
 absl::StatusOr<SurfaceResult> ReconstructStreamed(const std::string& method, const core::ParamSet& params,
-                                                  const pu::PointSource& source, int64_t points, core::JobContext& ctx,
-                                                  int64_t memory_bytes = 0);
+                                                  const pu::PointSource& source, int64_t points,
+                                                  core::JobContext& ctx, int64_t memory_bytes = 0,
+                                                  const ArtifactWriteFn& write = nullptr);
 
 // The Draco bytes of a result mesh at `position_bits` (0: the fewest bits, 16 to 30, at which
 // Draco's quantization round trip keeps every distinct vertex position apart, so the decoded

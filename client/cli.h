@@ -185,7 +185,7 @@ struct SurfaceCommand {
   ViewFlags view;
   VolumeFlags volume;
   std::vector<double> iso;
-  std::string csg_expression;  // Method csg: the solid (no upload).
+  std::string csg_expression;                    // Method csg: the solid (no upload).
   int64_t part_points = client::kPointsPerPart;  // Points per upload part (SubmitJobRequest.input_part_end).
   struct EditFlags {
     std::string source, ball, set, refit;

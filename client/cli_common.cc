@@ -193,8 +193,8 @@ int FetchToFile(const Globals& g, const std::string& id, const std::string& name
     parts = client::MeshParts(*got);
   }
   if (!parts.empty()) {
-    const absl::Status s =
-        client::WriteMeshParts(parts.size(), [&](size_t i) { return c.Fetch(id, parts[i]); }, path);
+    const absl::Status s = client::WriteMeshParts(
+        parts.size(), [&](size_t i) { return c.Fetch(id, parts[i]); }, path);
     return s.ok() ? 0 : FailStatus("fetch", s);
   }
   auto bytes = c.Fetch(id, name);

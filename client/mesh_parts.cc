@@ -100,9 +100,9 @@ class PartWriter {
     }
     for (const auto& f : part.faces) {
       const long long a = f[0] + 1, b = f[1] + 1, c = f[2] + 1;
-      const int n = with_normals_ ? std::snprintf(line, sizeof(line), "f %lld//%lld %lld//%lld %lld//%lld\n", a, a, b,
-                                                  b, c, c)
-                                  : std::snprintf(line, sizeof(line), "f %lld %lld %lld\n", a, b, c);
+      const int n = with_normals_
+                        ? std::snprintf(line, sizeof(line), "f %lld//%lld %lld//%lld %lld//%lld\n", a, a, b, b, c, c)
+                        : std::snprintf(line, sizeof(line), "f %lld %lld %lld\n", a, b, c);
       faces_.write(line, n);
     }
   }

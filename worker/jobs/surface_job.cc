@@ -508,7 +508,8 @@ class SurfaceKind final : public TypedJobKind<core::ParamSet, SurfaceInput> {
   }
 
   absl::StatusOr<Statistics> RunDecoded(const JobSpec& spec, const core::ParamSet& params, SurfaceInput input,
-                                        RunEnvironment& env) const override {    const ArtifactWriteFn write = [&env](const std::string& name, std::string_view bytes) {
+                                        RunEnvironment& env) const override {
+    const ArtifactWriteFn write = [&env](const std::string& name, std::string_view bytes) {
       return env.sink.Write(name, bytes);
     };
     auto result = input.parts.empty()
@@ -652,21 +653,22 @@ absl::StatusOr<SurfaceResult> ReconstructSurface(const std::string& method, cons
     result.statistics.emplace_back("normals_seconds", core::SecondsSince(start));
   }
 
-  core::SubContext engine_ctx(ctx, method, normals_share, 1.0);  LSQSURF_RETURN_IF_ERROR(RunMethod(**m, params, cloud, nullptr, nullptr, engine_ctx, memory_bytes, result));
+  core::SubContext engine_ctx(ctx, method, normals_share, 1.0);
+  LSQSURF_RETURN_IF_ERROR(RunMethod(**m, params, cloud, nullptr, nullptr, engine_ctx, memory_bytes, result));
   return result;
 }
 
 absl::StatusOr<SurfaceResult> ReconstructStreamed(const std::string& method, const core::ParamSet& params,
-                                                  const pu::PointSource& source, int64_t points,
-                                                  core::JobContext& ctx, int64_t memory_bytes,
-                                                  const ArtifactWriteFn& write) {
+                                                  const pu::PointSource& source, int64_t points, core::JobContext& ctx,
+                                                  int64_t memory_bytes, const ArtifactWriteFn& write) {
   auto m = CheckedMethod(method, params);
   if (!m.ok()) return m.status();
   if (!(*m)->streams) return absl::InvalidArgumentError(core::StrCat("'", method, "' cannot stream a cloud"));
   SurfaceResult result;
   result.statistics.emplace_back("input_points", static_cast<double>(points));
   result.statistics.emplace_back("input_streamed", 1);
-  core::SubContext engine_ctx(ctx, method, 0.0, 1.0);  LSQSURF_RETURN_IF_ERROR(RunMethod(**m, params, core::PointCloud{}, &source, write, engine_ctx, memory_bytes, result));
+  core::SubContext engine_ctx(ctx, method, 0.0, 1.0);
+  LSQSURF_RETURN_IF_ERROR(RunMethod(**m, params, core::PointCloud{}, &source, write, engine_ctx, memory_bytes, result));
   return result;
 }
 

@@ -122,9 +122,8 @@ absl::StatusOr<SurfaceResult> ReconstructSurface(const std::string& method, cons
 // whole either: each tile's part goes out through it as soon as it is made (mesh_parts, and
 // the statistics triangles, vertices and mesh_parts). Errors: as above.
 absl::StatusOr<SurfaceResult> ReconstructStreamed(const std::string& method, const core::ParamSet& params,
-                                                  const pu::PointSource& source, int64_t points,
-                                                  core::JobContext& ctx, int64_t memory_bytes = 0,
-                                                  const ArtifactWriteFn& write = nullptr);
+                                                  const pu::PointSource& source, int64_t points, core::JobContext& ctx,
+                                                  int64_t memory_bytes = 0, const ArtifactWriteFn& write = nullptr);
 
 // The Draco bytes of a result mesh at `position_bits` (0: the fewest bits, 16 to 30, at which
 // Draco's quantization round trip keeps every distinct vertex position apart, so the decoded

@@ -128,10 +128,11 @@ absl::StatusOr<std::string> CloudBytes(const std::string& path);
 int Watch(const Globals& g, const std::string& id, v1::Job* out);
 
 // Downloads the artifact `name` of job `id` to `path` through WriteResult; the mesh ("") of a job
-// that delivered it in parts is joined as it comes (client::WriteMeshParts). `job`: the job's
+// that delivered it in parts is joined as it comes (client::WriteMeshParts). `partial`: of a job
+// still running, the mesh parts done so far (they are a part of the final mesh). `job`: the job's
 // record when the caller has it. Returns the exit code.
 int FetchToFile(const Globals& g, const std::string& id, const std::string& name, const std::string& path,
-                const v1::Job* job = nullptr);
+                const v1::Job* job = nullptr, bool partial = false);
 
 // Writes a fetched artifact to `path`: Draco meshes convert to the extension's format;
 // pictures, tables and text are written as they are.

@@ -184,13 +184,19 @@ int WriteResult(const std::string& bytes, const std::string& name, const std::st
 }
 
 int FetchToFile(const Globals& g, const std::string& id, const std::string& name, const std::string& path,
-                const v1::Job* job) {
+                const v1::Job* job, bool partial) {
   client::Client c = Connect(g);
   std::vector<std::string> parts;
   if (name.empty()) {  // The mesh: one artifact, or parts to join as they come.
     absl::StatusOr<v1::Job> got = job != nullptr ? absl::StatusOr<v1::Job>(*job) : c.Get(id);
     if (!got.ok()) return FailStatus("fetch", got.status());
     parts = client::MeshParts(*got);
+    if (got->state() == v1::JOB_STATE_RUNNING && !partial) {
+      return Fail(StrCat("job ", id, " is still running; wait for it, or fetch --partial for the surface done so far"));
+    }
+    if (partial && parts.empty() && got->state() == v1::JOB_STATE_RUNNING) {
+      return Fail(StrCat("job ", id, " has no mesh parts yet (only a PU job streamed from parts delivers them)"));
+    }
   }
   if (!parts.empty()) {
     const absl::Status s = client::WriteMeshParts(

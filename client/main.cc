@@ -48,6 +48,7 @@ int main(int argc, char** argv) {
   probe_command.AddTo(probe);
 
   std::string id, name, output, reference, candidate;
+  bool partial = false;
   std::vector<CLI::App*> id_commands;
   for (const auto& [command, help] :
        std::vector<std::pair<const char*, const char*>>{{"watch", "follow a job until it ends"},
@@ -64,6 +65,7 @@ int main(int argc, char** argv) {
   fetch->add_option("id", id, "job id")->required();
   fetch->add_option("-o,--output", output, "file to write (.ply .obj .drc; other artifacts as they are)")->required();
   fetch->add_option("--name", name, "artifact name, e.g. preview.png or stats.csv (default: the mesh)");
+  fetch->add_flag("--partial", partial, "of a running job that delivers its mesh in parts, the surface so far");
   auto* methods = app.add_subcommand("methods", "list the server's methods and parameters");
   auto* info = app.add_subcommand("info", "show the server's version and limits");
   HealthCommand health_command;
@@ -115,7 +117,7 @@ int main(int argc, char** argv) {
     if (*command) return JobCommand(g, command->get_name(), id);
   }
   if (*list) return List(g, limit);
-  if (*fetch) return FetchToFile(g, id, name, output);
+  if (*fetch) return FetchToFile(g, id, name, output, nullptr, partial);
   if (*methods) return PrintMethods(g);
   if (*info) return PrintServerInfo(g);
   if (*health) return health_command.Run(g);

@@ -7,6 +7,9 @@
 #include <chrono>
 #include <condition_variable>
 #include <mutex>
+#include <string>
+#include <utility>
+#include <vector>
 
 #include "worker/jobs/job_kind.h"
 
@@ -24,6 +27,9 @@ class LatchKind final : public jobs::JobKind {
   }
   absl::StatusOr<jobs::Statistics> Run(const jobs::JobSpec&, const jobs::Uploads&,
                                        jobs::RunEnvironment& env) const override {
+    for (const auto& [name, bytes] : early_) {
+      if (absl::Status s = env.sink.Write(name, bytes); !s.ok()) return s;
+    }
     std::unique_lock lock(mutex_);
     ++started_;
     changed_.notify_all();
@@ -34,6 +40,10 @@ class LatchKind final : public jobs::JobKind {
     }
     if (absl::Status s = env.sink.Write("held.txt", "released"); !s.ok()) return s;
     return jobs::Statistics{{"held", 1}};
+  }
+  // Artifacts every job writes before it holds (set before jobs run).
+  void WriteBeforeHolding(std::string name, std::string bytes) {
+    early_.emplace_back(std::move(name), std::move(bytes));
   }
   // Blocks until `n` jobs have started.
   void WaitStarted(int n) const {
@@ -55,6 +65,7 @@ class LatchKind final : public jobs::JobKind {
   mutable std::condition_variable changed_;
   mutable int started_ = 0;
   mutable bool released_ = false;
+  std::vector<std::pair<std::string, std::string>> early_;
 };
 
 }  // namespace lsqsurf::testing

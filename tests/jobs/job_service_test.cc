@@ -702,6 +702,37 @@ TEST_F(JobServiceTest, ACloudInPartsIsStreamedAndGivesTheMeshOfTheCloudWhole) {
   }
 }
 
+// A running job's mesh parts are listed and fetchable as soon as they are stored; nothing else
+// of it is. A run cut short by a shutdown takes its parts back off the list.
+TEST_F(JobServiceTest, MeshPartsCanBeFetchedWhileTheJobRuns) {
+  const std::vector<core::Vec3f> triangle = {{0, 0, 0}, {1, 0, 0}, {0, 1, 0}};
+  const std::vector<std::array<int64_t, 3>> face = {{0, 1, 2}};
+  const std::string part = io::EncodeMeshPart(0, triangle, {}, {}, face);
+  latch_.WriteBeforeHolding(MeshPartArtifact(0), part);
+  latch_.WriteBeforeHolding("scratch.txt", "not published early");
+  options_.kind_overrides["pu"] = &latch_;
+  JobService& s = Open();
+  auto job = s.Submit(Spec("pu"), Input(Encode(testing::SphereCloud(1000))));
+  ASSERT_TRUE(job.ok()) << job.status();
+  latch_.WaitStarted(1);
+  const JobRecord running = WaitUntil(job->id, [](const JobRecord& r) { return !r.results.empty(); });
+  EXPECT_EQ(running.state, JobState::kRunning);
+  EXPECT_EQ(running.results, std::vector<std::string>{MeshPartArtifact(0)});
+  EXPECT_EQ(ReadResult(job->id, MeshPartArtifact(0)), part);
+  EXPECT_EQ(s.OpenResult(job->id, "scratch.txt").status().code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_EQ(s.OpenResult(job->id, "").status().code(), absl::StatusCode::kFailedPrecondition);
+
+  // Stopped while it runs: queued again without the parts it listed; the next run is the engine.
+  s.Shutdown();
+  options_.kind_overrides.clear();
+  JobService& reopened = Open();
+  const JobRecord done = WaitTerminal(job->id);
+  ASSERT_EQ(done.state, JobState::kSucceeded) << done.error;
+  EXPECT_EQ(done.results.front(), "mesh.drc");
+  EXPECT_EQ(std::count(done.results.begin(), done.results.end(), MeshPartArtifact(0)), 0);
+  EXPECT_TRUE(reopened.OpenResult(job->id, "mesh.drc").ok());
+}
+
 // Other methods, and clouds without normals, join the parts; parts that do not fit are refused.
 TEST_F(JobServiceTest, PartsAreJoinedWhereTheyCannotStreamAndMustAgree) {
   JobService& s = Open();

@@ -19,6 +19,7 @@
 #include "worker/core/strings.h"
 #include "worker/io/draco_codec.h"
 #include "worker/io/files.h"
+#include "worker/io/mesh_part.h"
 #include "worker/io/volume_codec.h"
 #include "worker/volume/synthetic.h"
 
@@ -192,6 +193,40 @@ TEST_F(ServiceTest, ACloudUploadedInPartsIsOneJob) {
   EXPECT_EQ(ended_empty.error_code(), grpc::StatusCode::INVALID_ARGUMENT);
   EXPECT_NE(ended_empty.error_message().find("input part 0 ended before any of its chunks"), std::string::npos)
       << ended_empty.error_message();
+}
+
+// The mesh parts of a running job can be fetched through the API before it ends (a partial
+// result); its other artifacts cannot.
+TEST_F(ServiceTest, ARunningJobsMeshPartsAreFetchedBeforeItEnds) {
+  const std::vector<core::Vec3f> triangle = {{0, 0, 0}, {1, 0, 0}, {0, 1, 0}};
+  const std::vector<std::array<int64_t, 3>> face = {{0, 1, 2}};
+  const std::string part = io::EncodeMeshPart(0, triangle, {}, {}, face);
+  latch_.WriteBeforeHolding(jobs::MeshPartArtifact(0), part);
+  auto job = client_->Submit(spec_, input_);
+  ASSERT_TRUE(job.ok()) << job.status();
+  latch_.WaitStarted(1);
+  auto record = jobs_->Get(job->id());
+  while (record.ok() && record->results.empty()) {
+    record = jobs_->WaitForChange(job->id(), record->version, std::chrono::seconds(1));
+  }
+  auto running = client_->Get(job->id());
+  ASSERT_TRUE(running.ok()) << running.status();
+  EXPECT_EQ(running->state(), v1::JOB_STATE_RUNNING);
+  const std::vector<std::string> parts = client::MeshParts(*running);
+  ASSERT_EQ(parts, std::vector<std::string>{jobs::MeshPartArtifact(0)});
+  auto fetched = client_->Fetch(job->id(), parts[0]);
+  ASSERT_TRUE(fetched.ok()) << fetched.status();
+  EXPECT_EQ(*fetched, part);
+  EXPECT_EQ(client_->Fetch(job->id(), "").status().code(), absl::StatusCode::kFailedPrecondition);
+  const std::string path = (dir_ / "partial.ply").string();
+  ASSERT_TRUE(client::WriteMeshParts(
+                  1, [&](size_t i) { return client_->Fetch(job->id(), parts[i]); }, path)
+                  .ok());
+  auto mesh = io::ReadMeshFile(path);
+  ASSERT_TRUE(mesh.ok()) << mesh.status();
+  EXPECT_EQ(mesh->vertices, triangle);
+  EXPECT_EQ(mesh->faces.size(), 1u);
+  latch_.Release();
 }
 
 TEST_F(ServiceTest, BadSpecsAreRefusedBeforeTheUpload) {

@@ -51,6 +51,13 @@ int64_t InputPartOf(std::string_view slot);
 // The input parts present, in order; a gap ends them.
 std::vector<std::string_view> InputParts(const Uploads& uploads);
 
+// The parts of a mesh delivered in parts (io/mesh_part.h), numbered from 0: "mesh-part-00000.lqm".
+// They are the artifacts a job publishes while it runs: each is listed in the job's results as
+// soon as it is stored, and can be fetched before the job ends.
+std::string MeshPartArtifact(int64_t part);
+// The part number of such a name; -1 for any other.
+int64_t MeshPartOf(std::string_view name);
+
 using Statistics = std::vector<std::pair<std::string, double>>;  // Name (units in it), value.
 
 struct JobRecord {

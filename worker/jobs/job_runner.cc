@@ -15,8 +15,10 @@ namespace lsqsurf::jobs {
 class BlobSink final : public ArtifactSink {
  public:
   using Admit = std::function<absl::Status(int64_t artifact_bytes)>;
-  BlobSink(BlobStore& blobs, std::string job_id, Admit admit)
-      : blobs_(blobs), job_id_(std::move(job_id)), admit_(std::move(admit)) {}
+  using Publish = std::function<void(const std::string& name)>;
+  // `publish` lists an artifact in the job's results while it runs (MeshPartArtifact).
+  BlobSink(BlobStore& blobs, std::string job_id, Admit admit, Publish publish)
+      : blobs_(blobs), job_id_(std::move(job_id)), admit_(std::move(admit)), publish_(std::move(publish)) {}
   absl::Status Write(std::string_view name, std::string_view bytes) override {
     {
       std::lock_guard lock(mutex_);
@@ -25,9 +27,12 @@ class BlobSink final : public ArtifactSink {
       LSQSURF_RETURN_IF_ERROR(admit_(after));
     }
     LSQSURF_RETURN_IF_ERROR(blobs_.Put(job_id_, name, bytes));
-    std::lock_guard lock(mutex_);
-    if (std::find(names_.begin(), names_.end(), name) == names_.end()) names_.emplace_back(name);
-    sizes_[std::string(name)] = static_cast<int64_t>(bytes.size());
+    {
+      std::lock_guard lock(mutex_);
+      if (std::find(names_.begin(), names_.end(), name) == names_.end()) names_.emplace_back(name);
+      sizes_[std::string(name)] = static_cast<int64_t>(bytes.size());
+    }
+    if (MeshPartOf(name) >= 0) publish_(std::string(name));  // Stored whole first: fetchable now.
     return absl::OkStatus();
   }
   std::vector<std::string> names() const {
@@ -45,6 +50,7 @@ class BlobSink final : public ArtifactSink {
   BlobStore& blobs_;
   std::string job_id_;
   Admit admit_;
+  Publish publish_;
   mutable std::mutex mutex_;
   std::vector<std::string> names_;
   std::map<std::string, int64_t> sizes_;
@@ -228,7 +234,13 @@ void JobService::RunJob(const std::shared_ptr<Entry>& entry, std::shared_ptr<Dec
   } else {
     spdlog::info("[job {}] started (attempt {})", id, entry->record.attempts);
     const auto start = std::chrono::steady_clock::now();
-    BlobSink sink(*blobs_, id, [this, &entry](int64_t artifact_bytes) { return AdmitResults(entry, artifact_bytes); });
+    BlobSink sink(
+        *blobs_, id, [this, &entry](int64_t artifact_bytes) { return AdmitResults(entry, artifact_bytes); },
+        [this, &entry](const std::string& name) {
+          Update(entry, [&](JobRecord& r) {
+            if (std::find(r.results.begin(), r.results.end(), name) == r.results.end()) r.results.push_back(name);
+          });
+        });
     absl::StatusOr<Statistics> result = RunKind(entry, sink, std::move(decoded));
     const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
     if (entry->lost) {
@@ -239,6 +251,7 @@ void JobService::RunJob(const std::shared_ptr<Entry>& entry, std::shared_ptr<Dec
         r.state = JobState::kQueued;
         r.stage.clear();
         r.progress = 0;
+        r.results.clear();  // Published parts: the next run publishes them again.
         ++r.interruptions;
       });
     } else if (result.ok()) {
@@ -259,6 +272,7 @@ void JobService::RunJob(const std::shared_ptr<Entry>& entry, std::shared_ptr<Dec
         r.state = JobState::kQueued;
         r.stage.clear();
         r.progress = 0;
+        r.results.clear();
         ++r.interruptions;  // A shutdown is not the job's fault.
       });
       spdlog::info("[job {}] interrupted by shutdown; will resume on restart", id);

@@ -1,5 +1,6 @@
 #include "worker/jobs/job_service.h"
 
+#include <fmt/format.h>
 #include <spdlog/spdlog.h>
 #include <unistd.h>
 
@@ -70,6 +71,21 @@ int64_t InputPartOf(std::string_view slot) {
   return part < kMaxInputParts ? part : -1;
 }
 
+std::string MeshPartArtifact(int64_t part) { return fmt::format("mesh-part-{:05d}.lqm", part); }
+
+int64_t MeshPartOf(std::string_view name) {
+  constexpr std::string_view kPrefix = "mesh-part-", kSuffix = ".lqm";
+  if (!name.starts_with(kPrefix) || !name.ends_with(kSuffix)) return -1;
+  const std::string_view digits = name.substr(kPrefix.size(), name.size() - kPrefix.size() - kSuffix.size());
+  int64_t part = 0;
+  if (digits.size() < 5 || digits.size() > 12) return -1;
+  for (const char c : digits) {
+    if (c < '0' || c > '9') return -1;
+    part = 10 * part + (c - '0');
+  }
+  return MeshPartArtifact(part) == name ? part : -1;
+}
+
 std::vector<std::string_view> InputParts(const Uploads& uploads) {
   std::vector<std::string_view> parts;
   for (int64_t part = 0; part < kMaxInputParts; ++part) {
@@ -98,6 +114,7 @@ void RecoverStoppedRun(JobRecord& r, int max_attempts) {
   }
   r.stage.clear();
   r.progress = 0;
+  r.results.clear();  // Parts a run published (MeshPartArtifact); the next run publishes them again.
   r.cancel_requested = false;
   r.updated_ms = NowMs();
 }
@@ -313,9 +330,12 @@ absl::StatusOr<std::unique_ptr<BlobReader>> JobService::OpenResult(const std::st
                                                                    const std::string& name) const {
   auto r = Get(id);
   if (!r.ok()) return r.status();
-  if (r->state != JobState::kSucceeded) {
-    return absl::FailedPreconditionError(
-        core::StrCat("job ", id, " is ", JobStateName(r->state), "; results exist only for succeeded jobs"));
+  // A running job's published parts are there already (each stored whole before it is listed).
+  const bool published = r->state == JobState::kRunning && MeshPartOf(name) >= 0;
+  if (r->state != JobState::kSucceeded && !published) {
+    return absl::FailedPreconditionError(core::StrCat("job ", id, " is ", JobStateName(r->state),
+                                                      "; results exist only for succeeded jobs (and the mesh parts "
+                                                      "of a running one)"));
   }
   if (!name.empty() && !IsArtifactNameForm(name)) return absl::InvalidArgumentError(kNotAnArtifactName);
   const std::string artifact = name.empty() && !r->results.empty() ? r->results.front() : name;

@@ -578,21 +578,6 @@ absl::Status DeliverMesh(const core::TriangleMesh& mesh, const JobSpec& spec, Ru
   return absl::OkStatus();
 }
 
-std::string MeshPartArtifact(int64_t part) { return fmt::format("mesh-part-{:05d}.lqm", part); }
-
-int64_t MeshPartOf(std::string_view name) {
-  constexpr std::string_view kPrefix = "mesh-part-", kSuffix = ".lqm";
-  if (!name.starts_with(kPrefix) || !name.ends_with(kSuffix)) return -1;
-  const std::string_view digits = name.substr(kPrefix.size(), name.size() - kPrefix.size() - kSuffix.size());
-  int64_t part = 0;
-  if (digits.size() < 5 || digits.size() > 12) return -1;
-  for (const char c : digits) {
-    if (c < '0' || c > '9') return -1;
-    part = 10 * part + (c - '0');
-  }
-  return MeshPartArtifact(part) == name ? part : -1;
-}
-
 const JobKind& SurfaceJobKind() {
   static const SurfaceKind kind;
   return kind;

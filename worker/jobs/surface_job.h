@@ -97,11 +97,6 @@ const JobKind& SurfaceJobKind();
 // Writes a job's artifact at once (ArtifactSink::Write).
 using ArtifactWriteFn = std::function<absl::Status(const std::string& name, std::string_view bytes)>;
 
-// The parts of a mesh delivered in parts (io/mesh_part.h), numbered from 0: "mesh-part-00000.lqm".
-std::string MeshPartArtifact(int64_t part);
-// The part number of such a name; -1 for any other.
-int64_t MeshPartOf(std::string_view name);
-
 struct SurfaceResult {
   core::TriangleMesh mesh;  // Empty when delivered in parts.
   int64_t mesh_parts = 0;   // Parts written through ReconstructStreamed's `write`.

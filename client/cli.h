@@ -127,8 +127,12 @@ absl::StatusOr<std::string> CloudBytes(const std::string& path);
 // Follows a job to its end; returns the exit code and the final job through `out`.
 int Watch(const Globals& g, const std::string& id, v1::Job* out);
 
+// Whether an output path names a directory (ends with '/' or is one).
+bool IsDirectoryOutput(const std::string& path);
+
 // Downloads the artifact `name` of job `id` to `path` through WriteResult; the mesh ("") of a job
-// that delivered it in parts is joined as it comes (client::WriteMeshParts). `partial`: of a job
+// that delivered it in parts is joined as it comes (client::WriteMeshParts), or written tile by
+// tile as .drc files when `path` is a directory (client::WriteMeshPartFiles). `partial`: of a job
 // still running, the mesh parts done so far (they are a part of the final mesh). `job`: the job's
 // record when the caller has it. Returns the exit code.
 int FetchToFile(const Globals& g, const std::string& id, const std::string& name, const std::string& path,

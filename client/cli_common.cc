@@ -4,6 +4,7 @@
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
+#include <filesystem>
 #include <limits>
 #include <set>
 
@@ -183,6 +184,11 @@ int WriteResult(const std::string& bytes, const std::string& name, const std::st
   return 0;
 }
 
+bool IsDirectoryOutput(const std::string& path) {
+  std::error_code ignored;
+  return path.ends_with('/') || std::filesystem::is_directory(path, ignored);
+}
+
 int FetchToFile(const Globals& g, const std::string& id, const std::string& name, const std::string& path,
                 const v1::Job* job, bool partial) {
   client::Client c = Connect(g);
@@ -198,9 +204,21 @@ int FetchToFile(const Globals& g, const std::string& id, const std::string& name
       return Fail(StrCat("job ", id, " has no mesh parts yet (only a PU job streamed from parts delivers them)"));
     }
   }
+  const auto fetch_part = [&](size_t i) { return c.Fetch(id, parts[i]); };
+  if (IsDirectoryOutput(path)) {
+    if (parts.empty()) {
+      return Fail(StrCat("-o ", path,
+                         " names a directory, which takes a mesh delivered in parts (one .drc per "
+                         "tile); job ",
+                         id, " has none: name a file"));
+    }
+    auto written = client::WriteMeshPartFiles(parts.size(), fetch_part, path);
+    if (!written.ok()) return FailStatus("fetch", written.status());
+    std::fprintf(stderr, "wrote %zu tiles to %s\n", written->size(), path.c_str());
+    return 0;
+  }
   if (!parts.empty()) {
-    const absl::Status s = client::WriteMeshParts(
-        parts.size(), [&](size_t i) { return c.Fetch(id, parts[i]); }, path);
+    const absl::Status s = client::WriteMeshParts(parts.size(), fetch_part, path);
     return s.ok() ? 0 : FailStatus("fetch", s);
   }
   auto bytes = c.Fetch(id, name);

@@ -74,6 +74,15 @@ std::vector<std::string> MeshParts(const v1::Job& job);
 absl::Status WriteMeshParts(size_t parts, const std::function<absl::StatusOr<std::string>(size_t part)>& fetch,
                             const std::string& path);
 
+// Writes each of the `parts` parts of a mesh delivered in parts as a Draco mesh of its own, with
+// the vertices of earlier parts its faces name (io::SelfContainedParts), to
+// `directory`/mesh-part-NNNNN.drc (made if missing): the tiles, which share the vertices on their
+// seams (positions are stored exactly, so they weld by position). Returns the paths written. Errors: those of `fetch`,
+// kInvalidArgument (a corrupt part or one that does not follow on), kPermissionDenied / kResourceExhausted (cannot
+// write).
+absl::StatusOr<std::vector<std::string>> WriteMeshPartFiles(
+    size_t parts, const std::function<absl::StatusOr<std::string>(size_t part)>& fetch, const std::string& directory);
+
 // Display names: "queued", "running", ...
 const char* StateName(v1::JobState state);
 bool IsTerminal(v1::JobState state);

@@ -63,7 +63,7 @@ int main(int argc, char** argv) {
   list->add_option("--limit", limit, "at most this many");
   auto* fetch = app.add_subcommand("fetch", "download a result");
   fetch->add_option("id", id, "job id")->required();
-  fetch->add_option("-o,--output", output, "file to write (.ply .obj .drc; other artifacts as they are)")->required();
+  fetch->add_option("-o,--output", output, "file to write (.ply .obj .drc; DIR/: a .drc per tile)")->required();
   fetch->add_option("--name", name, "artifact name, e.g. preview.png or stats.csv (default: the mesh)");
   fetch->add_flag("--partial", partial, "of a running job that delivers its mesh in parts, the surface so far");
   auto* methods = app.add_subcommand("methods", "list the server's methods and parameters");

@@ -171,4 +171,31 @@ absl::Status WriteMeshParts(size_t parts, const std::function<absl::StatusOr<std
   return io::WriteMeshFile(path, mesh);
 }
 
+absl::StatusOr<std::vector<std::string>> WriteMeshPartFiles(
+    size_t parts, const std::function<absl::StatusOr<std::string>(size_t part)>& fetch, const std::string& directory) {
+  std::error_code error;
+  std::filesystem::create_directories(directory, error);
+  if (error) return absl::PermissionDeniedError(core::StrCat(directory, ": ", error.message()));
+  io::SelfContainedParts joiner;
+  std::vector<std::string> written;
+  for (size_t i = 0; i < parts; ++i) {
+    auto bytes = fetch(i);
+    if (!bytes.ok()) return bytes.status();
+    auto part = io::DecodeMeshPart(*bytes);
+    if (!part.ok()) return part.status();
+    auto piece = joiner.Next(*part);
+    if (!piece.ok()) return piece.status();
+    char name[48];
+    std::snprintf(name, sizeof(name), "mesh-part-%05zu.drc", i);
+    const std::string path = (std::filesystem::path(directory) / name).string();
+    // Positions kept exact (not quantized over each tile's own box), so that the vertices two
+    // tiles share stay equal and the tiles weld by position.
+    io::WriteOptions options;
+    options.draco.position_bits = 0;
+    LSQSURF_RETURN_IF_ERROR(io::WriteMeshFile(path, *piece, options));
+    written.push_back(path);
+  }
+  return written;
+}
+
 }  // namespace lsqsurf::client

@@ -179,6 +179,41 @@ TEST_F(EndToEnd, ACloudSentInPartsComesBackAsOneClosedMesh) {
   auto obj = io::ReadMeshFile(again);
   ASSERT_TRUE(obj.ok()) << obj.status();
   EXPECT_EQ(obj->faces.size(), mesh->faces.size());
+
+  // Into a directory: one Draco mesh per tile, each whole on its own; together the same closed mesh.
+  const std::string tiles = (dir_ / "tiles").string() + "/";
+  const ClientRun tiled = Client(server.address(), "fetch " + id + " -o " + tiles);
+  ASSERT_EQ(tiled.code, 0) << tiled.output;
+  core::TriangleMesh joined;
+  size_t files = 0;
+  for (const auto& entry : std::filesystem::directory_iterator(tiles)) {
+    ++files;
+    EXPECT_EQ(entry.path().extension(), ".drc");
+    auto tile = io::ReadMeshFile(entry.path().string());
+    ASSERT_TRUE(tile.ok()) << tile.status();
+    const auto offset = static_cast<uint32_t>(joined.vertices.size());
+    joined.vertices.insert(joined.vertices.end(), tile->vertices.begin(), tile->vertices.end());
+    for (const core::Triangle& f : tile->faces) joined.faces.push_back({f[0] + offset, f[1] + offset, f[2] + offset});
+  }
+  EXPECT_NE(tiled.output.find("wrote " + std::to_string(files) + " tiles"), std::string::npos) << tiled.output;
+  EXPECT_GE(files, 4u);
+  EXPECT_EQ(joined.faces.size(), mesh->faces.size());
+  EXPECT_TRUE(core::AnalyzeTopology(core::WeldByPosition(joined)).watertight());
+  const ClientRun not_parts = Client(server.address(), "fetch " + id + " --name stats.csv -o " + tiles);
+  EXPECT_NE(not_parts.code, 0);
+
+  // Its picture is drawn from the parts.
+  if (LSQSURF_WITH_EGL) {
+    const std::string picture = (dir_ / "block.png").string();
+    const ClientRun drawn = Client(server.address(), "render " + id + " -o " + picture + " --size 128");
+    ASSERT_EQ(drawn.code, 0) << drawn.output;
+    int w = 0, h = 0, channels = 0;
+    unsigned char* pixels = stbi_load(picture.c_str(), &w, &h, &channels, 4);
+    ASSERT_NE(pixels, nullptr) << stbi_failure_reason();
+    EXPECT_EQ(w, 128);
+    EXPECT_LT(pixels[4 * (64 * 128 + 64)], 250);  // The block in the middle.
+    stbi_image_free(pixels);
+  }
 }
 
 // A PU job keeps its function; `lsqsurf csg` halves it with a plane by reference and `lsqsurf

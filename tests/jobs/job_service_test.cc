@@ -13,6 +13,7 @@
 #include <set>
 
 #include "absl/cleanup/cleanup.h"
+#include "stb_image.h"
 #include "tests/latch_kind.h"
 #if LSQSURF_WITH_POSTGRESQL
 #include "tests/postgres_cluster.h"
@@ -702,6 +703,24 @@ TEST_F(JobServiceTest, ACloudInPartsIsStreamedAndGivesTheMeshOfTheCloudWhole) {
   }
 }
 
+// RGBA pixels of a PNG, decoded by stb_image; empty when it does not decode.
+std::vector<uint8_t> DecodePng(const std::string& png, int& w, int& h) {
+  int channels = 0;
+  unsigned char* pixels = stbi_load_from_memory(reinterpret_cast<const stbi_uc*>(png.data()),
+                                                static_cast<int>(png.size()), &w, &h, &channels, 4);
+  if (pixels == nullptr) return {};
+  std::vector<uint8_t> out(pixels, pixels + 4 * static_cast<size_t>(w) * static_cast<size_t>(h));
+  stbi_image_free(pixels);
+  return out;
+}
+
+// Pixels that are not the white background.
+int64_t Covered(const std::vector<uint8_t>& rgba) {
+  int64_t covered = 0;
+  for (size_t i = 0; i + 3 < rgba.size(); i += 4) covered += rgba[i] < 250 || rgba[i + 1] < 250 || rgba[i + 2] < 250;
+  return covered;
+}
+
 // A running job's mesh parts are listed and fetchable as soon as they are stored; nothing else
 // of it is. A run cut short by a shutdown takes its parts back off the list.
 TEST_F(JobServiceTest, MeshPartsCanBeFetchedWhileTheJobRuns) {
@@ -721,6 +740,17 @@ TEST_F(JobServiceTest, MeshPartsCanBeFetchedWhileTheJobRuns) {
   EXPECT_EQ(ReadResult(job->id, MeshPartArtifact(0)), part);
   EXPECT_EQ(s.OpenResult(job->id, "scratch.txt").status().code(), absl::StatusCode::kFailedPrecondition);
   EXPECT_EQ(s.OpenResult(job->id, "").status().code(), absl::StatusCode::kFailedPrecondition);
+  if (LSQSURF_WITH_EGL) {
+    // The picture of a running job: the surface done so far, the one part here.
+    core::ParamSet view = DefaultView();
+    ASSERT_TRUE(view.Parse("width", "64").ok() && view.Parse("height", "64").ok());
+    auto picture = s.Render({}, job->id, "", view, nullptr);
+    ASSERT_TRUE(picture.ok()) << picture.status();
+    int w = 0, h = 0;
+    EXPECT_GT(Covered(DecodePng(picture->png, w, h)), 64 * 64 / 16);  // The triangle, seen at 25° above its plane.
+    EXPECT_EQ(s.Render({}, job->id, "scratch.txt", view, nullptr).status().code(),
+              absl::StatusCode::kFailedPrecondition);
+  }
 
   // Stopped while it runs: queued again without the parts it listed; the next run is the engine.
   s.Shutdown();
@@ -731,6 +761,52 @@ TEST_F(JobServiceTest, MeshPartsCanBeFetchedWhileTheJobRuns) {
   EXPECT_EQ(done.results.front(), "mesh.drc");
   EXPECT_EQ(std::count(done.results.begin(), done.results.end(), MeshPartArtifact(0)), 0);
   EXPECT_TRUE(reopened.OpenResult(job->id, "mesh.drc").ok());
+}
+
+// A mesh delivered in parts is drawn from its parts, one at a time, into the picture the whole
+// mesh gives: its preview, and Render of its first result.
+TEST_F(JobServiceTest, AMeshInPartsIsDrawnAsTheWholeMeshIs) {
+  if (!LSQSURF_WITH_EGL) GTEST_SKIP() << "built without EGL: no pictures can be drawn";
+  const core::PointCloud cloud = testing::DrilledBlockCloud(12'000, 2.0, 0.6, 0.3, 0.3);
+  JobSpec spec = Spec("pu", {{"tile_points", "3000"}, {"support_cap", "16"}});
+  spec.preview.enabled = true;
+  spec.preview.view = DefaultView();
+  for (const auto& [name, value] : {std::pair{"width", "160"}, {"height", "120"}, {"samples", "1"}}) {
+    ASSERT_TRUE(spec.preview.view.Parse(name, value).ok()) << name;
+  }
+  JobService& s = Open();
+  auto whole = s.Submit(spec, InParts(cloud, cloud.size()));
+  auto parts = s.Submit(spec, InParts(cloud, 2500));
+  ASSERT_TRUE(whole.ok() && parts.ok()) << whole.status() << parts.status();
+  const JobRecord whole_done = WaitTerminal(whole->id), parts_done = WaitTerminal(parts->id);
+  ASSERT_EQ(parts_done.state, JobState::kSucceeded) << parts_done.error;
+  ASSERT_EQ(whole_done.state, JobState::kSucceeded) << whole_done.error;
+  ASSERT_GE(Statistic(parts_done, "mesh_parts"), 4);
+  EXPECT_EQ(std::count(parts_done.results.begin(), parts_done.results.end(), "preview.png"), 1);
+  for (const auto& [name, value] : parts_done.statistics) EXPECT_NE(name, "preview_failures");
+  // The parts' pictures against the whole mesh's: only silhouette pixels may differ (the whole,
+  // closed mesh has its back faces culled; the open parts are drawn two-sided).
+  std::vector<std::pair<std::string, std::string>> pairs = {
+      {ReadResult(whole->id, "preview.png"), ReadResult(parts->id, "preview.png")}};
+  auto view = spec.preview.view;
+  ASSERT_TRUE(view.SetText("color", "depth").ok());
+  auto whole_picture = s.Render({}, whole->id, "mesh.drc", view, nullptr);
+  auto parts_picture = s.Render({}, parts->id, "", view, nullptr);
+  ASSERT_TRUE(whole_picture.ok() && parts_picture.ok()) << whole_picture.status() << parts_picture.status();
+  EXPECT_EQ(parts_picture->color_min, whole_picture->color_min);
+  EXPECT_EQ(parts_picture->color_max, whole_picture->color_max);
+  pairs.emplace_back(whole_picture->png, parts_picture->png);
+  for (const auto& [a, b] : pairs) {
+    int wa = 0, ha = 0, wb = 0, hb = 0;
+    const auto pa = DecodePng(a, wa, ha), pb = DecodePng(b, wb, hb);
+    ASSERT_EQ(wa, 160);
+    ASSERT_EQ(ha, 120);
+    ASSERT_EQ(pa.size(), pb.size());
+    int64_t differing = 0;
+    for (size_t i = 0; i < pa.size(); i += 4) differing += !std::equal(&pa[i], &pa[i] + 3, &pb[i]);
+    EXPECT_GT(Covered(pa), 160 * 120 / 10);
+    EXPECT_LT(differing, Covered(pa) / 20) << "of " << Covered(pa);
+  }
 }
 
 // Other methods, and clouds without normals, join the parts; parts that do not fit are refused.

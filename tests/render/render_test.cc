@@ -178,6 +178,83 @@ TEST_F(RenderTest, CullingHiddenFacesLeavesThePictureUnchanged) {
   }
 }
 
+// The mesh's faces in `count` runs, each run a mesh of its own with the vertices it uses.
+class SplitMesh final : public MeshPieces {
+ public:
+  SplitMesh(const core::TriangleMesh& mesh, size_t count) : mesh_(mesh), count_(count) {}
+  absl::Status ForEach(const std::function<absl::Status(const core::TriangleMesh&)>& visit) const override {
+    const size_t per_piece = (mesh_.faces.size() + count_ - 1) / count_;
+    for (size_t begin = 0; begin < mesh_.faces.size(); begin += per_piece) {
+      core::TriangleMesh piece;
+      piece.vertex_attributes = {{mesh_.vertex_attributes[0].name, {}}};
+      std::vector<int64_t> local(mesh_.vertices.size(), -1);
+      for (size_t f = begin; f < std::min(mesh_.faces.size(), begin + per_piece); ++f) {
+        core::Triangle t;
+        for (int k = 0; k < 3; ++k) {
+          const uint32_t v = mesh_.faces[f][k];
+          if (local[v] < 0) {
+            local[v] = static_cast<int64_t>(piece.vertices.size());
+            piece.vertices.push_back(mesh_.vertices[v]);
+            piece.normals.push_back(mesh_.normals[v]);
+            piece.vertex_attributes[0].values.push_back(mesh_.vertex_attributes[0].values[v]);
+          }
+          t[k] = static_cast<uint32_t>(local[v]);
+        }
+        piece.faces.push_back(t);
+      }
+      if (absl::Status s = visit(piece); !s.ok()) return s;
+    }
+    return absl::OkStatus();
+  }
+
+ private:
+  const core::TriangleMesh& mesh_;
+  size_t count_;
+};
+
+TEST_F(RenderTest, PiecesDrawTheirJoinedMesh) {
+  RenderParams p = SphereView(256);
+  p.samples = 1;
+  p.color_attribute = "height";
+  const core::TriangleMesh sphere = core::SphereMesh(96, 192);
+  RenderInfo whole_info, pieces_info;
+  auto whole = renderer_->RenderMesh(sphere, p, &whole_info);
+  auto pieces = renderer_->RenderMeshPieces(SplitMesh(sphere, 7), p, &pieces_info);
+  ASSERT_TRUE(whole.ok() && pieces.ok()) << whole.status() << pieces.status();
+  // The joint range and box: the same colours, the same framing.
+  EXPECT_EQ(pieces_info.color_min, whole_info.color_min);
+  EXPECT_EQ(pieces_info.color_max, whole_info.color_max);
+  // Only silhouette pixels may differ (the whole sphere is closed: its back faces are culled).
+  const double r = SilhouetteRadius(p);
+  int differing = 0, covered = 0;
+  for (int y = 0; y < 256; ++y) {
+    for (int x = 0; x < 256; ++x) {
+      const double d = std::hypot(x + 0.5 - 128, y + 0.5 - 128);
+      covered += d < r;
+      if (whole->At(x, y) == pieces->At(x, y)) continue;
+      ++differing;
+      EXPECT_TRUE(d > r - 2 || x > 200) << "a visible pixel changed at " << x << "," << y;  // x > 200: the legend.
+    }
+  }
+  EXPECT_LT(differing, covered / 50);
+
+  // Nothing to draw, an attribute a piece lacks, a piece that fails: refused with the reason.
+  core::TriangleMesh empty;
+  empty.vertex_attributes = {{"height", {}}};
+  EXPECT_EQ(renderer_->RenderMeshPieces(SplitMesh(empty, 1), p).status().code(), absl::StatusCode::kInvalidArgument);
+  RenderParams other = p;
+  other.color_attribute = "curvature";
+  const auto lacking = renderer_->RenderMeshPieces(SplitMesh(sphere, 3), other).status();
+  EXPECT_NE(lacking.message().find("no attribute 'curvature'"), std::string::npos) << lacking;
+  class Failing final : public MeshPieces {
+   public:
+    absl::Status ForEach(const std::function<absl::Status(const core::TriangleMesh&)>&) const override {
+      return absl::UnavailableError("the store went away");
+    }
+  };
+  EXPECT_EQ(renderer_->RenderMeshPieces(Failing(), p).status().code(), absl::StatusCode::kUnavailable);
+}
+
 // Extent of the non-transparent pixels: (width, height, centre x, centre y).
 std::array<double, 4> Coverage(const Image& image) {
   int x0 = image.width, x1 = -1, y0 = image.height, y1 = -1;

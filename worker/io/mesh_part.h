@@ -11,6 +11,7 @@
 
 #include <array>
 #include <cstdint>
+#include <optional>
 #include <span>
 #include <string>
 #include <string_view>
@@ -36,5 +37,32 @@ std::string EncodeMeshPart(int64_t first_vertex, std::span<const core::Vec3f> ve
 // Errors: kInvalidArgument naming what is wrong (not LQM1, truncated, counts that disagree, a
 // face number out of range).
 absl::StatusOr<MeshPart> DecodeMeshPart(std::string_view bytes);
+
+// Makes each part of a mesh delivered in parts, read in order, a mesh of its own (a tile to
+// draw or to store alone): the part's vertices first, then those of earlier parts its faces name.
+// Holds the positions, normals and kept attributes of every vertex read so far, never the faces:
+// 24 bytes a vertex and 4 per kept attribute, against the joined mesh's 48 and 4.
+class SelfContainedParts {
+ public:
+  // `attributes`: the names of the per-vertex attributes to carry; nullopt: all of the first
+  // part's.
+  explicit SelfContainedParts(std::optional<std::vector<std::string>> attributes = std::nullopt)
+      : wanted_(std::move(attributes)) {}
+  // The next part as a mesh of its own. Errors: kInvalidArgument when the part does not follow on
+  // from those before it (its first vertex), or disagrees with the first part on normals or a
+  // carried attribute.
+  absl::StatusOr<core::TriangleMesh> Next(const MeshPart& part);
+  int64_t vertices() const { return static_cast<int64_t>(positions_.size()); }
+
+ private:
+  absl::Status Remember(const MeshPart& part);
+  std::optional<std::vector<std::string>> wanted_;
+  int64_t parts_ = 0;
+  bool normals_ = false;
+  std::vector<core::Vec3f> positions_, normals_seen_;
+  std::vector<std::string> names_;                     // Carried attributes, in the first part's order.
+  std::vector<std::vector<float>> values_;             // Per carried attribute, per vertex.
+  std::vector<const core::ScalarAttribute*> in_part_;  // The current part's of each carried one.
+};
 
 }  // namespace lsqsurf::io

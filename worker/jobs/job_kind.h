@@ -65,6 +65,9 @@ class ArtifactSink {
   virtual ~ArtifactSink() = default;
   // Errors: kUnavailable (storage failed).
   virtual absl::Status Write(std::string_view name, std::string_view bytes) = 0;
+  // An artifact this run wrote (a picture of a mesh delivered in parts reads them back).
+  // Errors: kNotFound (not written), kUnavailable.
+  virtual absl::StatusOr<std::string> Read(std::string_view name) const = 0;
 };
 
 // The memory a run is expected to take at its peak (0: not estimated), and what to change when

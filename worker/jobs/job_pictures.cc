@@ -1,9 +1,12 @@
+#include <algorithm>
+
 #include "absl/cleanup/cleanup.h"
 #include "worker/core/status.h"
 #include "worker/core/strings.h"
 #include "worker/io/draco_codec.h"
 #include "worker/jobs/job_service.h"
 #include "worker/jobs/job_service_internal.h"
+#include "worker/jobs/pictures.h"
 #include "worker/jobs/volume_job.h"
 #include "worker/render/render.h"
 
@@ -21,7 +24,8 @@ void JobService::ReleaseRenderSlot(const std::string& owner) {
 
 absl::StatusOr<RenderedPicture> JobService::Render(const Submitter& who, const std::string& id, const std::string& name,
                                                    const core::ParamSet& view, const core::JobContext* ctx) {
-  LSQSURF_RETURN_IF_ERROR(GetFor(who, id).status());
+  auto record = GetFor(who, id);
+  if (!record.ok()) return record.status();
   const auto* params = view.As<render::RenderParams>();
   if (params == nullptr) return absl::InternalError("view options of another type");
   // Checked before any file is read or a context is made.
@@ -32,6 +36,8 @@ absl::StatusOr<RenderedPicture> JobService::Render(const Submitter& who, const s
                                                      "try again shortly"));
   }
   const absl::Cleanup release = [&] { ReleaseRenderSlot(who.owner); };
+  const bool whole_name = name.empty() && !record->results.empty();
+  if (MeshPartOf(whole_name ? record->results.front() : name) >= 0) return RenderMeshParts(*record, *params);
   auto reader = OpenResult(id, name);
   if (!reader.ok()) return reader.status();
   auto read = ReadAll(**reader);
@@ -56,6 +62,31 @@ absl::StatusOr<RenderedPicture> JobService::Render(const Submitter& who, const s
     if (!cloud.ok()) return cloud.status();
     image = (*renderer)->RenderPoints(*cloud, *params, &info);
   }
+  if (!image.ok()) return image.status();
+  auto png = render::EncodePng(*image);
+  if (!png.ok()) return png.status();
+  return RenderedPicture{*std::move(png), info.color_min, info.color_max, info.renderer};
+}
+
+absl::StatusOr<RenderedPicture> JobService::RenderMeshParts(const JobRecord& record,
+                                                            const render::RenderParams& params) {
+  // Every part listed when the call came: of a running job, the surface done so far.
+  int64_t parts = 0;
+  while (std::find(record.results.begin(), record.results.end(), MeshPartArtifact(parts)) != record.results.end()) {
+    ++parts;
+  }
+  const MeshPartPieces pieces(
+      parts,
+      [&](int64_t part) -> absl::StatusOr<std::string> {
+        auto reader = OpenResult(record.id, MeshPartArtifact(part));
+        if (!reader.ok()) return reader.status();
+        return ReadAll(**reader);
+      },
+      params.color_attribute);
+  auto renderer = renderer_->Get();
+  if (!renderer.ok()) return renderer.status();
+  render::RenderInfo info;
+  auto image = (*renderer)->RenderMeshPieces(pieces, params, &info);
   if (!image.ok()) return image.status();
   auto png = render::EncodePng(*image);
   if (!png.ok()) return png.status();

@@ -35,6 +35,15 @@ class BlobSink final : public ArtifactSink {
     if (MeshPartOf(name) >= 0) publish_(std::string(name));  // Stored whole first: fetchable now.
     return absl::OkStatus();
   }
+  absl::StatusOr<std::string> Read(std::string_view name) const override {
+    {
+      std::lock_guard lock(mutex_);
+      if (!sizes_.contains(std::string(name))) {
+        return absl::NotFoundError(core::StrCat("this run wrote no artifact '", name, "'"));
+      }
+    }
+    return blobs_.Read(job_id_, name);
+  }
   std::vector<std::string> names() const {
     std::lock_guard lock(mutex_);
     return names_;

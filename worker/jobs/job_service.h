@@ -169,7 +169,9 @@ class JobService {
   // kNotFound (job or artifact), kFailedPrecondition (not succeeded).
   absl::StatusOr<std::unique_ptr<BlobReader>> OpenResult(const std::string& id, const std::string& name) const;
   // Draws a Draco artifact (a mesh or a point set) or a volume field, with view options from
-  // DefaultView(), for `who` (another's job answers as a missing one). A named user holds at most
+  // DefaultView(), for `who`. A mesh part (named, or the first result) stands for the mesh
+  // delivered in parts: every part listed so far is drawn, one held at a time, so a running job
+  // shows the surface done so far (another's job answers as a missing one). A named user holds at most
   // half of the max_renders slots (rounded up), so that no one holds all of them; `ctx` (may be
   // null) stops the drawing once its caller has gone. Errors: those of OpenResult,
   // kInvalidArgument (bad view, not geometry), kUnavailable (no renderer), kResourceExhausted
@@ -228,6 +230,8 @@ class JobService {
   // The job's entry, read from the store when this service has not seen it yet.
   std::shared_ptr<Entry> Find(const std::string& id) const;
   const JobKind* KindOf(const std::string& method) const;
+  // A picture of every mesh part the record lists (the Render path for mesh-part-NNNNN.lqm).
+  absl::StatusOr<RenderedPicture> RenderMeshParts(const JobRecord& record, const render::RenderParams& params);
   // A picture of a volume job's stored field (the Render path for field.lqvf).
   absl::StatusOr<RenderedPicture> RenderVolumeField(const std::string& id, const std::string& bytes,
                                                     const render::RenderParams& params, const core::JobContext* ctx);

@@ -1,7 +1,9 @@
 #include "worker/jobs/pictures.h"
 
+#include "worker/core/status.h"
 #include "worker/core/strings.h"
 #include "worker/io/files.h"
+#include "worker/io/mesh_part.h"
 
 namespace lsqsurf::jobs {
 namespace {
@@ -17,6 +19,21 @@ absl::Status WritePng(const absl::StatusOr<render::Image>& image, const std::str
 }
 
 }  // namespace
+
+absl::Status MeshPartPieces::ForEach(const std::function<absl::Status(const core::TriangleMesh&)>& visit) const {
+  io::SelfContainedParts joiner(attribute_.empty() ? std::vector<std::string>{} : std::vector{attribute_});
+  for (int64_t p = 0; p < parts_; ++p) {
+    auto bytes = read_(p);
+    if (!bytes.ok()) return bytes.status();
+    auto part = io::DecodeMeshPart(*bytes);
+    if (!part.ok()) return absl::InvalidArgumentError(core::StrCat("mesh part ", p, ": ", part.status().message()));
+    *bytes = {};
+    auto piece = joiner.Next(*part);
+    if (!piece.ok()) return piece.status();
+    LSQSURF_RETURN_IF_ERROR(visit(*piece));
+  }
+  return absl::OkStatus();
+}
 
 absl::StatusOr<std::string> PicturePng(render::Renderer& renderer, const core::TriangleMesh& mesh,
                                        const render::RenderParams& params) {

@@ -1,6 +1,8 @@
 // worker/jobs/pictures.h — PNG pictures of job results, written next to the other artifacts.
 #pragma once
 
+#include <cstdint>
+#include <functional>
 #include <string>
 
 #include "absl/status/statusor.h"
@@ -14,6 +16,25 @@ absl::StatusOr<std::string> PicturePng(render::Renderer& renderer, const core::T
                                        const render::RenderParams& params);
 absl::StatusOr<std::string> PicturePng(render::Renderer& renderer, const core::PointCloud& cloud,
                                        const render::RenderParams& params);
+
+// The parts of a mesh delivered in parts (io/mesh_part.h) as pieces to draw: each part with the
+// vertices of earlier parts its faces name (io::SelfContainedParts, carrying only the attribute
+// named `attribute`, if any).
+class MeshPartPieces final : public render::MeshPieces {
+ public:
+  // The bytes of part `part` (0, 1, ...). Errors: its own.
+  using ReadPart = std::function<absl::StatusOr<std::string>(int64_t part)>;
+  MeshPartPieces(int64_t parts, ReadPart read, std::string attribute)
+      : parts_(parts), read_(std::move(read)), attribute_(std::move(attribute)) {}
+  // Errors: those of `read`, kInvalidArgument (a part that does not decode or does not follow on
+  // from the ones before it, naming it), and those of `visit`.
+  absl::Status ForEach(const std::function<absl::Status(const core::TriangleMesh&)>& visit) const override;
+
+ private:
+  int64_t parts_;
+  ReadPart read_;
+  std::string attribute_;
+};
 
 // Draws the mesh (or the cloud) and writes the PNG atomically to `path`. Errors: the renderer's,
 // or kUnavailable when the file cannot be written.

@@ -29,6 +29,8 @@ namespace {
 constexpr char kMeshArtifact[] = "mesh.drc";
 constexpr char kPreviewArtifact[] = "preview.png";
 
+absl::Status DrawPartsPreview(int64_t parts, const PreviewSpec& preview, RunEnvironment& env);
+
 const core::ParamTable<NormalsParams>& NormalsTable() {
   static const auto* table = [] {
     auto* t = new core::ParamTable<NormalsParams>();
@@ -520,22 +522,44 @@ class SurfaceKind final : public TypedJobKind<core::ParamSet, SurfaceInput> {
     if (result->mesh_parts == 0) {
       LSQSURF_RETURN_IF_ERROR(DeliverMesh(result->mesh, spec, env, &result->statistics));
     } else if (spec.preview.enabled) {
-      // A picture needs the mesh whole, which a mesh delivered in parts never is here.
-      spdlog::warn("no preview: the mesh was delivered in {} parts", result->mesh_parts);
-      result->statistics.emplace_back("preview_failures", 1);
+      env.context.ReportProgress("drawing the preview", 0.99);
+      const absl::Status p = DrawPartsPreview(result->mesh_parts, spec.preview, env);
+      if (!p.ok()) {
+        spdlog::warn("preview failed: {}", p.message());
+        result->statistics.emplace_back("preview_failures", 1);
+      }
     }
     for (const auto& [name, bytes] : result->kept) LSQSURF_RETURN_IF_ERROR(env.sink.Write(name, bytes));
     return std::move(result->statistics);
   }
 };
 
-absl::Status DrawPreview(const core::TriangleMesh& mesh, const PreviewSpec& preview, RunEnvironment& env) {
+// The renderer and view of a job's preview.
+absl::StatusOr<std::pair<render::Renderer*, const render::RenderParams*>> PreviewRenderer(const PreviewSpec& preview,
+                                                                                          RunEnvironment& env) {
   if (env.renderer == nullptr) return absl::UnavailableError("no renderer");
   auto renderer = env.renderer->Get();
   if (!renderer.ok()) return renderer.status();
   const auto* view = preview.view.As<render::RenderParams>();
   if (view == nullptr) return absl::InternalError("preview without view options");
-  auto png = PicturePng(**renderer, mesh, *view);
+  return std::make_pair(*renderer, view);
+}
+
+absl::Status DrawPreview(const core::TriangleMesh& mesh, const PreviewSpec& preview, RunEnvironment& env) {
+  LSQSURF_ASSIGN_OR_RETURN(auto drawing, PreviewRenderer(preview, env));
+  auto png = PicturePng(*drawing.first, mesh, *drawing.second);
+  if (!png.ok()) return png.status();
+  return env.sink.Write(kPreviewArtifact, *png);
+}
+
+// The mesh drawn from its parts as written, one part held at a time.
+absl::Status DrawPartsPreview(int64_t parts, const PreviewSpec& preview, RunEnvironment& env) {
+  LSQSURF_ASSIGN_OR_RETURN(auto drawing, PreviewRenderer(preview, env));
+  const MeshPartPieces pieces(
+      parts, [&env](int64_t part) { return env.sink.Read(MeshPartArtifact(part)); }, drawing.second->color_attribute);
+  auto image = drawing.first->RenderMeshPieces(pieces, *drawing.second);
+  if (!image.ok()) return image.status();
+  auto png = render::EncodePng(*image);
   if (!png.ok()) return png.status();
   return env.sink.Write(kPreviewArtifact, *png);
 }

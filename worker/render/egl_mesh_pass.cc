@@ -149,19 +149,63 @@ Image EglRenderer::ReadBack(const Targets& t, int w, int h, GLenum* error) {
   return image;
 }
 
-absl::StatusOr<Image> EglRenderer::Draw(const Drawable& d, const RenderParams& p, RenderInfo* info) {
-  const int w = p.width, h = p.height;
-  auto targets = MakeTargets(w, h, p.samples);
+absl::StatusOr<EglRenderer::Picture> EglRenderer::BeginPicture(const core::Box3& box, const RenderParams& p, double lo,
+                                                               double hi) {
+  Picture picture;
+  auto targets = MakeTargets(p.width, p.height, p.samples);
   if (!targets.ok()) return targets.status();
-  gl_.BindFramebuffer(GL_FRAMEBUFFER, targets->fbo[0]);
-  gl_.Viewport(0, 0, w, h);
+  picture.targets = *targets;
+  gl_.BindFramebuffer(GL_FRAMEBUFFER, picture.targets.fbo[0]);
+  gl_.Viewport(0, 0, p.width, p.height);
   gl_.ClearColor(p.background[0], p.background[1], p.background[2], p.transparent ? 0.0f : 1.0f);
   gl_.Clear(GL_COLOR_BUFFER_BIT | GL_DEPTH_BUFFER_BIT);
   gl_.Enable(GL_DEPTH_TEST);
   gl_.DepthFunc(GL_LESS);
   if (p.samples > 1) gl_.Enable(GL_MULTISAMPLE);
+  picture.view = MakeView(box, p);
+  picture.lo = lo;
+  picture.hi = hi;
+  return picture;
+}
 
-  const View view = MakeView(d.box, p);
+void EglRenderer::DrawInto(const Drawable& d, const RenderParams& p, const Picture& picture) {
+  GLuint vao = 0, buffers[4] = {};
+  gl_.GenVertexArrays(1, &vao);
+  gl_.BindVertexArray(vao);
+  gl_.GenBuffers(4, buffers);
+  const bool has_normals = d.normals.size() == d.positions.size();
+  const bool colour = !d.scalars.empty() && d.scalars.size() == d.positions.size();
+  UploadAttributes(d, buffers, has_normals, colour);
+  const double span = picture.hi > picture.lo ? picture.hi - picture.lo : 1.0;
+  SetUniforms(p, picture.view, picture.lo, span, has_normals, colour);
+  if (!d.faces.empty()) {
+    DrawFaces(d, p, picture.view, buffers[3]);
+  } else {
+    DrawPoints(d, p, picture.view);
+  }
+  gl_.BindVertexArray(0);
+  gl_.DeleteBuffers(4, buffers);
+  gl_.DeleteVertexArrays(1, &vao);
+}
+
+absl::StatusOr<Image> EglRenderer::FinishPicture(Picture& picture, const RenderParams& p, RenderInfo* info) {
+  if (picture.coloured && p.legend) DrawLegend(p.width, p.height, picture.lo, picture.hi);
+  GLenum error = GL_NO_ERROR;
+  Image image = ReadBack(picture.targets, p.width, p.height, &error);
+  ReleaseTargets(picture.targets);
+  gl_.Disable(GL_DEPTH_TEST);
+  if (error == GL_OUT_OF_MEMORY) return absl::ResourceExhaustedError("the GL ran out of memory drawing the image");
+  if (error != GL_NO_ERROR)
+    return absl::InternalError(core::StrCat("GL error 0x", std::to_string(error), " while drawing"));
+  if (info) {
+    info->color_min = picture.lo;
+    info->color_max = picture.hi;
+    info->renderer = renderer_;
+  }
+  return image;
+}
+
+absl::StatusOr<Image> EglRenderer::Draw(const Drawable& d, const RenderParams& p, RenderInfo* info) {
   // Colour range: the request's, or the data's.
   double lo = p.color_min, hi = p.color_max;
   if (!d.scalars.empty() && lo == hi) {
@@ -169,39 +213,11 @@ absl::StatusOr<Image> EglRenderer::Draw(const Drawable& d, const RenderParams& p
     lo = *mn;
     hi = *mx;
   }
-  const double span = hi > lo ? hi - lo : 1.0;
-
-  GLuint vao = 0, buffers[4] = {};
-  gl_.GenVertexArrays(1, &vao);
-  gl_.BindVertexArray(vao);
-  gl_.GenBuffers(4, buffers);
-  const bool has_normals = d.normals.size() == d.positions.size();
-  const bool colour = d.scalars.size() == d.positions.size();
-  UploadAttributes(d, buffers, has_normals, colour);
-  SetUniforms(p, view, lo, span, has_normals, colour);
-  if (!d.faces.empty()) {
-    DrawFaces(d, p, view, buffers[3]);
-  } else {
-    DrawPoints(d, p, view);
-  }
-  if (colour && p.legend) DrawLegend(w, h, lo, hi);
-  GLenum error = GL_NO_ERROR;
-  Image image = ReadBack(*targets, w, h, &error);
-
-  gl_.BindVertexArray(0);
-  gl_.DeleteBuffers(4, buffers);
-  gl_.DeleteVertexArrays(1, &vao);
-  ReleaseTargets(*targets);
-  gl_.Disable(GL_DEPTH_TEST);
-  if (error == GL_OUT_OF_MEMORY) return absl::ResourceExhaustedError("the GL ran out of memory drawing the image");
-  if (error != GL_NO_ERROR)
-    return absl::InternalError(core::StrCat("GL error 0x", std::to_string(error), " while drawing"));
-  if (info) {
-    info->color_min = lo;
-    info->color_max = hi;
-    info->renderer = renderer_;
-  }
-  return image;
+  auto picture = BeginPicture(d.box, p, lo, hi);
+  if (!picture.ok()) return picture.status();
+  picture->coloured = !d.scalars.empty() && d.scalars.size() == d.positions.size();
+  DrawInto(d, p, *picture);
+  return FinishPicture(*picture, p, info);
 }
 
 void EglRenderer::DrawLegend(int w, int h, double lo, double hi) {

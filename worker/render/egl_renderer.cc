@@ -2,6 +2,7 @@
 // public calls check before they queue work for that thread.
 #include "worker/render/egl_renderer.h"
 
+#include <algorithm>
 #include <cmath>
 #include <cstdio>
 
@@ -59,6 +60,48 @@ absl::StatusOr<Image> EglRenderer::RenderPoints(const core::PointCloud& cloud, c
   auto scalars = FindScalars(cloud.attributes, params.color_attribute);
   if (!scalars.ok()) return scalars.status();
   return Enqueue({cloud.positions, cloud.normals, *scalars, {}}, params, info);
+}
+
+absl::StatusOr<Image> EglRenderer::RenderMeshPieces(const MeshPieces& pieces, const RenderParams& params,
+                                                    RenderInfo* info) {
+  LSQSURF_RETURN_IF_ERROR(Validate(params));
+  // First pass: the joint box and colour range, and whether there is anything to draw.
+  core::Box3 box;
+  int64_t faces = 0;
+  double lo = params.color_min, hi = params.color_max;
+  const bool data_range = lo == hi;
+  if (data_range) lo = INFINITY, hi = -INFINITY;
+  LSQSURF_RETURN_IF_ERROR(pieces.ForEach([&](const core::TriangleMesh& piece) -> absl::Status {
+    if (piece.faces.empty()) return absl::OkStatus();
+    auto scalars = FindScalars(piece.vertex_attributes, params.color_attribute);
+    if (!scalars.ok()) return scalars.status();
+    box.extend(core::BoundingBox(piece.vertices));
+    faces += static_cast<int64_t>(piece.faces.size());
+    if (data_range && !scalars->empty()) {
+      const auto [mn, mx] = std::minmax_element(scalars->begin(), scalars->end());
+      lo = std::min(lo, static_cast<double>(*mn));
+      hi = std::max(hi, static_cast<double>(*mx));
+    }
+    return absl::OkStatus();
+  }));
+  if (faces == 0) return absl::InvalidArgumentError("the mesh has no triangles to draw");
+  if (lo > hi) lo = hi = 0;  // Not coloured.
+  return Run([&]() -> absl::StatusOr<Image> {
+    auto picture = BeginPicture(box, params, lo, hi);
+    if (!picture.ok()) return picture.status();
+    picture->coloured = !params.color_attribute.empty();
+    const absl::Status drawn = pieces.ForEach([&](const core::TriangleMesh& piece) -> absl::Status {
+      if (piece.faces.empty()) return absl::OkStatus();
+      auto scalars = FindScalars(piece.vertex_attributes, params.color_attribute);
+      if (!scalars.ok()) return scalars.status();
+      // Pieces are open: every face is drawn, two-sided.
+      DrawInto({piece.vertices, piece.normals, *scalars, piece.faces, box}, params, *picture);
+      return absl::OkStatus();
+    });
+    auto image = FinishPicture(*picture, params, info);
+    if (!drawn.ok()) return drawn;
+    return image;
+  });
 }
 
 absl::StatusOr<Image> EglRenderer::RenderVolume(const VolumeGrid& grid, const RenderParams& params, RenderInfo* info) {

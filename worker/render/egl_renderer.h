@@ -48,6 +48,9 @@ class EglRenderer final : public Renderer {
   absl::StatusOr<Image> RenderPoints(const core::PointCloud& cloud, const RenderParams& params,
                                      RenderInfo* info) override;
 
+  absl::StatusOr<Image> RenderMeshPieces(const MeshPieces& pieces, const RenderParams& params,
+                                         RenderInfo* info) override;
+
   absl::StatusOr<Image> RenderVolume(const VolumeGrid& grid, const RenderParams& params, RenderInfo* info) override;
 
   std::string description() const override { return description_; }
@@ -97,6 +100,19 @@ class EglRenderer final : public Renderer {
 
   // Resolves the samples and reads the picture back, top row first; the GL's error, if any.
   Image ReadBack(const Targets& t, int w, int h, GLenum* error);
+
+  // One picture in the making: its render targets, view and colour range. Render-thread only:
+  // BeginPicture clears the targets, DrawInto adds geometry, FinishPicture reads the image back
+  // and releases the targets.
+  struct Picture {
+    Targets targets;
+    View view;
+    double lo = 0, hi = 0;
+    bool coloured = false;
+  };
+  absl::StatusOr<Picture> BeginPicture(const core::Box3& box, const RenderParams& p, double lo, double hi);
+  void DrawInto(const Drawable& d, const RenderParams& p, const Picture& picture);
+  absl::StatusOr<Image> FinishPicture(Picture& picture, const RenderParams& p, RenderInfo* info);
 
   // Render-thread only.
   absl::StatusOr<Image> Draw(const Drawable& d, const RenderParams& p, RenderInfo* info);

@@ -15,6 +15,7 @@
 
 #include <array>
 #include <cstdint>
+#include <functional>
 #include <memory>
 #include <mutex>
 #include <string>
@@ -122,6 +123,15 @@ double GridValue(const VolumeGrid& grid, const core::Vec3d& x);
 // The (t, alpha) points of an opacity text. Errors: kInvalidArgument naming the bad entry.
 absl::StatusOr<std::vector<std::array<double, 2>>> ParseOpacity(std::string_view text);
 
+// A mesh too large to hold at once, handed over in pieces: each a mesh of its own (its faces in
+// its own vertex numbers), the same pieces in the same order on every call.
+class MeshPieces {
+ public:
+  virtual ~MeshPieces() = default;
+  // Calls `visit` with each piece in turn; stops at the first error either returns.
+  virtual absl::Status ForEach(const std::function<absl::Status(const core::TriangleMesh&)>& visit) const = 0;
+};
+
 class Renderer {
  public:
   virtual ~Renderer() = default;
@@ -131,6 +141,13 @@ class Renderer {
                                            RenderInfo* info = nullptr) = 0;
   virtual absl::StatusOr<Image> RenderPoints(const core::PointCloud& cloud, const RenderParams& params,
                                              RenderInfo* info = nullptr) = 0;
+  // The picture RenderMesh draws of the pieces joined (framed on their joint box, coloured over
+  // their joint range, no faces culled), holding one piece at a time: the pieces are read once on
+  // the calling thread to frame them, then again on the render thread to draw them one after
+  // another into the same image. Errors: those of RenderMesh (no triangles in any piece, an
+  // attribute one of them lacks), and the pieces' own.
+  virtual absl::StatusOr<Image> RenderMeshPieces(const MeshPieces& pieces, const RenderParams& params,
+                                                 RenderInfo* info = nullptr) = 0;
   // The picture RaycastVolume draws, ray-cast in a fragment shader over 3-D textures of the
   // grid's values and gradients. Errors: those of RaycastVolume, kResourceExhausted (the grid
   // does not fit in the GL's memory).

@@ -360,6 +360,25 @@ void PrintNewestJobStatistics(const std::string& address) {
   for (const auto& st : listed->jobs(0).statistics()) std::printf("  service %s=%g\n", st.name().c_str(), st.value());
 }
 
+// The accuracy of the mesh a client run (exit code `rc`) wrote to `path`, measured in a child:
+// this process must never start oneTBB's workers (see InChild).
+CaseResult MeasureMeshFile(const BenchOptions& o, const BenchCase& c, const std::string& path, int rc) {
+  if (rc != 0) {
+    CaseResult failed;
+    failed.error = core::StrCat("the client failed (exit ", rc, ")");
+    return failed;
+  }
+  return InChild([&] {
+    CaseResult m;
+    auto mesh = io::ReadMeshFile(path);
+    if (!mesh.ok())
+      m.error = std::string(mesh.status().message());
+    else
+      Measure(c.truth, *mesh, o.samples, m);
+    return m;
+  });
+}
+
 // The same cloud through a real server and the real client: upload, reconstruct, download.
 void RunService(const BenchOptions& o, const BenchCase& c, const std::vector<std::string>& params,
                 const fs::path& work) {
@@ -401,21 +420,7 @@ void RunService(const BenchOptions& o, const BenchCase& c, const std::vector<std
   poller.join();
   if (o.show_statistics) PrintNewestJobStatistics(server.address());  // The timed job.
   const double peak = server.PeakMib();
-  CaseResult r;
-  if (rc != 0 || submitted.empty()) {
-    r.error = "the client failed";
-  } else {
-    // Measured in a child too: this process must never start oneTBB's workers (see InChild).
-    r = InChild([&] {
-      CaseResult m;
-      auto mesh = io::ReadMeshFile(mesh_path);
-      if (!mesh.ok())
-        m.error = std::string(mesh.status().message());
-      else
-        Measure(c.truth, *mesh, o.samples, m);
-      return m;
-    });
-  }
+  CaseResult r = MeasureMeshFile(o, c, mesh_path, submitted.empty() ? -1 : rc);
   r.seconds = seconds;
   r.peak_mib = peak;
   Print(c, "service", r);
@@ -478,20 +483,7 @@ void RunStreamedService(const BenchOptions& o, const BenchCase& c, const std::ve
   const double server_peak = server.PeakMib();
   fs::remove(cloud_path);
   if (o.show_statistics) PrintNewestJobStatistics(server.address());
-  CaseResult r;
-  if (rc != 0) {
-    r.error = core::StrCat("the client failed (exit ", rc, ")");
-  } else {
-    r = InChild([&] {
-      CaseResult m;
-      auto mesh = io::ReadMeshFile(mesh_path);
-      if (!mesh.ok())
-        m.error = std::string(mesh.status().message());
-      else
-        Measure(c.truth, *mesh, o.samples, m);
-      return m;
-    });
-  }
+  CaseResult r = MeasureMeshFile(o, c, mesh_path, rc);
   r.seconds = seconds;
   r.peak_mib = server_peak;
   Print(c, "served", r);

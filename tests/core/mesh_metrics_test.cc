@@ -2,7 +2,9 @@
 
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <numeric>
+#include <random>
 
 #include "worker/core/sampling.h"
 #include "worker/core/surface_distance.h"
@@ -44,6 +46,51 @@ TEST(MeshMetrics, DetectsBoundaryFlipsAndNonManifoldEdges) {
   fin.vertices.emplace_back(-1, -1, 0);
   fin.faces.push_back({0, 1, 8});
   EXPECT_EQ(AnalyzeTopology(fin).non_manifold_edges, 1);
+}
+
+// Face by face, in any order, the accumulator agrees with the whole-mesh analysis.
+MeshTopology Accumulated(const TriangleMesh& mesh, uint32_t seed) {
+  std::vector<size_t> order(mesh.faces.size());
+  std::iota(order.begin(), order.end(), 0);
+  std::mt19937 random(seed);
+  std::shuffle(order.begin(), order.end(), random);
+  TopologyAccumulator accumulator;
+  for (size_t f : order) accumulator.AddFace(mesh.faces[f][0], mesh.faces[f][1], mesh.faces[f][2]);
+  return accumulator.Result();
+}
+
+TEST(MeshMetrics, TheAccumulatorAgreesWithTheWholeMeshFaceByFace) {
+  TriangleMesh two = Cube();
+  const TriangleMesh second = Cube(Vec3f(3, 0, 0));
+  for (const Triangle& f : second.faces) two.faces.push_back({f[0] + 8, f[1] + 8, f[2] + 8});
+  two.vertices.insert(two.vertices.end(), second.vertices.begin(), second.vertices.end());
+  TriangleMesh open = Cube(), flipped = Cube();
+  open.faces.pop_back();
+  std::swap(flipped.faces[0][0], flipped.faces[0][1]);
+  for (const TriangleMesh* mesh : {&two, &open, &flipped}) {
+    const MeshTopology whole = AnalyzeTopology(*mesh);
+    for (uint32_t seed : {1u, 2u, 3u}) {
+      const MeshTopology seen = Accumulated(*mesh, seed);
+      EXPECT_EQ(seen.vertices, whole.vertices);
+      EXPECT_EQ(seen.edges, whole.edges);
+      EXPECT_EQ(seen.faces, whole.faces);
+      EXPECT_EQ(seen.boundary_edges, whole.boundary_edges);
+      EXPECT_EQ(seen.misoriented_edges, whole.misoriented_edges);
+      EXPECT_EQ(seen.degenerate_faces, whole.degenerate_faces);
+      EXPECT_EQ(seen.components, whole.components);
+    }
+  }
+  EXPECT_EQ(Accumulated(two, 1).components, 2);
+  EXPECT_EQ(Accumulated(two, 1).euler_characteristic(), 4);
+  // A third face on an edge leaves it open: not closed, as the whole analysis says.
+  TriangleMesh fin = Cube();
+  fin.vertices.emplace_back(-1, -1, 0);
+  fin.faces.push_back({0, 1, 8});
+  EXPECT_FALSE(Accumulated(fin, 1).watertight());
+  TopologyAccumulator degenerate;
+  degenerate.AddFace(0, 0, 1);
+  degenerate.AddFace(4, 5, 5);
+  EXPECT_EQ(degenerate.Result().degenerate_faces, 2);
 }
 
 TEST(MeshMetrics, MergingCoincidentVerticesRemovesFoldsAndKeepsTheSolid) {

@@ -680,6 +680,10 @@ TEST_F(JobServiceTest, ACloudInPartsIsStreamedAndGivesTheMeshOfTheCloudWhole) {
   EXPECT_EQ(streamed.faces.size(), expected->faces.size());
   EXPECT_EQ(streamed.vertices.size(), expected->vertices.size());
   EXPECT_EQ(Statistic(parts_done, "triangles"), static_cast<double>(streamed.faces.size()));
+  // Its closure is counted as the parts go, and agrees with the whole mesh's.
+  EXPECT_EQ(Statistic(parts_done, "boundary_edges"), 0);
+  EXPECT_EQ(Statistic(parts_done, "components"), 1);
+  EXPECT_EQ(Statistic(whole_done, "components"), 1);
   const core::MeshTopology topology = core::AnalyzeTopology(core::WeldByPosition(streamed));
   EXPECT_TRUE(topology.watertight());
   EXPECT_EQ(topology.euler_characteristic(), 0);  // The block's one hole.

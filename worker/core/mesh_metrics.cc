@@ -152,6 +152,48 @@ int64_t CountDistinctPositions(const std::vector<Vec3f>& positions) {
   return distinct;
 }
 
+uint32_t TopologyAccumulator::Root(uint32_t v) {
+  while (parent_[v] != v) v = parent_[v] = parent_[parent_[v]];  // Path halving.
+  return v;
+}
+
+void TopologyAccumulator::AddFace(int64_t a, int64_t b, int64_t c) {
+  ++faces_;
+  const std::array<uint32_t, 3> corner = {static_cast<uint32_t>(a), static_cast<uint32_t>(b), static_cast<uint32_t>(c)};
+  if (a == b || b == c || a == c) ++degenerate_;
+  for (const uint32_t v : corner) {
+    if (v >= parent_.size()) parent_.resize(std::max<size_t>(v + 1, parent_.size() * 3 / 2), UINT32_MAX);
+    if (parent_[v] == UINT32_MAX) parent_[v] = v;
+  }
+  for (int i = 0; i < 3; ++i) {
+    const uint32_t from = corner[static_cast<size_t>(i)], to = corner[static_cast<size_t>((i + 1) % 3)];
+    const uint32_t lo = std::min(from, to), hi = std::max(from, to);
+    const uint64_t key = uint64_t{lo} << 32 | hi;
+    const auto [it, opened] = open_.try_emplace(key, from < to);
+    if (!opened) {  // Its second face: closed, consistently oriented if it ran the other way.
+      misoriented_ += it->second == (from < to);
+      ++closed_;
+      open_.erase(it);
+    }
+    parent_[Root(from)] = Root(to);
+  }
+}
+
+MeshTopology TopologyAccumulator::Result() {
+  MeshTopology t;
+  t.faces = faces_;
+  t.boundary_edges = static_cast<int64_t>(open_.size());
+  t.edges = closed_ + t.boundary_edges;
+  t.misoriented_edges = misoriented_;
+  t.degenerate_faces = degenerate_;
+  for (uint32_t v = 0; v < parent_.size(); ++v) {
+    if (parent_[v] == UINT32_MAX) continue;
+    ++t.vertices;
+    t.components += Root(v) == v;
+  }
+  return t;
+}
+
 MeshTopology AnalyzeTopology(const TriangleMesh& mesh) {
   MeshTopology t;
   t.faces = static_cast<int64_t>(mesh.faces.size());

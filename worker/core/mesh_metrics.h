@@ -3,7 +3,9 @@
 
 #include <array>
 #include <cstdint>
+#include <vector>
 
+#include "absl/container/flat_hash_map.h"
 #include "worker/core/geometry.h"
 
 namespace lsqsurf::core {
@@ -26,6 +28,25 @@ struct MeshTopology {
 
 // O(F log F). Works on any index soup; out-of-range indices are a broken invariant (asserted).
 MeshTopology AnalyzeTopology(const TriangleMesh& mesh);
+
+// The topology of a mesh seen a face at a time, as a mesh delivered in parts is (never whole):
+// an edge is held only until its second face comes, so that memory follows the open seams
+// between the faces seen and those to come, plus 4 bytes a vertex for the components. Differs from
+// AnalyzeTopology in two ways: an edge with a third face counts as a boundary edge (one with four
+// goes unseen), and components are joined through shared vertices, not only shared edges.
+class TopologyAccumulator {
+ public:
+  // Vertex numbers of the whole mesh, below 2^32.
+  void AddFace(int64_t a, int64_t b, int64_t c);
+  // vertices, edges, faces, boundary_edges, misoriented_edges, degenerate_faces and components.
+  MeshTopology Result();
+
+ private:
+  uint32_t Root(uint32_t v);
+  std::vector<uint32_t> parent_;              // Union-find over the vertices; UINT32_MAX: not used yet.
+  absl::flat_hash_map<uint64_t, bool> open_;  // (lo << 32 | hi) -> its face went lo to hi.
+  int64_t faces_ = 0, closed_ = 0, misoriented_ = 0, degenerate_ = 0;
+};
 
 // The mesh with vertices at exactly the same position merged into one (as STL export and most
 // tools do); faces keep their order and may become degenerate. Normals and attributes are

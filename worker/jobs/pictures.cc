@@ -59,4 +59,37 @@ absl::Status WritePicture(render::Renderer& renderer, const core::PointCloud& cl
   return WritePng(renderer.RenderPoints(cloud, params), path);
 }
 
+namespace {
+
+// The renderer and view of a job's preview.
+absl::StatusOr<std::pair<render::Renderer*, const render::RenderParams*>> PreviewRenderer(const PreviewSpec& preview,
+                                                                                          RunEnvironment& env) {
+  if (env.renderer == nullptr) return absl::UnavailableError("no renderer");
+  auto renderer = env.renderer->Get();
+  if (!renderer.ok()) return renderer.status();
+  const auto* view = preview.view.As<render::RenderParams>();
+  if (view == nullptr) return absl::InternalError("preview without view options");
+  return std::make_pair(*renderer, view);
+}
+
+}  // namespace
+
+absl::Status DrawPreview(const core::TriangleMesh& mesh, const PreviewSpec& preview, RunEnvironment& env) {
+  LSQSURF_ASSIGN_OR_RETURN(auto drawing, PreviewRenderer(preview, env));
+  auto png = PicturePng(*drawing.first, mesh, *drawing.second);
+  if (!png.ok()) return png.status();
+  return env.sink.Write(kPreviewArtifact, *png);
+}
+
+absl::Status DrawPreviewOfParts(int64_t parts, const PreviewSpec& preview, RunEnvironment& env) {
+  LSQSURF_ASSIGN_OR_RETURN(auto drawing, PreviewRenderer(preview, env));
+  const MeshPartPieces pieces(
+      parts, [&env](int64_t part) { return env.sink.Read(MeshPartArtifact(part)); }, drawing.second->color_attribute);
+  auto image = drawing.first->RenderMeshPieces(pieces, *drawing.second);
+  if (!image.ok()) return image.status();
+  auto png = render::EncodePng(*image);
+  if (!png.ok()) return png.status();
+  return env.sink.Write(kPreviewArtifact, *png);
+}
+
 }  // namespace lsqsurf::jobs

@@ -7,9 +7,13 @@
 
 #include "absl/status/statusor.h"
 #include "worker/core/geometry.h"
+#include "worker/jobs/job_kind.h"
 #include "worker/render/render.h"
 
 namespace lsqsurf::jobs {
+
+// The picture a job draws of its result when asked (JobSpec::preview).
+inline constexpr char kPreviewArtifact[] = "preview.png";
 
 // PNG bytes of the mesh (or the cloud). Errors: the renderer's.
 absl::StatusOr<std::string> PicturePng(render::Renderer& renderer, const core::TriangleMesh& mesh,
@@ -42,5 +46,11 @@ absl::Status WritePicture(render::Renderer& renderer, const core::TriangleMesh& 
                           const render::RenderParams& params, const std::string& path);
 absl::Status WritePicture(render::Renderer& renderer, const core::PointCloud& cloud, const render::RenderParams& params,
                           const std::string& path);
+
+// A job's preview of its mesh, written to kPreviewArtifact through env.sink. Errors: kUnavailable
+// (no renderer), the renderer's, the sink's.
+absl::Status DrawPreview(const core::TriangleMesh& mesh, const PreviewSpec& preview, RunEnvironment& env);
+// The same of a mesh this run wrote in `parts` parts (MeshPartArtifact), read back one at a time.
+absl::Status DrawPreviewOfParts(int64_t parts, const PreviewSpec& preview, RunEnvironment& env);
 
 }  // namespace lsqsurf::jobs

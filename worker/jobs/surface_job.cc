@@ -27,9 +27,6 @@ namespace lsqsurf::jobs {
 namespace {
 
 constexpr char kMeshArtifact[] = "mesh.drc";
-constexpr char kPreviewArtifact[] = "preview.png";
-
-absl::Status DrawPartsPreview(int64_t parts, const PreviewSpec& preview, RunEnvironment& env);
 
 const core::ParamTable<NormalsParams>& NormalsTable() {
   static const auto* table = [] {
@@ -164,6 +161,7 @@ class PartArtifactSink final : public pu::SurfaceSink {
     const std::string bytes =
         io::EncodeMeshPart(tile.first_vertex, tile.vertices, tile.normals, tile.attributes, tile.faces);
     LSQSURF_RETURN_IF_ERROR(write_(MeshPartArtifact(parts_), bytes));
+    for (const auto& f : tile.faces) topology_.AddFace(f[0], f[1], f[2]);
     ++parts_;
     vertices_ += static_cast<int64_t>(tile.vertices.size());
     faces_ += static_cast<int64_t>(tile.faces.size());
@@ -172,10 +170,13 @@ class PartArtifactSink final : public pu::SurfaceSink {
   int64_t parts() const { return parts_; }
   int64_t vertices() const { return vertices_; }
   int64_t faces() const { return faces_; }
+  // Of the parts joined by vertex number (the welded seams included).
+  core::MeshTopology Topology() { return topology_.Result(); }
 
  private:
   const ArtifactWriteFn& write_;
   int64_t parts_ = 0, vertices_ = 0, faces_ = 0;
+  core::TopologyAccumulator topology_;
 };
 
 absl::StatusOr<extract::IsosurfaceResult> RunIamls(const IamlsJobParams& p, const core::PointCloud& cloud,
@@ -292,6 +293,13 @@ absl::StatusOr<extract::IsosurfaceResult> RunTiledPu(const PuJobParams& p, const
     stat("mesh_parts", static_cast<double>(parts->parts()));
     stat("triangles", static_cast<double>(parts->faces()));
     stat("vertices", static_cast<double>(parts->vertices()));
+    // The mesh is never whole here: its closure is counted as the parts go (an edge with a third
+    // face shows as a boundary edge).
+    const core::MeshTopology topology = parts->Topology();
+    stat("boundary_edges", static_cast<double>(topology.boundary_edges));
+    stat("misoriented_edges", static_cast<double>(topology.misoriented_edges));
+    stat("degenerate_faces", static_cast<double>(topology.degenerate_faces));
+    stat("components", static_cast<double>(topology.components));
     if (run.parts_written != nullptr) *run.parts_written = parts->parts();
   }
   PuStatistics(tiled->fit, stat);
@@ -523,7 +531,7 @@ class SurfaceKind final : public TypedJobKind<core::ParamSet, SurfaceInput> {
       LSQSURF_RETURN_IF_ERROR(DeliverMesh(result->mesh, spec, env, &result->statistics));
     } else if (spec.preview.enabled) {
       env.context.ReportProgress("drawing the preview", 0.99);
-      const absl::Status p = DrawPartsPreview(result->mesh_parts, spec.preview, env);
+      const absl::Status p = DrawPreviewOfParts(result->mesh_parts, spec.preview, env);
       if (!p.ok()) {
         spdlog::warn("preview failed: {}", p.message());
         result->statistics.emplace_back("preview_failures", 1);
@@ -533,36 +541,6 @@ class SurfaceKind final : public TypedJobKind<core::ParamSet, SurfaceInput> {
     return std::move(result->statistics);
   }
 };
-
-// The renderer and view of a job's preview.
-absl::StatusOr<std::pair<render::Renderer*, const render::RenderParams*>> PreviewRenderer(const PreviewSpec& preview,
-                                                                                          RunEnvironment& env) {
-  if (env.renderer == nullptr) return absl::UnavailableError("no renderer");
-  auto renderer = env.renderer->Get();
-  if (!renderer.ok()) return renderer.status();
-  const auto* view = preview.view.As<render::RenderParams>();
-  if (view == nullptr) return absl::InternalError("preview without view options");
-  return std::make_pair(*renderer, view);
-}
-
-absl::Status DrawPreview(const core::TriangleMesh& mesh, const PreviewSpec& preview, RunEnvironment& env) {
-  LSQSURF_ASSIGN_OR_RETURN(auto drawing, PreviewRenderer(preview, env));
-  auto png = PicturePng(*drawing.first, mesh, *drawing.second);
-  if (!png.ok()) return png.status();
-  return env.sink.Write(kPreviewArtifact, *png);
-}
-
-// The mesh drawn from its parts as written, one part held at a time.
-absl::Status DrawPartsPreview(int64_t parts, const PreviewSpec& preview, RunEnvironment& env) {
-  LSQSURF_ASSIGN_OR_RETURN(auto drawing, PreviewRenderer(preview, env));
-  const MeshPartPieces pieces(
-      parts, [&env](int64_t part) { return env.sink.Read(MeshPartArtifact(part)); }, drawing.second->color_attribute);
-  auto image = drawing.first->RenderMeshPieces(pieces, *drawing.second);
-  if (!image.ok()) return image.status();
-  auto png = render::EncodePng(*image);
-  if (!png.ok()) return png.status();
-  return env.sink.Write(kPreviewArtifact, *png);
-}
 
 }  // namespace
 

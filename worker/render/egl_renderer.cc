@@ -96,6 +96,9 @@ absl::StatusOr<Image> EglRenderer::RenderMeshPieces(const MeshPieces& pieces, co
       if (!scalars.ok()) return scalars.status();
       // Pieces are open: every face is drawn, two-sided.
       DrawInto({piece.vertices, piece.normals, *scalars, piece.faces, box}, params, *picture);
+      // A software rasterizer may hold a frame's binned triangles until the image is read back;
+      // finishing each piece bounds that by one piece.
+      gl_.Finish();
       return absl::OkStatus();
     });
     auto image = FinishPicture(*picture, params, info);

@@ -3,6 +3,8 @@
 #include <gtest/gtest.h>
 #include <sqlite3.h>
 #include <sys/mount.h>
+#include <sys/wait.h>
+#include <unistd.h>
 
 #include <cmath>
 #include <condition_variable>
@@ -811,6 +813,27 @@ TEST_F(JobServiceTest, AMeshInPartsIsDrawnAsTheWholeMeshIs) {
     EXPECT_GT(Covered(pa), 160 * 120 / 10);
     EXPECT_LT(differing, Covered(pa) / 20) << "of " << Covered(pa);
   }
+}
+
+// A tiled run keeps its point files in the server's data directory, and a start removes what a
+// crashed run left there.
+TEST_F(JobServiceTest, TheScratchOfACrashedRunIsRemovedAtStart) {
+  const std::filesystem::path scratch = dir_ / "scratch";
+  const pid_t child = fork();
+  if (child == 0) _exit(0);
+  int status = 0;
+  waitpid(child, &status, 0);  // Its id now names no process, as a crashed server's.
+  const std::filesystem::path left = scratch / ("lsqsurf-tiles-" + std::to_string(child) + "-Xy12Zw");
+  std::filesystem::create_directories(left);
+  std::ofstream(left / "tile-1.pts") << "points of a run that crashed";
+  JobService& s = Open();
+  EXPECT_FALSE(std::filesystem::exists(left));
+  auto job = s.Submit(Spec("pu", {{"tile_points", "1000"}}), Input(Encode(testing::SphereCloud(3000))));
+  ASSERT_TRUE(job.ok()) << job.status();
+  const JobRecord done = WaitTerminal(job->id);
+  ASSERT_EQ(done.state, JobState::kSucceeded) << done.error;
+  EXPECT_GT(Statistic(done, "tile_scratch_bytes"), 0);
+  EXPECT_TRUE(std::filesystem::is_empty(scratch));  // The run's own files went with it.
 }
 
 // Other methods, and clouds without normals, join the parts; parts that do not fit are refused.

@@ -1,13 +1,18 @@
 // Tiled PU: forced into many small tiles, a build gives the untiled surface of the same frame,
 // face for face, and the welded mesh is closed across every seam.
 #include <gtest/gtest.h>
+#include <sys/wait.h>
+#include <unistd.h>
 
 #include <algorithm>
 #include <array>
 #include <cstdio>
+#include <filesystem>
+#include <fstream>
 #include <random>
 
 #include "absl/container/flat_hash_map.h"
+#include "tests/test_dir.h"
 #include "tests/test_shapes.h"
 #include "worker/core/kd_tree.h"
 #include "worker/core/mesh_metrics.h"
@@ -152,6 +157,53 @@ TEST(PuTiles, ANoisySphereGetsTheNoiseOfTheWholeCloud) {
   EXPECT_NEAR(tiled->frame.mean_spacing, (*whole)->stats().mean_spacing, 0.03 * (*whole)->stats().mean_spacing);
   EXPECT_GE(tiled->tiles, 8);
   ExpectClosed(sink.mesh(), 2);
+}
+
+}  // namespace
+}  // namespace lsqsurf::pu
+
+namespace lsqsurf::pu {
+namespace {
+
+// A process id that was alive a moment ago and is not now.
+pid_t DeadPid() {
+  const pid_t child = fork();
+  if (child == 0) _exit(0);
+  int status = 0;
+  waitpid(child, &status, 0);
+  return child;
+}
+
+TEST(TiledScratch, OnlyTheDirectoriesOfDeadProcessesAreSwept) {
+  const std::filesystem::path parent = testing::FreshTestDir("tiled-scratch");
+  const auto made = [&](const std::string& name) {
+    std::filesystem::create_directories(parent / name);
+    std::ofstream(parent / name / "points") << "left behind";
+    return parent / name;
+  };
+  const auto dead = made("lsqsurf-tiles-" + std::to_string(DeadPid()) + "-Ab12Cd");
+  const auto alive = made("lsqsurf-tiles-" + std::to_string(getpid()) + "-Ef34Gh");
+  const auto other = made("not-a-scratch-dir");
+  auto swept = SweepAbandonedScratch(parent.string());
+  ASSERT_TRUE(swept.ok()) << swept.status();
+  EXPECT_EQ(*swept, 1);
+  EXPECT_FALSE(std::filesystem::exists(dead));
+  EXPECT_TRUE(std::filesystem::exists(alive / "points"));
+  EXPECT_TRUE(std::filesystem::exists(other / "points"));
+  EXPECT_EQ(SweepAbandonedScratch((parent / "missing").string()).status().code(), absl::StatusCode::kUnavailable);
+  // A tiled build's own directory is named for this process, and goes with the build.
+  const core::PointCloud sphere = testing::SphereCloud(6000);
+  MeshSink sink;
+  PuTileParams tiles;
+  tiles.tile_points = 2000;
+  core::LocalJobContext ctx;
+  auto built = ReconstructTiled(CloudSource(sphere), PuParams{}, PuExtractParams{}, tiles, sink, ctx, parent.string());
+  ASSERT_TRUE(built.ok()) << built.status();
+  EXPECT_GT(built->tiles, 1);
+  size_t entries = 0;
+  for (const auto& entry : std::filesystem::directory_iterator(parent)) entries += entry.exists();
+  EXPECT_EQ(entries, 2u);  // alive and other.
+  std::filesystem::remove_all(parent);
 }
 
 }  // namespace

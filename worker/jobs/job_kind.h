@@ -104,6 +104,9 @@ struct RunEnvironment {
   std::function<absl::StatusOr<std::string>(const std::string& job_id, const std::string& name)> read_result;
   // The memory a job may take (0: no limit); extractions visit at most LeavesWithin(it) leaves.
   int64_t memory_bytes = 0;
+  // Where a run keeps large temporary files (a tiled build's points): the server's own scratch
+  // directory, emptied of what crashed runs left when it starts; "": the system's temporary one.
+  std::string scratch_dir;
 };
 
 class JobKind {

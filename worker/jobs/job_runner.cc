@@ -224,7 +224,8 @@ absl::StatusOr<Statistics> JobService::RunKind(const std::shared_ptr<Entry>& ent
                        if (!reader.ok()) return reader.status();
                        return ReadAll(**reader);
                      },
-                     options_.max_job_memory};
+                     options_.max_job_memory,
+                     scratch_dir_};
   try {
     return kind->Run(record.spec, uploads, env);
   } catch (const std::bad_alloc&) {

@@ -15,6 +15,7 @@
 #include "worker/jobs/job_service_internal.h"
 #include "worker/jobs/method_registry.h"
 #include "worker/jobs/volume_job.h"
+#include "worker/pu/pu_tiles.h"
 #include "worker/render/render.h"
 
 namespace lsqsurf::jobs {
@@ -165,6 +166,14 @@ absl::StatusOr<std::unique_ptr<JobService>> JobService::Open(const JobServiceOpt
   service->synced_seq_ = all->seq;
   const bool shared = service->store_->shared();
   if (!shared) service->RemoveOrphanedBlobs();
+  // Large temporary files (a tiled build's points) stay beside the data, not in a temporary
+  // directory that may be memory; those of a crashed run go now.
+  service->scratch_dir_ = (std::filesystem::path(options.data_dir) / "scratch").string();
+  std::filesystem::create_directories(service->scratch_dir_, ec);
+  if (ec) return absl::UnavailableError(core::StrCat("cannot create ", service->scratch_dir_, ": ", ec.message()));
+  auto swept = pu::SweepAbandonedScratch(service->scratch_dir_);
+  if (!swept.ok()) return swept.status();
+  if (*swept > 0) spdlog::info("removed the scratch files of {} runs that ended in a crash", *swept);
   const int64_t job_memory = service->options_.max_job_memory;
   spdlog::info("job service {}: {} jobs on record, {} queued, {} workers, {}, data in {}{}", service->runner_,
                service->jobs_.size(), service->QueuedJobs(), options.workers,

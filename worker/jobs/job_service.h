@@ -262,6 +262,7 @@ class JobService {
   JobServiceOptions options_;
   std::string runner_;
   std::unique_ptr<render::SharedRenderer> renderer_;
+  std::string scratch_dir_;  // data_dir/scratch: RunEnvironment::scratch_dir.
   std::shared_ptr<JobStore> store_;
   std::shared_ptr<BlobStore> blobs_;
   std::mutex store_mutex_;        // Orders store writes of records (never taken with mutex_ held).

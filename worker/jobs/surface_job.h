@@ -107,18 +107,20 @@ struct SurfaceResult {
 // Reconstructs a cloud with a method's validated parameters (`params` from the method's
 // defaults): normals first when the cloud has none, then the method, then topology statistics.
 // The service and the benchmark's direct mode both run this; the extraction stops past what
-// `memory_bytes` holds (0: the engines' own bounds). Errors: kInvalidArgument,
+// `memory_bytes` holds (0: the engines' own bounds); a tiled run keeps its point files under
+// `scratch_dir` (""; the system's temporary directory). Errors: kInvalidArgument,
 // kResourceExhausted, kFailedPrecondition (no surface found), kCancelled.
 absl::StatusOr<SurfaceResult> ReconstructSurface(const std::string& method, const core::ParamSet& params,
                                                  core::PointCloud cloud, core::JobContext& ctx,
-                                                 int64_t memory_bytes = 0);
+                                                 int64_t memory_bytes = 0, const std::string& scratch_dir = "");
 // The same for a cloud with normals read in chunks from `source` (`points` in all), by a method
 // that streams (pu, tiled): the cloud is never whole in memory. With `write`, the mesh is not
 // whole either: each tile's part goes out through it as soon as it is made (mesh_parts, and
 // the statistics triangles, vertices and mesh_parts). Errors: as above.
 absl::StatusOr<SurfaceResult> ReconstructStreamed(const std::string& method, const core::ParamSet& params,
                                                   const pu::PointSource& source, int64_t points, core::JobContext& ctx,
-                                                  int64_t memory_bytes = 0, const ArtifactWriteFn& write = nullptr);
+                                                  int64_t memory_bytes = 0, const ArtifactWriteFn& write = nullptr,
+                                                  const std::string& scratch_dir = "");
 
 // The Draco bytes of a result mesh at `position_bits` (0: the fewest bits, 16 to 30, at which
 // Draco's quantization round trip keeps every distinct vertex position apart, so the decoded

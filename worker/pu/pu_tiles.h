@@ -137,4 +137,9 @@ absl::StatusOr<TiledStats> ReconstructTiled(const PointSource& source, const PuP
                                             SurfaceSink& sink, core::JobContext& ctx,
                                             const std::string& scratch_parent = "");
 
+// Removes the scratch directories a tiled build made under `parent` for a process that is no
+// longer alive (a crashed server's point files, gigabytes on a large cloud); returns how many.
+// Errors: kUnavailable (`parent` cannot be read).
+absl::StatusOr<int> SweepAbandonedScratch(const std::string& parent);
+
 }  // namespace lsqsurf::pu

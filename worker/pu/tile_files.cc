@@ -1,5 +1,8 @@
 #include "worker/pu/tile_files.h"
 
+#include <signal.h>
+#include <unistd.h>
+
 #include <algorithm>
 #include <cerrno>
 #include <cmath>
@@ -12,6 +15,11 @@
 #include "worker/core/strings.h"
 
 namespace lsqsurf::pu {
+namespace {
+
+constexpr char kScratchPrefix[] = "lsqsurf-tiles-";
+
+}  // namespace
 
 TileGrid TileGrid::AtLevel(const core::Vec3d& origin, double root_edge, int level) {
   return TileGrid{origin, std::ldexp(root_edge, -level), level, int64_t{1} << level};
@@ -46,12 +54,29 @@ absl::StatusOr<ScratchDir> ScratchDir::Create(const std::string& parent) {
   const std::filesystem::path base =
       parent.empty() ? std::filesystem::temp_directory_path(error) : std::filesystem::path(parent);
   if (error) return absl::InternalError(core::StrCat("no temporary directory: ", error.message()));
-  std::string pattern = (base / "lsqsurf-tiles-XXXXXX").string();
+  // The process's id in the name: a later process can tell the directories of dead ones.
+  std::string pattern = (base / core::StrCat(kScratchPrefix, getpid(), "-XXXXXX")).string();
   if (mkdtemp(pattern.data()) == nullptr) {
     return absl::InternalError(
         core::StrCat("cannot make a scratch directory in ", base.string(), ": ", std::strerror(errno)));
   }
   return ScratchDir(pattern);
+}
+
+absl::StatusOr<int> SweepAbandonedScratch(const std::string& parent) {
+  std::error_code error;
+  int removed = 0;
+  for (const auto& entry : std::filesystem::directory_iterator(parent, error)) {
+    const std::string name = entry.path().filename().string();
+    if (!name.starts_with(kScratchPrefix)) continue;
+    const long pid = std::strtol(name.c_str() + std::strlen(kScratchPrefix), nullptr, 10);
+    // Alive (or not ours to signal): left alone.
+    if (pid <= 0 || kill(static_cast<pid_t>(pid), 0) == 0 || errno != ESRCH) continue;
+    std::error_code ignored;
+    if (std::filesystem::remove_all(entry.path(), ignored) > 0) ++removed;
+  }
+  if (error) return absl::UnavailableError(core::StrCat("cannot read ", parent, ": ", error.message()));
+  return removed;
 }
 
 ScratchDir::~ScratchDir() {

@@ -118,6 +118,53 @@ TEST(PuTiles, ASphereInManyTilesIsTheUntiledSphere) {
   EXPECT_LT(worst, 1e-3);
 }
 
+// The steps run apart, as servers run them: the plan travels as bytes, the tiles run in reverse
+// order from their points alone, each with a fresh context, and their parts are joined in the
+// plan's order. The surface is the one-process build's.
+TEST(PuTiles, TilesRunApartAndJoinedAreTheTiledSurface) {
+  const core::PointCloud cloud = testing::SphereCloud(20'000);
+  const PuTileParams tiles{.tile_points = 4'000, .support_cap = 16};
+  const PuExtractParams extract;
+  core::LocalJobContext ctx;
+  MeshSink whole;
+  auto built = ReconstructTiled(CloudSource(cloud, 5000), PuParams{}, extract, tiles, whole, ctx);
+  ASSERT_TRUE(built.ok()) << built.status();
+
+  auto planned = PlannedCloud::Plan(CloudSource(cloud, 5000), PuParams{}, extract, tiles, ctx);
+  ASSERT_TRUE(planned.ok()) << planned.status();
+  auto plan = DecodeTilePlan(EncodeTilePlan((*planned)->plan()));
+  ASSERT_TRUE(plan.ok()) << plan.status();
+  ASSERT_EQ(plan->tiles, (*planned)->plan().tiles);
+  std::vector<std::string> parts(plan->tiles.size());
+  for (size_t t = plan->tiles.size(); t-- > 0;) {
+    auto points = (*planned)->TilePoints(t);
+    ASSERT_TRUE(points.ok()) << points.status();
+    core::LocalJobContext tile_ctx;
+    auto part = RunTile(*plan, t, *std::move(points), extract, tile_ctx);
+    ASSERT_TRUE(part.ok()) << part.status();
+    parts[t] = *std::move(part);
+  }
+  MeshSink joined;
+  TileJoiner joiner(*plan, joined);
+  // Out of order, cut short or not a part at all: refused, and the joiner still takes the right one.
+  ASSERT_GT(parts.size(), 1u);
+  EXPECT_EQ(joiner.Add(parts[1]).code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(joiner.Add(parts[0].substr(0, parts[0].size() - 3)).code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(joiner.Add(EncodeTilePlan(*plan)).code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_FALSE(DecodeTilePlan(parts[0]).ok());
+  for (size_t t = 0; t + 1 < parts.size(); ++t) ASSERT_TRUE(joiner.Add(parts[t]).ok()) << t;
+  EXPECT_EQ(TileJoiner(*plan, joined).Finish().status().code(), absl::StatusCode::kFailedPrecondition);
+  ASSERT_TRUE(joiner.Add(parts.back()).ok());
+  auto stats = joiner.Finish();
+  ASSERT_TRUE(stats.ok()) << stats.status();
+  EXPECT_EQ(stats->tiles, built->tiles);
+  EXPECT_EQ(stats->seam_vertices, built->seam_vertices);
+  EXPECT_EQ(stats->fit.noise_estimate, built->fit.noise_estimate);
+  // The extractor's threads may order a tile's vertices differently from run to run.
+  ExpectSameMesh(whole.mesh(), joined.mesh(), 1e-9 * plan->frame.diagonal);
+  ExpectClosed(joined.mesh(), 2);
+}
+
 // A CAD part longer than its margins: the tiles at one end never see the other end's points.
 TEST(PuTiles, ALongDrilledBlockInManyTilesIsTheUntiledBlock) {
   const core::PointCloud cloud = testing::DrilledBlockCloud(30'000, 4.0, 0.6, 0.3, 0.3);

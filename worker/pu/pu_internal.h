@@ -10,8 +10,10 @@
 #include <memory>
 #include <optional>
 #include <span>
+#include <string_view>
 #include <vector>
 
+#include "worker/core/binary.h"
 #include "worker/core/kd_tree.h"
 #include "worker/core/noise.h"
 #include "worker/pu/orthogonal_fit.h"
@@ -288,6 +290,11 @@ inline bool InHalfOpenBox(const core::Box3& box, const Vec3d& p) {
 // the threshold becomes 3σ, min_points at least 80 and sharp fits are off (pu_fit.cc). Fills the
 // noise, threshold and min_points of `stats`.
 PuParams EffectiveParams(const PuParams& params, const core::NoiseEstimate& noise, double diagonal, PuStats& stats);
+
+// A mesh with its attributes as bytes (pu_storage.cc), inside a kept surface or a tile's part.
+// ReadMesh returns what is wrong ("" when nothing), face indices checked.
+void WriteMesh(const core::TriangleMesh& mesh, core::BinaryWriter& w);
+std::string_view ReadMesh(core::BinaryReader& r, core::TriangleMesh& mesh);
 
 // How far beyond a box the extraction tree must be built for its leaves inside the box to be the
 // whole tree's: four cells of the coarsest level Extract keeps around the data (pu_extract.cc).

@@ -173,11 +173,7 @@ bool ReadExtractParams(core::BinaryReader& r, PuExtractParams& p) {
 
 }  // namespace
 
-std::string SerializeSurface(const core::TriangleMesh& mesh, const extract::SurfaceTrace& trace,
-                             const PuExtractParams& params) {
-  core::BinaryWriter w;
-  w.Array<char>(std::span<const char>(kSurfaceMagic.data(), kSurfaceMagic.size()));
-  WriteExtractParams(params, w);
+void WriteMesh(const core::TriangleMesh& mesh, core::BinaryWriter& w) {
   w.Array<Vec3f>(mesh.vertices);
   w.Array<Vec3f>(mesh.normals);
   w.Array<core::Triangle>(mesh.faces);
@@ -186,6 +182,33 @@ std::string SerializeSurface(const core::TriangleMesh& mesh, const extract::Surf
     w.Text(a.name);
     w.Array<float>(a.values);
   }
+}
+
+std::string_view ReadMesh(core::BinaryReader& r, core::TriangleMesh& mesh) {
+  uint64_t attributes = 0;
+  if (!r.Array(mesh.vertices) || !r.Array(mesh.normals) || !r.Array(mesh.faces) || !r.Scalar(attributes) ||
+      attributes > 16) {
+    return "mesh";
+  }
+  const size_t n = mesh.vertices.size();
+  if (!mesh.normals.empty() && mesh.normals.size() != n) return "normals";
+  for (uint64_t k = 0; k < attributes; ++k) {
+    core::ScalarAttribute a;
+    if (!r.Text(a.name) || !r.Array(a.values, n)) return "attributes";
+    mesh.vertex_attributes.push_back(std::move(a));
+  }
+  for (const core::Triangle& t : mesh.faces) {
+    if (t[0] >= n || t[1] >= n || t[2] >= n) return "a face index out of range";
+  }
+  return {};
+}
+
+std::string SerializeSurface(const core::TriangleMesh& mesh, const extract::SurfaceTrace& trace,
+                             const PuExtractParams& params) {
+  core::BinaryWriter w;
+  w.Array<char>(std::span<const char>(kSurfaceMagic.data(), kSurfaceMagic.size()));
+  WriteExtractParams(params, w);
+  WriteMesh(mesh, w);
   w.Array<uint64_t>(trace.vertex_edges);
   w.Array<uint64_t>(trace.face_cells);
   return w.Take();
@@ -201,23 +224,10 @@ absl::StatusOr<KeptSurface> DeserializeSurface(std::string_view bytes) {
   KeptSurface surface;
   core::TriangleMesh& mesh = surface.mesh;
   if (!ReadExtractParams(r, surface.params)) return bad("parameters");
-  uint64_t attributes = 0;
-  if (!r.Array(mesh.vertices) || !r.Array(mesh.normals) || !r.Array(mesh.faces) || !r.Scalar(attributes) ||
-      attributes > 16) {
-    return bad("mesh");
-  }
+  if (const std::string_view why = ReadMesh(r, mesh); !why.empty()) return bad(why);
   const size_t n = mesh.vertices.size();
-  if (!mesh.normals.empty() && mesh.normals.size() != n) return bad("normals");
-  for (uint64_t k = 0; k < attributes; ++k) {
-    core::ScalarAttribute a;
-    if (!r.Text(a.name) || !r.Array(a.values, n)) return bad("attributes");
-    mesh.vertex_attributes.push_back(std::move(a));
-  }
   if (!r.Array(surface.trace.vertex_edges, n) || !r.Array(surface.trace.face_cells, mesh.faces.size()) || !r.AtEnd()) {
     return bad("trace");
-  }
-  for (const core::Triangle& t : mesh.faces) {
-    if (t[0] >= n || t[1] >= n || t[2] >= n) return bad("a face index out of range");
   }
   return surface;
 }

@@ -304,146 +304,51 @@ absl::StatusOr<Measured> MeasureTiles(const Bucketed& tiles, const TileGrid& gri
   return m;
 }
 
-// Numbers a tile's vertices in the whole mesh, the border ones shared with the tiles before it
-// (by lattice edge), and hands the tile to the sink.
-class TileWelder {
- public:
-  explicit TileWelder(SurfaceSink& sink) : sink_(sink) {}
-
-  absl::Status Add(int64_t tile, const TileSurface& part) {
-    const core::TriangleMesh& mesh = part.surface.mesh;
-    std::vector<int64_t> number(mesh.vertices.size());
-    vertices_.clear(), normals_.clear(), faces_.clear();
-    attributes_.assign(mesh.vertex_attributes.size(), {});
-    for (size_t a = 0; a < attributes_.size(); ++a) attributes_[a].name = mesh.vertex_attributes[a].name;
-    const int64_t first = next_;
-    for (size_t v = 0; v < mesh.vertices.size(); ++v) {
-      const uint64_t edge = part.surface.trace.vertex_edges[v];
-      if (part.seam[v] && edge != 0) {
-        const auto [it, inserted] = seam_.try_emplace(edge, next_);
-        if (!inserted) {
-          number[v] = it->second;
-          ++shared_;
-          continue;
-        }
-      }
-      number[v] = next_++;
-      vertices_.push_back(mesh.vertices[v]);
-      if (!mesh.normals.empty()) normals_.push_back(mesh.normals[v]);
-      for (size_t a = 0; a < attributes_.size(); ++a) {
-        attributes_[a].values.push_back(mesh.vertex_attributes[a].values[v]);
-      }
-    }
-    for (const core::Triangle& t : mesh.faces) faces_.push_back({number[t[0]], number[t[1]], number[t[2]]});
-    faces_total_ += static_cast<int64_t>(faces_.size());
-    return sink_.AddTile(TileOutput{tile, first, vertices_, normals_, attributes_, faces_});
-  }
-  int64_t shared() const { return shared_; }
-  int64_t vertices() const { return next_; }
-  int64_t faces() const { return faces_total_; }
-
- private:
-  SurfaceSink& sink_;
-  absl::flat_hash_map<uint64_t, int64_t> seam_;
-  int64_t next_ = 0, shared_ = 0, faces_total_ = 0;
-  std::vector<core::Vec3f> vertices_, normals_;
-  std::vector<core::ScalarAttribute> attributes_;
-  std::vector<std::array<int64_t, 3>> faces_;
-};
-
-void AddStats(const extract::IsosurfaceStats& tile, extract::IsosurfaceStats& sum) {
-  sum.cells_visited += tile.cells_visited;
-  sum.surface_cells += tile.surface_cells;
-  sum.field_evaluations += tile.field_evaluations;
-  sum.tetrahedra += tile.tetrahedra;
-  sum.crossings += tile.crossings;
-  sum.rejected_polygons += tile.rejected_polygons;
-  sum.restored_triangles += tile.restored_triangles;
-  sum.crease_vertices += tile.crease_vertices;
-  sum.crease_corners += tile.crease_corners;
-  sum.snapped_corners += tile.snapped_corners;
-  sum.relaxed_vertices += tile.relaxed_vertices;
-  sum.flipped_edges += tile.flipped_edges;
-  sum.tree_seconds += tile.tree_seconds;
-  sum.tracking_seconds += tile.tracking_seconds;
-  sum.marching_seconds += tile.marching_seconds;
-  sum.crease_seconds += tile.crease_seconds;
-  sum.relax_seconds += tile.relax_seconds;
-}
-
-void AddFitStats(const PuStats& tile, PuStats& sum) {
-  for (size_t d = 0; d < sum.fits_per_degree.size(); ++d) sum.fits_per_degree[d] += tile.fits_per_degree[d];
-  sum.quadric_fits += tile.quadric_fits;
-  sum.sharp_edges += tile.sharp_edges;
-  sum.sharp_corners += tile.sharp_corners;
-  sum.cells_examined += tile.cells_examined;
-  sum.unmet_threshold += tile.unmet_threshold;
-  sum.fit_seconds += tile.fit_seconds;
-  sum.spacing_seconds += tile.spacing_seconds;
-  sum.index_seconds += tile.index_seconds;
-}
-
-// Fits and extracts every bucketed tile in key order, handing each part to the welder.
-absl::Status RunTiles(const Bucketed& tiles, const TileGrid& grid, const Margins& margins,
-                      const PuExtractParams& extract, TiledStats& s, TileWelder& welder, core::JobContext& ctx) {
-  const PuFrame& frame = s.frame;
-  const double count = static_cast<double>(tiles.keys.size());
-  for (size_t t = 0; t < tiles.keys.size(); ++t) {
-    core::SubContext tile_ctx(ctx, core::StrCat("tile ", t + 1, " of ", tiles.keys.size()),
-                              static_cast<double>(t) / count, static_cast<double>(t + 1) / count);
-    ++s.tiles_examined;
-    const core::Box3 cube = grid.Cube(TileGrid::FromKey(tiles.keys[t]));
-    // The bucket's margin was sized by the first spacing estimate: only the exact one is read.
-    const core::Vec3d data = core::Vec3d::Constant(margins.data);
-    const core::Box3 needed(cube.min() - data, cube.max() + data);
-    auto part = tiles.buckets->Read(tiles.keys[t], &needed);
-    if (!part.ok()) return part.status();
-    if (part->size() < 4) continue;
-    s.largest_tile = std::max(s.largest_tile, static_cast<int64_t>(part->size()));
-    const core::Vec3d reach = core::Vec3d::Constant(margins.extraction);
-    const core::Box3 region(cube.min() - reach, cube.max() + reach);
-    core::SubContext fit_ctx(tile_ctx, "fitting", 0.0, 0.5);
-    auto function = BuildPuInFrame(*part, frame, &region, fit_ctx);
-    if (!function.ok() && absl::IsFailedPrecondition(function.status())) continue;  // No fit near it.
-    if (!function.ok()) return function.status();
-    *part = {};
-    AddFitStats((*function)->stats(), s.fit);
-    core::SubContext extract_ctx(tile_ctx, "extracting", 0.5, 1.0);
-    auto surface = ExtractTile(**function, extract, cube, extract_ctx);
-    if (!surface.ok()) return surface.status();
-    function->reset();
-    if (surface->surface.mesh.faces.empty()) continue;
-    AddStats(surface->surface.stats, s.extract);
-    LSQSURF_RETURN_IF_ERROR(welder.Add(s.tiles++, *surface));
-  }
-  return ctx.CheckCancelled();
-}
-
 }  // namespace
 
-absl::StatusOr<TiledStats> ReconstructTiled(const PointSource& source, const PuParams& fit,
-                                            const PuExtractParams& extract, const PuTileParams& tiles,
-                                            SurfaceSink& sink, core::JobContext& ctx,
-                                            const std::string& scratch_parent) {
+struct PlannedCloud::Files {
+  ScratchDir scratch;
+  std::unique_ptr<TileBuckets> buckets;
+};
+
+PlannedCloud::PlannedCloud(TilePlan plan, std::unique_ptr<Files> files)
+    : plan_(std::move(plan)), files_(std::move(files)) {}
+PlannedCloud::~PlannedCloud() = default;
+
+absl::StatusOr<core::PointCloud> PlannedCloud::TilePoints(size_t index) const {
+  if (index >= plan_.tiles.size()) {
+    return absl::OutOfRangeError(core::StrCat("tile ", index, " of a plan of ", plan_.tiles.size()));
+  }
+  const TileGrid grid = TileGrid::AtLevel(plan_.frame.origin, plan_.frame.root_edge, plan_.tile_level);
+  const core::Box3 cube = grid.Cube(TileGrid::FromKey(plan_.tiles[index]));
+  // The bucket's margin was sized by the first spacing estimate: only the exact one is read.
+  const core::Vec3d data = core::Vec3d::Constant(plan_.data_margin);
+  const core::Box3 needed(cube.min() - data, cube.max() + data);
+  return files_->buckets->Read(plan_.tiles[index], &needed);
+}
+
+absl::StatusOr<std::unique_ptr<PlannedCloud>> PlannedCloud::Plan(const PointSource& source, const PuParams& fit,
+                                                                 const PuExtractParams& extract,
+                                                                 const PuTileParams& tiles, core::JobContext& ctx,
+                                                                 const std::string& scratch_parent) {
   LSQSURF_RETURN_IF_ERROR(Validate(fit));
   LSQSURF_RETURN_IF_ERROR(PuTileParamTable().Validate(tiles));
   LSQSURF_RETURN_IF_ERROR(PuExtractParamTable().Validate(extract));
   const auto start = std::chrono::steady_clock::now();
-  TiledStats s;
-  core::SubContext measure_ctx(ctx, "measuring the cloud", 0.0, 0.15);
-  const auto bounds = ScanBounds(source, measure_ctx);
+  TilePlan plan;
+  const auto bounds = ScanBounds(source, ctx);
   if (!bounds.ok()) return bounds.status();
-  s.points = bounds->points;
-  PuFrame& frame = s.frame;
+  plan.points = bounds->points;
+  PuFrame& frame = plan.frame;
   frame.diagonal = core::Diagonal(bounds->box);
   RootCube(bounds->box, frame.origin, frame.root_edge);
   const int histogram_level = HistogramLevel(*bounds, frame.root_edge);
   const TileGrid histogram_grid = TileGrid::AtLevel(frame.origin, frame.root_edge, histogram_level);
-  auto histogram = Histogram(source, histogram_grid, measure_ctx);
+  auto histogram = Histogram(source, histogram_grid, ctx);
   if (!histogram.ok()) return histogram.status();
   const TileGrid grid =
       TileGrid::AtLevel(frame.origin, frame.root_edge, TileLevel(*histogram, histogram_level, tiles.tile_points));
-  s.tile_level = grid.level;
+  plan.tile_level = grid.level;
   // A first spacing from the histogram: the area of its occupied cells over the points. It
   // overestimates the mean nearest-neighbour distance, so margins sized by it hold.
   double spacing =
@@ -456,13 +361,13 @@ absl::StatusOr<TiledStats> ReconstructTiled(const PointSource& source, const PuP
   Margins margins;
   for (int attempt = 0;; ++attempt) {
     const Margins bucketed_for = MarginsFor(spacing, frame, fit, extract, tiles);
-    auto b = Bucket(source, grid, histogram_grid, *histogram, bucketed_for, scratch->path(), measure_ctx);
+    auto b = Bucket(source, grid, histogram_grid, *histogram, bucketed_for, scratch->path(), ctx);
     if (!b.ok()) return b.status();
     bucketed = std::move(*b);
-    s.scan_seconds = core::SecondsSince(start) - s.spacing_seconds;
+    plan.scan_seconds = core::SecondsSince(start) - plan.spacing_seconds;
     const auto spacing_start = std::chrono::steady_clock::now();
-    auto m = MeasureTiles(bucketed, grid, histogram_grid, *histogram, known_sigma, measure_ctx);
-    s.spacing_seconds += core::SecondsSince(spacing_start);
+    auto m = MeasureTiles(bucketed, grid, histogram_grid, *histogram, known_sigma, ctx);
+    plan.spacing_seconds += core::SecondsSince(spacing_start);
     if (!m.ok()) return m.status();
     measured = *m;
     margins = MarginsFor(measured.mean_spacing, frame, fit, extract, tiles);
@@ -473,22 +378,41 @@ absl::StatusOr<TiledStats> ReconstructTiled(const PointSource& source, const PuP
   }
   histogram->clear();
   frame.mean_spacing = measured.mean_spacing;
-  frame.params = EffectiveParams(fit, measured.noise, frame.diagonal, s.fit);
-  frame.noise_estimate = s.fit.noise_estimate;
+  PuStats effective;
+  frame.params = EffectiveParams(fit, measured.noise, frame.diagonal, effective);
+  frame.noise_estimate = effective.noise_estimate;
   frame.max_support = margins.max_support;
-  s.margin = margins.data;
-  s.scratch_bytes = bucketed.buckets->TotalBytes();
-  s.measure_seconds = core::SecondsSince(start);
-  TileWelder welder(sink);
+  plan.data_margin = margins.data;
+  plan.extraction_margin = margins.extraction;
+  plan.tiles = std::move(bucketed.keys);
+  plan.scratch_bytes = bucketed.buckets->TotalBytes();
+  plan.measure_seconds = core::SecondsSince(start);
+  auto files = std::make_unique<Files>(Files{*std::move(scratch), std::move(bucketed.buckets)});
+  return std::unique_ptr<PlannedCloud>(new PlannedCloud(std::move(plan), std::move(files)));
+}
+
+absl::StatusOr<TiledStats> ReconstructTiled(const PointSource& source, const PuParams& fit,
+                                            const PuExtractParams& extract, const PuTileParams& tiles,
+                                            SurfaceSink& sink, core::JobContext& ctx,
+                                            const std::string& scratch_parent) {
+  core::SubContext measure_ctx(ctx, "measuring the cloud", 0.0, 0.15);
+  auto planned = PlannedCloud::Plan(source, fit, extract, tiles, measure_ctx, scratch_parent);
+  if (!planned.ok()) return planned.status();
+  const TilePlan& plan = (*planned)->plan();
+  TileJoiner joiner(plan, sink);
   core::SubContext tiles_ctx(ctx, "fitting and extracting tiles", 0.15, 1.0);
-  LSQSURF_RETURN_IF_ERROR(RunTiles(bucketed, grid, margins, extract, s, welder, tiles_ctx));
-  s.seam_vertices = welder.shared();
-  s.vertices = welder.vertices();
-  s.faces = welder.faces();
-  s.fit.mean_spacing = frame.mean_spacing;
-  s.fit.root_edge = frame.root_edge;
-  if (s.faces == 0) return absl::FailedPreconditionError("no surface could be extracted from the tiles");
-  return s;
+  const double count = static_cast<double>(plan.tiles.size());
+  for (size_t t = 0; t < plan.tiles.size(); ++t) {
+    core::SubContext tile_ctx(tiles_ctx, core::StrCat("tile ", t + 1, " of ", plan.tiles.size()),
+                              static_cast<double>(t) / count, static_cast<double>(t + 1) / count);
+    auto points = (*planned)->TilePoints(t);
+    if (!points.ok()) return points.status();
+    auto part = RunTile(plan, t, *std::move(points), extract, tile_ctx);
+    if (!part.ok()) return part.status();
+    LSQSURF_RETURN_IF_ERROR(joiner.Add(*part));
+  }
+  LSQSURF_RETURN_IF_ERROR(ctx.CheckCancelled());
+  return joiner.Finish();
 }
 
 }  // namespace lsqsurf::pu

@@ -18,6 +18,8 @@
 #include <memory>
 #include <span>
 #include <string>
+#include <string_view>
+#include <vector>
 
 #include "absl/status/statusor.h"
 #include "worker/core/geometry.h"
@@ -124,6 +126,74 @@ struct TiledStats {
   double spacing_seconds = 0;        //   and the spacing and noise over the tiles.
   PuStats fit;                       // Summed over the tiles (fits of margins counted once per tile).
   extract::IsosurfaceStats extract;  // Summed over the tiles.
+};
+
+// A tiled build in three steps, so that its tiles can run apart (on other workers, on other
+// servers): PlannedCloud fixes the frame and the tiles and buckets the points; RunTile makes one
+// tile's part of the surface from that tile's points alone; TileJoiner welds the parts, taken in
+// the plan's order, into the surface. ReconstructTiled is the three in one process.
+struct TilePlan {
+  PuFrame frame;
+  int tile_level = 0;            // Of the fitting octree; the tiles are its cubes.
+  double data_margin = 0;        // A tile reads the points within this of its cube.
+  double extraction_margin = 0;  // Its function must be exact this far around its cube.
+  std::vector<uint64_t> tiles;   // The cubes near the data (grid keys), in welding order.
+  // What planning measured and cost.
+  int64_t points = 0;
+  int64_t scratch_bytes = 0;
+  double measure_seconds = 0, scan_seconds = 0, spacing_seconds = 0;
+};
+
+// The plan as bytes ("LQTP"), for servers of the same build. Errors: kInvalidArgument.
+std::string EncodeTilePlan(const TilePlan& plan);
+absl::StatusOr<TilePlan> DecodeTilePlan(std::string_view bytes);
+
+// The cloud's plan and each tile's points, kept in files under a directory of its own below
+// `scratch_parent` (the system's temporary directory when empty), removed with this object.
+class PlannedCloud {
+ public:
+  // Reads `source` three times (bounds; a histogram that sets the tiles; the points bucketed with
+  // their margins) and measures the frame over the tiles (mean nearest-neighbour distance
+  // exactly, noise as the median of the tiles'). Errors: kInvalidArgument (no normals, non-finite
+  // points, fewer than 4, bad parameters), kUnavailable (scratch files), kCancelled.
+  static absl::StatusOr<std::unique_ptr<PlannedCloud>> Plan(const PointSource& source, const PuParams& fit,
+                                                            const PuExtractParams& extract, const PuTileParams& tiles,
+                                                            core::JobContext& ctx,
+                                                            const std::string& scratch_parent = "");
+  ~PlannedCloud();
+  const TilePlan& plan() const { return plan_; }
+  // The points RunTile needs for tile `index` of the plan. Errors: kOutOfRange, kUnavailable.
+  absl::StatusOr<core::PointCloud> TilePoints(size_t index) const;
+
+ private:
+  struct Files;
+  PlannedCloud(TilePlan plan, std::unique_ptr<Files> files);
+  TilePlan plan_;
+  std::unique_ptr<Files> files_;
+};
+
+// Tile `index` of `plan` from its points: its part of the surface (with the lattice edges of its
+// border vertices, so that TileJoiner can weld it) and its statistics, as bytes ("LQT1"). A tile
+// the surface does not cross gives a part without faces. The same inputs give the same bytes on
+// any server of the same build. Errors: kInvalidArgument, as BuildPu and Extract, kCancelled.
+absl::StatusOr<std::string> RunTile(const TilePlan& plan, size_t index, core::PointCloud points,
+                                    const PuExtractParams& extract, core::JobContext& ctx);
+
+// Welds the parts RunTile made, given in the plan's order, handing each to `sink` with its
+// vertices numbered on from the parts before it (border vertices shared by lattice edge).
+class TileJoiner {
+ public:
+  TileJoiner(const TilePlan& plan, SurfaceSink& sink);
+  ~TileJoiner();
+  // Errors: kInvalidArgument (unreadable bytes, or not the next tile), the sink's.
+  absl::Status Add(std::string_view tile);
+  size_t next_tile() const;  // The plan index Add expects.
+  // The statistics of the whole build. Errors: kFailedPrecondition (tiles missing, or no faces).
+  absl::StatusOr<TiledStats> Finish();
+
+ private:
+  struct State;
+  std::unique_ptr<State> state_;
 };
 
 // The PU surface of `source`, tile by tile, with memory bounded by the tile size: the cloud is

@@ -15,6 +15,7 @@
 #include "tests/postgres_cluster.h"
 #include "tests/test_dir.h"
 #include "tests/test_shapes.h"
+#include "worker/core/mesh_metrics.h"
 #include "worker/io/draco_codec.h"
 #include "worker/io/files.h"
 
@@ -231,6 +232,98 @@ void Replicas::RunOnce(int repetition) {
               killed, takeover, taken.runner().c_str());
   for (const auto& [replica, n] : runs) std::printf(" r%d=%d", replica, n);
   std::printf("\n");
+}
+
+double Statistic(const v1::Job& job, const std::string& name) {
+  for (const auto& s : job.statistics()) {
+    if (s.name() == name) return s.value();
+  }
+  return -1;
+}
+
+// The job's mesh, fetched whole and merged by position; its closure checked.
+core::TriangleMesh FetchClosedMesh(const std::string& address, const std::string& id, const fs::path& out) {
+  const ClientRun fetched = Client(address, "-q fetch " + id + " -o " + out.string());
+  EXPECT_EQ(fetched.code, 0) << fetched.output;
+  auto bytes = io::ReadFileBytes(out.string());
+  EXPECT_TRUE(bytes.ok());
+  if (!bytes.ok()) return {};
+  auto mesh = io::DecodeDracoMesh(*bytes);
+  EXPECT_TRUE(mesh.ok()) << mesh.status();
+  if (!mesh.ok()) return {};
+  core::TriangleMesh welded = core::WeldByPosition(*mesh);
+  const core::MeshTopology topology = core::AnalyzeTopology(welded);
+  EXPECT_TRUE(topology.watertight()) << id << ": " << topology.boundary_edges << " boundary edges";
+  EXPECT_EQ(topology.components, 1) << id;
+  return welded;
+}
+
+// One tiled job spread over two replicas of one store: both run its tiles, and the mesh is the
+// one a lone server makes. Then a replica is killed while it runs tiles of a second such job:
+// the tiles it held are run again by the other, and the job finishes closed.
+TEST_F(Replicas, TwoShareTheTilesOfOneJobAndReRunAKilledOnesTiles) {
+  const fs::path dir = dir_ / "tiled";
+  const std::string url = cluster_->NewDatabase();
+  ASSERT_FALSE(url.empty());
+  const std::string cloud = (dir_ / "tiled.ply").string();
+  ASSERT_TRUE(io::WritePointCloudFile(cloud, testing::SphereCloud(120'000)).ok());
+  const std::string job = cloud + " --method pu --part-points 20000 --param tile_points=6000 --param support_cap=16";
+
+  Server single;
+  fs::create_directories(dir / "single");
+  ASSERT_NO_FATAL_FAILURE(single.Start(dir / "single", {"--workers", "1"}));
+  const std::string alone = Submit(single.address(), job);
+  const v1::Job alone_done = WatchUntil(single.address(), alone, Terminal);
+  ASSERT_EQ(alone_done.state(), v1::JOB_STATE_SUCCEEDED) << alone_done.error();
+  const core::TriangleMesh reference = FetchClosedMesh(single.address(), alone, dir / "alone.drc");
+  const double tiles = Statistic(alone_done, "tiles");
+  ASSERT_GT(tiles, 8) << "the job is not tiled finely enough to be shared";
+
+  std::array<Server, 2> replicas;
+  std::vector<std::string> logs;
+  for (int i = 0; i < 2; ++i) {
+    const std::string name = "r" + std::to_string(i);
+    logs.push_back((dir / (name + ".log")).string());
+    fs::create_directories(dir / name);
+    ASSERT_NO_FATAL_FAILURE(replicas[i].Start(
+        dir / name,
+        {"--store", url, "--name", name, "--workers", "1", "--lease-seconds", std::to_string(kLeaseSeconds)},
+        logs.back()));
+  }
+  const std::string shared = Submit(replicas[0].address(), job);
+  const v1::Job shared_done = WatchUntil(replicas[1].address(), shared, Terminal);
+  ASSERT_EQ(shared_done.state(), v1::JOB_STATE_SUCCEEDED) << shared_done.error();
+  EXPECT_EQ(Statistic(shared_done, "replicas"), 2);
+  EXPECT_EQ(Statistic(shared_done, "tiles"), tiles);
+  const core::TriangleMesh spread = FetchClosedMesh(replicas[1].address(), shared, dir / "shared.drc");
+  EXPECT_EQ(spread.vertices.size(), reference.vertices.size());
+  EXPECT_EQ(spread.faces.size(), reference.faces.size());
+
+  // Killed while it runs tiles: once it has made one, it is taking the next.
+  const std::string second = Submit(replicas[0].address(), job);
+  const v1::Job running = WatchUntil(replicas[0].address(), second, [](const v1::Job& j) {
+    return j.state() == v1::JOB_STATE_RUNNING && !j.runner().empty();
+  });
+  const int coordinator = ReplicaOf(running.runner());
+  ASSERT_GE(coordinator, 0) << running.runner();
+  const int helper = 1 - coordinator;
+  const std::string made = "[job " + second + "] tile ";
+  // Polls the log another process writes, for at most a minute; no assertion depends on timing.
+  for (int i = 0; i < 6000 && Occurrences(io::ReadFileBytes(logs[helper]).value_or(""), made) == 0; ++i) {
+    ::usleep(10'000);
+  }
+  ASSERT_GT(Occurrences(io::ReadFileBytes(logs[helper]).value_or(""), made), 0) << "the helper never took a tile";
+  replicas[helper].Kill(SIGKILL);
+  const v1::Job second_done = WatchUntil(replicas[coordinator].address(), second, Terminal);
+  ASSERT_EQ(second_done.state(), v1::JOB_STATE_SUCCEEDED) << second_done.error();
+  const core::TriangleMesh after_kill = FetchClosedMesh(replicas[coordinator].address(), second, dir / "killed.drc");
+  EXPECT_EQ(after_kill.vertices.size(), reference.vertices.size());
+  EXPECT_EQ(after_kill.faces.size(), reference.faces.size());
+  const std::string coordinator_log = io::ReadFileBytes(logs[coordinator]).value_or("");
+  std::printf("%g tiles; spread over %g replicas in %g s (alone %g s); the helper killed after %d tiles, %d re-run\n",
+              tiles, Statistic(shared_done, "replicas"), Statistic(shared_done, "wall_seconds"),
+              Statistic(alone_done, "wall_seconds"), Occurrences(io::ReadFileBytes(logs[helper]).value_or(""), made),
+              Occurrences(coordinator_log, "(attempt 2)"));
 }
 
 TEST_F(Replicas, ThreeBehindABalancerLoseNoJobWhenOneIsKilled) {

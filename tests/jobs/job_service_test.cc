@@ -539,6 +539,7 @@ class CountingBlobStore final : public BlobStore {
     return inner_->Open(id, name);
   }
   bool Exists(const std::string& id, std::string_view name) const override { return inner_->Exists(id, name); }
+  absl::Status Remove(const std::string& id, std::string_view name) override { return inner_->Remove(id, name); }
   absl::Status RemoveJob(const std::string& id) override { return inner_->RemoveJob(id); }
   int opened(const std::string& name) const {
     std::lock_guard lock(mutex_);
@@ -1058,6 +1059,22 @@ class ForwardingStore : public JobStore {
   absl::StatusOr<JobRecord> Get(const std::string& id) override { return inner_->Get(id); }
   absl::StatusOr<JobChanges> ChangesSince(int64_t seq) override { return inner_->ChangesSince(seq); }
   void WaitForOthers(std::chrono::milliseconds timeout) override { inner_->WaitForOthers(timeout); }
+  absl::Status AddTiles(const std::string& id, int64_t count) override { return inner_->AddTiles(id, count); }
+  absl::StatusOr<std::optional<TileTask>> ClaimTile(const std::string& runner, std::chrono::milliseconds lease,
+                                                    const std::string& id) override {
+    return inner_->ClaimTile(runner, lease, id);
+  }
+  absl::StatusOr<std::vector<TileTask>> RenewTiles(const std::string& runner, const std::vector<TileTask>& tiles,
+                                                   std::chrono::milliseconds lease) override {
+    return inner_->RenewTiles(runner, tiles, lease);
+  }
+  absl::Status FinishTile(const TileTask& tile, const std::string& runner) override {
+    return inner_->FinishTile(tile, runner);
+  }
+  absl::StatusOr<std::vector<std::pair<int64_t, std::string>>> DoneTiles(const std::string& id) override {
+    return inner_->DoneTiles(id);
+  }
+  absl::Status RemoveTiles(const std::string& id) override { return inner_->RemoveTiles(id); }
 
  protected:
   std::shared_ptr<JobStore> inner_;

@@ -223,6 +223,59 @@ TEST_P(JobStoreContract, LapsedLeasesAreRecoveredAndTheirRunnerLosesItsSay) {
   EXPECT_EQ(all->size(), 2u);
 }
 
+// Tiles of a running job go to every runner once; a tile whose runner stopped renewing is run
+// again by another, and the first runner can no longer finish it.
+TEST_P(JobStoreContract, TilesAreClaimedOnceAndALapsedTileIsRunAgain) {
+  ASSERT_TRUE(first_->Insert(Queued("t1", 1)).ok());
+  ASSERT_TRUE(first_->Insert(Queued("t2", 2)).ok());
+  ASSERT_TRUE(first_->AddTiles("t2", 2).ok());  // A queued job's tiles wait for it to run.
+  auto job = first_->Claim("coordinator", milliseconds(60'000));
+  ASSERT_TRUE(job.ok() && job->has_value()) << job.status();
+  ASSERT_EQ((*job)->id, "t1");
+  auto none = second_->ClaimTile("helper", milliseconds(60'000));
+  ASSERT_TRUE(none.ok()) << none.status();
+  EXPECT_FALSE(none->has_value()) << "a tile of a job that is not running was claimed";
+
+  ASSERT_TRUE(first_->AddTiles("t1", 3).ok());
+  auto helper = second_->ClaimTile("helper", milliseconds(60'000));
+  auto dead = first_->ClaimTile("dead-helper", milliseconds(0));  // Lapsed at once.
+  auto own = first_->ClaimTile("coordinator", milliseconds(60'000), "t1");
+  ASSERT_TRUE(dead.ok() && helper.ok() && own.ok());
+  ASSERT_TRUE(dead->has_value() && helper->has_value() && own->has_value());
+  EXPECT_EQ((*helper)->tile, 0);
+  EXPECT_EQ((*dead)->tile, 1);
+  EXPECT_EQ((*own)->tile, 1) << "the lapsed tile is claimed again first";
+  EXPECT_EQ((*own)->attempts, 2);
+  EXPECT_EQ(second_->FinishTile(**dead, "dead-helper").code(), absl::StatusCode::kAborted);
+  auto renewed = second_->RenewTiles("helper", {**helper, **dead}, milliseconds(60'000));
+  ASSERT_TRUE(renewed.ok()) << renewed.status();
+  ASSERT_EQ(renewed->size(), 1u);
+  EXPECT_EQ(renewed->front().tile, 0);
+  EXPECT_EQ(first_->FinishTile(**helper, "coordinator").code(), absl::StatusCode::kAborted);
+  ASSERT_TRUE(second_->FinishTile(**helper, "helper").ok());
+  ASSERT_TRUE(first_->FinishTile(**own, "coordinator").ok());
+  EXPECT_EQ(first_->FinishTile(**own, "coordinator").code(), absl::StatusCode::kAborted) << "finished twice";
+  auto last = second_->ClaimTile("helper", milliseconds(60'000));
+  ASSERT_TRUE(last.ok() && last->has_value());
+  EXPECT_EQ((*last)->tile, 2);
+  auto empty = second_->ClaimTile("helper", milliseconds(60'000), "t1");
+  ASSERT_TRUE(empty.ok());
+  EXPECT_FALSE(empty->has_value());
+  ASSERT_TRUE(second_->FinishTile(**last, "helper").ok());
+  auto done = first_->DoneTiles("t1");
+  ASSERT_TRUE(done.ok()) << done.status();
+  const std::vector<std::pair<int64_t, std::string>> expected = {{0, "helper"}, {1, "coordinator"}, {2, "helper"}};
+  EXPECT_EQ(*done, expected);
+
+  // Adding tiles again starts over; removing them leaves none.
+  ASSERT_TRUE(first_->AddTiles("t1", 1).ok());
+  EXPECT_TRUE(first_->DoneTiles("t1")->empty());
+  ASSERT_TRUE(first_->RemoveTiles("t1").ok());
+  auto gone = second_->ClaimTile("helper", milliseconds(60'000));
+  ASSERT_TRUE(gone.ok());
+  EXPECT_FALSE(gone->has_value());
+}
+
 TEST_P(JobStoreContract, CancelStopsQueuedJobsAndFlagsRunningOnes) {
   ASSERT_TRUE(first_->Insert(Queued("q1", 1)).ok());
   ASSERT_TRUE(first_->Insert(Queued("q2", 2)).ok());

@@ -140,7 +140,10 @@ TEST(PuTiles, TilesRunApartAndJoinedAreTheTiledSurface) {
     auto points = (*planned)->TilePoints(t);
     ASSERT_TRUE(points.ok()) << points.status();
     core::LocalJobContext tile_ctx;
-    auto part = RunTile(*plan, t, *std::move(points), extract, tile_ctx);
+    auto bytes = DecodeTilePoints(EncodeTilePoints(*points));
+    ASSERT_TRUE(bytes.ok()) << bytes.status();
+    ASSERT_EQ(bytes->positions, points->positions);
+    auto part = RunTile(*plan, t, *std::move(bytes), tile_ctx);
     ASSERT_TRUE(part.ok()) << part.status();
     parts[t] = *std::move(part);
   }

@@ -92,6 +92,8 @@ struct CheckedInput {
   MemoryEstimate memory;                  // The job service refuses a job estimated past its memory limit.
 };
 
+class TileExchange;  // tile_exchange.h
+
 struct RunEnvironment {
   ArtifactSink& sink;
   core::JobContext& context;
@@ -107,6 +109,9 @@ struct RunEnvironment {
   // Where a run keeps large temporary files (a tiled build's points): the server's own scratch
   // directory, emptied of what crashed runs left when it starts; "": the system's temporary one.
   std::string scratch_dir;
+  // Where a tiled build may spread its tiles over the servers sharing the store; nullptr: this
+  // run makes every tile itself.
+  TileExchange* tiles = nullptr;
 };
 
 class JobKind {

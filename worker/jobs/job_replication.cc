@@ -79,13 +79,27 @@ void JobService::SyncChanges() {
   if (queued) work_available_.notify_all();
 }
 
+void JobService::HoldTile(const TileTask& task, bool held) {
+  std::lock_guard lock(mutex_);
+  const auto same = [&](const TileTask& t) { return t.job_id == task.job_id && t.tile == task.tile; };
+  std::erase_if(held_tiles_, same);
+  if (held) held_tiles_.push_back(task);
+}
+
 void JobService::RenewLeases() {
   std::vector<std::string> running;
+  std::vector<TileTask> tiles;
   {
     std::lock_guard lock(mutex_);
     for (const auto& [id, e] : jobs_) {
       if (e->held && !e->lost) running.push_back(id);
     }
+    tiles = held_tiles_;
+  }
+  // A tile lost here is claimed by another server; this one's part, should it still come, is
+  // the same surface and is not counted as the tile's.
+  if (auto renewed = store_->RenewTiles(runner_, tiles, options_.lease); !renewed.ok()) {
+    spdlog::warn("cannot renew the leases of the running tiles: {}", renewed.status().ToString());
   }
   auto held = store_->Renew(runner_, running, options_.lease);
   if (!held.ok()) {

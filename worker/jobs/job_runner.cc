@@ -7,6 +7,7 @@
 #include "worker/core/strings.h"
 #include "worker/jobs/job_service.h"
 #include "worker/jobs/job_service_internal.h"
+#include "worker/jobs/tile_exchange.h"
 
 namespace lsqsurf::jobs {
 
@@ -167,6 +168,7 @@ void JobService::WorkerLoop() {
       RunJob(entry, std::move(decoded));
       continue;
     }
+    if (RunOthersTile()) continue;
     // Nothing to claim: wait for a submission, another service's job, or the next poll.
     std::unique_lock lock(mutex_);
     const auto woken = [&] { return shutting_down_ || work_signal_ != signal; };
@@ -174,6 +176,27 @@ void JobService::WorkerLoop() {
     // against a claim that failed.
     work_available_.wait_for(lock, store_->shared() ? options_.poll : std::chrono::milliseconds(10'000), woken);
   }
+}
+
+bool JobService::RunOthersTile() {
+  if (!store_->shared()) return false;
+  // Stopped by a shutdown; the tile's lease then lapses and another server runs it.
+  struct ShutdownContext final : core::JobContext {
+    const JobService& service;
+    explicit ShutdownContext(const JobService& s) : service(s) {}
+    void ReportProgress(std::string_view, double) override {}
+    bool IsCancelled() const override {
+      std::lock_guard lock(service.mutex_);
+      return service.shutting_down_;
+    }
+  } ctx(*this);
+  auto ran = RunClaimedTile(
+      *store_, *blobs_, runner_, options_.lease, [this](const TileTask& t, bool held) { HoldTile(t, held); }, ctx);
+  if (!ran.ok() && !absl::IsCancelled(ran.status())) {
+    if (!claims_failing_.exchange(true)) spdlog::error("cannot take tiles from the store: {}", ran.status().ToString());
+    return false;
+  }
+  return ran.ok() && *ran;
 }
 
 absl::StatusOr<Statistics> JobService::RunKind(const std::shared_ptr<Entry>& entry, BlobSink& sink,
@@ -226,6 +249,12 @@ absl::StatusOr<Statistics> JobService::RunKind(const std::shared_ptr<Entry>& ent
                      },
                      options_.max_job_memory,
                      scratch_dir_};
+  std::optional<StoreTileExchange> tiles;
+  if (store_->shared()) {
+    tiles.emplace(*store_, *blobs_, record.id, runner_, options_.lease,
+                  [this](const TileTask& t, bool held) { HoldTile(t, held); });
+    env.tiles = &*tiles;
+  }
   try {
     return kind->Run(record.spec, uploads, env);
   } catch (const std::bad_alloc&) {

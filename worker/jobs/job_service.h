@@ -242,6 +242,10 @@ class JobService {
   void SyncLoop();
   void SyncChanges();
   void RenewLeases();
+  // Adds (or, with held false, drops) a tile this service runs to those whose leases it renews.
+  void HoldTile(const TileTask& task, bool held);
+  // Shared stores: runs one tile of another job spread over the servers; false when none waits.
+  bool RunOthersTile();
   // Requeues (or fails, or cancels) the jobs of runners whose lease lapsed; every running job
   // with `every_running`.
   absl::Status RecoverLapsed(bool every_running);
@@ -291,6 +295,7 @@ class JobService {
   std::map<std::string, HeldInput> decoded_;  // Queued jobs' decoded inputs by id (mutex_).
   int64_t decoded_points_ = 0;                // Their points (mutex_).
   std::map<std::string, Usage> pending_;      // Submissions being stored, by owner (mutex_).
+  std::vector<TileTask> held_tiles_;          // Tiles this service runs now (mutex_).
 };
 
 }  // namespace lsqsurf::jobs

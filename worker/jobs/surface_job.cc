@@ -151,7 +151,7 @@ struct MethodRun {
   // made, never whole; their count goes to *parts_written and the mesh returned is empty.
   ArtifactWriteFn write;
   int64_t* parts_written = nullptr;
-  std::string scratch_dir;  // Where a tiled run's point files go ("": the system's temporary directory).
+  TiledRun tiled;  // Where a tiled run's point files go and its tiles run.
 };
 
 // Each tile's part of the surface an artifact as soon as it is made (io/mesh_part.h).
@@ -288,8 +288,11 @@ absl::StatusOr<extract::IsosurfaceResult> RunTiledPu(const PuJobParams& p, const
   std::optional<PartArtifactSink> parts;
   if (run.source != nullptr && run.write) parts.emplace(run.write);
   pu::SurfaceSink& sink = parts.has_value() ? static_cast<pu::SurfaceSink&>(*parts) : mesh;
-  auto tiled = pu::ReconstructTiled(source, p.fit, extract, p.tiles, sink, ctx, run.scratch_dir);
+  auto tiled = run.tiled.exchange != nullptr
+                   ? ReconstructTiledShared(source, p.fit, extract, p.tiles, sink, ctx, run.tiled)
+                   : pu::ReconstructTiled(source, p.fit, extract, p.tiles, sink, ctx, run.tiled.scratch_dir);
   if (!tiled.ok()) return tiled.status();
+  if (run.tiled.exchange != nullptr) stat("replicas", run.tiled.exchange->Servers());
   if (parts.has_value()) {
     stat("mesh_parts", static_cast<double>(parts->parts()));
     stat("triangles", static_cast<double>(parts->faces()));
@@ -525,9 +528,9 @@ class SurfaceKind final : public TypedJobKind<core::ParamSet, SurfaceInput> {
     };
     auto result = input.parts.empty()
                       ? ReconstructSurface(spec.method, params, std::move(input.cloud), env.context, env.memory_bytes,
-                                           env.scratch_dir)
+                                           TiledRun{env.scratch_dir, env.tiles})
                       : ReconstructStreamed(spec.method, params, DracoPartsSource(input.parts), input.points,
-                                            env.context, env.memory_bytes, write, env.scratch_dir);
+                                            env.context, env.memory_bytes, write, TiledRun{env.scratch_dir, env.tiles});
     if (!result.ok()) return result.status();
     if (result->mesh_parts == 0) {
       LSQSURF_RETURN_IF_ERROR(DeliverMesh(result->mesh, spec, env, &result->statistics));
@@ -602,11 +605,11 @@ absl::StatusOr<const SurfaceMethod*> CheckedMethod(const std::string& method, co
 // the mesh and its statistics into `result`.
 absl::Status RunMethod(const SurfaceMethod& m, const core::ParamSet& params, const core::PointCloud& cloud,
                        const pu::PointSource* source, const ArtifactWriteFn& write, core::JobContext& ctx,
-                       int64_t memory_bytes, const std::string& scratch_dir, SurfaceResult& result) {
+                       int64_t memory_bytes, const TiledRun& tiled, SurfaceResult& result) {
   auto stat = [&](std::string name, double value) { result.statistics.emplace_back(std::move(name), value); };
   auto keep = [&](std::string name, std::string bytes) { result.kept.emplace_back(std::move(name), std::move(bytes)); };
   auto extracted =
-      m.run(params, cloud, ctx, MethodRun{stat, keep, memory_bytes, source, write, &result.mesh_parts, scratch_dir});
+      m.run(params, cloud, ctx, MethodRun{stat, keep, memory_bytes, source, write, &result.mesh_parts, tiled});
   if (!extracted.ok()) return extracted.status();
   result.mesh = std::move(extracted->mesh);
   if (result.mesh_parts > 0) return absl::OkStatus();  // Its statistics are the parts' (RunTiledPu).
@@ -621,7 +624,7 @@ absl::Status RunMethod(const SurfaceMethod& m, const core::ParamSet& params, con
 
 absl::StatusOr<SurfaceResult> ReconstructSurface(const std::string& method, const core::ParamSet& params,
                                                  core::PointCloud cloud, core::JobContext& ctx, int64_t memory_bytes,
-                                                 const std::string& scratch_dir) {
+                                                 const TiledRun& tiled) {
   auto m = CheckedMethod(method, params);
   if (!m.ok()) return m.status();
   const NormalsParams& normals = *(*m)->normals(params);
@@ -645,15 +648,14 @@ absl::StatusOr<SurfaceResult> ReconstructSurface(const std::string& method, cons
   }
 
   core::SubContext engine_ctx(ctx, method, normals_share, 1.0);
-  LSQSURF_RETURN_IF_ERROR(
-      RunMethod(**m, params, cloud, nullptr, nullptr, engine_ctx, memory_bytes, scratch_dir, result));
+  LSQSURF_RETURN_IF_ERROR(RunMethod(**m, params, cloud, nullptr, nullptr, engine_ctx, memory_bytes, tiled, result));
   return result;
 }
 
 absl::StatusOr<SurfaceResult> ReconstructStreamed(const std::string& method, const core::ParamSet& params,
                                                   const pu::PointSource& source, int64_t points, core::JobContext& ctx,
                                                   int64_t memory_bytes, const ArtifactWriteFn& write,
-                                                  const std::string& scratch_dir) {
+                                                  const TiledRun& tiled) {
   auto m = CheckedMethod(method, params);
   if (!m.ok()) return m.status();
   if (!(*m)->streams) return absl::InvalidArgumentError(core::StrCat("'", method, "' cannot stream a cloud"));
@@ -662,7 +664,7 @@ absl::StatusOr<SurfaceResult> ReconstructStreamed(const std::string& method, con
   result.statistics.emplace_back("input_streamed", 1);
   core::SubContext engine_ctx(ctx, method, 0.0, 1.0);
   LSQSURF_RETURN_IF_ERROR(
-      RunMethod(**m, params, core::PointCloud{}, &source, write, engine_ctx, memory_bytes, scratch_dir, result));
+      RunMethod(**m, params, core::PointCloud{}, &source, write, engine_ctx, memory_bytes, tiled, result));
   return result;
 }
 

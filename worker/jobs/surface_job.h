@@ -20,6 +20,7 @@
 #include "worker/core/normals.h"
 #include "worker/extract/isosurface.h"
 #include "worker/jobs/job_kind.h"
+#include "worker/jobs/tile_exchange.h"
 #include "worker/mls/algebraic_mls.h"
 #include "worker/mls/gaussian_mls.h"
 #include "worker/mls/iamls.h"
@@ -107,12 +108,12 @@ struct SurfaceResult {
 // Reconstructs a cloud with a method's validated parameters (`params` from the method's
 // defaults): normals first when the cloud has none, then the method, then topology statistics.
 // The service and the benchmark's direct mode both run this; the extraction stops past what
-// `memory_bytes` holds (0: the engines' own bounds); a tiled run keeps its point files under
-// `scratch_dir` (""; the system's temporary directory). Errors: kInvalidArgument,
+// `memory_bytes` holds (0: the engines' own bounds); a tiled run keeps its point files and
+// spreads its tiles as `tiled` says. Errors: kInvalidArgument,
 // kResourceExhausted, kFailedPrecondition (no surface found), kCancelled.
 absl::StatusOr<SurfaceResult> ReconstructSurface(const std::string& method, const core::ParamSet& params,
                                                  core::PointCloud cloud, core::JobContext& ctx,
-                                                 int64_t memory_bytes = 0, const std::string& scratch_dir = "");
+                                                 int64_t memory_bytes = 0, const TiledRun& tiled = {});
 // The same for a cloud with normals read in chunks from `source` (`points` in all), by a method
 // that streams (pu, tiled): the cloud is never whole in memory. With `write`, the mesh is not
 // whole either: each tile's part goes out through it as soon as it is made (mesh_parts, and
@@ -120,7 +121,7 @@ absl::StatusOr<SurfaceResult> ReconstructSurface(const std::string& method, cons
 absl::StatusOr<SurfaceResult> ReconstructStreamed(const std::string& method, const core::ParamSet& params,
                                                   const pu::PointSource& source, int64_t points, core::JobContext& ctx,
                                                   int64_t memory_bytes = 0, const ArtifactWriteFn& write = nullptr,
-                                                  const std::string& scratch_dir = "");
+                                                  const TiledRun& tiled = {});
 
 // The Draco bytes of a result mesh at `position_bits` (0: the fewest bits, 16 to 30, at which
 // Draco's quantization round trip keeps every distinct vertex position apart, so the decoded

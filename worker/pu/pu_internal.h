@@ -294,6 +294,8 @@ PuParams EffectiveParams(const PuParams& params, const core::NoiseEstimate& nois
 // A mesh with its attributes as bytes (pu_storage.cc), inside a kept surface or a tile's part.
 // ReadMesh returns what is wrong ("" when nothing), face indices checked.
 void WriteMesh(const core::TriangleMesh& mesh, core::BinaryWriter& w);
+void WriteExtractParams(const PuExtractParams& p, core::BinaryWriter& w);
+bool ReadExtractParams(core::BinaryReader& r, PuExtractParams& p);
 std::string_view ReadMesh(core::BinaryReader& r, core::TriangleMesh& mesh);
 
 // How far beyond a box the extraction tree must be built for its leaves inside the box to be the

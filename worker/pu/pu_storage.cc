@@ -152,6 +152,8 @@ namespace {
 
 constexpr std::string_view kSurfaceMagic = "LQSF0001";
 
+}  // namespace
+
 // The extraction parameters a kept surface records, field by field (no padding bytes stored).
 void WriteExtractParams(const PuExtractParams& p, core::BinaryWriter& w) {
   w.Scalar(p.cell_size), w.Scalar(p.chord_error), w.Scalar(p.max_leaves), w.Scalar<uint8_t>(p.label_vertices);
@@ -170,8 +172,6 @@ bool ReadExtractParams(core::BinaryReader& r, PuExtractParams& p) {
   m.vertex_normals = normals != 0;
   return ok && label <= 1 && normals <= 1;
 }
-
-}  // namespace
 
 void WriteMesh(const core::TriangleMesh& mesh, core::BinaryWriter& w) {
   w.Array<Vec3f>(mesh.vertices);

@@ -339,6 +339,7 @@ absl::StatusOr<std::unique_ptr<PlannedCloud>> PlannedCloud::Plan(const PointSour
   const auto bounds = ScanBounds(source, ctx);
   if (!bounds.ok()) return bounds.status();
   plan.points = bounds->points;
+  plan.extract = extract;
   PuFrame& frame = plan.frame;
   frame.diagonal = core::Diagonal(bounds->box);
   RootCube(bounds->box, frame.origin, frame.root_edge);
@@ -407,7 +408,7 @@ absl::StatusOr<TiledStats> ReconstructTiled(const PointSource& source, const PuP
                               static_cast<double>(t) / count, static_cast<double>(t + 1) / count);
     auto points = (*planned)->TilePoints(t);
     if (!points.ok()) return points.status();
-    auto part = RunTile(plan, t, *std::move(points), extract, tile_ctx);
+    auto part = RunTile(plan, t, *std::move(points), tile_ctx);
     if (!part.ok()) return part.status();
     LSQSURF_RETURN_IF_ERROR(joiner.Add(*part));
   }

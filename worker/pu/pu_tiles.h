@@ -134,6 +134,7 @@ struct TiledStats {
 // the plan's order, into the surface. ReconstructTiled is the three in one process.
 struct TilePlan {
   PuFrame frame;
+  PuExtractParams extract;
   int tile_level = 0;            // Of the fitting octree; the tiles are its cubes.
   double data_margin = 0;        // A tile reads the points within this of its cube.
   double extraction_margin = 0;  // Its function must be exact this far around its cube.
@@ -172,12 +173,15 @@ class PlannedCloud {
   std::unique_ptr<Files> files_;
 };
 
-// Tile `index` of `plan` from its points: its part of the surface (with the lattice edges of its
-// border vertices, so that TileJoiner can weld it) and its statistics, as bytes ("LQT1"). A tile
+// Tile `index` of `plan` from its points, extracted with the plan's parameters: its part of the surface (with the
+// lattice edges of its border vertices, so that TileJoiner can weld it) and its statistics, as bytes ("LQT1"). A tile
 // the surface does not cross gives a part without faces. The same inputs give the same bytes on
 // any server of the same build. Errors: kInvalidArgument, as BuildPu and Extract, kCancelled.
-absl::StatusOr<std::string> RunTile(const TilePlan& plan, size_t index, core::PointCloud points,
-                                    const PuExtractParams& extract, core::JobContext& ctx);
+absl::StatusOr<std::string> RunTile(const TilePlan& plan, size_t index, core::PointCloud points, core::JobContext& ctx);
+
+// A tile's oriented points as bytes, to hand to another server. Errors: kInvalidArgument.
+std::string EncodeTilePoints(const core::PointCloud& points);
+absl::StatusOr<core::PointCloud> DecodeTilePoints(std::string_view bytes);
 
 // Welds the parts RunTile made, given in the plan's order, handing each to `sink` with its
 // vertices numbered on from the parts before it (border vertices shared by lattice edge).

@@ -16,6 +16,7 @@ namespace {
 
 constexpr std::string_view kPlanMagic = "LQTP0001";
 constexpr std::string_view kTileMagic = "LQT10001";
+constexpr std::string_view kPointsMagic = "LQTX0001";
 
 bool ReadMagic(core::BinaryReader& r, std::string_view magic) {
   std::vector<char> read;
@@ -171,6 +172,7 @@ std::string EncodeTilePlan(const TilePlan& plan) {
   WriteVec(w, f.origin);
   w.Scalar(f.root_edge), w.Scalar(f.diagonal), w.Scalar(f.mean_spacing), w.Scalar(f.noise_estimate);
   w.Scalar(f.params), w.Scalar(f.max_support);
+  WriteExtractParams(plan.extract, w);
   w.Scalar(plan.tile_level), w.Scalar(plan.data_margin), w.Scalar(plan.extraction_margin);
   w.Array<uint64_t>(plan.tiles);
   w.Scalar(plan.points), w.Scalar(plan.scratch_bytes);
@@ -184,23 +186,40 @@ absl::StatusOr<TilePlan> DecodeTilePlan(std::string_view bytes) {
   PuFrame& f = plan.frame;
   const bool read = ReadMagic(r, kPlanMagic) && ReadVec(r, f.origin) && r.Scalar(f.root_edge) && r.Scalar(f.diagonal) &&
                     r.Scalar(f.mean_spacing) && r.Scalar(f.noise_estimate) && r.Scalar(f.params) &&
-                    r.Scalar(f.max_support) && r.Scalar(plan.tile_level) && r.Scalar(plan.data_margin) &&
-                    r.Scalar(plan.extraction_margin) && r.Array(plan.tiles) && r.Scalar(plan.points) &&
-                    r.Scalar(plan.scratch_bytes) && r.Scalar(plan.measure_seconds) && r.Scalar(plan.scan_seconds) &&
-                    r.Scalar(plan.spacing_seconds) && r.AtEnd();
+                    r.Scalar(f.max_support) && ReadExtractParams(r, plan.extract) && r.Scalar(plan.tile_level) &&
+                    r.Scalar(plan.data_margin) && r.Scalar(plan.extraction_margin) && r.Array(plan.tiles) &&
+                    r.Scalar(plan.points) && r.Scalar(plan.scratch_bytes) && r.Scalar(plan.measure_seconds) &&
+                    r.Scalar(plan.scan_seconds) && r.Scalar(plan.spacing_seconds) && r.AtEnd();
   if (!read || !(f.root_edge > 0) || !f.origin.allFinite() || plan.tile_level < 0 || plan.tile_level > 20 ||
-      !(f.max_support > 0) || !Validate(f.params).ok()) {
+      !(f.max_support > 0) || !Validate(f.params).ok() || !PuExtractParamTable().Validate(plan.extract).ok()) {
     return absl::InvalidArgumentError("a tile plan is unreadable");
   }
   return plan;
 }
 
+std::string EncodeTilePoints(const core::PointCloud& points) {
+  core::BinaryWriter w;
+  WriteMagic(w, kPointsMagic);
+  w.Array<core::Vec3f>(points.positions);
+  w.Array<core::Vec3f>(points.normals);
+  return w.Take();
+}
+
+absl::StatusOr<core::PointCloud> DecodeTilePoints(std::string_view bytes) {
+  core::BinaryReader r(bytes);
+  core::PointCloud points;
+  if (!ReadMagic(r, kPointsMagic) || !r.Array(points.positions) || !r.Array(points.normals, points.positions.size()) ||
+      !r.AtEnd()) {
+    return absl::InvalidArgumentError("a tile's points are unreadable");
+  }
+  return points;
+}
+
 absl::StatusOr<std::string> RunTile(const TilePlan& plan, size_t index, core::PointCloud points,
-                                    const PuExtractParams& extract, core::JobContext& ctx) {
+                                    core::JobContext& ctx) {
   if (index >= plan.tiles.size()) {
     return absl::OutOfRangeError(core::StrCat("tile ", index, " of a plan of ", plan.tiles.size()));
   }
-  LSQSURF_RETURN_IF_ERROR(PuExtractParamTable().Validate(extract));
   TilePart part;
   part.index = index;
   part.points = static_cast<int64_t>(points.size());
@@ -217,7 +236,7 @@ absl::StatusOr<std::string> RunTile(const TilePlan& plan, size_t index, core::Po
       part.fitted = true;
       part.fit = (*function)->stats();
       core::SubContext extract_ctx(ctx, "extracting", 0.5, 1.0);
-      auto surface = ExtractTile(**function, extract, cube, extract_ctx);
+      auto surface = ExtractTile(**function, plan.extract, cube, extract_ctx);
       if (!surface.ok()) return surface.status();
       part.surface = *std::move(surface);
     }

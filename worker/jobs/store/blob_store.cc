@@ -116,6 +116,13 @@ bool LocalDirBlobStore::Exists(const std::string& job_id, std::string_view name)
   return std::filesystem::is_regular_file(PathOf(job_id, name), ec);
 }
 
+absl::Status LocalDirBlobStore::Remove(const std::string& job_id, std::string_view name) {
+  std::error_code ec;
+  std::filesystem::remove(PathOf(job_id, name), ec);
+  if (ec) return absl::UnavailableError(core::StrCat("cannot remove ", name, " of job ", job_id, ": ", ec.message()));
+  return absl::OkStatus();
+}
+
 absl::Status LocalDirBlobStore::RemoveJob(const std::string& job_id) {
   std::error_code ec;
   std::filesystem::remove_all(core::StrCat(root_, "/", job_id), ec);

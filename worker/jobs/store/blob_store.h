@@ -39,6 +39,8 @@ class BlobStore {
   // The whole blob. Errors: those of Open.
   absl::StatusOr<std::string> Read(const std::string& job_id, std::string_view name) const;
   virtual bool Exists(const std::string& job_id, std::string_view name) const = 0;
+  // Removes one blob; removing nothing is not an error. Errors: kUnavailable.
+  virtual absl::Status Remove(const std::string& job_id, std::string_view name) = 0;
   // Removes every blob of the job; removing nothing is not an error.
   virtual absl::Status RemoveJob(const std::string& job_id) = 0;
   // Bytes that can still be stored, or -1 when the store cannot tell.
@@ -61,6 +63,7 @@ class LocalDirBlobStore final : public BlobStore {
   absl::Status Put(const std::string& job_id, std::string_view name, std::string_view bytes) override;
   absl::StatusOr<std::unique_ptr<BlobReader>> Open(const std::string& job_id, std::string_view name) const override;
   bool Exists(const std::string& job_id, std::string_view name) const override;
+  absl::Status Remove(const std::string& job_id, std::string_view name) override;
   absl::Status RemoveJob(const std::string& id) override;
   int64_t AvailableBytes() const override;
   absl::StatusOr<int> RemoveOrphans(const std::function<bool(const std::string&)>& is_job) override;

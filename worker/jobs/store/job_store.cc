@@ -17,12 +17,21 @@ int64_t NowMs() {
 
 // The schema version this build writes (PRAGMA user_version). 0: the unversioned tables of
 // earlier builds; 1: runners, leases, change numbers and the removals table; 2: owners and
-// stored sizes; 3: the owner's quota a job's results are held to.
-constexpr int kSchemaVersion = 3;
+// stored sizes; 3: the owner's quota a job's results are held to; 4: tiles.
+constexpr int kSchemaVersion = 4;
+
+// A tile's states in the job_tiles table.
+constexpr char kTileQueued[] = "0";
+constexpr char kTileRunning[] = "1";
+constexpr char kTileDone[] = "2";
 
 }  // namespace
 
 absl::Status NoSuchJob(const std::string& id) { return absl::NotFoundError(core::StrCat("no job with id '", id, "'")); }
+
+absl::Status TileNotHeld(const TileTask& tile, const std::string& runner) {
+  return absl::AbortedError(core::StrCat("tile ", tile.tile, " of job ", tile.job_id, " is not held by ", runner));
+}
 
 absl::Status AlreadyFinished(const JobRecord& r) {
   return absl::FailedPreconditionError(core::StrCat("job ", r.id, " has already ", JobStateName(r.state)));
@@ -73,7 +82,10 @@ absl::Status SqliteJobStore::Migrate() {
                           "parameters TEXT, mesh_bits INTEGER, state INTEGER, stage TEXT, "
                           "attempts INTEGER, error TEXT, created_ms INTEGER, updated_ms INTEGER, "
                           "input_points INTEGER, input_bytes INTEGER, statistics TEXT, results TEXT)",
-                          "CREATE TABLE IF NOT EXISTS job_removals (id TEXT PRIMARY KEY, seq INTEGER)"}) {
+                          "CREATE TABLE IF NOT EXISTS job_removals (id TEXT PRIMARY KEY, seq INTEGER)",
+                          "CREATE TABLE IF NOT EXISTS job_tiles (job_id TEXT NOT NULL, tile INTEGER NOT NULL, "
+                          "state INTEGER NOT NULL, runner TEXT NOT NULL, lease_expires_ms INTEGER NOT NULL, "
+                          "attempts INTEGER NOT NULL, PRIMARY KEY (job_id, tile))"}) {
     if (auto r = Query(sql); !r.ok()) return r.status();
   }
   // Databases written by earlier builds lack the later columns; each is added where missing,
@@ -274,7 +286,84 @@ absl::Status SqliteJobStore::Remove(const std::string& id) {
     if (!found.ok()) return found.status();
     return found->empty() ? NoSuchJob(id) : NotFinished(found->front());
   }
+  if (auto r = Query("DELETE FROM job_tiles WHERE job_id = ?1", {id}); !r.ok()) return r.status();
   return Query("INSERT OR REPLACE INTO job_removals (id, seq) VALUES (?1, ?2)", {id, std::to_string(++seq_)}).status();
+}
+
+absl::Status SqliteJobStore::AddTiles(const std::string& job_id, int64_t count) {
+  std::lock_guard lock(mutex_);
+  if (auto r = Query("DELETE FROM job_tiles WHERE job_id = ?1", {job_id}); !r.ok()) return r.status();
+  if (count <= 0) return absl::OkStatus();
+  return Query(core::StrCat(
+                   "WITH RECURSIVE n(i) AS (SELECT 0 UNION ALL SELECT i + 1 FROM n WHERE i + 1 < CAST(?2 AS INTEGER)) "
+                   "INSERT INTO job_tiles SELECT ?1, i, ",
+                   kTileQueued, ", '', 0, 0 FROM n"),
+               {job_id, std::to_string(count)})
+      .status();
+}
+
+absl::StatusOr<std::optional<TileTask>> SqliteJobStore::ClaimTile(const std::string& runner,
+                                                                  std::chrono::milliseconds lease,
+                                                                  const std::string& job_id) {
+  std::lock_guard lock(mutex_);
+  const int64_t now = NowMs();
+  auto claimed = Query(
+      core::StrCat("UPDATE job_tiles SET state = ", kTileRunning,
+                   ", runner = ?1, lease_expires_ms = ?2, attempts = attempts + 1 WHERE rowid = (SELECT t.rowid "
+                   "FROM job_tiles t JOIN jobs j ON j.id = t.job_id WHERE ",
+                   rows::WithStates("j.state = {running}"), " AND (t.state = ", kTileQueued,
+                   " OR (t.state = ", kTileRunning,
+                   " AND t.lease_expires_ms <= ?3)) AND (?4 = '' OR t.job_id = ?4) ORDER BY t.job_id, t.tile LIMIT 1) "
+                   "RETURNING job_id, tile, attempts"),
+      {runner, std::to_string(now + lease.count()), std::to_string(now), job_id});
+  if (!claimed.ok()) return claimed.status();
+  if (claimed->empty()) return std::optional<TileTask>();
+  const Row& row = claimed->front();
+  return std::optional<TileTask>(TileTask{row[0], rows::ToInt(row[1]), static_cast<int>(rows::ToInt(row[2]))});
+}
+
+absl::StatusOr<std::vector<TileTask>> SqliteJobStore::RenewTiles(const std::string& runner,
+                                                                 const std::vector<TileTask>& tiles,
+                                                                 std::chrono::milliseconds lease) {
+  std::lock_guard lock(mutex_);
+  std::vector<TileTask> held;
+  const std::string until = std::to_string(NowMs() + lease.count());
+  for (const TileTask& t : tiles) {
+    auto r = Query(core::StrCat("UPDATE job_tiles SET lease_expires_ms = ?4 WHERE job_id = ?1 AND tile = ?2 AND "
+                                "runner = ?3 AND state = ",
+                                kTileRunning, " RETURNING tile"),
+                   {t.job_id, std::to_string(t.tile), runner, until});
+    if (!r.ok()) return r.status();
+    if (!r->empty()) held.push_back(t);
+  }
+  return held;
+}
+
+absl::Status SqliteJobStore::FinishTile(const TileTask& tile, const std::string& runner) {
+  std::lock_guard lock(mutex_);
+  auto r = Query(
+      core::StrCat("UPDATE job_tiles SET state = ", kTileDone,
+                   " WHERE job_id = ?1 AND tile = ?2 AND runner = ?3 AND state = ", kTileRunning, " RETURNING tile"),
+      {tile.job_id, std::to_string(tile.tile), runner});
+  if (!r.ok()) return r.status();
+  if (r->empty()) return TileNotHeld(tile, runner);
+  return absl::OkStatus();
+}
+
+absl::StatusOr<std::vector<std::pair<int64_t, std::string>>> SqliteJobStore::DoneTiles(const std::string& job_id) {
+  std::lock_guard lock(mutex_);
+  auto r = Query(
+      core::StrCat("SELECT tile, runner FROM job_tiles WHERE job_id = ?1 AND state = ", kTileDone, " ORDER BY tile"),
+      {job_id});
+  if (!r.ok()) return r.status();
+  std::vector<std::pair<int64_t, std::string>> out;
+  for (const Row& row : *r) out.emplace_back(rows::ToInt(row[0]), row[1]);
+  return out;
+}
+
+absl::Status SqliteJobStore::RemoveTiles(const std::string& job_id) {
+  std::lock_guard lock(mutex_);
+  return Query("DELETE FROM job_tiles WHERE job_id = ?1", {job_id}).status();
 }
 
 absl::StatusOr<JobRecord> SqliteJobStore::Get(const std::string& id) {

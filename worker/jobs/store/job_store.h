@@ -34,6 +34,13 @@ struct JobChanges {
   int64_t seq = 0;  // Give this to the next call.
 };
 
+// One tile of a job spread over the servers (a tiled PU build): any server may run it.
+struct TileTask {
+  std::string job_id;
+  int64_t tile = 0;
+  int attempts = 0;  // Claims so far, this one included.
+};
+
 // Implementations are thread-safe; every write is durable when it returns. Every write gives
 // the job a new change number (JobRecord::seq), larger than any before it.
 class JobStore {
@@ -75,11 +82,31 @@ class JobStore {
   virtual absl::StatusOr<JobChanges> ChangesSince(int64_t seq) = 0;
   // Returns when another server may have written, or after `timeout`.
   virtual void WaitForOthers(std::chrono::milliseconds timeout) = 0;
+
+  // Tiles. A tile is queued, then held by one runner under a lease it renews, then done. A tile
+  // whose lease lapsed is claimed again like a queued one, so a dead server's tiles are re-run.
+  // Tiles 0..count-1 of a job, queued (those it had are dropped). Errors: kUnavailable.
+  virtual absl::Status AddTiles(const std::string& job_id, int64_t count) = 0;
+  // Takes the first queued or lapsed tile of a running job (of `job_id` only, when not empty)
+  // for `runner` under a lease. nullopt when there is none. Errors: kUnavailable.
+  virtual absl::StatusOr<std::optional<TileTask>> ClaimTile(const std::string& runner, std::chrono::milliseconds lease,
+                                                            const std::string& job_id = "") = 0;
+  // Extends the leases of those of `tiles` that `runner` holds; returns those. Errors: kUnavailable.
+  virtual absl::StatusOr<std::vector<TileTask>> RenewTiles(const std::string& runner,
+                                                           const std::vector<TileTask>& tiles,
+                                                           std::chrono::milliseconds lease) = 0;
+  // Marks a tile that `runner` holds done. Errors: kAborted (not held by it), kUnavailable.
+  virtual absl::Status FinishTile(const TileTask& tile, const std::string& runner) = 0;
+  // The done tiles of a job, in tile order, with the runner that finished each. Errors: kUnavailable.
+  virtual absl::StatusOr<std::vector<std::pair<int64_t, std::string>>> DoneTiles(const std::string& job_id) = 0;
+  // Drops a job's tiles (Remove does too). Errors: kUnavailable.
+  virtual absl::Status RemoveTiles(const std::string& job_id) = 0;
 };
 
 // The messages both stores give for a job that is not there or in the wrong state.
 absl::Status NoSuchJob(const std::string& id);
 absl::Status AlreadyFinished(const JobRecord& record);
+absl::Status TileNotHeld(const TileTask& tile, const std::string& runner);
 absl::Status NotFinished(const JobRecord& record);
 
 // One database file for one server: a jobs table and a table of removals (WAL journal,
@@ -106,6 +133,14 @@ class SqliteJobStore final : public JobStore {
   absl::StatusOr<JobRecord> Get(const std::string& id) override;
   absl::StatusOr<JobChanges> ChangesSince(int64_t seq) override;
   void WaitForOthers(std::chrono::milliseconds timeout) override;
+  absl::Status AddTiles(const std::string& job_id, int64_t count) override;
+  absl::StatusOr<std::optional<TileTask>> ClaimTile(const std::string& runner, std::chrono::milliseconds lease,
+                                                    const std::string& job_id) override;
+  absl::StatusOr<std::vector<TileTask>> RenewTiles(const std::string& runner, const std::vector<TileTask>& tiles,
+                                                   std::chrono::milliseconds lease) override;
+  absl::Status FinishTile(const TileTask& tile, const std::string& runner) override;
+  absl::StatusOr<std::vector<std::pair<int64_t, std::string>>> DoneTiles(const std::string& job_id) override;
+  absl::Status RemoveTiles(const std::string& job_id) override;
 
  private:
   using Row = std::vector<std::string>;

@@ -75,6 +75,12 @@ UPDATE jobs SET stored_bytes = input_bytes;
     R"sql(
 ALTER TABLE jobs ADD COLUMN quota_bytes BIGINT NOT NULL DEFAULT 0;
 )sql",
+    // 4: tiles of jobs spread over the servers (state 0 queued, 1 running, 2 done).
+    R"sql(
+CREATE TABLE job_tiles (job_id TEXT NOT NULL, tile BIGINT NOT NULL, state INTEGER NOT NULL,
+  runner TEXT NOT NULL, lease_expires_ms BIGINT NOT NULL, attempts INTEGER NOT NULL, PRIMARY KEY (job_id, tile));
+CREATE INDEX job_tiles_open ON job_tiles (job_id, tile) WHERE state < 2;
+)sql",
 };
 constexpr int kSchemaVersion = sizeof(kMigrations) / sizeof(kMigrations[0]);
 
@@ -282,10 +288,75 @@ absl::StatusOr<JobRecord> PostgresJobStore::Cancel(const std::string& id, const 
 absl::Status PostgresJobStore::Remove(const std::string& id) {
   auto removed = pool_->Exec(rows::WithStates("DELETE FROM jobs WHERE id = $1 AND state IN {finished}"), {id});
   if (!removed.ok()) return removed.status();
-  if (removed->affected > 0) return absl::OkStatus();
+  if (removed->affected > 0) return RemoveTiles(id);
   auto found = Get(id);
   if (!found.ok()) return found.status();
   return NotFinished(*found);
+}
+
+absl::Status PostgresJobStore::AddTiles(const std::string& job_id, int64_t count) {
+  return pool_->Transaction([&](pg_conn* conn) -> absl::Status {
+    if (auto r = pg::Exec(conn, "DELETE FROM job_tiles WHERE job_id = $1", {job_id}); !r.ok()) return r.status();
+    if (auto r =
+            pg::Exec(conn, "INSERT INTO job_tiles SELECT $1, i, 0, '', 0, 0 FROM generate_series(0, $2::bigint - 1) i",
+                     {job_id, std::to_string(count)});
+        !r.ok()) {
+      return r.status();
+    }
+    // Idle servers wait on the jobs' channel: new tiles are work for them.
+    return pg::Exec(conn, "SELECT pg_notify('lsqsurf_jobs', '')").status();
+  });
+}
+
+absl::StatusOr<std::optional<TileTask>> PostgresJobStore::ClaimTile(const std::string& runner,
+                                                                    std::chrono::milliseconds lease,
+                                                                    const std::string& job_id) {
+  auto claimed = pool_->Exec(
+      rows::WithStates("UPDATE job_tiles SET state = 1, runner = $1, lease_expires_ms = lsqsurf_now_ms() + $2, "
+                       "attempts = attempts + 1 WHERE (job_id, tile) = (SELECT t.job_id, t.tile FROM job_tiles t JOIN "
+                       "jobs j ON j.id = t.job_id WHERE j.state = {running} AND (t.state = 0 OR (t.state = 1 AND "
+                       "t.lease_expires_ms <= lsqsurf_now_ms())) AND ($3 = '' OR t.job_id = $3) ORDER BY t.job_id, "
+                       "t.tile LIMIT 1 FOR UPDATE OF t SKIP LOCKED) RETURNING job_id, tile, attempts"),
+      {runner, std::to_string(lease.count()), job_id});
+  if (!claimed.ok()) return claimed.status();
+  if (claimed->rows.empty()) return std::optional<TileTask>();
+  const auto& row = claimed->rows.front();
+  return std::optional<TileTask>(TileTask{row[0], rows::ToInt(row[1]), static_cast<int>(rows::ToInt(row[2]))});
+}
+
+absl::StatusOr<std::vector<TileTask>> PostgresJobStore::RenewTiles(const std::string& runner,
+                                                                   const std::vector<TileTask>& tiles,
+                                                                   std::chrono::milliseconds lease) {
+  std::vector<TileTask> held;
+  for (const TileTask& t : tiles) {
+    auto r = pool_->Exec(
+        "UPDATE job_tiles SET lease_expires_ms = lsqsurf_now_ms() + $4 WHERE job_id = $1 AND tile = $2 AND "
+        "runner = $3 AND state = 1",
+        {t.job_id, std::to_string(t.tile), runner, std::to_string(lease.count())});
+    if (!r.ok()) return r.status();
+    if (r->affected > 0) held.push_back(t);
+  }
+  return held;
+}
+
+absl::Status PostgresJobStore::FinishTile(const TileTask& tile, const std::string& runner) {
+  auto r = pool_->Exec("UPDATE job_tiles SET state = 2 WHERE job_id = $1 AND tile = $2 AND runner = $3 AND state = 1",
+                       {tile.job_id, std::to_string(tile.tile), runner});
+  if (!r.ok()) return r.status();
+  if (r->affected == 0) return TileNotHeld(tile, runner);
+  return absl::OkStatus();
+}
+
+absl::StatusOr<std::vector<std::pair<int64_t, std::string>>> PostgresJobStore::DoneTiles(const std::string& job_id) {
+  auto r = pool_->Exec("SELECT tile, runner FROM job_tiles WHERE job_id = $1 AND state = 2 ORDER BY tile", {job_id});
+  if (!r.ok()) return r.status();
+  std::vector<std::pair<int64_t, std::string>> out;
+  for (const auto& row : r->rows) out.emplace_back(rows::ToInt(row[0]), row[1]);
+  return out;
+}
+
+absl::Status PostgresJobStore::RemoveTiles(const std::string& job_id) {
+  return pool_->Exec("DELETE FROM job_tiles WHERE job_id = $1", {job_id}).status();
 }
 
 absl::StatusOr<JobRecord> PostgresJobStore::Get(const std::string& id) {
@@ -397,6 +468,19 @@ absl::StatusOr<std::unique_ptr<BlobReader>> PostgresBlobStore::Open(const std::s
 bool PostgresBlobStore::Exists(const std::string& job_id, std::string_view name) const {
   auto found = pool_->Exec("SELECT 1 FROM blobs WHERE job_id = $1 AND name = $2", {job_id, name});
   return found.ok() && !found->rows.empty();
+}
+
+absl::Status PostgresBlobStore::Remove(const std::string& job_id, std::string_view name) {
+  return pool_->Transaction([&](pg_conn* conn) -> absl::Status {
+    auto gone =
+        pg::Exec(conn, "DELETE FROM blobs WHERE job_id = $1 AND name = $2 RETURNING generation", {job_id, name});
+    if (!gone.ok()) return gone.status();
+    for (const auto& row : gone->rows) {
+      if (auto r = pg::Exec(conn, "DELETE FROM blob_chunks WHERE generation = $1", {row[0]}); !r.ok())
+        return r.status();
+    }
+    return absl::OkStatus();
+  });
 }
 
 absl::Status PostgresBlobStore::RemoveJob(const std::string& job_id) {

@@ -48,6 +48,14 @@ class PostgresJobStore final : public JobStore {
   absl::StatusOr<JobRecord> Get(const std::string& id) override;
   absl::StatusOr<JobChanges> ChangesSince(int64_t seq) override;
   void WaitForOthers(std::chrono::milliseconds timeout) override;
+  absl::Status AddTiles(const std::string& job_id, int64_t count) override;
+  absl::StatusOr<std::optional<TileTask>> ClaimTile(const std::string& runner, std::chrono::milliseconds lease,
+                                                    const std::string& job_id) override;
+  absl::StatusOr<std::vector<TileTask>> RenewTiles(const std::string& runner, const std::vector<TileTask>& tiles,
+                                                   std::chrono::milliseconds lease) override;
+  absl::Status FinishTile(const TileTask& tile, const std::string& runner) override;
+  absl::StatusOr<std::vector<std::pair<int64_t, std::string>>> DoneTiles(const std::string& job_id) override;
+  absl::Status RemoveTiles(const std::string& job_id) override;
 
   // The pool, for a blob store on the same database.
   const std::shared_ptr<pg::Pool>& pool() const { return pool_; }
@@ -71,6 +79,7 @@ class PostgresBlobStore final : public BlobStore {
   absl::Status Put(const std::string& job_id, std::string_view name, std::string_view bytes) override;
   absl::StatusOr<std::unique_ptr<BlobReader>> Open(const std::string& job_id, std::string_view name) const override;
   bool Exists(const std::string& job_id, std::string_view name) const override;
+  absl::Status Remove(const std::string& job_id, std::string_view name) override;
   absl::Status RemoveJob(const std::string& job_id) override;
 
   static constexpr size_t kChunkBytes = size_t{1} << 20;

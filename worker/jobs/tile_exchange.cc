@@ -1,0 +1,174 @@
+#include "worker/jobs/tile_exchange.h"
+
+#include <spdlog/spdlog.h>
+
+#include <algorithm>
+#include <thread>
+
+#include "worker/core/status.h"
+#include "worker/core/strings.h"
+
+namespace lsqsurf::jobs {
+namespace {
+
+constexpr char kPlanBlob[] = "tile-plan";
+// How long the job's server waits between looks at the store when no tile is left to claim and
+// the next part is not made yet: short beside a tile's seconds.
+constexpr std::chrono::milliseconds kPartPoll(200);
+
+std::string TileBlob(std::string_view kind, int64_t tile) { return core::StrCat("tile-", kind, "-", tile); }
+
+// The server a runner name belongs to ("r1/5f3a…" → "r1").
+std::string ServerOf(const std::string& runner) { return runner.substr(0, runner.find('/')); }
+
+// A failed tile's status as the text of its error blob: the code's number, a newline, the message.
+std::string EncodeError(const absl::Status& status) {
+  return core::StrCat(static_cast<int>(status.code()), "\n", status.message());
+}
+absl::Status DecodeError(int64_t tile, std::string_view text) {
+  const size_t newline = text.find('\n');
+  int code = static_cast<int>(absl::StatusCode::kInternal);
+  if (newline != std::string_view::npos) {
+    const int read = std::atoi(std::string(text.substr(0, newline)).c_str());
+    if (read > 0 && read <= static_cast<int>(absl::StatusCode::kUnauthenticated)) code = read;
+    text.remove_prefix(newline + 1);
+  }
+  return absl::Status(static_cast<absl::StatusCode>(code), core::StrCat("tile ", tile, ": ", text));
+}
+
+}  // namespace
+
+absl::Status RunSharedTile(BlobStore& blobs, const std::string& job_id, int64_t tile, core::JobContext& ctx) {
+  auto plan_bytes = blobs.Read(job_id, kPlanBlob);
+  if (!plan_bytes.ok()) return plan_bytes.status();
+  auto point_bytes = blobs.Read(job_id, TileBlob("points", tile));
+  if (!point_bytes.ok()) return point_bytes.status();
+  auto part = [&]() -> absl::StatusOr<std::string> {
+    auto plan = pu::DecodeTilePlan(*plan_bytes);
+    if (!plan.ok()) return plan.status();
+    auto points = pu::DecodeTilePoints(*point_bytes);
+    if (!points.ok()) return points.status();
+    point_bytes->clear();
+    return pu::RunTile(*plan, static_cast<size_t>(tile), *std::move(points), ctx);
+  }();
+  if (part.ok()) return blobs.Put(job_id, TileBlob("part", tile), *part);
+  if (absl::IsCancelled(part.status())) return part.status();
+  return blobs.Put(job_id, TileBlob("error", tile), EncodeError(part.status()));
+}
+
+absl::StatusOr<bool> RunClaimedTile(JobStore& store, BlobStore& blobs, const std::string& runner,
+                                    std::chrono::milliseconds lease, const StoreTileExchange::HoldFn& hold,
+                                    core::JobContext& ctx, const std::string& job_id) {
+  auto claimed = store.ClaimTile(runner, lease, job_id);
+  if (!claimed.ok()) return claimed.status();
+  if (!claimed->has_value()) return false;
+  const TileTask& task = **claimed;
+  hold(task, true);
+  const auto start = std::chrono::steady_clock::now();
+  const absl::Status ran = RunSharedTile(blobs, task.job_id, task.tile, ctx);
+  if (ran.ok()) {
+    spdlog::info("[job {}] tile {} made here in {:.2f} s (attempt {})", task.job_id, task.tile,
+                 core::SecondsSince(start), task.attempts);
+  }
+  // A tile that was not made goes back to the others when its lease lapses; one that was is done.
+  const absl::Status finished = ran.ok() ? store.FinishTile(task, runner) : ran;
+  hold(task, false);
+  if (!finished.ok() && !absl::IsCancelled(finished)) {
+    spdlog::warn("[job {}] tile {}: {}", task.job_id, task.tile, finished.ToString());
+  }
+  if (absl::IsCancelled(ran)) return ran;
+  return true;
+}
+
+absl::Status StoreTileExchange::Publish(std::string_view plan, int64_t tiles,
+                                        const std::function<absl::StatusOr<std::string>(int64_t)>& points) {
+  tiles_ = tiles;
+  done_.clear();
+  LSQSURF_RETURN_IF_ERROR(blobs_.Put(job_id_, kPlanBlob, plan));
+  for (int64_t t = 0; t < tiles; ++t) {
+    auto bytes = points(t);
+    if (!bytes.ok()) return bytes.status();
+    LSQSURF_RETURN_IF_ERROR(blobs_.Put(job_id_, TileBlob("points", t), *bytes));
+    // What an earlier attempt of the job left.
+    LSQSURF_RETURN_IF_ERROR(blobs_.Remove(job_id_, TileBlob("part", t)));
+    LSQSURF_RETURN_IF_ERROR(blobs_.Remove(job_id_, TileBlob("error", t)));
+  }
+  return store_.AddTiles(job_id_, tiles);
+}
+
+absl::StatusOr<std::string> StoreTileExchange::Part(int64_t tile, core::JobContext& ctx) {
+  for (;;) {
+    LSQSURF_RETURN_IF_ERROR(ctx.CheckCancelled());
+    if (!done_.contains(tile)) {
+      auto done = store_.DoneTiles(job_id_);
+      if (!done.ok()) return done.status();
+      for (auto& [t, runner] : *done) done_[t] = std::move(runner);
+    }
+    if (auto it = done_.find(tile); it != done_.end()) {
+      if (blobs_.Exists(job_id_, TileBlob("error", tile))) {
+        auto text = blobs_.Read(job_id_, TileBlob("error", tile));
+        if (!text.ok()) return text.status();
+        return DecodeError(tile, *text);
+      }
+      auto part = blobs_.Read(job_id_, TileBlob("part", tile));
+      if (!part.ok()) return part.status();
+      servers_.insert(ServerOf(it->second));
+      // The part is welded now: its points and bytes are not needed any more.
+      (void)blobs_.Remove(job_id_, TileBlob("points", tile));
+      (void)blobs_.Remove(job_id_, TileBlob("part", tile));
+      return part;
+    }
+    auto ran = RunClaimedTile(store_, blobs_, runner_, lease_, hold_, ctx, job_id_);
+    if (!ran.ok()) return ran.status();
+    if (!*ran) std::this_thread::sleep_for(kPartPoll);  // Every tile left is with another server.
+  }
+}
+
+void StoreTileExchange::Clear() {
+  if (absl::Status s = store_.RemoveTiles(job_id_); !s.ok()) {
+    spdlog::warn("[job {}] cannot drop its tiles: {}", job_id_, s.ToString());
+  }
+  (void)blobs_.Remove(job_id_, kPlanBlob);
+  for (int64_t t = 0; t < tiles_; ++t) {
+    for (const char* kind : {"points", "part", "error"}) (void)blobs_.Remove(job_id_, TileBlob(kind, t));
+  }
+}
+
+absl::StatusOr<pu::TiledStats> ReconstructTiledShared(const pu::PointSource& source, const pu::PuParams& fit,
+                                                      const pu::PuExtractParams& extract, const pu::PuTileParams& tiles,
+                                                      pu::SurfaceSink& sink, core::JobContext& ctx,
+                                                      const TiledRun& run) {
+  TileExchange& exchange = *run.exchange;
+  core::SubContext measure_ctx(ctx, "measuring the cloud", 0.0, 0.15);
+  auto planned = pu::PlannedCloud::Plan(source, fit, extract, tiles, measure_ctx, run.scratch_dir);
+  if (!planned.ok()) return planned.status();
+  const pu::TilePlan plan = (*planned)->plan();
+  struct Clear {
+    TileExchange& exchange;
+    ~Clear() { exchange.Clear(); }
+  } clear{exchange};
+  const auto count = static_cast<int64_t>(plan.tiles.size());
+  core::SubContext publish_ctx(ctx, "sharing the tiles", 0.15, 0.2);
+  LSQSURF_RETURN_IF_ERROR(
+      exchange.Publish(pu::EncodeTilePlan(plan), count, [&](int64_t t) -> absl::StatusOr<std::string> {
+        publish_ctx.ReportProgress("sharing the tiles", static_cast<double>(t) / static_cast<double>(count));
+        LSQSURF_RETURN_IF_ERROR(publish_ctx.CheckCancelled());
+        auto points = (*planned)->TilePoints(static_cast<size_t>(t));
+        if (!points.ok()) return points.status();
+        return pu::EncodeTilePoints(*points);
+      }));
+  planned->reset();  // The points are in the blob store now; their files go.
+  pu::TileJoiner joiner(plan, sink);
+  core::SubContext tiles_ctx(ctx, "fitting and extracting tiles", 0.2, 1.0);
+  for (int64_t t = 0; t < count; ++t) {
+    core::SubContext tile_ctx(tiles_ctx, core::StrCat("tile ", t + 1, " of ", count),
+                              static_cast<double>(t) / static_cast<double>(count),
+                              static_cast<double>(t + 1) / static_cast<double>(count));
+    auto part = exchange.Part(t, tile_ctx);
+    if (!part.ok()) return part.status();
+    LSQSURF_RETURN_IF_ERROR(joiner.Add(*part));
+  }
+  return joiner.Finish();
+}
+
+}  // namespace lsqsurf::jobs

@@ -1,0 +1,105 @@
+// worker/jobs/tile_exchange.h — one tiled PU build spread over the servers that share a store.
+//
+// The server running the job plans it (pu::PlannedCloud), puts the plan and each tile's points
+// in the blob store and queues the tiles in the job store. Every server with an idle worker
+// claims tiles of running jobs (JobStore::ClaimTile), runs them from those blobs alone
+// (RunSharedTile) and stores their parts; a tile whose server died is claimed again when its
+// lease lapses. The job's server runs tiles too while it waits, and welds the parts in tile
+// order as they come (pu::TileJoiner), so the surface is the one a single server makes.
+//
+// Blobs of the job while it runs: tile-plan, tile-points-N, tile-part-N (or tile-error-N, the
+// reason a tile could not be made); all are removed when the build ends.
+#pragma once
+
+#include <chrono>
+#include <cstdint>
+#include <functional>
+#include <map>
+#include <set>
+#include <string>
+#include <string_view>
+
+#include "absl/status/statusor.h"
+#include "worker/core/job_context.h"
+#include "worker/jobs/store/blob_store.h"
+#include "worker/jobs/store/job_store.h"
+#include "worker/pu/pu_tiles.h"
+
+namespace lsqsurf::jobs {
+
+// Where a build's tiles run. The job's run uses it; JobService makes one per run on a shared store.
+class TileExchange {
+ public:
+  virtual ~TileExchange() = default;
+  // Makes `tiles` tiles available to every server: the plan, and each tile's points from `points`.
+  // Errors: kUnavailable, kResourceExhausted (storage), those of `points`.
+  virtual absl::Status Publish(std::string_view plan, int64_t tiles,
+                               const std::function<absl::StatusOr<std::string>(int64_t)>& points) = 0;
+  // Tile `tile`'s part, once a server has made it; meanwhile this server runs tiles of the build
+  // itself. Errors: kCancelled, kUnavailable, the error that tile met.
+  virtual absl::StatusOr<std::string> Part(int64_t tile, core::JobContext& ctx) = 0;
+  // The servers (runner names up to the '/') that made the parts Part returned.
+  virtual int Servers() const = 0;
+  // Drops the tiles and their blobs.
+  virtual void Clear() = 0;
+};
+
+// Where a tiled run keeps its point files ("": the system's temporary directory) and, where
+// given, the exchange that spreads its tiles over the servers.
+struct TiledRun {
+  std::string scratch_dir;
+  TileExchange* exchange = nullptr;
+};
+
+// The tiled PU surface of `source` with its tiles run through `exchange`: the surface
+// pu::ReconstructTiled makes, handed to `sink` in the same parts. Errors: as ReconstructTiled,
+// and the exchange's.
+absl::StatusOr<pu::TiledStats> ReconstructTiledShared(const pu::PointSource& source, const pu::PuParams& fit,
+                                                      const pu::PuExtractParams& extract, const pu::PuTileParams& tiles,
+                                                      pu::SurfaceSink& sink, core::JobContext& ctx,
+                                                      const TiledRun& run);
+
+// Makes tile `tile` of job `job_id` from the blobs its server published and stores its part (or,
+// where the tile fails, the reason, for the job's server to report). Errors: kCancelled (nothing
+// stored), kNotFound (the build is gone), kUnavailable.
+absl::Status RunSharedTile(BlobStore& blobs, const std::string& job_id, int64_t tile, core::JobContext& ctx);
+
+// The exchange over a job store and a blob store that servers share.
+class StoreTileExchange final : public TileExchange {
+ public:
+  // `hold(task, true)` before this server runs a tile, `hold(task, false)` after: the tiles whose
+  // leases its renewal extends.
+  using HoldFn = std::function<void(const TileTask&, bool)>;
+  StoreTileExchange(JobStore& store, BlobStore& blobs, std::string job_id, std::string runner,
+                    std::chrono::milliseconds lease, HoldFn hold)
+      : store_(store),
+        blobs_(blobs),
+        job_id_(std::move(job_id)),
+        runner_(std::move(runner)),
+        lease_(lease),
+        hold_(std::move(hold)) {}
+
+  absl::Status Publish(std::string_view plan, int64_t tiles,
+                       const std::function<absl::StatusOr<std::string>(int64_t)>& points) override;
+  absl::StatusOr<std::string> Part(int64_t tile, core::JobContext& ctx) override;
+  int Servers() const override { return static_cast<int>(servers_.size()); }
+  void Clear() override;
+
+ private:
+  JobStore& store_;
+  BlobStore& blobs_;
+  std::string job_id_, runner_;
+  std::chrono::milliseconds lease_;
+  HoldFn hold_;
+  int64_t tiles_ = 0;
+  std::map<int64_t, std::string> done_;  // Tile → the runner that finished it.
+  std::set<std::string> servers_;
+};
+
+// Claims one tile of any running job for `runner` and runs it (RunSharedTile), holding it
+// through `hold` meanwhile; false when there was none. Errors: kUnavailable (the store).
+absl::StatusOr<bool> RunClaimedTile(JobStore& store, BlobStore& blobs, const std::string& runner,
+                                    std::chrono::milliseconds lease, const StoreTileExchange::HoldFn& hold,
+                                    core::JobContext& ctx, const std::string& job_id = "");
+
+}  // namespace lsqsurf::jobs

@@ -82,6 +82,12 @@ TEST_P(BlobStoreContract, StoresStreamsReplacesAndRemoves) {
   EXPECT_EQ(blobs_->Read("job1", "mesh.drc").value(), "short");
   EXPECT_EQ(blobs_->Open("job1", "nothing").status().code(), absl::StatusCode::kNotFound);
   EXPECT_EQ(blobs_->Open("job2", "mesh.drc").status().code(), absl::StatusCode::kNotFound);
+  // One blob removed, the job's others kept.
+  ASSERT_TRUE(blobs_->Put("job1", "tile-part-0", bytes).ok());
+  ASSERT_TRUE(blobs_->Remove("job1", "tile-part-0").ok());
+  EXPECT_FALSE(blobs_->Exists("job1", "tile-part-0"));
+  EXPECT_EQ(blobs_->Read("job1", "mesh.drc").value_or(""), "short");
+  EXPECT_TRUE(blobs_->Remove("job1", "tile-part-0").ok());  // Nothing left: not an error.
   ASSERT_TRUE(blobs_->RemoveJob("job1").ok());
   EXPECT_FALSE(blobs_->Exists("job1", "mesh.drc"));
   EXPECT_TRUE(blobs_->RemoveJob("job1").ok());  // Nothing left: not an error.

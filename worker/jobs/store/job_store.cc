@@ -77,6 +77,16 @@ absl::StatusOr<std::unique_ptr<SqliteJobStore>> SqliteJobStore::Open(const std::
 }
 
 absl::Status SqliteJobStore::Migrate() {
+  // An up-to-date database is opened without a write: a server whose disk filled up must still
+  // start, to serve what it stored and let its jobs be deleted.
+  auto version = Query("PRAGMA user_version");
+  if (!version.ok()) return version.status();
+  if (!version->empty() && rows::ToInt(version->front().front()) == kSchemaVersion) {
+    for (const char* sql : {"PRAGMA journal_mode=WAL", "PRAGMA synchronous=FULL"}) {
+      if (auto r = Query(sql); !r.ok()) return r.status();
+    }
+    return absl::OkStatus();
+  }
   for (const char* sql : {"PRAGMA journal_mode=WAL", "PRAGMA synchronous=FULL",
                           "CREATE TABLE IF NOT EXISTS jobs (id TEXT PRIMARY KEY, method TEXT, "
                           "parameters TEXT, mesh_bits INTEGER, state INTEGER, stage TEXT, "

@@ -800,6 +800,8 @@ TEST_F(JobServiceTest, AMeshInPartsIsDrawnAsTheWholeMeshIs) {
   auto whole_picture = s.Render({}, whole->id, "mesh.drc", view, nullptr);
   auto parts_picture = s.Render({}, parts->id, "", view, nullptr);
   ASSERT_TRUE(whole_picture.ok() && parts_picture.ok()) << whole_picture.status() << parts_picture.status();
+  EXPECT_EQ(s.Render({}, parts->id, MeshPartArtifact(99999), view, nullptr).status().code(),
+            absl::StatusCode::kNotFound);
   EXPECT_EQ(parts_picture->color_min, whole_picture->color_min);
   EXPECT_EQ(parts_picture->color_max, whole_picture->color_max);
   pairs.emplace_back(whole_picture->png, parts_picture->png);

@@ -113,7 +113,8 @@ TEST(MeshPartPieces, APartOutOfStepOrUnreadableIsNamed) {
       3, [&](int64_t p) { return parts[static_cast<size_t>(p)]; }, "");
   const absl::Status cut = truncated.ForEach(visit);
   EXPECT_EQ(cut.code(), absl::StatusCode::kInvalidArgument);
-  EXPECT_NE(cut.message().find("mesh part 1"), std::string::npos) << cut;
+  EXPECT_EQ(cut.message().find("mesh part 1: "), 0u) << cut;
+  EXPECT_EQ(cut.message().find("mesh part:"), std::string::npos) << "named twice: " << cut;
   const MeshPartPieces missing(
       3, [](int64_t) -> absl::StatusOr<std::string> { return absl::NotFoundError("gone"); }, "");
   EXPECT_EQ(missing.ForEach(visit).code(), absl::StatusCode::kNotFound);

@@ -37,7 +37,13 @@ absl::StatusOr<RenderedPicture> JobService::Render(const Submitter& who, const s
   }
   const absl::Cleanup release = [&] { ReleaseRenderSlot(who.owner); };
   const bool whole_name = name.empty() && !record->results.empty();
-  if (MeshPartOf(whole_name ? record->results.front() : name) >= 0) return RenderMeshParts(*record, *params);
+  // A part stands for the whole mesh only where it is one of the job's results; other names get
+  // OpenResult's answer.
+  const bool listed =
+      whole_name || std::find(record->results.begin(), record->results.end(), name) != record->results.end();
+  if (listed && MeshPartOf(whole_name ? record->results.front() : name) >= 0) {
+    return RenderMeshParts(*record, *params);
+  }
   auto reader = OpenResult(id, name);
   if (!reader.ok()) return reader.status();
   auto read = ReadAll(**reader);

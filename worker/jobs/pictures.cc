@@ -26,7 +26,12 @@ absl::Status MeshPartPieces::ForEach(const std::function<absl::Status(const core
     auto bytes = read_(p);
     if (!bytes.ok()) return bytes.status();
     auto part = io::DecodeMeshPart(*bytes);
-    if (!part.ok()) return absl::InvalidArgumentError(core::StrCat("mesh part ", p, ": ", part.status().message()));
+    if (!part.ok()) {
+      std::string why(part.status().message());
+      constexpr std::string_view kDecoderPrefix = "mesh part: ";  // Numbered here instead.
+      if (why.starts_with(kDecoderPrefix)) why.erase(0, kDecoderPrefix.size());
+      return absl::InvalidArgumentError(core::StrCat("mesh part ", p, ": ", why));
+    }
     *bytes = {};
     auto piece = joiner.Next(*part);
     if (!piece.ok()) return piece.status();

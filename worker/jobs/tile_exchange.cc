@@ -38,7 +38,8 @@ absl::Status DecodeError(int64_t tile, std::string_view text) {
 
 }  // namespace
 
-absl::Status RunSharedTile(BlobStore& blobs, const std::string& job_id, int64_t tile, core::JobContext& ctx) {
+absl::StatusOr<TileBlobBytes> RunSharedTile(BlobStore& blobs, const std::string& job_id, int64_t tile,
+                                            core::JobContext& ctx) {
   auto plan_bytes = blobs.Read(job_id, kPlanBlob);
   if (!plan_bytes.ok()) return plan_bytes.status();
   auto point_bytes = blobs.Read(job_id, TileBlob("points", tile));
@@ -51,9 +52,9 @@ absl::Status RunSharedTile(BlobStore& blobs, const std::string& job_id, int64_t 
     point_bytes->clear();
     return pu::RunTile(*plan, static_cast<size_t>(tile), *std::move(points), ctx);
   }();
-  if (part.ok()) return blobs.Put(job_id, TileBlob("part", tile), *part);
+  if (part.ok()) return TileBlobBytes{TileBlob("part", tile), *std::move(part)};
   if (absl::IsCancelled(part.status())) return part.status();
-  return blobs.Put(job_id, TileBlob("error", tile), EncodeError(part.status()));
+  return TileBlobBytes{TileBlob("error", tile), EncodeError(part.status())};
 }
 
 absl::StatusOr<bool> RunClaimedTile(JobStore& store, BlobStore& blobs, const std::string& runner,
@@ -65,7 +66,16 @@ absl::StatusOr<bool> RunClaimedTile(JobStore& store, BlobStore& blobs, const std
   const TileTask& task = **claimed;
   hold(task, true);
   const auto start = std::chrono::steady_clock::now();
-  const absl::Status ran = RunSharedTile(blobs, task.job_id, task.tile, ctx);
+  absl::Status ran = absl::OkStatus();
+  if (auto made = RunSharedTile(blobs, task.job_id, task.tile, ctx); !made.ok()) {
+    ran = made.status();
+  } else {
+    // Only for a job that still runs: a part stored after its job was deleted would stay behind.
+    auto job = store.Get(task.job_id);
+    ran = !job.ok()                          ? job.status()
+          : job->state != JobState::kRunning ? absl::CancelledError(core::StrCat("job ", task.job_id, " ended"))
+                                             : blobs.Put(task.job_id, made->name, made->bytes);
+  }
   if (ran.ok()) {
     spdlog::info("[job {}] tile {} made here in {:.2f} s (attempt {})", task.job_id, task.tile,
                  core::SecondsSince(start), task.attempts);
@@ -76,7 +86,7 @@ absl::StatusOr<bool> RunClaimedTile(JobStore& store, BlobStore& blobs, const std
   if (!finished.ok() && !absl::IsCancelled(finished)) {
     spdlog::warn("[job {}] tile {}: {}", task.job_id, task.tile, finished.ToString());
   }
-  if (absl::IsCancelled(ran)) return ran;
+  if (absl::IsCancelled(ran) && ctx.IsCancelled()) return ran;
   return true;
 }
 

@@ -59,10 +59,17 @@ absl::StatusOr<pu::TiledStats> ReconstructTiledShared(const pu::PointSource& sou
                                                       pu::SurfaceSink& sink, core::JobContext& ctx,
                                                       const TiledRun& run);
 
-// Makes tile `tile` of job `job_id` from the blobs its server published and stores its part (or,
-// where the tile fails, the reason, for the job's server to report). Errors: kCancelled (nothing
-// stored), kNotFound (the build is gone), kUnavailable.
-absl::Status RunSharedTile(BlobStore& blobs, const std::string& job_id, int64_t tile, core::JobContext& ctx);
+// What a tile leaves in the blob store: its part (tile-part-N), or where it failed the reason, for
+// the job's server to report (tile-error-N).
+struct TileBlobBytes {
+  std::string name;
+  std::string bytes;
+};
+
+// Makes tile `tile` of job `job_id` from the blobs its server published. Errors: kCancelled,
+// kNotFound (the build is gone), kUnavailable.
+absl::StatusOr<TileBlobBytes> RunSharedTile(BlobStore& blobs, const std::string& job_id, int64_t tile,
+                                            core::JobContext& ctx);
 
 // The exchange over a job store and a blob store that servers share.
 class StoreTileExchange final : public TileExchange {
@@ -96,8 +103,9 @@ class StoreTileExchange final : public TileExchange {
   std::set<std::string> servers_;
 };
 
-// Claims one tile of any running job for `runner` and runs it (RunSharedTile), holding it
-// through `hold` meanwhile; false when there was none. Errors: kUnavailable (the store).
+// Claims one tile of any running job for `runner`, runs it (RunSharedTile) and stores what it
+// left if the job still runs, holding the tile through `hold` meanwhile; false when there was
+// none. Errors: kCancelled (`ctx`), kUnavailable (the store).
 absl::StatusOr<bool> RunClaimedTile(JobStore& store, BlobStore& blobs, const std::string& runner,
                                     std::chrono::milliseconds lease, const StoreTileExchange::HoldFn& hold,
                                     core::JobContext& ctx, const std::string& job_id = "");

@@ -3,6 +3,8 @@
 #include <spdlog/spdlog.h>
 
 #include <algorithm>
+#include <exception>
+#include <new>
 #include <thread>
 
 #include "worker/core/status.h"
@@ -50,7 +52,15 @@ absl::StatusOr<TileBlobBytes> RunSharedTile(BlobStore& blobs, const std::string&
     auto points = pu::DecodeTilePoints(*point_bytes);
     if (!points.ok()) return points.status();
     point_bytes->clear();
-    return pu::RunTile(*plan, static_cast<size_t>(tile), *std::move(points), ctx);
+    // A tile that throws fails its job, as a job's run does (JobService::RunKind), and never the
+    // server: every replica would claim it in turn.
+    try {
+      return pu::RunTile(*plan, static_cast<size_t>(tile), *std::move(points), ctx);
+    } catch (const std::bad_alloc&) {
+      return absl::ResourceExhaustedError("the tile ran out of memory");
+    } catch (const std::exception& e) {
+      return absl::InternalError(core::StrCat("engine error: ", e.what()));
+    }
   }();
   if (part.ok()) return TileBlobBytes{TileBlob("part", tile), *std::move(part)};
   if (absl::IsCancelled(part.status())) return part.status();

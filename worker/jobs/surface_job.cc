@@ -526,11 +526,11 @@ class SurfaceKind final : public TypedJobKind<core::ParamSet, SurfaceInput> {
     const ArtifactWriteFn write = [&env](const std::string& name, std::string_view bytes) {
       return env.sink.Write(name, bytes);
     };
-    auto result = input.parts.empty()
-                      ? ReconstructSurface(spec.method, params, std::move(input.cloud), env.context, env.memory_bytes,
-                                           TiledRun{env.scratch_dir, env.tiles})
-                      : ReconstructStreamed(spec.method, params, DracoPartsSource(input.parts), input.points,
-                                            env.context, env.memory_bytes, write, TiledRun{env.scratch_dir, env.tiles});
+    const TiledRun tiled{env.scratch_dir, env.tiles};
+    auto result = input.parts.empty() ? ReconstructSurface(spec.method, params, std::move(input.cloud), env.context,
+                                                           env.memory_bytes, tiled)
+                                      : ReconstructStreamed(spec.method, params, DracoPartsSource(input.parts),
+                                                            input.points, env.context, env.memory_bytes, write, tiled);
     if (!result.ok()) return result.status();
     if (result->mesh_parts == 0) {
       LSQSURF_RETURN_IF_ERROR(DeliverMesh(result->mesh, spec, env, &result->statistics));

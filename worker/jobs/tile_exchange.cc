@@ -125,11 +125,10 @@ absl::StatusOr<std::string> StoreTileExchange::Part(int64_t tile, core::JobConte
       for (auto& [t, runner] : *done) done_[t] = std::move(runner);
     }
     if (auto it = done_.find(tile); it != done_.end()) {
-      if (blobs_.Exists(job_id_, TileBlob("error", tile))) {
-        auto text = blobs_.Read(job_id_, TileBlob("error", tile));
-        if (!text.ok()) return text.status();
-        return DecodeError(tile, *text);
-      }
+      // A failed tile left its reason instead of a part.
+      auto text = blobs_.Read(job_id_, TileBlob("error", tile));
+      if (text.ok()) return DecodeError(tile, *text);
+      if (!absl::IsNotFound(text.status())) return text.status();
       auto part = blobs_.Read(job_id_, TileBlob("part", tile));
       if (!part.ok()) return part.status();
       servers_.insert(ServerOf(it->second));

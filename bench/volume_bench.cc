@@ -172,6 +172,31 @@ void ReportIsosurface(const Case& c, const volume::VolumeField& field, const vol
   std::printf("\n");
 }
 
+// The case's mesh from a file, made fit for the engine as a server would, its field sampled.
+bool ReadCaseMesh(const std::string& path, Case& c) {
+  auto mesh = lsqsurf::io::ReadVolumeFile(path);
+  if (!mesh.ok()) {
+    std::printf("%s\n", std::string(mesh.status().message()).c_str());
+    return false;
+  }
+  mesh->fields.clear();
+  const auto start = Clock::now();
+  auto repairs = volume::RepairVolumeMesh(*mesh);
+  if (!repairs.ok()) {
+    std::printf("%s: %s\n", path.c_str(), std::string(repairs.status().message()).c_str());
+    return false;
+  }
+  std::printf(
+      "%s: repaired in %.2f s: %lld linearised, %lld reoriented, %lld degenerate cells; %lld merged, %lld unused "
+      "vertices\n",
+      path.c_str(), Seconds(start), static_cast<long long>(repairs->linearised_cells),
+      static_cast<long long>(repairs->reoriented_cells), static_cast<long long>(repairs->degenerate_cells),
+      static_cast<long long>(repairs->merged_vertices), static_cast<long long>(repairs->unused_vertices));
+  c.mesh = *std::move(mesh);
+  volume::SampleField(c.mesh, c.field);
+  return true;
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -184,14 +209,18 @@ int main(int argc, char** argv) {
   app.add_option("--n", n, "vertices per axis (points: n^3 of them)")->capture_default_str();
   app.add_option("--samples", samples, "error sample points")->capture_default_str();
   app.add_option("--probes", probes, "timed probe points")->capture_default_str();
-  std::string write;
+  std::string write, mesh_file;
   app.add_option("--write", write, "also write each case's mesh as binary legacy VTK: PREFIX-CASE.vtk");
+  app.add_option("--mesh", mesh_file,
+                 "the cases' mesh from this .vtk/.vtu file instead (as other tools write it: repaired first, the "
+                 "case's field sampled at its vertices)");
   volume::VolumeFieldParams params;
   app.add_option("--epsilon", params.epsilon, "kernel shape; 0 = cross-validation")->capture_default_str();
   app.add_option("--iterations", params.iterations, "-1 = cross-validation")->capture_default_str();
   CLI11_PARSE(app, argc, argv);
   for (const std::string& name : cases) {
     Case c = MakeCase(name, n);
+    if (!mesh_file.empty() && !ReadCaseMesh(mesh_file, c)) return 1;
     std::printf("%s: %zu vertices, %zu cells\n", name.c_str(), c.mesh.vertex_count(), c.mesh.cell_count());
     ReportUpload(c);
     if (!write.empty()) {

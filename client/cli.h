@@ -176,6 +176,10 @@ struct VolumeFlags {
     }
     auto encoded = client::EncodeVolumeFile(path, raw, fields);
     if (!encoded.ok()) return encoded.status();
+    if (encoded->missing_vertices > 0) {
+      std::fprintf(stderr, "%s: %lld vertices without a value were filled in from their neighbours\n", path.c_str(),
+                   static_cast<long long>(encoded->missing_vertices));
+    }
     return Upload{std::move(encoded->vertices), std::move(encoded->cells)};
   }
 };

@@ -268,6 +268,8 @@ int RenderToFile(const Globals& g, const std::string& id, const std::string& nam
     if (name == kVolumeField) {
       std::fprintf(stderr, "; sampled grid error RMS %.3g, max %.3g", response->grid_rms_error(),
                    response->grid_max_error());
+    } else if (view.has_samples() && response->samples() < view.samples()) {
+      std::fprintf(stderr, "; %d samples per pixel, the most this GL offers", response->samples());
     }
     std::fprintf(stderr, ")\n");
   }

@@ -231,6 +231,13 @@ absl::StatusOr<VolumeUpload> EncodeVolumeFile(const std::string& path, const std
   }
   if (!mesh.ok()) return mesh.status();
   VolumeUpload out;
+  // Only the fields that go up may refuse the file for their missing values.
+  std::erase_if(mesh->fields, [&](const core::VertexField& f) {
+    return std::find(fields.begin(), fields.end(), f.name) == fields.end();
+  });
+  auto missing = core::FillMissingValues(*mesh);
+  if (!missing.ok()) return absl::InvalidArgumentError(core::StrCat(path, ": ", missing.status().message()));
+  out.missing_vertices = *missing;
   auto vertices = io::EncodeVolumeVertices(*mesh, fields, {});
   if (!vertices.ok()) return absl::InvalidArgumentError(core::StrCat(path, ": ", vertices.status().message()));
   out.vertices = *std::move(vertices);

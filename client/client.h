@@ -39,10 +39,13 @@ absl::Status SetParamAssignment(v1::JobSpec* spec, std::string_view assignment);
 // A volume file as the two uploads of a volume job (VolumeParams): the vertices with the named
 // fields as Draco, the cells as a stream. `raw_layout` non-empty reads `path` as a raw volume
 // ("NXxNYxNZ:TYPE[:SPACING]", its field named `fields[0]`). Errors: kInvalidArgument naming the
-// file and the problem (a missing field lists those present).
+// file and the problem (a missing field lists those present). Values that are NaN or infinite
+// cannot travel in Draco's quantized attributes: they are filled in from the neighbouring
+// vertices first (core::FillMissingValues), or the file is refused when too many are missing.
 struct VolumeUpload {
   std::string vertices;
   std::string cells;
+  int64_t missing_vertices = 0;  // Vertices whose values were filled in.
 };
 absl::StatusOr<VolumeUpload> EncodeVolumeFile(const std::string& path, const std::string& raw_layout,
                                               const std::vector<std::string>& fields);

@@ -7,7 +7,8 @@
 # --with-poisson also installs Open3D (libopen3d-dev, large), needed only by the benchmark
 # preset `bench-poisson` that runs screened Poisson side by side; --with-openvdb installs
 # libopenvdb-dev, needed only by the preset `bench-openvdb` (the level-set reference of the
-# front-tracking benchmarks); --with-vtk the VTK reference of the volume benchmark;
+# front-tracking benchmarks); --with-vtk the VTK reference of the volume benchmark; --with-scipy
+# SciPy, with which bench/exported_volume.py writes Delaunay meshes as other tools do;
 # --with-containers podman, debootstrap, podman-compose and the CNI dnsname plugin for
 # scripts/container-base.sh, container-test.sh and compose-test.sh; --with-fuzz clang and its
 # libFuzzer runtime for scripts/fuzz.sh. Any of them may be given.
@@ -29,7 +30,8 @@ for option in "$@"; do
     --with-vtk) packages+=(python3-vtk9 python3-numpy xvfb) ;;  # bench/vtk_volume_reference.py
     --with-containers) packages+=(podman runc debootstrap uidmap slirp4netns fuse-overlayfs podman-compose golang-github-containernetworking-plugin-dnsname) ;;  # scripts/container-*.sh, compose-test.sh
     --with-fuzz) packages+=(clang libclang-rt-dev) ;;  # scripts/fuzz.sh
-    *) echo "install-deps: unknown option $option (--with-poisson, --with-openvdb, --with-vtk, --with-containers, --with-fuzz)" >&2; exit 2 ;;
+    --with-scipy) packages+=(python3-scipy python3-numpy) ;;  # bench/exported_volume.py
+    *) echo "install-deps: unknown option $option (--with-poisson, --with-openvdb, --with-vtk, --with-containers, --with-fuzz, --with-scipy)" >&2; exit 2 ;;
   esac
 done
 

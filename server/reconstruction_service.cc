@@ -547,6 +547,7 @@ grpc::Status ReconstructionService::Render(grpc::ServerContext* context, const v
     response->set_renderer(picture->renderer);
     response->set_grid_rms_error(picture->grid_rms_error);
     response->set_grid_max_error(picture->grid_max_error);
+    response->set_samples(picture->samples);
     return grpc::Status::OK;
   });
 }

@@ -3,6 +3,7 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <map>
 #include <numbers>
 #include <thread>
 
@@ -361,6 +362,40 @@ TEST_F(RenderTest, ConcurrentRequestsAllSucceedAndAgree) {
   for (auto& t : threads) t.join();
   EXPECT_EQ(failed.load(), 0);
   EXPECT_EQ(same.load(), 12);
+}
+
+// Multisampling: one sample covers a pixel wholly or not at all, so the silhouette's alpha is
+// 0 or 255; four (and eight, which a GL 4.5 context may cap at its own maximum, never below four)
+// blend the edge pixels. Every documented value draws.
+TEST_F(RenderTest, SamplesBlendTheSilhouetteAndEveryDocumentedCountDraws) {
+  const core::TriangleMesh sphere = core::SphereMesh(32, 64);
+  std::map<int, std::pair<Image, RenderInfo>> drawn;
+  for (int samples : {1, 2, 4, 8}) {
+    RenderParams p = SphereView(128);
+    p.transparent = true;
+    p.samples = samples;
+    RenderInfo info;
+    auto image = renderer_->RenderMesh(sphere, p, &info);
+    ASSERT_TRUE(image.ok()) << samples << " samples: " << image.status();
+    drawn[samples] = {*std::move(image), info};
+  }
+  auto partial = [](const Image& image) {
+    int count = 0;
+    for (int y = 0; y < image.height; ++y) {
+      for (int x = 0; x < image.width; ++x) count += image.At(x, y)[3] > 0 && image.At(x, y)[3] < 255;
+    }
+    return count;
+  };
+  EXPECT_EQ(drawn[1].second.samples, 1);
+  EXPECT_EQ(partial(drawn[1].first), 0);
+  EXPECT_EQ(drawn[4].second.samples, 4);
+  // The silhouette of a circle of radius ~29 px crosses about 2 pi r pixels.
+  EXPECT_GT(partial(drawn[4].first), 100);
+  EXPECT_NE(drawn[1].first.rgba, drawn[4].first.rgba);
+  EXPECT_GE(drawn[8].second.samples, 4);
+  EXPECT_LE(drawn[8].second.samples, 8);
+  EXPECT_GT(partial(drawn[8].first), 100);
+  EXPECT_GE(drawn[2].second.samples, 2);
 }
 
 TEST_F(RenderTest, BadRequestsAreRefused) {

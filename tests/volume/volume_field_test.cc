@@ -5,6 +5,7 @@
 #include <cmath>
 #include <random>
 
+#include "tests/volume/build_field.h"
 #include "worker/volume/cell_locator.h"
 #include "worker/volume/kernels.h"
 #include "worker/volume/synthetic.h"
@@ -53,15 +54,6 @@ FieldErrors MeasureErrors(const VolumeField& field, const VolumeMesh& mesh, cons
 core::Box3 Shrunk(const core::Box3& b, double share) {
   const Vec3d margin = share * b.sizes();
   return core::Box3(b.min() + margin, b.max() - margin);
-}
-
-std::unique_ptr<VolumeField> Build(const VolumeMesh& mesh, const std::string& name,
-                                   const VolumeFieldParams& params = {}) {
-  core::LocalJobContext ctx;
-  const std::vector<std::string> names = {name};
-  auto field = BuildVolumeField(mesh, names, params, ctx);
-  EXPECT_TRUE(field.ok()) << field.status();
-  return field.ok() ? std::move(*field) : nullptr;
 }
 
 // RMS error of Q_f against the analytic field at random points of `inner`.

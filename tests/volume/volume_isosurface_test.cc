@@ -5,19 +5,12 @@
 #include <cmath>
 #include <numbers>
 
+#include "tests/volume/build_field.h"
 #include "worker/core/mesh_metrics.h"
 #include "worker/volume/synthetic.h"
 
 namespace lsqsurf::volume {
 namespace {
-
-std::unique_ptr<VolumeField> Build(const VolumeMesh& mesh, const std::string& name) {
-  core::LocalJobContext ctx;
-  const std::vector<std::string> names = {name};
-  auto field = BuildVolumeField(mesh, names, {}, ctx);
-  EXPECT_TRUE(field.ok()) << field.status();
-  return field.ok() ? std::move(*field) : nullptr;
-}
 
 // First-order distance of x to {f = iso}: |f(x) − iso| / |∇f(x)|.
 double LevelDistance(const AnalyticField& f, const Vec3d& x, double iso) {

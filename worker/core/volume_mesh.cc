@@ -48,25 +48,12 @@ const CellTemplate* TemplateFor(uint8_t vtk_type) {
 }
 
 absl::Status CheckCellGeometry(const VolumeMesh& mesh, size_t c) {
-  const auto v = mesh.cell(c);
-  const CellTemplate& t = *TemplateFor(mesh.cell_types[c]);
-  double volume = 0, longest = 0;
-  for (const Tet& tet : t.tets) {
-    volume += TetVolume(mesh.positions[v[tet[0]]], mesh.positions[v[tet[1]]], mesh.positions[v[tet[2]]],
-                        mesh.positions[v[tet[3]]]);
-  }
-  for (size_t a = 0; a < v.size(); ++a) {
-    for (size_t b = a + 1; b < v.size(); ++b) {
-      longest = std::max(longest, static_cast<double>((mesh.positions[v[a]] - mesh.positions[v[b]]).squaredNorm()));
-    }
-  }
-  longest = std::sqrt(longest);
-  // Below a millionth of its edge cubed a cell has no usable volume (float positions carry ~7 digits).
-  if (std::abs(volume) <= 1e-6 * longest * longest * longest) {
+  const auto [volume, longest] = MeasureCell(mesh, c);
+  if (longest == 0) {
     return absl::InvalidArgumentError(
-        core::StrCat("cell ", c, " (", CellTypeName(mesh.cell_types[c]), ") is degenerate: it has no volume"));
+        core::StrCat("cell ", c, " (", CellTypeName(mesh.cell_types[c]), "): all its corners lie at one point"));
   }
-  if (volume < 0) {
+  if (volume < -kDegenerateVolume * longest * longest * longest) {
     return absl::InvalidArgumentError(
         core::StrCat("cell ", c, " (", CellTypeName(mesh.cell_types[c]),
                      ") is inverted: its vertices are not in VTK's order (negative volume)"));
@@ -77,6 +64,13 @@ absl::Status CheckCellGeometry(const VolumeMesh& mesh, size_t c) {
 }  // namespace
 
 int CellVertexCount(uint8_t vtk_type) {
+  switch (vtk_type) {
+    case 24: return 10;
+    case 25: return 20;
+    case 26: return 15;
+    case 27: return 13;
+    default: break;
+  }
   const CellTemplate* t = TemplateFor(vtk_type);
   return t == nullptr ? 0 : static_cast<int>(t->reference.size());
 }
@@ -99,6 +93,8 @@ std::string CellTypeName(uint8_t vtk_type) {
     case 14: return "pyramid";
     case 24: return "quadratic tetrahedron";
     case 25: return "quadratic hexahedron";
+    case 26: return "quadratic wedge";
+    case 27: return "quadratic pyramid";
     case 42: return "polyhedron";
     default: return core::StrCat("VTK cell type ", static_cast<int>(vtk_type));
   }
@@ -149,6 +145,28 @@ double TetVolume(const Vec3f& a, const Vec3f& b, const Vec3f& c, const Vec3f& d)
   return ab.cross(ac).dot(ad) / 6.0;
 }
 
+CellExtent MeasureCell(const VolumeMesh& mesh, size_t cell) {
+  const auto v = mesh.cell(cell);
+  CellExtent out;
+  for (const Tet& t : TemplateFor(mesh.cell_types[cell])->tets) {
+    out.volume +=
+        TetVolume(mesh.positions[v[t[0]]], mesh.positions[v[t[1]]], mesh.positions[v[t[2]]], mesh.positions[v[t[3]]]);
+  }
+  for (size_t a = 0; a < v.size(); ++a) {
+    for (size_t b = a + 1; b < v.size(); ++b) {
+      out.longest = std::max(out.longest, static_cast<double>((mesh.positions[v[a]] - mesh.positions[v[b]]).norm()));
+    }
+  }
+  return out;
+}
+
+std::vector<Tet> Tetrahedralize(const VolumeMesh& mesh, size_t cell) {
+  std::vector<Tet> out;
+  const auto v = mesh.cell(cell);
+  for (const Tet& t : TemplateFor(mesh.cell_types[cell])->tets) out.push_back({v[t[0]], v[t[1]], v[t[2]], v[t[3]]});
+  return out;
+}
+
 std::vector<Tet> Tetrahedralize(const VolumeMesh& mesh) {
   std::vector<Tet> out;
   out.reserve(mesh.cell_count() * 5);
@@ -159,7 +177,7 @@ std::vector<Tet> Tetrahedralize(const VolumeMesh& mesh) {
   return out;
 }
 
-absl::Status ValidateVolumeMesh(const VolumeMesh& mesh, const VolumeLimits& limits) {
+absl::Status CheckVolumeStructure(const VolumeMesh& mesh, const VolumeLimits& limits) {
   const size_t n = mesh.vertex_count();
   if (n == 0) return absl::InvalidArgumentError("the volume has no vertices");
   if (static_cast<int64_t>(n) > limits.max_vertices) {
@@ -180,12 +198,6 @@ absl::Status ValidateVolumeMesh(const VolumeMesh& mesh, const VolumeLimits& limi
       return absl::InvalidArgumentError(core::StrCat("field '", f.name, "' has ", f.values.size(), " values for ", n,
                                                      " vertices of ", f.components, " components"));
     }
-    for (size_t i = 0; i < f.values.size(); ++i) {
-      if (!std::isfinite(f.values[i])) {
-        return absl::InvalidArgumentError(
-            core::StrCat("field '", f.name, "' is NaN or infinite at vertex ", i / static_cast<size_t>(f.components)));
-      }
-    }
   }
   if (!mesh.has_cells()) return absl::OkStatus();
   if (mesh.cell_offsets.size() != mesh.cell_count() + 1 || mesh.cell_offsets.front() != 0 ||
@@ -197,23 +209,38 @@ absl::Status ValidateVolumeMesh(const VolumeMesh& mesh, const VolumeLimits& limi
     if (expected == 0) {
       return absl::InvalidArgumentError(
           core::StrCat("cell ", c, " is a ", CellTypeName(mesh.cell_types[c]),
-                       "; volume meshes may hold tetrahedra, hexahedra, wedges and pyramids only"));
+                       "; volume meshes may hold tetrahedra, hexahedra, wedges and pyramids (linear or quadratic) "
+                       "only"));
     }
     const auto v = mesh.cell(c);
     if (static_cast<int>(v.size()) != expected) {
       return absl::InvalidArgumentError(core::StrCat("cell ", c, " (", CellTypeName(mesh.cell_types[c]), ") has ",
                                                      v.size(), " vertices, not ", expected));
     }
-    for (size_t a = 0; a < v.size(); ++a) {
-      if (v[a] >= n) {
+    for (uint32_t index : v) {
+      if (index >= n) {
         return absl::InvalidArgumentError(
-            core::StrCat("cell ", c, " refers to vertex ", v[a], " but the volume has ", n, " vertices"));
+            core::StrCat("cell ", c, " refers to vertex ", index, " but the volume has ", n, " vertices"));
       }
-      for (size_t b = 0; b < a; ++b) {
-        if (v[a] == v[b]) {
-          return absl::InvalidArgumentError(core::StrCat("cell ", c, " uses vertex ", v[a], " twice (collapsed cell)"));
-        }
+    }
+  }
+  return absl::OkStatus();
+}
+
+absl::Status ValidateVolumeMesh(const VolumeMesh& mesh, const VolumeLimits& limits) {
+  LSQSURF_RETURN_IF_ERROR(CheckVolumeStructure(mesh, limits));
+  for (const VertexField& f : mesh.fields) {
+    for (size_t i = 0; i < f.values.size(); ++i) {
+      if (!std::isfinite(f.values[i])) {
+        return absl::InvalidArgumentError(
+            core::StrCat("field '", f.name, "' is NaN or infinite at vertex ", i / static_cast<size_t>(f.components)));
       }
+    }
+  }
+  for (size_t c = 0; c < mesh.cell_count(); ++c) {
+    if (IsQuadraticCell(mesh.cell_types[c])) {
+      return absl::InvalidArgumentError(
+          core::StrCat("cell ", c, " is a ", CellTypeName(mesh.cell_types[c]), ", which only RepairVolumeMesh takes"));
     }
     LSQSURF_RETURN_IF_ERROR(CheckCellGeometry(mesh, c));
   }

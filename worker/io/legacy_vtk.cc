@@ -476,7 +476,7 @@ absl::StatusOr<VolumeMesh> ParseLegacyVtk(std::string_view bytes, std::string_vi
   }
   LSQSURF_RETURN_IF_ERROR(ReadSections(c, v, version5));
   LSQSURF_ASSIGN_OR_RETURN(VolumeMesh mesh, BuildMesh(c, v));
-  if (absl::Status s = core::ValidateVolumeMesh(mesh, core::kNoVolumeLimits); !s.ok()) {
+  if (absl::Status s = core::CheckVolumeStructure(mesh, core::kNoVolumeLimits); !s.ok()) {
     return c.Error(std::string(s.message()));
   }
   return mesh;

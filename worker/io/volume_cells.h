@@ -18,7 +18,7 @@ inline uint8_t CellKind(double value) {
   return static_cast<uint8_t>(std::isnan(value) ? 0.0 : std::clamp(value, 0.0, 255.0));
 }
 
-// One cell of any VTK type (checked later by ValidateVolumeMesh); a voxel becomes the
+// One cell of any VTK type (checked later by CheckVolumeStructure); a voxel becomes the
 // hexahedron it is, with its last two vertex pairs swapped.
 inline void AppendCell(uint8_t type, std::vector<uint32_t>& vertices, core::VolumeMesh& mesh) {
   if (type == 11 && vertices.size() == 8) {

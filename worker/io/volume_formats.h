@@ -2,8 +2,9 @@
 // regular volumes, PLY points with values.
 //
 // Legacy VTK (`.vtk`, ASCII or BINARY big-endian, file versions 2–5.1): datasets
-// UNSTRUCTURED_GRID (tetrahedra, hexahedra, wedges, pyramids; other cell types are refused by
-// name, voxels are reordered into hexahedra), STRUCTURED_GRID, STRUCTURED_POINTS and
+// UNSTRUCTURED_GRID (tetrahedra, hexahedra, wedges, pyramids, linear or quadratic, in either
+// vertex order, as core::RepairVolumeMesh takes them; other cell types are refused by name,
+// voxels are reordered into hexahedra), STRUCTURED_GRID, STRUCTURED_POINTS and
 // RECTILINEAR_GRID (both become hexahedra); every POINT_DATA array (SCALARS with any number of
 // components, VECTORS, NORMALS, FIELD arrays) by name. CELL_DATA and other sections are skipped.
 // Parsers are strict: a malformed file yields kInvalidArgument naming the section and what was

@@ -310,7 +310,7 @@ absl::StatusOr<VolumeMesh> ParseVtu(std::string_view bytes, std::string_view nam
     }
   }
   if (mesh.positions.empty()) return fail("no <Piece> with points");
-  if (absl::Status s = core::ValidateVolumeMesh(mesh, core::kNoVolumeLimits); !s.ok()) {
+  if (absl::Status s = core::CheckVolumeStructure(mesh, core::kNoVolumeLimits); !s.ok()) {
     return fail(std::string(s.message()));
   }
   return mesh;

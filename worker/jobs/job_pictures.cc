@@ -71,7 +71,7 @@ absl::StatusOr<RenderedPicture> JobService::Render(const Submitter& who, const s
   if (!image.ok()) return image.status();
   auto png = render::EncodePng(*image);
   if (!png.ok()) return png.status();
-  return RenderedPicture{*std::move(png), info.color_min, info.color_max, info.renderer};
+  return RenderedPicture{*std::move(png), info.color_min, info.color_max, info.renderer, 0, 0, info.samples};
 }
 
 absl::StatusOr<RenderedPicture> JobService::RenderMeshParts(const JobRecord& record,
@@ -103,8 +103,8 @@ absl::StatusOr<RenderedPicture> JobService::RenderVolumeField(const std::string&
                                                               const render::RenderParams& params,
                                                               const core::JobContext* ctx) {
   LSQSURF_ASSIGN_OR_RETURN(VolumePicture picture, volume_pictures_->Draw(id, bytes, params, *renderer_, ctx));
-  return RenderedPicture{std::move(picture.png), picture.info.color_min, picture.info.color_max,
-                         picture.info.renderer,  picture.grid_rms_error, picture.grid_max_error};
+  return RenderedPicture{std::move(picture.png), picture.info.color_min, picture.info.color_max, picture.info.renderer,
+                         picture.grid_rms_error, picture.grid_max_error, picture.info.samples};
 }
 
 bool JobService::CanRender() { return renderer_->Get().ok(); }

@@ -111,6 +111,7 @@ struct RenderedPicture {
   double color_min = 0, color_max = 0;            // The colour range used, when colouring.
   std::string renderer;                           // The GL renderer that drew it.
   double grid_rms_error = 0, grid_max_error = 0;  // Volume fields: the sampled grid against the field.
+  int samples = 1;                                // Samples per pixel the GL drew with.
 };
 
 // Who submits a job or asks about one, and the limits that hold for them (0: none). Without

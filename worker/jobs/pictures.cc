@@ -1,5 +1,7 @@
 #include "worker/jobs/pictures.h"
 
+#include <spdlog/spdlog.h>
+
 #include "worker/core/status.h"
 #include "worker/core/strings.h"
 #include "worker/io/files.h"
@@ -95,6 +97,18 @@ absl::Status DrawPreviewOfParts(int64_t parts, const PreviewSpec& preview, RunEn
   auto png = render::EncodePng(*image);
   if (!png.ok()) return png.status();
   return env.sink.Write(kPreviewArtifact, *png);
+}
+
+void PreviewFailures::Add(std::string_view picture, const absl::Status& why) {
+  spdlog::warn("{} not drawn: {}", picture, why.message());
+  if (++count_ <= 100) core::StrAppend(&reasons_, picture, ": ", why.message(), "\n");
+}
+
+absl::Status PreviewFailures::Report(RunEnvironment& env,
+                                     std::vector<std::pair<std::string, double>>& statistics) const {
+  if (count_ == 0) return absl::OkStatus();
+  statistics.emplace_back("preview_failures", count_);
+  return env.sink.Write(kPreviewErrorsArtifact, reasons_);
 }
 
 }  // namespace lsqsurf::jobs

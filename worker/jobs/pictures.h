@@ -14,6 +14,8 @@ namespace lsqsurf::jobs {
 
 // The picture a job draws of its result when asked (JobSpec::preview).
 inline constexpr char kPreviewArtifact[] = "preview.png";
+// Why pictures a job promised were not drawn, a line each ("preview.png: <reason>").
+inline constexpr char kPreviewErrorsArtifact[] = "preview-errors.txt";
 
 // PNG bytes of the mesh (or the cloud). Errors: the renderer's.
 absl::StatusOr<std::string> PicturePng(render::Renderer& renderer, const core::TriangleMesh& mesh,
@@ -52,5 +54,19 @@ absl::Status WritePicture(render::Renderer& renderer, const core::PointCloud& cl
 absl::Status DrawPreview(const core::TriangleMesh& mesh, const PreviewSpec& preview, RunEnvironment& env);
 // The same of a mesh this run wrote in `parts` parts (MeshPartArtifact), read back one at a time.
 absl::Status DrawPreviewOfParts(int64_t parts, const PreviewSpec& preview, RunEnvironment& env);
+
+// A picture that failed does not fail its job, whose mesh or frames are what it is for; it is
+// logged, counted in the statistic preview_failures and its reason kept in
+// kPreviewErrorsArtifact (at most the first 100 reasons), so that the user sees why.
+class PreviewFailures {
+ public:
+  void Add(std::string_view picture, const absl::Status& why);
+  // Writes the reasons and the count into `statistics`; nothing when none failed.
+  absl::Status Report(RunEnvironment& env, std::vector<std::pair<std::string, double>>& statistics) const;
+
+ private:
+  int count_ = 0;
+  std::string reasons_;
+};
 
 }  // namespace lsqsurf::jobs

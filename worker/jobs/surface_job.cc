@@ -536,11 +536,11 @@ class SurfaceKind final : public TypedJobKind<core::ParamSet, SurfaceInput> {
       LSQSURF_RETURN_IF_ERROR(DeliverMesh(result->mesh, spec, env, &result->statistics));
     } else if (spec.preview.enabled) {
       env.context.ReportProgress("drawing the preview", 0.99);
-      const absl::Status p = DrawPreviewOfParts(result->mesh_parts, spec.preview, env);
-      if (!p.ok()) {
-        spdlog::warn("preview failed: {}", p.message());
-        result->statistics.emplace_back("preview_failures", 1);
+      PreviewFailures failures;
+      if (const absl::Status p = DrawPreviewOfParts(result->mesh_parts, spec.preview, env); !p.ok()) {
+        failures.Add(kPreviewArtifact, p);
       }
+      LSQSURF_RETURN_IF_ERROR(failures.Report(env, result->statistics));
     }
     for (const auto& [name, bytes] : result->kept) LSQSURF_RETURN_IF_ERROR(env.sink.Write(name, bytes));
     return std::move(result->statistics);
@@ -575,12 +575,9 @@ absl::Status DeliverMesh(const core::TriangleMesh& mesh, const JobSpec& spec, Ru
   LSQSURF_RETURN_IF_ERROR(env.sink.Write(kMeshArtifact, *encoded));
   if (spec.preview.enabled) {
     env.context.ReportProgress("drawing the preview", 0.99);
-    // A picture that cannot be drawn does not cost the user the mesh: counted, logged.
-    const absl::Status p = DrawPreview(mesh, spec.preview, env);
-    if (!p.ok()) {
-      spdlog::warn("preview failed: {}", p.message());
-      statistics->emplace_back("preview_failures", 1);
-    }
+    PreviewFailures failures;
+    if (const absl::Status p = DrawPreview(mesh, spec.preview, env); !p.ok()) failures.Add(kPreviewArtifact, p);
+    LSQSURF_RETURN_IF_ERROR(failures.Report(env, *statistics));
   }
   return absl::OkStatus();
 }

@@ -151,7 +151,7 @@ class FrameWriter {
   }
 
   absl::Status Finish() { return env_.sink.Write("stats.csv", csv_); }
-  int picture_failures() const { return picture_failures_; }
+  const PreviewFailures& failures() const { return failures_; }
 
  private:
   template <class Geometry>
@@ -164,10 +164,7 @@ class FrameWriter {
     absl::StatusOr<std::string> png = absl::UnavailableError("no renderer");
     if (renderer_ != nullptr) png = PicturePng(*renderer_, geometry, p);
     const absl::Status s = png.ok() ? env_.sink.Write(name, *png) : png.status();
-    if (!s.ok()) {
-      ++picture_failures_;  // The frames and statistics are what the job is for; a picture is not.
-      spdlog::warn("{} not drawn: {}", name, s.message());
-    }
+    if (!s.ok()) failures_.Add(name, s);
   }
 
   const TrackJobParams& params_;
@@ -175,7 +172,8 @@ class FrameWriter {
   std::optional<render::RenderParams> picture_;
   double turntable_ = 0;
   render::Renderer* renderer_ = nullptr;
-  int pictures_drawn_ = 0, picture_failures_ = 0;
+  int pictures_drawn_ = 0;
+  PreviewFailures failures_;
   std::string csv_;
 };
 
@@ -294,7 +292,7 @@ class TrackKind final : public TypedJobKind<TrackJobParams, TrackInput> {
                         {"final_points", static_cast<double>(last_stats.points)},
                         {"volume_change", last_stats.volume_change},
                         {"tracking_seconds", seconds}};
-    if (writer.picture_failures() > 0) stats.emplace_back("preview_failures", writer.picture_failures());
+    LSQSURF_RETURN_IF_ERROR(writer.failures().Report(env, stats));
     // A named shape back where a named field returns it: measure E1 against the exact shape.
     const double end_time = tp.steps * tp.dt;
     const bool deformation = p.field == TrackField::kDeformation;

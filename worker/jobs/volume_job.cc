@@ -85,7 +85,24 @@ absl::Status CheckIsoValues(const VolumeJobParams& p, const volume::VolumeMesh& 
   return absl::OkStatus();
 }
 
-class VolumeKind final : public TypedJobKind<VolumeJobParams, volume::VolumeMesh> {
+// An upload made fit for the engine, with what that took.
+struct RepairedVolume {
+  volume::VolumeMesh mesh;
+  volume::VolumeRepairs repairs;
+};
+
+void AddRepairStatistics(const volume::VolumeRepairs& r, Statistics& statistics) {
+  for (const auto& [name, value] : {std::pair{"linearised_cells", r.linearised_cells},
+                                    {"reoriented_cells", r.reoriented_cells},
+                                    {"degenerate_cells", r.degenerate_cells},
+                                    {"merged_vertices", r.merged_vertices},
+                                    {"unused_vertices", r.unused_vertices},
+                                    {"missing_vertices", r.missing_vertices}}) {
+    statistics.emplace_back(name, static_cast<double>(value));
+  }
+}
+
+class VolumeKind final : public TypedJobKind<VolumeJobParams, RepairedVolume> {
  public:
   std::string_view name() const override { return "volume"; }
 
@@ -102,6 +119,8 @@ class VolumeKind final : public TypedJobKind<VolumeJobParams, volume::VolumeMesh
                                  const InputLimits& limits) const override {
     const VolumeJobParams* p = &params;
     LSQSURF_ASSIGN_OR_RETURN(volume::VolumeMesh mesh, DecodeVolume(uploads, limits.max_cells));
+    LSQSURF_RETURN_IF_ERROR(volume::CheckVolumeStructure(mesh, {limits.max_points, limits.max_cells}));
+    LSQSURF_ASSIGN_OR_RETURN(volume::VolumeRepairs repairs, volume::RepairVolumeMesh(mesh));
     LSQSURF_RETURN_IF_ERROR(volume::ValidateVolumeMesh(mesh, {limits.max_points, limits.max_cells}));
     if (static_cast<int64_t>(mesh.vertex_count()) < limits.min_points) {
       return absl::InvalidArgumentError(core::StrCat("the volume has only ", mesh.vertex_count(),
@@ -117,12 +136,14 @@ class VolumeKind final : public TypedJobKind<VolumeJobParams, volume::VolumeMesh
     }
     LSQSURF_RETURN_IF_ERROR(CheckIsoValues(*p, mesh));
     const auto vertices = static_cast<int64_t>(mesh.vertex_count());
-    return Checked{vertices, std::move(mesh), {}};
+    return Checked{vertices, {std::move(mesh), repairs}, {}};
   }
 
-  absl::StatusOr<Statistics> RunDecoded(const JobSpec& spec, const VolumeJobParams&, volume::VolumeMesh mesh,
+  absl::StatusOr<Statistics> RunDecoded(const JobSpec& spec, const VolumeJobParams&, RepairedVolume input,
                                         RunEnvironment& env) const override {
-    LSQSURF_ASSIGN_OR_RETURN(VolumeResult result, ReconstructVolume(spec.params, mesh, env.context, env.memory_bytes));
+    LSQSURF_ASSIGN_OR_RETURN(VolumeResult result,
+                             ReconstructVolume(spec.params, input.mesh, env.context, env.memory_bytes));
+    AddRepairStatistics(input.repairs, result.statistics);
     if (!result.mesh.empty()) {
       LSQSURF_ASSIGN_OR_RETURN(std::string encoded,
                                EncodeResultMesh(result.mesh, spec.mesh_position_bits, &result.statistics));

@@ -15,12 +15,17 @@ using Matrix4 = Eigen::Matrix4f;
 
 absl::StatusOr<EglRenderer::Targets> EglRenderer::MakeTargets(int w, int h, int samples) {
   Targets t;
+  const int asked = std::min(samples, max_samples_);
+  const GLsizei storage = asked <= 1 ? 0 : asked;
   gl_.GenFramebuffers(2, t.fbo);
   gl_.GenRenderbuffers(3, t.rbo);
   gl_.BindRenderbuffer(GL_RENDERBUFFER, t.rbo[0]);
-  gl_.RenderbufferStorageMultisample(GL_RENDERBUFFER, samples, GL_RGBA8, w, h);
+  gl_.RenderbufferStorageMultisample(GL_RENDERBUFFER, storage, GL_RGBA8, w, h);
+  GLint granted = 0;
+  gl_.GetRenderbufferParameteriv(GL_RENDERBUFFER, GL_RENDERBUFFER_SAMPLES, &granted);
+  t.samples = std::max(1, granted);
   gl_.BindRenderbuffer(GL_RENDERBUFFER, t.rbo[1]);
-  gl_.RenderbufferStorageMultisample(GL_RENDERBUFFER, samples, GL_DEPTH_COMPONENT24, w, h);
+  gl_.RenderbufferStorageMultisample(GL_RENDERBUFFER, storage, GL_DEPTH_COMPONENT24, w, h);
   gl_.BindRenderbuffer(GL_RENDERBUFFER, t.rbo[2]);
   gl_.RenderbufferStorageMultisample(GL_RENDERBUFFER, 0, GL_RGBA8, w, h);
   gl_.BindFramebuffer(GL_FRAMEBUFFER, t.fbo[0]);
@@ -34,7 +39,7 @@ absl::StatusOr<EglRenderer::Targets> EglRenderer::MakeTargets(int w, int h, int 
     ReleaseTargets(t);
     gl_.GetError();
     return absl::ResourceExhaustedError(
-        core::StrCat("the GL could not allocate a ", w, "x", h, " image with ", samples, " samples"));
+        core::StrCat("the GL could not allocate a ", w, "x", h, " image with ", asked, " samples"));
   }
   return t;
 }
@@ -161,7 +166,7 @@ absl::StatusOr<EglRenderer::Picture> EglRenderer::BeginPicture(const core::Box3&
   gl_.Clear(GL_COLOR_BUFFER_BIT | GL_DEPTH_BUFFER_BIT);
   gl_.Enable(GL_DEPTH_TEST);
   gl_.DepthFunc(GL_LESS);
-  if (p.samples > 1) gl_.Enable(GL_MULTISAMPLE);
+  if (picture.targets.samples > 1) gl_.Enable(GL_MULTISAMPLE);
   picture.view = MakeView(box, p);
   picture.lo = lo;
   picture.hi = hi;
@@ -201,6 +206,7 @@ absl::StatusOr<Image> EglRenderer::FinishPicture(Picture& picture, const RenderP
     info->color_min = picture.lo;
     info->color_max = picture.hi;
     info->renderer = renderer_;
+    info->samples = picture.targets.samples;
   }
   return image;
 }

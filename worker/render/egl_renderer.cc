@@ -261,6 +261,8 @@ bool EglRenderer::TryDisplay(EGLDisplay display, const std::string& what, std::s
   context_ = context;
   const auto* renderer = reinterpret_cast<const char*>(gl_.GetString(GL_RENDERER));
   renderer_ = renderer ? renderer : "unknown";
+  gl_.GetIntegerv(GL_MAX_SAMPLES, &max_samples_);
+  max_samples_ = std::max(1, max_samples_);
   description_ = core::StrCat("egl (", what, "): ", renderer_);
   return true;
 }

@@ -84,7 +84,10 @@ class EglRenderer final : public Renderer {
   // Multisampled colour + depth, resolved into a single-sample colour buffer.
   struct Targets {
     GLuint fbo[2] = {}, rbo[3] = {};
+    int samples = 1;  // What the GL granted per pixel.
   };
+  // `samples` is capped at the most the GL offers (GL_MAX_SAMPLES); one sample is a plain
+  // buffer, since a GL may round a multisampled request for one up to its smallest count.
   absl::StatusOr<Targets> MakeTargets(int w, int h, int samples);
   void ReleaseTargets(Targets& t);
 
@@ -133,6 +136,7 @@ class EglRenderer final : public Renderer {
   EGLContext context_ = EGL_NO_CONTEXT;
   GLuint surface_program_ = 0, overlay_program_ = 0, volume_program_ = 0, colormap_ = 0;
   std::string renderer_, description_;
+  int max_samples_ = 1;  // GL_MAX_SAMPLES of the context.
 
   std::thread thread_;
   std::mutex mutex_;

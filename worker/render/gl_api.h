@@ -28,6 +28,7 @@ namespace lsqsurf::render::internal {
   X(FramebufferRenderbuffer, FRAMEBUFFERRENDERBUFFER) X(GenBuffers, GENBUFFERS)           \
   X(GenFramebuffers, GENFRAMEBUFFERS) X(GenRenderbuffers, GENRENDERBUFFERS)               \
   X(GenTextures, GENTEXTURES) X(GenVertexArrays, GENVERTEXARRAYS) X(GetError, GETERROR)   \
+  X(GetIntegerv, GETINTEGERV) X(GetRenderbufferParameteriv, GETRENDERBUFFERPARAMETERIV)     \
   X(GetProgramInfoLog, GETPROGRAMINFOLOG) X(GetProgramiv, GETPROGRAMIV)                   \
   X(GetShaderInfoLog, GETSHADERINFOLOG) X(GetShaderiv, GETSHADERIV) X(GetString, GETSTRING) \
   X(GetUniformLocation, GETUNIFORMLOCATION) X(LinkProgram, LINKPROGRAM)                   \

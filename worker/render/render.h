@@ -57,7 +57,7 @@ struct RenderParams {
   Camera camera;
   Shading shading = Shading::kSmooth;
   bool wireframe = false;    // Dark edges over the shaded faces.
-  int samples = 4;           // MSAA samples per pixel: 1, 2, 4 or 8.
+  int samples = 4;           // MSAA samples per pixel: 1, 2, 4 or 8 (at most what the GL offers).
   bool transparent = false;  // Background alpha 0 instead of `background`.
   std::array<float, 3> background = {1.0f, 1.0f, 1.0f};
   std::array<float, 3> base_color = {0.78f, 0.80f, 0.84f};  // Without a colour attribute.
@@ -109,6 +109,9 @@ struct Image {
 struct RenderInfo {
   double color_min = 0, color_max = 0;
   std::string renderer;  // The GL renderer string, e.g. "llvmpipe (LLVM 15.0.6, 256 bits)".
+  // Samples per pixel the picture was drawn with: the request's, or the most the GL offers
+  // when it offers fewer (llvmpipe: 4); 1 for pictures that are not multisampled.
+  int samples = 1;
 };
 
 // Draws `grid` with the camera, size, background and volume options of `params`, on the CPU

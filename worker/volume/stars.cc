@@ -102,14 +102,24 @@ Adjacency BuildAdjacency(const VolumeMesh& mesh, int k) {
       for (uint32_t v : mesh.cell(c)) cells[cursor[v]++] = static_cast<uint32_t>(c);
     }
   }
+  // A sliver or collapsed cell joins vertices across it that no usable cell joins (a Delaunay
+  // hull sliver spans four hull points): it adds to a star only a vertex that has nothing else.
+  std::vector<char> flat(mesh.cell_count());
+  (void)core::ParallelFor(mesh.cell_count(), 4096, [&](size_t begin, size_t end) {
+    for (size_t c = begin; c < end; ++c) flat[c] = core::MeasureCell(mesh, c).degenerate();
+  });
   std::vector<std::vector<uint32_t>> stars(n);
   (void)core::ParallelFor(n, 2048, [&](size_t begin, size_t end) {
     for (size_t i = begin; i < end; ++i) {
       auto& s = stars[i];
-      for (uint64_t e = cell_start[i]; e < cell_start[i + 1]; ++e) {
-        for (uint32_t v : mesh.cell(cells[e])) {
-          if (v != i) s.push_back(v);
+      for (const bool take_flat : {false, true}) {
+        for (uint64_t e = cell_start[i]; e < cell_start[i + 1]; ++e) {
+          if (flat[cells[e]] != take_flat) continue;
+          for (uint32_t v : mesh.cell(cells[e])) {
+            if (v != i) s.push_back(v);
+          }
         }
+        if (!s.empty()) break;
       }
       std::sort(s.begin(), s.end());
       s.erase(std::unique(s.begin(), s.end()), s.end());

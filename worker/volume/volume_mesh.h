@@ -14,13 +14,18 @@ using core::AddStructuredHexahedra;
 using core::CellType;
 using core::CellTypeName;
 using core::CellVertexCount;
+using core::CheckVolumeStructure;
 using core::DescribeFields;
+using core::FillMissingValues;
 using core::kNoVolumeLimits;
+using core::RepairVolumeMesh;
 using core::Tetrahedralize;
 using core::TetVolume;
 using core::ValidateVolumeMesh;
 using core::VertexField;
 using core::VolumeLimits;
 using core::VolumeMesh;
+using core::VolumeRepairParams;
+using core::VolumeRepairs;
 
 }  // namespace lsqsurf::volume

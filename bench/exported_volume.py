@@ -11,6 +11,8 @@ analytic field at the vertices):
   duplicates  the same, written in 8 blocks (by cell centre octant) that each repeat the points
               they use, as multi-block exporters do, plus 1000 points in no cell.
   quadratic   the same with a node at every edge's midpoint (VTK's quadratic tetrahedron, 24).
+  clean       the same tetrahedralization as a careful writer leaves it, the reference for the
+              others: every cell in VTK's order, the hull's flat slivers left out.
 Needs python3-scipy (scripts/install-deps.sh --with-scipy).
 """
 import argparse
@@ -34,7 +36,7 @@ def write_vtk(path, points, cells, cell_type):
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--points", type=int, default=60000)
-    parser.add_argument("--variant", choices=["delaunay", "duplicates", "quadratic"], default="delaunay")
+    parser.add_argument("--variant", choices=["delaunay", "duplicates", "quadratic", "clean"], default="delaunay")
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("-o", "--output", required=True)
     args = parser.parse_args()
@@ -43,6 +45,14 @@ def main():
     points = np.vstack([corners, rng.random((args.points - 8, 3))])
     cells = Delaunay(points).simplices
     if args.variant == "delaunay":
+        write_vtk(args.output, points, cells, 10)
+    elif args.variant == "clean":
+        p = points[cells]
+        volume = np.einsum("ij,ij->i", np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), p[:, 3] - p[:, 0]) / 6
+        longest = np.max([np.linalg.norm(p[:, a] - p[:, b], axis=1) for a in range(4) for b in range(a + 1, 4)], axis=0)
+        cells = cells[np.abs(volume) > 1e-6 * longest ** 3]
+        volume = volume[np.abs(volume) > 1e-6 * longest ** 3]
+        cells[volume < 0] = cells[volume < 0][:, [0, 2, 1, 3]]
         write_vtk(args.output, points, cells, 10)
     elif args.variant == "duplicates":
         octant = ((points[cells].mean(axis=1) > 0.5) * [1, 2, 4]).sum(axis=1)

@@ -9,7 +9,7 @@
          width apart, and a horn narrowing to a tip: marching cubes (scikit-image) of the union's
          distance field on a 512^3 lattice.
   plate  a rectangular plate whose thickness is 0.2 % of its diagonal (exact, 12 triangles).
-  ring   a torus whose tube radius is 1.5 % of its diagonal (exact up to its 2048 x 64 facets).
+  ring   a torus whose tube radius is 1 % of its diagonal (exact up to its 2048 x 64 facets).
 Needs python3-skimage and python3-numpy.
 """
 import argparse
@@ -64,8 +64,8 @@ def hand(path, n):
         y, z = np.meshgrid(axes[1], axes[2], indexing="ij")
         field[i] = hand_distance(np.stack([np.full_like(y, x), y, z], axis=-1))
     vertices, faces, _, _ = marching_cubes(field, 0.0, spacing=(step, step, step))
-    # scikit-image's triangles face the rising field (inwards here): turn them outwards.
-    write_obj(path, vertices + lo, faces[:, ::-1])
+    # scikit-image winds its triangles to face the falling field: outwards for a distance field.
+    write_obj(path, vertices + lo, faces)
 
 
 def plate(path):

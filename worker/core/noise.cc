@@ -22,12 +22,18 @@ double Median(std::vector<double>& values) {
   return *middle;
 }
 
+// Neighbours whose normals turn more than 60° from the point's own lie on another sheet (the far
+// side of a plate thinner than the neighbourhood, the other face of a crease): not noise.
+constexpr float kSameSheetCos = 0.5f;
+
 // Residual RMS of the least-squares height w = quadratic(u, v) over the neighbourhood `near` of
-// p, in the frame of their mean normal (u, v scaled by the neighbourhood's radius so that the
-// 6×6 system stays well conditioned); -1 where there is no frame or too few points.
-double QuadricResidual(const KdTree& tree, std::span<const Vec3f> normals, const Vec3f& p,
-                       const std::vector<Neighbor>& near) {
+// p (normal `own`) on p's own sheet, in the frame of their mean normal (u, v scaled by the
+// neighbourhood's radius so that the 6×6 system stays well conditioned); -1 where there is no
+// frame or too few points.
+double QuadricResidual(const KdTree& tree, std::span<const Vec3f> normals, const Vec3f& p, const Vec3f& own,
+                       std::vector<Neighbor>& near) {
   const std::span<const Vec3f> points = tree.points();
+  std::erase_if(near, [&](const Neighbor& q) { return normals[q.index].dot(own) < kSameSheetCos; });
   const size_t step = std::max<size_t>(1, near.size() / kMaxFitPoints);
   Vec3d normal = Vec3d::Zero();
   double radius2 = 0;
@@ -85,7 +91,7 @@ NoiseEstimate EstimateNoise(const KdTree& tree, std::span<const Vec3f> normals, 
         if (ball * ball > near.back().distance2) tree.Radius(p, static_cast<float>(ball), near);
         counts[i] = static_cast<double>(near.size());
         if (known_sigma >= 0) continue;
-        rms[i] = std::max(0.0, QuadricResidual(tree, normals, p, near));
+        rms[i] = std::max(0.0, QuadricResidual(tree, normals, p, normals[i * stride], near));
       }
     });
     estimate.points_in_ball = Median(counts);

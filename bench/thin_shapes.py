@@ -10,7 +10,7 @@
          distance field on a 512^3 lattice.
   plate  a rectangular plate whose thickness is 0.2 % of its diagonal (exact, 12 triangles).
   ring   a torus whose tube radius is 1 % of its diagonal (exact up to its 2048 x 64 facets).
-Needs python3-skimage and python3-numpy.
+Needs python3-skimage and python3-numpy (scripts/install-deps.sh --with-scipy).
 """
 import argparse
 import os

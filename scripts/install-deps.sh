@@ -8,7 +8,8 @@
 # preset `bench-poisson` that runs screened Poisson side by side; --with-openvdb installs
 # libopenvdb-dev, needed only by the preset `bench-openvdb` (the level-set reference of the
 # front-tracking benchmarks); --with-vtk the VTK reference of the volume benchmark; --with-scipy
-# SciPy, with which bench/exported_volume.py writes Delaunay meshes as other tools do;
+# SciPy and scikit-image, with which bench/exported_volume.py writes Delaunay meshes as other
+# tools do and bench/thin_shapes.py the thin ground truths;
 # --with-containers podman, debootstrap, podman-compose and the CNI dnsname plugin for
 # scripts/container-base.sh, container-test.sh and compose-test.sh; --with-fuzz clang and its
 # libFuzzer runtime for scripts/fuzz.sh. Any of them may be given.
@@ -30,7 +31,7 @@ for option in "$@"; do
     --with-vtk) packages+=(python3-vtk9 python3-numpy xvfb) ;;  # bench/vtk_volume_reference.py
     --with-containers) packages+=(podman runc debootstrap uidmap slirp4netns fuse-overlayfs podman-compose golang-github-containernetworking-plugin-dnsname) ;;  # scripts/container-*.sh, compose-test.sh
     --with-fuzz) packages+=(clang libclang-rt-dev) ;;  # scripts/fuzz.sh
-    --with-scipy) packages+=(python3-scipy python3-numpy) ;;  # bench/exported_volume.py
+    --with-scipy) packages+=(python3-scipy python3-numpy python3-skimage) ;;  # bench/exported_volume.py, thin_shapes.py
     *) echo "install-deps: unknown option $option (--with-poisson, --with-openvdb, --with-vtk, --with-containers, --with-fuzz, --with-scipy)" >&2; exit 2 ;;
   esac
 done

@@ -1,13 +1,13 @@
 // lsqsurf-bench — accuracy, time and memory of the engines on the shared benchmark meshes.
 //
 // For every model × size × noise case it samples a cloud from the ground-truth mesh (area-uniform,
-// normals interpolated from the vertex normals, optional Gaussian noise along the normal as a
-// fraction of the bounding-box diagonal), reconstructs it, and compares the result with the
-// ground truth (see worker/core/surface_distance.h). Each case runs in a child process so that
-// its peak RSS is its own. With --server, the same clouds also go through a real lsqsurfd
-// started on a free loopback port, driven by the real client (upload, reconstruct, download).
-// With --poisson-depth (built with -DLSQSURF_BENCH_POISSON=ON), screened Poisson reconstructs the
-// same cloud in the same run, and a ratio line compares the two.
+// normals interpolated from the vertex normals or, with --face-normals, the faces' own; optional
+// Gaussian noise along the normal as a fraction of the bounding-box diagonal), reconstructs it,
+// and compares the result with the ground truth (see worker/core/surface_distance.h). Each case
+// runs in a child process so that its peak RSS is its own. With --server, the same clouds also go
+// through a real lsqsurfd started on a free loopback port, driven by the real client (upload,
+// reconstruct, download). With --poisson-depth (built with -DLSQSURF_BENCH_POISSON=ON), screened
+// Poisson reconstructs the same cloud in the same run, and a ratio line compares the two.
 #include <sys/resource.h>
 #include <sys/wait.h>
 #include <unistd.h>
@@ -174,6 +174,7 @@ struct BenchOptions {
   size_t samples = 1'000'000;
   bool server = false;
   bool drop_normals = false;
+  bool face_normals = false;
   bool show_statistics = false;
   bool streamed = false;
   std::string save_dir;
@@ -572,6 +573,8 @@ int main(int argc, char** argv) {
                "the direct and server runs; with --server, write it chunk by chunk to a PLY file that the client "
                "sends in parts to lsqsurfd (the peaks of both are printed)");
   app.add_flag("--no-normals", o.drop_normals, "drop the sampled normals (the engines estimate them)");
+  app.add_flag("--face-normals", o.face_normals,
+               "sample the faces' own normals, as a CAD exporter gives them (default: interpolated vertex normals)");
   app.add_option("--bin", o.bin_dir, "folder with lsqsurfd and lsqsurf (default: beside this program)");
   app.add_option("--poisson-depth", o.poisson_depth,
                  "also run screened Poisson (Open3D) at this depth on every cloud; 0 = off");
@@ -616,7 +619,8 @@ int main(int argc, char** argv) {
     const double diag = core::Diagonal(core::BoundingBox(truth->vertices));
     for (size_t n : o.sizes) {
       for (double noise : o.noises) {
-        core::PointCloud cloud = o.streamed ? core::PointCloud{} : core::SampleCloud(*truth, n, 1234, noise * diag);
+        core::PointCloud cloud =
+            o.streamed ? core::PointCloud{} : core::SampleCloud(*truth, n, 1234, noise * diag, !o.face_normals);
         if (o.drop_normals) cloud.normals.clear();
         for (size_t m = 0; m < o.methods.size(); ++m) {
           const BenchCase c{*truth, cloud, model, n, noise, o.methods[m]};

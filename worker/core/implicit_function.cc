@@ -29,6 +29,10 @@ double RefineRootOnSegment(const ImplicitFunction& field, const Vec3d& a, const 
   for (int step = 0; step < (steps > 0 ? steps + kExtraRootSteps : 0); ++step) {
     const double f = field.ValueOnly(a + t * (b - a));
     if (std::isnan(f) || f == 0.0) return t;
+    // Converged: this point is the answer. The update below may rescale a kept end by a factor
+    // near 0 when f repeats its value to the last bits (round-off beside the root), and the secant
+    // guess after it can then land anywhere in the bracket.
+    if (step + 1 >= steps && std::abs(f) <= tolerance) return t;
     // Anderson–Björck: when one end is kept twice, its value is scaled by 1 − f/f_replaced
     // (0.5 where that is not positive), which converges faster than halving it (Illinois).
     if ((f < 0) == a_negative) {
@@ -41,7 +45,6 @@ double RefineRootOnSegment(const ImplicitFunction& field, const Vec3d& a, const 
       side = 1;
     }
     t = ta - fa * (tb - ta) / (fb - fa);
-    if (step + 1 >= steps && std::abs(f) <= tolerance) return t;
   }
   if (steps <= 0) return t;
   // Still not converged: the secant stalls beside a kink where one end keeps a plateau's value

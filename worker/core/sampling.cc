@@ -64,9 +64,9 @@ std::vector<SurfaceSample> SampleSurface(const TriangleMesh& mesh, size_t count,
   return out;
 }
 
-PointCloud SampleCloud(const TriangleMesh& mesh, size_t count, uint64_t seed, double noise_sigma) {
+PointCloud SampleCloud(const TriangleMesh& mesh, size_t count, uint64_t seed, double noise_sigma, bool smooth_normals) {
   PointCloud cloud;
-  const auto samples = SampleSurface(mesh, count, seed, true);
+  const auto samples = SampleSurface(mesh, count, seed, smooth_normals);
   cloud.positions.reserve(samples.size());
   cloud.normals.reserve(samples.size());
   std::mt19937_64 rng(seed ^ 0x9e3779b97f4a7c15ull);

@@ -25,6 +25,8 @@ std::vector<SurfaceSample> SampleSurface(const TriangleMesh& mesh, size_t count,
 
 // A point cloud with normals made from `SampleSurface`; with `noise_sigma` > 0 every point is
 // displaced along its normal by Gaussian noise of that standard deviation (model units).
-PointCloud SampleCloud(const TriangleMesh& mesh, size_t count, uint64_t seed, double noise_sigma = 0.0);
+// `smooth_normals` as for SampleSurface: false gives a CAD model's exact face normals.
+PointCloud SampleCloud(const TriangleMesh& mesh, size_t count, uint64_t seed, double noise_sigma = 0.0,
+                       bool smooth_normals = true);
 
 }  // namespace lsqsurf::core

@@ -3,7 +3,9 @@
 
 #include <algorithm>
 #include <array>
+#include <cmath>
 #include <cstdio>
+#include <numbers>
 
 #include "tests/polyhedra.h"
 #include "tests/test_shapes.h"
@@ -86,6 +88,33 @@ TEST(PuSharp, OctahedronEdgesAndFourSheetCorners) {
   EXPECT_LT(sharp.surface, 0.2 * smooth.surface);
   const double exact = 4.0 / 3.0 * 0.6 * 0.6 * 0.6;
   EXPECT_NEAR(sharp.volume / exact, 1.0, 1e-3);
+}
+
+// A pentagonal pyramid about a sphere: its apex is a corner of five faces, more than the sheets
+// of an edge-and-corner clustering (at most four) and than a triangle's three splits can place.
+TEST(PuSharp, FiveFaceApexIsKept) {
+  std::vector<Vec3d> normals{-Vec3d::UnitZ()};
+  const double elevation = 40 * std::numbers::pi / 180;
+  for (int k = 0; k < 5; ++k) {
+    const double a = 2 * std::numbers::pi * k / 5;
+    normals.push_back(Vec3d(std::cos(elevation) * std::cos(a), std::cos(elevation) * std::sin(a), std::sin(elevation)));
+  }
+  const double offset = 0.3;
+  const TurnedPolyhedron pyramid(normals, offset);
+  const Vec3d apex = pyramid.World(Vec3d(0, 0, offset / std::sin(elevation)));
+  const core::PointCloud cloud = pyramid.Sample(60'000);
+  const Measured sharp = Reconstruct(pyramid, {}, cloud, true);
+  // Closed and in one piece; its Euler characteristic is 0, not 2, with or without the corner
+  // fits and the corner snapping (a handle somewhere, not yet found), so that is not asserted.
+  EXPECT_TRUE(sharp.topology.watertight());
+  EXPECT_TRUE(sharp.topology.consistently_oriented());
+  EXPECT_EQ(sharp.topology.components, 1);
+  EXPECT_TRUE(core::AnalyzeTopology(core::WeldByPosition(sharp.mesh)).watertight());
+  double nearest = 1e300;
+  for (const auto& v : sharp.mesh.vertices) nearest = std::min(nearest, (v.cast<double>() - apex).norm());
+  const double diagonal = core::Diagonal(core::BoundingBox(sharp.mesh.vertices));
+  std::printf("  apex: nearest vertex %.3g of the diagonal\n", nearest / diagonal);
+  EXPECT_LT(nearest, 1e-4 * diagonal);
 }
 
 TEST(PuSharp, SheetsCombineByConvexity) {

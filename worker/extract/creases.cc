@@ -1,5 +1,6 @@
 #include "worker/extract/creases.h"
 
+#include <Eigen/Eigenvalues>
 #include <Eigen/Geometry>
 #include <Eigen/LU>
 #include <algorithm>
@@ -7,6 +8,7 @@
 #include <cmath>
 #include <limits>
 #include <numbers>
+#include <optional>
 #include <vector>
 
 #include "absl/container/flat_hash_map.h"
@@ -38,6 +40,14 @@ constexpr double kMaxSnapShare = 0.15;
 // Where that end cannot move, the edge is split instead unless the crease point is closer than
 // this share of the edge to an end (a vertex there would merge with the end in any delivery).
 constexpr double kStuckMargin = 1e-3;
+
+// A least-squares corner: the tangent planes of a vertex's two rings must span three directions
+// (the smallest eigenvalue of Σ n nᵀ at least kCornerSpread of the largest; a smooth patch's
+// normals do not), the corner must lie within kCornerReach of its longest edge from the vertex,
+// and corners closer than kSameCornerShare of that edge are one.
+constexpr double kCornerSpread = 0.02;
+constexpr double kCornerReach = 1.5;
+constexpr double kSameCornerShare = 0.25;
 
 struct CreaseHit {
   Vec3d point = Vec3d::Constant(std::numeric_limits<double>::quiet_NaN());  // The split point, or NaN.
@@ -396,6 +406,133 @@ void InsertCutCorners(const core::ImplicitFunction& field, double cos_crease, ui
   }
 }
 
+// A corner where more than three sheets meet, or one that no triangle held three splits of, is
+// cut off by the triangles around it (a convex polytope's corner of five faces stayed a cell's
+// size away). Every vertex whose two-ring normals span three directions finds the point nearest
+// all of their tangent planes (the least-squares corner of dual contouring); where that is a
+// corner of F beside the vertex, the candidate nearest it moves there, unless one of its
+// triangles would turn over. Vertices marked in `fixed` stay.
+void SnapVerticesOntoCorners(const core::ImplicitFunction& field, double cos_crease, core::TriangleMesh& mesh,
+                             CreaseCounts& counts, core::JobContext& ctx, std::span<const char> fixed) {
+  const size_t n = mesh.vertices.size();
+  // The vertex → vertex adjacency (compressed rows) and the vertices beside a crease.
+  std::vector<uint32_t> offsets(n + 1, 0), neighbours;
+  std::vector<char> near_crease(n, 0);
+  for (const core::Triangle& t : mesh.faces) {
+    for (size_t i = 0; i < 3; ++i) offsets[t[i] + 1] += 2;
+    for (size_t i = 0; i < 3; ++i) {
+      if (mesh.normals[t[i]].dot(mesh.normals[t[(i + 1) % 3]]) < cos_crease)
+        near_crease[t[i]] = near_crease[t[(i + 1) % 3]] = 1;
+    }
+  }
+  for (size_t v = 0; v < n; ++v) offsets[v + 1] += offsets[v];
+  neighbours.resize(offsets[n]);
+  {
+    std::vector<uint32_t> fill(offsets.begin(), offsets.end() - 1);
+    for (const core::Triangle& t : mesh.faces) {
+      for (size_t i = 0; i < 3; ++i) {
+        neighbours[fill[t[i]]++] = t[(i + 1) % 3];
+        neighbours[fill[t[i]]++] = t[(i + 2) % 3];
+      }
+    }
+  }
+  auto ring = [&](uint32_t v) {
+    return std::span<const uint32_t>(neighbours.data() + offsets[v], offsets[v + 1] - offsets[v]);
+  };
+  struct Candidate {
+    uint32_t vertex;
+    double distance;  // From the vertex to its corner.
+    Vec3d corner;
+  };
+  std::vector<uint32_t> looked_at;
+  for (uint32_t v = 0; v < n; ++v) {
+    if (near_crease[v] && (fixed.empty() || v >= fixed.size() || !fixed[v])) looked_at.push_back(v);
+  }
+  std::vector<std::optional<Candidate>> found(looked_at.size());
+  (void)core::ParallelFor(
+      looked_at.size(), 256,
+      [&](size_t begin, size_t end) {
+        std::vector<uint32_t> two_ring;
+        for (size_t k = begin; k < end; ++k) {
+          const uint32_t v = looked_at[k];
+          const Vec3d p = mesh.vertices[v].cast<double>();
+          double longest = 0;
+          two_ring.assign({v});
+          for (uint32_t a : ring(v)) {
+            longest = std::max(longest, (mesh.vertices[a].cast<double>() - p).norm());
+            two_ring.push_back(a);
+            for (uint32_t b : ring(a)) two_ring.push_back(b);
+          }
+          std::sort(two_ring.begin(), two_ring.end());
+          two_ring.erase(std::unique(two_ring.begin(), two_ring.end()), two_ring.end());
+          Eigen::Matrix3d planes = Eigen::Matrix3d::Zero();
+          Vec3d rhs = Vec3d::Zero();
+          for (uint32_t a : two_ring) {
+            const Vec3d na = mesh.normals[a].cast<double>();
+            planes += na * na.transpose();
+            rhs += na * na.dot(mesh.vertices[a].cast<double>());
+          }
+          const Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> eigen(planes);
+          // Three directions: the weakest spans at least kCornerSpread of the strongest.
+          if (eigen.info() != Eigen::Success || !(eigen.eigenvalues()(0) > kCornerSpread * eigen.eigenvalues()(2))) {
+            continue;
+          }
+          const Vec3d x = eigen.eigenvectors() * eigen.eigenvalues().cwiseInverse().asDiagonal() *
+                          eigen.eigenvectors().transpose() * rhs;
+          const double distance = (x - p).norm();
+          if (!x.allFinite() || distance > kCornerReach * longest ||
+              !OnSurface(field, x, kMaxCornerResidualShare * longest))
+            continue;
+          found[k] = Candidate{v, distance, x};
+        }
+      },
+      &ctx);
+  std::vector<Candidate> candidates;
+  for (auto& c : found) {
+    if (c) candidates.push_back(*c);
+  }
+  // The nearest vertex takes each corner; others that found the same one stay.
+  std::sort(candidates.begin(), candidates.end(),
+            [](const Candidate& a, const Candidate& b) { return a.distance < b.distance; });
+  std::vector<Vec3d> taken;  // Few corners: a list.
+  for (const Candidate& c : candidates) {
+    double longest = 0;
+    for (uint32_t a : ring(c.vertex))
+      longest = std::max(longest, (mesh.vertices[a] - mesh.vertices[c.vertex]).cast<double>().norm());
+    const double same = kSameCornerShare * longest;
+    if (std::any_of(taken.begin(), taken.end(), [&](const Vec3d& t) { return (t - c.corner).norm() <= same; }))
+      continue;
+    // A vertex there already (a corner found by the splits): nothing to move.
+    if (c.distance <= same || std::any_of(ring(c.vertex).begin(), ring(c.vertex).end(), [&](uint32_t a) {
+          return (mesh.vertices[a].cast<double>() - c.corner).norm() <= same;
+        })) {
+      taken.push_back(c.corner);
+      continue;
+    }
+    const Vec3f before = mesh.vertices[c.vertex];
+    std::vector<Vec3d> normals_before;
+    for (size_t i = 0; i + 1 < ring(c.vertex).size(); i += 2) {
+      const Vec3d a = mesh.vertices[ring(c.vertex)[i]].cast<double>(),
+                  b = mesh.vertices[ring(c.vertex)[i + 1]].cast<double>();
+      normals_before.push_back((a - before.cast<double>()).cross(b - before.cast<double>()));
+    }
+    mesh.vertices[c.vertex] = c.corner.cast<float>();
+    bool turned = false;
+    for (size_t i = 0; i + 1 < ring(c.vertex).size(); i += 2) {
+      const Vec3d a = mesh.vertices[ring(c.vertex)[i]].cast<double>(),
+                  b = mesh.vertices[ring(c.vertex)[i + 1]].cast<double>();
+      const Vec3d after = (a - c.corner).cross(b - c.corner);
+      turned |= !(after.dot(normals_before[i / 2]) > 0);
+    }
+    if (turned) {  // The next nearest may move.
+      mesh.vertices[c.vertex] = before;
+      continue;
+    }
+    taken.push_back(c.corner);
+    ++counts.corners;
+  }
+}
+
 }  // namespace
 
 absl::Status SharpenCreases(const core::ImplicitFunction& field, double crease_angle, core::TriangleMesh& mesh,
@@ -495,6 +632,7 @@ absl::Status SharpenCreases(const core::ImplicitFunction& field, double crease_a
   }
   mesh.faces = SplitFaces(field, split, vertex_at, mesh, counts, face_cells);
   InsertCutCorners(field, cos_crease, first_new, mesh, counts, face_cells);
+  SnapVerticesOntoCorners(field, cos_crease, mesh, counts, ctx, fixed);
   return absl::OkStatus();
 }
 

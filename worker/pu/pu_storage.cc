@@ -1,4 +1,7 @@
+#include <algorithm>
+#include <array>
 #include <string_view>
+#include <vector>
 
 #include "worker/core/binary.h"
 #include "worker/core/status.h"
@@ -9,7 +12,45 @@ namespace lsqsurf::pu {
 
 namespace {
 
-constexpr std::string_view kPuMagic = "LQPU0002";
+constexpr std::string_view kPuMagic = "LQPU0003";
+// Functions kept before sharp fits had up to kMaxSheets sheets: read, and their fits widened.
+constexpr std::string_view kFourSheetMagic = "LQPU0002";
+
+// A sharp fit as kFourSheetMagic stored it: SharpFit's and Sheet's members then, in their order.
+struct FourSheetSheet {
+  Vec3d origin, tangent_u, tangent_v, normal;
+  double scale;
+  BivariatePolynomial height;
+};
+struct FourSheetFit {
+  std::array<FourSheetSheet, 4> sheets;
+  int count = 0;
+  std::array<bool, 3> take_max{};
+  Feature feature = Feature::kEdge;
+};
+
+bool ReadSharpFits(core::BinaryReader& r, bool four_sheets, std::vector<SharpFit>& fits) {
+  if (!four_sheets) return r.Array(fits);
+  std::vector<FourSheetFit> old;
+  if (!r.Array(old)) return false;
+  fits.resize(old.size());
+  for (size_t i = 0; i < old.size(); ++i) {
+    if (old[i].count < 2 || old[i].count > 4) return false;
+    for (size_t k = 0; k < static_cast<size_t>(old[i].count); ++k) {
+      const FourSheetSheet& from = old[i].sheets[k];
+      Sheet& to = fits[i].sheets[k];
+      if (from.height.degree < 0 || from.height.degree > 2) return false;
+      to.origin = from.origin, to.tangent_u = from.tangent_u, to.tangent_v = from.tangent_v, to.normal = from.normal;
+      to.scale = from.scale;
+      to.height.degree = from.height.degree;
+      std::copy_n(from.height.coefficients.begin(), TermCount(from.height.degree), to.height.coefficients.begin());
+    }
+    std::copy(old[i].take_max.begin(), old[i].take_max.end(), fits[i].take_max.begin());
+    fits[i].count = old[i].count;
+    fits[i].feature = old[i].feature;
+  }
+  return true;
+}
 
 // Structure checks of a read function: every index in range, so that evaluation cannot leave
 // its arrays whatever the bytes were.
@@ -32,7 +73,7 @@ bool Consistent(const PuFunction::Impl& m) {
     if (f.sharp >= 0 && static_cast<size_t>(f.sharp) >= m.sharp_fits.size()) return false;
   }
   for (const SharpFit& f : m.sharp_fits) {
-    if (f.count < 2 || f.count > 4) return false;
+    if (f.count < 2 || f.count > kMaxSheets) return false;
     // Read as bytes: a stored flag other than 0 or 1 is not a bool.
     std::array<uint8_t, sizeof(f.take_max)> flags;
     std::memcpy(flags.data(), f.take_max.data(), sizeof(f.take_max));
@@ -115,7 +156,9 @@ std::string SerializePu(const PuFunction& function) {
 }
 
 bool IsStoredPu(std::string_view bytes) {
-  return bytes.size() >= 8 + kPuMagic.size() && bytes.substr(8, kPuMagic.size()) == kPuMagic;
+  if (bytes.size() < 8 + kPuMagic.size()) return false;
+  const std::string_view magic = bytes.substr(8, kPuMagic.size());
+  return magic == kPuMagic || magic == kFourSheetMagic;
 }
 
 absl::StatusOr<std::unique_ptr<PuFunction>> DeserializePu(std::string_view bytes) {
@@ -124,7 +167,9 @@ absl::StatusOr<std::unique_ptr<PuFunction>> DeserializePu(std::string_view bytes
   };
   core::BinaryReader r(bytes);
   std::vector<char> magic;
-  if (!r.Array(magic) || std::string_view(magic.data(), magic.size()) != kPuMagic) return bad("wrong header");
+  if (!r.Array(magic)) return bad("wrong header");
+  const std::string_view header(magic.data(), magic.size());
+  if (header != kPuMagic && header != kFourSheetMagic) return bad("wrong header");
   auto read = std::make_unique<PuFunction::Impl>();
   PuFunction::Impl& m = *read;
   PuStats& st = m.stats;
@@ -140,7 +185,9 @@ absl::StatusOr<std::unique_ptr<PuFunction>> DeserializePu(std::string_view bytes
       !r.Array(m.cloud->normals, m.cloud->positions.size()) || !r.Array(m.cloud->local_spacing)) {
     return bad("points");
   }
-  if (!r.Array(m.nodes) || !ReadFits(r, m.fits) || !r.Array(m.sharp_fits) || !r.AtEnd()) return bad("fits");
+  if (!r.Array(m.nodes) || !ReadFits(r, m.fits) || !ReadSharpFits(r, header == kFourSheetMagic, m.sharp_fits) ||
+      !r.AtEnd())
+    return bad("fits");
   if (!Consistent(m)) return bad("inconsistent structure");
   m.cloud->kd_tree = std::make_unique<core::KdTree>(m.cloud->positions);
   core::LocalJobContext ctx;

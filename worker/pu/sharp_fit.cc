@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <functional>
 #include <numbers>
 #include <vector>
 
@@ -42,7 +43,9 @@ Sheet FitSheet(std::span<const Vec3d> points, std::span<const Vec3d> normals, st
   }
   fitter.Reset(u, v, w, wt);
   if (fitter.RaiseDegree() && weighted >= kQuadraticPoints) fitter.RaiseDegree();
-  s.height = fitter.polynomial();
+  const BivariatePolynomial& p = fitter.polynomial();
+  s.height.degree = std::min(p.degree, 2);
+  std::copy_n(p.coefficients.begin(), TermCount(s.height.degree), s.height.coefficients.begin());
   return s;
 }
 
@@ -72,6 +75,13 @@ std::pair<uint32_t, uint32_t> WidestPair(std::span<const Vec3d> normals, std::sp
 }
 
 }  // namespace
+
+void SheetHeight::Evaluate(double u, double v, double& value, double& du, double& dv) const {
+  const auto& c = coefficients;  // Zero beyond the degree.
+  value = c[0] + c[1] * u + c[2] * v + c[3] * u * u + c[4] * u * v + c[5] * v * v;
+  du = c[1] + 2 * c[3] * u + c[4] * v;
+  dv = c[2] + c[4] * u + 2 * c[5] * v;
+}
 
 double Sheet::Evaluate(const Vec3d& x, Vec3d* gradient) const {
   const Vec3d d = x - origin;
@@ -110,7 +120,7 @@ std::optional<SharpFit> FitSharp(std::span<const Vec3d> points, std::span<const 
   double spread = 0;
   for (uint32_t i : members) spread = std::max(spread, std::abs(e.dot(normals[i])));
   SharpFit fit;
-  std::array<std::vector<uint32_t>, 4> groups;
+  std::array<std::vector<uint32_t>, kMaxSheets> groups;
   if (spread < params.corner_share) {
     fit.feature = Feature::kEdge;
     for (uint32_t i : members) groups[normals[i].dot(na) > normals[i].dot(nb) ? 0 : 1].push_back(i);
@@ -156,7 +166,7 @@ std::optional<SharpFit> FitSharp(std::span<const Vec3d> points, std::span<const 
     }
   }
   if (all_convex || all_concave) {
-    fit.take_max = {all_convex, all_convex, all_convex};
+    fit.take_max.fill(all_convex);
     return fit;
   }
   if (fit.count == 4) return std::nullopt;  // Mixed four-sheet corners: MPU gives up too.
@@ -165,15 +175,127 @@ std::optional<SharpFit> FitSharp(std::span<const Vec3d> points, std::span<const 
   for (int k = 0; k < 3; ++k) {
     const int i = (k + 1) % 3, j = (k + 2) % 3;
     if (convex(i, k) == convex(j, k) && convex(i, k) != convex(i, j)) {
-      const std::array<Sheet, 4> sheets = fit.sheets;
+      const std::array<Sheet, kMaxSheets> sheets = fit.sheets;
       fit.sheets[0] = sheets[static_cast<size_t>(i)];
       fit.sheets[1] = sheets[static_cast<size_t>(j)];
       fit.sheets[2] = sheets[static_cast<size_t>(k)];
-      fit.take_max = {convex(i, j), convex(i, k), false};
+      fit.take_max = {};
+      fit.take_max[0] = convex(i, j);
+      fit.take_max[1] = convex(i, k);
       return fit;
     }
   }
   return std::nullopt;
+}
+
+namespace {
+
+// One clustering at `seed_cos` of the members, seeded with the far-apart normals a and b.
+std::optional<SharpFit> ClusterAt(std::span<const Vec3d> points, std::span<const Vec3d> normals,
+                                  std::span<const double> weights, std::span<const uint32_t> members, uint32_t a,
+                                  uint32_t b, double scale, double seed_cos, OrthogonalFitter& fitter) {
+  std::vector<Vec3d> seeds{normals[a], normals[b]};
+  // nearest[i]: the largest cosine from member i's normal to a seed so far.
+  std::vector<double> nearest(members.size());
+  for (size_t i = 0; i < members.size(); ++i) {
+    nearest[i] = std::max(normals[members[i]].dot(seeds[0]), normals[members[i]].dot(seeds[1]));
+  }
+  while (static_cast<int>(seeds.size()) < kMaxSheets) {
+    const size_t far = static_cast<size_t>(std::min_element(nearest.begin(), nearest.end()) - nearest.begin());
+    if (nearest[far] >= seed_cos) break;
+    seeds.push_back(normals[members[far]]);
+    for (size_t i = 0; i < members.size(); ++i)
+      nearest[i] = std::max(nearest[i], normals[members[i]].dot(seeds.back()));
+  }
+  // One k-means step: each sheet's normal becomes its members' mean, then the members are
+  // assigned again (a seed taken at a rounded edge's point would otherwise pull its neighbours).
+  std::vector<std::vector<uint32_t>> groups(seeds.size());
+  auto assign = [&] {
+    for (auto& g : groups) g.clear();
+    for (uint32_t i : members) {
+      size_t best = 0;
+      for (size_t k = 1; k < seeds.size(); ++k) {
+        if (normals[i].dot(seeds[k]) > normals[i].dot(seeds[best])) best = k;
+      }
+      groups[best].push_back(i);
+    }
+  };
+  assign();
+  for (size_t k = 0; k < seeds.size(); ++k) {
+    Vec3d mean = Vec3d::Zero();
+    for (uint32_t i : groups[k]) mean += weights[i] * normals[i];
+    if (mean.norm() > 0) seeds[k] = mean.normalized();
+  }
+  assign();
+  // Faces, not a curved patch cut into pieces: every cluster's normals lie within a quarter of
+  // the seeding angle of their mean, and no normal of one cluster comes within half of it of
+  // another cluster's (a smooth patch's normals vary without such a gap).
+  const double seed_angle = std::acos(std::clamp(seed_cos, -1.0, 1.0));
+  const double tight_cos = std::cos(0.25 * seed_angle), gap_cos = std::cos(0.5 * seed_angle);
+  for (size_t k = 0; k < groups.size(); ++k) {
+    Vec3d mean = Vec3d::Zero();
+    for (uint32_t i : groups[k]) mean += normals[i];
+    if (!(mean.norm() > 0)) return std::nullopt;
+    mean.normalize();
+    for (uint32_t i : groups[k]) {
+      if (normals[i].dot(mean) < tight_cos) return std::nullopt;
+    }
+  }
+  for (size_t k = 0; k < groups.size(); ++k) {
+    for (size_t l = k + 1; l < groups.size(); ++l) {
+      for (uint32_t i : groups[k]) {
+        for (uint32_t j : groups[l]) {
+          if (normals[i].dot(normals[j]) > gap_cos) return std::nullopt;
+        }
+      }
+    }
+  }
+  SharpFit fit;
+  fit.count = static_cast<int>(seeds.size());
+  fit.feature = fit.count == 2 ? Feature::kEdge : Feature::kCorner;
+  for (int k = 0; k < fit.count; ++k) {
+    if (groups[static_cast<size_t>(k)].empty()) return std::nullopt;
+    fit.sheets[static_cast<size_t>(k)] =
+        FitSheet(points, normals, weights, groups[static_cast<size_t>(k)], scale, fitter);
+  }
+  bool all_convex = true, all_concave = true;
+  for (int i = 0; i < fit.count; ++i) {
+    for (int j = i + 1; j < fit.count; ++j) {
+      const bool c = Convex(fit.sheets[static_cast<size_t>(i)], fit.sheets[static_cast<size_t>(j)]);
+      all_convex &= c;
+      all_concave &= !c;
+    }
+  }
+  if (!all_convex && !all_concave) return std::nullopt;
+  fit.take_max.fill(all_convex);
+  return fit;
+}
+
+}  // namespace
+
+void FitSharpClusters(std::span<const Vec3d> points, std::span<const Vec3d> normals, std::span<const double> weights,
+                      double scale, std::span<const double> seed_cos, const std::function<bool(const SharpFit&)>& take,
+                      OrthogonalFitter& fitter) {
+  std::vector<uint32_t> members;
+  for (uint32_t i = 0; i < points.size(); ++i) {
+    if (weights[i] > 0) members.push_back(i);
+  }
+  if (members.size() < 2) return;
+  // Two far-apart normals in O(n), not the widest pair's O(n²): the one farthest from the mean,
+  // then the one farthest from it (farthest-point seeding needs no more).
+  Vec3d mean = Vec3d::Zero();
+  for (uint32_t i : members) mean += normals[i];
+  auto farthest_from = [&](const Vec3d& d) {
+    return *std::min_element(members.begin(), members.end(),
+                             [&](uint32_t i, uint32_t j) { return normals[i].dot(d) < normals[j].dot(d); });
+  };
+  const uint32_t a = farthest_from(mean), b = farthest_from(normals[a]);
+  const double smallest = normals[a].dot(normals[b]);
+  for (const double c : seed_cos) {
+    if (smallest >= c) continue;
+    std::optional<SharpFit> fit = ClusterAt(points, normals, weights, members, a, b, scale, c, fitter);
+    if (fit && take(*fit)) return;
+  }
 }
 
 }  // namespace lsqsurf::pu

@@ -5,9 +5,11 @@
 #pragma once
 
 #include <CLI/CLI.hpp>
+#include <array>
 #include <cstdint>
 #include <optional>
 #include <string>
+#include <string_view>
 #include <vector>
 
 #include "client/client.h"
@@ -71,6 +73,7 @@ struct ConnectionFlags {
 struct Globals {
   std::string server;
   bool quiet = false;
+  bool all_statistics = false;  // --stats on the commands that wait for a job.
   ConnectionFlags connection;
   client::ConnectOptions connect;  // From `connection`, once parsed.
 
@@ -80,6 +83,10 @@ struct Globals {
     app.add_option("--server", server, "HOST:PORT of lsqsurfd (default: $LSQSURF_SERVER or 127.0.0.1:50051)");
     app.add_flag("-q,--quiet", quiet, "no progress output");
     connection.AddTo(app);
+  }
+  // --stats on a command that waits for its job.
+  void AddStatsFlag(CLI::App* command) {
+    command->add_flag("--stats", all_statistics, "print every statistic of the finished job, not a summary");
   }
   absl::Status Resolve() {
     auto resolved = connection.Resolve(server);
@@ -142,7 +149,13 @@ int FetchToFile(const Globals& g, const std::string& id, const std::string& name
 // pictures, tables and text are written as they are.
 int WriteResult(const std::string& bytes, const std::string& name, const std::string& path);
 
-void PrintStatistics(const v1::Job& job);
+// The statistics of a finished job: all of them (`all`), or a summary line (triangles, closed,
+// components, time) and the repairs made to the input.
+void PrintStatistics(const v1::Job& job, bool all);
+// Statistics that count repairs of an uploaded volume mesh, shown in the summary when not zero.
+inline constexpr std::array<std::string_view, 6> kRepairStatistics{"linearised_cells", "reoriented_cells",
+                                                                   "degenerate_cells", "merged_vertices",
+                                                                   "unused_vertices",  "missing_vertices"};
 void PrintJob(const v1::Job& job);
 
 // The result that keeps a volume job's field (drawn by `render --volume`).

@@ -1,11 +1,13 @@
 #include <unistd.h>
 
+#include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
 #include <filesystem>
 #include <limits>
+#include <optional>
 #include <set>
 
 #include "client/cli.h"
@@ -226,8 +228,39 @@ int FetchToFile(const Globals& g, const std::string& id, const std::string& name
   return WriteResult(*bytes, name, path);
 }
 
-void PrintStatistics(const v1::Job& job) {
-  for (const auto& s : job.statistics()) std::fprintf(stderr, "  %s = %g\n", s.name().c_str(), s.value());
+void PrintStatistics(const v1::Job& job, bool all) {
+  if (all) {
+    for (const auto& s : job.statistics()) std::fprintf(stderr, "  %s = %g\n", s.name().c_str(), s.value());
+    return;
+  }
+  // One line of what a user checks first, then what the server had to repair in the input.
+  std::optional<double> triangles, boundary_edges, components;
+  std::string repaired;
+  for (const auto& s : job.statistics()) {
+    if (s.name() == "triangles") triangles = s.value();
+    if (s.name() == "boundary_edges") boundary_edges = s.value();
+    if (s.name() == "components") components = s.value();
+    if (std::find(kRepairStatistics.begin(), kRepairStatistics.end(), s.name()) != kRepairStatistics.end() &&
+        s.value() > 0) {
+      repaired += StrCat(repaired.empty() ? "" : ", ", static_cast<int64_t>(s.value()), " ", s.name());
+    }
+  }
+  std::string line;
+  if (triangles) line = StrCat(static_cast<int64_t>(*triangles), " triangles");
+  if (boundary_edges) {
+    line += *boundary_edges == 0 ? ", closed"
+                                 : StrCat(", open (", static_cast<int64_t>(*boundary_edges), " boundary edges)");
+  }
+  if (components)
+    line += StrCat(", ", static_cast<int64_t>(*components), *components == 1 ? " component" : " components");
+  if (job.updated_ms() > job.created_ms()) {
+    char seconds[32];
+    std::snprintf(seconds, sizeof seconds, "%.1f", static_cast<double>(job.updated_ms() - job.created_ms()) / 1e3);
+    line += StrCat(line.empty() ? "" : "; ", "in ", seconds, " s");
+  }
+  if (!line.empty()) std::fprintf(stderr, "  %s\n", line.c_str());
+  if (!repaired.empty()) std::fprintf(stderr, "  input repaired: %s\n", repaired.c_str());
+  std::fprintf(stderr, "  %d statistics: --stats, or lsqsurf status %s\n", job.statistics_size(), job.id().c_str());
 }
 
 void PrintJob(const v1::Job& job) {

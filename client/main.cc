@@ -4,6 +4,22 @@
 
 using namespace lsqsurf::cli;  // NOLINT: main wires the commands, nothing else.
 
+namespace {
+
+// render: a mesh result with the view options, or a volume job's field (--volume and friends).
+int Render(const Globals& g, const ViewFlags& view, const VolumeViewFlags& volume_view, const std::string& id,
+           std::string name, const std::string& output) {
+  auto options = view.Options();
+  if (!options.ok()) return Fail(std::string(options.status().message()));
+  if (volume_view.Requested()) {
+    if (absl::Status s = volume_view.Apply(&*options); !s.ok()) return Fail(std::string(s.message()));
+    name = kVolumeField;
+  }
+  return RenderToFile(g, id, name, *options, output);
+}
+
+}  // namespace
+
 int main(int argc, char** argv) {
   CLI::App app{"lsqsurf: client of the lsqsurfd reconstruction server"};
   app.footer("Defaults and ranges of method parameters and view options: lsqsurf methods, or docs/parameters.md.");
@@ -73,6 +89,7 @@ int main(int argc, char** argv) {
   TrackCommand track_command;
   auto* track = app.add_subcommand("track", "advect an interface through a velocity field; write frames and stats");
   track_command.AddTo(track);
+  for (CLI::App* waits : {reconstruct, volume, csg, edit, probe, track}) g.AddStatsFlag(waits);
   ViewFlags render_view;
   auto* render = app.add_subcommand("render", "render a result (mesh, points or frame) to a PNG picture");
   render->add_option("id", id, "job id")->required();
@@ -104,15 +121,7 @@ int main(int argc, char** argv) {
   }
   if (*track) return track_command.Run(g);
   if (*probe) return probe_command.Run(g);
-  if (*render) {
-    auto options = render_view.Options();
-    if (!options.ok()) return Fail(std::string(options.status().message()));
-    if (volume_view.Requested()) {
-      if (absl::Status s = volume_view.Apply(&*options); !s.ok()) return Fail(std::string(s.message()));
-      name = kVolumeField;
-    }
-    return RenderToFile(g, id, name, *options, output);
-  }
+  if (*render) return Render(g, render_view, volume_view, id, name, output);
   for (CLI::App* command : id_commands) {
     if (*command) return JobCommand(g, command->get_name(), id);
   }

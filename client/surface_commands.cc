@@ -86,7 +86,7 @@ int SurfaceCommand::Run(const Globals& g, bool wait) const {
   v1::Job done;
   if (int rc = Watch(g, accepted->id(), &done); rc != 0) return rc;
   if (outputs.empty()) {  // A volume job kept for later renders and probes.
-    if (!g.quiet) PrintStatistics(done);
+    if (!g.quiet) PrintStatistics(done, g.all_statistics);
     std::printf("%s\n", done.id().c_str());
     return 0;
   }
@@ -94,7 +94,7 @@ int SurfaceCommand::Run(const Globals& g, bool wait) const {
     if (int rc = FetchToFile(g, done.id(), "", path, &done); rc != 0) return rc;
   }
   if (!g.quiet) {
-    PrintStatistics(done);
+    PrintStatistics(done, g.all_statistics);
     for (const auto& path : outputs) std::fprintf(stderr, "wrote %s\n", path.c_str());
   }
   if (!preview.empty()) return RenderToFile(g, done.id(), "", *view_options, preview);
@@ -169,7 +169,7 @@ int ProbeCommand::Run(const Globals& g) const {
   if (!bytes.ok()) return FailStatus("fetch", bytes.status());
   if (int rc = WriteResult(*bytes, artifact, output); rc != 0) return rc;
   if (!g.quiet) {
-    PrintStatistics(done);
+    PrintStatistics(done, g.all_statistics);
     std::fprintf(stderr, "wrote %s\n", output.c_str());
   }
   return 0;

@@ -80,7 +80,7 @@ int TrackCommand::Run(const Globals& g) const {
     if (absl::Status s = lsqsurf::io::WriteFileAtomically(path, *bytes); !s.ok()) return Fail(std::string(s.message()));
   }
   if (!g.quiet) {
-    PrintStatistics(done);
+    PrintStatistics(done, g.all_statistics);
     std::fprintf(stderr, "wrote %d files to %s\n", done.results_size(), output.c_str());
   }
   return 0;

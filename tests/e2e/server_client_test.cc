@@ -94,6 +94,12 @@ TEST_F(EndToEnd, ReconstructsASphereAndAnswersHealthChecks) {
   EXPECT_TRUE(t.watertight());
   EXPECT_EQ(t.euler_characteristic(), 2);
   for (const auto& v : mesh->vertices) EXPECT_NEAR(v.norm(), 1.0f, 0.01f);
+  // A summary by default; every statistic (the angle histogram among them) with --stats.
+  EXPECT_NE(r.output.find(" triangles, closed, 1 component; in "), std::string::npos) << r.output;
+  EXPECT_EQ(r.output.find("min_angle_share"), std::string::npos) << r.output;
+  const ClientRun all = Client(server.address(), "reconstruct " + in + " -o " + out + " --stats");
+  ASSERT_EQ(all.code, 0) << all.output;
+  EXPECT_NE(all.output.find("min_angle_share_30_35 = "), std::string::npos) << all.output;
 
   const ClientRun drc = Client(server.address(), "reconstruct " + in + " -o " + (dir_ / "m.drc").string());
   ASSERT_EQ(drc.code, 0) << drc.output;
@@ -160,7 +166,7 @@ TEST_F(EndToEnd, ACloudSentInPartsComesBackAsOneClosedMesh) {
   const std::string out = (dir_ / "block-out.ply").string(), again = (dir_ / "block-again.obj").string();
   const ClientRun r = Client(server.address(), "reconstruct " + in + " -o " + out +
                                                    " --method pu --part-points 2500 --param tile_points=3000 "
-                                                   "--param support_cap=16");
+                                                   "--param support_cap=16 --stats");
   ASSERT_EQ(r.code, 0) << r.output;
   EXPECT_NE(r.output.find("input_streamed = 1"), std::string::npos) << r.output;
   auto mesh = io::ReadMeshFile(out);

@@ -34,6 +34,9 @@ constexpr double kMaxResidualShare = 0.1;
 constexpr double kMaxCornerResidualShare = 0.02;
 constexpr double kEndMargin = 0.02;
 constexpr double kMaxOffsetShare = 0.5;
+// Acute edges: the geometric largest offset (½ tan(θ/2) of the edge) with this slack, capped.
+constexpr double kOffsetSlack = 1.2;
+constexpr double kMaxOffsetCap = 4.0;
 
 // An end of an edge that lies this close to the crease (share of the edge) is moved onto it.
 constexpr double kMaxSnapShare = 0.15;
@@ -119,6 +122,11 @@ CreaseHit CreasePoint(const core::ImplicitFunction& field, const Vec3d& a, const
   const Vec3d x = m + s * na + t * nb;
   const Vec3d edge = b - a;
   const double length = edge.norm();
+  // Across an acute edge the crease lies farther from the chord than half its length: up to
+  // ½ tan(θ/2) of it, θ the angle between the normals (0.5 at a right angle, 1.07 where a
+  // pyramid's side meets its base at 50°, which a fixed half missed along the whole edge).
+  const double max_offset =
+      length * std::min(kMaxOffsetCap, std::max(kMaxOffsetShare, kOffsetSlack * 0.5 * std::sqrt((1 - c) / (1 + c))));
   const double along = (x - a).dot(edge) / (length * length);
   if (!(along > kEndMargin && along < 1 - kEndMargin)) {
     if (!(along > -kEndMargin && along < 1 + kEndMargin)) return none;
@@ -129,14 +137,13 @@ CreaseHit CreasePoint(const core::ImplicitFunction& field, const Vec3d& a, const
     if (!((p - e).norm() <= kMaxSnapShare * length) || !OnSurface(field, p, kMaxResidualShare * length)) return none;
     CreaseHit hit;
     hit.snap_end = end, hit.snap_to = p;
-    if (along > kStuckMargin && along < 1 - kStuckMargin &&
-        (x - (a + along * edge)).norm() <= kMaxOffsetShare * length &&
+    if (along > kStuckMargin && along < 1 - kStuckMargin && (x - (a + along * edge)).norm() <= max_offset &&
         OnSurface(field, x, kMaxResidualShare * length)) {
       hit.split_if_stuck = x;
     }
     return hit;
   }
-  if ((x - (a + along * edge)).norm() > kMaxOffsetShare * length) return none;
+  if ((x - (a + along * edge)).norm() > max_offset) return none;
   if (!OnSurface(field, x, kMaxResidualShare * length)) return none;
   CreaseHit hit;
   hit.point = x;

@@ -5,11 +5,9 @@
 #pragma once
 
 #include <CLI/CLI.hpp>
-#include <array>
 #include <cstdint>
 #include <optional>
 #include <string>
-#include <string_view>
 #include <vector>
 
 #include "client/client.h"
@@ -152,10 +150,6 @@ int WriteResult(const std::string& bytes, const std::string& name, const std::st
 // The statistics of a finished job: all of them (`all`), or a summary line (triangles, closed,
 // components, time) and the repairs made to the input.
 void PrintStatistics(const v1::Job& job, bool all);
-// Statistics that count repairs of an uploaded volume mesh, shown in the summary when not zero.
-inline constexpr std::array<std::string_view, 6> kRepairStatistics{"linearised_cells", "reoriented_cells",
-                                                                   "degenerate_cells", "merged_vertices",
-                                                                   "unused_vertices",  "missing_vertices"};
 void PrintJob(const v1::Job& job);
 
 // The result that keeps a volume job's field (drawn by `render --volume`).

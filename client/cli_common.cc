@@ -13,6 +13,7 @@
 #include "client/cli.h"
 #include "worker/core/address.h"
 #include "worker/core/status.h"
+#include "worker/core/volume_mesh.h"
 #include "worker/io/draco_codec.h"
 #include "worker/io/files.h"
 
@@ -236,12 +237,12 @@ void PrintStatistics(const v1::Job& job, bool all) {
   // One line of what a user checks first, then what the server had to repair in the input.
   std::optional<double> triangles, boundary_edges, components;
   std::string repaired;
+  const auto& repairs = lsqsurf::core::kVolumeRepairStatistics;
   for (const auto& s : job.statistics()) {
     if (s.name() == "triangles") triangles = s.value();
     if (s.name() == "boundary_edges") boundary_edges = s.value();
     if (s.name() == "components") components = s.value();
-    if (std::find(kRepairStatistics.begin(), kRepairStatistics.end(), s.name()) != kRepairStatistics.end() &&
-        s.value() > 0) {
+    if (std::find(repairs.begin(), repairs.end(), s.name()) != repairs.end() && s.value() > 0) {
       repaired += StrCat(repaired.empty() ? "" : ", ", static_cast<int64_t>(s.value()), " ", s.name());
     }
   }

@@ -31,7 +31,7 @@ for option in "$@"; do
     --with-vtk) packages+=(python3-vtk9 python3-numpy xvfb) ;;  # bench/vtk_volume_reference.py
     --with-containers) packages+=(podman runc debootstrap uidmap slirp4netns fuse-overlayfs podman-compose golang-github-containernetworking-plugin-dnsname) ;;  # scripts/container-*.sh, compose-test.sh
     --with-fuzz) packages+=(clang libclang-rt-dev) ;;  # scripts/fuzz.sh
-    --with-scipy) packages+=(python3-scipy python3-numpy python3-skimage) ;;  # bench/exported_volume.py, thin_shapes.py
+    --with-scipy) packages+=(python3-scipy python3-numpy python3-skimage) ;;  # bench/exported_volume.py, thin_shapes.py, polytopes.py
     *) echo "install-deps: unknown option $option (--with-poisson, --with-openvdb, --with-vtk, --with-containers, --with-fuzz, --with-scipy)" >&2; exit 2 ;;
   esac
 done

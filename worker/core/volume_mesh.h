@@ -115,6 +115,16 @@ struct VolumeRepairs {
   int64_t missing_vertices = 0;  // Vertices with a NaN or infinite value, filled in.
 };
 
+// The job statistics that count the repairs (the server's statistics, the CLI's summary), in the
+// order of RepairCounts.
+inline constexpr std::array<std::string_view, 6> kVolumeRepairStatistics{"linearised_cells", "reoriented_cells",
+                                                                         "degenerate_cells", "merged_vertices",
+                                                                         "unused_vertices",  "missing_vertices"};
+inline std::array<int64_t, 6> RepairCounts(const VolumeRepairs& r) {
+  return {r.linearised_cells, r.reoriented_cells, r.degenerate_cells,
+          r.merged_vertices,  r.unused_vertices,  r.missing_vertices};
+}
+
 // The vertices lacking a value in some field (NaN or infinite) get one from the vertices that
 // share a cell with them, ring by ring inwards (inverse-distance weights); in a point set without
 // cells they are left out. Returns how many there were. Errors: kInvalidArgument when a field

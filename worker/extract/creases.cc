@@ -449,6 +449,7 @@ void SnapVerticesOntoCorners(const core::ImplicitFunction& field, double cos_cre
   struct Candidate {
     uint32_t vertex;
     double distance;  // From the vertex to its corner.
+    double longest;   // The vertex's longest edge.
     Vec3d corner;
   };
   std::vector<uint32_t> looked_at;
@@ -490,7 +491,7 @@ void SnapVerticesOntoCorners(const core::ImplicitFunction& field, double cos_cre
           if (!x.allFinite() || distance > kCornerReach * longest ||
               !OnSurface(field, x, kMaxCornerResidualShare * longest))
             continue;
-          found[k] = Candidate{v, distance, x};
+          found[k] = Candidate{v, distance, longest, x};
         }
       },
       &ctx);
@@ -503,10 +504,7 @@ void SnapVerticesOntoCorners(const core::ImplicitFunction& field, double cos_cre
             [](const Candidate& a, const Candidate& b) { return a.distance < b.distance; });
   std::vector<Vec3d> taken;  // Few corners: a list.
   for (const Candidate& c : candidates) {
-    double longest = 0;
-    for (uint32_t a : ring(c.vertex))
-      longest = std::max(longest, (mesh.vertices[a] - mesh.vertices[c.vertex]).cast<double>().norm());
-    const double same = kSameCornerShare * longest;
+    const double same = kSameCornerShare * c.longest;
     if (std::any_of(taken.begin(), taken.end(), [&](const Vec3d& t) { return (t - c.corner).norm() <= same; }))
       continue;
     // A vertex there already (a corner found by the splits): nothing to move.
@@ -516,25 +514,20 @@ void SnapVerticesOntoCorners(const core::ImplicitFunction& field, double cos_cre
       taken.push_back(c.corner);
       continue;
     }
-    const Vec3f before = mesh.vertices[c.vertex];
-    std::vector<Vec3d> normals_before;
-    for (size_t i = 0; i + 1 < ring(c.vertex).size(); i += 2) {
+    // The normal of the vertex's i-th triangle (its ring holds each triangle's other two corners
+    // in order) were the vertex at `at`.
+    const auto face_normal = [&](size_t i, const Vec3d& at) {
       const Vec3d a = mesh.vertices[ring(c.vertex)[i]].cast<double>(),
                   b = mesh.vertices[ring(c.vertex)[i + 1]].cast<double>();
-      normals_before.push_back((a - before.cast<double>()).cross(b - before.cast<double>()));
-    }
-    mesh.vertices[c.vertex] = c.corner.cast<float>();
+      return Vec3d((a - at).cross(b - at));
+    };
+    const Vec3f before = mesh.vertices[c.vertex];
     bool turned = false;
     for (size_t i = 0; i + 1 < ring(c.vertex).size(); i += 2) {
-      const Vec3d a = mesh.vertices[ring(c.vertex)[i]].cast<double>(),
-                  b = mesh.vertices[ring(c.vertex)[i + 1]].cast<double>();
-      const Vec3d after = (a - c.corner).cross(b - c.corner);
-      turned |= !(after.dot(normals_before[i / 2]) > 0);
+      turned |= !(face_normal(i, c.corner).dot(face_normal(i, before.cast<double>())) > 0);
     }
-    if (turned) {  // The next nearest may move.
-      mesh.vertices[c.vertex] = before;
-      continue;
-    }
+    if (turned) continue;  // The next nearest may move.
+    mesh.vertices[c.vertex] = c.corner.cast<float>();
     taken.push_back(c.corner);
     ++counts.corners;
   }

@@ -92,13 +92,9 @@ struct RepairedVolume {
 };
 
 void AddRepairStatistics(const volume::VolumeRepairs& r, Statistics& statistics) {
-  for (const auto& [name, value] : {std::pair{"linearised_cells", r.linearised_cells},
-                                    {"reoriented_cells", r.reoriented_cells},
-                                    {"degenerate_cells", r.degenerate_cells},
-                                    {"merged_vertices", r.merged_vertices},
-                                    {"unused_vertices", r.unused_vertices},
-                                    {"missing_vertices", r.missing_vertices}}) {
-    statistics.emplace_back(name, static_cast<double>(value));
+  const std::array<int64_t, 6> counts = core::RepairCounts(r);
+  for (size_t k = 0; k < counts.size(); ++k) {
+    statistics.emplace_back(std::string(core::kVolumeRepairStatistics[k]), static_cast<double>(counts[k]));
   }
 }
 

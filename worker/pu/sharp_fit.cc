@@ -74,6 +74,41 @@ std::pair<uint32_t, uint32_t> WidestPair(std::span<const Vec3d> normals, std::sp
   return best;
 }
 
+// The points that carry weight.
+std::vector<uint32_t> WeightedMembers(std::span<const double> weights) {
+  std::vector<uint32_t> members;
+  for (uint32_t i = 0; i < weights.size(); ++i) {
+    if (weights[i] > 0) members.push_back(i);
+  }
+  return members;
+}
+
+// One sheet per group into `fit` (its count given); false where a group is empty.
+bool FitSheets(std::span<const Vec3d> points, std::span<const Vec3d> normals, std::span<const double> weights,
+               std::span<const std::vector<uint32_t>> groups, double scale, OrthogonalFitter& fitter, SharpFit& fit) {
+  for (int k = 0; k < fit.count; ++k) {
+    if (groups[static_cast<size_t>(k)].empty()) return false;
+    fit.sheets[static_cast<size_t>(k)] =
+        FitSheet(points, normals, weights, groups[static_cast<size_t>(k)], scale, fitter);
+  }
+  return true;
+}
+
+// Whether every pair of the fit's sheets is convex between them, or every pair concave; which
+// one in `all_convex`.
+bool AllPairsAlike(const SharpFit& fit, bool& all_convex) {
+  all_convex = true;
+  bool all_concave = true;
+  for (int i = 0; i < fit.count; ++i) {
+    for (int j = i + 1; j < fit.count; ++j) {
+      const bool c = Convex(fit.sheets[static_cast<size_t>(i)], fit.sheets[static_cast<size_t>(j)]);
+      all_convex &= c;
+      all_concave &= !c;
+    }
+  }
+  return all_convex || all_concave;
+}
+
 }  // namespace
 
 void SheetHeight::Evaluate(double u, double v, double& value, double& du, double& dv) const {
@@ -107,10 +142,7 @@ double SharpFit::Evaluate(const Vec3d& x, Vec3d* gradient) const {
 std::optional<SharpFit> FitSharp(std::span<const Vec3d> points, std::span<const Vec3d> normals,
                                  std::span<const double> weights, double scale, const SharpParams& params,
                                  OrthogonalFitter& fitter) {
-  std::vector<uint32_t> members;
-  for (uint32_t i = 0; i < points.size(); ++i) {
-    if (weights[i] > 0) members.push_back(i);
-  }
+  const std::vector<uint32_t> members = WeightedMembers(weights);
   if (members.size() < 2) return std::nullopt;
   double smallest = 2;
   const auto [a, b] = WidestPair(normals, members, smallest);
@@ -145,11 +177,7 @@ std::optional<SharpFit> FitSharp(std::span<const Vec3d> points, std::span<const 
       }
     }
   }
-  for (int k = 0; k < fit.count; ++k) {
-    if (groups[static_cast<size_t>(k)].empty()) return std::nullopt;
-    fit.sheets[static_cast<size_t>(k)] =
-        FitSheet(points, normals, weights, groups[static_cast<size_t>(k)], scale, fitter);
-  }
+  if (!FitSheets(points, normals, weights, groups, scale, fitter, fit)) return std::nullopt;
   auto convex = [&](int i, int j) {
     return Convex(fit.sheets[static_cast<size_t>(i)], fit.sheets[static_cast<size_t>(j)]);
   };
@@ -158,14 +186,7 @@ std::optional<SharpFit> FitSharp(std::span<const Vec3d> points, std::span<const 
     return fit;
   }
   // All pairs alike: one operation throughout.
-  bool all_convex = true, all_concave = true;
-  for (int i = 0; i < fit.count; ++i) {
-    for (int j = i + 1; j < fit.count; ++j) {
-      all_convex &= convex(i, j);
-      all_concave &= !convex(i, j);
-    }
-  }
-  if (all_convex || all_concave) {
+  if (bool all_convex = true; AllPairsAlike(fit, all_convex)) {
     fit.take_max.fill(all_convex);
     return fit;
   }
@@ -253,20 +274,10 @@ std::optional<SharpFit> ClusterAt(std::span<const Vec3d> points, std::span<const
   SharpFit fit;
   fit.count = static_cast<int>(seeds.size());
   fit.feature = fit.count == 2 ? Feature::kEdge : Feature::kCorner;
-  for (int k = 0; k < fit.count; ++k) {
-    if (groups[static_cast<size_t>(k)].empty()) return std::nullopt;
-    fit.sheets[static_cast<size_t>(k)] =
-        FitSheet(points, normals, weights, groups[static_cast<size_t>(k)], scale, fitter);
+  bool all_convex = true;
+  if (!FitSheets(points, normals, weights, groups, scale, fitter, fit) || !AllPairsAlike(fit, all_convex)) {
+    return std::nullopt;
   }
-  bool all_convex = true, all_concave = true;
-  for (int i = 0; i < fit.count; ++i) {
-    for (int j = i + 1; j < fit.count; ++j) {
-      const bool c = Convex(fit.sheets[static_cast<size_t>(i)], fit.sheets[static_cast<size_t>(j)]);
-      all_convex &= c;
-      all_concave &= !c;
-    }
-  }
-  if (!all_convex && !all_concave) return std::nullopt;
   fit.take_max.fill(all_convex);
   return fit;
 }
@@ -276,10 +287,7 @@ std::optional<SharpFit> ClusterAt(std::span<const Vec3d> points, std::span<const
 void FitSharpClusters(std::span<const Vec3d> points, std::span<const Vec3d> normals, std::span<const double> weights,
                       double scale, std::span<const double> seed_cos, const std::function<bool(const SharpFit&)>& take,
                       OrthogonalFitter& fitter) {
-  std::vector<uint32_t> members;
-  for (uint32_t i = 0; i < points.size(); ++i) {
-    if (weights[i] > 0) members.push_back(i);
-  }
+  const std::vector<uint32_t> members = WeightedMembers(weights);
   if (members.size() < 2) return;
   // Two far-apart normals in O(n), not the widest pair's O(n²): the one farthest from the mean,
   // then the one farthest from it (farthest-point seeding needs no more).

@@ -57,6 +57,43 @@ TEST(Iamls, IterationsReduceTheResidualAtTheSamples) {
   EXPECT_LT(res.back(), res.front());
 }
 
+// A plate thinner than the kernel (thickness about 0.8 h): with thin walls faded, each face is
+// found where it is; blending both faces' samples moves F's zeros off the faces. (Where one
+// face's random sampling leaves a gap wider than about h, the other face still takes over; the
+// test counts the lines instead of taking the worst.)
+TEST(Iamls, ThinPlateKeepsBothFacesApart) {
+  const double half = 0.00075;  // Half the thickness; the plate is 0.2 x 0.2.
+  const core::PointCloud plate = testing::DrilledBlockCloud(20000, 0.1, 0.1, half, 0.0);
+  // Vertical lines through the interior, both faces: how many find the face within 5 % of half.
+  auto faces_found = [&](const IamlsFunction& f) {
+    int found = 0;
+    for (int i = 0; i < 8; ++i) {
+      for (int j = 0; j < 8; ++j) {
+        const double x = -0.07 + 0.02 * i + 0.001 * j, y = -0.07 + 0.02 * j;
+        for (double side : {-1.0, 1.0}) {
+          double inside = 0, outside = 8 * half;  // F < 0 at the middle plane, > 0 well outside.
+          if (!(f.Value({x, y, inside}).value < 0) || !(f.Value({x, y, side * outside}).value > 0)) continue;
+          for (int step = 0; step < 40; ++step) {
+            const double mid = 0.5 * (inside + outside);
+            (f.Value({x, y, side * mid}).value < 0 ? inside : outside) = mid;
+          }
+          found += std::abs(inside - half) < 0.05 * half;
+        }
+      }
+    }
+    return found;
+  };
+  IamlsParams params;
+  params.thin_walls = 1;
+  auto faded = Build(plate, params);
+  params.thin_walls = 0;
+  auto blended = Build(plate, params);
+  ASSERT_TRUE(faded && blended);
+  EXPECT_GT(faded->stats().thin_samples, 19000);  // Nearly every sample sees the other face.
+  EXPECT_GE(faces_found(*faded), 120);            // Of 128.
+  EXPECT_LE(faces_found(*blended), 32);           // The failure the fading prevents.
+}
+
 TEST(Iamls, NoSurfaceOnTheGhostSheet) {
   // F⁽⁰⁾ has spurious zeros where ΣΨ turns negative (~1.22 h/ε off the data): they must be
   // reported undefined.
@@ -141,6 +178,7 @@ TEST(Iamls, ChoosesItsParametersFromTheNoise) {
   EXPECT_LT(chosen->stats().epsilon, 0.5);
   EXPECT_EQ(chosen->stats().iterations, 1);
   EXPECT_EQ(chosen->stats().normal_sigma, 0.5);
+  EXPECT_FALSE(chosen->stats().thin_walls);         // Noise as large as a wall would flip its sides at random.
   ASSERT_EQ(chosen->stats().residuals.size(), 2u);  // Before and after the one iteration.
   EXPECT_LT(chosen->stats().residuals[1], chosen->stats().residuals[0]);
   IamlsParams forced;
@@ -148,6 +186,7 @@ TEST(Iamls, ChoosesItsParametersFromTheNoise) {
   forced.iterations = 3;
   forced.cutoff = 4;
   forced.normal_sigma = 0;
+  forced.thin_walls = 0;
   auto clean_choice = Build(noisy, forced);
   ASSERT_TRUE(clean_choice);
   EXPECT_LT(clean_choice->stats().noise_ratio, 0);  // Nothing was chosen: no estimate.

@@ -196,11 +196,13 @@ absl::StatusOr<extract::IsosurfaceResult> RunIamls(const IamlsJobParams& p, cons
   stat("iterations_used", fit.iterations);
   stat("cutoff_used", fit.cutoff);
   stat("normal_sigma_used", fit.normal_sigma);
+  stat("thin_walls_used", fit.thin_walls ? 1 : 0);
   if (fit.noise_level >= 0) {
     stat("noise_level", fit.noise_level);
     stat("noise_to_spacing", fit.noise_ratio);
   }
   if (fit.largest_eigenvalue > 0) stat("largest_eigenvalue", fit.largest_eigenvalue);
+  stat("thin_samples", static_cast<double>(fit.thin_samples));
   if (!fit.residuals.empty()) stat("final_residual_over_h", fit.residuals.back());
   const auto extract_start = std::chrono::steady_clock::now();
   core::SubContext extract_ctx(ctx, "extracting surface", 0.3, 1.0);
@@ -672,6 +674,8 @@ void AddMeshStatistics(const core::TriangleMesh& mesh, const extract::Isosurface
   stat("triangles", static_cast<double>(mesh.faces.size()));
   stat("vertices", static_cast<double>(mesh.vertices.size()));
   stat("cells_visited", static_cast<double>(extraction.cells_visited));
+  // Why a surface can come back open: triangles at roots where the method does not trust F.
+  if (extraction.rejected_polygons > 0) stat("untrusted_triangles", static_cast<double>(extraction.rejected_polygons));
   if (extraction.tree_seconds > 0) stat("tree_seconds", extraction.tree_seconds);
   stat("tracking_seconds", extraction.tracking_seconds);
   stat("marching_seconds", extraction.marching_seconds);

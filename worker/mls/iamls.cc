@@ -30,13 +30,16 @@ struct IamlsFunction::Impl {
   std::vector<Vec3f> normals;
   std::vector<float> coefficient;  // c_i
   std::unique_ptr<core::KdTree> tree;
-  double inv_h2 = 0;             // 1 / h²
-  double eps2 = 0;               // ε²
-  double scale = 0;              // ε³ / π^{3/2}
-  float radius = 0;              // Truncation radius, cutoff · h / ε.
-  double min_kernel_sum = 0;     // ΣΨ below which F is not trusted.
-  double fallback_scale = 0;     // Scale of the sign-only extension (a typical ΣΨ).
-  double inv_normal_sigma2 = 0;  // 1 / normal_sigma², 0 without the crease-keeping refit.
+  double inv_h2 = 0;              // 1 / h²
+  double eps2 = 0;                // ε²
+  double scale = 0;               // ε³ / π^{3/2}
+  float radius = 0;               // Truncation radius, cutoff · h / ε.
+  double min_kernel_sum = 0;      // ΣΨ below which F is not trusted.
+  double fallback_scale = 0;      // Scale of the sign-only extension (a typical ΣΨ).
+  double inv_normal_sigma2 = 0;   // 1 / normal_sigma², 0 without the crease-keeping refit.
+  double inv_facing_radius2 = 0;  // 1 / ρ², ρ the reach of the facing reference (FacingDirection).
+  bool thin_walls = false;        // IamlsStats::thin_walls.
+  std::vector<uint8_t> thin;      // Per sample: a neighbour within the kernel faces against it (the builder's).
 };
 
 const core::ParamTable<IamlsParams>& IamlsParamTable() {
@@ -62,7 +65,11 @@ const core::ParamTable<IamlsParams>& IamlsParamTable() {
                                           "crease-keeping refit: samples whose normals differ from the local mean "
                                           "normal by much more than this weigh less")
         .Or(-1, "chosen from the noise: 0.5 when noisy, else off")
-        .Or(0, "off");
+        .Or(0, "off")
+        .Integer<&IamlsParams::thin_walls>("thin_walls", 0, 1, "",
+                                           "1 keeps walls thinner than the kernel apart by fading out the samples "
+                                           "facing against those nearest each point; 0 blends all samples")
+        .Or(-1, "chosen from the noise: on when clean, off when noisy");
     return t;
   }();
   return *table;
@@ -72,7 +79,7 @@ IamlsChoice ChooseIamlsParameters(double noise_ratio) {
   // Below this ratio the estimate is the clouds' own curvature residual, not noise.
   constexpr double kNoisyRatio = 0.15;
   if (!(noise_ratio >= kNoisyRatio)) return {};
-  return {std::max(0.3, 0.55 / (1 + noise_ratio / 1.5)), 1, 3, 0.5};
+  return {std::max(0.3, 0.55 / (1 + noise_ratio / 1.5)), 1, 3, 0.5, false};
 }
 
 absl::Status Validate(const IamlsParams& p) { return IamlsParamTable().Validate(p); }
@@ -83,6 +90,56 @@ namespace {
 std::vector<core::Neighbor>& Neighbours() {
   thread_local std::vector<core::Neighbor> nn;
   return nn;
+}
+// Thin walls. Where the kernel reaches through a wall thinner than itself (a plate, a finger, the
+// edge of a sharp wedge), the far side's samples blend in with normals facing the other way and
+// their ℓ_i cancel the near side's: F's zero moves about h/ε off both faces, and the two sides
+// merge or tear. So each evaluation first finds the side of the wall x is on: the mean normal of
+// the samples that x lies in front of (ℓ_i(x) ≥ −ρ/4) near the nearest such one (weights
+// (1 − (d² − d_min²)/(2ρ)²)², ρ about one sample spacing), or of all samples near the nearest
+// when x is behind every one (inside the wall, where either side's F is negative, so the choice
+// leaves no zero behind). Then it
+// fades out the samples facing against that direction (weight 1 down to an angle of 101°, 0
+// from 127°), as if the far side were not there. Counting only the samples x is in front of
+// keeps a gap in one face's sampling from handing x to the other face. Nothing is faded where
+// the normals disagree (|mean| below a third of its weight: x is beyond an edge); on a smooth
+// surface wider than the kernel no sample faces that far away and every factor is 1.
+// Returns the direction, or zero where nothing is faded.
+constexpr double kFadeStart = -0.2, kFadeEnd = -0.6;  // Cosines to the facing direction.
+
+Vec3f FacingDirection(const IamlsFunction::Impl& m, const Vec3d& x, const std::vector<core::Neighbor>& nn) {
+  constexpr double kCoherence = 1.0 / 3.0, kReach2 = 4.0, kFrontTolerance = 0.25;
+  const float behind = static_cast<float>(-kFrontTolerance / std::sqrt(m.inv_facing_radius2));
+  const Vec3f xf = x.cast<float>();
+  auto in_front = [&](uint32_t i) { return m.normals[i].dot(xf - m.positions[i]) >= behind; };
+  // The nearest sample x is in front of, else (x behind all: inside) the nearest of all.
+  float nearest2 = std::numeric_limits<float>::infinity(), nearest_front2 = nearest2;
+  for (const core::Neighbor& q : nn) {
+    nearest2 = std::min(nearest2, q.distance2);
+    if (q.distance2 < nearest_front2 && in_front(q.index)) nearest_front2 = q.distance2;
+  }
+  const bool front_only = nearest_front2 < std::numeric_limits<float>::infinity();
+  const float from2 = front_only ? nearest_front2 : nearest2;
+  const float reach2 = static_cast<float>(kReach2 / m.inv_facing_radius2);
+  Vec3f reference = Vec3f::Zero();
+  float total = 0;
+  for (const core::Neighbor& q : nn) {
+    const float excess = q.distance2 - from2;
+    if (excess < 0 || excess >= reach2 || (front_only && !in_front(q.index))) continue;
+    const float falloff = 1 - excess / reach2, w = falloff * falloff;
+    reference += w * m.normals[q.index];
+    total += w;
+  }
+  const float length = reference.norm();
+  return length > 0 && length >= kCoherence * total ? Vec3f(reference / length) : Vec3f::Zero();
+}
+
+// A sample's factor for the facing `direction` (FacingDirection).
+[[gnu::always_inline]] inline double Fade(const Vec3d& normal, const Vec3f& direction) {
+  const double cosine = normal.dot(direction.cast<double>());
+  if (cosine >= kFadeStart) return 1.0;
+  const double ramp = std::max(0.0, (cosine - kFadeEnd) / (kFadeStart - kFadeEnd));
+  return ramp * ramp * (3 - 2 * ramp);
 }
 
 // Term and GradientTerm run once per neighbour of every evaluation; left out of line by the
@@ -112,13 +169,15 @@ struct SampleTerm {
 // The crease-keeping refit: F again with each sample's Ψ scaled by exp(−|n_i − n̄|²/σ_n²),
 // rescaled to the plain kernel sum `w` so that F keeps its magnitude (its sign is that of the
 // refit). The weights' own dependence on x is left out of the gradient, as robust MLS does.
+// `facing` is the thin-wall direction (FacingDirection).
 template <bool kGradient>
-void Refit(const IamlsFunction::Impl& m, const Vec3d& x, const Vec3d& reference_normal, double w, double& f, Vec3d& g) {
+void Refit(const IamlsFunction::Impl& m, const Vec3d& x, const Vec3d& reference_normal, const Vec3f& facing, double w,
+           double& f, Vec3d& g) {
   double f2 = 0, w2 = 0;
   Vec3d g2 = Vec3d::Zero();
   for (const core::Neighbor& q : Neighbours()) {
     const SampleTerm t = Term(m, x, q.index);
-    const double r = std::exp(-(t.n - reference_normal).squaredNorm() * m.inv_normal_sigma2);
+    const double r = std::exp(-(t.n - reference_normal).squaredNorm() * m.inv_normal_sigma2) * Fade(t.n, facing);
     const double psi = (2.5 - t.s) * t.e * r;
     w2 += psi;
     f2 += t.l * psi;
@@ -127,6 +186,42 @@ void Refit(const IamlsFunction::Impl& m, const Vec3d& x, const Vec3d& reference_
   if (!(w2 > 0)) return;  // Every weight went to the other face: keep the plain blend.
   f = f2 * w / w2;
   if constexpr (kGradient) g = g2 * w / w2;
+}
+
+// The neighbour sums of one evaluation: F's (faded), the plain kernel sum, the positive
+// Gaussian's fallback and the refit's reference normal.
+struct KernelSums {
+  double f = 0, w = 0, plain_w = 0, gauss = 0, gauss_distance = 0, reference_weight = 0;
+  Vec3d g = Vec3d::Zero(), gauss_normal = Vec3d::Zero(), reference_normal = Vec3d::Zero();
+  bool faded = false;
+  bool thin_nearby = false;  // A neighbour is one of the builder's `thin` samples.
+};
+
+// Two instances, so that the common case (nothing to fade) pays nothing for thin walls.
+template <bool kGradient, bool kFaded>
+void Accumulate(const IamlsFunction::Impl& m, const Vec3d& x, const Vec3f& facing, bool refit, KernelSums& out) {
+  for (const core::Neighbor& q : Neighbours()) {
+    const SampleTerm t = Term(m, x, q.index);
+    double fade = 1, e = t.e;
+    if constexpr (kFaded) {
+      fade = Fade(t.n, facing);
+      out.faded |= fade < 1;
+      e *= fade;
+      out.plain_w += (2.5 - t.s) * t.e;
+    }
+    const double psi = (2.5 - t.s) * e;
+    out.w += psi;
+    out.f += t.l * psi;
+    out.gauss += e;
+    out.gauss_distance += t.n.dot(t.d) * e;
+    out.gauss_normal += t.n * e;
+    // The refit's reference normal: a narrower Gaussian (e^{−2s}) than the kernel's, so that
+    // near a crease it leans to the face x is on.
+    if (refit) out.reference_normal += t.n * (e * t.e), out.reference_weight += e * t.e;
+    if constexpr (kGradient) out.g += GradientTerm(m, t, fade);
+    if constexpr (!kFaded) out.thin_nearby |= m.thin[q.index] != 0;
+  }
+  if constexpr (!kFaded) out.plain_w = out.w;
 }
 
 // Where ΣΨ is too small to trust F (the kernel's negative lobe takes over at ~1.22 h/ε),
@@ -144,37 +239,42 @@ core::FieldGradient Evaluate(const IamlsFunction::Impl& m, const Vec3d& x) {
     return out;
   }
   const bool refit = m.inv_normal_sigma2 > 0;
-  double f = 0, w = 0, gauss = 0, gauss_distance = 0, reference_weight = 0;
-  Vec3d g = Vec3d::Zero(), gauss_normal = Vec3d::Zero(), reference_normal = Vec3d::Zero();
-  for (const core::Neighbor& q : nn) {
-    const SampleTerm t = Term(m, x, q.index);
-    const double psi = (2.5 - t.s) * t.e;
-    w += psi;
-    f += t.l * psi;
-    gauss += t.e;
-    gauss_distance += t.n.dot(t.d) * t.e;
-    gauss_normal += t.n * t.e;
-    // The refit's reference normal: a narrower Gaussian (e^{−2s}) than the kernel's, so that
-    // near a crease it leans to the face x is on.
-    if (refit) reference_normal += t.n * (t.e * t.e), reference_weight += t.e * t.e;
-    if constexpr (kGradient) g += GradientTerm(m, t, 1.0);
+  // The plain sums first; only near the builder's thin samples is there anything to fade (then
+  // the sums are taken again, faded).
+  Vec3f facing = Vec3f::Zero();
+  KernelSums sums;
+  Accumulate<kGradient, false>(m, x, facing, refit, sums);
+  if (sums.thin_nearby && !(facing = FacingDirection(m, x, nn)).isZero()) {
+    sums = KernelSums();
+    Accumulate<kGradient, true>(m, x, facing, refit, sums);
   }
+  double f = sums.f, w = sums.w;
+  Vec3d g = sums.g;
   // Trust F only where the kernel sum is clearly positive: it changes sign ~1.22 h/ε off the
   // data, and F has spurious zeros (ghost sheets) where it does.
+  // (Faded, the sum of the samples left: the sample weights the guard compares with were faded
+  // alike.)
   out.defined = w * m.scale > m.min_kernel_sum;
+  if (sums.faded && out.defined) {
+    // F of the samples left, scaled up to the plain kernel sum so that its magnitude does not
+    // jump where fading starts.
+    f *= sums.plain_w / w, g *= sums.plain_w / w;
+    w = sums.plain_w;
+  }
   // The refit only where the nearby normals roughly agree (|mean| ≥ kRefitCoherence): on a thin
   // part (an ear) both sides' normals cancel in the mean, which then points nowhere in
   // particular, and the refit would drop the wrong samples.
   constexpr double kRefitCoherence = 0.85;
-  if (refit && out.defined && reference_normal.norm() >= kRefitCoherence * reference_weight && reference_weight > 0) {
-    Refit<kGradient>(m, x, reference_normal.normalized(), w, f, g);
+  if (refit && out.defined && sums.reference_normal.norm() >= kRefitCoherence * sums.reference_weight &&
+      sums.reference_weight > 0) {
+    Refit<kGradient>(m, x, sums.reference_normal.normalized(), facing, w, f, g);
   }
   if (out.defined) {
     out.value = f * m.scale;
     out.gradient = g * m.scale;
-  } else if (gauss > 0) {
-    out.value = m.fallback_scale * gauss_distance / gauss;
-    out.gradient = m.fallback_scale * gauss_normal / gauss;
+  } else if (sums.gauss > 0) {
+    out.value = m.fallback_scale * sums.gauss_distance / sums.gauss;
+    out.gradient = m.fallback_scale * sums.gauss_normal / sums.gauss;
   } else {
     out.value = std::numeric_limits<double>::quiet_NaN();  // Underflow: nothing is known.
   }
@@ -183,22 +283,30 @@ core::FieldGradient Evaluate(const IamlsFunction::Impl& m, const Vec3d& x) {
 
 // Row k of the kernel matrix: the neighbours of x_k within the truncation radius (left in `nn`)
 // and Ψ_i(x_k) for each (in `psi`); returns s_k = Σ_i ℓ_i(x_k) Ψ_i(x_k).
-double KernelRow(const IamlsFunction::Impl& impl, size_t k, std::vector<core::Neighbor>& nn, std::vector<double>& psi) {
+// Marks sample k `thin` when a neighbour faces against it (each row is one thread's).
+double KernelRow(IamlsFunction::Impl& impl, size_t k, std::vector<core::Neighbor>& nn, std::vector<double>& psi) {
   impl.tree->Radius(impl.positions[k], impl.radius, nn);
   const Vec3d xk = impl.positions[k].cast<double>();
   psi.resize(nn.size());
+  const Vec3f own_normal = impl.normals[k];
+  bool thin = false;
+  if (impl.thin_walls) {
+    for (const core::Neighbor& q : nn) thin |= impl.normals[q.index].dot(own_normal) < kFadeStart;
+  }
+  impl.thin[k] = thin;
+  const Vec3f facing = thin ? FacingDirection(impl, xk, nn) : Vec3f::Zero();
   double sk = 0;
   for (size_t j = 0; j < nn.size(); ++j) {
     const Vec3d d = xk - impl.positions[nn[j].index].cast<double>();
     const double si = impl.eps2 * d.squaredNorm() * impl.inv_h2;
-    psi[j] = impl.scale * (2.5 - si) * std::exp(-si);
+    psi[j] = impl.scale * (2.5 - si) * std::exp(-si) * Fade(impl.normals[nn[j].index].cast<double>(), facing);
     sk += impl.normals[nn[j].index].cast<double>().dot(d) * psi[j];
   }
   return sk;
 }
 
 // Kernel matrix rows (symmetric: A_ki = Ψ_i(x_k) at the samples) and the right-hand side s.
-absl::StatusOr<KernelMatrix> FillKernelMatrix(const IamlsFunction::Impl& impl, std::vector<double>& s,
+absl::StatusOr<KernelMatrix> FillKernelMatrix(IamlsFunction::Impl& impl, std::vector<double>& s,
                                               core::SubContext& setup_ctx, core::JobContext& ctx) {
   return core::BuildKernelMatrix(
       impl.positions.size(),
@@ -225,7 +333,7 @@ struct StreamedRows {
   std::vector<double> s, row_sum, ac;
   uint64_t entries = 0;
 };
-absl::Status StreamKernelRows(const IamlsFunction::Impl& impl, std::span<const double> c, StreamedRows& out,
+absl::Status StreamKernelRows(IamlsFunction::Impl& impl, std::span<const double> c, StreamedRows& out,
                               core::JobContext& ctx) {
   const size_t n = impl.positions.size();
   std::vector<double>& target = c.empty() ? out.s : out.ac;
@@ -293,7 +401,8 @@ namespace {
 // noise used).
 void ChooseParameters(const IamlsParams& params, const OrientedPoints& points, IamlsStats& stats) {
   IamlsChoice choice;
-  if (params.epsilon == 0 || params.iterations < 0 || params.cutoff == 0 || params.normal_sigma < 0) {
+  if (params.epsilon == 0 || params.iterations < 0 || params.cutoff == 0 || params.normal_sigma < 0 ||
+      params.thin_walls < 0) {
     const double neighbor_distance =
         params.spacing == 0 ? points.spacing / params.spacing_scale : core::MeanNearestNeighborDistance(*points.tree);
     const double diagonal = core::Diagonal(core::BoundingBox(points.positions));
@@ -307,6 +416,7 @@ void ChooseParameters(const IamlsParams& params, const OrientedPoints& points, I
   stats.iterations = params.iterations >= 0 ? params.iterations : choice.iterations;
   stats.cutoff = params.cutoff > 0 ? params.cutoff : choice.cutoff;
   stats.normal_sigma = params.normal_sigma >= 0 ? params.normal_sigma : choice.normal_sigma;
+  stats.thin_walls = params.thin_walls >= 0 ? params.thin_walls == 1 : choice.thin_walls;
 }
 
 double MaxAbsDifference(std::span<const double> a, std::span<const double> b) {
@@ -316,7 +426,7 @@ double MaxAbsDifference(std::span<const double> a, std::span<const double> b) {
 }
 
 // Richardson iteration c ← c + (s − A c) on the stored kernel matrix (two or more iterations).
-absl::Status IterateWithMatrix(const IamlsFunction::Impl& impl, IamlsStats& stats, std::vector<double>& c,
+absl::Status IterateWithMatrix(IamlsFunction::Impl& impl, IamlsStats& stats, std::vector<double>& c,
                                core::SubContext& setup_ctx, core::JobContext& ctx) {
   const size_t n = impl.positions.size();
   const double h = stats.spacing;
@@ -364,7 +474,7 @@ absl::Status IterateWithMatrix(const IamlsFunction::Impl& impl, IamlsStats& stat
 // No iteration or one: c = 0 or c = s (the first step from c = 0 needs no product), with the
 // rows streamed, so the matrix (hundreds of entries per point with the wide kernels of noisy
 // clouds) is never stored; one more pass gives the residual after the step.
-absl::Status IterateStreamed(const IamlsFunction::Impl& impl, IamlsStats& stats, std::vector<double>& c,
+absl::Status IterateStreamed(IamlsFunction::Impl& impl, IamlsStats& stats, std::vector<double>& c,
                              core::JobContext& ctx) {
   const size_t n = impl.positions.size();
   StreamedRows rows;
@@ -401,6 +511,9 @@ absl::StatusOr<std::unique_ptr<IamlsFunction>> BuildIamls(const core::PointCloud
   impl->eps2 = eps * eps;
   impl->scale = eps * eps * eps / std::pow(std::numbers::pi, 1.5);
   impl->radius = static_cast<float>(stats.cutoff * h / eps);
+  impl->inv_facing_radius2 = 4.0 / (h * h);  // ρ = h / 2, about one sample spacing.
+  impl->thin.assign(impl->positions.size(), 0);
+  impl->thin_walls = stats.thin_walls;
   setup_ctx.Report(0.2);
   stats.spacing = h;
   std::vector<double> c;
@@ -410,6 +523,7 @@ absl::StatusOr<std::unique_ptr<IamlsFunction>> BuildIamls(const core::PointCloud
   impl->fallback_scale = stats.mean_sample_weight;
   impl->min_kernel_sum = params.min_weight * stats.mean_sample_weight;
   impl->inv_normal_sigma2 = stats.normal_sigma > 0 ? 1.0 / (stats.normal_sigma * stats.normal_sigma) : 0.0;
+  for (uint8_t thin : impl->thin) stats.thin_samples += thin;
   impl->coefficient.assign(impl->positions.size(), 0.0f);
   for (size_t k = 0; k < c.size(); ++k) impl->coefficient[k] = static_cast<float>(c[k]);
   return std::make_unique<IamlsFunction>(std::move(impl), h, std::move(stats));

@@ -50,6 +50,11 @@ struct IamlsParams {
   // weights). Skipped where the nearby normals disagree too much to have a mean (thin parts).
   // Where it acts it is a second pass over the neighbours.
   double normal_sigma = -1;
+  // Thin walls (plates, fingers, sharp wedges thinner than the kernel): each evaluation fades out
+  // the samples that face against the ones nearest it, so the far side of the wall does not
+  // cancel the near side. -1: chosen (on for clean clouds; off for noisy ones, where noise as
+  // large as the wall makes the nearest samples' side flip at random), 0 off, 1 on.
+  int thin_walls = -1;
 };
 
 // What the automatic choice picks from ρ = σ / (mean nearest-neighbour distance), σ the noise
@@ -63,6 +68,7 @@ struct IamlsChoice {
   int iterations = 3;
   double cutoff = 4;
   double normal_sigma = 0;
+  bool thin_walls = true;
 };
 IamlsChoice ChooseIamlsParameters(double noise_ratio);
 
@@ -78,6 +84,7 @@ struct IamlsStats {
   int iterations = 0;
   double cutoff = 0;
   double normal_sigma = 0;        // The crease-keeping refit's σ_n used (0: off).
+  bool thin_walls = false;        // Whether thin walls were faded (given or chosen).
   double noise_level = -1;        // Noise σ used for the choice, share of the bounding-box diagonal (as
                                   // PuStats::noise_estimate); -1 when nothing was chosen.
   double noise_ratio = -1;        // σ / mean nearest-neighbour distance; -1 likewise.
@@ -86,6 +93,7 @@ struct IamlsStats {
   std::vector<double> residuals;  // max_i |F(x_i)| / h before each iteration and after the last.
   double mean_neighbors = 0;      // Points within the truncation radius, per point.
   double mean_sample_weight = 0;  // Mean ΣΨ at the samples.
+  int64_t thin_samples = 0;       // Samples with a neighbour facing against them (thin walls, see the .cc).
 };
 
 class IamlsFunction final : public core::ImplicitFunction {

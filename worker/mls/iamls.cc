@@ -175,9 +175,11 @@ void Refit(const IamlsFunction::Impl& m, const Vec3d& x, const Vec3d& reference_
            double& f, Vec3d& g) {
   double f2 = 0, w2 = 0;
   Vec3d g2 = Vec3d::Zero();
+  const bool fading = !facing.isZero();
   for (const core::Neighbor& q : Neighbours()) {
     const SampleTerm t = Term(m, x, q.index);
-    const double r = std::exp(-(t.n - reference_normal).squaredNorm() * m.inv_normal_sigma2) * Fade(t.n, facing);
+    double r = std::exp(-(t.n - reference_normal).squaredNorm() * m.inv_normal_sigma2);
+    if (fading) r *= Fade(t.n, facing);
     const double psi = (2.5 - t.s) * t.e * r;
     w2 += psi;
     f2 += t.l * psi;
@@ -200,6 +202,7 @@ struct KernelSums {
 // Two instances, so that the common case (nothing to fade) pays nothing for thin walls.
 template <bool kGradient, bool kFaded>
 void Accumulate(const IamlsFunction::Impl& m, const Vec3d& x, const Vec3f& facing, bool refit, KernelSums& out) {
+  const bool check_thin = m.thin_walls;
   for (const core::Neighbor& q : Neighbours()) {
     const SampleTerm t = Term(m, x, q.index);
     double fade = 1, e = t.e;
@@ -219,7 +222,9 @@ void Accumulate(const IamlsFunction::Impl& m, const Vec3d& x, const Vec3f& facin
     // near a crease it leans to the face x is on.
     if (refit) out.reference_normal += t.n * (e * t.e), out.reference_weight += e * t.e;
     if constexpr (kGradient) out.g += GradientTerm(m, t, fade);
-    if constexpr (!kFaded) out.thin_nearby |= m.thin[q.index] != 0;
+    if constexpr (!kFaded) {
+      if (check_thin) out.thin_nearby |= m.thin[q.index] != 0;
+    }
   }
   if constexpr (!kFaded) out.plain_w = out.w;
 }
@@ -240,27 +245,30 @@ core::FieldGradient Evaluate(const IamlsFunction::Impl& m, const Vec3d& x) {
   }
   const bool refit = m.inv_normal_sigma2 > 0;
   // The plain sums first; only near the builder's thin samples is there anything to fade (then
-  // the sums are taken again, faded).
+  // the sums are taken again, faded). Where fading leaves under a tenth of the kernel sum (the
+  // tip of a finger, whose samples face every way), the plain sums stay.
   Vec3f facing = Vec3f::Zero();
   KernelSums sums;
   Accumulate<kGradient, false>(m, x, facing, refit, sums);
   if (sums.thin_nearby && !(facing = FacingDirection(m, x, nn)).isZero()) {
-    sums = KernelSums();
-    Accumulate<kGradient, true>(m, x, facing, refit, sums);
+    constexpr double kMinFadedShare = 0.1;
+    KernelSums faded;
+    Accumulate<kGradient, true>(m, x, facing, refit, faded);
+    if (faded.faded && faded.w > kMinFadedShare * faded.plain_w) {
+      // F of the samples left, scaled up to the plain kernel sum so that its magnitude does not
+      // jump where fading starts.
+      const double scale_up = faded.plain_w / faded.w;
+      sums = faded;
+      sums.f *= scale_up, sums.g *= scale_up, sums.w = faded.plain_w;
+    } else {
+      facing = Vec3f::Zero();
+    }
   }
   double f = sums.f, w = sums.w;
   Vec3d g = sums.g;
   // Trust F only where the kernel sum is clearly positive: it changes sign ~1.22 h/ε off the
   // data, and F has spurious zeros (ghost sheets) where it does.
-  // (Faded, the sum of the samples left: the sample weights the guard compares with were faded
-  // alike.)
   out.defined = w * m.scale > m.min_kernel_sum;
-  if (sums.faded && out.defined) {
-    // F of the samples left, scaled up to the plain kernel sum so that its magnitude does not
-    // jump where fading starts.
-    f *= sums.plain_w / w, g *= sums.plain_w / w;
-    w = sums.plain_w;
-  }
   // The refit only where the nearby normals roughly agree (|mean| ≥ kRefitCoherence): on a thin
   // part (an ear) both sides' normals cancel in the mean, which then points nowhere in
   // particular, and the refit would drop the wrong samples.
@@ -299,7 +307,8 @@ double KernelRow(IamlsFunction::Impl& impl, size_t k, std::vector<core::Neighbor
   for (size_t j = 0; j < nn.size(); ++j) {
     const Vec3d d = xk - impl.positions[nn[j].index].cast<double>();
     const double si = impl.eps2 * d.squaredNorm() * impl.inv_h2;
-    psi[j] = impl.scale * (2.5 - si) * std::exp(-si) * Fade(impl.normals[nn[j].index].cast<double>(), facing);
+    psi[j] = impl.scale * (2.5 - si) * std::exp(-si);
+    if (!facing.isZero()) psi[j] *= Fade(impl.normals[nn[j].index].cast<double>(), facing);
     sk += impl.normals[nn[j].index].cast<double>().dot(d) * psi[j];
   }
   return sk;

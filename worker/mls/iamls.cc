@@ -4,6 +4,7 @@
 #include <fmt/format.h>
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <numbers>
 
@@ -30,16 +31,17 @@ struct IamlsFunction::Impl {
   std::vector<Vec3f> normals;
   std::vector<float> coefficient;  // c_i
   std::unique_ptr<core::KdTree> tree;
-  double inv_h2 = 0;              // 1 / h²
-  double eps2 = 0;                // ε²
-  double scale = 0;               // ε³ / π^{3/2}
-  float radius = 0;               // Truncation radius, cutoff · h / ε.
-  double min_kernel_sum = 0;      // ΣΨ below which F is not trusted.
-  double fallback_scale = 0;      // Scale of the sign-only extension (a typical ΣΨ).
-  double inv_normal_sigma2 = 0;   // 1 / normal_sigma², 0 without the crease-keeping refit.
-  double inv_facing_radius2 = 0;  // 1 / ρ², ρ the reach of the facing reference (FacingDirection).
-  bool thin_walls = false;        // IamlsStats::thin_walls.
-  std::vector<uint8_t> thin;      // Per sample: a neighbour within the kernel faces against it (the builder's).
+  double inv_h2 = 0;               // 1 / h²
+  double eps2 = 0;                 // ε²
+  double scale = 0;                // ε³ / π^{3/2}
+  float radius = 0;                // Truncation radius, cutoff · h / ε.
+  double min_kernel_sum = 0;       // ΣΨ below which F is not trusted.
+  double fallback_scale = 0;       // Scale of the sign-only extension (a typical ΣΨ).
+  double inv_normal_sigma2 = 0;    // 1 / normal_sigma², 0 without the crease-keeping refit.
+  double inv_facing_radius2 = 0;   // 1 / ρ², ρ the reach of the facing reference (FacingDirection).
+  bool thin_walls = false;         // IamlsStats::thin_walls.
+  std::vector<uint8_t> thin;       // Per sample: a neighbour within the kernel faces against it (the builder's).
+  std::vector<uint8_t> near_thin;  // Per sample: within the kernel of a `thin` sample (the builder's).
 };
 
 const core::ParamTable<IamlsParams>& IamlsParamTable() {
@@ -190,43 +192,46 @@ void Refit(const IamlsFunction::Impl& m, const Vec3d& x, const Vec3d& reference_
   if constexpr (kGradient) g = g2 * w / w2;
 }
 
-// The neighbour sums of one evaluation: F's (faded), the plain kernel sum, the positive
-// Gaussian's fallback and the refit's reference normal.
+// The neighbour sums of one evaluation: F's, the kernel sum, the positive Gaussian's fallback
+// and the refit's reference normal.
 struct KernelSums {
-  double f = 0, w = 0, plain_w = 0, gauss = 0, gauss_distance = 0, reference_weight = 0;
+  double f = 0, w = 0, gauss = 0, gauss_distance = 0, reference_weight = 0;
   Vec3d g = Vec3d::Zero(), gauss_normal = Vec3d::Zero(), reference_normal = Vec3d::Zero();
-  bool faded = false;
-  bool thin_nearby = false;  // A neighbour is one of the builder's `thin` samples.
+  bool faded = false;  // Some sample was faded (thin walls).
 };
 
-// Two instances, so that the common case (nothing to fade) pays nothing for thin walls.
+// Adds one sample's term to `sums`, its weight scaled by `fade`.
+template <bool kGradient>
+[[gnu::always_inline]] inline void AddTerm(const IamlsFunction::Impl& m, const SampleTerm& t, double fade, bool refit,
+                                           KernelSums& sums) {
+  const double e = t.e * fade;
+  const double psi = (2.5 - t.s) * e;
+  sums.w += psi;
+  sums.f += t.l * psi;
+  sums.gauss += e;
+  sums.gauss_distance += t.n.dot(t.d) * e;
+  sums.gauss_normal += t.n * e;
+  // The refit's reference normal: a narrower Gaussian (e^{−2s}) than the kernel's, so that
+  // near a crease it leans to the face x is on.
+  if (refit) sums.reference_normal += t.n * (e * t.e), sums.reference_weight += e * t.e;
+  if constexpr (kGradient) sums.g += GradientTerm(m, t, fade);
+}
+
+// The plain sums over the neighbours and, with kFaded, the sums faded towards `facing` as well
+// (one pass for both: where fading leaves too little, the plain ones are used). Two instances,
+// so that the common case (nothing to fade) pays nothing for thin walls.
 template <bool kGradient, bool kFaded>
-void Accumulate(const IamlsFunction::Impl& m, const Vec3d& x, const Vec3f& facing, bool refit, KernelSums& out) {
-  const bool check_thin = m.thin_walls;
+void Accumulate(const IamlsFunction::Impl& m, const Vec3d& x, const Vec3f& facing, bool refit, KernelSums& plain,
+                KernelSums& faded) {
   for (const core::Neighbor& q : Neighbours()) {
     const SampleTerm t = Term(m, x, q.index);
-    double fade = 1, e = t.e;
+    AddTerm<kGradient>(m, t, 1.0, refit, plain);
     if constexpr (kFaded) {
-      fade = Fade(t.n, facing);
-      out.faded |= fade < 1;
-      e *= fade;
-      out.plain_w += (2.5 - t.s) * t.e;
-    }
-    const double psi = (2.5 - t.s) * e;
-    out.w += psi;
-    out.f += t.l * psi;
-    out.gauss += e;
-    out.gauss_distance += t.n.dot(t.d) * e;
-    out.gauss_normal += t.n * e;
-    // The refit's reference normal: a narrower Gaussian (e^{−2s}) than the kernel's, so that
-    // near a crease it leans to the face x is on.
-    if (refit) out.reference_normal += t.n * (e * t.e), out.reference_weight += e * t.e;
-    if constexpr (kGradient) out.g += GradientTerm(m, t, fade);
-    if constexpr (!kFaded) {
-      if (check_thin) out.thin_nearby |= m.thin[q.index] != 0;
+      const double fade = Fade(t.n, facing);
+      faded.faded |= fade < 1;
+      AddTerm<kGradient>(m, t, fade, refit, faded);
     }
   }
-  if constexpr (!kFaded) out.plain_w = out.w;
 }
 
 // Where ΣΨ is too small to trust F (the kernel's negative lobe takes over at ~1.22 h/ε),
@@ -244,26 +249,29 @@ core::FieldGradient Evaluate(const IamlsFunction::Impl& m, const Vec3d& x) {
     return out;
   }
   const bool refit = m.inv_normal_sigma2 > 0;
-  // The plain sums first; only near the builder's thin samples is there anything to fade (then
-  // the sums are taken again, faded). Where fading leaves under a tenth of the kernel sum (the
-  // tip of a finger, whose samples face every way), the plain sums stay.
+  // Only near the builder's thin samples is there anything to fade. The first neighbour the tree
+  // reports lies in the leaf nearest x, so its mark stands for x's. Where fading leaves under a
+  // tenth of the kernel sum (the tip of a finger, whose samples face every way), the plain sums
+  // stay.
   Vec3f facing = Vec3f::Zero();
-  KernelSums sums;
-  Accumulate<kGradient, false>(m, x, facing, refit, sums);
-  if (sums.thin_nearby && !(facing = FacingDirection(m, x, nn)).isZero()) {
-    constexpr double kMinFadedShare = 0.1;
-    KernelSums faded;
-    Accumulate<kGradient, true>(m, x, facing, refit, faded);
-    if (faded.faded && faded.w > kMinFadedShare * faded.plain_w) {
-      // F of the samples left, scaled up to the plain kernel sum so that its magnitude does not
-      // jump where fading starts.
-      const double scale_up = faded.plain_w / faded.w;
-      sums = faded;
-      sums.f *= scale_up, sums.g *= scale_up, sums.w = faded.plain_w;
-    } else {
-      facing = Vec3f::Zero();
-    }
+  if (m.thin_walls && m.near_thin[nn.front().index]) facing = FacingDirection(m, x, nn);
+  KernelSums plain, faded;
+  if (facing.isZero()) {
+    Accumulate<kGradient, false>(m, x, facing, refit, plain, faded);
+  } else {
+    Accumulate<kGradient, true>(m, x, facing, refit, plain, faded);
   }
+  constexpr double kMinFadedShare = 0.1;
+  const bool use_faded = faded.faded && faded.w > kMinFadedShare * plain.w;
+  if (use_faded) {
+    // F of the samples left, scaled up to the plain kernel sum so that its magnitude does not
+    // jump where fading starts.
+    const double scale_up = plain.w / faded.w;
+    faded.f *= scale_up, faded.g *= scale_up, faded.w = plain.w;
+  } else {
+    facing = Vec3f::Zero();
+  }
+  const KernelSums& sums = use_faded ? faded : plain;
   double f = sums.f, w = sums.w;
   Vec3d g = sums.g;
   // Trust F only where the kernel sum is clearly positive: it changes sign ~1.22 h/ε off the
@@ -291,7 +299,8 @@ core::FieldGradient Evaluate(const IamlsFunction::Impl& m, const Vec3d& x) {
 
 // Row k of the kernel matrix: the neighbours of x_k within the truncation radius (left in `nn`)
 // and Ψ_i(x_k) for each (in `psi`); returns s_k = Σ_i ℓ_i(x_k) Ψ_i(x_k).
-// Marks sample k `thin` when a neighbour faces against it (each row is one thread's).
+// Marks sample k `thin` when a neighbour faces against it, and then its neighbours `near_thin`
+// (shared between rows, hence atomic).
 double KernelRow(IamlsFunction::Impl& impl, size_t k, std::vector<core::Neighbor>& nn, std::vector<double>& psi) {
   impl.tree->Radius(impl.positions[k], impl.radius, nn);
   const Vec3d xk = impl.positions[k].cast<double>();
@@ -302,6 +311,10 @@ double KernelRow(IamlsFunction::Impl& impl, size_t k, std::vector<core::Neighbor
     for (const core::Neighbor& q : nn) thin |= impl.normals[q.index].dot(own_normal) < kFadeStart;
   }
   impl.thin[k] = thin;
+  if (thin) {
+    for (const core::Neighbor& q : nn)
+      std::atomic_ref<uint8_t>(impl.near_thin[q.index]).store(1, std::memory_order_relaxed);
+  }
   const Vec3f facing = thin ? FacingDirection(impl, xk, nn) : Vec3f::Zero();
   double sk = 0;
   for (size_t j = 0; j < nn.size(); ++j) {
@@ -522,6 +535,7 @@ absl::StatusOr<std::unique_ptr<IamlsFunction>> BuildIamls(const core::PointCloud
   impl->radius = static_cast<float>(stats.cutoff * h / eps);
   impl->inv_facing_radius2 = 4.0 / (h * h);  // ρ = h / 2, about one sample spacing.
   impl->thin.assign(impl->positions.size(), 0);
+  impl->near_thin.assign(impl->positions.size(), 0);
   impl->thin_walls = stats.thin_walls;
   setup_ctx.Report(0.2);
   stats.spacing = h;

@@ -31,7 +31,9 @@ class KdTree {
 
   // The `k` nearest points, closest first (fewer when the set is smaller). `out` is reused.
   void Knn(const Vec3f& query, size_t k, std::vector<Neighbor>& out) const;
-  // All points with distance <= `radius`, in no particular order. `out` is reused.
+  // All points with distance <= `radius`, unsorted. `out` is reused. The tree is searched depth
+  // first, nearer child first, so the first points come from the leaf (16 points) nearest the
+  // query: a cheap near point for heuristics that need one (iaMLS's thin walls), not the nearest.
   void Radius(const Vec3f& query, float radius, std::vector<Neighbor>& out) const;
   // The single nearest point; the set must not be empty.
   Neighbor Nearest(const Vec3f& query) const;

@@ -31,17 +31,19 @@ struct IamlsFunction::Impl {
   std::vector<Vec3f> normals;
   std::vector<float> coefficient;  // c_i
   std::unique_ptr<core::KdTree> tree;
-  double inv_h2 = 0;               // 1 / h²
-  double eps2 = 0;                 // ε²
-  double scale = 0;                // ε³ / π^{3/2}
-  float radius = 0;                // Truncation radius, cutoff · h / ε.
-  double min_kernel_sum = 0;       // ΣΨ below which F is not trusted.
-  double fallback_scale = 0;       // Scale of the sign-only extension (a typical ΣΨ).
-  double inv_normal_sigma2 = 0;    // 1 / normal_sigma², 0 without the crease-keeping refit.
-  double inv_facing_radius2 = 0;   // 1 / ρ², ρ the reach of the facing reference (FacingDirection).
-  bool thin_walls = false;         // IamlsStats::thin_walls.
-  std::vector<uint8_t> thin;       // Per sample: a neighbour within the kernel faces against it (the builder's).
-  std::vector<uint8_t> near_thin;  // Per sample: within the kernel of a `thin` sample (the builder's).
+  double inv_h2 = 0;              // 1 / h²
+  double eps2 = 0;                // ε²
+  double scale = 0;               // ε³ / π^{3/2}
+  float radius = 0;               // Truncation radius, cutoff · h / ε.
+  double min_kernel_sum = 0;      // ΣΨ below which F is not trusted.
+  double fallback_scale = 0;      // Scale of the sign-only extension (a typical ΣΨ).
+  double inv_normal_sigma2 = 0;   // 1 / normal_sigma², 0 without the crease-keeping refit.
+  double inv_facing_radius2 = 0;  // 1 / ρ², ρ the reach of the facing reference (FacingDirection).
+  bool thin_walls = false;        // IamlsStats::thin_walls.
+  // Per sample, set by the builder's kernel rows: kThin where a neighbour within the kernel faces
+  // against it, kNearThin where it lies within the kernel of such a sample.
+  static constexpr uint8_t kThin = 1, kNearThin = 2;
+  std::vector<uint8_t> wall_marks;
 };
 
 const core::ParamTable<IamlsParams>& IamlsParamTable() {
@@ -100,9 +102,8 @@ std::vector<core::Neighbor>& Neighbours() {
 // the samples that x lies in front of (ℓ_i(x) ≥ −ρ/4) near the nearest such one (weights
 // (1 − (d² − d_min²)/(2ρ)²)², ρ about one sample spacing), or of all samples near the nearest
 // when x is behind every one (inside the wall, where either side's F is negative, so the choice
-// leaves no zero behind). Then it
-// fades out the samples facing against that direction (weight 1 down to an angle of 101°, 0
-// from 127°), as if the far side were not there. Counting only the samples x is in front of
+// leaves no zero behind). Then it fades out the samples facing against that direction (weight 1
+// down to an angle of 101°, 0 from 127°), as if the far side were not there. Counting only the samples x is in front of
 // keeps a gap in one face's sampling from handing x to the other face. Nothing is faded where
 // the normals disagree (|mean| below a third of its weight: x is beyond an edge); on a smooth
 // surface wider than the kernel no sample faces that far away and every factor is 1.
@@ -254,7 +255,8 @@ core::FieldGradient Evaluate(const IamlsFunction::Impl& m, const Vec3d& x) {
   // tenth of the kernel sum (the tip of a finger, whose samples face every way), the plain sums
   // stay.
   Vec3f facing = Vec3f::Zero();
-  if (m.thin_walls && m.near_thin[nn.front().index]) facing = FacingDirection(m, x, nn);
+  if (m.thin_walls && (m.wall_marks[nn.front().index] & IamlsFunction::Impl::kNearThin))
+    facing = FacingDirection(m, x, nn);
   KernelSums plain, faded;
   if (facing.isZero()) {
     Accumulate<kGradient, false>(m, x, facing, refit, plain, faded);
@@ -299,8 +301,8 @@ core::FieldGradient Evaluate(const IamlsFunction::Impl& m, const Vec3d& x) {
 
 // Row k of the kernel matrix: the neighbours of x_k within the truncation radius (left in `nn`)
 // and Ψ_i(x_k) for each (in `psi`); returns s_k = Σ_i ℓ_i(x_k) Ψ_i(x_k).
-// Marks sample k `thin` when a neighbour faces against it, and then its neighbours `near_thin`
-// (shared between rows, hence atomic).
+// Marks sample k kThin when a neighbour faces against it, and then its neighbours kNearThin
+// (marks are shared between rows, hence atomic).
 double KernelRow(IamlsFunction::Impl& impl, size_t k, std::vector<core::Neighbor>& nn, std::vector<double>& psi) {
   impl.tree->Radius(impl.positions[k], impl.radius, nn);
   const Vec3d xk = impl.positions[k].cast<double>();
@@ -310,19 +312,22 @@ double KernelRow(IamlsFunction::Impl& impl, size_t k, std::vector<core::Neighbor
   if (impl.thin_walls) {
     for (const core::Neighbor& q : nn) thin |= impl.normals[q.index].dot(own_normal) < kFadeStart;
   }
-  impl.thin[k] = thin;
+  using Impl = IamlsFunction::Impl;
   if (thin) {
-    for (const core::Neighbor& q : nn)
-      std::atomic_ref<uint8_t>(impl.near_thin[q.index]).store(1, std::memory_order_relaxed);
+    std::atomic_ref<uint8_t>(impl.wall_marks[k]).fetch_or(Impl::kThin, std::memory_order_relaxed);
+    for (const core::Neighbor& q : nn) {
+      std::atomic_ref<uint8_t>(impl.wall_marks[q.index]).fetch_or(Impl::kNearThin, std::memory_order_relaxed);
+    }
   }
   const Vec3f facing = thin ? FacingDirection(impl, xk, nn) : Vec3f::Zero();
   double sk = 0;
   for (size_t j = 0; j < nn.size(); ++j) {
     const Vec3d d = xk - impl.positions[nn[j].index].cast<double>();
     const double si = impl.eps2 * d.squaredNorm() * impl.inv_h2;
+    const Vec3d normal = impl.normals[nn[j].index].cast<double>();
     psi[j] = impl.scale * (2.5 - si) * std::exp(-si);
-    if (!facing.isZero()) psi[j] *= Fade(impl.normals[nn[j].index].cast<double>(), facing);
-    sk += impl.normals[nn[j].index].cast<double>().dot(d) * psi[j];
+    if (!facing.isZero()) psi[j] *= Fade(normal, facing);
+    sk += normal.dot(d) * psi[j];
   }
   return sk;
 }
@@ -534,8 +539,7 @@ absl::StatusOr<std::unique_ptr<IamlsFunction>> BuildIamls(const core::PointCloud
   impl->scale = eps * eps * eps / std::pow(std::numbers::pi, 1.5);
   impl->radius = static_cast<float>(stats.cutoff * h / eps);
   impl->inv_facing_radius2 = 4.0 / (h * h);  // ρ = h / 2, about one sample spacing.
-  impl->thin.assign(impl->positions.size(), 0);
-  impl->near_thin.assign(impl->positions.size(), 0);
+  impl->wall_marks.assign(impl->positions.size(), 0);
   impl->thin_walls = stats.thin_walls;
   setup_ctx.Report(0.2);
   stats.spacing = h;
@@ -546,7 +550,7 @@ absl::StatusOr<std::unique_ptr<IamlsFunction>> BuildIamls(const core::PointCloud
   impl->fallback_scale = stats.mean_sample_weight;
   impl->min_kernel_sum = params.min_weight * stats.mean_sample_weight;
   impl->inv_normal_sigma2 = stats.normal_sigma > 0 ? 1.0 / (stats.normal_sigma * stats.normal_sigma) : 0.0;
-  for (uint8_t thin : impl->thin) stats.thin_samples += thin;
+  for (uint8_t marks : impl->wall_marks) stats.thin_samples += (marks & IamlsFunction::Impl::kThin) != 0;
   impl->coefficient.assign(impl->positions.size(), 0.0f);
   for (size_t k = 0; k < c.size(); ++k) impl->coefficient[k] = static_cast<float>(c[k]);
   return std::make_unique<IamlsFunction>(std::move(impl), h, std::move(stats));

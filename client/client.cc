@@ -230,18 +230,23 @@ absl::StatusOr<VolumeUpload> EncodeVolumeFile(const std::string& path, const std
     mesh = io::ParseRawVolume(*bytes, raw_layout, fields.empty() ? "value" : fields[0]);
   }
   if (!mesh.ok()) return mesh.status();
+  return EncodeVolume(*std::move(mesh), fields, path);
+}
+
+absl::StatusOr<VolumeUpload> EncodeVolume(core::VolumeMesh mesh, const std::vector<std::string>& fields,
+                                          std::string_view name) {
   VolumeUpload out;
-  // Only the fields that go up may refuse the file for their missing values.
-  std::erase_if(mesh->fields, [&](const core::VertexField& f) {
+  // Only the fields that go up may refuse the volume for their missing values.
+  std::erase_if(mesh.fields, [&](const core::VertexField& f) {
     return std::find(fields.begin(), fields.end(), f.name) == fields.end();
   });
-  auto missing = core::FillMissingValues(*mesh);
-  if (!missing.ok()) return absl::InvalidArgumentError(core::StrCat(path, ": ", missing.status().message()));
+  auto missing = core::FillMissingValues(mesh);
+  if (!missing.ok()) return absl::InvalidArgumentError(core::StrCat(name, ": ", missing.status().message()));
   out.missing_vertices = *missing;
-  auto vertices = io::EncodeVolumeVertices(*mesh, fields, {});
-  if (!vertices.ok()) return absl::InvalidArgumentError(core::StrCat(path, ": ", vertices.status().message()));
+  auto vertices = io::EncodeVolumeVertices(mesh, fields, {});
+  if (!vertices.ok()) return absl::InvalidArgumentError(core::StrCat(name, ": ", vertices.status().message()));
   out.vertices = *std::move(vertices);
-  if (mesh->has_cells()) out.cells = io::EncodeCellStream(*mesh);
+  if (mesh.has_cells()) out.cells = io::EncodeCellStream(mesh);
   return out;
 }
 

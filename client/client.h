@@ -15,6 +15,7 @@
 #include "absl/status/statusor.h"
 #include "lsqsurf/v1/reconstruction.grpc.pb.h"
 #include "worker/core/geometry.h"
+#include "worker/core/volume_mesh.h"
 #include "worker/io/draco_codec.h"
 #include "worker/io/point_stream.h"
 
@@ -49,6 +50,10 @@ struct VolumeUpload {
 };
 absl::StatusOr<VolumeUpload> EncodeVolumeFile(const std::string& path, const std::string& raw_layout,
                                               const std::vector<std::string>& fields);
+// The same for a volume held in memory; `name` (a file's path, or what the volume is) begins each
+// error's message.
+absl::StatusOr<VolumeUpload> EncodeVolume(core::VolumeMesh mesh, const std::vector<std::string>& fields,
+                                          std::string_view name);
 
 // A cloud's upload one Draco part at a time (SubmitJobRequest.input_part_end): each call returns
 // the next part's bytes, and an empty string after the last. An error ends the upload.

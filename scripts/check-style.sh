@@ -11,6 +11,6 @@ if [[ "${1:-}" == "--fix" ]]; then
   clang-format -i "${sources[@]}"
 fi
 clang-format --dry-run --Werror "${sources[@]}"
-python3 scripts/function_lengths.py --limit 120 worker server client bench
+python3 scripts/function_lengths.py --limit 120 worker server client python bench
 python3 scripts/layering.py
 echo "check-style: ${#sources[@]} files formatted, no function over 120 lines, layering and shape rules hold"

@@ -3,6 +3,8 @@
 # Idempotent: packages already present are skipped, so a second run is quick.
 # postgresql brings the server programs (initdb, pg_ctl) with which the tests start throwaway
 # PostgreSQL servers on loopback for the shared job store; libpq-dev is its client library;
+# pybind11-dev and the python3 packages build, install (a venv with pip, offline) and test the
+# Python package (python/);
 # libssl-dev hashes tokens and checks certificates; nginx-light is the gRPC balancer of the replica test; yamllint checks deploy/.
 # --with-poisson also installs Open3D (libopen3d-dev, large), needed only by the benchmark
 # preset `bench-poisson` that runs screened Poisson side by side; --with-openvdb installs
@@ -23,6 +25,7 @@ packages=(
   libgtest-dev libgmock-dev libbenchmark-dev
   libssl-dev openssl libsqlite3-dev libpq-dev postgresql nginx-light yamllint prometheus-cpp-dev libabsl-dev libtbb-dev libcli11-dev zlib1g-dev libpugixml-dev
   libegl-dev libgl-dev libopengl-dev libegl-mesa0 libgl1-mesa-dri libstb-dev
+  pybind11-dev python3-dev python3-numpy python3-pytest python3-venv python3-pip python3-wheel python3-setuptools
 )
 for option in "$@"; do
   case "$option" in

@@ -9,6 +9,7 @@
 #include <filesystem>
 #include <thread>
 
+#include "server/http_gateway.h"
 #include "server/metrics.h"
 #include "server/server.h"
 #include "server/tls.h"
@@ -58,7 +59,7 @@ absl::Status OpenStores(const std::string& store, const std::string& blob_dir, i
 struct ServerFlags {
   std::string listen = "127.0.0.1:50051";
   int64_t max_upload_mib = 1024;
-  std::string store = "sqlite", blob_dir, metrics_listen;
+  std::string store = "sqlite", blob_dir, metrics_listen, http_listen;
   int store_connections = 8;
   double lease_seconds = 0;  // Set from JobServiceOptions::lease, whose default it shows.
   bool parameter_reference = false;
@@ -232,6 +233,9 @@ void DefineFlags(CLI::App& app, ServerFlags& flags, lsqsurf::jobs::JobServiceOpt
       ->check(CLI::Range(2, 64));
   app.add_option("--metrics-listen", flags.metrics_listen,
                  "HOST:PORT on which to serve Prometheus metrics at /metrics (off when not given)");
+  app.add_option("--http-listen", flags.http_listen,
+                 "HOST:PORT on which to serve the job page and its JSON API (off when not given; HTTPS with "
+                 "--tls-cert; the same tokens; port 0 picks a free port, printed as 'http on URL')");
   app.add_option("--tls-cert", flags.tls.cert, "PEM certificate chain to serve TLS with (read again on SIGHUP)");
   app.add_option("--tls-key", flags.tls.key, "PEM private key of --tls-cert");
   app.add_option("--tls-client-ca", flags.tls.client_ca,
@@ -336,6 +340,25 @@ void ApplyUnits(ServerFlags& flags, lsqsurf::jobs::JobServiceOptions& options) {
 
 }  // namespace
 
+// The job page (--http-listen) on the gRPC server's in-process channel, under the gRPC port's
+// rules: TLS with the same files, and plaintext off loopback only with --plaintext.
+absl::StatusOr<std::unique_ptr<lsqsurf::server::HttpGateway>> StartHttp(const ServerFlags& flags,
+                                                                        lsqsurf::server::Server& server) {
+  if (flags.tls.cert.empty() && !flags.plaintext && !lsqsurf::core::IsLoopback(flags.http_listen)) {
+    return absl::InvalidArgumentError(lsqsurf::core::StrCat(
+        "--http-listen ", flags.http_listen,
+        " is not a loopback address: give --tls-cert and --tls-key (HTTPS), or --plaintext behind a proxy"));
+  }
+  if (!flags.tls.client_ca.empty()) {
+    return absl::InvalidArgumentError("--http-listen does not take client certificates (--tls-client-ca); use tokens");
+  }
+  lsqsurf::server::HttpOptions options;
+  options.listen = flags.http_listen;
+  options.tls_cert_path = flags.tls.cert;
+  options.tls_key_path = flags.tls.key;
+  return lsqsurf::server::HttpGateway::Start(server.InProcessChannel(), options);
+}
+
 int main(int argc, char** argv) {
   CLI::App app{"lsqsurfd: surface reconstruction server"};
   ServerFlags flags;
@@ -408,7 +431,17 @@ int main(int argc, char** argv) {
     spdlog::critical("cannot start: {}", server.status().message());
     return 1;
   }
+  std::unique_ptr<lsqsurf::server::HttpGateway> http;
+  if (!flags.http_listen.empty()) {
+    auto started = StartHttp(flags, **server);
+    if (!started.ok()) {
+      spdlog::critical("cannot start: {}", started.status().message());
+      return 1;
+    }
+    http = *std::move(started);
+  }
   std::printf("listening on %s\n", (*server)->address().c_str());
+  if (http != nullptr) std::printf("http on %s\n", http->address().c_str());
   std::fflush(stdout);
   spdlog::info("serving on {}", (*server)->address());
 
@@ -416,6 +449,7 @@ int main(int argc, char** argv) {
     int signal = 0;
     while (sigwait(&signals, &signal) == 0 && signal == SIGHUP) Reload(*security);
     spdlog::info("signal {} received: shutting down", signal);
+    if (http != nullptr) http->Stop();
     (*server)->Drain();
     // Nothing is lost past this point. gRPC's teardown has been seen to hang for good after its
     // threads ran out (in the TLS credentials' destructor): the process then ends regardless.

@@ -44,6 +44,12 @@ absl::StatusOr<std::unique_ptr<Server>> Server::Start(jobs::JobService& jobs, Se
 
 Server::~Server() { Shutdown(); }
 
+std::shared_ptr<grpc::Channel> Server::InProcessChannel() {
+  grpc::ChannelArguments args;
+  args.SetMaxReceiveMessageSize(16 << 20);
+  return server_->InProcessChannel(args);
+}
+
 std::string Server::address() const { return core::StrCat(host_, ":", port_); }
 
 void Server::FollowReadiness(std::chrono::milliseconds period) {

@@ -56,6 +56,9 @@ class Server {
   // The address clients reach it at: the listening host and the bound port.
   std::string address() const;
   ReconstructionService& service() { return *service_; }
+  // A channel to this server within the process (the HTTP gateway's): no socket and no TLS, but
+  // every call is checked as a network one is (tokens, limits).
+  std::shared_ptr<grpc::Channel> InProcessChannel();
 
   // Reports not serving and returns the running jobs to the queue in the store: nothing
   // accepted is lost past this point. Calls are still answered. Idempotent.

@@ -17,6 +17,9 @@ class Server:
             self.process.kill()
             raise RuntimeError(f"lsqsurfd did not start: {(folder / 'server.log').read_text()[-2000:]}")
         self.address = line.split()[-1]
+        self.http = None
+        if "--http-listen" in extra:
+            self.http = self.process.stdout.readline().split()[-1]  # "http on URL"
 
     def stop(self):
         self.process.terminate()
@@ -44,15 +47,36 @@ def token_server(tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
-def tls_server(tmp_path_factory):
-    """A server that speaks TLS with a self-signed certificate for 127.0.0.1; yields (server,
-    certificate path)."""
-    folder = tmp_path_factory.mktemp("tls")
+def web_server(tmp_path_factory):
+    """A server with tokens for alice and bob and the job page; yields (server, {name: token})."""
+    folder = tmp_path_factory.mktemp("web")
+    tokens = folder / "tokens"
+    binary = os.environ.get("LSQSURFD", "lsqsurfd")
+    names = {}
+    for name in ("alice", "bob"):
+        names[name] = subprocess.run([binary, "tokens", "add", str(tokens), name], capture_output=True, text=True,
+                                     check=True).stdout.split()[-1]
+    started = Server(folder, "--auth-tokens", str(tokens), "--http-listen", "127.0.0.1:0")
+    yield started, names
+    started.stop()
+
+
+def make_certificate(folder):
+    """A self-signed certificate for 127.0.0.1; returns (certificate, key) paths."""
     cert, key = folder / "server.pem", folder / "server.key"
     subprocess.run(["openssl", "req", "-x509", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1",
                     "-nodes", "-days", "2", "-subj", "/CN=lsqsurf test", "-addext",
                     "subjectAltName=IP:127.0.0.1,DNS:localhost", "-keyout", str(key), "-out", str(cert)],
                    check=True, capture_output=True)
-    started = Server(folder, "--tls-cert", str(cert), "--tls-key", str(key))
+    return cert, key
+
+
+@pytest.fixture(scope="session")
+def tls_server(tmp_path_factory):
+    """A server that speaks TLS with a self-signed certificate for 127.0.0.1; yields (server,
+    certificate path)."""
+    folder = tmp_path_factory.mktemp("tls")
+    cert, key = make_certificate(folder)
+    started = Server(folder, "--tls-cert", str(cert), "--tls-key", str(key), "--http-listen", "127.0.0.1:0")
     yield started, cert
     started.stop()

@@ -1,0 +1,127 @@
+// The job page in a real browser (Debian's chromium, driven by playwright-core): a server started
+// here on loopback with --http-listen; a finished job's page must show its mesh in the 3D view
+// (pixels of the canvas that are not background), and the job list must follow a running job's
+// progress. Writes screenshots into --out.
+//
+// node browser_test.mjs --lsqsurfd BIN --lsqsurf BIN --sample CLOUD.ply --chromium BIN
+//                       --modules DIR (holding node_modules/playwright-core) --out DIR
+import { spawn, execFileSync } from 'node:child_process';
+import { createRequire } from 'node:module';
+import { mkdtempSync, mkdirSync, rmSync } from 'node:fs';
+import { tmpdir } from 'node:os';
+import path from 'node:path';
+import readline from 'node:readline';
+
+const args = {};
+for (let i = 2; i < process.argv.length; i += 2) args[process.argv[i].replace(/^--/, '')] = process.argv[i + 1];
+for (const name of ['lsqsurfd', 'lsqsurf', 'sample', 'chromium', 'modules', 'out']) {
+  if (!args[name]) throw new Error(`--${name} is required`);
+}
+const { chromium } = createRequire(path.join(path.resolve(args.modules), 'node_modules', 'x.js'))('playwright-core');
+
+function check(condition, what) {
+  if (!condition) throw new Error(`failed: ${what}`);
+  console.log(`ok: ${what}`);
+}
+
+// lsqsurfd on loopback; resolves with its gRPC address and page URL once both listen.
+function startServer(dataDir) {
+  const server = spawn(args.lsqsurfd, ['--listen', '127.0.0.1:0', '--http-listen', '127.0.0.1:0',
+    '--data-dir', dataDir, '--workers', '2'], { stdio: ['ignore', 'pipe', 'inherit'] });
+  const lines = readline.createInterface({ input: server.stdout });
+  return new Promise((resolve, reject) => {
+    const seen = {};
+    server.on('exit', (code) => reject(new Error(`lsqsurfd exited (${code})`)));
+    lines.on('line', (line) => {
+      if (line.startsWith('listening on ')) seen.grpc = line.split(' ').pop();
+      if (line.startsWith('http on ')) seen.http = line.split(' ').pop();
+      if (seen.grpc && seen.http) resolve({ server, ...seen });
+    });
+  });
+}
+
+function cli(address, ...rest) {
+  return execFileSync(args.lsqsurf, ['--server', address, '-q', ...rest], { encoding: 'utf8' }).trim();
+}
+
+// Pixels of the WebGL canvas that differ from its white background (it keeps its drawing buffer).
+function foregroundShare() {
+  const canvas = document.getElementById('canvas');
+  const copy = document.createElement('canvas');
+  copy.width = canvas.width;
+  copy.height = canvas.height;
+  const context = copy.getContext('2d');
+  context.drawImage(canvas, 0, 0);
+  const { data } = context.getImageData(0, 0, copy.width, copy.height);
+  let foreground = 0;
+  for (let i = 0; i < data.length; i += 4) {
+    if (data[i] < 235 || data[i + 1] < 235 || data[i + 2] < 235) foreground++;
+  }
+  return foreground / (data.length / 4);
+}
+
+async function main() {
+  mkdirSync(args.out, { recursive: true });
+  const work = mkdtempSync(path.join(tmpdir(), 'lsqsurf-browser-'));
+  const { server, grpc, http } = await startServer(path.join(work, 'data'));
+  const browser = await chromium.launch({
+    executablePath: args.chromium,
+    // Software WebGL (SwiftShader), and none of chromium's own network traffic.
+    args: ['--no-sandbox', '--disable-gpu', '--use-angle=swiftshader', '--enable-unsafe-swiftshader',
+      '--disable-quic', '--no-first-run', '--disable-background-networking', '--disable-component-update',
+      '--disable-sync'],
+  });
+  try {
+    const page = await browser.newPage({ viewport: { width: 1280, height: 800 } });
+    const errors = [];
+    page.on('pageerror', (error) => errors.push(error.message));
+    page.on('console', (message) => { if (message.type() === 'error') errors.push(message.text()); });
+
+    // A finished job: its mesh in 3D.
+    const finished = cli(grpc, 'submit', args.sample, '--method', 'pu', '--job-preview');
+    cli(grpc, 'watch', finished);
+    await page.goto(`${http}/jobs/${finished}`);
+    await page.waitForSelector('#canvas[data-ready]', { timeout: 60000 });
+    check(await page.getAttribute('#canvas', 'data-ready') === 'mesh', 'the 3D view decoded the mesh');
+    check(Number(await page.getAttribute('#canvas', 'data-vertices')) > 10000, 'the mesh has its vertices');
+    const share = await page.evaluate(foregroundShare);
+    check(share > 0.05 && share < 0.9, `the canvas shows the mesh (${(100 * share).toFixed(1)} % of its pixels)`);
+    check(await page.locator('#pictures img').count() === 1, 'the job preview is shown');
+    await page.selectOption('#color-by', 'degree');
+    check((await page.textContent('#viewer-note')).startsWith('degree:'), 'the mesh is coloured by degree');
+    await page.screenshot({ path: path.join(args.out, 'job-page.png') });
+    check(errors.length === 0, `no errors in the page (${errors.join('; ')})`);
+
+    // A running job: the list follows its progress.
+    const tracking = spawn(args.lsqsurf, ['--server', grpc, '-q', 'track', '--interface', 'sphere', '--field',
+      'deformation', '--steps', '100000', '--stride', '100000', '-o', path.join(work, 'track')], { stdio: 'ignore' });
+    await page.goto(`${http}/`);
+    const row = page.locator('#jobs tbody tr.state-running');
+    await row.first().waitFor({ timeout: 60000 });
+    const first = await row.first().locator('td.progress').textContent();
+    await page.waitForFunction(
+      (before) => {
+        const cell = document.querySelector('#jobs tbody tr.state-running td.progress');
+        return cell && cell.textContent !== before;
+      }, first, { timeout: 60000 });
+    const later = await row.first().locator('td.progress').textContent();
+    check(later !== first, `the list follows the running job (${first.trim()} → ${later.trim()})`);
+    check(await page.locator('#jobs tbody tr').count() === 2, 'the list holds both jobs');
+    await page.screenshot({ path: path.join(args.out, 'job-list.png') });
+    const running = await row.first().getAttribute('data-job');
+    cli(grpc, 'cancel', running);
+    await page.locator(`#jobs tbody tr.state-cancelled[data-job="${running}"]`).waitFor({ timeout: 30000 });
+    check(true, 'the list shows the job cancelled');
+    tracking.kill();
+  } finally {
+    await browser.close();
+    server.kill('SIGTERM');
+    await new Promise((resolve) => server.on('exit', resolve));
+    rmSync(work, { recursive: true, force: true });
+  }
+}
+
+main().catch((error) => {
+  console.error(error);
+  process.exit(1);
+});

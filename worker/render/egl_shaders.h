@@ -108,10 +108,17 @@ uniform float opacity_t[16], opacity_a[16];
 uniform vec3 background, base_color;
 out vec4 fragment;
 
-vec4 at(vec3 x) {
+bool finite(float v) { return !isnan(v) && !isinf(v); }
+// The sample at x, and whether there is data there: inside the box and not NaN (missing data).
+// No NaN is made here: GLSL leaves 0.0 / 0.0 undefined, and NVIDIA's compiler folds it to a number.
+bool sample_at(vec3 x, out vec4 s) {
   vec3 t = (x - box_min) / (box_max - box_min);
-  if (any(lessThan(t, vec3(0.0))) || any(greaterThan(t, vec3(1.0)))) return vec4(0.0 / 0.0);
-  return texture(field, (t * (dims - 1.0) + 0.5) / dims);
+  if (any(lessThan(t, vec3(0.0))) || any(greaterThan(t, vec3(1.0)))) {
+    s = vec4(0.0);
+    return false;
+  }
+  s = texture(field, (t * (dims - 1.0) + 0.5) / dims);
+  return finite(s.x);
 }
 float opacity(float t) {
   if (t <= opacity_t[0]) return opacity_a[0];
@@ -124,7 +131,6 @@ float opacity(float t) {
   return opacity_a[opacity_count - 1];
 }
 float diffuse(vec3 g, vec3 dir) { float n = length(g); return n > 0.0 ? abs(dot(g, dir)) / n : 1.0; }
-bool finite(float v) { return !isnan(v) && !isinf(v); }
 
 void main() {
   vec2 ndc = gl_FragCoord.xy / viewport * 2.0 - 1.0;
@@ -135,17 +141,19 @@ void main() {
   float t0 = max(max(max(near.x, near.y), near.z), 0.0), t1 = min(min(far.x, far.y), far.z);
   vec3 color = vec3(0.0);
   float alpha = 0.0;
-  vec4 previous = vec4(0.0 / 0.0);
+  vec4 previous = vec4(0.0);
+  bool had_data = false;  // Whether `previous` holds data.
   for (float t = t0; t <= t1 && alpha < 0.995; t += step) {
-    vec4 s = at(from + t * dir);
+    vec4 s;
+    bool has_data = sample_at(from + t * dir, s);
     if (mode == 1) {
-      if (finite(s.x) && finite(previous.x) && ((s.x >= iso) != (previous.x >= iso))) {
+      if (has_data && had_data && ((s.x >= iso) != (previous.x >= iso))) {
         float ta = t - step, tb = t, fa = previous.x - iso;
         vec4 hit = s;
         for (int it = 0; it < 8; ++it) {
           float tm = 0.5 * (ta + tb);
-          vec4 m = at(from + tm * dir);
-          if (!finite(m.x)) break;
+          vec4 m;
+          if (!sample_at(from + tm * dir, m)) break;
           hit = m;
           if ((m.x - iso < 0.0) == (fa < 0.0)) { ta = tm; fa = m.x - iso; } else { tb = tm; }
         }
@@ -155,9 +163,10 @@ void main() {
         break;
       }
       previous = s;
+      had_data = has_data;
       continue;
     }
-    if (!finite(s.x)) continue;
+    if (!has_data) continue;
     float u = clamp((s.x - lo) / span, 0.0, 1.0);
     float a_cell = opacity(u);
     if (a_cell <= 0.0) continue;

@@ -236,16 +236,17 @@ CaseResult RunDirect(const BenchOptions& o, const core::ParamSet& params, const 
   });
 }
 
-// A cloud sampled from a mesh chunk by chunk (each chunk its own seed), never whole in memory.
+// A cloud sampled from a mesh chunk by chunk (each chunk its own seed), never whole in memory;
+// normals interpolated from the vertex normals, or the faces' own (--face-normals).
 class SampledSource final : public pu::PointSource {
  public:
-  SampledSource(const core::TriangleMesh& mesh, size_t points, double noise_sigma)
-      : mesh_(mesh), points_(points), noise_sigma_(noise_sigma) {}
+  SampledSource(const core::TriangleMesh& mesh, size_t points, double noise_sigma, bool face_normals)
+      : mesh_(mesh), points_(points), noise_sigma_(noise_sigma), face_normals_(face_normals) {}
   absl::Status ForEachChunk(const std::function<absl::Status(const core::PointCloud&)>& visit) const override {
     constexpr size_t kChunk = 1 << 20;
     for (size_t begin = 0, chunk = 0; begin < points_; begin += kChunk, ++chunk) {
-      LSQSURF_RETURN_IF_ERROR(
-          visit(core::SampleCloud(mesh_, std::min(kChunk, points_ - begin), 1234 + chunk, noise_sigma_)));
+      LSQSURF_RETURN_IF_ERROR(visit(
+          core::SampleCloud(mesh_, std::min(kChunk, points_ - begin), 1234 + chunk, noise_sigma_, !face_normals_)));
     }
     return absl::OkStatus();
   }
@@ -254,6 +255,7 @@ class SampledSource final : public pu::PointSource {
   const core::TriangleMesh& mesh_;
   size_t points_;
   double noise_sigma_;
+  bool face_normals_;
 };
 
 // The tiled PU engine on a cloud streamed from the sampler (pu_tiles.h): the cloud never sits in
@@ -265,7 +267,7 @@ CaseResult RunStreamed(const BenchOptions& o, const core::ParamSet& params, cons
     if (p == nullptr) return CaseResult{.error = "--streamed runs the pu method only"};
     core::LocalJobContext ctx;
     const double diagonal = core::Diagonal(core::BoundingBox(c.truth.vertices));
-    const SampledSource source(c.truth, c.points, c.noise * diagonal);
+    const SampledSource source(c.truth, c.points, c.noise * diagonal, o.face_normals);
     pu::MeshSink sink;
     const auto start = Clock::now();
     auto tiled = pu::ReconstructTiled(source, p->fit, p->extract, p->tiles, sink, ctx);
@@ -466,7 +468,8 @@ void RunStreamedService(const BenchOptions& o, const BenchCase& c, const std::ve
   const std::string cloud_path = (work / "cloud.ply").string(), mesh_path = (work / "mesh.ply").string();
   const double diagonal = core::Diagonal(core::BoundingBox(c.truth.vertices));
   const auto t_write = Clock::now();
-  if (absl::Status s = WriteSampledPly(SampledSource(c.truth, c.points, c.noise * diagonal), c.points, cloud_path);
+  if (absl::Status s =
+          WriteSampledPly(SampledSource(c.truth, c.points, c.noise * diagonal, o.face_normals), c.points, cloud_path);
       !s.ok()) {
     std::printf("  %s\n", std::string(s.message()).c_str());
     return;

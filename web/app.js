@@ -8,6 +8,8 @@ import { DRACOLoader } from './DRACOLoader.js';
 const TOKEN_KEY = 'lsqsurf-token';
 const POLL_MS = 1000;
 const TERMINAL = new Set(['succeeded', 'failed', 'cancelled']);
+// A mesh delivered in parts is shown up to this many triangles (a browser's memory, not the job's).
+const MAX_PART_TRIANGLES = 20e6;
 
 const $ = (id) => document.getElementById(id);
 
@@ -210,6 +212,11 @@ class Viewer {
       geometry = await this.decode(buffer, []);
       attributeNames = [];
     }
+    this.showGeometry(geometry);
+    return attributeNames;
+  }
+
+  showGeometry(geometry) {
     if (!geometry.getAttribute('normal')) geometry.computeVertexNormals();
     this.geometry = geometry;
     this.material = new THREE.MeshStandardMaterial({ color: 0xb8c4d6, roughness: 0.6, metalness: 0.05,
@@ -226,7 +233,6 @@ class Viewer {
     this.camera.updateProjectionMatrix();
     this.controls.update();
     this.resize();
-    return attributeNames;
   }
 
   colorBy(name) {
@@ -260,22 +266,97 @@ class Viewer {
   }
 }
 
+// One part of a mesh delivered in parts ("LQM1", little-endian; FetchResultRequest in the API):
+// first_vertex, the positions, the normals (none or one per vertex), named scalars, and faces in
+// the whole mesh's vertex numbers.
+function decodeMeshPart(buffer) {
+  const view = new DataView(buffer);
+  if (new TextDecoder().decode(new Uint8Array(buffer, 0, 4)) !== 'LQM1') throw new Error('not a mesh part (LQM1)');
+  let at = 4;
+  const count = () => { const v = Number(view.getBigUint64(at, true)); at += 8; return v; };
+  const floats = (n) => { const v = new Float32Array(buffer.slice(at, at + 4 * n)); at += 4 * n; return v; };
+  at += 8;  // first_vertex: the parts come in order, so their vertices follow on anyway.
+  const vertices = count();
+  const positions = floats(3 * vertices);
+  const normals = floats(3 * count());
+  const scalars = {};
+  for (let a = count(); a > 0; a--) {
+    const length = count();
+    const name = new TextDecoder().decode(new Uint8Array(buffer, at, length));
+    at += length;
+    scalars[name] = floats(count());
+  }
+  const faceCount = count();
+  const faces = new BigInt64Array(buffer.slice(at, at + 24 * faceCount));
+  return { positions, normals, scalars, faces };
+}
+
+function concatenate(arrays, Type) {
+  const out = new Type(arrays.reduce((n, a) => n + a.length, 0));
+  let at = 0;
+  for (const a of arrays) { out.set(a, at); at += a.length; }
+  return out;
+}
+
+// A mesh delivered in parts, joined into one geometry; past `maxTriangles` the rest is left out.
+async function loadMeshParts(job, names, maxTriangles) {
+  const parts = [];
+  let triangles = 0;
+  for (const name of names) {
+    const part = decodeMeshPart(await api(`/api/jobs/${job.id}/results/${name}`, 'buffer'));
+    if (triangles + part.faces.length / 3 > maxTriangles && parts.length) break;
+    triangles += part.faces.length / 3;
+    parts.push(part);
+  }
+  const vertices = parts.reduce((n, p) => n + p.positions.length / 3, 0);
+  const geometry = new THREE.BufferGeometry();
+  geometry.setAttribute('position', new THREE.BufferAttribute(concatenate(parts.map((p) => p.positions), Float32Array), 3));
+  if (parts.every((p) => p.normals.length === p.positions.length)) {
+    geometry.setAttribute('normal', new THREE.BufferAttribute(concatenate(parts.map((p) => p.normals), Float32Array), 3));
+  }
+  const scalarNames = Object.keys(parts[0].scalars).filter((n) => parts.every((p) => p.scalars[n]));
+  for (const n of scalarNames) {
+    geometry.setAttribute(`scalar_${n}`, new THREE.BufferAttribute(concatenate(parts.map((p) => p.scalars[n]), Float32Array), 1));
+  }
+  // Faces may name vertices of earlier parts only; those of parts left out are dropped.
+  const index = [];
+  for (const part of parts) {
+    for (let i = 0; i < part.faces.length; i += 3) {
+      const a = Number(part.faces[i]), b = Number(part.faces[i + 1]), c = Number(part.faces[i + 2]);
+      if (a < vertices && b < vertices && c < vertices) index.push(a, b, c);
+    }
+  }
+  geometry.setIndex(new THREE.BufferAttribute(new Uint32Array(index), 1));
+  return { geometry, scalarNames, shown: parts.length };
+}
+
 async function showMesh(job, methods) {
-  const name = (job.results || []).find((r) => r === 'mesh.drc');
-  if (!name) {
+  const viewer = new Viewer($('canvas'));
+  const results = job.results || [];
+  const parts = results.filter((r) => /^mesh-part-\d+\.lqm$/.test(r)).sort();
+  let names;
+  if (results.includes('mesh.drc')) {
+    const method = methods.find((m) => m.name === methodOf(job));
+    const buffer = await api(`/api/jobs/${job.id}/results/mesh.drc`, 'buffer');
+    names = await viewer.show(buffer, (method && method.attributes) || []);
+  } else if (parts.length) {
+    const loaded = await loadMeshParts(job, parts, MAX_PART_TRIANGLES);
+    viewer.showGeometry(loaded.geometry);
+    names = loaded.scalarNames;
+    if (loaded.shown < parts.length) {
+      $('viewer-note').textContent = `showing the first ${loaded.shown} of ${parts.length} parts`;
+    }
+  } else {
     $('viewer-note').textContent = 'This job has no mesh to show.';
     return;
   }
-  const method = methods.find((m) => m.name === methodOf(job));
-  const buffer = await api(`/api/jobs/${job.id}/results/${name}`, 'buffer');
-  const viewer = new Viewer($('canvas'));
-  const names = await viewer.show(buffer, (method && method.attributes) || []);
   const select = $('color-by');
   for (const attribute of names) select.add(new Option(attribute, attribute));
   select.addEventListener('change', () => viewer.colorBy(select.value));
   $('wireframe').addEventListener('change', () => viewer.wireframe($('wireframe').checked));
   const canvas = $('canvas');
   canvas.dataset.vertices = String(viewer.geometry.getAttribute('position').count);
+  canvas.dataset.triangles = String(viewer.geometry.index ? viewer.geometry.index.count / 3 : 0);
   canvas.dataset.ready = 'mesh';
 }
 

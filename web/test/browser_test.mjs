@@ -60,6 +60,20 @@ function foregroundShare() {
   return foreground / (data.length / 4);
 }
 
+// The canvas's luminance, pixel by pixel.
+function luminance() {
+  const canvas = document.getElementById('canvas');
+  const copy = document.createElement('canvas');
+  copy.width = canvas.width;
+  copy.height = canvas.height;
+  const context = copy.getContext('2d');
+  context.drawImage(canvas, 0, 0);
+  const { data } = context.getImageData(0, 0, copy.width, copy.height);
+  const out = [];
+  for (let i = 0; i < data.length; i += 4) out.push(Math.round(0.3 * data[i] + 0.59 * data[i + 1] + 0.11 * data[i + 2]));
+  return out;
+}
+
 async function main() {
   mkdirSync(args.out, { recursive: true });
   const work = mkdtempSync(path.join(tmpdir(), 'lsqsurf-browser-'));
@@ -85,11 +99,36 @@ async function main() {
     check(await page.getAttribute('#canvas', 'data-ready') === 'mesh', 'the 3D view decoded the mesh');
     check(Number(await page.getAttribute('#canvas', 'data-vertices')) > 10000, 'the mesh has its vertices');
     const share = await page.evaluate(foregroundShare);
+    const whole = await page.evaluate(luminance);
     check(share > 0.05 && share < 0.9, `the canvas shows the mesh (${(100 * share).toFixed(1)} % of its pixels)`);
     check(await page.locator('#pictures img').count() === 1, 'the job preview is shown');
     await page.selectOption('#color-by', 'degree');
     check((await page.textContent('#viewer-note')).startsWith('degree:'), 'the mesh is coloured by degree');
     await page.screenshot({ path: path.join(args.out, 'job-page.png') });
+    check(errors.length === 0, `no errors in the page (${errors.join('; ')})`);
+
+    // A mesh delivered in parts (a PU job over a cloud sent in parts): the parts joined in 3D.
+    const tiled = cli(grpc, 'submit', args.sample, '--method', 'pu', '--part-points', '10000',
+      '--param', 'tile_points=10000');
+    cli(grpc, 'watch', tiled);
+    const status = cli(grpc, 'status', tiled);
+    const statistic = (name) => Number((status.match(new RegExp(`\\b${name}=([0-9.e+-]+)`)) || [])[1]);
+    check(statistic('mesh_parts') > 1, `the job delivered its mesh in ${statistic('mesh_parts')} parts`);
+    await page.goto(`${http}/jobs/${tiled}`);
+    await page.waitForSelector('#canvas[data-ready]', { timeout: 60000 });
+    check(await page.getAttribute('#canvas', 'data-ready') === 'mesh', 'the parts were decoded');
+    check(Number(await page.getAttribute('#canvas', 'data-triangles')) === statistic('triangles'),
+      `the joined parts hold the job's ${statistic('triangles')} triangles`);
+    const partsShare = await page.evaluate(foregroundShare);
+    check(partsShare > 0.05 && partsShare < 0.9, `the canvas shows the joined mesh (${(100 * partsShare).toFixed(1)} %)`);
+    // The same cloud in one piece and in tiles: the same surface, so the same picture, but for
+    // the tiles' own small differences (a face joined wrongly would draw a streak across it).
+    const joined = await page.evaluate(luminance);
+    const differing = joined.filter((v, i) => Math.abs(v - whole[i]) > 40).length / joined.length;
+    check(joined.length === whole.length && differing < 0.01,
+      `the joined mesh looks as the whole one does (${(100 * differing).toFixed(2)} % of pixels differ)`);
+    await page.selectOption('#color-by', 'degree');
+    check((await page.textContent('#viewer-note')).startsWith('degree:'), 'the joined mesh is coloured by degree');
     check(errors.length === 0, `no errors in the page (${errors.join('; ')})`);
 
     // A running job: the list follows its progress.
@@ -106,7 +145,7 @@ async function main() {
       }, first, { timeout: 60000 });
     const later = await row.first().locator('td.progress').textContent();
     check(later !== first, `the list follows the running job (${first.trim()} → ${later.trim()})`);
-    check(await page.locator('#jobs tbody tr').count() === 2, 'the list holds both jobs');
+    check(await page.locator('#jobs tbody tr').count() === 3, 'the list holds the three jobs');
     await page.screenshot({ path: path.join(args.out, 'job-list.png') });
     const running = await row.first().getAttribute('data-job');
     cli(grpc, 'cancel', running);

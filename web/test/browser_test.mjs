@@ -44,23 +44,7 @@ function cli(address, ...rest) {
   return execFileSync(args.lsqsurf, ['--server', address, '-q', ...rest], { encoding: 'utf8' }).trim();
 }
 
-// Pixels of the WebGL canvas that differ from its white background (it keeps its drawing buffer).
-function foregroundShare() {
-  const canvas = document.getElementById('canvas');
-  const copy = document.createElement('canvas');
-  copy.width = canvas.width;
-  copy.height = canvas.height;
-  const context = copy.getContext('2d');
-  context.drawImage(canvas, 0, 0);
-  const { data } = context.getImageData(0, 0, copy.width, copy.height);
-  let foreground = 0;
-  for (let i = 0; i < data.length; i += 4) {
-    if (data[i] < 235 || data[i + 1] < 235 || data[i + 2] < 235) foreground++;
-  }
-  return foreground / (data.length / 4);
-}
-
-// The canvas's luminance, pixel by pixel.
+// The canvas's luminance, pixel by pixel (it keeps its drawing buffer, so it can be read back).
 function luminance() {
   const canvas = document.getElementById('canvas');
   const copy = document.createElement('canvas');
@@ -72,6 +56,11 @@ function luminance() {
   const out = [];
   for (let i = 0; i < data.length; i += 4) out.push(Math.round(0.3 * data[i] + 0.59 * data[i + 1] + 0.11 * data[i + 2]));
   return out;
+}
+
+// The share of pixels that are not the white background.
+function foregroundShare(pixels) {
+  return pixels.filter((v) => v < 235).length / pixels.length;
 }
 
 async function main() {
@@ -98,8 +87,8 @@ async function main() {
     await page.waitForSelector('#canvas[data-ready]', { timeout: 60000 });
     check(await page.getAttribute('#canvas', 'data-ready') === 'mesh', 'the 3D view decoded the mesh');
     check(Number(await page.getAttribute('#canvas', 'data-vertices')) > 10000, 'the mesh has its vertices');
-    const share = await page.evaluate(foregroundShare);
     const whole = await page.evaluate(luminance);
+    const share = foregroundShare(whole);
     check(share > 0.05 && share < 0.9, `the canvas shows the mesh (${(100 * share).toFixed(1)} % of its pixels)`);
     check(await page.locator('#pictures img').count() === 1, 'the job preview is shown');
     await page.selectOption('#color-by', 'degree');
@@ -119,11 +108,11 @@ async function main() {
     check(await page.getAttribute('#canvas', 'data-ready') === 'mesh', 'the parts were decoded');
     check(Number(await page.getAttribute('#canvas', 'data-triangles')) === statistic('triangles'),
       `the joined parts hold the job's ${statistic('triangles')} triangles`);
-    const partsShare = await page.evaluate(foregroundShare);
+    const joined = await page.evaluate(luminance);
+    const partsShare = foregroundShare(joined);
     check(partsShare > 0.05 && partsShare < 0.9, `the canvas shows the joined mesh (${(100 * partsShare).toFixed(1)} %)`);
     // The same cloud in one piece and in tiles: the same surface, so the same picture, but for
     // the tiles' own small differences (a face joined wrongly would draw a streak across it).
-    const joined = await page.evaluate(luminance);
     const differing = joined.filter((v, i) => Math.abs(v - whole[i]) > 40).length / joined.length;
     check(joined.length === whole.length && differing < 0.01,
       `the joined mesh looks as the whole one does (${(100 * differing).toFixed(2)} % of pixels differ)`);

@@ -208,7 +208,7 @@ class Viewer {
     try {
       geometry = await this.decode(buffer.slice(0), attributeNames);
     } catch (error) {
-      console.warn(`the method's scalars did not decode (${error}); showing the shape alone`);
+      console.info(`no scalars as the method names them (${error}); the shape alone`);
       geometry = await this.decode(buffer, []);
       attributeNames = [];
     }

@@ -146,11 +146,16 @@ def cube_grid(n):
 def test_volume_field_isosurface_and_probe(client):
     points, tets = cube_grid(9)
     value = points @ np.array([1.0, 2.0, -1.0])  # linear: its gradient is exact everywhere
-    job = client.volume(points, tets, "tetra", {"f": value}, iso=[0.5])
+    job = client.volume(points, tets, "tetra", {"f": value}, iso=[0.5, 1.0])
     assert job.state == "succeeded" and job.method == "volume"
     surface = client.mesh(job)
     assert len(surface.faces) > 0
-    assert np.max(np.abs(surface.vertices @ np.array([1.0, 2.0, -1.0]) - 0.5)) < 1e-3
+    # Two levels: each vertex carries its level as the scalar "iso", in the order the method's
+    # table names its scalars (the job page reads them by position), and lies on that plane.
+    assert list(surface.attributes) == client.methods()["volume"]["attributes"] == ["iso"]
+    level = surface.attributes["iso"]
+    assert set(np.unique(np.round(level, 3))) == {0.5, 1.0}
+    assert np.max(np.abs(surface.vertices @ np.array([1.0, 2.0, -1.0]) - level)) < 1e-3
     rng = np.random.default_rng(3)
     inside = rng.uniform(0.1, 0.9, size=(50, 3))
     outside = np.array([[3.0, 3.0, 3.0]])

@@ -135,6 +135,11 @@ TEST_F(JobServiceTest, EverySurfaceMethodReconstructsASphere) {
     EXPECT_EQ(Statistic(done, "non_manifold_edges"), t.non_manifold_edges) << method.info.name;
     EXPECT_EQ(Statistic(done, "boundary_edges"), t.boundary_edges) << method.info.name;
     EXPECT_GE(Statistic(done, "delivered_position_bits"), 16) << method.info.name;
+    // The per-vertex scalars in the order the method's table names them: the job page reads them
+    // by position (Draco unique ids 2, 3, ... after position and normal).
+    std::vector<std::string> scalars;
+    for (const core::ScalarAttribute& a : mesh->vertex_attributes) scalars.push_back(a.name);
+    EXPECT_EQ(scalars, method.info.attributes) << method.info.name;
   }
 }
 

@@ -7,7 +7,7 @@
 //                       --modules DIR (holding node_modules/playwright-core) --out DIR
 import { spawn, execFileSync } from 'node:child_process';
 import { createRequire } from 'node:module';
-import { mkdtempSync, mkdirSync, rmSync } from 'node:fs';
+import { mkdtempSync, mkdirSync, rmSync, writeFileSync } from 'node:fs';
 import { tmpdir } from 'node:os';
 import path from 'node:path';
 import readline from 'node:readline';
@@ -120,6 +120,26 @@ async function main() {
     check((await page.textContent('#viewer-note')).startsWith('degree:'), 'the joined mesh is coloured by degree');
     check(errors.length === 0, `no errors in the page (${errors.join('; ')})`);
 
+    // A volume job's isosurfaces: two levels of a linear field on a 9³ grid, coloured by level.
+    const values = new Float32Array(9 * 9 * 9);
+    for (let k = 0; k < 9; k++) {
+      for (let j = 0; j < 9; j++) {
+        for (let i = 0; i < 9; i++) values[(k * 9 + j) * 9 + i] = (i + 2 * j - k) / 8;
+      }
+    }
+    const raw = path.join(work, 'field.raw');
+    writeFileSync(raw, Buffer.from(values.buffer));
+    const volume = cli(grpc, 'volume', raw, '--raw', '9x9x9:float32:0.125', '--field', 'f', '--iso', '0.5', '--iso', '1');
+    const volumeStatus = cli(grpc, 'status', volume);
+    const volumeTriangles = Number((volumeStatus.match(/\btriangles=(\d+)/) || [])[1]);
+    await page.goto(`${http}/jobs/${volume}`);
+    await page.waitForSelector('#canvas[data-ready]', { timeout: 60000 });
+    check(Number(await page.getAttribute('#canvas', 'data-triangles')) === volumeTriangles,
+      `the volume job's isosurfaces are shown (${volumeTriangles} triangles)`);
+    await page.selectOption('#color-by', 'iso');
+    check((await page.textContent('#viewer-note')) === 'iso: 0.5 to 1', 'the isosurfaces are coloured by level');
+    check(errors.length === 0, `no errors in the page (${errors.join('; ')})`);
+
     // A running job: the list follows its progress.
     const tracking = spawn(args.lsqsurf, ['--server', grpc, '-q', 'track', '--interface', 'sphere', '--field',
       'deformation', '--steps', '100000', '--stride', '100000', '-o', path.join(work, 'track')], { stdio: 'ignore' });
@@ -134,7 +154,7 @@ async function main() {
       }, first, { timeout: 60000 });
     const later = await row.first().locator('td.progress').textContent();
     check(later !== first, `the list follows the running job (${first.trim()} → ${later.trim()})`);
-    check(await page.locator('#jobs tbody tr').count() === 3, 'the list holds the three jobs');
+    check(await page.locator('#jobs tbody tr').count() === 4, 'the list holds the four jobs');
     await page.screenshot({ path: path.join(args.out, 'job-list.png') });
     const running = await row.first().getAttribute('data-job');
     cli(grpc, 'cancel', running);

@@ -130,6 +130,16 @@ def test_render_gives_the_picture_asked_for(client):
     assert refused.value.code_name == "INVALID_ARGUMENT"
 
 
+def test_a_job_draws_its_own_preview(client):
+    points, _ = sphere_cloud(4000)
+    job = client.wait(client.submit(points, method="iamls", preview={"width": 80, "height": 60}, mesh_bits=20))
+    assert "preview.png" in job.results
+    assert png_size(client.fetch(job, "preview.png")) == (80, 60)
+    assert job.statistics["delivered_position_bits"] == 20
+    with pytest.raises(ValueError, match="no field 'zoom'"):
+        client.submit(points, preview={"zoom": 2})
+
+
 def cube_grid(n):
     """An n³-vertex grid over the unit cube, each cube cut into six tetrahedra."""
     axis = np.linspace(0.0, 1.0, n)

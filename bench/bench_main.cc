@@ -54,6 +54,7 @@ struct CaseResult {
   double peak_mib = 0;
   int64_t triangles = 0;
   double chamfer = 0, hausdorff = 0, normal_consistency = 0, far_fraction = 0;
+  double hausdorff_with_vertices = 0;  // Corners included (core::CompareResult).
   double min_angle_p1 = 0;  // Degrees: 1 % of the triangles have a smaller smallest angle.
   bool watertight = false;
   int64_t components = 0, boundary_edges = 0;
@@ -63,7 +64,7 @@ struct CaseResult {
 std::string Serialize(const CaseResult& r) {
   return core::StrCat(r.seconds, " ", r.triangles, " ", r.chamfer, " ", r.hausdorff, " ", r.normal_consistency, " ",
                       r.far_fraction, " ", r.watertight ? 1 : 0, " ", r.components, " ", r.boundary_edges, " ",
-                      r.min_angle_p1, " ", r.peak_mib, "\n", r.error);
+                      r.min_angle_p1, " ", r.peak_mib, " ", r.hausdorff_with_vertices, "\n", r.error);
 }
 
 CaseResult Deserialize(const std::string& s) {
@@ -71,7 +72,7 @@ CaseResult Deserialize(const std::string& s) {
   std::istringstream in(s);
   int wt = 0;
   in >> r.seconds >> r.triangles >> r.chamfer >> r.hausdorff >> r.normal_consistency >> r.far_fraction >> wt >>
-      r.components >> r.boundary_edges >> r.min_angle_p1 >> r.peak_mib;
+      r.components >> r.boundary_edges >> r.min_angle_p1 >> r.peak_mib >> r.hausdorff_with_vertices;
   r.watertight = wt != 0;
   std::getline(in, r.error);
   std::getline(in, r.error);
@@ -131,6 +132,7 @@ void Measure(const core::TriangleMesh& truth, const core::TriangleMesh& mesh, si
   }
   r.chamfer = cmp->chamfer;
   r.hausdorff = cmp->hausdorff;
+  r.hausdorff_with_vertices = cmp->hausdorff_with_vertices;
   r.normal_consistency = cmp->normal_consistency;
   r.far_fraction = cmp->far_fraction;
 }
@@ -197,10 +199,11 @@ void Print(const BenchCase& c, const char* mode, const CaseResult& r) {
     std::printf("%-15s %8zu %6.4f %-6s %-7s failed: %s\n", c.model.c_str(), c.points, c.noise, c.method.c_str(), mode,
                 r.error.c_str());
   } else {
-    std::printf("%-15s %8zu %6.4f %-6s %-7s %8.2f %9.0f %10lld %10.3e %10.3e %7.4f %6s %6lld %10.3e %9.1f\n",
+    std::printf("%-15s %8zu %6.4f %-6s %-7s %8.2f %9.0f %10lld %10.3e %10.3e %7.4f %6s %6lld %10.3e %9.1f %10.3e\n",
                 c.model.c_str(), c.points, c.noise, c.method.c_str(), mode, r.seconds, r.peak_mib,
                 static_cast<long long>(r.triangles), r.chamfer, r.hausdorff, r.normal_consistency,
-                r.watertight ? "yes" : "no", static_cast<long long>(r.components), r.far_fraction, r.min_angle_p1);
+                r.watertight ? "yes" : "no", static_cast<long long>(r.components), r.far_fraction, r.min_angle_p1,
+                r.hausdorff_with_vertices);
   }
   std::fflush(stdout);
 }
@@ -610,9 +613,9 @@ int main(int argc, char** argv) {
 
   const fs::path work = fs::temp_directory_path() / ("lsqsurf-bench-" + std::to_string(::getpid()));
   fs::create_directories(work);
-  std::printf("%-15s %8s %6s %-6s %-7s %8s %9s %10s %10s %10s %7s %6s %6s %10s %9s\n", "model", "points", "noise",
-              "method", "mode", "wall_s", "peak_MiB", "triangles", "chamfer", "hausdorff", "normals", "closed", "comps",
-              "far>1e-3", "angle_p1");
+  std::printf("%-15s %8s %6s %-6s %-7s %8s %9s %10s %10s %10s %7s %6s %6s %10s %9s %10s\n", "model", "points",
+              "noise", "method", "mode", "wall_s", "peak_MiB", "triangles", "chamfer", "hausdorff", "normals", "closed",
+              "comps", "far>1e-3", "angle_p1", "hd_corners");
   for (const auto& model : o.models) {
     auto truth = io::ReadMeshFile((fs::path(o.data_dir) / (model + ".obj")).string());
     if (!truth.ok()) {

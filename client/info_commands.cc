@@ -84,9 +84,9 @@ int Compare(const std::string& reference, const std::string& candidate, size_t s
   auto r = lsqsurf::core::CompareMeshes(*ref, *cand, params, local);
   if (!r.ok()) return Fail(std::string(r.status().message()));
   std::printf(
-      "chamfer            %.4e\nhausdorff          %.4e\nnormal_consistency %.5f\n"
+      "chamfer            %.4e\nhausdorff          %.4e\nhausdorff_corners  %.4e\nnormal_consistency %.5f\n"
       "far_fraction       %.4e\ndiagonal           %.6g\n",
-      r->chamfer, r->hausdorff, r->normal_consistency, r->far_fraction, r->diagonal);
+      r->chamfer, r->hausdorff, r->hausdorff_with_vertices, r->normal_consistency, r->far_fraction, r->diagonal);
   return 0;
 }
 

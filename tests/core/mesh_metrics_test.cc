@@ -165,8 +165,51 @@ TEST(SurfaceDistance, MeasuresAKnownOffset) {
   ASSERT_TRUE(moved.ok());
   const double diag = std::sqrt(3.0);
   EXPECT_NEAR(moved->mean_ref_to_cand * diag, 0.1, 1e-3);  // Faces are parallel at distance 0.1.
-  EXPECT_GT(moved->hausdorff * diag, 0.15);                // Near the corners: up to 0.1·√3.
+  EXPECT_GT(moved->hausdorff * diag, 0.15);                                          // Near the corners.
+  EXPECT_NEAR(moved->hausdorff_with_vertices * diag, 0.1 * std::sqrt(3.0), 1e-6);  // Corner to corner.
   EXPECT_NEAR(moved->far_fraction, 1.0, 1e-9);
+}
+
+// A square pyramid (base [-1, 1]² at z = 0, apex at z = 2) and the same with its tip cut off at
+// height 2 − h: the cut takes a share of the surface that no area sample lands in, yet the apex
+// is h from the cap, the farthest any point of either surface is from the other.
+TriangleMesh Pyramid(double cut) {
+  TriangleMesh m;
+  m.vertices = {{-1, -1, 0}, {1, -1, 0}, {1, 1, 0}, {-1, 1, 0}};
+  m.faces = {{0, 2, 1}, {0, 3, 2}};
+  if (cut == 0) {
+    m.vertices.push_back({0, 0, 2});
+    for (uint32_t i = 0; i < 4; ++i) m.faces.push_back({i, (i + 1) % 4, 4});
+    return m;
+  }
+  const auto half = static_cast<float>(cut / 2), top = static_cast<float>(2 - cut);
+  for (const auto& [x, y] : {std::pair{-1, -1}, {1, -1}, {1, 1}, {-1, 1}}) {
+    m.vertices.push_back({half * static_cast<float>(x), half * static_cast<float>(y), top});
+  }
+  m.faces.push_back({4, 5, 6});
+  m.faces.push_back({4, 6, 7});
+  for (uint32_t i = 0; i < 4; ++i) {
+    const uint32_t j = (i + 1) % 4;
+    m.faces.push_back({i, j, j + 4});
+    m.faces.push_back({i, j + 4, i + 4});
+  }
+  return m;
+}
+
+TEST(SurfaceDistance, TheVerticesFindACornerTheAreaSamplesMiss) {
+  const TriangleMesh apex = Pyramid(0), cut = Pyramid(0.002);
+  ASSERT_TRUE(AnalyzeTopology(apex).watertight());
+  ASSERT_TRUE(AnalyzeTopology(cut).watertight());
+  EXPECT_NEAR(EnclosedVolume(apex), 8.0 / 3.0, 1e-5);  // Both wound outwards.
+  EXPECT_NEAR(EnclosedVolume(cut), 8.0 / 3.0, 1e-5);
+  LocalJobContext ctx;
+  CompareParams p;
+  p.samples = 2000;
+  auto result = CompareMeshes(apex, cut, p, ctx);
+  ASSERT_TRUE(result.ok());
+  const double diag = Diagonal(BoundingBox(apex.vertices));
+  EXPECT_NEAR(result->hausdorff_with_vertices * diag, 0.002, 1e-6);
+  EXPECT_LT(result->hausdorff * diag, 0.001);  // Area samples: none near the tip.
 }
 
 TEST(SurfaceDistance, ClosestPointIsExact) {

@@ -2,7 +2,8 @@
 //
 // The measures of the project's benchmarks (see bench/README.md): both surfaces are sampled
 // uniformly by area, and each sample's exact distance to the other mesh is found through an
-// AABB tree over its triangles. Distances are reported as fractions of the reference's
+// AABB tree over its triangles. A second Hausdorff distance also takes every vertex of both
+// meshes (a polytope's corners, which area samples miss). Distances are reported as fractions of the reference's
 // bounding-box diagonal. The CLI's `compare` and the benchmark runner share this code.
 #pragma once
 
@@ -48,6 +49,7 @@ struct CompareParams {
 struct CompareResult {
   double chamfer = 0;             // ½ (mean ref→cand + mean cand→ref) / diagonal.
   double hausdorff = 0;           // max of both one-sided maxima / diagonal.
+  double hausdorff_with_vertices = 0;  // The same with every vertex of both meshes as a sample too.
   double mean_ref_to_cand = 0;    // / diagonal.
   double mean_cand_to_ref = 0;    // / diagonal.
   double normal_consistency = 0;  // Mean |cos| between face normals of closest-point pairs.

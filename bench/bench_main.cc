@@ -55,7 +55,7 @@ struct CaseResult {
   int64_t triangles = 0;
   double chamfer = 0, hausdorff = 0, normal_consistency = 0, far_fraction = 0;
   double hausdorff_with_vertices = 0;  // Corners included (core::CompareResult).
-  double min_angle_p1 = 0;  // Degrees: 1 % of the triangles have a smaller smallest angle.
+  double min_angle_p1 = 0;             // Degrees: 1 % of the triangles have a smaller smallest angle.
   bool watertight = false;
   int64_t components = 0, boundary_edges = 0;
   std::string error;
@@ -613,9 +613,9 @@ int main(int argc, char** argv) {
 
   const fs::path work = fs::temp_directory_path() / ("lsqsurf-bench-" + std::to_string(::getpid()));
   fs::create_directories(work);
-  std::printf("%-15s %8s %6s %-6s %-7s %8s %9s %10s %10s %10s %7s %6s %6s %10s %9s %10s\n", "model", "points",
-              "noise", "method", "mode", "wall_s", "peak_MiB", "triangles", "chamfer", "hausdorff", "normals", "closed",
-              "comps", "far>1e-3", "angle_p1", "hd_corners");
+  std::printf("%-15s %8s %6s %-6s %-7s %8s %9s %10s %10s %10s %7s %6s %6s %10s %9s %10s\n", "model", "points", "noise",
+              "method", "mode", "wall_s", "peak_MiB", "triangles", "chamfer", "hausdorff", "normals", "closed", "comps",
+              "far>1e-3", "angle_p1", "hd_corners");
   for (const auto& model : o.models) {
     auto truth = io::ReadMeshFile((fs::path(o.data_dir) / (model + ".obj")).string());
     if (!truth.ok()) {

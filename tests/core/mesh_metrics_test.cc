@@ -165,7 +165,7 @@ TEST(SurfaceDistance, MeasuresAKnownOffset) {
   ASSERT_TRUE(moved.ok());
   const double diag = std::sqrt(3.0);
   EXPECT_NEAR(moved->mean_ref_to_cand * diag, 0.1, 1e-3);  // Faces are parallel at distance 0.1.
-  EXPECT_GT(moved->hausdorff * diag, 0.15);                                          // Near the corners.
+  EXPECT_GT(moved->hausdorff * diag, 0.15);                // Near the corners.
   EXPECT_NEAR(moved->hausdorff_with_vertices * diag, 0.1 * std::sqrt(3.0), 1e-6);  // Corner to corner.
   EXPECT_NEAR(moved->far_fraction, 1.0, 1e-9);
 }

@@ -165,7 +165,8 @@ absl::StatusOr<CompareResult> CompareMeshes(const TriangleMesh& reference, const
     s = ParallelFor(
         from.vertices.size(), 1024,
         [&](size_t b, size_t e) {
-          for (size_t i = b; i < e; ++i) vertex_distance[i] = std::sqrt(tree.Closest(from.vertices[i].cast<double>()).distance2);
+          for (size_t i = b; i < e; ++i)
+            vertex_distance[i] = std::sqrt(tree.Closest(from.vertices[i].cast<double>()).distance2);
         },
         &ctx);
     if (!s.ok()) return s;

@@ -47,14 +47,14 @@ struct CompareParams {
 };
 
 struct CompareResult {
-  double chamfer = 0;             // ½ (mean ref→cand + mean cand→ref) / diagonal.
-  double hausdorff = 0;           // max of both one-sided maxima / diagonal.
+  double chamfer = 0;                  // ½ (mean ref→cand + mean cand→ref) / diagonal.
+  double hausdorff = 0;                // max of both one-sided maxima / diagonal.
   double hausdorff_with_vertices = 0;  // The same with every vertex of both meshes as a sample too.
-  double mean_ref_to_cand = 0;    // / diagonal.
-  double mean_cand_to_ref = 0;    // / diagonal.
-  double normal_consistency = 0;  // Mean |cos| between face normals of closest-point pairs.
-  double far_fraction = 0;        // Share of reference samples farther than 1e-3 diagonal.
-  double diagonal = 0;            // Reference bounding-box diagonal (model units).
+  double mean_ref_to_cand = 0;         // / diagonal.
+  double mean_cand_to_ref = 0;         // / diagonal.
+  double normal_consistency = 0;       // Mean |cos| between face normals of closest-point pairs.
+  double far_fraction = 0;             // Share of reference samples farther than 1e-3 diagonal.
+  double diagonal = 0;                 // Reference bounding-box diagonal (model units).
 };
 
 // Errors: kInvalidArgument when either mesh has no faces; kCancelled.

@@ -9,6 +9,7 @@
 #include <map>
 #include <utility>
 
+#include "absl/status/status.h"
 #include "lsqsurf/v1/reconstruction.grpc.pb.h"
 #include "server/web_assets.h"
 #include "worker/core/strings.h"
@@ -67,20 +68,11 @@ int HttpStatus(grpc::StatusCode code) {
   }
 }
 
-const char* CodeName(grpc::StatusCode code) {
-  static constexpr const char* kNames[] = {
-      "OK",        "CANCELLED",      "UNKNOWN",           "INVALID_ARGUMENT",   "DEADLINE_EXCEEDED",
-      "NOT_FOUND", "ALREADY_EXISTS", "PERMISSION_DENIED", "RESOURCE_EXHAUSTED", "FAILED_PRECONDITION",
-      "ABORTED",   "OUT_OF_RANGE",   "UNIMPLEMENTED",     "INTERNAL",           "UNAVAILABLE",
-      "DATA_LOSS", "UNAUTHENTICATED"};
-  const auto i = static_cast<size_t>(code);
-  return i < std::size(kNames) ? kNames[i] : "UNKNOWN";
-}
-
 void Fail(httplib::Response& res, grpc::StatusCode code, std::string_view message) {
   res.status = HttpStatus(code);
   if (code == grpc::StatusCode::UNAUTHENTICATED) res.set_header("WWW-Authenticate", "Bearer");
-  res.set_content(StrCat("{\"code\": ", JsonString(CodeName(code)), ", \"message\": ", JsonString(message), "}"),
+  res.set_content(StrCat("{\"code\": ", JsonString(absl::StatusCodeToString(static_cast<absl::StatusCode>(code))),
+                         ", \"message\": ", JsonString(message), "}"),
                   "application/json");
 }
 

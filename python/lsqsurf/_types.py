@@ -43,7 +43,10 @@ class Job:
 
     @classmethod
     def from_json(cls, text):
-        raw = json.loads(text)
+        return cls.from_dict(json.loads(text))
+
+    @classmethod
+    def from_dict(cls, raw):
         spec = raw.get("spec", {})
         method = next((k for k, v in spec.items() if isinstance(v, dict) and k != "preview"), "")
         return cls(

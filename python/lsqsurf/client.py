@@ -157,7 +157,7 @@ class Client:
     def jobs(self, limit=100):
         """This user's jobs, newest first."""
         listing = json.loads(self._connection.list(int(limit)))
-        return [Job.from_json(json.dumps(j)) for j in listing.get("jobs", [])]
+        return [Job.from_dict(j) for j in listing.get("jobs", [])]
 
     def cancel(self, job):
         return Job.from_json(self._connection.cancel(_job_id(job)))

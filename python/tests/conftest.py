@@ -33,15 +33,19 @@ def server(tmp_path_factory):
     started.stop()
 
 
+def add_tokens(tokens, names):
+    """Tokens for `names` in the token file `tokens` (lsqsurfd tokens add); returns {name: token}."""
+    binary = os.environ.get("LSQSURFD", "lsqsurfd")
+    return {name: subprocess.run([binary, "tokens", "add", str(tokens), name], capture_output=True, text=True,
+                                 check=True).stdout.split()[-1] for name in names}
+
+
 @pytest.fixture(scope="session")
 def token_server(tmp_path_factory):
     """A server that asks every call for a token; yields (server, token)."""
     folder = tmp_path_factory.mktemp("tokens")
-    tokens = folder / "tokens"
-    binary = os.environ.get("LSQSURFD", "lsqsurfd")
-    token = subprocess.run([binary, "tokens", "add", str(tokens), "alice"], capture_output=True, text=True,
-                           check=True).stdout.split()[-1]
-    started = Server(folder, "--auth-tokens", str(tokens))
+    token = add_tokens(folder / "tokens", ["alice"])["alice"]
+    started = Server(folder, "--auth-tokens", str(folder / "tokens"))
     yield started, token
     started.stop()
 
@@ -50,13 +54,8 @@ def token_server(tmp_path_factory):
 def web_server(tmp_path_factory):
     """A server with tokens for alice and bob and the job page; yields (server, {name: token})."""
     folder = tmp_path_factory.mktemp("web")
-    tokens = folder / "tokens"
-    binary = os.environ.get("LSQSURFD", "lsqsurfd")
-    names = {}
-    for name in ("alice", "bob"):
-        names[name] = subprocess.run([binary, "tokens", "add", str(tokens), name], capture_output=True, text=True,
-                                     check=True).stdout.split()[-1]
-    started = Server(folder, "--auth-tokens", str(tokens), "--http-listen", "127.0.0.1:0")
+    names = add_tokens(folder / "tokens", ["alice", "bob"])
+    started = Server(folder, "--auth-tokens", str(folder / "tokens"), "--http-listen", "127.0.0.1:0")
     yield started, names
     started.stop()
 

@@ -2,13 +2,15 @@
 """Writes exact convex polytopes (flat faces, sharp edges and corners) for lsqsurf-bench --data DIR.
 
     bench/polytopes.py -o /tmp/poly
-    build/release/bin/lsqsurf-bench --data /tmp/poly --models hull12 hull40 dodecahedron wedge \\
+    build/release/bin/lsqsurf-bench --data /tmp/poly --models hull12 hull40 dodecahedron wedge pyramid \\
         --sizes 200000 --method pu --face-normals
 
   hullN         the convex hull of N random points on an ellipsoid (seeded): corners of 3 to 7
                 faces, dihedral angles from nearly flat to acute.
   dodecahedron  the regular one: 20 corners of 3 faces at 116.6°.
   wedge         a triangular prism with a 20° ridge: the sharpest edge a support has to split.
+  pyramid       a pentagonal pyramid with sides at 40° to its base: an apex of five faces and
+                acute (50°) base edges and corners.
 Needs python3-scipy and python3-numpy (scripts/install-deps.sh --with-scipy).
 """
 import argparse
@@ -56,6 +58,14 @@ def wedge():
     return np.array([[x, y, z] for z in (-0.25, 0.25) for y, x in [(p[1], p[0]) for p in tri]], dtype=float)
 
 
+def pyramid():
+    angles = 2 * np.pi * np.arange(5) / 5
+    base = np.stack([0.4 * np.cos(angles), 0.4 * np.sin(angles), np.full(5, -0.15)], axis=1)
+    # The apex above the base's centre where the sides rise at 40° from the base's inscribed circle.
+    apex_height = 0.4 * np.cos(np.pi / 5) * np.tan(np.radians(40))
+    return np.vstack([base, [[0, 0, -0.15 + apex_height]]])
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("-o", "--output", required=True, help="folder for the .obj files")
@@ -65,6 +75,7 @@ def main():
     write_hull(os.path.join(args.output, "hull40.obj"), random_hull(40, 40))
     write_hull(os.path.join(args.output, "dodecahedron.obj"), dodecahedron())
     write_hull(os.path.join(args.output, "wedge.obj"), wedge())
+    write_hull(os.path.join(args.output, "pyramid.obj"), pyramid())
 
 
 if __name__ == "__main__":

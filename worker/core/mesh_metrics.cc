@@ -295,7 +295,8 @@ TriangleQuality MeasureTriangleQuality(const TriangleMesh& mesh) {
   return q;
 }
 
-int64_t RemoveSmallComponents(TriangleMesh& mesh, double min_diagonal) {
+std::vector<char> FacesOfComponents(const TriangleMesh& mesh, const std::function<bool(const Box3&)>& pick,
+                                    int64_t& picked) {
   std::vector<uint32_t> parent(mesh.vertices.size());
   std::iota(parent.begin(), parent.end(), 0u);
   for (const Triangle& t : mesh.faces) {
@@ -306,16 +307,30 @@ int64_t RemoveSmallComponents(TriangleMesh& mesh, double min_diagonal) {
   for (const Triangle& t : mesh.faces) {
     for (uint32_t v : t) box[FindRoot(parent, v)].extend(mesh.vertices[v].cast<double>());
   }
-  int64_t removed = 0;
-  std::vector<char> small(mesh.vertices.size(), 0);
+  picked = 0;
+  std::vector<char> root_picked(mesh.vertices.size(), 0);
   for (uint32_t v = 0; v < parent.size(); ++v) {
-    if (parent[v] == v && !box[v].isEmpty() && Diagonal(box[v]) < min_diagonal) {
-      small[v] = 1;
-      ++removed;
+    if (parent[v] == v && !box[v].isEmpty() && pick(box[v])) {
+      root_picked[v] = 1;
+      ++picked;
     }
   }
+  std::vector<char> faces(mesh.faces.size(), 0);
+  if (picked == 0) return faces;
+  for (size_t f = 0; f < mesh.faces.size(); ++f) faces[f] = root_picked[FindRoot(parent, mesh.faces[f][0])];
+  return faces;
+}
+
+int64_t RemoveSmallComponents(TriangleMesh& mesh, double min_diagonal) {
+  int64_t removed = 0;
+  const std::vector<char> small = FacesOfComponents(
+      mesh, [&](const Box3& box) { return Diagonal(box) < min_diagonal; }, removed);
   if (removed == 0) return 0;
-  std::erase_if(mesh.faces, [&](const Triangle& t) { return small[FindRoot(parent, t[0])] != 0; });
+  size_t kept = 0;
+  for (size_t f = 0; f < mesh.faces.size(); ++f) {
+    if (!small[f]) mesh.faces[kept++] = mesh.faces[f];
+  }
+  mesh.faces.resize(kept);
   DropUnusedVertices(mesh);
   return removed;
 }

@@ -3,6 +3,7 @@
 
 #include <array>
 #include <cstdint>
+#include <functional>
 #include <vector>
 
 #include "absl/container/flat_hash_map.h"
@@ -65,6 +66,11 @@ int64_t MergeCoincidentVertices(TriangleMesh& mesh);
 // is below `min_diagonal`, and the vertices only they used; the others keep their order, normals
 // and attributes. Returns the components removed. O(V + F).
 int64_t RemoveSmallComponents(TriangleMesh& mesh, double min_diagonal);
+
+// One flag per face: 1 where the face's component (faces connected through shared vertices) has a
+// bounding box for which `pick` holds. Sets `picked` to the number of such components. O(V + F).
+std::vector<char> FacesOfComponents(const TriangleMesh& mesh, const std::function<bool(const Box3&)>& pick,
+                                    int64_t& picked);
 
 // Vertex → incident faces as compressed rows for the vertices from `first` on: the faces of v are
 // incident[start[v − first] .. start[v − first + 1]), in face order. O(V + F).

@@ -77,6 +77,36 @@ const core::ParamTable<MarchingOptions>& MarchingParamTable() {
   return *table;
 }
 
+void KeepFaces(std::span<const char> keep, TriangleMesh& mesh, SurfaceTrace& trace) {
+  const bool traced = !trace.face_cells.empty(), normals = !mesh.normals.empty();
+  size_t kept_faces = 0;
+  for (size_t f = 0; f < mesh.faces.size(); ++f) {
+    if (!keep[f]) continue;
+    if (traced) trace.face_cells[kept_faces] = trace.face_cells[f];
+    mesh.faces[kept_faces++] = mesh.faces[f];
+  }
+  mesh.faces.resize(kept_faces);
+  if (traced) trace.face_cells.resize(kept_faces);
+  std::vector<uint32_t> remap(mesh.vertices.size(), UINT32_MAX);
+  std::vector<Vec3f> kept_vertices, kept_normals;
+  std::vector<uint64_t> kept_edges;
+  kept_vertices.reserve(mesh.vertices.size());
+  for (auto& f : mesh.faces) {
+    for (uint32_t& v : f) {
+      if (remap[v] == UINT32_MAX) {
+        remap[v] = static_cast<uint32_t>(kept_vertices.size());
+        kept_vertices.push_back(mesh.vertices[v]);
+        if (normals) kept_normals.push_back(mesh.normals[v]);
+        if (traced) kept_edges.push_back(trace.vertex_edges[v]);
+      }
+      v = remap[v];
+    }
+  }
+  mesh.vertices = std::move(kept_vertices);
+  mesh.normals = std::move(kept_normals);
+  trace.vertex_edges = std::move(kept_edges);
+}
+
 absl::Status Validate(const MarchingOptions& options) { return MarchingParamTable().Validate(options); }
 
 absl::Status Validate(const IsosurfaceParams& params) {

@@ -86,6 +86,7 @@ struct IsosurfaceStats {
   int64_t flipped_edges = 0;       // Edges flipped after it (relax.h).
   int64_t replaced_faces = 0;      // Kept faces a local re-extraction replaced (PatchJoin).
   int64_t seam_edges = 0;          // Kept edges the patch was joined along.
+  int64_t corner_specks = 0;       // Closed specks dropped beside acute corners (PU).
   // Wall time of the stages, seconds.
   double tree_seconds = 0;      // Building an adaptive tree (J1a extractors).
   double tracking_seconds = 0;  // Following the surface: corner values and sign tests.
@@ -109,6 +110,10 @@ struct IsosurfaceResult {
   IsosurfaceStats stats;
   SurfaceTrace trace;  // Empty unless MarchingOptions::trace.
 };
+
+// Keeps the faces flagged in `keep` and the vertices they use, renumbered in first-use order, with
+// their normals and the trace's entries (when there is one). The mesh has no attributes yet.
+void KeepFaces(std::span<const char> keep, TriangleMesh& mesh, SurfaceTrace& trace);
 
 // Extracts {F = 0} near `seeds` (normally the input points: extraction starts in their cubes).
 // Errors: kInvalidArgument (bad params, no seeds, grid too large for 21-bit coordinates),

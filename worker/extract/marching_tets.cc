@@ -289,38 +289,6 @@ void Triangulate(const PolygonSoup& soup, const std::vector<char>& valid, Triang
   }
 }
 
-// Keeps the trusted faces and the vertices they use, renumbered in first-use order (and the
-// trace's entries with them, when there is one).
-void KeepTrusted(const std::vector<char>& face_trusted, bool normals, TriangleMesh& mesh, SurfaceTrace& trace) {
-  const bool traced = !trace.face_cells.empty();
-  size_t kept_faces = 0;
-  for (size_t f = 0; f < mesh.faces.size(); ++f) {
-    if (!face_trusted[f]) continue;
-    if (traced) trace.face_cells[kept_faces] = trace.face_cells[f];
-    mesh.faces[kept_faces++] = mesh.faces[f];
-  }
-  mesh.faces.resize(kept_faces);
-  if (traced) trace.face_cells.resize(kept_faces);
-  std::vector<uint32_t> remap(mesh.vertices.size(), UINT32_MAX);
-  std::vector<Vec3f> kept_vertices, kept_normals;
-  std::vector<uint64_t> kept_edges;
-  kept_vertices.reserve(mesh.vertices.size());
-  for (auto& f : mesh.faces) {
-    for (uint32_t& v : f) {
-      if (remap[v] == UINT32_MAX) {
-        remap[v] = static_cast<uint32_t>(kept_vertices.size());
-        kept_vertices.push_back(mesh.vertices[v]);
-        if (normals) kept_normals.push_back(mesh.normals[v]);
-        if (traced) kept_edges.push_back(trace.vertex_edges[v]);
-      }
-      v = remap[v];
-    }
-  }
-  mesh.vertices = std::move(kept_vertices);
-  mesh.normals = std::move(kept_normals);
-  trace.vertex_edges = std::move(kept_edges);
-}
-
 }  // namespace
 
 absl::Status CornerValues::Evaluate(const ImplicitFunction& field, const std::function<Vec3d(CornerKey)>& position,
@@ -499,7 +467,7 @@ absl::StatusOr<IsosurfaceResult> MarchTetrahedra(const ImplicitFunction& field,
   stats.rejected_polygons -= stats.restored_triangles;
   stats.rejected_polygons +=
       DropCutOffSpecks(mesh.faces, face_trusted, mesh.vertices.size(), params.max_patch_triangles);
-  KeepTrusted(face_trusted, !mesh.normals.empty(), mesh, trace);
+  KeepFaces(face_trusted, mesh, trace);
   stats.crossings = static_cast<int64_t>(mesh.vertices.size());
   stats.marching_seconds = core::SecondsSince(stage_start);
   ctx.ReportProgress("", 1.0);

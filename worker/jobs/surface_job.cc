@@ -676,6 +676,7 @@ void AddMeshStatistics(const core::TriangleMesh& mesh, const extract::Isosurface
   stat("cells_visited", static_cast<double>(extraction.cells_visited));
   // Why a surface can come back open: triangles at roots where the method does not trust F.
   if (extraction.rejected_polygons > 0) stat("untrusted_triangles", static_cast<double>(extraction.rejected_polygons));
+  if (extraction.corner_specks > 0) stat("corner_specks", static_cast<double>(extraction.corner_specks));
   if (extraction.tree_seconds > 0) stat("tree_seconds", extraction.tree_seconds);
   stat("tracking_seconds", extraction.tracking_seconds);
   stat("marching_seconds", extraction.marching_seconds);

@@ -1,9 +1,11 @@
+#include <Eigen/Eigenvalues>
 #include <algorithm>
 #include <chrono>
 #include <cmath>
 
 #include "absl/container/flat_hash_map.h"
 #include "absl/container/flat_hash_set.h"
+#include "worker/core/mesh_metrics.h"
 #include "worker/core/parallel.h"
 #include "worker/core/status.h"
 #include "worker/extract/j1a.h"
@@ -24,6 +26,27 @@ int ExtractionDepth(double root_edge, double target) {
                     extract::AdaptiveOctree::kMaxDepth);
 }
 
+// Whether the box of half-size `reach` around `centre` meets `region`.
+bool BoxMeetsRegion(const Vec3d& centre, const Vec3d& reach, const core::Box3& region) {
+  return !(((centre + reach).array() < region.min().array()).any() ||
+           ((centre - reach).array() > region.max().array()).any());
+}
+
+// Adds the keys of the cells of `level` that the box of half-size `reach` around `centre` meets.
+void AddCellsInBox(const extract::AdaptiveOctree& tree, int level, const Vec3d& centre, const Vec3d& reach,
+                   absl::flat_hash_set<uint64_t>& cells) {
+  const double edge = tree.CellEdge(level);
+  const int64_t n = int64_t{1} << level;
+  const auto index = [&](double v) { return std::clamp<int64_t>(static_cast<int64_t>(std::floor(v)), 0, n - 1); };
+  const Vec3d lo = (centre - reach - tree.origin()) / edge, hi = (centre + reach - tree.origin()) / edge;
+  for (int64_t z = index(lo.z()); z <= index(hi.z()); ++z)
+    for (int64_t y = index(lo.y()); y <= index(hi.y()); ++y)
+      for (int64_t x = index(lo.x()); x <= index(hi.x()); ++x) {
+        cells.insert(
+            extract::CellKey({level, static_cast<uint32_t>(x), static_cast<uint32_t>(y), static_cast<uint32_t>(z)}));
+      }
+}
+
 // The extraction cells of levels [from, to) that a sharp fit's support meets: creases go to the
 // finest cells, where the crease splitting places them (their curvature is not a chord's).
 absl::flat_hash_set<uint64_t> CellsNearSharpFits(const PuFunction::Impl& impl, const extract::AdaptiveOctree& tree,
@@ -32,25 +55,47 @@ absl::flat_hash_set<uint64_t> CellsNearSharpFits(const PuFunction::Impl& impl, c
   for (const LocalFit& fit : impl.fits) {
     if (fit.feature == Feature::kSmooth) continue;
     const Vec3d reach = Vec3d::Constant(fit.support_radius);
-    if (region != nullptr && (((fit.centre + reach).array() < region->min().array()).any() ||
-                              ((fit.centre - reach).array() > region->max().array()).any())) {
-      continue;
-    }
-    for (int level = from; level < to; ++level) {
-      const double edge = tree.CellEdge(level);
-      const int64_t n = int64_t{1} << level;
-      const auto index = [&](double v) { return std::clamp<int64_t>(static_cast<int64_t>(std::floor(v)), 0, n - 1); };
-      const Vec3d lo = (fit.centre - tree.origin()) / edge - Vec3d::Constant(fit.support_radius / edge);
-      const Vec3d hi = (fit.centre - tree.origin()) / edge + Vec3d::Constant(fit.support_radius / edge);
-      for (int64_t z = index(lo.z()); z <= index(hi.z()); ++z)
-        for (int64_t y = index(lo.y()); y <= index(hi.y()); ++y)
-          for (int64_t x = index(lo.x()); x <= index(hi.x()); ++x) {
-            cells.insert(extract::CellKey(
-                {level, static_cast<uint32_t>(x), static_cast<uint32_t>(y), static_cast<uint32_t>(z)}));
-          }
-    }
+    if (region != nullptr && !BoxMeetsRegion(fit.centre, reach, *region)) continue;
+    for (int level = from; level < to; ++level) AddCellsInBox(tree, level, fit.centre, reach, cells);
   }
   return cells;
+}
+
+// Corners get leaves this many levels finer than `cell_size` within kCornerReach finest leaves of
+// the point where their sheets meet: the crease splits and corner points cut from the leaves'
+// tetrahedra leave chords across the creases there (1.3e-3 of the diagonal on a 12-face hull at
+// 200k points), which halve with the leaf.
+constexpr int kCornerExtraLevels = 1;
+constexpr double kCornerReach = 2.0;
+
+// Where the tangent planes of a corner fit's sheets meet (least squares), when their normals span
+// all three directions (a 20° wedge's tip: smallest eigenvalue of Σnnᵀ 0.03 of the largest).
+std::optional<Vec3d> CornerPointOf(const SharpFit& fit) {
+  constexpr double kMinSpread = 0.01;
+  Eigen::Matrix3d normal_moments = Eigen::Matrix3d::Zero();
+  Vec3d offsets = Vec3d::Zero();
+  for (int k = 0; k < fit.count; ++k) {
+    const Sheet& sheet = fit.sheets[static_cast<size_t>(k)];
+    normal_moments += sheet.normal * sheet.normal.transpose();
+    offsets += sheet.normal * (sheet.normal.dot(sheet.origin) + sheet.height.coefficients[0]);
+  }
+  const Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> spread(normal_moments, Eigen::EigenvaluesOnly);
+  if (!(spread.eigenvalues()(0) > kMinSpread * spread.eigenvalues()(2))) return std::nullopt;
+  return normal_moments.ldlt().solve(offsets);
+}
+
+// The points where corner fits' sheets meet (CornerPointOf), each inside its fit's support; with
+// `region`, those within `reach` of it.
+std::vector<Vec3d> CornerPoints(const PuFunction::Impl& impl, const core::Box3* region, double reach) {
+  std::vector<Vec3d> corners;
+  for (const LocalFit& fit : impl.fits) {
+    if (fit.feature != Feature::kCorner) continue;
+    const std::optional<Vec3d> corner = CornerPointOf(impl.sharp_fits[static_cast<size_t>(fit.sharp)]);
+    if (!corner || (*corner - fit.centre).norm() > fit.support_radius) continue;
+    if (region != nullptr && !BoxMeetsRegion(*corner, Vec3d::Constant(reach), *region)) continue;
+    corners.push_back(*corner);
+  }
+  return corners;
 }
 
 // Extract's J1a tree (2:1 balanced) and the finest cells that hold points (where tracking starts).
@@ -58,6 +103,9 @@ struct ExtractionTree {
   explicit ExtractionTree(const core::Box3& root, int depth) : tree(root, depth) {}
   extract::AdaptiveOctree tree;
   std::vector<extract::OctreeCell> start;
+  std::vector<Vec3d> corners;  // CornerPoints, refined within corner_reach to kCornerExtraLevels more.
+  double corner_reach = 0;
+  double finest_edge = 0;  // Of the leaves `cell_size` asks for.
 };
 
 // Extract's finest level (from `cell_size`) and the coarsest it allows around the data.
@@ -95,8 +143,11 @@ absl::StatusOr<std::unique_ptr<ExtractionTree>> BuildExtractionTree(const PuFunc
   const auto levels = LevelsFor(function, params);
   if (!levels.ok()) return levels.status();
   const int depth = levels->finest, band_level = levels->band;
-  auto built =
-      std::make_unique<ExtractionTree>(core::Box3(impl.origin, impl.origin + Vec3d::Constant(impl.root_edge)), depth);
+  // Every tree has room for the corners' finer leaves, so that vertex keys have one scale in every
+  // tile and edit of a function, whether or not it has corners there.
+  const int corner_depth = std::min(depth + kCornerExtraLevels, extract::AdaptiveOctree::kMaxDepth);
+  auto built = std::make_unique<ExtractionTree>(core::Box3(impl.origin, impl.origin + Vec3d::Constant(impl.root_edge)),
+                                                corner_depth);
   extract::AdaptiveOctree& tree = built->tree;
   std::vector<Vec3f> local_points;
   std::span<const Vec3f> points = impl.cloud->positions;
@@ -110,7 +161,36 @@ absl::StatusOr<std::unique_ptr<ExtractionTree>> BuildExtractionTree(const PuFunc
   extract::SurfaceBand fine_band = extract::MarkSurfaceBand(tree, points, depth);
   band.occupied.clear();
   const double chord_bound = params.chord_error * impl.Diagonal();
-  const absl::flat_hash_set<uint64_t> crease_cells = CellsNearSharpFits(impl, tree, band_level, depth, region);
+  absl::flat_hash_set<uint64_t> crease_cells = CellsNearSharpFits(impl, tree, band_level, depth, region);
+  // Near corners the band goes on to corner_depth: the points in a finest cell that a corner
+  // fit's support meets mark the finer band there.
+  extract::SurfaceBand corner_band;
+  built->finest_edge = tree.CellEdge(depth);
+  if (corner_depth > depth) {
+    built->corner_reach = kCornerReach * tree.CellEdge(depth);
+    built->corners = CornerPoints(impl, region, built->corner_reach);
+    absl::flat_hash_set<uint64_t> corner_cells;
+    for (const Vec3d& corner : built->corners) {
+      AddCellsInBox(tree, depth, corner, Vec3d::Constant(built->corner_reach), corner_cells);
+    }
+    std::vector<Vec3f> corner_points;
+    if (!corner_cells.empty()) {
+      const double edge = tree.CellEdge(depth);
+      const int64_t n = int64_t{1} << depth;
+      const auto index = [&](double v) {
+        return static_cast<uint32_t>(std::clamp<int64_t>(static_cast<int64_t>(std::floor(v)), 0, n - 1));
+      };
+      for (const Vec3f& p : points) {
+        const Vec3d g = (p.cast<double>() - tree.origin()) / edge;
+        if (corner_cells.contains(extract::CellKey({depth, index(g.x()), index(g.y()), index(g.z())}))) {
+          corner_points.push_back(p);
+        }
+      }
+    }
+    corner_band = extract::MarkSurfaceBand(tree, corner_points, corner_depth);
+    fine_band.ancestors.insert(corner_band.ancestors.begin(), corner_band.ancestors.end());
+    crease_cells.insert(corner_cells.begin(), corner_cells.end());
+  }
   LSQSURF_RETURN_IF_ERROR(extract::RefineSurfaceBand(
       tree, band, band_level, fine_band,
       [&](const extract::OctreeCell& c) {
@@ -122,9 +202,32 @@ absl::StatusOr<std::unique_ptr<ExtractionTree>> BuildExtractionTree(const PuFunc
   fine_band.ancestors.clear();
   tree.Balance();
   LSQSURF_RETURN_IF_ERROR(ctx.CheckCancelled());
-  built->start.reserve(fine_band.occupied.size());
+  // A start cell split for a corner holds no leaf (LeafContaining skips it); its points' finer
+  // cells start there instead.
+  built->start.reserve(fine_band.occupied.size() + corner_band.occupied.size());
   for (uint64_t key : fine_band.occupied) built->start.push_back(extract::CellFromKey(key));
+  for (uint64_t key : corner_band.occupied) built->start.push_back(extract::CellFromKey(key));
   return built;
+}
+
+// The finer leaves at a corner can catch the tip of an acute one (a 20° ridge's end) beyond a neck
+// that the coarser leaves beside them miss: the tip comes out as a closed speck of its own. Such
+// specks (smaller than a finest leaf, within a corner's refined reach) are dropped; the corner is
+// then cut as it would be without the finer leaves. Returns the specks dropped.
+int64_t DropCornerSpecks(const ExtractionTree& built, extract::IsosurfaceResult& result) {
+  if (built.corners.empty()) return 0;
+  auto near_corner = [&](const core::Box3& box) {
+    return std::any_of(built.corners.begin(), built.corners.end(),
+                       [&](const Vec3d& corner) { return box.exteriorDistance(corner) <= built.corner_reach; });
+  };
+  int64_t specks = 0;
+  std::vector<char> drop = core::FacesOfComponents(
+      result.mesh, [&](const core::Box3& box) { return core::Diagonal(box) < built.finest_edge && near_corner(box); },
+      specks);
+  if (specks == 0) return 0;
+  for (char& flag : drop) flag = !flag;
+  extract::KeepFaces(drop, result.mesh, result.trace);
+  return specks;
 }
 
 // Adds the vertex attributes "depth", "degree" and "feature" (the dominant fit's) to `mesh`.
@@ -295,6 +398,7 @@ absl::StatusOr<extract::IsosurfaceResult> Extract(const PuFunction& function, co
   core::SubContext extract_ctx(ctx, "extracting surface", 0.1, 0.95);
   auto result = extract::ExtractIsosurfaceOnTree(function, (*built)->tree, (*built)->start, params.max_leaves,
                                                  MarchingFor(impl, params), extract_ctx);
+  if (result.ok()) result->stats.corner_specks = DropCornerSpecks(**built, *result);
   built->reset();
   if (result.ok()) result->stats.tree_seconds = tree_seconds;
   if (!result.ok() || !params.label_vertices) return result;

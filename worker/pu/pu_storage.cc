@@ -197,7 +197,8 @@ absl::StatusOr<std::unique_ptr<PuFunction>> DeserializePu(std::string_view bytes
 
 namespace {
 
-constexpr std::string_view kSurfaceMagic = "LQSF0001";
+// 0002: vertex keys on a lattice one level finer (the extraction tree's room for corners).
+constexpr std::string_view kSurfaceMagic = "LQSF0002";
 
 }  // namespace
 

@@ -39,7 +39,13 @@ constexpr double kOffsetSlack = 1.2;
 constexpr double kMaxOffsetCap = 4.0;
 
 // An end of an edge that lies this close to the crease (share of the edge) is moved onto it.
+// Across an acute crease (normals more than 90° apart) the chords cut the tip off deeper, and the
+// crease often lies beyond the nearer end (the triangle of the ends and the crease point is obtuse
+// there), so no split can reach it: such an end moves up to a whole edge, unless a triangle turns
+// (a pentagonal pyramid's 50° base edges at 200k points: share of the surface farther than 1e-3
+// of the diagonal 1.06e-3 -> 2.4e-4).
 constexpr double kMaxSnapShare = 0.15;
+constexpr double kMaxAcuteSnapShare = 1.0;
 // Where that end cannot move, the edge is split instead unless the crease point is closer than
 // this share of the edge to an end (a vertex there would merge with the end in any delivery).
 constexpr double kStuckMargin = 1e-3;
@@ -129,12 +135,15 @@ CreaseHit CreasePoint(const core::ImplicitFunction& field, const Vec3d& a, const
       length * std::min(kMaxOffsetCap, std::max(kMaxOffsetShare, kOffsetSlack * 0.5 * std::sqrt((1 - c) / (1 + c))));
   const double along = (x - a).dot(edge) / (length * length);
   if (!(along > kEndMargin && along < 1 - kEndMargin)) {
-    if (!(along > -kEndMargin && along < 1 + kEndMargin)) return none;
+    const bool acute = c < 0;
+    if (!(along > -kEndMargin && along < 1 + kEndMargin) && !acute) return none;
     const int end = along <= 0.5 ? 0 : 1;
     const Vec3d e = end == 0 ? a : b;
     const Vec3d direction = na.cross(nb).normalized();
     const Vec3d p = x + direction * (e - x).dot(direction);
-    if (!((p - e).norm() <= kMaxSnapShare * length) || !OnSurface(field, p, kMaxResidualShare * length)) return none;
+    if (!((p - e).norm() <= (acute ? kMaxAcuteSnapShare : kMaxSnapShare) * length) ||
+        !OnSurface(field, p, kMaxResidualShare * length))
+      return none;
     CreaseHit hit;
     hit.snap_end = end, hit.snap_to = p;
     if (along > kStuckMargin && along < 1 - kStuckMargin && (x - (a + along * edge)).norm() <= max_offset &&

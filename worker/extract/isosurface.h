@@ -71,22 +71,23 @@ struct IsosurfaceParams {
 absl::Status Validate(const IsosurfaceParams& params);
 
 struct IsosurfaceStats {
-  int64_t cells_visited = 0;       // Cubes whose corners were evaluated.
-  int64_t surface_cells = 0;       // Cubes the surface passes through.
-  int64_t field_evaluations = 0;   // Corner evaluations (refinement not included).
-  int64_t tetrahedra = 0;          // Tetrahedra sign-tested (J1a: of every visited leaf; grid: of the surface cubes).
-  int64_t crossings = 0;           // Output vertices.
-  int64_t rejected_polygons = 0;   // Triangles dropped because a root lay where F is undefined.
-  int64_t restored_triangles = 0;  // Untrusted triangles kept as parts of small pinhole patches.
-  int64_t crease_vertices = 0;     // Edges split where they cross a crease.
-  int64_t crease_corners = 0;      // Triangles split around a corner.
-  int64_t crease_snapped = 0;      // Vertices moved onto a crease that passed next to them.
-  int64_t snapped_corners = 0;     // Grid corners moved onto the surface.
-  int64_t relaxed_vertices = 0;    // Vertices moved by the relaxation (once per round; two rounds).
-  int64_t flipped_edges = 0;       // Edges flipped after it (relax.h).
-  int64_t replaced_faces = 0;      // Kept faces a local re-extraction replaced (PatchJoin).
-  int64_t seam_edges = 0;          // Kept edges the patch was joined along.
-  int64_t corner_specks = 0;       // Closed specks dropped beside acute corners (PU).
+  int64_t cells_visited = 0;        // Cubes whose corners were evaluated.
+  int64_t surface_cells = 0;        // Cubes the surface passes through.
+  int64_t field_evaluations = 0;    // Corner evaluations (refinement not included).
+  int64_t tetrahedra = 0;           // Tetrahedra sign-tested (J1a: of every visited leaf; grid: of the surface cubes).
+  int64_t crossings = 0;            // Output vertices.
+  int64_t rejected_polygons = 0;    // Triangles dropped because a root lay where F is undefined.
+  int64_t restored_triangles = 0;   // Untrusted triangles kept as parts of small pinhole patches.
+  int64_t crease_vertices = 0;      // Edges split where they cross a crease.
+  int64_t crease_corners = 0;       // Triangles split around a corner.
+  int64_t crease_snapped = 0;       // Vertices moved onto a crease that passed next to them.
+  int64_t snapped_corners = 0;      // Grid corners moved onto the surface.
+  int64_t relaxed_vertices = 0;     // Vertices moved by the relaxation (once per round; two rounds).
+  int64_t flipped_edges = 0;        // Edges flipped after it (relax.h).
+  int64_t replaced_faces = 0;       // Kept faces a local re-extraction replaced (PatchJoin).
+  int64_t seam_edges = 0;           // Kept edges the patch was joined along.
+  int64_t corner_specks = 0;        // Closed specks dropped beside acute corners (PU).
+  int64_t corners_left_coarse = 0;  // 1 where finer leaves at corners changed the topology: left out (PU).
   // Wall time of the stages, seconds.
   double tree_seconds = 0;      // Building an adaptive tree (J1a extractors).
   double tracking_seconds = 0;  // Following the surface: corner values and sign tests.

@@ -139,7 +139,8 @@ constexpr int kReachCoarseCells = 4;
 absl::StatusOr<std::unique_ptr<ExtractionTree>> BuildExtractionTree(const PuFunction& function,
                                                                     const PuFunction::Impl& impl,
                                                                     const PuExtractParams& params,
-                                                                    const core::Box3* region, core::JobContext& ctx) {
+                                                                    const core::Box3* region, core::JobContext& ctx,
+                                                                    bool finer_corners = true) {
   const auto levels = LevelsFor(function, params);
   if (!levels.ok()) return levels.status();
   const int depth = levels->finest, band_level = levels->band;
@@ -166,7 +167,7 @@ absl::StatusOr<std::unique_ptr<ExtractionTree>> BuildExtractionTree(const PuFunc
   // fit's support meets mark the finer band there.
   extract::SurfaceBand corner_band;
   built->finest_edge = tree.CellEdge(depth);
-  if (corner_depth > depth) {
+  if (corner_depth > depth && finer_corners) {
     built->corner_reach = kCornerReach * tree.CellEdge(depth);
     built->corners = CornerPoints(impl, region, built->corner_reach);
     absl::flat_hash_set<uint64_t> corner_cells;
@@ -399,8 +400,36 @@ absl::StatusOr<extract::IsosurfaceResult> Extract(const PuFunction& function, co
   auto result = extract::ExtractIsosurfaceOnTree(function, (*built)->tree, (*built)->start, params.max_leaves,
                                                  MarchingFor(impl, params), extract_ctx);
   if (result.ok()) result->stats.corner_specks = DropCornerSpecks(**built, *result);
+  const bool finer_corners = !(*built)->corners.empty();
+  std::vector<Vec3d> corners = std::move((*built)->corners);
+  const double corner_reach = (*built)->corner_reach;
   built->reset();
   if (result.ok()) result->stats.tree_seconds = tree_seconds;
+  if (result.ok() && finer_corners) {
+    // The finer leaves at a corner can also catch a pointed corner's tip here and there and leave
+    // a handle (a 12-face hull at 100k points: Euler characteristic 0). They must not add to the
+    // topology: where the surface without them (specks beside corners dropped alike) has fewer
+    // components or fewer handles, that one is kept.
+    core::SubContext plain_ctx(ctx, "extracting surface without finer corners", 0.1, 0.95);
+    auto plain_tree = BuildExtractionTree(function, impl, params, nullptr, plain_ctx, false);
+    if (!plain_tree.ok()) return plain_tree.status();
+    auto plain = extract::ExtractIsosurfaceOnTree(function, (*plain_tree)->tree, (*plain_tree)->start,
+                                                  params.max_leaves, MarchingFor(impl, params), plain_ctx);
+    if (!plain.ok()) return plain.status();
+    (*plain_tree)->corners = std::move(corners);
+    (*plain_tree)->corner_reach = corner_reach;
+    plain->stats.corner_specks = DropCornerSpecks(**plain_tree, *plain);
+    plain_tree->reset();
+    const core::MeshTopology finer = core::AnalyzeTopology(core::WeldByPosition(result->mesh));
+    const core::MeshTopology coarser = core::AnalyzeTopology(core::WeldByPosition(plain->mesh));
+    // Handles over all components: components − χ/2 for closed ones.
+    auto handles = [](const core::MeshTopology& t) { return 2 * t.components - t.euler_characteristic(); };
+    if (finer.components > coarser.components || handles(finer) > handles(coarser)) {
+      plain->stats.tree_seconds = tree_seconds;
+      plain->stats.corners_left_coarse = 1;
+      *result = *std::move(plain);
+    }
+  }
   if (!result.ok() || !params.label_vertices) return result;
   LSQSURF_RETURN_IF_ERROR(LabelVertices(function, result->mesh, ctx));
   return result;

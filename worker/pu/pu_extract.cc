@@ -163,8 +163,8 @@ absl::StatusOr<std::unique_ptr<ExtractionTree>> BuildExtractionTree(const PuFunc
   band.occupied.clear();
   const double chord_bound = params.chord_error * impl.Diagonal();
   absl::flat_hash_set<uint64_t> crease_cells = CellsNearSharpFits(impl, tree, band_level, depth, region);
-  // Near corners the band goes on to corner_depth: the points in a finest cell that a corner
-  // fit's support meets mark the finer band there.
+  // Near corners the band goes on to corner_depth: the points in the finest cells within
+  // corner_reach of a corner point mark the finer band there.
   extract::SurfaceBand corner_band;
   built->finest_edge = tree.CellEdge(depth);
   if (corner_depth > depth && finer_corners) {
@@ -222,12 +222,12 @@ int64_t DropCornerSpecks(const ExtractionTree& built, extract::IsosurfaceResult&
                        [&](const Vec3d& corner) { return box.exteriorDistance(corner) <= built.corner_reach; });
   };
   int64_t specks = 0;
-  std::vector<char> drop = core::FacesOfComponents(
+  std::vector<char> keep = core::FacesOfComponents(
       result.mesh, [&](const core::Box3& box) { return core::Diagonal(box) < built.finest_edge && near_corner(box); },
       specks);
   if (specks == 0) return 0;
-  for (char& flag : drop) flag = !flag;
-  extract::KeepFaces(drop, result.mesh, result.trace);
+  for (char& flag : keep) flag = !flag;  // The specks' faces were flagged.
+  extract::KeepFaces(keep, result.mesh, result.trace);
   return specks;
 }
 
@@ -422,7 +422,7 @@ absl::StatusOr<extract::IsosurfaceResult> Extract(const PuFunction& function, co
     plain_tree->reset();
     const core::MeshTopology finer = core::AnalyzeTopology(core::WeldByPosition(result->mesh));
     const core::MeshTopology coarser = core::AnalyzeTopology(core::WeldByPosition(plain->mesh));
-    // Handles over all components: components − χ/2 for closed ones.
+    // Twice the handles over all components (2 × components − χ for closed ones).
     auto handles = [](const core::MeshTopology& t) { return 2 * t.components - t.euler_characteristic(); };
     if (finer.components > coarser.components || handles(finer) > handles(coarser)) {
       plain->stats.tree_seconds = tree_seconds;

@@ -209,7 +209,7 @@ std::optional<SharpOutcome> TrySharp(const BuildContext& bc, double fit_radius, 
   // splitting can no longer help (too few points below, or the depth limit). Tried in every
   // failing cell, the clustering cost smooth scans a tenth of their fitting time for nothing.
   if ((best || !can_split) && (!best || best->error > bc.error_bound)) {
-    const std::array<double, 2> seed_cos{bc.sharp.edge_cos, bc.sharp.fine_cos};
+    const std::array<double, 3> seed_cos{bc.sharp.edge_cos, bc.sharp.fine_cos, bc.sharp.finest_cos};
     FitSharpClusters(
         s.points, s.normals, s.weight, fit_radius, seed_cos,
         [&](const SharpFit& fit) {

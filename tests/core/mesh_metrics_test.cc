@@ -48,6 +48,33 @@ TEST(MeshMetrics, DetectsBoundaryFlipsAndNonManifoldEdges) {
   EXPECT_EQ(AnalyzeTopology(fin).non_manifold_edges, 1);
 }
 
+// Boundary loops and closed components: a cube without its top is a disc (one loop), without its
+// top and bottom a tube (two loops, Euler characteristic 0: still no handle, 2C − χ − B = 0).
+TEST(MeshMetrics, CountsBoundaryLoopsAndClosedComponents) {
+  const TriangleMesh cube = Cube();
+  EXPECT_EQ(AnalyzeTopology(cube).boundary_loops, 0);
+  EXPECT_EQ(AnalyzeTopology(cube).closed_components, 1);
+  TriangleMesh cup = Cube();
+  cup.faces.erase(cup.faces.begin() + 2, cup.faces.begin() + 4);  // z = 1.
+  const MeshTopology disc = AnalyzeTopology(cup);
+  EXPECT_EQ(disc.boundary_loops, 1);
+  EXPECT_EQ(disc.closed_components, 0);
+  EXPECT_EQ(disc.euler_characteristic(), 1);
+  TriangleMesh tube = cup;
+  tube.faces.erase(tube.faces.begin(), tube.faces.begin() + 2);  // z = 0.
+  const MeshTopology annulus = AnalyzeTopology(tube);
+  EXPECT_EQ(annulus.boundary_loops, 2);
+  EXPECT_EQ(2 * annulus.components - annulus.euler_characteristic() - annulus.boundary_loops, 0);
+  // The tube beside a closed cube: one closed component of two.
+  const TriangleMesh second = Cube(Vec3f(3, 0, 0));
+  for (const Triangle& f : second.faces) tube.faces.push_back({f[0] + 8, f[1] + 8, f[2] + 8});
+  tube.vertices.insert(tube.vertices.end(), second.vertices.begin(), second.vertices.end());
+  const MeshTopology both = AnalyzeTopology(tube);
+  EXPECT_EQ(both.components, 2);
+  EXPECT_EQ(both.closed_components, 1);
+  EXPECT_EQ(both.boundary_loops, 2);
+}
+
 // Face by face, in any order, the accumulator agrees with the whole-mesh analysis.
 MeshTopology Accumulated(const TriangleMesh& mesh, uint32_t seed) {
   std::vector<size_t> order(mesh.faces.size());

@@ -220,12 +220,15 @@ MeshTopology AnalyzeTopology(const TriangleMesh& mesh) {
             [](const HalfEdge& x, const HalfEdge& y) { return std::tie(x.lo, x.hi) < std::tie(y.lo, y.hi); });
   std::vector<uint32_t> parent(mesh.faces.size());
   std::iota(parent.begin(), parent.end(), 0u);
+  std::vector<std::pair<uint32_t, uint32_t>> boundary;
+  std::vector<uint32_t> open_faces;  // The face of each boundary edge.
   for (size_t i = 0; i < half.size();) {
     size_t j = i;
     while (j < half.size() && half[j].lo == half[i].lo && half[j].hi == half[i].hi) ++j;
     const size_t count = j - i;
     ++t.edges;
-    if (count == 1) ++t.boundary_edges;
+    if (count == 1)
+      ++t.boundary_edges, boundary.push_back({half[i].lo, half[i].hi}), open_faces.push_back(half[i].face);
     if (count >= 3) ++t.non_manifold_edges;
     if (count == 2 && half[i].forward == half[i + 1].forward) ++t.misoriented_edges;
     const uint32_t first_face = half[i].face;
@@ -236,6 +239,27 @@ MeshTopology AnalyzeTopology(const TriangleMesh& mesh) {
     i = j;
   }
   for (uint32_t f = 0; f < parent.size(); ++f) t.components += FindRoot(parent, f) == f;
+  {
+    std::vector<char> open(mesh.faces.size(), 0);  // Per component root: it has a boundary edge.
+    int64_t open_components = 0;
+    for (const uint32_t f : open_faces) {
+      char& flag = open[FindRoot(parent, f)];
+      open_components += flag == 0, flag = 1;
+    }
+    t.closed_components = t.components - open_components;
+  }
+  if (!boundary.empty()) {
+    std::vector<uint32_t> loop_of(mesh.vertices.size());
+    std::iota(loop_of.begin(), loop_of.end(), 0u);
+    for (const auto& [a, b] : boundary) loop_of[FindRoot(loop_of, a)] = FindRoot(loop_of, b);
+    for (const auto& [a, b] : boundary) {
+      // Each loop once, by its root (marked 2 in `used`).
+      for (const uint32_t v : {a, b}) {
+        const uint32_t root = FindRoot(loop_of, v);
+        if (used[root] != 2) used[root] = 2, ++t.boundary_loops;
+      }
+    }
+  }
   return t;
 }
 

@@ -20,6 +20,9 @@ struct MeshTopology {
   int64_t misoriented_edges = 0;   // Two-face edges traversed in the same direction by both.
   int64_t degenerate_faces = 0;    // Faces that repeat a vertex index.
   int64_t components = 0;          // Face-connected components.
+  // AnalyzeTopology's only (TopologyAccumulator leaves them 0):
+  int64_t boundary_loops = 0;     // Connected pieces of the boundary edges (a pinched pair counts once).
+  int64_t closed_components = 0;  // Components without a boundary edge.
 
   int64_t euler_characteristic() const { return vertices - edges + faces; }
   // Closed and edge-manifold: every edge has exactly two faces.

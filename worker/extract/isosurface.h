@@ -86,8 +86,10 @@ struct IsosurfaceStats {
   int64_t flipped_edges = 0;        // Edges flipped after it (relax.h).
   int64_t replaced_faces = 0;       // Kept faces a local re-extraction replaced (PatchJoin).
   int64_t seam_edges = 0;           // Kept edges the patch was joined along.
-  int64_t corner_specks = 0;        // Closed specks dropped beside acute corners (PU).
-  int64_t corners_left_coarse = 0;  // 1 where finer leaves at corners changed the topology: left out (PU).
+  int64_t corner_specks = 0;        // Closed specks dropped beside acute corners and creases (PU).
+  int64_t corners_left_coarse = 0;  // 1 where finer leaves at corners added components or handles: left out (PU).
+  int64_t creases_left_coarse = 0;  // The same for finer leaves along acute creases (PU).
+  int64_t topology_checks = 0;      // 1 where a surface without finer leaves was extracted to compare (PU).
   // Wall time of the stages, seconds.
   double tree_seconds = 0;      // Building an adaptive tree (J1a extractors).
   double tracking_seconds = 0;  // Following the surface: corner values and sign tests.

@@ -678,6 +678,8 @@ void AddMeshStatistics(const core::TriangleMesh& mesh, const extract::Isosurface
   if (extraction.rejected_polygons > 0) stat("untrusted_triangles", static_cast<double>(extraction.rejected_polygons));
   if (extraction.corner_specks > 0) stat("corner_specks", static_cast<double>(extraction.corner_specks));
   if (extraction.corners_left_coarse > 0) stat("corners_left_coarse", 1);
+  if (extraction.creases_left_coarse > 0) stat("creases_left_coarse", 1);
+  if (extraction.topology_checks > 0) stat("topology_checks", 1);
   if (extraction.tree_seconds > 0) stat("tree_seconds", extraction.tree_seconds);
   stat("tracking_seconds", extraction.tracking_seconds);
   stat("marching_seconds", extraction.marching_seconds);

@@ -61,12 +61,19 @@ absl::flat_hash_set<uint64_t> CellsNearSharpFits(const PuFunction::Impl& impl, c
   return cells;
 }
 
-// Corners get leaves this many levels finer than `cell_size` within kCornerReach finest leaves of
-// the point where their sheets meet: the crease splits and corner points cut from the leaves'
+// Corners and acute creases get leaves this many levels finer than `cell_size`, within
+// kFineReach finest leaves of the point where a corner fit's sheets meet or of the line where an
+// acute edge fit's two sheets do: the crease splits and corner points cut from the leaves'
 // tetrahedra leave chords across the creases there (1.3e-3 of the diagonal on a 12-face hull at
-// 200k points), which halve with the leaf.
-constexpr int kCornerExtraLevels = 1;
-constexpr double kCornerReach = 2.0;
+// 200k points; the tips of a 50° edge cut up to 1.5 leaves deep), which halve with the leaf.
+constexpr int kFineExtraLevels = 1;
+constexpr double kFineReach = 2.0;
+// An edge fit's crease gets them where its sheets' normals are 101.5° to 150° apart. Up to there
+// the crease splits reach the crease (it lies at most 0.61 of a chord beyond it; a 96° edge of the
+// smooth spot model made a second extraction there for nothing), and the tips of sharper ridges
+// are so thin that finer leaves catch them here and there along the ridge (a 20° ridge at 200k
+// points came out with Euler characteristic -4, where a closed surface has 2).
+constexpr double kAcuteCosine = -0.2, kSharpestCosine = -0.866;
 
 // Where the tangent planes of a corner fit's sheets meet (least squares), when their normals span
 // all three directions (a 20° wedge's tip: smallest eigenvalue of Σnnᵀ 0.03 of the largest).
@@ -84,27 +91,88 @@ std::optional<Vec3d> CornerPointOf(const SharpFit& fit) {
   return normal_moments.ldlt().solve(offsets);
 }
 
-// The points where corner fits' sheets meet (CornerPointOf), each inside its fit's support; with
-// `region`, those within `reach` of it.
-std::vector<Vec3d> CornerPoints(const PuFunction::Impl& impl, const core::Box3* region, double reach) {
-  std::vector<Vec3d> corners;
-  for (const LocalFit& fit : impl.fits) {
-    if (fit.feature != Feature::kCorner) continue;
-    const std::optional<Vec3d> corner = CornerPointOf(impl.sharp_fits[static_cast<size_t>(fit.sharp)]);
-    if (!corner || (*corner - fit.centre).norm() > fit.support_radius) continue;
-    if (region != nullptr && !BoxMeetsRegion(*corner, Vec3d::Constant(reach), *region)) continue;
-    corners.push_back(*corner);
+// Where the leaves are finer: a stretch of crease from `from` to `to`, or a corner (one point).
+struct FineZone {
+  Vec3d from, to;
+  bool corner = false;
+
+  double Distance(const Vec3d& x) const {
+    const Vec3d d = to - from;
+    const double length2 = d.squaredNorm();
+    const double t = length2 > 0 ? std::clamp((x - from).dot(d) / length2, 0.0, 1.0) : 0.0;
+    return (x - (from + t * d)).norm();
   }
-  return corners;
+  core::Box3 Bounds() const {
+    core::Box3 box(from);
+    box.extend(to);
+    return box;
+  }
+};
+
+// The stretch of an acute edge fit's crease (its two sheets' tangent planes' common line) inside
+// the fit's support, if any.
+std::optional<FineZone> AcuteCreaseOf(const LocalFit& fit, const SharpFit& sharp) {
+  if (sharp.count != 2) return std::nullopt;
+  const Sheet &a = sharp.sheets[0], &b = sharp.sheets[1];
+  const double c = a.normal.dot(b.normal);
+  if (!(c < kAcuteCosine && c > kSharpestCosine)) return std::nullopt;
+  // The common line's point nearest the fit's centre: x = centre + s na + t nb on both planes.
+  const double ra = a.normal.dot(a.origin - fit.centre) + a.height.coefficients[0];
+  const double rb = b.normal.dot(b.origin - fit.centre) + b.height.coefficients[0];
+  const double det = 1 - c * c;
+  const Vec3d nearest = fit.centre + ((ra - c * rb) / det) * a.normal + ((rb - c * ra) / det) * b.normal;
+  const double off2 = (nearest - fit.centre).squaredNorm(), r2 = fit.support_radius * fit.support_radius;
+  if (!(off2 < r2)) return std::nullopt;
+  const Vec3d half = a.normal.cross(b.normal).normalized() * std::sqrt(r2 - off2);
+  return FineZone{nearest - half, nearest + half, false};
 }
+
+// The fine zones of the corner fits (CornerPointOf, inside the fit's support) and, with
+// `acute_creases`, of the acute edge fits; with `region`, those within `reach` of it.
+std::vector<FineZone> FineZones(const PuFunction::Impl& impl, const core::Box3* region, double reach,
+                                bool acute_creases) {
+  std::vector<FineZone> zones;
+  for (const LocalFit& fit : impl.fits) {
+    if (fit.feature == Feature::kSmooth || (fit.feature == Feature::kEdge && !acute_creases)) continue;
+    const SharpFit& sharp = impl.sharp_fits[static_cast<size_t>(fit.sharp)];
+    std::optional<FineZone> zone;
+    if (fit.feature == Feature::kCorner) {
+      const std::optional<Vec3d> corner = CornerPointOf(sharp);
+      if (corner && (*corner - fit.centre).norm() <= fit.support_radius) zone = FineZone{*corner, *corner, true};
+    } else {
+      zone = AcuteCreaseOf(fit, sharp);
+    }
+    if (!zone) continue;
+    const core::Box3 box = zone->Bounds();
+    if (region != nullptr && !BoxMeetsRegion(box.center(), box.sizes() / 2 + Vec3d::Constant(reach), *region)) continue;
+    zones.push_back(*zone);
+  }
+  return zones;
+}
+
+// Adds the cells of `level` that the box of half-size `reach` about a corner meets, or whose
+// centres lie within `reach` of a crease.
+void AddCellsNearZone(const extract::AdaptiveOctree& tree, int level, const FineZone& zone, double reach,
+                      absl::flat_hash_set<uint64_t>& cells) {
+  if (zone.corner) return AddCellsInBox(tree, level, zone.from, Vec3d::Constant(reach), cells);
+  const core::Box3 box = zone.Bounds();
+  absl::flat_hash_set<uint64_t> in_box;
+  AddCellsInBox(tree, level, box.center(), box.sizes() / 2 + Vec3d::Constant(reach), in_box);
+  for (uint64_t key : in_box) {
+    if (zone.Distance(tree.CellCentre(extract::CellFromKey(key))) <= reach) cells.insert(key);
+  }
+}
+
+// Which fine zones an extraction tree refines (FineZone).
+enum class FineLeaves { kNone, kCorners, kCornersAndAcuteCreases };
 
 // Extract's J1a tree (2:1 balanced) and the finest cells that hold points (where tracking starts).
 struct ExtractionTree {
   explicit ExtractionTree(const core::Box3& root, int depth) : tree(root, depth) {}
   extract::AdaptiveOctree tree;
   std::vector<extract::OctreeCell> start;
-  std::vector<Vec3d> corners;  // CornerPoints, refined within corner_reach to kCornerExtraLevels more.
-  double corner_reach = 0;
+  std::vector<FineZone> fine_zones;  // Refined within fine_reach to kFineExtraLevels more.
+  double fine_reach = 0;
   double finest_edge = 0;  // Of the leaves `cell_size` asks for.
 };
 
@@ -140,13 +208,13 @@ absl::StatusOr<std::unique_ptr<ExtractionTree>> BuildExtractionTree(const PuFunc
                                                                     const PuFunction::Impl& impl,
                                                                     const PuExtractParams& params,
                                                                     const core::Box3* region, core::JobContext& ctx,
-                                                                    bool finer_corners = true) {
+                                                                    FineLeaves fine = FineLeaves::kCorners) {
   const auto levels = LevelsFor(function, params);
   if (!levels.ok()) return levels.status();
   const int depth = levels->finest, band_level = levels->band;
-  // Every tree has room for the corners' finer leaves, so that vertex keys have one scale in every
-  // tile and edit of a function, whether or not it has corners there.
-  const int corner_depth = std::min(depth + kCornerExtraLevels, extract::AdaptiveOctree::kMaxDepth);
+  // Every tree has room for the fine zones' leaves, so that vertex keys have one scale in every
+  // tile and edit of a function, whether or not it has such zones there.
+  const int corner_depth = std::min(depth + kFineExtraLevels, extract::AdaptiveOctree::kMaxDepth);
   auto built = std::make_unique<ExtractionTree>(core::Box3(impl.origin, impl.origin + Vec3d::Constant(impl.root_edge)),
                                                 corner_depth);
   extract::AdaptiveOctree& tree = built->tree;
@@ -163,17 +231,15 @@ absl::StatusOr<std::unique_ptr<ExtractionTree>> BuildExtractionTree(const PuFunc
   band.occupied.clear();
   const double chord_bound = params.chord_error * impl.Diagonal();
   absl::flat_hash_set<uint64_t> crease_cells = CellsNearSharpFits(impl, tree, band_level, depth, region);
-  // Near corners the band goes on to corner_depth: the points in the finest cells within
-  // corner_reach of a corner point mark the finer band there.
+  // In the fine zones the band goes on to corner_depth: the points in the finest cells within
+  // fine_reach of a zone mark the finer band there.
   extract::SurfaceBand corner_band;
   built->finest_edge = tree.CellEdge(depth);
-  if (corner_depth > depth && finer_corners) {
-    built->corner_reach = kCornerReach * tree.CellEdge(depth);
-    built->corners = CornerPoints(impl, region, built->corner_reach);
+  built->fine_reach = kFineReach * tree.CellEdge(depth);
+  if (corner_depth > depth && fine != FineLeaves::kNone) {
+    built->fine_zones = FineZones(impl, region, built->fine_reach, fine == FineLeaves::kCornersAndAcuteCreases);
     absl::flat_hash_set<uint64_t> corner_cells;
-    for (const Vec3d& corner : built->corners) {
-      AddCellsInBox(tree, depth, corner, Vec3d::Constant(built->corner_reach), corner_cells);
-    }
+    for (const FineZone& zone : built->fine_zones) AddCellsNearZone(tree, depth, zone, built->fine_reach, corner_cells);
     std::vector<Vec3f> corner_points;
     if (!corner_cells.empty()) {
       const double edge = tree.CellEdge(depth);
@@ -211,20 +277,21 @@ absl::StatusOr<std::unique_ptr<ExtractionTree>> BuildExtractionTree(const PuFunc
   return built;
 }
 
-// The finer leaves at a corner can catch the tip of an acute one (a 20° ridge's end) beyond a neck
-// that the coarser leaves beside them miss: the tip comes out as a closed speck of its own. Such
-// specks (smaller than a finest leaf, within a corner's refined reach) are dropped; the corner is
-// then cut as it would be without the finer leaves. Returns the specks dropped.
-int64_t DropCornerSpecks(const ExtractionTree& built, extract::IsosurfaceResult& result) {
-  if (built.corners.empty()) return 0;
-  auto near_corner = [&](const core::Box3& box) {
-    return std::any_of(built.corners.begin(), built.corners.end(),
-                       [&](const Vec3d& corner) { return box.exteriorDistance(corner) <= built.corner_reach; });
+// The finer leaves at a corner or an acute crease can catch its tip (a 20° ridge's end) beyond a
+// neck that the leaves beside them miss: the tip comes out as a closed speck of its own. Such
+// specks (smaller than a finest leaf, within `reach` of a zone) are dropped; the tip is then cut
+// as it would be without the finer leaves. Returns the specks dropped.
+int64_t DropSpecksNearZones(std::span<const FineZone> zones, double reach, double finest_edge,
+                            extract::IsosurfaceResult& result) {
+  if (zones.empty()) return 0;
+  auto near_zone = [&](const core::Box3& box) {
+    const double half_diagonal = core::Diagonal(box) / 2;
+    return std::any_of(zones.begin(), zones.end(),
+                       [&](const FineZone& zone) { return zone.Distance(box.center()) <= reach + half_diagonal; });
   };
   int64_t specks = 0;
   std::vector<char> keep = core::FacesOfComponents(
-      result.mesh, [&](const core::Box3& box) { return core::Diagonal(box) < built.finest_edge && near_corner(box); },
-      specks);
+      result.mesh, [&](const core::Box3& box) { return core::Diagonal(box) < finest_edge && near_zone(box); }, specks);
   if (specks == 0) return 0;
   for (char& flag : keep) flag = !flag;  // The specks' faces were flagged.
   extract::KeepFaces(keep, result.mesh, result.trace);
@@ -299,6 +366,87 @@ extract::MarchingOptions MarchingFor(const PuFunction::Impl& impl, const PuExtra
   extract::MarchingOptions marching = params.marching;
   if (impl.sharp_fits.empty()) marching.crease_angle = 0;
   return marching;
+}
+
+// One extraction of the whole surface with the `fine` leaves; specks are dropped near its own
+// fine zones, or near `speck_zones` where given (so that surfaces compared drop alike).
+struct WholeExtraction {
+  extract::IsosurfaceResult surface;
+  std::vector<FineZone> zones;  // Those refined.
+  double fine_reach = 0;        // ExtractionTree::fine_reach.
+};
+absl::StatusOr<WholeExtraction> ExtractWhole(const PuFunction& function, const PuExtractParams& params, FineLeaves fine,
+                                             std::span<const FineZone> speck_zones, core::JobContext& ctx) {
+  const PuFunction::Impl& impl = function.impl();
+  core::SubContext build_ctx(ctx, "building the J1a tree", 0.0, 0.1);
+  const auto tree_start = std::chrono::steady_clock::now();
+  auto built = BuildExtractionTree(function, impl, params, nullptr, build_ctx, fine);
+  if (!built.ok()) return built.status();
+  const double tree_seconds = core::SecondsSince(tree_start);
+  core::SubContext extract_ctx(ctx, "extracting surface", 0.1, 1.0);
+  auto surface = extract::ExtractIsosurfaceOnTree(function, (*built)->tree, (*built)->start, params.max_leaves,
+                                                  MarchingFor(impl, params), extract_ctx);
+  if (!surface.ok()) return surface.status();
+  WholeExtraction out{*std::move(surface), std::move((*built)->fine_zones), (*built)->fine_reach};
+  out.surface.stats.tree_seconds = tree_seconds;
+  out.surface.stats.corner_specks =
+      DropSpecksNearZones(speck_zones.empty() ? std::span<const FineZone>(out.zones) : speck_zones, out.fine_reach,
+                          (*built)->finest_edge, out.surface);
+  return out;
+}
+
+// Whether the finer leaves may have added to the topology: the surface's faces whose centroid lies
+// within `reach` of a zone, welded by position, hold a handle (2C − χ − B is not 0, C their
+// components, B their boundary loops; a band about a polytope's edges is a sphere with holes and
+// has none) or a closed piece (a tip beyond a neck). Only those faces are looked at, so that a
+// smooth scan with a few acute spots (a horn's tip) pays next to nothing.
+bool TopologyNearZonesInDoubt(const core::TriangleMesh& mesh, std::span<const FineZone> zones, double reach) {
+  // The zones meeting each cell of a grid of edge `reach`.
+  auto cell_of = [&](const Vec3d& x) {
+    const Eigen::Array3d c = (x / reach).array().floor();
+    return std::array<int64_t, 3>{static_cast<int64_t>(c.x()), static_cast<int64_t>(c.y()),
+                                  static_cast<int64_t>(c.z())};
+  };
+  absl::flat_hash_map<std::array<int64_t, 3>, std::vector<uint32_t>> zones_at;
+  core::Box3 near;  // Of all zones, widened by `reach`: most faces of a scan are far from every one.
+  for (uint32_t k = 0; k < zones.size(); ++k) {
+    const core::Box3 box = zones[k].Bounds();
+    near.extend(box.min() - Vec3d::Constant(reach)), near.extend(box.max() + Vec3d::Constant(reach));
+    const auto lo = cell_of(box.min() - Vec3d::Constant(reach)), hi = cell_of(box.max() + Vec3d::Constant(reach));
+    for (int64_t x = lo[0]; x <= hi[0]; ++x)
+      for (int64_t y = lo[1]; y <= hi[1]; ++y)
+        for (int64_t z = lo[2]; z <= hi[2]; ++z) zones_at[{x, y, z}].push_back(k);
+  }
+  core::TriangleMesh patch;
+  absl::flat_hash_map<std::array<float, 3>, uint32_t> index_of;  // Welding by position.
+  auto vertex = [&](uint32_t v) {
+    const Vec3f& p = mesh.vertices[v];
+    const auto [at, fresh] = index_of.try_emplace({p.x(), p.y(), p.z()}, static_cast<uint32_t>(patch.vertices.size()));
+    if (fresh) patch.vertices.push_back(p);
+    return at->second;
+  };
+  for (const core::Triangle& t : mesh.faces) {
+    const Vec3d centroid =
+        (mesh.vertices[t[0]].cast<double>() + mesh.vertices[t[1]].cast<double>() + mesh.vertices[t[2]].cast<double>()) /
+        3;
+    if (!near.contains(centroid)) continue;
+    const auto at = zones_at.find(cell_of(centroid));
+    if (at == zones_at.end() || std::none_of(at->second.begin(), at->second.end(),
+                                             [&](uint32_t k) { return zones[k].Distance(centroid) <= reach; })) {
+      continue;
+    }
+    patch.faces.push_back({vertex(t[0]), vertex(t[1]), vertex(t[2])});
+  }
+  const core::MeshTopology topology = core::AnalyzeTopology(patch);
+  return topology.closed_components > 0 ||
+         2 * topology.components - topology.euler_characteristic() - topology.boundary_loops != 0;
+}
+
+// Whether `a` has more components or more handles than `b` (both welded by position).
+bool MoreTopology(const core::MeshTopology& a, const core::MeshTopology& b) {
+  // Twice the handles over all components (2 × components − χ for closed ones).
+  auto handles = [](const core::MeshTopology& t) { return 2 * t.components - t.euler_characteristic(); };
+  return a.components > b.components || handles(a) > handles(b);
 }
 
 }  // namespace
@@ -390,49 +538,50 @@ double FinestExtractionCell(const PuFunction& function, const PuExtractParams& p
 
 absl::StatusOr<extract::IsosurfaceResult> Extract(const PuFunction& function, const PuExtractParams& params,
                                                   core::JobContext& ctx) {
-  const PuFunction::Impl& impl = function.impl();
-  core::SubContext build_ctx(ctx, "building the J1a tree", 0.0, 0.1);
-  const auto tree_start = std::chrono::steady_clock::now();
-  auto built = BuildExtractionTree(function, impl, params, nullptr, build_ctx);
-  if (!built.ok()) return built.status();
-  const double tree_seconds = core::SecondsSince(tree_start);
-  core::SubContext extract_ctx(ctx, "extracting surface", 0.1, 0.95);
-  auto result = extract::ExtractIsosurfaceOnTree(function, (*built)->tree, (*built)->start, params.max_leaves,
-                                                 MarchingFor(impl, params), extract_ctx);
-  if (result.ok()) result->stats.corner_specks = DropCornerSpecks(**built, *result);
-  const bool finer_corners = !(*built)->corners.empty();
-  std::vector<Vec3d> corners = std::move((*built)->corners);
-  const double corner_reach = (*built)->corner_reach;
-  built->reset();
-  if (result.ok()) result->stats.tree_seconds = tree_seconds;
-  if (result.ok() && finer_corners) {
-    // The finer leaves at a corner can also catch a pointed corner's tip here and there and leave
-    // a handle (a 12-face hull at 100k points: Euler characteristic 0). They must not add to the
-    // topology: where the surface without them (specks beside corners dropped alike) has fewer
-    // components or fewer handles, that one is kept.
-    core::SubContext plain_ctx(ctx, "extracting surface without finer corners", 0.1, 0.95);
-    auto plain_tree = BuildExtractionTree(function, impl, params, nullptr, plain_ctx, false);
-    if (!plain_tree.ok()) return plain_tree.status();
-    auto plain = extract::ExtractIsosurfaceOnTree(function, (*plain_tree)->tree, (*plain_tree)->start,
-                                                  params.max_leaves, MarchingFor(impl, params), plain_ctx);
-    if (!plain.ok()) return plain.status();
-    (*plain_tree)->corners = std::move(corners);
-    (*plain_tree)->corner_reach = corner_reach;
-    plain->stats.corner_specks = DropCornerSpecks(**plain_tree, *plain);
-    plain_tree->reset();
-    const core::MeshTopology finer = core::AnalyzeTopology(core::WeldByPosition(result->mesh));
-    const core::MeshTopology coarser = core::AnalyzeTopology(core::WeldByPosition(plain->mesh));
-    // Twice the handles over all components (2 × components − χ for closed ones).
-    auto handles = [](const core::MeshTopology& t) { return 2 * t.components - t.euler_characteristic(); };
-    if (finer.components > coarser.components || handles(finer) > handles(coarser)) {
-      plain->stats.tree_seconds = tree_seconds;
-      plain->stats.corners_left_coarse = 1;
-      *result = *std::move(plain);
+  core::SubContext fine_ctx(ctx, "extracting surface", 0.0, 0.95);
+  auto fine = ExtractWhole(function, params, FineLeaves::kCornersAndAcuteCreases, {}, fine_ctx);
+  if (!fine.ok()) return fine.status();
+  if (!fine->zones.empty()) {
+    // The finer leaves can also catch a pointed corner's or an acute crease's tip here and there
+    // and leave a handle (a 12-face hull at 100k points: Euler characteristic 0; a 20° ridge
+    // refined along its length: -4). They must not add to the topology. Where the surface near the
+    // fine zones is in doubt, it is compared with the surface without them (specks dropped alike):
+    // where that has fewer components or handles, the corners' leaves alone are tried, and where
+    // they add too, the surface without any is kept.
+    const std::vector<FineZone> zones = fine->zones;
+    constexpr double kPatchReach = 2;  // Of fine_reach: the finer leaves and the balancing around them.
+    if (TopologyNearZonesInDoubt(fine->surface.mesh, zones, kPatchReach * fine->fine_reach)) {
+      fine->surface.stats.topology_checks = 1;
+      const core::MeshTopology topology = core::AnalyzeTopology(core::WeldByPosition(fine->surface.mesh));
+      core::SubContext plain_ctx(ctx, "extracting surface without finer leaves", 0.0, 0.95);
+      auto plain = ExtractWhole(function, params, FineLeaves::kNone, zones, plain_ctx);
+      if (!plain.ok()) return plain.status();
+      const core::MeshTopology plain_topology = core::AnalyzeTopology(core::WeldByPosition(plain->surface.mesh));
+      if (MoreTopology(topology, plain_topology)) {
+        const bool creases = std::any_of(zones.begin(), zones.end(), [](const FineZone& z) { return !z.corner; });
+        const bool corners = std::any_of(zones.begin(), zones.end(), [](const FineZone& z) { return z.corner; });
+        std::optional<WholeExtraction> kept;
+        if (creases && corners) {
+          core::SubContext corners_ctx(ctx, "extracting surface with finer corners only", 0.0, 0.95);
+          auto at_corners = ExtractWhole(function, params, FineLeaves::kCorners, zones, corners_ctx);
+          if (!at_corners.ok()) return at_corners.status();
+          if (!MoreTopology(core::AnalyzeTopology(core::WeldByPosition(at_corners->surface.mesh)), plain_topology)) {
+            kept = *std::move(at_corners);
+          }
+        }
+        if (!kept) {
+          kept = *std::move(plain);
+          kept->surface.stats.corners_left_coarse = corners ? 1 : 0;
+        }
+        kept->surface.stats.creases_left_coarse = creases ? 1 : 0;
+        kept->surface.stats.topology_checks = 1;
+        *fine = *std::move(kept);
+      }
     }
   }
-  if (!result.ok() || !params.label_vertices) return result;
-  LSQSURF_RETURN_IF_ERROR(LabelVertices(function, result->mesh, ctx));
-  return result;
+  if (!params.label_vertices) return std::move(fine->surface);
+  LSQSURF_RETURN_IF_ERROR(LabelVertices(function, fine->surface.mesh, ctx));
+  return std::move(fine->surface);
 }
 
 absl::StatusOr<extract::IsosurfaceResult> ExtractEdited(const PuFunction& before, const PuFunction& after,

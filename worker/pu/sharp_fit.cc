@@ -211,6 +211,24 @@ std::optional<SharpFit> FitSharp(std::span<const Vec3d> points, std::span<const 
 
 namespace {
 
+// Whether more than kMaxSheets of the members' normals lie pairwise more than `apart_cos` apart.
+// Then no clustering into kMaxSheets clusters can be tight to half that angle (two of them share
+// one); a smooth patch shows it after a few normals, well before a clustering would.
+bool MoreDirectionsThanSheets(std::span<const Vec3d> normals, std::span<const uint32_t> members, double apart_cos) {
+  std::array<Vec3d, kMaxSheets> found;
+  size_t count = 0;
+  for (uint32_t i : members) {
+    const Vec3d& n = normals[i];
+    if (std::any_of(found.begin(), found.begin() + static_cast<std::ptrdiff_t>(count),
+                    [&](const Vec3d& f) { return n.dot(f) >= apart_cos; })) {
+      continue;
+    }
+    if (count == found.size()) return true;
+    found[count++] = n;
+  }
+  return false;
+}
+
 // One clustering at `seed_cos` of the members, seeded with the far-apart normals a and b.
 std::optional<SharpFit> ClusterAt(std::span<const Vec3d> points, std::span<const Vec3d> normals,
                                   std::span<const double> weights, std::span<const uint32_t> members, uint32_t a,
@@ -301,6 +319,9 @@ void FitSharpClusters(std::span<const Vec3d> points, std::span<const Vec3d> norm
   const double smallest = normals[a].dot(normals[b]);
   for (const double c : seed_cos) {
     if (smallest >= c) continue;
+    // Its clusters must be tight to a quarter of the seeding angle: normals half of it apart
+    // cannot share one.
+    if (MoreDirectionsThanSheets(normals, members, std::cos(0.5 * std::acos(std::clamp(c, -1.0, 1.0))))) continue;
     std::optional<SharpFit> fit = ClusterAt(points, normals, weights, members, a, b, scale, c, fitter);
     if (fit && take(*fit)) return;
   }

@@ -88,6 +88,22 @@ inline TurnedPolyhedron Octahedron() {  // Corners at distance 0.6 on the axes.
   return TurnedPolyhedron(normals, 0.6 / std::sqrt(3.0));
 }
 
+// The outward normals of a pyramid's faces: the base (−z) and one side per azimuth (degrees),
+// rising at `elevation_degrees` from the base.
+inline std::vector<Vec3d> PyramidNormals(const std::vector<double>& azimuths_degrees, double elevation_degrees) {
+  constexpr double kRadians = 3.14159265358979323846 / 180;
+  const double e = elevation_degrees * kRadians;
+  std::vector<Vec3d> normals{-Vec3d::UnitZ()};
+  for (const double degrees : azimuths_degrees) {
+    const double a = degrees * kRadians;
+    normals.push_back(Vec3d(std::cos(e) * std::cos(a), std::cos(e) * std::sin(a), std::sin(e)));
+  }
+  return normals;
+}
+
+// A pentagonal pyramid's: its sides rise at 40°, so its base edges are 50° sharp.
+inline std::vector<Vec3d> PentagonalPyramidNormals() { return PyramidNormals({0, 72, 144, 216, 288}, 40); }
+
 // The largest distance from points along the true edges to the mesh.
 inline double EdgeDistance(const TriangleMesh& mesh, const TurnedPolyhedron& shape,
                            const std::vector<std::pair<Vec3d, Vec3d>>& edges) {

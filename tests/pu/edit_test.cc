@@ -3,9 +3,11 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <numbers>
 #include <random>
 
 #include "absl/container/flat_hash_set.h"
+#include "tests/polyhedra.h"
 #include "tests/test_shapes.h"
 #include "worker/core/mesh_metrics.h"
 #include "worker/pu/pu.h"
@@ -252,6 +254,41 @@ TEST(PuEdit, LocalReExtractionJoinsTheKeptMesh) {
   edit.centre = Vec3d(0, -1.3, 0);
   edit.radius = 0.12;
   ExpectLocalMatchesWhole(*f.base, edit, false);
+}
+
+// Refitting in a ball on a pentagonal pyramid's 50° base edge: the local join came out open and
+// in two pieces. It is refused (the edit job then extracts the whole surface), or it is closed.
+TEST(PuEdit, ALocalJoinNeverOpensAClosedSurface) {
+  const double elevation = 40 * std::numbers::pi / 180;
+  const double offset = 0.3;
+  const testing::TurnedPolyhedron pyramid(testing::PentagonalPyramidNormals(), offset);
+  // The middle of the base edge under sides 0 and 1: on the base plane, on the bisector of their
+  // azimuths, where a side at that azimuth meets the base.
+  const double reach = (offset + offset * std::sin(elevation)) / std::cos(elevation);
+  const double azimuth = std::numbers::pi / 5;
+  const Vec3d edge_middle = pyramid.World(Vec3d(reach * std::cos(azimuth), reach * std::sin(azimuth), -offset));
+  core::LocalJobContext ctx;
+  auto base = BuildPu(pyramid.Sample(150'000), PuParams{}, ctx);
+  ASSERT_TRUE(base.ok()) << base.status();
+  ASSERT_LT(std::abs((*base)->Value(edge_middle).value), 1e-3);
+  const KeptSurface kept = KeepSurface(**base);
+  ASSERT_TRUE(core::AnalyzeTopology(core::WeldByPosition(kept.mesh)).watertight());
+  PuEdit edit;
+  edit.centre = edge_middle;
+  edit.radius = 0.03;
+  edit.action = PuEditAction::kRefit;
+  edit.error_threshold = 1e-5;
+  PuEditStats stats;
+  auto edited = EditPu(**base, edit, ctx, &stats);
+  ASSERT_TRUE(edited.ok()) << edited.status();
+  auto local = ExtractEdited(**base, **edited, stats, kept, PuExtractParams{}, ctx);
+  if (!local.ok()) {
+    EXPECT_EQ(local.status().code(), absl::StatusCode::kFailedPrecondition) << local.status();
+    return;
+  }
+  const core::MeshTopology t = core::AnalyzeTopology(core::WeldByPosition(local->mesh));
+  EXPECT_TRUE(t.watertight());
+  EXPECT_EQ(t.components, 1);
 }
 
 TEST(PuEdit, LocalReExtractionRefusesOtherParameters) {

@@ -97,12 +97,8 @@ TEST(PuSharp, OctahedronEdgesAndFourSheetCorners) {
 // and its sides meet the base at 50°, an edge the crease splits once missed whole (its crease lies
 // farther from the marching chords than half their length).
 TEST(PuSharp, FiveFaceApexAndAcuteBaseEdgesAreKept) {
-  std::vector<Vec3d> normals{-Vec3d::UnitZ()};
+  const std::vector<Vec3d> normals = testing::PentagonalPyramidNormals();
   const double elevation = 40 * std::numbers::pi / 180;
-  for (int k = 0; k < 5; ++k) {
-    const double a = 2 * std::numbers::pi * k / 5;
-    normals.push_back(Vec3d(std::cos(elevation) * std::cos(a), std::cos(elevation) * std::sin(a), std::sin(elevation)));
-  }
   const double offset = 0.3;
   const TurnedPolyhedron pyramid(normals, offset);
   const Vec3d apex = pyramid.World(Vec3d(0, 0, offset / std::sin(elevation)));
@@ -205,14 +201,9 @@ TEST(PuSharp, AcuteRidgeEndsNeedFinerLeaves) {
 // clustering allows, so only a finer one finds the six sheets. The apex stays within 2e-4 of the
 // diagonal (7.0e-4 without the finer clustering, 3e-7 with it).
 TEST(PuSharp, ApexOfFacesAFewDegreesApartIsKept) {
-  std::vector<Vec3d> normals{-Vec3d::UnitZ()};
   const double elevation = 40 * std::numbers::pi / 180;
-  for (const double degrees : {0.0, 10.4, 120.0, 180.0, 240.0, 250.4}) {
-    const double a = degrees * std::numbers::pi / 180;
-    normals.push_back(Vec3d(std::cos(elevation) * std::cos(a), std::cos(elevation) * std::sin(a), std::sin(elevation)));
-  }
   const double offset = 0.3;
-  const TurnedPolyhedron pyramid(normals, offset);
+  const TurnedPolyhedron pyramid(testing::PyramidNormals({0.0, 10.4, 120.0, 180.0, 240.0, 250.4}, 40), offset);
   const Vec3d apex = pyramid.World(Vec3d(0, 0, offset / std::sin(elevation)));
   const Measured sharp = Reconstruct(pyramid, {}, pyramid.Sample(100'000), true);
   EXPECT_TRUE(core::AnalyzeTopology(core::WeldByPosition(sharp.mesh)).watertight());

@@ -634,12 +634,26 @@ absl::StatusOr<extract::IsosurfaceResult> ExtractEdited(const PuFunction& before
   core::SubContext finish_ctx(ctx, "finishing the edited part", 0.8, 0.95);
   LSQSURF_RETURN_IF_ERROR(extract::FinishPatch(after, marching, *patch, finish_ctx, join->fixed()));
   if (!kept.mesh.vertex_attributes.empty()) LSQSURF_RETURN_IF_ERROR(LabelVertices(after, patch->mesh, ctx));
+  // A join must not open a closed surface nor cut it in pieces where the edit removed no points:
+  // beside a 50° edge (a pentagonal pyramid at 150k points, refit in a ball on a base edge) the
+  // patch came out open and in two pieces. Then the whole surface is extracted instead.
+  std::optional<core::MeshTopology> closed_before;
+  if (edit_stats.points_removed == 0) {
+    const core::MeshTopology before_topology = core::AnalyzeTopology(core::WeldByPosition(kept.mesh));
+    if (before_topology.watertight()) closed_before = before_topology;
+  }
   extract::IsosurfaceResult result;
   result.stats = patch->stats;
   result.stats.tree_seconds = tree_seconds;
   result.stats.replaced_faces = join->removed_faces();
   result.stats.seam_edges = join->seam_edges();
   result.mesh = join->Merge(std::move(kept.mesh), std::move(kept.trace), *patch, result.trace);
+  if (closed_before) {
+    const core::MeshTopology topology = core::AnalyzeTopology(core::WeldByPosition(result.mesh));
+    if (!topology.watertight() || topology.components != closed_before->components) {
+      return absl::FailedPreconditionError("the local join would leave the closed surface open or in pieces");
+    }
+  }
   return result;
 }
 

@@ -442,6 +442,10 @@ bool TopologyNearZonesInDoubt(const core::TriangleMesh& mesh, std::span<const Fi
          2 * topology.components - topology.euler_characteristic() - topology.boundary_loops != 0;
 }
 
+core::MeshTopology WeldedTopology(const core::TriangleMesh& mesh) {
+  return core::AnalyzeTopology(core::WeldByPosition(mesh));
+}
+
 // Whether `a` has more components or more handles than `b` (both welded by position).
 bool MoreTopology(const core::MeshTopology& a, const core::MeshTopology& b) {
   // Twice the handles over all components (2 × components − χ for closed ones).
@@ -552,11 +556,11 @@ absl::StatusOr<extract::IsosurfaceResult> Extract(const PuFunction& function, co
     constexpr double kPatchReach = 2;  // Of fine_reach: the finer leaves and the balancing around them.
     if (TopologyNearZonesInDoubt(fine->surface.mesh, zones, kPatchReach * fine->fine_reach)) {
       fine->surface.stats.topology_checks = 1;
-      const core::MeshTopology topology = core::AnalyzeTopology(core::WeldByPosition(fine->surface.mesh));
+      const core::MeshTopology topology = WeldedTopology(fine->surface.mesh);
       core::SubContext plain_ctx(ctx, "extracting surface without finer leaves", 0.0, 0.95);
       auto plain = ExtractWhole(function, params, FineLeaves::kNone, zones, plain_ctx);
       if (!plain.ok()) return plain.status();
-      const core::MeshTopology plain_topology = core::AnalyzeTopology(core::WeldByPosition(plain->surface.mesh));
+      const core::MeshTopology plain_topology = WeldedTopology(plain->surface.mesh);
       if (MoreTopology(topology, plain_topology)) {
         const bool creases = std::any_of(zones.begin(), zones.end(), [](const FineZone& z) { return !z.corner; });
         const bool corners = std::any_of(zones.begin(), zones.end(), [](const FineZone& z) { return z.corner; });
@@ -565,7 +569,7 @@ absl::StatusOr<extract::IsosurfaceResult> Extract(const PuFunction& function, co
           core::SubContext corners_ctx(ctx, "extracting surface with finer corners only", 0.0, 0.95);
           auto at_corners = ExtractWhole(function, params, FineLeaves::kCorners, zones, corners_ctx);
           if (!at_corners.ok()) return at_corners.status();
-          if (!MoreTopology(core::AnalyzeTopology(core::WeldByPosition(at_corners->surface.mesh)), plain_topology)) {
+          if (!MoreTopology(WeldedTopology(at_corners->surface.mesh), plain_topology)) {
             kept = *std::move(at_corners);
           }
         }
@@ -639,7 +643,7 @@ absl::StatusOr<extract::IsosurfaceResult> ExtractEdited(const PuFunction& before
   // patch came out open and in two pieces. Then the whole surface is extracted instead.
   std::optional<core::MeshTopology> closed_before;
   if (edit_stats.points_removed == 0) {
-    const core::MeshTopology before_topology = core::AnalyzeTopology(core::WeldByPosition(kept.mesh));
+    const core::MeshTopology before_topology = WeldedTopology(kept.mesh);
     if (before_topology.watertight()) closed_before = before_topology;
   }
   extract::IsosurfaceResult result;
@@ -649,7 +653,7 @@ absl::StatusOr<extract::IsosurfaceResult> ExtractEdited(const PuFunction& before
   result.stats.seam_edges = join->seam_edges();
   result.mesh = join->Merge(std::move(kept.mesh), std::move(kept.trace), *patch, result.trace);
   if (closed_before) {
-    const core::MeshTopology topology = core::AnalyzeTopology(core::WeldByPosition(result.mesh));
+    const core::MeshTopology topology = WeldedTopology(result.mesh);
     if (!topology.watertight() || topology.components != closed_before->components) {
       return absl::FailedPreconditionError("the local join would leave the closed surface open or in pieces");
     }

@@ -211,6 +211,10 @@ std::optional<SharpFit> FitSharp(std::span<const Vec3d> points, std::span<const 
 
 namespace {
 
+// The cosine of half the angle whose cosine is `c`: how far apart two clusters of a clustering
+// seeded at `c` must keep their normals.
+double HalfAngleCos(double c) { return std::cos(0.5 * std::acos(std::clamp(c, -1.0, 1.0))); }
+
 // Whether more than kMaxSheets of the members' normals lie pairwise more than `apart_cos` apart.
 // Then no clustering into kMaxSheets clusters can be tight to half that angle (two of them share
 // one); a smooth patch shows it after a few normals, well before a clustering would.
@@ -270,7 +274,7 @@ std::optional<SharpFit> ClusterAt(std::span<const Vec3d> points, std::span<const
   // the seeding angle of their mean, and no normal of one cluster comes within half of it of
   // another cluster's (a smooth patch's normals vary without such a gap).
   const double seed_angle = std::acos(std::clamp(seed_cos, -1.0, 1.0));
-  const double tight_cos = std::cos(0.25 * seed_angle), gap_cos = std::cos(0.5 * seed_angle);
+  const double tight_cos = std::cos(0.25 * seed_angle), gap_cos = HalfAngleCos(seed_cos);
   for (size_t k = 0; k < groups.size(); ++k) {
     Vec3d mean = Vec3d::Zero();
     for (uint32_t i : groups[k]) mean += normals[i];
@@ -321,7 +325,7 @@ void FitSharpClusters(std::span<const Vec3d> points, std::span<const Vec3d> norm
     if (smallest >= c) continue;
     // Its clusters must be tight to a quarter of the seeding angle: normals half of it apart
     // cannot share one.
-    if (MoreDirectionsThanSheets(normals, members, std::cos(0.5 * std::acos(std::clamp(c, -1.0, 1.0))))) continue;
+    if (MoreDirectionsThanSheets(normals, members, HalfAngleCos(c))) continue;
     std::optional<SharpFit> fit = ClusterAt(points, normals, weights, members, a, b, scale, c, fitter);
     if (fit && take(*fit)) return;
   }

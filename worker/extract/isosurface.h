@@ -48,6 +48,8 @@ struct MarchingOptions {
   double snap_share = 0;         // 0..0.45: a grid corner the surface passes within this share of an edge from
                                  // is moved onto the surface before marching (no slivers there); 0 = off.
   int relax_steps = 0;           // 0..10: steps of tangential relaxation on the surface after marching (relax.h).
+  int max_hole_edges = 0;        // Holes whose border is a loop of up to this many edges are closed (holes.h;
+                                 // not a user parameter); 0 = off. Not with `trace`.
   bool trace = false;            // Fill IsosurfaceResult::trace (not a user parameter).
 };
 
@@ -78,6 +80,7 @@ struct IsosurfaceStats {
   int64_t crossings = 0;            // Output vertices.
   int64_t rejected_polygons = 0;    // Triangles dropped because a root lay where F is undefined.
   int64_t restored_triangles = 0;   // Untrusted triangles kept as parts of small pinhole patches.
+  int64_t filled_holes = 0;         // Holes of a few edges closed across (MarchingOptions::max_hole_edges).
   int64_t crease_vertices = 0;      // Edges split where they cross a crease.
   int64_t crease_corners = 0;       // Triangles split around a corner.
   int64_t crease_snapped = 0;       // Vertices moved onto a crease that passed next to them.

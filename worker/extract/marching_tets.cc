@@ -9,6 +9,7 @@
 #include "worker/core/parallel.h"
 #include "worker/core/status.h"
 #include "worker/extract/creases.h"
+#include "worker/extract/holes.h"
 #include "worker/extract/relax.h"
 
 namespace lsqsurf::extract::internal {
@@ -468,6 +469,7 @@ absl::StatusOr<IsosurfaceResult> MarchTetrahedra(const ImplicitFunction& field,
   stats.rejected_polygons +=
       DropCutOffSpecks(mesh.faces, face_trusted, mesh.vertices.size(), params.max_patch_triangles);
   KeepFaces(face_trusted, mesh, trace);
+  if (params.max_hole_edges > 0 && !params.trace) stats.filled_holes = FillSmallHoles(mesh, params.max_hole_edges);
   stats.crossings = static_cast<int64_t>(mesh.vertices.size());
   stats.marching_seconds = core::SecondsSince(stage_start);
   ctx.ReportProgress("", 1.0);

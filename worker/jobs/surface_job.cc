@@ -123,6 +123,11 @@ absl::StatusOr<extract::IsosurfaceResult> ExtractShared(const core::ImplicitFunc
                                                         core::JobContext& ctx) {
   extract::MarchingOptions marching;
   marching.refine_steps = hints.refine_steps;
+  // Holes whose border has up to 32 edges (about ten cells around: a few kernel widths across)
+  // are slits where the field's trust ended just short of its zero; an open scan's border is far
+  // longer.
+  constexpr int kClosedHoleEdges = 32;
+  marching.max_hole_edges = kClosedHoleEdges;
   if (hints.extractor == SurfaceExtractor::kJ1a) {
     return extract::ExtractIsosurfaceJ1a(
         field, cloud.positions,
@@ -676,6 +681,7 @@ void AddMeshStatistics(const core::TriangleMesh& mesh, const extract::Isosurface
   stat("cells_visited", static_cast<double>(extraction.cells_visited));
   // Why a surface can come back open: triangles at roots where the method does not trust F.
   if (extraction.rejected_polygons > 0) stat("untrusted_triangles", static_cast<double>(extraction.rejected_polygons));
+  if (extraction.filled_holes > 0) stat("filled_holes", static_cast<double>(extraction.filled_holes));
   if (extraction.corner_specks > 0) stat("corner_specks", static_cast<double>(extraction.corner_specks));
   if (extraction.corners_left_coarse > 0) stat("corners_left_coarse", 1);
   if (extraction.creases_left_coarse > 0) stat("creases_left_coarse", 1);

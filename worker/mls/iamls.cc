@@ -291,8 +291,13 @@ core::FieldGradient Evaluate(const IamlsFunction::Impl& m, const Vec3d& x) {
     out.value = f * m.scale;
     out.gradient = g * m.scale;
   } else if (sums.gauss > 0) {
-    out.value = m.fallback_scale * sums.gauss_distance / sums.gauss;
-    out.gradient = m.fallback_scale * sums.gauss_normal / sums.gauss;
+    // Faded like F's where x is near a thin wall (the plain mean of a plate's two faces says
+    // "inside" above it), but judged by the fallback's own positive weights: where ΣΨ is this
+    // small, the share of ΣΨ left says nothing.
+    const bool fade_fallback = faded.faded && faded.gauss > kMinFadedShare * plain.gauss;
+    const KernelSums& fallback = fade_fallback ? faded : plain;
+    out.value = m.fallback_scale * fallback.gauss_distance / fallback.gauss;
+    out.gradient = m.fallback_scale * fallback.gauss_normal / fallback.gauss;
   } else {
     out.value = std::numeric_limits<double>::quiet_NaN();  // Underflow: nothing is known.
   }

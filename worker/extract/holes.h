@@ -1,0 +1,26 @@
+// worker/extract/holes.h — closing the small holes an extraction leaves (internal).
+//
+// An MLS field is trusted only where enough samples support it, and a surface whose samples thin
+// out for a moment (the few samples on the rim of a wall thinner than the kernel) comes back with
+// slits there: the field's zero lies just beyond the trusted band, so its triangles are dropped
+// and the ones around them do not enclose them either. A hole of a few edges lies below the
+// resolution the method has anyway, so it is closed with the triangles of least total area across
+// its border, which put no vertex anywhere the border does not already reach.
+#pragma once
+
+#include <cstdint>
+
+#include "worker/core/geometry.h"
+
+namespace lsqsurf::extract::internal {
+
+// Closes every hole whose border is a simple loop of at most `max_edges` edges (3..kMaxHoleEdges)
+// by the triangles of least total area across the loop, facing as the faces around it. No edge
+// is made twice, so the mesh stays edge-manifold. Left open: loops through a vertex with two
+// border edges leaving it, through an edge two faces run the same way, or through a border
+// vertex at the position of another one (welded, their borders may close each other). Faces are
+// appended; vertices are not touched. Returns the holes closed. One pass over the faces where there is no hole.
+inline constexpr int kMaxHoleEdges = 64;
+int64_t FillSmallHoles(core::TriangleMesh& mesh, int max_edges);
+
+}  // namespace lsqsurf::extract::internal

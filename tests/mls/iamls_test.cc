@@ -2,6 +2,7 @@
 
 #include <gtest/gtest.h>
 
+#include <limits>
 #include <numbers>
 #include <random>
 
@@ -58,6 +59,20 @@ TEST(Iamls, IterationsReduceTheResidualAtTheSamples) {
   EXPECT_LT(res.back(), res.front());
 }
 
+// The height of F's zero on the vertical line through (x, y) on `side` (±1) of a plate whose
+// middle plane is z = 0, between that plane and 8 half-thicknesses out: 0 where F is not
+// negative at the middle (the face is lost there), NaN where it is not positive far out.
+double FaceHeight(const IamlsFunction& f, double x, double y, double side, double half) {
+  double inside = 0, outside = 8 * half;
+  if (!(f.Value({x, y, side * outside}).value > 0)) return std::numeric_limits<double>::quiet_NaN();
+  if (!(f.Value({x, y, inside}).value < 0)) return 0;
+  for (int step = 0; step < 40; ++step) {
+    const double mid = 0.5 * (inside + outside);
+    (f.Value({x, y, side * mid}).value < 0 ? inside : outside) = mid;
+  }
+  return inside;
+}
+
 // A plate thinner than the kernel (thickness about 0.8 h): with thin walls faded, each face is
 // found where it is; blending both faces' samples moves F's zeros off the faces. (Where one
 // face's random sampling leaves a gap wider than about h, the other face still takes over; the
@@ -70,15 +85,9 @@ TEST(Iamls, ThinPlateKeepsBothFacesApart) {
     int found = 0;
     for (int i = 0; i < 8; ++i) {
       for (int j = 0; j < 8; ++j) {
-        const double x = -0.07 + 0.02 * i + 0.001 * j, y = -0.07 + 0.02 * j;
         for (double side : {-1.0, 1.0}) {
-          double inside = 0, outside = 8 * half;  // F < 0 at the middle plane, > 0 well outside.
-          if (!(f.Value({x, y, inside}).value < 0) || !(f.Value({x, y, side * outside}).value > 0)) continue;
-          for (int step = 0; step < 40; ++step) {
-            const double mid = 0.5 * (inside + outside);
-            (f.Value({x, y, side * mid}).value < 0 ? inside : outside) = mid;
-          }
-          found += std::abs(inside - half) < 0.05 * half;
+          const double height = FaceHeight(f, -0.07 + 0.02 * i + 0.001 * j, -0.07 + 0.02 * j, side, half);
+          found += std::abs(height - half) < 0.05 * half;
         }
       }
     }
@@ -129,6 +138,41 @@ TEST(Iamls, ThinPlateComesBackClosed) {
   }
   EXPECT_LT(above, reach);
   EXPECT_LT(beyond, 3 * reach);
+}
+
+// A noisy plate (σ = a third of its half-thickness, 0.8 h thick): its noise picks the noisy
+// parameters, and since nearly every sample sees the other face within a kernel width, thin
+// walls are faded too. Blending both faces' samples loses the faces.
+TEST(Iamls, ANoisyPlateIsNearlyAllWallsAndKeepsItsFaces) {
+  const double half = 0.00075;
+  core::PointCloud plate = testing::DrilledBlockCloud(40000, 0.1, 0.1, half, 0.0);
+  std::mt19937_64 rng(5);
+  std::normal_distribution<double> noise(0, half / 3);
+  for (size_t i = 0; i < plate.size(); ++i) plate.positions[i] += static_cast<float>(noise(rng)) * plate.normals[i];
+  // Vertical lines through the interior: the mean distance of F's zero from the true face.
+  auto face_error = [&](const IamlsFunction& f) {
+    double total = 0;
+    int lines = 0;
+    for (int i = 0; i < 8; ++i) {
+      for (int j = 0; j < 8; ++j) {
+        for (double side : {-1.0, 1.0}) {
+          const double height = FaceHeight(f, -0.07 + 0.02 * i, -0.07 + 0.02 * j, side, half);
+          if (std::isnan(height)) continue;
+          total += std::abs(height - half), ++lines;
+        }
+      }
+    }
+    return lines > 0 ? total / lines : half;
+  };
+  auto chosen = Build(plate);
+  IamlsParams blended_params;
+  blended_params.thin_walls = 0;
+  auto blended = Build(plate, blended_params);
+  ASSERT_TRUE(chosen && blended);
+  EXPECT_EQ(chosen->stats().iterations, 1);     // The noisy choice,
+  EXPECT_TRUE(chosen->stats().thin_walls);      // with thin walls.
+  EXPECT_LT(face_error(*chosen), 0.2 * half);   // Measured 0.07.
+  EXPECT_GT(face_error(*blended), 0.4 * half);  // Measured 0.58: the failure the fading prevents.
 }
 
 TEST(Iamls, NoSurfaceOnTheGhostSheet) {

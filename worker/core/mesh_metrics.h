@@ -11,6 +11,22 @@
 
 namespace lsqsurf::core {
 
+// splitmix64's finaliser: a bijective mix, so distinct keys get unrelated hashes.
+inline uint64_t Mix64(uint64_t x) {
+  x = (x ^ (x >> 30)) * 0xbf58476d1ce4e5b9ULL;
+  x = (x ^ (x >> 27)) * 0x94d049bb133111ebULL;
+  return x ^ (x >> 31);
+}
+
+// A face's share of hash(a→b) − hash(b→a) over the directed edges of a mesh. The mesh's sum is 0
+// exactly when every edge is matched by its reverse (no border, neighbours wound alike), unless
+// 64-bit hashes collide: a closedness test in one pass and no memory.
+inline uint64_t UnmatchedEdgeSum(const Triangle& f) {
+  auto edge = [](uint32_t from, uint32_t to) { return Mix64((uint64_t{from} << 32) | to); };
+  return edge(f[0], f[1]) - edge(f[1], f[0]) + edge(f[1], f[2]) - edge(f[2], f[1]) + edge(f[2], f[0]) -
+         edge(f[0], f[2]);
+}
+
 struct MeshTopology {
   int64_t vertices = 0;  // Vertices referenced by at least one face.
   int64_t edges = 0;     // Distinct undirected edges.

@@ -16,14 +16,6 @@ namespace {
 using core::Triangle;
 using core::Vec3f;
 
-// splitmix64's finaliser over a directed edge.
-uint64_t Mix(uint32_t from, uint32_t to) {
-  uint64_t h = (uint64_t{from} << 32 | to) + 0x9E3779B97F4A7C15ull;
-  h = (h ^ (h >> 30)) * 0xBF58476D1CE4E5B9ull;
-  h = (h ^ (h >> 27)) * 0x94D049BB133111EBull;
-  return h ^ (h >> 31);
-}
-
 uint64_t Undirected(uint32_t a, uint32_t b) { return a < b ? (uint64_t{a} << 32) | b : (uint64_t{b} << 32) | a; }
 
 // The least-area triangulation of the loop (Barequet & Sharir's dynamic programme): cost[i][j]
@@ -71,17 +63,10 @@ bool TriangulateLoop(const std::vector<uint32_t>& loop, const std::vector<Vec3f>
 int64_t FillSmallHoles(core::TriangleMesh& mesh, int max_edges) {
   max_edges = std::min(max_edges, kMaxHoleEdges);
   if (max_edges < 3 || mesh.faces.empty()) return 0;
-  // A closed mesh (the common case) pays one pass: every edge has its reverse exactly when the
-  // sum of a hash over the edges equals the sum over their reverses (unless two sums of 64-bit
-  // hashes collide).
-  uint64_t forward = 0, backward = 0;
-  for (const Triangle& t : mesh.faces) {
-    for (size_t s = 0; s < 3; ++s) {
-      forward += Mix(t[s], t[(s + 1) % 3]);
-      backward += Mix(t[(s + 1) % 3], t[s]);
-    }
-  }
-  if (forward == backward) return 0;
+  // A closed mesh (the common case) pays one pass over its faces.
+  uint64_t unmatched = 0;
+  for (const Triangle& t : mesh.faces) unmatched += core::UnmatchedEdgeSum(t);
+  if (unmatched == 0) return 0;
   // Each vertex's faces: a twin edge or a chord is looked up among a few faces, in linear time
   // and memory (a hash of every edge cost a large mesh 10 % more time for the few holes it has).
   std::vector<uint32_t> start, incident;

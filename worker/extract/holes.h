@@ -19,7 +19,8 @@ namespace lsqsurf::extract::internal {
 // is made twice, so the mesh stays edge-manifold. Left open: loops through a vertex with two
 // border edges leaving it, through an edge two faces run the same way, or through a border
 // vertex at the position of another one (welded, their borders may close each other). Faces are
-// appended; vertices are not touched. Returns the holes closed. One pass over the faces where there is no hole.
+// appended; vertices are not touched. Returns the holes closed. Where there is no hole: one pass
+// over the faces.
 inline constexpr int kMaxHoleEdges = 64;
 int64_t FillSmallHoles(core::TriangleMesh& mesh, int max_edges);
 

@@ -6,6 +6,7 @@
 #include <limits>
 
 #include "absl/container/flat_hash_set.h"
+#include "worker/core/mesh_metrics.h"
 #include "worker/core/parallel.h"
 #include "worker/core/status.h"
 #include "worker/extract/creases.h"
@@ -419,10 +420,7 @@ absl::flat_hash_map<CornerKey, Vec3d> SnapCorners(const ImplicitFunction& field,
 uint64_t LatticeEdgeHash(CornerKey a, CornerKey b) {
   if (a > b) std::swap(a, b);
   // splitmix64's finaliser over both keys: distinct edges collide with probability ~2^-64.
-  uint64_t h = a * 0x9E3779B97F4A7C15ull + b;
-  h = (h ^ (h >> 30)) * 0xBF58476D1CE4E5B9ull;
-  h = (h ^ (h >> 27)) * 0x94D049BB133111EBull;
-  h ^= h >> 31;
+  const uint64_t h = core::Mix64(a * 0x9E3779B97F4A7C15ull + b);
   return h == 0 ? 1 : h;
 }
 

@@ -110,6 +110,10 @@ std::vector<core::Neighbor>& Neighbours() {
 // Returns the direction, or zero where nothing is faded.
 constexpr double kFadeStart = -0.2, kFadeEnd = -0.6;  // Cosines to the facing direction.
 
+// Whether two samples face against each other as the two faces of a thin wall do (their normals
+// more than 101° apart): what marks a sample thin.
+bool FacingAgainst(const Vec3f& a, const Vec3f& b) { return a.dot(b) < kFadeStart; }
+
 Vec3f FacingDirection(const IamlsFunction::Impl& m, const Vec3d& x, const std::vector<core::Neighbor>& nn) {
   constexpr double kCoherence = 1.0 / 3.0, kReach2 = 4.0, kFrontTolerance = 0.25;
   const float behind = static_cast<float>(-kFrontTolerance / std::sqrt(m.inv_facing_radius2));
@@ -315,7 +319,7 @@ double KernelRow(IamlsFunction::Impl& impl, size_t k, std::vector<core::Neighbor
   const Vec3f own_normal = impl.normals[k];
   bool thin = false;
   if (impl.thin_walls) {
-    for (const core::Neighbor& q : nn) thin |= impl.normals[q.index].dot(own_normal) < kFadeStart;
+    for (const core::Neighbor& q : nn) thin |= FacingAgainst(impl.normals[q.index], own_normal);
   }
   using Impl = IamlsFunction::Impl;
   if (thin) {
@@ -446,7 +450,7 @@ bool MostlyThinWalls(const OrientedPoints& points, double radius) {
     points.tree->Radius(points.positions[i], static_cast<float>(radius), nn);
     const Vec3f& own = points.normals[i];
     thin +=
-        std::ranges::any_of(nn, [&](const core::Neighbor& q) { return points.normals[q.index].dot(own) < kFadeStart; });
+        std::ranges::any_of(nn, [&](const core::Neighbor& q) { return FacingAgainst(points.normals[q.index], own); });
   }
   return static_cast<double>(thin) > kMostlyWalls * static_cast<double>(seen);
 }

@@ -2,20 +2,9 @@
 
 #include <cstdint>
 
+#include "worker/core/mesh_metrics.h"
+
 namespace lsqsurf::render {
-namespace {
-
-// splitmix64's finaliser: a bijective mix, so distinct edges get unrelated hashes.
-uint64_t Mix(uint64_t x) {
-  x = (x ^ (x >> 30)) * 0xbf58476d1ce4e5b9ULL;
-  x = (x ^ (x >> 27)) * 0x94d049bb133111ebULL;
-  return x ^ (x >> 31);
-}
-
-uint64_t EdgeHash(uint32_t from, uint32_t to) { return Mix((static_cast<uint64_t>(from) << 32) | to); }
-
-}  // namespace
-
 OutsideWinding ClosedMeshOutsideWinding(std::span<const core::Vec3f> vertices, std::span<const core::Vec3f> normals,
                                         std::span<const core::Triangle> faces) {
   if (faces.empty()) return OutsideWinding::kUnknown;
@@ -26,10 +15,7 @@ OutsideWinding ClosedMeshOutsideWinding(std::span<const core::Vec3f> vertices, s
   int64_t agree = 0, disagree = 0;
   double six_volume = 0;
   for (const core::Triangle& f : faces) {
-    for (int i = 0; i < 3; ++i) {
-      const uint32_t a = f[static_cast<size_t>(i)], b = f[static_cast<size_t>((i + 1) % 3)];
-      unmatched += EdgeHash(a, b) - EdgeHash(b, a);
-    }
+    unmatched += core::UnmatchedEdgeSum(f);
     const core::Vec3f &p = vertices[f[0]], &q = vertices[f[1]], &r = vertices[f[2]];
     if (use_normals) {
       const float s = (q - p).cross(r - p).dot(normals[f[0]] + normals[f[1]] + normals[f[2]]);

@@ -38,19 +38,21 @@ using core::Vec3f;
 
 // How crossings become triangles; shared by every extractor.
 struct MarchingOptions {
-  int refine_steps = 3;          // Root-refinement steps per crossing edge (0 = linear only), 0..20.
-  bool vertex_normals = true;    // Store normalize(∇F) at each output vertex.
-  int max_patch_triangles = 64;  // Untrusted clusters up to this size enclosed by trusted surface are kept
-                                 // (pinholes), trusted ones cut off by untrusted surface are dropped
-                                 // (specks); 0 = neither.
-  double crease_angle = 0;       // Degrees, 0..90: an edge whose end normals differ by more is split on the
-                                 // crease it crosses (creases.h); 0 = off.
-  double snap_share = 0;         // 0..0.45: a grid corner the surface passes within this share of an edge from
-                                 // is moved onto the surface before marching (no slivers there); 0 = off.
-  int relax_steps = 0;           // 0..10: steps of tangential relaxation on the surface after marching (relax.h).
-  int max_hole_edges = 0;        // Holes whose border is a loop of up to this many edges are closed (holes.h;
-                                 // not a user parameter); 0 = off. Not with `trace`.
-  bool trace = false;            // Fill IsosurfaceResult::trace (not a user parameter).
+  int refine_steps = 3;              // Root-refinement steps per crossing edge (0 = linear only), 0..20.
+  bool vertex_normals = true;        // Store normalize(∇F) at each output vertex.
+  int max_patch_triangles = 64;      // Untrusted clusters up to this size enclosed by trusted surface are kept
+                                     // (pinholes), trusted ones cut off by untrusted surface are dropped
+                                     // (specks); 0 = neither.
+  double crease_angle = 0;           // Degrees, 0..90: an edge whose end normals differ by more is split on the
+                                     // crease it crosses (creases.h); 0 = off.
+  double snap_share = 0;             // 0..0.45: a grid corner the surface passes within this share of an edge from
+                                     // is moved onto the surface before marching (no slivers there); 0 = off.
+  int relax_steps = 0;               // 0..10: steps of tangential relaxation on the surface after marching (relax.h).
+  int max_hole_edges = 0;            // Holes whose border is a loop of up to this many edges are closed (holes.h;
+                                     // not a user parameter); 0 = off. Not with `trace`.
+  bool close_pierced_edges = false;  // Count inside the ends of lattice edges that a part thinner than the
+                                     // edge passes through (marching_tets.h; not a user parameter).
+  bool trace = false;                // Fill IsosurfaceResult::trace (not a user parameter).
 };
 
 absl::Status Validate(const MarchingOptions& options);
@@ -85,6 +87,7 @@ struct IsosurfaceStats {
   int64_t crease_corners = 0;       // Triangles split around a corner.
   int64_t crease_snapped = 0;       // Vertices moved onto a crease that passed next to them.
   int64_t snapped_corners = 0;      // Grid corners moved onto the surface.
+  int64_t pierced_corners = 0;      // Corners counted inside (MarchingOptions::close_pierced_edges).
   int64_t relaxed_vertices = 0;     // Vertices moved by the relaxation (once per round; two rounds).
   int64_t flipped_edges = 0;        // Edges flipped after it (relax.h).
   int64_t replaced_faces = 0;       // Kept faces a local re-extraction replaced (PatchJoin).

@@ -188,6 +188,69 @@ void KeepCrossedTetrahedra(const AdaptiveOctree& tree, const absl::flat_hash_map
   }
 }
 
+// Corners counted inside after the surface was followed (PiercedCorners) make crossed
+// tetrahedra of some that had every corner outside. Every leaf holding such a corner touches the
+// crossed leaf it was found in, so it was visited: their tetrahedra about the corners are looked at
+// again and the newly crossed ones added.
+absl::Status AddTetrahedraCrossedAt(const AdaptiveOctree& tree, const absl::flat_hash_set<uint64_t>& visited,
+                                    const absl::flat_hash_map<VertexKey, Vec3d>& pierced,
+                                    const absl::flat_hash_map<VertexKey, FieldValue>& values,
+                                    std::vector<TetKeys>& crossed_tets, std::vector<uint64_t>* crossed_cells,
+                                    JobContext& ctx) {
+  std::vector<uint64_t> leaves(visited.begin(), visited.end());
+  std::sort(leaves.begin(), leaves.end());  // The same order in every run.
+  std::vector<std::vector<TetKeys>> found(leaves.size());
+  LSQSURF_RETURN_IF_ERROR(core::ParallelFor(
+      leaves.size(), 256,
+      [&](size_t b, size_t e) {
+        std::vector<TetKeys> tets;
+        for (size_t i = b; i < e; ++i) {
+          tets.clear();
+          AppendJ1aTetrahedra(tree, CellFromKey(leaves[i]), tets);
+          for (const TetKeys& t : tets) {
+            // Before, the pierced corners were outside: the tetrahedron was crossed where another
+            // corner is inside, and is now where one stays outside.
+            bool at_pierced = false, other_inside = false, outside = false;
+            for (VertexKey k : t) {
+              if (pierced.contains(k)) {
+                at_pierced = true;
+              } else if (values.find(k)->second.value < 0) {
+                other_inside = true;
+              } else {
+                outside = true;
+              }
+            }
+            if (at_pierced && outside && !other_inside) found[i].push_back(t);
+          }
+        }
+      },
+      &ctx));
+  for (size_t i = 0; i < leaves.size(); ++i) {
+    crossed_tets.insert(crossed_tets.end(), found[i].begin(), found[i].end());
+    if (crossed_cells != nullptr) crossed_cells->resize(crossed_tets.size(), leaves[i]);
+  }
+  return absl::OkStatus();
+}
+
+// MarchingOptions::close_pierced_edges after the surface was followed: the pierced corners of the
+// crossed tetrahedra are counted inside and the tetrahedra that this makes crossed are added.
+absl::StatusOr<absl::flat_hash_map<VertexKey, Vec3d>> ClosePiercedEdges(
+    const ImplicitFunction& field, const AdaptiveOctree& tree, const absl::flat_hash_set<uint64_t>& visited,
+    const std::function<Vec3d(VertexKey)>& position, internal::CornerValues& corner_values,
+    std::vector<TetKeys>& crossed_tets, std::vector<uint64_t>* crossed_cells, JobContext& ctx) {
+  auto pierced = internal::PiercedCorners(
+      field,
+      [&](const internal::TetVisitor& visit) {
+        for (const TetKeys& t : crossed_tets) visit(t, 0);
+      },
+      corner_values.values(), position, ctx);
+  if (!pierced.ok() || pierced->empty()) return pierced;
+  corner_values.CountInside(*pierced);
+  LSQSURF_RETURN_IF_ERROR(
+      AddTetrahedraCrossedAt(tree, visited, *pierced, corner_values.values(), crossed_tets, crossed_cells, ctx));
+  return pierced;
+}
+
 }  // namespace
 
 absl::StatusOr<IsosurfaceResult> ExtractIsosurfaceOnTree(const ImplicitFunction& field, const AdaptiveOctree& tree,
@@ -280,6 +343,14 @@ absl::StatusOr<IsosurfaceResult> ExtractIsosurfaceOnTree(const ImplicitFunction&
                            static_cast<double>(stats.surface_cells + static_cast<int64_t>(frontier.size()) + 1)));
   }
   work = {};
+  absl::flat_hash_map<internal::CornerKey, Vec3d> pierced_corners;
+  if (marching.close_pierced_edges) {
+    auto pierced = ClosePiercedEdges(field, tree, visited, position, corner_values, crossed_tets,
+                                     marching.trace ? &crossed_cells : nullptr, ctx);
+    if (!pierced.ok()) return pierced.status();
+    pierced_corners = *std::move(pierced);
+    stats.pierced_corners = static_cast<int64_t>(pierced_corners.size());
+  }
   visited = {};
   LSQSURF_RETURN_IF_ERROR(ctx.CheckCancelled());
   stats.tracking_seconds = core::SecondsSince(tracking_start);
@@ -290,7 +361,7 @@ absl::StatusOr<IsosurfaceResult> ExtractIsosurfaceOnTree(const ImplicitFunction&
       [&](const internal::TetVisitor& visit) {
         for (size_t t = 0; t < crossed_tets.size(); ++t) visit(crossed_tets[t], marching.trace ? crossed_cells[t] : 0);
       },
-      values, position, marching, stats, emit_ctx);
+      values, position, marching, stats, emit_ctx, &pierced_corners);
   if (!result.ok()) return result;
   corner_values = {};
   crossed_tets = {};
@@ -318,16 +389,23 @@ absl::StatusOr<IsosurfaceResult> MarchLeaves(const ImplicitFunction& field, cons
   }
   const auto position = [&](internal::CornerKey k) { return tree.Position(k); };
   LSQSURF_RETURN_IF_ERROR(corner_values.Evaluate(field, position, stats, ctx));
+  const auto for_each_tet = [&](const internal::TetVisitor& visit) {
+    for (size_t t = 0; t < tets.size(); ++t) visit(tets[t], tet_cells[t]);
+  };
+  absl::flat_hash_map<internal::CornerKey, Vec3d> pierced_corners;
+  if (marching.close_pierced_edges) {
+    auto pierced = internal::PiercedCorners(field, for_each_tet, corner_values.values(), position, ctx);
+    if (!pierced.ok()) return pierced.status();
+    pierced_corners = *std::move(pierced);
+    corner_values.CountInside(pierced_corners);
+    stats.pierced_corners = static_cast<int64_t>(pierced_corners.size());
+  }
   stats.cells_visited = static_cast<int64_t>(leaves.size());
   stats.tracking_seconds = core::SecondsSince(tracking_start);
   MarchingOptions traced = marching;
   traced.trace = true;
-  return internal::MarchTetrahedra(
-      field,
-      [&](const internal::TetVisitor& visit) {
-        for (size_t t = 0; t < tets.size(); ++t) visit(tets[t], tet_cells[t]);
-      },
-      corner_values.values(), position, traced, stats, ctx);
+  return internal::MarchTetrahedra(field, for_each_tet, corner_values.values(), position, traced, stats, ctx,
+                                   &pierced_corners);
 }
 
 absl::Status FinishPatch(const ImplicitFunction& field, const MarchingOptions& marching, IsosurfaceResult& patch,

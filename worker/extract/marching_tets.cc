@@ -4,6 +4,7 @@
 #include <chrono>
 #include <cmath>
 #include <limits>
+#include <optional>
 
 #include "absl/container/flat_hash_set.h"
 #include "worker/core/mesh_metrics.h"
@@ -417,6 +418,66 @@ absl::flat_hash_map<CornerKey, Vec3d> SnapCorners(const ImplicitFunction& field,
   return snapped;
 }
 
+void CornerValues::CountInside(const absl::flat_hash_map<CornerKey, Vec3d>& corners) {
+  // The smallest negative value: the sign says inside (their crossings are their own places).
+  for (const auto& [key, on_surface] : corners) values_.at(key).value = -std::numeric_limits<double>::denorm_min();
+}
+
+// Where Newton steps along ∇F take a corner that lies just outside, if they converge.
+std::optional<Vec3d> OntoSurface(const ImplicitFunction& field, const Vec3d& corner, double start_value) {
+  constexpr int kSteps = 6;
+  Vec3d x = corner;
+  for (int step = 0; step < kSteps; ++step) {
+    const FieldGradient g = field.ValueAndGradientOnly(x);
+    const double slope2 = g.gradient.squaredNorm();
+    if (!(slope2 > 0) || !std::isfinite(g.value)) return std::nullopt;
+    x -= (g.value / slope2) * g.gradient;
+  }
+  if (!(std::abs(field.ValueOnly(x)) <= 0.01 * start_value)) return std::nullopt;
+  return x;
+}
+
+absl::StatusOr<absl::flat_hash_map<CornerKey, Vec3d>> PiercedCorners(
+    const ImplicitFunction& field, const std::function<void(const TetVisitor&)>& for_each_tet,
+    const absl::flat_hash_map<CornerKey, FieldValue>& values, const std::function<Vec3d(CornerKey)>& position,
+    JobContext& ctx) {
+  absl::flat_hash_set<std::pair<CornerKey, CornerKey>> candidates;
+  for_each_tet([&](const TetCorners& tet, uint64_t) {
+    std::array<double, 4> f;
+    for (size_t i = 0; i < 4; ++i) f[i] = values.at(tet[i]).value;
+    for (size_t i = 0; i < 4; ++i) {
+      for (size_t j = i + 1; j < 4; ++j) {
+        if (!(f[i] >= 0 && f[j] >= 0)) continue;  // NaN fails too.
+        const double bound = kPiercedShare * (position(tet[i]) - position(tet[j])).norm();
+        if (f[i] < bound && f[j] < bound) candidates.insert(std::minmax(tet[i], tet[j]));
+      }
+    }
+  });
+  std::vector<std::pair<CornerKey, CornerKey>> edges(candidates.begin(), candidates.end());
+  std::sort(edges.begin(), edges.end());  // The hash set's order is not the same from run to run.
+  std::vector<Vec3d> midpoints(edges.size());
+  for (size_t k = 0; k < edges.size(); ++k) midpoints[k] = 0.5 * (position(edges[k].first) + position(edges[k].second));
+  std::vector<double> mid_values(edges.size());
+  LSQSURF_RETURN_IF_ERROR(field.ValueOnlyBatch(midpoints, mid_values, &ctx));
+  absl::flat_hash_map<CornerKey, Vec3d> pierced;
+  absl::flat_hash_map<CornerKey, std::optional<Vec3d>> projected;  // Once per corner.
+  for (size_t k = 0; k < edges.size(); ++k) {
+    if (!(mid_values[k] < 0)) continue;
+    const auto [a, b] = edges[k];
+    const double reach = 0.1 * (position(a) - position(b)).norm();
+    bool reached = true;
+    for (CornerKey end : {a, b}) {
+      auto [at, fresh] = projected.try_emplace(end);
+      if (fresh) at->second = OntoSurface(field, position(end), values.at(end).value);
+      reached = reached && at->second && (*at->second - position(end)).norm() <= reach;
+    }
+    if (!reached) continue;
+    pierced.try_emplace(a, *projected.at(a));
+    pierced.try_emplace(b, *projected.at(b));
+  }
+  return pierced;
+}
+
 uint64_t LatticeEdgeHash(CornerKey a, CornerKey b) {
   if (a > b) std::swap(a, b);
   // splitmix64's finaliser over both keys: distinct edges collide with probability ~2^-64.
@@ -429,7 +490,8 @@ absl::StatusOr<IsosurfaceResult> MarchTetrahedra(const ImplicitFunction& field,
                                                  const absl::flat_hash_map<CornerKey, FieldValue>& values,
                                                  const std::function<Vec3d(CornerKey)>& position,
                                                  const MarchingOptions& params, const IsosurfaceStats& tracking,
-                                                 JobContext& ctx) {
+                                                 JobContext& ctx,
+                                                 const absl::flat_hash_map<CornerKey, Vec3d>* pierced) {
   IsosurfaceResult result;
   result.stats = tracking;
   IsosurfaceStats& stats = result.stats;
@@ -439,6 +501,9 @@ absl::StatusOr<IsosurfaceResult> MarchTetrahedra(const ImplicitFunction& field,
     snapped = SnapCorners(field, for_each_tet, values, position, params.snap_share, ctx);
     stats.snapped_corners = static_cast<int64_t>(snapped.size());
   }
+  // Pierced corners are their own crossings, as snapped ones are (they count inside, so no edge
+  // between them and a snapped one is crossed).
+  if (pierced != nullptr) snapped.insert(pierced->begin(), pierced->end());
   const std::function<Vec3d(CornerKey)> moved_position = [&](CornerKey k) {
     const auto it = snapped.find(k);
     return it != snapped.end() ? it->second : position(k);

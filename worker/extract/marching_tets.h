@@ -42,6 +42,8 @@ class CornerValues {
   absl::Status Evaluate(const ImplicitFunction& field, const std::function<Vec3d(CornerKey)>& position,
                         IsosurfaceStats& stats, JobContext& ctx);
   const absl::flat_hash_map<CornerKey, FieldValue>& values() const { return values_; }
+  // Counts evaluated corners inside whatever F says there (PiercedCorners).
+  void CountInside(const absl::flat_hash_map<CornerKey, Vec3d>& corners);
 
  private:
   absl::flat_hash_map<CornerKey, FieldValue> values_;
@@ -54,20 +56,37 @@ class CornerValues {
 // naming where it lies (what the trace records per face); every corner must be in `values`. Tetrahedra with a NaN
 // corner or no sign change produce nothing. The result's statistics are `tracking` (what the caller's surface search
 // counted) plus `crossings`, `rejected_polygons` and `restored_triangles`. Creases and relaxation are FinishSurface's,
-// so that callers free their search structures first. Errors: kCancelled.
+// so that callers free their search structures first. `pierced` (PiercedCorners, counted inside
+// in `values`) are each their own crossing, moved onto the surface. Errors: kCancelled.
 using TetVisitor = std::function<void(const TetCorners&, uint64_t cell)>;
 absl::StatusOr<IsosurfaceResult> MarchTetrahedra(const ImplicitFunction& field,
                                                  const std::function<void(const TetVisitor&)>& for_each_tet,
                                                  const absl::flat_hash_map<CornerKey, FieldValue>& values,
                                                  const std::function<Vec3d(CornerKey)>& position,
                                                  const MarchingOptions& params, const IsosurfaceStats& tracking,
-                                                 JobContext& ctx);
+                                                 JobContext& ctx,
+                                                 const absl::flat_hash_map<CornerKey, Vec3d>* pierced = nullptr);
 
 // Splits edges on creases and relaxes the marched mesh as `params` ask; drops the vertex normals
 // unless they are wanted. Vertices marked in `fixed` (when given, one flag per vertex) neither
 // move nor end a split edge: the border where a patch joins a kept mesh. Errors: kCancelled.
 absl::Status FinishSurface(const ImplicitFunction& field, const MarchingOptions& params, IsosurfaceResult& result,
                            JobContext& ctx, std::span<const char> fixed = {});
+
+// The ends of the lattice edges that a part thinner than the edge passes through: both ends lie
+// just outside (F, about a distance there, under kPiercedShare of the edge's length) while F is
+// negative at the edge's midpoint, as where a pointed corner's tip passes between corners on its
+// opposite faces. Marching cuts the part along such an edge and leaves a tunnel through it (a
+// handle). Counted inside, with their crossings where Newton steps take them onto the surface,
+// the ends close it. An edge whose ends do not reach the surface within a quarter of its length
+// (beside an acute ridge F is much less than the distance) is left alone. Looks at the edges of the
+// tetrahedra `for_each_tet` visits; returns each corner with its place on the surface.
+// Errors: kCancelled.
+inline constexpr double kPiercedShare = 0.05;
+absl::StatusOr<absl::flat_hash_map<CornerKey, Vec3d>> PiercedCorners(
+    const ImplicitFunction& field, const std::function<void(const TetVisitor&)>& for_each_tet,
+    const absl::flat_hash_map<CornerKey, FieldValue>& values, const std::function<Vec3d(CornerKey)>& position,
+    JobContext& ctx);
 
 // The trace's name of the lattice edge between two corners (order-free, never 0).
 uint64_t LatticeEdgeHash(CornerKey a, CornerKey b);

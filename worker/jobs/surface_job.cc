@@ -683,6 +683,7 @@ void AddMeshStatistics(const core::TriangleMesh& mesh, const extract::Isosurface
   if (extraction.rejected_polygons > 0) stat("untrusted_triangles", static_cast<double>(extraction.rejected_polygons));
   if (extraction.filled_holes > 0) stat("filled_holes", static_cast<double>(extraction.filled_holes));
   if (extraction.corner_specks > 0) stat("corner_specks", static_cast<double>(extraction.corner_specks));
+  if (extraction.pierced_corners > 0) stat("pierced_corners", static_cast<double>(extraction.pierced_corners));
   if (extraction.corners_left_coarse > 0) stat("corners_left_coarse", 1);
   if (extraction.creases_left_coarse > 0) stat("creases_left_coarse", 1);
   if (extraction.topology_checks > 0) stat("topology_checks", 1);

@@ -376,7 +376,8 @@ struct WholeExtraction {
   double fine_reach = 0;        // ExtractionTree::fine_reach.
 };
 absl::StatusOr<WholeExtraction> ExtractWhole(const PuFunction& function, const PuExtractParams& params, FineLeaves fine,
-                                             std::span<const FineZone> speck_zones, core::JobContext& ctx) {
+                                             std::span<const FineZone> speck_zones, core::JobContext& ctx,
+                                             bool close_pierced_edges = false) {
   const PuFunction::Impl& impl = function.impl();
   core::SubContext build_ctx(ctx, "building the J1a tree", 0.0, 0.1);
   const auto tree_start = std::chrono::steady_clock::now();
@@ -384,8 +385,10 @@ absl::StatusOr<WholeExtraction> ExtractWhole(const PuFunction& function, const P
   if (!built.ok()) return built.status();
   const double tree_seconds = core::SecondsSince(tree_start);
   core::SubContext extract_ctx(ctx, "extracting surface", 0.1, 1.0);
+  extract::MarchingOptions marching = MarchingFor(impl, params);
+  marching.close_pierced_edges = close_pierced_edges;
   auto surface = extract::ExtractIsosurfaceOnTree(function, (*built)->tree, (*built)->start, params.max_leaves,
-                                                  MarchingFor(impl, params), extract_ctx);
+                                                  marching, extract_ctx);
   if (!surface.ok()) return surface.status();
   WholeExtraction out{*std::move(surface), std::move((*built)->fine_zones), (*built)->fine_reach};
   out.surface.stats.tree_seconds = tree_seconds;
@@ -565,7 +568,16 @@ absl::StatusOr<extract::IsosurfaceResult> Extract(const PuFunction& function, co
         const bool creases = std::any_of(zones.begin(), zones.end(), [](const FineZone& z) { return !z.corner; });
         const bool corners = std::any_of(zones.begin(), zones.end(), [](const FineZone& z) { return z.corner; });
         std::optional<WholeExtraction> kept;
-        if (creases && corners) {
+        // First with the pierced lattice edges closed (extract::MarchingOptions::close_pierced_edges):
+        // the 12-face hull's handle at 100k points was a tunnel along an edge that its pointed
+        // four-face corner's tip passes through.
+        core::SubContext pierced_ctx(ctx, "extracting surface with pierced edges closed", 0.0, 0.95);
+        auto closed = ExtractWhole(function, params, FineLeaves::kCornersAndAcuteCreases, zones, pierced_ctx, true);
+        if (!closed.ok()) return closed.status();
+        const bool pierced_closed = !MoreTopology(WeldedTopology(closed->surface.mesh), plain_topology);
+        if (pierced_closed) {
+          kept = *std::move(closed);
+        } else if (creases && corners) {
           core::SubContext corners_ctx(ctx, "extracting surface with finer corners only", 0.0, 0.95);
           auto at_corners = ExtractWhole(function, params, FineLeaves::kCorners, zones, corners_ctx);
           if (!at_corners.ok()) return at_corners.status();
@@ -577,7 +589,7 @@ absl::StatusOr<extract::IsosurfaceResult> Extract(const PuFunction& function, co
           kept = *std::move(plain);
           kept->surface.stats.corners_left_coarse = corners ? 1 : 0;
         }
-        kept->surface.stats.creases_left_coarse = creases ? 1 : 0;
+        if (!pierced_closed) kept->surface.stats.creases_left_coarse = creases ? 1 : 0;
         kept->surface.stats.topology_checks = 1;
         *fine = *std::move(kept);
       }
@@ -629,7 +641,10 @@ absl::StatusOr<extract::IsosurfaceResult> ExtractEdited(const PuFunction& before
   }
   const double tree_seconds = core::SecondsSince(tree_start);
   core::SubContext march_ctx(ctx, "extracting the edited part", 0.2, 0.8);
-  const extract::MarchingOptions marching = MarchingFor(after.impl(), params);
+  extract::MarchingOptions marching = MarchingFor(after.impl(), params);
+  // The kept surface may have had them closed (Extract); a patch that has them closed where it had
+  // not only moves the surface a little, one that has them open could bring a handle back.
+  marching.close_pierced_edges = !after.impl().sharp_fits.empty();
   auto patch = extract::MarchLeaves(after, tree, leaves, marching, march_ctx);
   if (!patch.ok()) return patch.status();
   built->reset();

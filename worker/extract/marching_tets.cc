@@ -464,7 +464,7 @@ absl::StatusOr<absl::flat_hash_map<CornerKey, Vec3d>> PiercedCorners(
   for (size_t k = 0; k < edges.size(); ++k) {
     if (!(mid_values[k] < 0)) continue;
     const auto [a, b] = edges[k];
-    const double reach = 0.1 * (position(a) - position(b)).norm();
+    const double reach = kPiercedReach * (position(a) - position(b)).norm();
     bool reached = true;
     for (CornerKey end : {a, b}) {
       auto [at, fresh] = projected.try_emplace(end);

@@ -78,11 +78,11 @@ absl::Status FinishSurface(const ImplicitFunction& field, const MarchingOptions&
 // negative at the edge's midpoint, as where a pointed corner's tip passes between corners on its
 // opposite faces. Marching cuts the part along such an edge and leaves a tunnel through it (a
 // handle). Counted inside, with their crossings where Newton steps take them onto the surface,
-// the ends close it. An edge whose ends do not reach the surface within a quarter of its length
-// (beside an acute ridge F is much less than the distance) is left alone. Looks at the edges of the
-// tetrahedra `for_each_tet` visits; returns each corner with its place on the surface.
+// the ends close it. An edge whose ends do not reach the surface within kPiercedReach of its
+// length (beside an acute ridge F is much less than the distance) is left alone. Looks at the edges
+// of the tetrahedra `for_each_tet` visits; returns each corner with its place on the surface.
 // Errors: kCancelled.
-inline constexpr double kPiercedShare = 0.05;
+inline constexpr double kPiercedShare = 0.05, kPiercedReach = 0.1;
 absl::StatusOr<absl::flat_hash_map<CornerKey, Vec3d>> PiercedCorners(
     const ImplicitFunction& field, const std::function<void(const TetVisitor&)>& for_each_tet,
     const absl::flat_hash_map<CornerKey, FieldValue>& values, const std::function<Vec3d(CornerKey)>& position,

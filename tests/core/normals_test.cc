@@ -4,6 +4,7 @@
 
 #include <cmath>
 #include <numbers>
+#include <random>
 
 #include "tests/test_shapes.h"
 
@@ -26,6 +27,18 @@ AngleReport Compare(const std::vector<Vec3f>& estimated, const std::vector<Vec3f
   return r;
 }
 
+// Normals of plain PCA (one neighbourhood size) and with the size chosen per point.
+std::pair<AngleReport, AngleReport> OneSizeAndChosen(const PointCloud& cloud) {
+  LocalJobContext ctx;
+  NormalEstimationParams one_size;
+  one_size.scales = 1;
+  auto plain = EstimateNormals(cloud.positions, one_size, ctx);
+  auto chosen = EstimateNormals(cloud.positions, {}, ctx);
+  EXPECT_TRUE(plain.ok() && chosen.ok());
+  if (!plain.ok() || !chosen.ok()) return {};
+  return {Compare(*plain, cloud.normals), Compare(*chosen, cloud.normals)};
+}
+
 TEST(Normals, SphereIsAccurateAndOutward) {
   const PointCloud cloud = testing::SphereCloud(6000);
   LocalJobContext ctx;
@@ -46,6 +59,28 @@ TEST(Normals, TorusIsAccurateAndOutward) {
   EXPECT_LT(r.mean_degrees, 2.0);
 }
 
+// A thin ring at scanner noise: the tube's radius is 1 % of the diagonal and the noise 0.1 % of
+// it, about half the spacing of the points. The 12 nearest points see mostly noise; larger
+// neighbourhoods flatten it out, and are chosen only where they are flatter.
+TEST(Normals, NoisyThinRingTakesLargerNeighbourhoods) {
+  const double R = 1.0, r = 0.03, diagonal = 2.0 * std::sqrt(2.0) * (R + r), sigma = 1e-3 * diagonal;
+  PointCloud cloud = testing::TorusCloud(60000, R, r);
+  std::mt19937_64 rng(17);
+  std::normal_distribution<float> noise(0.0f, static_cast<float>(sigma));
+  for (size_t i = 0; i < cloud.size(); ++i) cloud.positions[i] += noise(rng) * cloud.normals[i];
+  const auto [before, after] = OneSizeAndChosen(cloud);
+  EXPECT_LT(after.flipped, static_cast<int>(cloud.size() / 500)) << "plain PCA: " << before.flipped;
+  EXPECT_LT(after.mean_degrees, 0.6 * before.mean_degrees);
+}
+
+TEST(Normals, SharpCreasesKeepTheSmallNeighbourhood) {
+  // Across a block's 90° edges a larger neighbourhood would average the two faces.
+  const PointCloud cloud = testing::DrilledBlockCloud(40000);
+  const auto [before, after] = OneSizeAndChosen(cloud);
+  EXPECT_EQ(after.flipped, 0);
+  EXPECT_LE(after.mean_degrees, 1.05 * before.mean_degrees);
+}
+
 TEST(Normals, TwoSeparateSpheresAreBothOutward) {
   PointCloud a = testing::SphereCloud(3000, 1.0, Vec3d(-3, 0, 0));
   const PointCloud b = testing::SphereCloud(3000, 0.5, Vec3d(3, 0, 0));
@@ -63,6 +98,10 @@ TEST(Normals, RejectsBadInput) {
   EXPECT_EQ(EstimateNormals(two, {}, ctx).status().code(), absl::StatusCode::kInvalidArgument);
   NormalEstimationParams bad;
   bad.neighbors = 1;
+  EXPECT_EQ(EstimateNormals(testing::SphereCloud(100).positions, bad, ctx).status().code(),
+            absl::StatusCode::kInvalidArgument);
+  bad = {};
+  bad.scales = 5;
   EXPECT_EQ(EstimateNormals(testing::SphereCloud(100).positions, bad, ctx).status().code(),
             absl::StatusCode::kInvalidArgument);
 }

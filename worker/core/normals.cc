@@ -2,6 +2,7 @@
 
 #include <Eigen/Eigenvalues>
 #include <algorithm>
+#include <limits>
 #include <numeric>
 #include <queue>
 
@@ -14,10 +15,18 @@ absl::Status Validate(const NormalEstimationParams& params) {
   if (params.neighbors < 3 || params.neighbors > 128) {
     return absl::InvalidArgumentError("normal_neighbors must be between 3 and 128");
   }
+  if (params.scales < 1 || params.scales > 4) {
+    return absl::InvalidArgumentError("normal estimation scales must be between 1 and 4");
+  }
   return absl::OkStatus();
 }
 
 namespace {
+
+// The 12 nearest points of a clean scan lie flatter than this (λ₀ / Σλ; the spread along the
+// normal under 8 % of the spread across): larger neighbourhoods are not looked at there, which
+// keeps clean clouds at the cost of one small query per point.
+constexpr double kFlatEnough = 3e-3;
 
 // Outward per component: the sign that makes the normals point away from its centroid.
 void PointAwayFromCentroids(std::span<const Vec3f> points, const std::vector<uint32_t>& component, uint32_t components,
@@ -38,6 +47,37 @@ void PointAwayFromCentroids(std::span<const Vec3f> points, const std::vector<uin
   }
 }
 
+// The least-variance direction of the neighbourhood (closest first, the point itself among them)
+// whose first `smallest`, 2 × `smallest`, … points (and all of them) lie flattest. The sums run
+// once over the points, about `centre` for precision.
+Vec3f FlattestNormal(std::span<const Vec3f> points, const Vec3f& centre, const std::vector<Neighbor>& neighbourhood,
+                     size_t smallest, double* flatness) {
+  Vec3d sum = Vec3d::Zero();
+  Eigen::Matrix3d outer = Eigen::Matrix3d::Zero();
+  Vec3f best = Vec3f::UnitZ();
+  double least_variation = std::numeric_limits<double>::infinity();
+  size_t next_size = std::min(smallest, neighbourhood.size());
+  for (size_t q = 0; q < neighbourhood.size(); ++q) {
+    const Vec3d d = (points[neighbourhood[q].index] - centre).cast<double>();
+    sum += d;
+    outer += d * d.transpose();
+    if (q + 1 != next_size) continue;
+    const double count = static_cast<double>(q + 1);
+    const Eigen::Matrix3d covariance = outer / count - (sum / count) * (sum / count).transpose();
+    Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> eig;
+    eig.computeDirect(covariance);
+    const double total = eig.eigenvalues().sum();
+    const double variation = total > 0 ? eig.eigenvalues()(0) / total : 0.0;
+    if (variation < least_variation) {  // Ties keep the smaller neighbourhood.
+      least_variation = variation;
+      best = eig.eigenvectors().col(0).cast<float>().normalized();
+    }
+    next_size = std::min(2 * (next_size - 1) + 1, neighbourhood.size());
+  }
+  *flatness = least_variation;
+  return best;
+}
+
 }  // namespace
 
 absl::StatusOr<std::vector<Vec3f>> EstimateNormals(std::span<const Vec3f> points, const NormalEstimationParams& params,
@@ -46,6 +86,7 @@ absl::StatusOr<std::vector<Vec3f>> EstimateNormals(std::span<const Vec3f> points
   const size_t n = points.size();
   if (n < 3) return absl::InvalidArgumentError("normal estimation needs at least 3 points");
   const size_t k = std::min<size_t>(static_cast<size_t>(params.neighbors), n - 1);
+  const size_t largest = std::min<size_t>(k << (params.scales - 1), n - 1);
 
   SubContext pca_ctx(ctx, "estimating normals", 0.0, 0.6);
   KdTree tree(points);
@@ -57,17 +98,12 @@ absl::StatusOr<std::vector<Vec3f>> EstimateNormals(std::span<const Vec3f> points
         std::vector<Neighbor> nn;
         for (size_t i = begin; i < end; ++i) {
           tree.Knn(points[i], k + 1, nn);
-          Vec3d mean = Vec3d::Zero();
-          for (const Neighbor& q : nn) mean += points[q.index].cast<double>();
-          mean /= static_cast<double>(nn.size());
-          Eigen::Matrix3d cov = Eigen::Matrix3d::Zero();
-          for (const Neighbor& q : nn) {
-            const Vec3d d = points[q.index].cast<double>() - mean;
-            cov += d * d.transpose();
+          double variation = 0;
+          normals[i] = FlattestNormal(points, points[i], nn, k + 1, &variation);
+          if (largest > k && variation > kFlatEnough) {
+            tree.Knn(points[i], largest + 1, nn);
+            normals[i] = FlattestNormal(points, points[i], nn, k + 1, &variation);
           }
-          Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> eig;
-          eig.computeDirect(cov);
-          normals[i] = eig.eigenvectors().col(0).cast<float>().normalized();
           // Skip the query point itself (normally first); keep exactly k graph neighbours.
           size_t written = 0;
           for (const Neighbor& q : nn) {

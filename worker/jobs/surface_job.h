@@ -32,7 +32,7 @@ namespace lsqsurf::jobs {
 // Normals for clouds that come without them.
 struct NormalsParams {
   bool estimate_normals = true;  // PCA + spanning-tree orientation; false rejects clouds without normals.
-  int normal_neighbors = core::NormalEstimationParams{}.neighbors;  // k of the PCA, 3..128.
+  int normal_neighbors = core::NormalEstimationParams{}.neighbors;  // Smallest k of the PCA, 3..128.
 };
 
 // Where the shared extractor looks for the surface, for the methods without their own.

@@ -23,7 +23,7 @@ absl::Status Validate(const NormalEstimationParams& params) {
 
 namespace {
 
-// The 12 nearest points of a clean scan lie flatter than this (λ₀ / Σλ; the spread along the
+// The k nearest points of a clean scan lie flatter than this (λ₀ / Σλ; the spread along the
 // normal under 8 % of the spread across): larger neighbourhoods are not looked at there, which
 // keeps clean clouds at the cost of one small query per point.
 constexpr double kFlatEnough = 3e-3;
@@ -47,16 +47,15 @@ void PointAwayFromCentroids(std::span<const Vec3f> points, const std::vector<uin
   }
 }
 
-// The least-variance direction of the neighbourhood (closest first, the point itself among them)
-// whose first `smallest`, 2 × `smallest`, … points (and all of them) lie flattest. The sums run
-// once over the points, about `centre` for precision.
-Vec3f FlattestNormal(std::span<const Vec3f> points, const Vec3f& centre, const std::vector<Neighbor>& neighbourhood,
-                     size_t smallest, double* flatness) {
+// Looks at the first `from_size`, 2 × `from_size` − 1, … points of the neighbourhood (closest
+// first, the point itself among them; all of them last) and keeps in `normal` and `variation`
+// the least-variance direction of the flattest, where it is flatter than `variation` already is
+// (ties keep the smaller). The sums run once over the points, about `centre` for precision.
+void KeepFlattest(std::span<const Vec3f> points, const Vec3f& centre, const std::vector<Neighbor>& neighbourhood,
+                  size_t from_size, Vec3f& normal, double& variation) {
   Vec3d sum = Vec3d::Zero();
   Eigen::Matrix3d outer = Eigen::Matrix3d::Zero();
-  Vec3f best = Vec3f::UnitZ();
-  double least_variation = std::numeric_limits<double>::infinity();
-  size_t next_size = std::min(smallest, neighbourhood.size());
+  size_t next_size = std::min(from_size, neighbourhood.size());
   for (size_t q = 0; q < neighbourhood.size(); ++q) {
     const Vec3d d = (points[neighbourhood[q].index] - centre).cast<double>();
     sum += d;
@@ -67,15 +66,13 @@ Vec3f FlattestNormal(std::span<const Vec3f> points, const Vec3f& centre, const s
     Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> eig;
     eig.computeDirect(covariance);
     const double total = eig.eigenvalues().sum();
-    const double variation = total > 0 ? eig.eigenvalues()(0) / total : 0.0;
-    if (variation < least_variation) {  // Ties keep the smaller neighbourhood.
-      least_variation = variation;
-      best = eig.eigenvectors().col(0).cast<float>().normalized();
+    const double flatness = total > 0 ? eig.eigenvalues()(0) / total : 0.0;
+    if (flatness < variation) {
+      variation = flatness;
+      normal = eig.eigenvectors().col(0).cast<float>().normalized();
     }
     next_size = std::min(2 * (next_size - 1) + 1, neighbourhood.size());
   }
-  *flatness = least_variation;
-  return best;
 }
 
 }  // namespace
@@ -98,11 +95,12 @@ absl::StatusOr<std::vector<Vec3f>> EstimateNormals(std::span<const Vec3f> points
         std::vector<Neighbor> nn;
         for (size_t i = begin; i < end; ++i) {
           tree.Knn(points[i], k + 1, nn);
-          double variation = 0;
-          normals[i] = FlattestNormal(points, points[i], nn, k + 1, &variation);
+          double variation = std::numeric_limits<double>::infinity();
+          normals[i] = Vec3f::UnitZ();
+          KeepFlattest(points, points[i], nn, k + 1, normals[i], variation);
           if (largest > k && variation > kFlatEnough) {
             tree.Knn(points[i], largest + 1, nn);
-            normals[i] = FlattestNormal(points, points[i], nn, k + 1, &variation);
+            KeepFlattest(points, points[i], nn, 2 * k + 1, normals[i], variation);
           }
           // Skip the query point itself (normally first); keep exactly k graph neighbours.
           size_t written = 0;

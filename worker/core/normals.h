@@ -6,10 +6,9 @@
 // than them), k is chosen among `neighbors` × 1, 2, 4, … (`scales` sizes) as the one whose
 // neighbourhood is flattest (least λ₀ / (λ₀ + λ₁ + λ₂), as in Pauly, Gross and Kobbelt 2002):
 // noise flattens out in a larger one, while near creases and tight bends the smaller one stays
-// flatter.
-// Signs are made consistent by walking a minimum spanning tree of the
-// neighbourhood graph with edge cost 1 − |n_i · n_j|, so that orientation crosses flat regions
-// first and sharp bends last. Each connected part is finally turned outward: the sign that
+// flatter. Signs are made consistent by walking a minimum spanning tree of the neighbourhood
+// graph with edge cost 1 − |n_i · n_j|, so that orientation crosses flat regions first and sharp
+// bends last. Each connected part is finally turned outward: the sign that
 // makes Σ (p_i − centroid) · n_i positive, which is outward for closed, roughly star-shaped parts.
 #pragma once
 
@@ -32,7 +31,8 @@ struct NormalEstimationParams {
 absl::Status Validate(const NormalEstimationParams& params);
 
 // Unit normals, one per point. Errors: kInvalidArgument (fewer than 3 points, bad params),
-// kCancelled. Cost: one query of the largest neighbourhood per point plus an O(n k log(n k)) spanning tree.
+// kCancelled. Cost: one k-NN query per point, one of the largest size where those k do not lie
+// flat, and an O(n k log(n k)) spanning tree.
 absl::StatusOr<std::vector<Vec3f>> EstimateNormals(std::span<const Vec3f> points, const NormalEstimationParams& params,
                                                    JobContext& ctx);
 

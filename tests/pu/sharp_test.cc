@@ -130,10 +130,15 @@ TEST(PuSharp, FiveFaceApexAndAcuteBaseEdgesAreKept) {
   EXPECT_TRUE(core::AnalyzeTopology(core::WeldByPosition(sharp.mesh)).watertight());
   double nearest = 1e300;
   for (const auto& v : sharp.mesh.vertices) nearest = std::min(nearest, (v.cast<double>() - apex).norm());
+  const core::TriangleTree tree(sharp.mesh);
+  double base_corners = 0;
+  for (const Vec3d& c : base)
+    base_corners = std::max(base_corners, std::sqrt(tree.Closest(pyramid.World(c)).distance2));
   const double diagonal = core::Diagonal(core::BoundingBox(sharp.mesh.vertices));
-  std::printf("  apex: nearest vertex %.3g, base edges %.3g of the diagonal\n", nearest / diagonal,
-              sharp.edges / diagonal);
+  std::printf("  apex: nearest vertex %.3g, base corners %.3g, base edges %.3g of the diagonal\n", nearest / diagonal,
+              base_corners / diagonal, sharp.edges / diagonal);
   EXPECT_LT(nearest, 1e-4 * diagonal);
+  EXPECT_LT(base_corners, 1e-4 * diagonal);
   EXPECT_LT(sharp.edges, 1.5e-3 * diagonal);
 }
 

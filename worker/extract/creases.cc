@@ -57,6 +57,12 @@ constexpr double kStuckMargin = 1e-3;
 constexpr double kCornerSpread = 0.02;
 constexpr double kCornerReach = 1.5;
 constexpr double kSameCornerShare = 0.25;
+// A vertex that must move farther than its edges to reach the corner (an acute tip that the
+// lattice cut off) may find F off by this share of the move: the fits round a corner at their
+// own scale, not the mesh's (a pentagonal pyramid's base corner at 100k points: F = 7e-5 there
+// against 5e-5 allowed by its 2.6e-3 edges, so the tip stayed cut by 2e-3 of the diagonal). The
+// planes of a corner rounded with radius r meet 0.73 r off F, a move of r or less away.
+constexpr double kMaxCornerMoveResidualShare = 0.05;
 
 struct CreaseHit {
   Vec3d point = Vec3d::Constant(std::numeric_limits<double>::quiet_NaN());  // The split point, or NaN.
@@ -498,7 +504,7 @@ void SnapVerticesOntoCorners(const core::ImplicitFunction& field, double cos_cre
                           eigen.eigenvectors().transpose() * rhs;
           const double distance = (x - p).norm();
           if (!x.allFinite() || distance > kCornerReach * longest ||
-              !OnSurface(field, x, kMaxCornerResidualShare * longest))
+              !OnSurface(field, x, std::max(kMaxCornerResidualShare * longest, kMaxCornerMoveResidualShare * distance)))
             continue;
           found[k] = Candidate{v, distance, longest, x};
         }

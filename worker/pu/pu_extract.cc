@@ -109,13 +109,14 @@ struct FineZone {
   }
 };
 
-// The stretch of an acute edge fit's crease (its two sheets' tangent planes' common line) inside
-// the fit's support, if any.
-std::optional<FineZone> AcuteCreaseOf(const LocalFit& fit, const SharpFit& sharp) {
+// The stretch of an edge fit's crease (its two sheets' tangent planes' common line) inside the
+// fit's support, if any, where its sheets' normals are 101.5° to 150° apart (an acute crease) or,
+// with `ridge`, more (the finer leaves leave those out).
+std::optional<FineZone> CreaseZoneOf(const LocalFit& fit, const SharpFit& sharp, bool ridge = false) {
   if (sharp.count != 2) return std::nullopt;
   const Sheet &a = sharp.sheets[0], &b = sharp.sheets[1];
   const double c = a.normal.dot(b.normal);
-  if (!(c < kAcuteCosine && c > kSharpestCosine)) return std::nullopt;
+  if (ridge ? !(c <= kSharpestCosine) : !(c < kAcuteCosine && c > kSharpestCosine)) return std::nullopt;
   // The common line's point nearest the fit's centre: x = centre + s na + t nb on both planes.
   const double ra = a.normal.dot(a.origin - fit.centre) + a.height.coefficients[0];
   const double rb = b.normal.dot(b.origin - fit.centre) + b.height.coefficients[0];
@@ -140,7 +141,7 @@ std::vector<FineZone> FineZones(const PuFunction::Impl& impl, const core::Box3* 
       const std::optional<Vec3d> corner = CornerPointOf(sharp);
       if (corner && (*corner - fit.centre).norm() <= fit.support_radius) zone = FineZone{*corner, *corner, true};
     } else {
-      zone = AcuteCreaseOf(fit, sharp);
+      zone = CreaseZoneOf(fit, sharp);
     }
     if (!zone) continue;
     const core::Box3 box = zone->Bounds();
@@ -148,6 +149,16 @@ std::vector<FineZone> FineZones(const PuFunction::Impl& impl, const core::Box3* 
     zones.push_back(*zone);
   }
   return zones;
+}
+
+// The creases of the edge fits sharper than the finer leaves go (CreaseZoneOf with `ridge`).
+std::vector<FineZone> SharpRidges(const PuFunction::Impl& impl) {
+  std::vector<FineZone> ridges;
+  for (const LocalFit& fit : impl.fits) {
+    if (fit.feature != Feature::kEdge) continue;
+    if (auto zone = CreaseZoneOf(fit, impl.sharp_fits[static_cast<size_t>(fit.sharp)], true)) ridges.push_back(*zone);
+  }
+  return ridges;
 }
 
 // Adds the cells of `level` that the box of half-size `reach` about a corner meets, or whose
@@ -280,7 +291,9 @@ absl::StatusOr<std::unique_ptr<ExtractionTree>> BuildExtractionTree(const PuFunc
 // The finer leaves at a corner or an acute crease can catch its tip (a 20° ridge's end) beyond a
 // neck that the leaves beside them miss: the tip comes out as a closed speck of its own. Such
 // specks (smaller than a finest leaf, within `reach` of a zone) are dropped; the tip is then cut
-// as it would be without the finer leaves. Returns the specks dropped.
+// as it would be without the finer leaves. The leaves of `cell_size` do the same along ridges
+// sharper than 30° (an 8-point hull's 28.6° edge at 100k points: three specks along it), so their
+// creases are zones here too. Returns the specks dropped.
 int64_t DropSpecksNearZones(std::span<const FineZone> zones, double reach, double finest_edge,
                             extract::IsosurfaceResult& result) {
   if (zones.empty()) return 0;
@@ -392,9 +405,11 @@ absl::StatusOr<WholeExtraction> ExtractWhole(const PuFunction& function, const P
   if (!surface.ok()) return surface.status();
   WholeExtraction out{*std::move(surface), std::move((*built)->fine_zones), (*built)->fine_reach};
   out.surface.stats.tree_seconds = tree_seconds;
+  std::vector<FineZone> specks_near = SharpRidges(impl);
+  const std::span<const FineZone> refined = speck_zones.empty() ? std::span<const FineZone>(out.zones) : speck_zones;
+  specks_near.insert(specks_near.end(), refined.begin(), refined.end());
   out.surface.stats.corner_specks =
-      DropSpecksNearZones(speck_zones.empty() ? std::span<const FineZone>(out.zones) : speck_zones, out.fine_reach,
-                          (*built)->finest_edge, out.surface);
+      DropSpecksNearZones(specks_near, out.fine_reach, (*built)->finest_edge, out.surface);
   return out;
 }
 
@@ -449,11 +464,14 @@ core::MeshTopology WeldedTopology(const core::TriangleMesh& mesh) {
   return core::AnalyzeTopology(core::WeldByPosition(mesh));
 }
 
-// Whether `a` has more components or more handles than `b` (both welded by position).
+// Whether `a` has more components, handles or edges without two faces than `b` (both welded by
+// position). Closing pierced edges can leave edges of four faces (an 8-point hull's 28.6° ridge
+// at 200k points: three).
 bool MoreTopology(const core::MeshTopology& a, const core::MeshTopology& b) {
   // Twice the handles over all components (2 × components − χ for closed ones).
   auto handles = [](const core::MeshTopology& t) { return 2 * t.components - t.euler_characteristic(); };
-  return a.components > b.components || handles(a) > handles(b);
+  auto open_edges = [](const core::MeshTopology& t) { return t.boundary_edges + t.non_manifold_edges; };
+  return a.components > b.components || handles(a) > handles(b) || open_edges(a) > open_edges(b);
 }
 
 }  // namespace

@@ -2,11 +2,12 @@
 """Writes exact convex polytopes (flat faces, sharp edges and corners) for lsqsurf-bench --data DIR.
 
     bench/polytopes.py -o /tmp/poly
-    build/release/bin/lsqsurf-bench --data /tmp/poly --models hull12 hull40 dodecahedron wedge pyramid \\
+    build/release/bin/lsqsurf-bench --data /tmp/poly --models hull8 hull12 hull40 dodecahedron wedge pyramid \\
         --sizes 200000 --method pu --face-normals
 
   hullN         the convex hull of N random points on an ellipsoid (seeded): corners of 3 to 7
-                faces, dihedral angles from nearly flat to acute.
+                faces, dihedral angles from nearly flat to acute. hull8 is flat, with ridges of
+                27° to 33° and faces 2° apart.
   dodecahedron  the regular one: 20 corners of 3 faces at 116.6°.
   wedge         a triangular prism with a 20° ridge: the sharpest edge a support has to split.
   pyramid       a pentagonal pyramid with sides at 40° to its base: an apex of five faces and
@@ -71,6 +72,7 @@ def main():
     parser.add_argument("-o", "--output", required=True, help="folder for the .obj files")
     args = parser.parse_args()
     os.makedirs(args.output, exist_ok=True)
+    write_hull(os.path.join(args.output, "hull8.obj"), random_hull(8, 3))
     write_hull(os.path.join(args.output, "hull12.obj"), random_hull(12, 12))
     write_hull(os.path.join(args.output, "hull40.obj"), random_hull(40, 40))
     write_hull(os.path.join(args.output, "dodecahedron.obj"), dodecahedron())

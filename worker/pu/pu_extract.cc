@@ -68,6 +68,8 @@ absl::flat_hash_set<uint64_t> CellsNearSharpFits(const PuFunction::Impl& impl, c
 // 200k points; the tips of a 50° edge cut up to 1.5 leaves deep), which halve with the leaf.
 constexpr int kFineExtraLevels = 1;
 constexpr double kFineReach = 2.0;
+// Thin walls get as many more levels as their thickness asks for, up to this many.
+constexpr int kMaxFineLevels = 3;
 // An edge fit's crease gets them where its sheets' normals are 101.5° to 150° apart. Up to there
 // the crease splits reach the crease (it lies at most 0.61 of a chord beyond it; a 96° edge of the
 // smooth spot model made a second extraction there for nothing), and the tips of sharper ridges
@@ -91,23 +93,54 @@ std::optional<Vec3d> CornerPointOf(const SharpFit& fit) {
   return normal_moments.ldlt().solve(offsets);
 }
 
-// Where the leaves are finer: a stretch of crease from `from` to `to`, or a corner (one point).
+// Where the leaves are finer: a stretch of crease from `from` to `to`, a corner (one point), or a
+// ball of radius `extent` about `from` (a thin wall).
 struct FineZone {
   Vec3d from, to;
   bool corner = false;
+  double extent = 0;
+  int levels = kFineExtraLevels;  // Finer than the leaves of `cell_size`.
 
   double Distance(const Vec3d& x) const {
     const Vec3d d = to - from;
     const double length2 = d.squaredNorm();
     const double t = length2 > 0 ? std::clamp((x - from).dot(d) / length2, 0.0, 1.0) : 0.0;
-    return (x - (from + t * d)).norm();
+    return std::max(0.0, (x - (from + t * d)).norm() - extent);
   }
   core::Box3 Bounds() const {
-    core::Box3 box(from);
-    box.extend(to);
+    core::Box3 box(from - Vec3d::Constant(extent));
+    box.extend(to + Vec3d::Constant(extent));
     return box;
   }
 };
+
+// A wall (two sheets of one fit facing apart by more than 162°) thinner than kWallLeafShare of a
+// leaf of `cell_size` gets, over its fit's support, leaves fine enough that it is that share of one
+// thick: lattice edges that cross it with both ends outside miss it, and holes open through it. A
+// plate 1.44e-3 thick turned off the axes, at 200k points (leaves 3.4e-3): Euler characteristic
+// -2248, closed with leaves of 1.7e-3; a smaller one as densely sampled (leaves 4.7e-3): -698 with
+// leaves of 2.3e-3, closed with 1.2e-3.
+constexpr double kWallCosine = -0.95, kWallLeafShare = 0.8;
+
+// The wall zone of an edge fit whose sheets face apart and lie closer than kWallLeafShare leaves
+// of `finest_edge` to each other at its centre.
+std::optional<FineZone> WallZoneOf(const LocalFit& fit, const SharpFit& sharp, double finest_edge) {
+  double thickness = std::numeric_limits<double>::infinity();
+  for (int i = 0; i < sharp.count; ++i) {
+    for (int j = i + 1; j < sharp.count; ++j) {
+      const Sheet &a = sharp.sheets[static_cast<size_t>(i)], &b = sharp.sheets[static_cast<size_t>(j)];
+      if (!(a.normal.dot(b.normal) < kWallCosine)) continue;
+      // Both sheets are signed distances near their planes, so their sum is minus the thickness.
+      const double between = -(a.Evaluate(fit.centre, nullptr) + b.Evaluate(fit.centre, nullptr));
+      if (between > 0) thickness = std::min(thickness, between);
+    }
+  }
+  if (!(thickness < kWallLeafShare * finest_edge)) return std::nullopt;
+  FineZone zone{fit.centre, fit.centre, true, fit.support_radius};
+  zone.levels =
+      std::min(kMaxFineLevels, static_cast<int>(std::ceil(std::log2(finest_edge * kWallLeafShare / thickness))));
+  return zone;
+}
 
 // The stretch of an edge fit's crease (its two sheets' tangent planes' common line) inside the
 // fit's support, if any, where its sheets' normals are 101.5° to 150° apart (an acute crease) or,
@@ -131,7 +164,7 @@ std::optional<FineZone> CreaseZoneOf(const LocalFit& fit, const SharpFit& sharp,
 // The fine zones of the corner fits (CornerPointOf, inside the fit's support) and, with
 // `acute_creases`, of the acute edge fits; with `region`, those within `reach` of it.
 std::vector<FineZone> FineZones(const PuFunction::Impl& impl, const core::Box3* region, double reach,
-                                bool acute_creases) {
+                                double finest_edge, bool acute_creases) {
   std::vector<FineZone> zones;
   for (const LocalFit& fit : impl.fits) {
     if (fit.feature == Feature::kSmooth || (fit.feature == Feature::kEdge && !acute_creases)) continue;
@@ -143,6 +176,7 @@ std::vector<FineZone> FineZones(const PuFunction::Impl& impl, const core::Box3* 
     } else {
       zone = CreaseZoneOf(fit, sharp);
     }
+    if (!zone) zone = WallZoneOf(fit, sharp, finest_edge);
     if (!zone) continue;
     const core::Box3 box = zone->Bounds();
     if (region != nullptr && !BoxMeetsRegion(box.center(), box.sizes() / 2 + Vec3d::Constant(reach), *region)) continue;
@@ -165,7 +199,7 @@ std::vector<FineZone> SharpRidges(const PuFunction::Impl& impl) {
 // centres lie within `reach` of a crease.
 void AddCellsNearZone(const extract::AdaptiveOctree& tree, int level, const FineZone& zone, double reach,
                       absl::flat_hash_set<uint64_t>& cells) {
-  if (zone.corner) return AddCellsInBox(tree, level, zone.from, Vec3d::Constant(reach), cells);
+  if (zone.corner) return AddCellsInBox(tree, level, zone.from, Vec3d::Constant(reach + zone.extent), cells);
   const core::Box3 box = zone.Bounds();
   absl::flat_hash_set<uint64_t> in_box;
   AddCellsInBox(tree, level, box.center(), box.sizes() / 2 + Vec3d::Constant(reach), in_box);
@@ -182,7 +216,7 @@ struct ExtractionTree {
   explicit ExtractionTree(const core::Box3& root, int depth) : tree(root, depth) {}
   extract::AdaptiveOctree tree;
   std::vector<extract::OctreeCell> start;
-  std::vector<FineZone> fine_zones;  // Refined within fine_reach to kFineExtraLevels more.
+  std::vector<FineZone> fine_zones;  // Refined within fine_reach to their levels more.
   double fine_reach = 0;
   double finest_edge = 0;  // Of the leaves `cell_size` asks for.
 };
@@ -225,7 +259,7 @@ absl::StatusOr<std::unique_ptr<ExtractionTree>> BuildExtractionTree(const PuFunc
   const int depth = levels->finest, band_level = levels->band;
   // Every tree has room for the fine zones' leaves, so that vertex keys have one scale in every
   // tile and edit of a function, whether or not it has such zones there.
-  const int corner_depth = std::min(depth + kFineExtraLevels, extract::AdaptiveOctree::kMaxDepth);
+  const int corner_depth = std::min(depth + kMaxFineLevels, extract::AdaptiveOctree::kMaxDepth);
   auto built = std::make_unique<ExtractionTree>(core::Box3(impl.origin, impl.origin + Vec3d::Constant(impl.root_edge)),
                                                 corner_depth);
   extract::AdaptiveOctree& tree = built->tree;
@@ -244,35 +278,40 @@ absl::StatusOr<std::unique_ptr<ExtractionTree>> BuildExtractionTree(const PuFunc
   absl::flat_hash_set<uint64_t> crease_cells = CellsNearSharpFits(impl, tree, band_level, depth, region);
   // In the fine zones the band goes on to corner_depth: the points in the finest cells within
   // fine_reach of a zone mark the finer band there.
-  extract::SurfaceBand corner_band;
+  absl::flat_hash_set<uint64_t> finer_start;
   built->finest_edge = tree.CellEdge(depth);
   built->fine_reach = kFineReach * tree.CellEdge(depth);
   if (corner_depth > depth && fine != FineLeaves::kNone) {
-    built->fine_zones = FineZones(impl, region, built->fine_reach, fine == FineLeaves::kCornersAndAcuteCreases);
-    absl::flat_hash_set<uint64_t> corner_cells;
-    for (const FineZone& zone : built->fine_zones) AddCellsNearZone(tree, depth, zone, built->fine_reach, corner_cells);
-    std::vector<Vec3f> corner_points;
-    if (!corner_cells.empty()) {
-      const double edge = tree.CellEdge(depth);
-      const int64_t n = int64_t{1} << depth;
-      const auto index = [&](double v) {
-        return static_cast<uint32_t>(std::clamp<int64_t>(static_cast<int64_t>(std::floor(v)), 0, n - 1));
-      };
+    built->fine_zones =
+        FineZones(impl, region, built->fine_reach, built->finest_edge, fine == FineLeaves::kCornersAndAcuteCreases);
+    const double edge = tree.CellEdge(depth);
+    const int64_t n = int64_t{1} << depth;
+    const auto index = [&](double v) {
+      return static_cast<uint32_t>(std::clamp<int64_t>(static_cast<int64_t>(std::floor(v)), 0, n - 1));
+    };
+    for (int extra = 1; depth + extra <= corner_depth; ++extra) {
+      absl::flat_hash_set<uint64_t> zone_cells;
+      for (const FineZone& zone : built->fine_zones) {
+        if (zone.levels == extra) AddCellsNearZone(tree, depth, zone, built->fine_reach, zone_cells);
+      }
+      if (zone_cells.empty()) continue;
+      std::vector<Vec3f> zone_points;
       for (const Vec3f& p : points) {
         const Vec3d g = (p.cast<double>() - tree.origin()) / edge;
-        if (corner_cells.contains(extract::CellKey({depth, index(g.x()), index(g.y()), index(g.z())}))) {
-          corner_points.push_back(p);
-        }
+        const uint64_t key = extract::CellKey({depth, index(g.x()), index(g.y()), index(g.z())});
+        if (zone_cells.contains(key)) zone_points.push_back(p);
       }
+      extract::SurfaceBand zone_band = extract::MarkSurfaceBand(tree, zone_points, depth + extra);
+      fine_band.ancestors.insert(zone_band.ancestors.begin(), zone_band.ancestors.end());
+      finer_start.insert(zone_band.occupied.begin(), zone_band.occupied.end());
+      crease_cells.insert(zone_cells.begin(), zone_cells.end());
     }
-    corner_band = extract::MarkSurfaceBand(tree, corner_points, corner_depth);
-    fine_band.ancestors.insert(corner_band.ancestors.begin(), corner_band.ancestors.end());
-    crease_cells.insert(corner_cells.begin(), corner_cells.end());
   }
   LSQSURF_RETURN_IF_ERROR(extract::RefineSurfaceBand(
       tree, band, band_level, fine_band,
       [&](const extract::OctreeCell& c) {
-        if (crease_cells.contains(extract::CellKey(c))) return true;
+        // Below `depth` only the fine zones' cells are visited, and they want their levels.
+        if (c.level > depth || crease_cells.contains(extract::CellKey(c))) return true;
         return extract::EstimateChordError(function, tree.CellCentre(c), tree.CellEdge(c.level)) > chord_bound;
       },
       ctx));
@@ -282,9 +321,9 @@ absl::StatusOr<std::unique_ptr<ExtractionTree>> BuildExtractionTree(const PuFunc
   LSQSURF_RETURN_IF_ERROR(ctx.CheckCancelled());
   // A start cell split for a corner holds no leaf (LeafContaining skips it); its points' finer
   // cells start there instead.
-  built->start.reserve(fine_band.occupied.size() + corner_band.occupied.size());
+  built->start.reserve(fine_band.occupied.size() + finer_start.size());
   for (uint64_t key : fine_band.occupied) built->start.push_back(extract::CellFromKey(key));
-  for (uint64_t key : corner_band.occupied) built->start.push_back(extract::CellFromKey(key));
+  for (uint64_t key : finer_start) built->start.push_back(extract::CellFromKey(key));
   return built;
 }
 

@@ -122,8 +122,8 @@ struct FineZone {
 // leaves of 2.3e-3, closed with 1.2e-3.
 constexpr double kWallCosine = -0.95, kWallLeafShare = 0.8;
 
-// The wall zone of an edge fit whose sheets face apart and lie closer than kWallLeafShare leaves
-// of `finest_edge` to each other at its centre.
+// The wall zone of a sharp fit (edge or corner) two of whose sheets face apart and lie closer than
+// kWallLeafShare leaves of `finest_edge` to each other at its centre.
 std::optional<FineZone> WallZoneOf(const LocalFit& fit, const SharpFit& sharp, double finest_edge) {
   double thickness = std::numeric_limits<double>::infinity();
   for (int i = 0; i < sharp.count; ++i) {
@@ -162,7 +162,8 @@ std::optional<FineZone> CreaseZoneOf(const LocalFit& fit, const SharpFit& sharp,
 }
 
 // The fine zones of the corner fits (CornerPointOf, inside the fit's support) and, with
-// `acute_creases`, of the acute edge fits; with `region`, those within `reach` of it.
+// `acute_creases`, of the acute edge fits, and the wall zones of the fits looked at (WallZoneOf);
+// with `region`, those within `reach` of it.
 std::vector<FineZone> FineZones(const PuFunction::Impl& impl, const core::Box3* region, double reach,
                                 double finest_edge, bool acute_creases) {
   std::vector<FineZone> zones;
@@ -276,8 +277,8 @@ absl::StatusOr<std::unique_ptr<ExtractionTree>> BuildExtractionTree(const PuFunc
   band.occupied.clear();
   const double chord_bound = params.chord_error * impl.Diagonal();
   absl::flat_hash_set<uint64_t> crease_cells = CellsNearSharpFits(impl, tree, band_level, depth, region);
-  // In the fine zones the band goes on to corner_depth: the points in the finest cells within
-  // fine_reach of a zone mark the finer band there.
+  // In the fine zones the band goes on to their levels: the points in the finest cells within
+  // fine_reach of a zone mark the finer band there, at every level a zone near them asks for.
   absl::flat_hash_set<uint64_t> finer_start;
   built->finest_edge = tree.CellEdge(depth);
   built->fine_reach = kFineReach * tree.CellEdge(depth);
@@ -289,22 +290,29 @@ absl::StatusOr<std::unique_ptr<ExtractionTree>> BuildExtractionTree(const PuFunc
     const auto index = [&](double v) {
       return static_cast<uint32_t>(std::clamp<int64_t>(static_cast<int64_t>(std::floor(v)), 0, n - 1));
     };
-    for (int extra = 1; depth + extra <= corner_depth; ++extra) {
-      absl::flat_hash_set<uint64_t> zone_cells;
-      for (const FineZone& zone : built->fine_zones) {
-        if (zone.levels == extra) AddCellsNearZone(tree, depth, zone, built->fine_reach, zone_cells);
-      }
-      if (zone_cells.empty()) continue;
-      std::vector<Vec3f> zone_points;
+    // Per number of extra levels (index − 1): the cells near zones asking for it, and their points.
+    std::vector<absl::flat_hash_set<uint64_t>> zone_cells(static_cast<size_t>(corner_depth - depth));
+    std::vector<std::vector<Vec3f>> zone_points(zone_cells.size());
+    for (const FineZone& zone : built->fine_zones) {
+      const size_t at = static_cast<size_t>(std::min(zone.levels, corner_depth - depth) - 1);
+      AddCellsNearZone(tree, depth, zone, built->fine_reach, zone_cells[at]);
+    }
+    if (std::any_of(zone_cells.begin(), zone_cells.end(), [](const auto& cells) { return !cells.empty(); })) {
       for (const Vec3f& p : points) {
         const Vec3d g = (p.cast<double>() - tree.origin()) / edge;
         const uint64_t key = extract::CellKey({depth, index(g.x()), index(g.y()), index(g.z())});
-        if (zone_cells.contains(key)) zone_points.push_back(p);
+        for (size_t at = 0; at < zone_cells.size(); ++at) {
+          if (zone_cells[at].contains(key)) zone_points[at].push_back(p);
+        }
       }
-      extract::SurfaceBand zone_band = extract::MarkSurfaceBand(tree, zone_points, depth + extra);
+    }
+    for (size_t at = 0; at < zone_cells.size(); ++at) {
+      if (zone_cells[at].empty()) continue;
+      const extract::SurfaceBand zone_band =
+          extract::MarkSurfaceBand(tree, zone_points[at], depth + static_cast<int>(at) + 1);
       fine_band.ancestors.insert(zone_band.ancestors.begin(), zone_band.ancestors.end());
       finer_start.insert(zone_band.occupied.begin(), zone_band.occupied.end());
-      crease_cells.insert(zone_cells.begin(), zone_cells.end());
+      crease_cells.insert(zone_cells[at].begin(), zone_cells[at].end());
     }
   }
   LSQSURF_RETURN_IF_ERROR(extract::RefineSurfaceBand(

@@ -7,6 +7,7 @@
 #include <random>
 
 #include "tests/test_shapes.h"
+#include "worker/core/sampling.h"
 
 namespace lsqsurf::core {
 namespace {
@@ -90,6 +91,47 @@ TEST(Normals, TwoSeparateSpheresAreBothOutward) {
   auto normals = EstimateNormals(a.positions, {}, ctx);
   ASSERT_TRUE(normals.ok());
   EXPECT_EQ(Compare(*normals, a.normals).flipped, 0);
+}
+
+// A plate whose thickness is about the spacing of its samples: each point's nearest neighbours
+// hold both faces, whose normals are parallel. Orientation must turn the two faces apart, not
+// copy one face's sign onto the other (as it did, leaving one face all inward).
+TEST(Normals, ThinPlateFacesPointApart) {
+  const double a = 0.05, b = a * 2 / 3, c = 7.2e-4;  // The bench plate cut to a sixth of its sides.
+  TriangleMesh plate;
+  const Eigen::Matrix3d turn =
+      (Eigen::AngleAxisd(0.54, Vec3d::UnitZ()) * Eigen::AngleAxisd(-0.30, Vec3d::UnitY())).toRotationMatrix();
+  for (int k = 0; k < 8; ++k) {
+    plate.vertices.push_back((turn * Vec3d((k & 1) ? a : -a, (k & 2) ? b : -b, (k & 4) ? c : -c)).cast<float>());
+  }
+  plate.faces = {{0, 2, 1}, {1, 2, 3}, {4, 5, 6}, {5, 7, 6}, {0, 1, 4}, {1, 5, 4},
+                 {2, 6, 3}, {3, 6, 7}, {0, 4, 2}, {2, 4, 6}, {1, 3, 5}, {3, 7, 5}};
+  const PointCloud cloud = SampleCloud(plate, 5'600, 7, 0.0, false);
+  const double spacing = std::sqrt(8 * a * b / static_cast<double>(cloud.size()));
+  ASSERT_GT(spacing, 2 * c);  // Thinner than the spacing (by 7 %).
+  LocalJobContext ctx;
+  auto normals = EstimateNormals(cloud.positions, {}, ctx);
+  ASSERT_TRUE(normals.ok()) << normals.status();
+  const Vec3f up = (turn * Vec3d::UnitZ()).cast<float>();
+  // Per face (below, above): points, and those turned the wrong way, all and 3 spacings in.
+  int faces[2] = {0, 0}, flipped[2] = {0, 0}, inner[2] = {0, 0}, inner_flipped[2] = {0, 0};
+  for (size_t i = 0; i < cloud.size(); ++i) {
+    const float side = cloud.normals[i].dot(up);
+    if (std::abs(side) < 0.5f) continue;  // The rim, a row of points that no normal fits.
+    const bool wrong = (*normals)[i].dot(cloud.normals[i]) < 0;
+    ++faces[side > 0];
+    flipped[side > 0] += wrong;
+    const Vec3d local = turn.transpose() * cloud.positions[i].cast<double>();
+    if (std::min(a - std::abs(local.x()), b - std::abs(local.y())) < 3 * spacing) continue;
+    ++inner[side > 0];
+    inner_flipped[side > 0] += wrong;
+  }
+  for (int side = 0; side < 2; ++side) {
+    std::printf("  %s: %d of %d points flipped; %d of the %d 3 spacings in\n", side ? "above" : "below", flipped[side],
+                faces[side], inner_flipped[side], inner[side]);
+    EXPECT_LT(flipped[side], faces[side] / 20);
+    EXPECT_EQ(inner_flipped[side], 0);
+  }
 }
 
 TEST(Normals, RejectsBadInput) {

@@ -2,6 +2,7 @@
 
 #include <Eigen/Eigenvalues>
 #include <algorithm>
+#include <cmath>
 #include <limits>
 #include <numeric>
 #include <queue>
@@ -75,6 +76,135 @@ void KeepFlattest(std::span<const Vec3f> points, const Vec3f& centre, const std:
   }
 }
 
+// A thin wall's two faces (or a narrow slot's two sides) closer than the spacing of the points
+// share neighbours: their normals are parallel, so the spanning tree would copy one face's sign
+// onto the other, the cheapest step of all. A closed surface's two layers always face opposite
+// ways (away from each other across a wall, towards each other across a slot), so such steps
+// must flip the sign instead; which of the two readings holds is left to the outward step.
+// Each point looks at the offsets of its graph neighbours along its normal: where they fall into
+// two flat layers parted by a clear gap, the neighbours beyond the gap whose normals are parallel
+// are across. Curved, noisy or creased neighbourhoods spread their offsets and show no such gap.
+constexpr double kLayerGapToSpread = 3.0;   // The gap is this many times either layer's spread,
+constexpr double kLayerGapToRadius = 0.05;  // and this share of the neighbourhood's radius at least.
+constexpr float kParallelCosine = 0.8f;     // Normals within 37° count as parallel.
+constexpr float kSteepShare = 0.25f;        // Steep: rising a quarter of its length along both normals.
+
+constexpr int kVotePasses = 3;  // Each pass shrinks a wrongly turned patch by about one ring.
+
+enum EdgeKind : uint8_t { kAlong = 0, kAcross = 1, kDoubtful = 2 };
+
+// Kinds of the directed graph edges i → knn[i * k + j], from i's side.
+void ClassifyEdges(std::span<const Vec3f> points, const std::vector<Vec3f>& normals, const std::vector<uint32_t>& knn,
+                   size_t k, size_t begin, size_t end, std::vector<uint8_t>& kinds, std::vector<Vec3f>& mid_gap) {
+  std::vector<std::pair<float, uint32_t>> offsets;
+  for (size_t i = begin; i < end; ++i) {
+    offsets.assign(1, {0.0f, UINT32_MAX});
+    float radius = 0;
+    for (size_t j = 0; j < k; ++j) {
+      const uint32_t q = knn[i * k + j];
+      const Vec3f d = points[q] - points[i];
+      radius = std::max(radius, d.norm());
+      if (q != i) offsets.push_back({d.dot(normals[i]), static_cast<uint32_t>(j)});
+    }
+    std::sort(offsets.begin(), offsets.end());
+    size_t split = 0;  // The widest gap lies between offsets[split - 1] and offsets[split].
+    float gap = 0;
+    for (size_t q = 1; q < offsets.size(); ++q) {
+      if (offsets[q].first - offsets[q - 1].first > gap) {
+        gap = offsets[q].first - offsets[q - 1].first;
+        split = q;
+      }
+    }
+    size_t own = 0;
+    while (offsets[own].second != UINT32_MAX) ++own;
+    const bool own_below = own < split;
+    const size_t own_count = own_below ? split : offsets.size() - split;
+    const float low_spread = offsets[split - 1].first - offsets.front().first;
+    const float high_spread = offsets.back().first - offsets[split].first;
+    const bool layered = split > 0 && own_count >= 4 && offsets.size() - own_count >= 2 &&
+                         gap > kLayerGapToSpread * std::max(low_spread, high_spread) &&
+                         gap > kLayerGapToRadius * radius;
+    if (layered) mid_gap[i] = 0.5f * (offsets[split - 1].first + offsets[split].first) * normals[i];
+    for (size_t q = 0; q < offsets.size(); ++q) {
+      if (offsets[q].second == UINT32_MAX) continue;
+      const size_t j = offsets[q].second;
+      const uint32_t other = knn[i * k + j];
+      const Vec3f d = points[other] - points[i];
+      const bool parallel = std::abs(normals[i].dot(normals[other])) > kParallelCosine;
+      uint8_t kind = kAlong;
+      if (layered && (q < split) != own_below && parallel) {
+        kind = kAcross;
+      } else if (parallel && std::abs(d.dot(normals[i])) > kSteepShare * d.norm() &&
+                 std::abs(d.dot(normals[other])) > kSteepShare * d.norm()) {
+        kind = kDoubtful;  // Possibly across a wall that this point cannot see as one: no vote.
+      }
+      kinds[i * k + j] = kind;
+    }
+  }
+}
+
+// Kinds of the graph's steps (kinds[i * k + j] for i → knn[i * k + j]) and the bridges: points
+// beside layered ones that are not layered themselves.
+absl::Status FindLayers(std::span<const Vec3f> points, const std::vector<Vec3f>& normals,
+                        const std::vector<uint32_t>& knn, size_t k, JobContext& ctx, std::vector<uint8_t>& kinds,
+                        std::vector<uint8_t>& bridge) {
+  const size_t n = points.size();
+  std::vector<Vec3f> mid_gap(n, Vec3f::Zero());  // From a layered point to the middle of its gap.
+  absl::Status status = ParallelFor(
+      n, 1024, [&](size_t begin, size_t end) { ClassifyEdges(points, normals, knn, k, begin, end, kinds, mid_gap); },
+      &ctx);
+  if (!status.ok()) return status;
+  // A step is across only if both ends see it so; a gap seen from one end only is a chance
+  // pattern of the samples (a curved sheet's outliers), and the step is doubtful.
+  std::vector<uint8_t> layered(n);
+  for (size_t i = 0; i < n; ++i) layered[i] = mid_gap[i] != Vec3f::Zero();
+  for (size_t i = 0; i < n; ++i) {
+    for (size_t j = 0; j < k; ++j) {
+      if (kinds[i * k + j] != kAcross) continue;
+      const uint32_t other = knn[i * k + j];
+      const Vec3f& middle = mid_gap[other];
+      if (!layered[other] || (points[i] - points[other]).dot(middle) < middle.squaredNorm()) {
+        kinds[i * k + j] = kDoubtful;
+      }
+    }
+  }
+  // A point beside layered ones that is not layered itself lies where the layers meet (the rim of
+  // a wall, the floor of a slot) or blur into each other: the tree takes its steps last.
+  for (size_t i = 0; i < n; ++i) {
+    if (layered[i]) continue;
+    for (size_t j = 0; j < k && !bridge[i]; ++j) bridge[i] = layered[knn[i * k + j]];
+  }
+  return absl::OkStatus();
+}
+
+absl::Status VoteSigns(const std::vector<uint64_t>& offset, const std::vector<uint32_t>& adjacency,
+                       const std::vector<uint8_t>& adjacency_kind, const std::vector<uint8_t>& bridge, JobContext& ctx,
+                       std::vector<Vec3f>& normals) {
+  const size_t n = normals.size();
+  // The tree reaches each point along one step only, and the doubtful steps it took last may
+  // disagree with most of a point's neighbours: let the trusted steps of every point vote.
+  for (int pass = 0; pass < kVotePasses; ++pass) {
+    const std::vector<Vec3f> voted = normals;
+    const absl::Status status = ParallelFor(
+        n, 4096,
+        [&](size_t begin, size_t end) {
+          for (size_t i = begin; i < end; ++i) {
+            float agreement = 0;
+            for (uint64_t e = offset[i]; e < offset[i + 1]; ++e) {
+              const uint32_t j = adjacency[e];
+              if (adjacency_kind[e] == kDoubtful || bridge[j]) continue;
+              const float dot = voted[i].dot(voted[j]);
+              agreement += (dot > 0) != (adjacency_kind[e] == kAcross) ? std::abs(dot) : -std::abs(dot);
+            }
+            if (agreement < 0) normals[i] = -voted[i];
+          }
+        },
+        &ctx);
+    if (!status.ok()) return status;
+  }
+  return absl::OkStatus();
+}
+
 }  // namespace
 
 absl::StatusOr<std::vector<Vec3f>> EstimateNormals(std::span<const Vec3f> points, const NormalEstimationParams& params,
@@ -113,6 +243,8 @@ absl::StatusOr<std::vector<Vec3f>> EstimateNormals(std::span<const Vec3f> points
       },
       &ctx, [&](double f) { pca_ctx.Report(f); });
   if (!status.ok()) return status;
+  std::vector<uint8_t> kinds(n * k, kAlong), bridge(n, 0);
+  if (absl::Status layers = FindLayers(points, normals, knn, k, ctx, kinds, bridge); !layers.ok()) return layers;
 
   // Symmetric adjacency (CSR) of the k-NN graph: orientation must be able to cross an edge
   // from either end.
@@ -126,15 +258,19 @@ absl::StatusOr<std::vector<Vec3f>> EstimateNormals(std::span<const Vec3f> points
   std::vector<uint64_t> offset(n + 1, 0);
   for (size_t i = 0; i < n; ++i) offset[i + 1] = offset[i] + degree[i];
   std::vector<uint32_t> adjacency(offset[n]);
+  std::vector<uint8_t> adjacency_kind(offset[n]);
   std::vector<uint64_t> cursor(offset.begin(), offset.end() - 1);
   for (size_t i = 0; i < n; ++i)
     for (size_t j = 0; j < k; ++j) {
       const uint32_t other = knn[i * k + j];
+      adjacency_kind[cursor[i]] = adjacency_kind[cursor[other]] = kinds[i * k + j];
       adjacency[cursor[i]++] = other;
       adjacency[cursor[other]++] = static_cast<uint32_t>(i);
     }
   knn.clear();
   knn.shrink_to_fit();
+  kinds.clear();
+  kinds.shrink_to_fit();
 
   // Prim's algorithm, one tree per connected component, seeded at the highest point whose
   // normal is turned towards +z (Hoppe's choice).
@@ -145,6 +281,7 @@ absl::StatusOr<std::vector<Vec3f>> EstimateNormals(std::span<const Vec3f> points
   struct Edge {
     float cost;
     uint32_t from, to;
+    bool across;
     bool operator>(const Edge& o) const { return cost > o.cost; }
   };
   std::priority_queue<Edge, std::vector<Edge>, std::greater<>> heap;
@@ -159,7 +296,8 @@ absl::StatusOr<std::vector<Vec3f>> EstimateNormals(std::span<const Vec3f> points
       for (uint64_t e = offset[from]; e < offset[from + 1]; ++e) {
         const uint32_t to = adjacency[e];
         if (component[to] != UINT32_MAX) continue;
-        heap.push({1.0f - std::abs(normals[from].dot(normals[to])), from, to});
+        const float bend = 1.0f - std::abs(normals[from].dot(normals[to]));
+        heap.push({bridge[from] || bridge[to] ? bend + 1.0f : bend, from, to, adjacency_kind[e] == kAcross});
       }
     };
     push_edges(seed);
@@ -168,7 +306,7 @@ absl::StatusOr<std::vector<Vec3f>> EstimateNormals(std::span<const Vec3f> points
       heap.pop();
       if (component[edge.to] != UINT32_MAX) continue;
       component[edge.to] = c;
-      if (normals[edge.from].dot(normals[edge.to]) < 0) normals[edge.to] = -normals[edge.to];
+      if ((normals[edge.from].dot(normals[edge.to]) < 0) != edge.across) normals[edge.to] = -normals[edge.to];
       push_edges(edge.to);
       if ((++visited & 0xFFFF) == 0) {
         if (ctx.IsCancelled()) return absl::CancelledError("cancelled by request");
@@ -176,6 +314,9 @@ absl::StatusOr<std::vector<Vec3f>> EstimateNormals(std::span<const Vec3f> points
       }
     }
   }
+
+  status = VoteSigns(offset, adjacency, adjacency_kind, bridge, ctx, normals);
+  if (!status.ok()) return status;
 
   PointAwayFromCentroids(points, component, components, normals);
   orient_ctx.Report(1.0);

@@ -8,7 +8,10 @@
 // noise flattens out in a larger one, while near creases and tight bends the smaller one stays
 // flatter. Signs are made consistent by walking a minimum spanning tree of the neighbourhood
 // graph with edge cost 1 − |n_i · n_j|, so that orientation crosses flat regions first and sharp
-// bends last. Each connected part is finally turned outward: the sign that
+// bends last. Where a wall (or a slot) is thinner than the spacing, a point's neighbours hold both
+// layers: steps between the layers flip the sign instead of copying it, points where the layers
+// meet are reached last, and three passes let each point's trusted steps outvote the one step
+// that reached it. Each connected part is finally turned outward: the sign that
 // makes Σ (p_i − centroid) · n_i positive, which is outward for closed, roughly star-shaped parts.
 #pragma once
 

@@ -119,7 +119,8 @@ void ClassifyEdges(std::span<const Vec3f> points, const std::vector<Vec3f>& norm
     while (offsets[own].second != UINT32_MAX) ++own;
     const bool own_below = own < split;
     const size_t own_count = own_below ? split : offsets.size() - split;
-    const float low_spread = offsets[split - 1].first - offsets.front().first;
+    // No gap at all (split 0) where every neighbour lies in the point's plane, as on a flat face.
+    const float low_spread = split > 0 ? offsets[split - 1].first - offsets.front().first : 0.0f;
     const float high_spread = offsets.back().first - offsets[split].first;
     const bool layered = split > 0 && own_count >= 4 && offsets.size() - own_count >= 2 &&
                          gap > kLayerGapToSpread * std::max(low_spread, high_spread) &&

@@ -96,6 +96,7 @@ struct IsosurfaceStats {
   int64_t corners_left_coarse = 0;  // 1 where finer leaves at corners added components or handles: left out (PU).
   int64_t creases_left_coarse = 0;  // The same for finer leaves along acute creases (PU).
   int64_t topology_checks = 0;      // 1 where a surface without finer leaves was extracted to compare (PU).
+  int64_t wall_splits = 0;  // Leaves split where the lattice missed a probe's side (J1aIsosurfaceParams::probes).
   // Wall time of the stages, seconds.
   double tree_seconds = 0;      // Building an adaptive tree (J1a extractors).
   double tracking_seconds = 0;  // Following the surface: corner values and sign tests.

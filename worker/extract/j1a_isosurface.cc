@@ -1,10 +1,15 @@
 #include "worker/extract/j1a_isosurface.h"
 
 #include <algorithm>
+#include <array>
 #include <chrono>
 #include <cmath>
+#include <iterator>
 #include <limits>
+#include <optional>
+#include <string>
 
+#include "absl/container/flat_hash_map.h"
 #include "absl/container/flat_hash_set.h"
 #include "worker/core/parallel.h"
 #include "worker/core/status.h"
@@ -107,38 +112,18 @@ absl::Status RefineSurfaceBand(AdaptiveOctree& tree, const SurfaceBand& coarse, 
   return absl::OkStatus();
 }
 
-absl::StatusOr<IsosurfaceResult> ExtractIsosurfaceJ1a(const ImplicitFunction& field, std::span<const Vec3f> seeds,
-                                                      const J1aIsosurfaceParams& params, JobContext& ctx) {
-  if (!(params.cell_size > 0) || !std::isfinite(params.cell_size)) {
-    return absl::InvalidArgumentError("cell_size must be a positive number");
-  }
-  LSQSURF_RETURN_IF_ERROR(Validate(params.marching));
-  if (seeds.empty()) return absl::InvalidArgumentError("isosurface extraction needs seed points");
-  core::SubContext build_ctx(ctx, "building the J1a tree", 0.0, 0.1);
-  const Box3 box = core::BoundingBox(seeds);
-  // Two finest cells of margin on every side, then the smallest power-of-two cube around it.
-  const double extent = box.sizes().maxCoeff() + 4 * params.cell_size;
-  const int depth = std::max(1, static_cast<int>(std::ceil(std::log2(extent / params.cell_size))));
-  if (depth > AdaptiveOctree::kMaxDepth) {
-    return absl::InvalidArgumentError("cell_size is too small for the extent of the data");
-  }
-  const double side = params.cell_size * std::ldexp(1.0, depth);
-  const Vec3d centre = box.center();
-  AdaptiveOctree tree(Box3(centre - Vec3d::Constant(side / 2), centre + Vec3d::Constant(side / 2)), depth);
-  SurfaceBand band = MarkSurfaceBand(tree, seeds, depth);
-  tree.Refine([&](const OctreeCell& c) { return band.ancestors.contains(CellKey(c)); });
-  band.ancestors.clear();
-  tree.Balance();
-  LSQSURF_RETURN_IF_ERROR(ctx.CheckCancelled());
-  build_ctx.Report(1.0);
-  std::vector<OctreeCell> start;
-  start.reserve(band.occupied.size());
-  for (uint64_t key : band.occupied) start.push_back(CellFromKey(key));
-  core::SubContext extract_ctx(ctx, "tracking surface", 0.1, 1.0);
-  return ExtractIsosurfaceOnTree(field, tree, start, params.max_leaves, params.marching, extract_ctx);
-}
-
 namespace {
+
+// The leaf whose cube holds `p` (clamped into the root), or nullptr.
+const OctreeCell* LeafHolding(const AdaptiveOctree& tree, const Vec3f& p) {
+  const int depth = tree.max_depth();
+  const int64_t n = int64_t{1} << depth;
+  const Vec3d g = (p.cast<double>() - tree.origin()) / tree.CellEdge(depth);
+  const auto index = [&](double v) {
+    return static_cast<uint32_t>(std::clamp<int64_t>(static_cast<int64_t>(std::floor(v)), 0, n - 1));
+  };
+  return tree.LeafContaining({depth, index(g.x()), index(g.y()), index(g.z())});
+}
 
 struct LeafWork {
   std::vector<TetKeys> tets;          // All tetrahedra; after the sign test, the crossed ones.
@@ -251,14 +236,11 @@ absl::StatusOr<absl::flat_hash_map<VertexKey, Vec3d>> ClosePiercedEdges(
   return pierced;
 }
 
-}  // namespace
-
-absl::StatusOr<IsosurfaceResult> ExtractIsosurfaceOnTree(const ImplicitFunction& field, const AdaptiveOctree& tree,
-                                                         std::span<const OctreeCell> start, int64_t max_leaves,
-                                                         const MarchingOptions& marching, JobContext& ctx,
-                                                         const Box3* within) {
-  LSQSURF_RETURN_IF_ERROR(Validate(marching));
-  if (start.empty()) return absl::InvalidArgumentError("isosurface extraction needs start cells");
+// ExtractIsosurfaceOnTree with corner values known already (`corner_values`) and `stats` so far.
+absl::StatusOr<IsosurfaceResult> TrackAndMarch(const ImplicitFunction& field, const AdaptiveOctree& tree,
+                                               std::span<const OctreeCell> start, int64_t max_leaves,
+                                               const MarchingOptions& marching, JobContext& ctx, const Box3* within,
+                                               internal::CornerValues& corner_values, IsosurfaceStats stats) {
   auto inside = [&](const OctreeCell& c) {
     if (within == nullptr) return true;
     const double edge = tree.CellEdge(c.level);
@@ -269,7 +251,6 @@ absl::StatusOr<IsosurfaceResult> ExtractIsosurfaceOnTree(const ImplicitFunction&
   // neighbours of a leaf are found in parallel, only the shared vertex cache is filled serially.
   core::SubContext track_ctx(ctx, "tracking surface", 0.0, 0.75);
   const auto tracking_start = std::chrono::steady_clock::now();
-  IsosurfaceStats stats;
   absl::flat_hash_set<uint64_t> visited;
   std::vector<OctreeCell> frontier;
   for (const OctreeCell& cell : start) {
@@ -281,7 +262,6 @@ absl::StatusOr<IsosurfaceResult> ExtractIsosurfaceOnTree(const ImplicitFunction&
   // Bounds the memory of a batch (the tetrahedra of every leaf in it) on large first frontiers.
   constexpr size_t kLeavesPerBatch = 16384;
   std::vector<LeafWork> work(std::min(kLeavesPerBatch, frontier.size()));
-  internal::CornerValues corner_values;
   const auto& values = corner_values.values();
   const auto position = [&](internal::CornerKey k) { return tree.Position(k); };
   std::vector<TetKeys> crossed_tets;
@@ -369,6 +349,205 @@ absl::StatusOr<IsosurfaceResult> ExtractIsosurfaceOnTree(const ImplicitFunction&
   core::SubContext finish_ctx(ctx, "finishing the surface", 0.9, 1.0);
   LSQSURF_RETURN_IF_ERROR(internal::FinishSurface(field, marching, *result, finish_ctx));
   return result;
+}
+
+// Where the lattice edges of a leaf's tetrahedra (`tets`) cross the middle plane of one of the
+// `probes` named in `held` with both ends on the other side of the probe's, within kNearLeaves of
+// a leaf edge from it (its plane stands for a curved wall only that near): the crossing points,
+// each with the side F should give it there, at most `limit` (one per probe).
+constexpr double kNearLeaves = 0.75;
+std::vector<SideProbe> MissedCrossings(const AdaptiveOctree& tree, const OctreeCell& leaf,
+                                       std::span<const TetKeys> tets,
+                                       const absl::flat_hash_map<VertexKey, FieldValue>& values,
+                                       std::span<const SideProbe> probes, std::span<const uint32_t> held,
+                                       size_t limit) {
+  std::vector<SideProbe> missed;
+  const double near = kNearLeaves * tree.CellEdge(leaf.level);
+  for (uint32_t index : held) {
+    const SideProbe& probe = probes[index];
+    const Vec3d p = probe.point.cast<double>(), n = probe.normal.cast<double>();
+    const auto wrong_side = [&](VertexKey k) {
+      const double v = values.find(k)->second.value;
+      return !std::isnan(v) && (v < 0) != probe.inside;
+    };
+    std::optional<Vec3d> crossing;
+    for (const TetKeys& t : tets) {
+      for (size_t a = 0; a < 4 && !crossing; ++a) {
+        for (size_t c = a + 1; c < 4 && !crossing; ++c) {
+          const Vec3d xa = tree.Position(t[a]), xc = tree.Position(t[c]);
+          const double da = n.dot(xa - p), dc = n.dot(xc - p);
+          if ((da < 0) == (dc < 0) || !wrong_side(t[a]) || !wrong_side(t[c])) continue;
+          const Vec3d x = xa + (da / (da - dc)) * (xc - xa);
+          if ((x - p).norm() <= near) crossing = x;
+        }
+      }
+      if (crossing) break;
+    }
+    if (!crossing) continue;
+    missed.push_back({crossing->cast<float>(), probe.normal, probe.inside});
+    if (missed.size() == limit) break;
+  }
+  return missed;
+}
+
+// Splits, up to `levels` times, the leaves where the lattice misses a probe's side: an edge of
+// their tetrahedra crosses the probe's middle plane near it with both ends on the other side (a
+// wall thinner than the edge passes between them; MissedCrossings), and F where it crosses
+// confirms the probe's side (beyond a plate's rim the plane goes on, the wall does not). The corners'
+// values stay in `corner_values` for the extraction that follows.
+struct ProbeSplits {
+  int64_t leaves = 0;  // Split.
+  int rounds = 0;      // That split any.
+};
+absl::StatusOr<ProbeSplits> SplitWhereProbesMissed(const ImplicitFunction& field, AdaptiveOctree& tree,
+                                                   std::span<const SideProbe> probes, int levels,
+                                                   internal::CornerValues& corner_values, IsosurfaceStats& stats,
+                                                   JobContext& ctx) {
+  const auto position = [&](internal::CornerKey k) { return tree.Position(k); };
+  // One crossing confirmed per leaf is enough; a few candidates each keep the evaluations few.
+  constexpr size_t kCandidatesPerLeaf = 6;
+  ProbeSplits splits;
+  for (int round = 0; round < levels; ++round) {
+    absl::flat_hash_map<uint64_t, std::vector<uint32_t>> held;  // Probes by the leaf holding them.
+    // A probe also speaks for the leaves beside its own along its plane, which its middle plane may
+    // cut where they hold no probe of their own.
+    for (uint32_t i = 0; i < probes.size(); ++i) {
+      const OctreeCell* own = LeafHolding(tree, probes[i].point);
+      if (own == nullptr) continue;
+      const Vec3f u = probes[i].normal.unitOrthogonal(), v = probes[i].normal.cross(u);
+      const float step = static_cast<float>(tree.CellEdge(own->level) / 2);
+      std::array<uint64_t, 5> seen{};
+      size_t count = 0;
+      for (const Vec3f& offset :
+           {Vec3f::Zero().eval(), (step * u).eval(), (-step * u).eval(), (step * v).eval(), (-step * v).eval()}) {
+        const OctreeCell* leaf = LeafHolding(tree, probes[i].point + offset);
+        if (leaf == nullptr || leaf->level >= tree.max_depth()) continue;
+        const uint64_t key = CellKey(*leaf);
+        if (std::find(seen.begin(), seen.begin() + static_cast<std::ptrdiff_t>(count), key) !=
+            seen.begin() + static_cast<std::ptrdiff_t>(count)) {
+          continue;
+        }
+        seen[count++] = key;
+        held[key].push_back(i);
+      }
+    }
+    std::vector<std::pair<uint64_t, std::vector<uint32_t>>> leaves(std::make_move_iterator(held.begin()),
+                                                                   std::make_move_iterator(held.end()));
+    held.clear();
+    std::sort(leaves.begin(), leaves.end(), [](const auto& x, const auto& y) { return x.first < y.first; });
+    // Every corner of these leaves is evaluated: they hold the surface, so tracking needs them too.
+    std::vector<std::vector<TetKeys>> tets(leaves.size());
+    LSQSURF_RETURN_IF_ERROR(core::ParallelFor(
+        leaves.size(), 64,
+        [&](size_t b, size_t e) {
+          for (size_t i = b; i < e; ++i) AppendJ1aTetrahedra(tree, CellFromKey(leaves[i].first), tets[i]);
+        },
+        &ctx));
+    for (const auto& leaf_tets : tets) {
+      for (const TetKeys& t : leaf_tets) {
+        for (VertexKey k : t) corner_values.Need(k);
+      }
+    }
+    LSQSURF_RETURN_IF_ERROR(corner_values.Evaluate(field, position, stats, ctx));
+    const auto& values = corner_values.values();
+    std::vector<std::vector<SideProbe>> leaf_candidates(leaves.size());
+    LSQSURF_RETURN_IF_ERROR(core::ParallelFor(
+        leaves.size(), 16,
+        [&](size_t b, size_t e) {
+          for (size_t i = b; i < e; ++i) {
+            leaf_candidates[i] = MissedCrossings(tree, CellFromKey(leaves[i].first), tets[i], values, probes,
+                                                 leaves[i].second, kCandidatesPerLeaf);
+          }
+        },
+        &ctx));
+    tets = {};
+    std::vector<SideProbe> candidates;
+    std::vector<size_t> candidate_leaf;
+    for (size_t i = 0; i < leaves.size(); ++i) {
+      candidates.insert(candidates.end(), leaf_candidates[i].begin(), leaf_candidates[i].end());
+      candidate_leaf.resize(candidates.size(), i);
+    }
+    std::vector<Vec3d> at(candidates.size());
+    std::vector<double> value(candidates.size());
+    for (size_t k = 0; k < candidates.size(); ++k) at[k] = candidates[k].point.cast<double>();
+    LSQSURF_RETURN_IF_ERROR(field.ValueOnlyBatch(at, value, &ctx));
+    stats.field_evaluations += static_cast<int64_t>(candidates.size());
+    int64_t split = 0;
+    for (size_t k = 0; k < candidates.size(); ++k) {
+      const OctreeCell leaf = CellFromKey(leaves[candidate_leaf[k]].first);
+      if (std::isnan(value[k]) || (value[k] < 0) != candidates[k].inside || !tree.IsLeaf(leaf)) continue;
+      tree.Split(leaf);
+      ++split;
+    }
+    if (split == 0) break;
+    splits.leaves += split;
+    ++splits.rounds;
+    tree.Balance();
+    LSQSURF_RETURN_IF_ERROR(ctx.CheckCancelled());
+  }
+  return splits;
+}
+
+}  // namespace
+
+absl::StatusOr<IsosurfaceResult> ExtractIsosurfaceOnTree(const ImplicitFunction& field, const AdaptiveOctree& tree,
+                                                         std::span<const OctreeCell> start, int64_t max_leaves,
+                                                         const MarchingOptions& marching, JobContext& ctx,
+                                                         const Box3* within) {
+  LSQSURF_RETURN_IF_ERROR(Validate(marching));
+  if (start.empty()) return absl::InvalidArgumentError("isosurface extraction needs start cells");
+  internal::CornerValues corner_values;
+  return TrackAndMarch(field, tree, start, max_leaves, marching, ctx, within, corner_values, {});
+}
+
+absl::StatusOr<IsosurfaceResult> ExtractIsosurfaceJ1a(const ImplicitFunction& field, std::span<const Vec3f> seeds,
+                                                      const J1aIsosurfaceParams& params, JobContext& ctx) {
+  if (!(params.cell_size > 0) || !std::isfinite(params.cell_size)) {
+    return absl::InvalidArgumentError("cell_size must be a positive number");
+  }
+  LSQSURF_RETURN_IF_ERROR(Validate(params.marching));
+  if (seeds.empty()) return absl::InvalidArgumentError("isosurface extraction needs seed points");
+  if (params.probe_levels < 0 || params.probe_levels > kMaxProbeLevels) {
+    return absl::InvalidArgumentError("probe_levels must be 0 to " + std::to_string(kMaxProbeLevels));
+  }
+  const int finer = params.probes.empty() ? 0 : params.probe_levels;
+  core::SubContext build_ctx(ctx, "building the J1a tree", 0.0, 0.1);
+  const Box3 box = core::BoundingBox(seeds);
+  // Two finest cells of margin on every side, then the smallest power-of-two cube around it.
+  const double extent = box.sizes().maxCoeff() + 4 * params.cell_size;
+  const int depth = std::max(1, static_cast<int>(std::ceil(std::log2(extent / params.cell_size))));
+  if (depth + finer > AdaptiveOctree::kMaxDepth) {
+    return absl::InvalidArgumentError("cell_size is too small for the extent of the data");
+  }
+  const double side = params.cell_size * std::ldexp(1.0, depth);
+  const Vec3d centre = box.center();
+  AdaptiveOctree tree(Box3(centre - Vec3d::Constant(side / 2), centre + Vec3d::Constant(side / 2)), depth + finer);
+  SurfaceBand band = MarkSurfaceBand(tree, seeds, depth);
+  tree.Refine([&](const OctreeCell& c) { return band.ancestors.contains(CellKey(c)); });
+  band.ancestors.clear();
+  tree.Balance();
+  LSQSURF_RETURN_IF_ERROR(ctx.CheckCancelled());
+  IsosurfaceStats stats;
+  internal::CornerValues corner_values;
+  MarchingOptions marching = params.marching;
+  if (finer > 0) {
+    auto split = SplitWhereProbesMissed(field, tree, params.probes, finer, corner_values, stats, build_ctx);
+    if (!split.ok()) return split.status();
+    stats.wall_splits = split->leaves;
+    // The holes the filling closes are counted in edges: a slit as long has twice as many per level.
+    marching.max_hole_edges <<= split->rounds;
+  }
+  build_ctx.Report(1.0);
+  // The leaves holding seeds (split ones hold none: their children start instead).
+  absl::flat_hash_set<uint64_t> start_keys;
+  for (const Vec3f& seed : seeds) {
+    if (const OctreeCell* leaf = LeafHolding(tree, seed)) start_keys.insert(CellKey(*leaf));
+  }
+  std::vector<OctreeCell> start;
+  start.reserve(start_keys.size());
+  for (uint64_t key : start_keys) start.push_back(CellFromKey(key));
+  core::SubContext extract_ctx(ctx, "tracking surface", 0.1, 1.0);
+  return TrackAndMarch(field, tree, start, params.max_leaves, marching, extract_ctx, nullptr, corner_values, stats);
 }
 
 absl::StatusOr<IsosurfaceResult> MarchLeaves(const ImplicitFunction& field, const AdaptiveOctree& tree,

@@ -22,14 +22,30 @@
 
 namespace lsqsurf::extract {
 
+// A point known to lie inside the surface (the middle of a wall) or outside it (of a gap), and the
+// normal of the wall's or gap's middle plane there.
+struct SideProbe {
+  Vec3f point = Vec3f::Zero();
+  Vec3f normal = Vec3f::UnitZ();
+  bool inside = true;
+};
+
 struct J1aIsosurfaceParams {
   double cell_size = 0.0;           // Edge of the finest leaves, model units; must be > 0.
   int64_t max_leaves = 20'000'000;  // Visited leaves before failing with kResourceExhausted.
   MarchingOptions marching;
+  // Points that must come out on their side of the surface (thin walls and gaps, thin_walls.h):
+  // a leaf is split, up to `probe_levels` times, where an edge of its tetrahedra crosses a nearby
+  // probe's middle plane with F putting both ends on the other side (the wall passes between
+  // them), and F where it crosses confirms the probe's side.
+  std::span<const SideProbe> probes;
+  int probe_levels = 0;  // 0..kMaxProbeLevels.
 };
+inline constexpr int kMaxProbeLevels = 3;
 
 // Errors: kInvalidArgument (bad params, no seeds, more than 2^19 finest cells per axis),
-// kResourceExhausted, kCancelled. `cells_visited` counts leaves, `surface_cells` surface leaves.
+// kResourceExhausted, kCancelled. `cells_visited` counts leaves, `surface_cells` surface leaves,
+// `wall_splits` the leaves split for the probes.
 absl::StatusOr<IsosurfaceResult> ExtractIsosurfaceJ1a(const ImplicitFunction& field, std::span<const Vec3f> seeds,
                                                       const J1aIsosurfaceParams& params, JobContext& ctx);
 

@@ -20,6 +20,7 @@
 #include "worker/io/draco_codec.h"
 #include "worker/io/mesh_part.h"
 #include "worker/jobs/pictures.h"
+#include "worker/jobs/shared_extraction.h"
 #include "worker/jobs/surface_input.h"
 #include "worker/render/render.h"
 
@@ -47,7 +48,11 @@ void AddExtractionHints(core::ParamTable<P>& t) {
   t.template Real<&P::cell_size>("cell_size", 0.1, 16, "h",
                                  "spacing of the extraction vertices (J1a leaves are twice as large, with vertices at "
                                  "their centres and face and edge midpoints)")
-      .template Integer<&P::refine_steps>("refine_steps", 0, 20, "steps", "root-refinement steps per crossing edge");
+      .template Integer<&P::refine_steps>("refine_steps", 0, 20, "steps", "root-refinement steps per crossing edge")
+      .template Integer<&P::wall_levels>("wall_levels", -1, extract::kMaxProbeLevels, "levels",
+                                         "times at most that a J1a leaf is split where its tetrahedra miss a wall or "
+                                         "gap thinner than they are (found where points face against each other); "
+                                         "0 = off, -1 = chosen (2; iaMLS: 0 on noisy clouds)");
 }
 
 const core::ParamTable<IamlsJobParams>& IamlsTable() {
@@ -107,39 +112,6 @@ void AddStatistic(Statistics* stats, std::string name, double value) {
     }
   }
   stats->emplace_back(std::move(name), value);
-}
-
-// Where the methods without an extractor of their own hand their function: the one shared
-// extractor, on J1a leaves of twice the vertex spacing (a leaf has vertices at half its edge)
-// or on a uniform grid of the vertex spacing.
-struct ExtractionHints {
-  double vertex_spacing = 0;  // Model units.
-  int refine_steps = 3;
-  SurfaceExtractor extractor = SurfaceExtractor::kJ1a;
-  int64_t memory_bytes = 0;  // The job's memory limit (RunEnvironment::memory_bytes).
-};
-
-absl::StatusOr<extract::IsosurfaceResult> ExtractShared(const core::ImplicitFunction& field,
-                                                        const core::PointCloud& cloud, const ExtractionHints& hints,
-                                                        core::JobContext& ctx) {
-  extract::MarchingOptions marching;
-  marching.refine_steps = hints.refine_steps;
-  // Holes whose border has up to 32 edges (about ten cells around: a few kernel widths across)
-  // are slits where the field's trust ended just short of its zero; an open scan's border is far
-  // longer.
-  constexpr int kClosedHoleEdges = 32;
-  marching.max_hole_edges = kClosedHoleEdges;
-  if (hints.extractor == SurfaceExtractor::kJ1a) {
-    return extract::ExtractIsosurfaceJ1a(
-        field, cloud.positions,
-        {2 * hints.vertex_spacing, LeavesWithin(hints.memory_bytes, extract::J1aIsosurfaceParams{}.max_leaves),
-         marching},
-        ctx);
-  }
-  // A grid cube holds about what a J1a leaf does (its corners, tetrahedra and crossings).
-  return extract::ExtractIsosurface(
-      field, cloud.positions,
-      {hints.vertex_spacing, LeavesWithin(hints.memory_bytes, extract::IsosurfaceParams{}.max_cells), marching}, ctx);
 }
 
 using StatFn = std::function<void(std::string, double)>;
@@ -212,8 +184,14 @@ absl::StatusOr<extract::IsosurfaceResult> RunIamls(const IamlsJobParams& p, cons
   if (!fit.residuals.empty()) stat("final_residual_over_h", fit.residuals.back());
   const auto extract_start = std::chrono::steady_clock::now();
   core::SubContext extract_ctx(ctx, "extracting surface", 0.3, 1.0);
+  // Wall probes as the thin walls of the field: on unless the noise choice found the cloud noisy.
+  const int wall_levels = p.wall_levels >= 0
+                              ? p.wall_levels
+                              : (mls::ChooseIamlsParameters(fit.noise_ratio).thin_walls ? kChosenWallLevels : 0);
+  stat("wall_levels_used", wall_levels);
   auto extracted = ExtractShared(
-      **field, cloud, {p.cell_size * (*field)->spacing(), p.refine_steps, p.extractor, run.memory_bytes}, extract_ctx);
+      **field, cloud, {p.cell_size * (*field)->spacing(), p.refine_steps, wall_levels, p.extractor, run.memory_bytes},
+      extract_ctx);
   if (!extracted.ok()) return extracted;
   stat("extract_seconds", core::SecondsSince(extract_start));
   if (p.min_component > 0) {
@@ -237,9 +215,11 @@ absl::StatusOr<extract::IsosurfaceResult> RunOnSharedExtractor(const P& p, const
   stat("spacing", (*field)->spacing());
   const auto start = std::chrono::steady_clock::now();
   core::SubContext extract_ctx(ctx, "extracting surface", 0.05, 1.0);
-  auto extracted = ExtractShared(
-      **field, cloud, {p.cell_size * (*field)->spacing(), p.refine_steps, SurfaceExtractor::kJ1a, run.memory_bytes},
-      extract_ctx);
+  auto extracted =
+      ExtractShared(**field, cloud,
+                    {p.cell_size * (*field)->spacing(), p.refine_steps,
+                     p.wall_levels >= 0 ? p.wall_levels : kChosenWallLevels, SurfaceExtractor::kJ1a, run.memory_bytes},
+                    extract_ctx);
   if (extracted.ok()) stat("extract_seconds", core::SecondsSince(start));
   return extracted;
 }
@@ -688,6 +668,7 @@ void AddMeshStatistics(const core::TriangleMesh& mesh, const extract::Isosurface
   if (extraction.corners_left_coarse > 0) stat("corners_left_coarse", 1);
   if (extraction.creases_left_coarse > 0) stat("creases_left_coarse", 1);
   if (extraction.topology_checks > 0) stat("topology_checks", 1);
+  if (extraction.wall_splits > 0) stat("wall_splits", static_cast<double>(extraction.wall_splits));
   if (extraction.tree_seconds > 0) stat("tree_seconds", extraction.tree_seconds);
   stat("tracking_seconds", extraction.tracking_seconds);
   stat("marching_seconds", extraction.marching_seconds);

@@ -42,6 +42,10 @@ struct IamlsJobParams {
   mls::IamlsParams fit;
   double cell_size = 1.5;  // Spacing of the extraction vertices in units of h.
   int refine_steps = 3;    // Root-refinement steps per crossing edge.
+  // Splits at most of a leaf whose tetrahedra miss a wall or gap thinner than them, 0..3; -1 =
+  // chosen: 2 on clouds the noise choice finds clean, 0 on noisy ones (noise as large as the wall
+  // makes the lattice miss it everywhere, and the splits cost more than they mend).
+  int wall_levels = -1;
   SurfaceExtractor extractor = SurfaceExtractor::kJ1a;
   NormalsParams normals;
   // Components whose bounding-box diagonal is below this many kernel widths (h/ε) are removed:
@@ -58,6 +62,7 @@ struct MlsJobParams {
   FitParams fit;
   double cell_size = 1.0;  // Spacing of the extraction vertices in units of h.
   int refine_steps = 3;
+  int wall_levels = -1;  // As IamlsJobParams::wall_levels; -1 = 2 (no noise estimate here).
   NormalsParams normals;
 };
 template <mls::AlgebraicFit kFit>

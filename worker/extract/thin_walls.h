@@ -29,11 +29,12 @@ struct ThinWallParams {
 };
 
 // One probe per point that has a wall or gap within reach: the points within max_leaf_share ×
-// leaf_edge whose normals face more than 162° away from its own (at least 3 of them, and a tenth of
-// those within reach) lie at a median distance along its normal between the two shares of
-// `leaf_edge`, their quartiles within a quarter of it (not spread by noise). Errors: kInvalidArgument (no normal per point, a leaf edge that is not a positive
-// number), kCancelled. Cost: a kd-tree and a radius query per 16th point; where one of those finds a
-// wall or gap, one per point.
+// leaf_edge whose normals face more than 162° away from its own (at least 3 of them, and a tenth
+// of those within reach) lie at a median distance along its normal between the two shares of
+// `leaf_edge`, their quartiles within a quarter of it (not spread by noise). Errors:
+// kInvalidArgument (no normal per point, a leaf edge that is not a positive number), kCancelled.
+// Cost: a kd-tree and a radius query per 16th point; where one of those finds a wall or gap, one
+// per point.
 absl::StatusOr<std::vector<SideProbe>> ThinWallProbes(std::span<const core::Vec3f> points,
                                                       std::span<const core::Vec3f> normals, double leaf_edge,
                                                       const ThinWallParams& params, core::JobContext& ctx);

@@ -6,17 +6,19 @@
 #include <sys/socket.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <filesystem>
 #include <string>
 
 namespace lsqsurf::testing {
 
 // An empty folder named after the prefix, the process and the running test (so parallel test
-// processes never share one); the caller removes it.
+// processes never share one); the caller removes it. A parameterised test's name holds a '/'
+// ("Name/sqlite"), which would make the folder a child of one nobody removes.
 inline std::filesystem::path FreshTestDir(const std::string& prefix) {
-  const auto dir =
-      std::filesystem::temp_directory_path() / (prefix + "-" + std::to_string(::getpid()) + "-" +
-                                                ::testing::UnitTest::GetInstance()->current_test_info()->name());
+  std::string name = ::testing::UnitTest::GetInstance()->current_test_info()->name();
+  std::replace(name.begin(), name.end(), '/', '-');
+  const auto dir = std::filesystem::temp_directory_path() / (prefix + "-" + std::to_string(::getpid()) + "-" + name);
   std::filesystem::remove_all(dir);
   return dir;
 }

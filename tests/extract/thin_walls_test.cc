@@ -95,6 +95,20 @@ TEST(ThinWallProbes, APlatesFacesGiveProbesInItsMiddleANoisyPlateAndASphereNone)
   auto noisy_probes = ThinWallProbes(noisy.positions, noisy.normals, kLeaf, {}, ctx);
   ASSERT_TRUE(noisy_probes.ok()) << noisy_probes.status();
   EXPECT_LT(noisy_probes->size(), cloud.positions.size() / 20);
+  // A cloud that is mostly such walls takes the wider spread: most points give probes, and the
+  // medians of both faces put them nearer the middle than halfway from the point alone would be
+  // (each point is off by σ, half the thickness: σ/2 RMS halfway; 0.26 σ measured).
+  ThinWallParams wide;
+  wide.max_spread = kNoisyWallSpread;
+  auto wide_probes = ThinWallProbes(noisy.positions, noisy.normals, kLeaf, wide, ctx);
+  ASSERT_TRUE(wide_probes.ok()) << wide_probes.status();
+  EXPECT_GT(wide_probes->size(), cloud.positions.size() / 2);
+  double squares = 0;
+  for (const SideProbe& probe : *wide_probes) {
+    EXPECT_TRUE(probe.inside);
+    squares += std::pow(plate.Local(probe.point.cast<double>()).z(), 2);
+  }
+  EXPECT_LT(std::sqrt(squares / static_cast<double>(wide_probes->size())), 0.35 * kPlateHalf.z());
   // A sphere far thicker than a leaf has no point facing against another within reach.
   const core::PointCloud sphere = testing::SphereCloud(8000);
   auto none = ThinWallProbes(sphere.positions, sphere.normals, 0.1, {}, ctx);

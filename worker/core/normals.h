@@ -35,7 +35,7 @@ absl::Status Validate(const NormalEstimationParams& params);
 
 // Unit normals, one per point. Errors: kInvalidArgument (fewer than 3 points, bad params),
 // kCancelled. Cost: one k-NN query per point, one of the largest size where those k do not lie
-// flat, and an O(n k log(n k)) spanning tree.
+// flat, an O(n k log(n k)) spanning tree, and O(n k) for the layers and each of the votes.
 absl::StatusOr<std::vector<Vec3f>> EstimateNormals(std::span<const Vec3f> points, const NormalEstimationParams& params,
                                                    JobContext& ctx);
 

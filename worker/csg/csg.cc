@@ -589,15 +589,7 @@ absl::StatusOr<extract::IsosurfaceResult> ExtractCsg(const CsgFunction& function
   band = {};
   // Extraction starts at the finest cells of the seeds (it maps them to the leaves holding them).
   absl::flat_hash_set<uint64_t> start_keys;
-  const double finest = tree.CellEdge(depth);
-  const auto finest_index = [&](double v) {
-    return static_cast<uint32_t>(
-        std::clamp<int64_t>(static_cast<int64_t>(std::floor(v)), 0, (int64_t{1} << depth) - 1));
-  };
-  for (const Vec3f& p : seeds) {
-    const Vec3d g = (p.cast<double>() - tree.origin()) / finest;
-    start_keys.insert(extract::CellKey({depth, finest_index(g.x()), finest_index(g.y()), finest_index(g.z())}));
-  }
+  for (const Vec3f& p : seeds) start_keys.insert(extract::CellKey(tree.CellAt(depth, p.cast<double>())));
   std::vector<extract::OctreeCell> start;
   start.reserve(start_keys.size());
   for (uint64_t key : start_keys) start.push_back(extract::CellFromKey(key));

@@ -131,6 +131,15 @@ std::vector<OctreeCell> AdaptiveOctree::Leaves() const {
   return out;
 }
 
+OctreeCell AdaptiveOctree::CellAt(int level, const Vec3d& p) const {
+  const int64_t n = int64_t{1} << level;
+  const Vec3d g = (p - origin_) / CellEdge(level);
+  const auto index = [&](double v) {
+    return static_cast<uint32_t>(std::clamp<int64_t>(static_cast<int64_t>(std::floor(v)), 0, n - 1));
+  };
+  return {level, index(g.x()), index(g.y()), index(g.z())};
+}
+
 Vec3d AdaptiveOctree::Position(VertexKey key) const {
   const auto [x, y, z] = UnpackVertex(key);
   return origin_ + unit_ * Vec3d(x, y, z);

@@ -73,6 +73,8 @@ class AdaptiveOctree {
   Vec3d CellCentre(const OctreeCell& c) const {
     return origin_ + CellEdge(c.level) * Vec3d(c.x + 0.5, c.y + 0.5, c.z + 0.5);
   }
+  // The cell of `level` holding `p`; points outside the root go to the nearest cell on its border.
+  OctreeCell CellAt(int level, const Vec3d& p) const;
   // The model-space position of a vertex key.
   Vec3d Position(VertexKey key) const;
   const Vec3d& origin() const { return origin_; }

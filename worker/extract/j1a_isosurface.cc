@@ -19,15 +19,8 @@ namespace lsqsurf::extract {
 
 SurfaceBand MarkSurfaceBand(const AdaptiveOctree& tree, std::span<const Vec3f> points, int level) {
   SurfaceBand band;
-  const double edge = tree.CellEdge(level);
   const int64_t n = int64_t{1} << level;
-  for (const Vec3f& p : points) {
-    const Vec3d g = (p.cast<double>() - tree.origin()) / edge;
-    const auto clamp = [&](double v) {
-      return static_cast<uint32_t>(std::clamp<int64_t>(static_cast<int64_t>(std::floor(v)), 0, n - 1));
-    };
-    band.occupied.insert(CellKey({level, clamp(g.x()), clamp(g.y()), clamp(g.z())}));
-  }
+  for (const Vec3f& p : points) band.occupied.insert(CellKey(tree.CellAt(level, p.cast<double>())));
   for (uint64_t key : band.occupied) {
     const OctreeCell c = CellFromKey(key);
     for (int d = 0; d < 27; ++d) {
@@ -116,13 +109,7 @@ namespace {
 
 // The leaf whose cube holds `p` (clamped into the root), or nullptr.
 const OctreeCell* LeafHolding(const AdaptiveOctree& tree, const Vec3f& p) {
-  const int depth = tree.max_depth();
-  const int64_t n = int64_t{1} << depth;
-  const Vec3d g = (p.cast<double>() - tree.origin()) / tree.CellEdge(depth);
-  const auto index = [&](double v) {
-    return static_cast<uint32_t>(std::clamp<int64_t>(static_cast<int64_t>(std::floor(v)), 0, n - 1));
-  };
-  return tree.LeafContaining({depth, index(g.x()), index(g.y()), index(g.z())});
+  return tree.LeafContaining(tree.CellAt(tree.max_depth(), p.cast<double>()));
 }
 
 struct LeafWork {

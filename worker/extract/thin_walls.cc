@@ -13,19 +13,11 @@ namespace lsqsurf::extract {
 
 namespace {
 
-// Two sheets face apart (or against each other) when their normals are more than 162° apart,
-// as PU's wall zones judge them.
-constexpr float kFacingCosine = -0.95f;
+constexpr float kFacingCosine = static_cast<float>(kWallFacingCosine);
 // Enough of the other sheet to trust the median: a wall 0.8 of the radius thick leaves a quarter
 // of the ball's points on its far side; a stray flipped normal or two on one sheet do not count.
 constexpr size_t kMinFacing = 3;
 constexpr double kMinFacingShare = 0.1;
-// The other sheet's offsets may spread over at most this share of the thickness between their
-// quartiles: on a clean plate they are one number, and across a finger only the points nearly
-// opposite face against each other; where noise spreads them wider, the thickness is not
-// resolved above the noise and the lattice cannot follow the wall anyway (noise σ half the
-// thickness, as on the bench's noisy plate: quartiles 0.67 of a thickness apart).
-constexpr double kMaxSpread = 0.25;
 // A wall of a few dozen points holds one of every this many.
 constexpr size_t kSampleStride = 16;
 
@@ -59,10 +51,14 @@ absl::StatusOr<std::vector<SideProbe>> ThinWallProbes(std::span<const core::Vec3
       std::nth_element(offsets.begin(), it, offsets.end());
       return *it;
     };
-    const float offset = at(2);
-    if (!(std::abs(offset) >= thinnest)) return std::nullopt;
-    if (at(3) - at(1) > kMaxSpread * std::abs(offset)) return std::nullopt;
-    return SideProbe{points[i] + (offset / 2) * n, n, offset < 0};
+    const float far = at(2), spread = at(3) - at(1);
+    offsets.clear();  // The point's own sheet, whose median offset is the point's noise.
+    for (const core::Neighbor& m : near) {
+      if (n.dot(normals[m.index]) > -kFacingCosine) offsets.push_back(n.dot(points[m.index] - points[i]));
+    }
+    const float own = at(2), offset = far - own;
+    if (!(std::abs(offset) >= thinnest) || spread > params.max_spread * std::abs(offset)) return std::nullopt;
+    return SideProbe{points[i] + (own + offset / 2) * n, n, offset < 0};
   };
   // Every kSampleStride-th point first: a cloud without walls (most scans) pays for those only.
   std::atomic<bool> any = false;

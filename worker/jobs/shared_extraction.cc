@@ -25,7 +25,9 @@ absl::StatusOr<extract::IsosurfaceResult> ExtractShared(const core::ImplicitFunc
     j1a.marching = marching;
     std::vector<extract::SideProbe> probes;
     if (hints.wall_levels > 0 && cloud.normals.size() == cloud.positions.size()) {
-      auto found = extract::ThinWallProbes(cloud.positions, cloud.normals, j1a.cell_size, {}, ctx);
+      extract::ThinWallParams walls;
+      if (hints.noisy_walls) walls.max_spread = extract::kNoisyWallSpread;
+      auto found = extract::ThinWallProbes(cloud.positions, cloud.normals, j1a.cell_size, walls, ctx);
       if (!found.ok()) return found.status();
       probes = *std::move(found);
       j1a.probes = probes;

@@ -22,7 +22,8 @@ inline constexpr int kChosenWallLevels = 2;
 struct ExtractionHints {
   double vertex_spacing = 0;  // Model units.
   int refine_steps = 3;
-  int wall_levels = 0;  // extract::J1aIsosurfaceParams::probe_levels, with thin_walls.h's probes.
+  int wall_levels = 0;       // extract::J1aIsosurfaceParams::probe_levels, with thin_walls.h's probes.
+  bool noisy_walls = false;  // The probes take extract::kNoisyWallSpread (a cloud mostly of noisy walls).
   SurfaceExtractor extractor = SurfaceExtractor::kJ1a;
   int64_t memory_bytes = 0;  // The job's memory limit (RunEnvironment::memory_bytes).
 };

@@ -52,7 +52,8 @@ void AddExtractionHints(core::ParamTable<P>& t) {
       .template Integer<&P::wall_levels>("wall_levels", -1, extract::kMaxProbeLevels, "levels",
                                          "times at most that a J1a leaf is split where its tetrahedra miss a wall or "
                                          "gap thinner than they are (found where points face against each other); "
-                                         "0 = off, -1 = chosen (2; iaMLS: 0 on noisy clouds)");
+                                         "0 = off, -1 = chosen (2; iaMLS: 0 where it does not fade thin walls, as on "
+                                         "noisy clouds that are not mostly walls)");
 }
 
 const core::ParamTable<IamlsJobParams>& IamlsTable() {
@@ -184,14 +185,18 @@ absl::StatusOr<extract::IsosurfaceResult> RunIamls(const IamlsJobParams& p, cons
   if (!fit.residuals.empty()) stat("final_residual_over_h", fit.residuals.back());
   const auto extract_start = std::chrono::steady_clock::now();
   core::SubContext extract_ctx(ctx, "extracting surface", 0.3, 1.0);
-  // Wall probes as the thin walls of the field: on unless the noise choice found the cloud noisy.
-  const int wall_levels = p.wall_levels >= 0
-                              ? p.wall_levels
-                              : (mls::ChooseIamlsParameters(fit.noise_ratio).thin_walls ? kChosenWallLevels : 0);
+  // Wall probes where the field fades thin walls: on clean clouds, and on noisy ones that are mostly
+  // walls, whose probes then take the noise's wider spread.
+  const int wall_levels = p.wall_levels >= 0 ? p.wall_levels : (fit.thin_walls ? kChosenWallLevels : 0);
   stat("wall_levels_used", wall_levels);
-  auto extracted = ExtractShared(
-      **field, cloud, {p.cell_size * (*field)->spacing(), p.refine_steps, wall_levels, p.extractor, run.memory_bytes},
-      extract_ctx);
+  auto extracted = ExtractShared(**field, cloud,
+                                 {.vertex_spacing = p.cell_size * (*field)->spacing(),
+                                  .refine_steps = p.refine_steps,
+                                  .wall_levels = wall_levels,
+                                  .noisy_walls = !mls::ChooseIamlsParameters(fit.noise_ratio).thin_walls,
+                                  .extractor = p.extractor,
+                                  .memory_bytes = run.memory_bytes},
+                                 extract_ctx);
   if (!extracted.ok()) return extracted;
   stat("extract_seconds", core::SecondsSince(extract_start));
   if (p.min_component > 0) {
@@ -215,11 +220,13 @@ absl::StatusOr<extract::IsosurfaceResult> RunOnSharedExtractor(const P& p, const
   stat("spacing", (*field)->spacing());
   const auto start = std::chrono::steady_clock::now();
   core::SubContext extract_ctx(ctx, "extracting surface", 0.05, 1.0);
-  auto extracted =
-      ExtractShared(**field, cloud,
-                    {p.cell_size * (*field)->spacing(), p.refine_steps,
-                     p.wall_levels >= 0 ? p.wall_levels : kChosenWallLevels, SurfaceExtractor::kJ1a, run.memory_bytes},
-                    extract_ctx);
+  auto extracted = ExtractShared(**field, cloud,
+                                 {.vertex_spacing = p.cell_size * (*field)->spacing(),
+                                  .refine_steps = p.refine_steps,
+                                  .wall_levels = p.wall_levels >= 0 ? p.wall_levels : kChosenWallLevels,
+                                  .extractor = SurfaceExtractor::kJ1a,
+                                  .memory_bytes = run.memory_bytes},
+                                 extract_ctx);
   if (extracted.ok()) stat("extract_seconds", core::SecondsSince(start));
   return extracted;
 }

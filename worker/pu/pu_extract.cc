@@ -11,6 +11,7 @@
 #include "worker/extract/j1a.h"
 #include "worker/extract/j1a_isosurface.h"
 #include "worker/extract/stitch.h"
+#include "worker/extract/thin_walls.h"
 #include "worker/pu/pu_internal.h"
 
 namespace lsqsurf::pu {
@@ -120,7 +121,8 @@ struct FineZone {
 // plate 1.44e-3 thick turned off the axes, at 200k points (leaves 3.4e-3): Euler characteristic
 // -2248, closed with leaves of 1.7e-3; a smaller one as densely sampled (leaves 4.7e-3): -698 with
 // leaves of 2.3e-3, closed with 1.2e-3.
-constexpr double kWallCosine = -0.95, kWallLeafShare = 0.8;
+using extract::kWallFacingCosine;
+using extract::kWallLeafShare;
 
 // The wall zone of a sharp fit (edge or corner) two of whose sheets face apart and lie closer than
 // kWallLeafShare leaves of `finest_edge` to each other at its centre.
@@ -129,7 +131,7 @@ std::optional<FineZone> WallZoneOf(const LocalFit& fit, const SharpFit& sharp, d
   for (int i = 0; i < sharp.count; ++i) {
     for (int j = i + 1; j < sharp.count; ++j) {
       const Sheet &a = sharp.sheets[static_cast<size_t>(i)], &b = sharp.sheets[static_cast<size_t>(j)];
-      if (!(a.normal.dot(b.normal) < kWallCosine)) continue;
+      if (!(a.normal.dot(b.normal) < kWallFacingCosine)) continue;
       // Both sheets are signed distances near their planes, so their sum is minus the thickness.
       const double between = -(a.Evaluate(fit.centre, nullptr) + b.Evaluate(fit.centre, nullptr));
       if (between > 0) thickness = std::min(thickness, between);
@@ -285,11 +287,6 @@ absl::StatusOr<std::unique_ptr<ExtractionTree>> BuildExtractionTree(const PuFunc
   if (corner_depth > depth && fine != FineLeaves::kNone) {
     built->fine_zones =
         FineZones(impl, region, built->fine_reach, built->finest_edge, fine == FineLeaves::kCornersAndAcuteCreases);
-    const double edge = tree.CellEdge(depth);
-    const int64_t n = int64_t{1} << depth;
-    const auto index = [&](double v) {
-      return static_cast<uint32_t>(std::clamp<int64_t>(static_cast<int64_t>(std::floor(v)), 0, n - 1));
-    };
     // Per number of extra levels (index − 1): the cells near zones asking for it, and their points.
     std::vector<absl::flat_hash_set<uint64_t>> zone_cells(static_cast<size_t>(corner_depth - depth));
     std::vector<std::vector<Vec3f>> zone_points(zone_cells.size());
@@ -299,8 +296,7 @@ absl::StatusOr<std::unique_ptr<ExtractionTree>> BuildExtractionTree(const PuFunc
     }
     if (std::any_of(zone_cells.begin(), zone_cells.end(), [](const auto& cells) { return !cells.empty(); })) {
       for (const Vec3f& p : points) {
-        const Vec3d g = (p.cast<double>() - tree.origin()) / edge;
-        const uint64_t key = extract::CellKey({depth, index(g.x()), index(g.y()), index(g.z())});
+        const uint64_t key = extract::CellKey(tree.CellAt(depth, p.cast<double>()));
         for (size_t at = 0; at < zone_cells.size(); ++at) {
           if (zone_cells[at].contains(key)) zone_points[at].push_back(p);
         }

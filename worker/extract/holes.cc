@@ -16,15 +16,23 @@ namespace {
 using core::Triangle;
 using core::Vec3f;
 
+constexpr uint32_t kNoVertex = std::numeric_limits<uint32_t>::max();
+
 uint64_t Undirected(uint32_t a, uint32_t b) { return a < b ? (uint64_t{a} << 32) | b : (uint64_t{b} << 32) | a; }
+uint64_t Directed(uint32_t a, uint32_t b) { return (uint64_t{a} << 32) | b; }
 
 // The least-area triangulation of the loop (Barequet & Sharir's dynamic programme): cost[i][j]
 // is the least area of a fan over loop[i..j] closed by the chord (i, j). Chords that are edges of
-// the mesh already are not used. Appends the triangles; false where no triangulation avoids them.
+// the mesh already are not used. A vertex the loop passes twice takes chords at its first pass
+// only, so no chord is made twice. Appends the triangles; false where no triangulation avoids them.
 template <typename IsEdge>
 bool TriangulateLoop(const std::vector<uint32_t>& loop, const std::vector<Vec3f>& vertices, const IsEdge& is_edge,
                      std::vector<Triangle>& out) {
   const size_t n = loop.size();
+  std::vector<bool> again(n, false);
+  for (size_t i = 1; i < n; ++i)
+    again[i] = std::find(loop.begin(), loop.begin() + static_cast<std::ptrdiff_t>(i), loop[i]) !=
+               loop.begin() + static_cast<std::ptrdiff_t>(i);
   constexpr double kNone = std::numeric_limits<double>::infinity();
   std::vector<double> cost(n * n, kNone);
   std::vector<uint32_t> split(n * n, 0);
@@ -34,7 +42,7 @@ bool TriangulateLoop(const std::vector<uint32_t>& loop, const std::vector<Vec3f>
     for (size_t i = 0; i + span < n; ++i) {
       const size_t j = i + span;
       // (0, n−1) is a border edge; every other chord must be new.
-      if (!(i == 0 && j == n - 1) && is_edge(loop[i], loop[j])) continue;
+      if (!(i == 0 && j == n - 1) && (again[i] || again[j] || is_edge(loop[i], loop[j]))) continue;
       const Vec3f &a = vertices[loop[i]], &c = vertices[loop[j]];
       for (size_t k = i + 1; k < j; ++k) {
         const double sides = cost[at(i, k)] + cost[at(k, j)];
@@ -58,78 +66,170 @@ bool TriangulateLoop(const std::vector<uint32_t>& loop, const std::vector<Vec3f>
   return true;
 }
 
+// Each vertex's faces: a twin edge or a chord is looked up among a few faces, in linear time and
+// memory (a hash of every edge cost a large mesh 10 % more time for the few holes it has).
+class Fans {
+ public:
+  explicit Fans(const core::TriangleMesh& mesh) : mesh_(mesh) { core::IncidentFaces(mesh, start_, incident_); }
+
+  std::span<const uint32_t> Of(uint32_t v) const {
+    return {incident_.data() + start_[v], incident_.data() + start_[v + 1]};
+  }
+  // Whether `face` goes from a to b.
+  bool Runs(uint32_t face, uint32_t a, uint32_t b) const {
+    const Triangle& t = mesh_.faces[face];
+    return (t[0] == a && t[1] == b) || (t[1] == a && t[2] == b) || (t[2] == a && t[0] == b);
+  }
+  bool Has(uint32_t face, uint32_t v) const {
+    return std::ranges::find(mesh_.faces[face], v) != mesh_.faces[face].end();
+  }
+  // The face around `a` that goes from a to b, if exactly one does.
+  uint32_t Along(uint32_t a, uint32_t b) const {
+    uint32_t found = kNoVertex;
+    for (uint32_t g : Of(a)) {
+      if (!Runs(g, a, b)) continue;
+      if (found != kNoVertex) return kNoVertex;
+      found = g;
+    }
+    return found;
+  }
+  // Walks the faces around v from the border edge v→y (the hole beyond it) to the border edge
+  // x→v that ends the same fan of faces; kNoVertex where the walk does not end within v's faces.
+  uint32_t FanEnd(uint32_t v, uint32_t y) const {
+    uint32_t face = Along(v, y);
+    for (size_t step = 0; face != kNoVertex && step < Of(v).size(); ++step) {
+      const Triangle& t = mesh_.faces[face];
+      const uint32_t z = t[0] != v && t[0] != y ? t[0] : (t[1] != v && t[1] != y ? t[1] : t[2]);
+      const uint32_t twin = Along(v, z);  // The face past the edge z→v.
+      if (twin == kNoVertex)
+        return std::ranges::none_of(Of(v), [&](uint32_t g) { return Runs(g, v, z); }) ? z : kNoVertex;
+      face = twin, y = z;
+    }
+    return kNoVertex;
+  }
+
+ private:
+  const core::TriangleMesh& mesh_;
+  std::vector<uint32_t> start_, incident_;
+};
+
+// The holes' loops, run against the faces around them: border edge a→b gives the filling b→a.
+// A vertex where two fans of faces meet (two holes, or one hole's two lobes, touch there) has two
+// ways on; each loop takes the one across the gap it arrives in, so the fans are not crossed.
+struct HoleLoops {
+  absl::flat_hash_map<uint32_t, uint32_t> next;           // Along the loops, at ordinary vertices.
+  absl::flat_hash_map<uint64_t, uint32_t> next_at_pinch;  // (previous, pinch vertex) → the next.
+  absl::flat_hash_set<uint32_t> pinches;                  // Vertices two fans of faces meet at.
+  absl::flat_hash_set<uint32_t> tangled;                  // Vertices no loop may pass.
+
+  HoleLoops(const core::TriangleMesh& mesh, const Fans& fans) {
+    absl::flat_hash_map<uint32_t, std::array<uint32_t, 2>> ends;  // A pinch's two border edges x→v.
+    for (uint32_t f = 0; f < mesh.faces.size(); ++f) {
+      const Triangle& t = mesh.faces[f];
+      for (size_t s = 0; s < 3; ++s) {
+        const uint32_t a = t[s], b = t[(s + 1) % 3];
+        if (a == b) continue;
+        int twins = 0, along = 0;
+        for (uint32_t g : fans.Of(a)) twins += fans.Runs(g, b, a), along += fans.Runs(g, a, b);
+        if (along > 1) tangled.insert(a), tangled.insert(b);
+        if (twins > 0) continue;
+        const auto [it, fresh] = next.try_emplace(b, a);
+        if (fresh) continue;
+        if (!ends.try_emplace(b, std::array<uint32_t, 2>{it->second, a}).second)
+          tangled.insert(b);  // Three fans or more: which gap is which is not clear.
+      }
+    }
+    for (const auto& [v, pair] : ends) {
+      next.erase(v);
+      pinches.insert(v);
+      if (!tangled.contains(v)) ResolvePinch(mesh, fans, v, pair);
+    }
+  }
+
+  // The vertex after v on the loop that came to it from `previous`; kNoVertex where none.
+  uint32_t After(uint32_t previous, uint32_t v) const {
+    if (const auto it = next.find(v); it != next.end()) return it->second;
+    const auto it = next_at_pinch.find(Directed(previous, v));
+    return it == next_at_pinch.end() ? kNoVertex : it->second;
+  }
+
+ private:
+  void ResolvePinch(const core::TriangleMesh& mesh, const Fans& fans, uint32_t v, const std::array<uint32_t, 2>& ends) {
+    // The loops arrive at v along its border edges v→y, from y.
+    std::vector<uint32_t> arrivals;
+    for (uint32_t g : fans.Of(v)) {
+      const Triangle& t = mesh.faces[g];
+      for (size_t s = 0; s < 3; ++s) {
+        const uint32_t y = t[(s + 1) % 3];
+        if (t[s] == v && std::ranges::none_of(fans.Of(v), [&](uint32_t h) { return fans.Runs(h, y, v); })) {
+          arrivals.push_back(y);
+        }
+      }
+    }
+    if (arrivals.size() != 2) return tangled.insert(v), void();
+    for (uint32_t y : arrivals) {
+      // The border edge that ends y's fan is on the far side of it; the loop leaves by the other.
+      const uint32_t own = fans.FanEnd(v, y);
+      if (own != ends[0] && own != ends[1]) return tangled.insert(v), void();
+      next_at_pinch[Directed(y, v)] = own == ends[0] ? ends[1] : ends[0];
+    }
+  }
+};
+
 }  // namespace
 
-int64_t FillSmallHoles(core::TriangleMesh& mesh, int max_edges) {
+int64_t FillSmallHoles(core::TriangleMesh& mesh, int max_edges, const std::function<bool(const Vec3f&)>& keep_open) {
   max_edges = std::min(max_edges, kMaxHoleEdges);
   if (max_edges < 3 || mesh.faces.empty()) return 0;
   // A closed mesh (the common case) pays one pass over its faces.
   uint64_t unmatched = 0;
   for (const Triangle& t : mesh.faces) unmatched += core::UnmatchedEdgeSum(t);
   if (unmatched == 0) return 0;
-  // Each vertex's faces: a twin edge or a chord is looked up among a few faces, in linear time
-  // and memory (a hash of every edge cost a large mesh 10 % more time for the few holes it has).
-  std::vector<uint32_t> start, incident;
-  core::IncidentFaces(mesh, start, incident);
-  auto faces_of = [&](uint32_t v) {
-    return std::span<const uint32_t>(incident.data() + start[v], incident.data() + start[v + 1]);
-  };
-  auto runs = [&](uint32_t face, uint32_t a, uint32_t b) {  // Whether `face` goes from a to b.
-    const Triangle& t = mesh.faces[face];
-    return (t[0] == a && t[1] == b) || (t[1] == a && t[2] == b) || (t[2] == a && t[0] == b);
-  };
-  auto has = [&](uint32_t face, uint32_t v) {
-    return std::ranges::find(mesh.faces[face], v) != mesh.faces[face].end();
-  };
-  // A hole's loop runs against the faces around it: border edge a→b gives the filling b→a.
-  constexpr uint32_t kNoVertex = std::numeric_limits<uint32_t>::max();
-  absl::flat_hash_map<uint32_t, uint32_t> next;  // Along the holes' loops.
-  absl::flat_hash_set<uint32_t> tangled;         // Vertices no loop may pass.
-  for (uint32_t f = 0; f < mesh.faces.size(); ++f) {
-    const Triangle& t = mesh.faces[f];
-    for (size_t s = 0; s < 3; ++s) {
-      const uint32_t a = t[s], b = t[(s + 1) % 3];
-      if (a == b) continue;
-      int twins = 0, along = 0;
-      for (uint32_t g : faces_of(a)) twins += runs(g, b, a), along += runs(g, a, b);
-      if (along > 1) tangled.insert(a), tangled.insert(b);
-      if (twins == 0 && !next.try_emplace(b, a).second) tangled.insert(b);
-    }
-  }
-  if (next.empty()) return 0;
+  const Fans fans(mesh);
+  HoleLoops loops(mesh, fans);
+  if (loops.next.empty()) return 0;
   // Border vertices at one position: welded, their borders may close each other.
   absl::flat_hash_map<std::array<float, 3>, uint32_t> at;
-  for (const auto& [v, unused] : next) {
+  auto weld = [&](uint32_t v) {
     const Vec3f& p = mesh.vertices[v];
     const auto [it, fresh] = at.try_emplace(std::array<float, 3>{p.x(), p.y(), p.z()}, v);
-    if (!fresh) tangled.insert(v), tangled.insert(it->second);
-  }
+    if (!fresh) loops.tangled.insert(v), loops.tangled.insert(it->second);
+  };
+  for (const auto& [v, unused] : loops.next) weld(v);
+  for (uint32_t v : loops.pinches) weld(v);
   absl::flat_hash_set<uint64_t> added;  // Edges of the fillings so far.
   auto is_edge = [&](uint32_t a, uint32_t b) {
-    return std::ranges::any_of(faces_of(a), [&](uint32_t g) { return has(g, b); }) || added.contains(Undirected(a, b));
+    return std::ranges::any_of(fans.Of(a), [&](uint32_t g) { return fans.Has(g, b); }) ||
+           added.contains(Undirected(a, b));
   };
   int64_t filled = 0;
-  absl::flat_hash_set<uint32_t> visited;
+  absl::flat_hash_set<uint32_t> visited;  // Ordinary vertices; a pinch vertex is on two loops.
   std::vector<uint32_t> loop;
   std::vector<Triangle> patch;
-  for (const auto& [first, unused] : next) {
+  for (const auto& [first, unused] : loops.next) {
     if (visited.contains(first)) continue;
     loop.clear();
     bool closed = false, usable = true;
-    for (uint32_t v = first; v != kNoVertex;) {
-      if (!visited.insert(v).second) {
+    for (uint32_t v = first, previous = kNoVertex; v != kNoVertex;) {
+      // A hole whose border touches itself at a pinch passes it twice (its fill is one disk).
+      const bool pinch = loops.pinches.contains(v);
+      if (pinch ? std::ranges::count(loop, v) == 2 : !visited.insert(v).second) {
         closed = v == first;
         break;
       }
       loop.push_back(v);
-      usable &= !tangled.contains(v) && loop.size() <= static_cast<size_t>(max_edges);
-      const auto it = next.find(v);
-      v = it == next.end() ? kNoVertex : it->second;
+      usable &= !loops.tangled.contains(v);
+      // Too long to close: the rest of it is walked from its own vertices, a stretch at a time.
+      if (loop.size() > static_cast<size_t>(max_edges)) break;
+      const uint32_t after = loops.After(previous, v);
+      previous = v, v = after;
     }
     if (!closed || !usable || loop.size() < 3) continue;
+    if (keep_open && std::ranges::any_of(loop, [&](uint32_t v) { return keep_open(mesh.vertices[v]); })) continue;
     // Three border edges around a face of their own: a lone triangle, not a hole.
-    if (loop.size() == 3 &&
-        std::ranges::any_of(faces_of(loop[0]), [&](uint32_t g) { return has(g, loop[1]) && has(g, loop[2]); })) {
+    if (loop.size() == 3 && std::ranges::any_of(fans.Of(loop[0]), [&](uint32_t g) {
+          return fans.Has(g, loop[1]) && fans.Has(g, loop[2]);
+        })) {
       continue;
     }
     patch.clear();

@@ -9,19 +9,23 @@
 #pragma once
 
 #include <cstdint>
+#include <functional>
 
 #include "worker/core/geometry.h"
 
 namespace lsqsurf::extract::internal {
 
-// Closes every hole whose border is a simple loop of at most `max_edges` edges (3..kMaxHoleEdges)
-// by the triangles of least total area across the loop, facing as the faces around it. No edge
-// is made twice, so the mesh stays edge-manifold. Left open: loops through a vertex with two
-// border edges leaving it, through an edge two faces run the same way, or through a border
-// vertex at the position of another one (welded, their borders may close each other). Faces are
-// appended; vertices are not touched. Returns the holes closed. Where there is no hole: one pass
-// over the faces.
+// Closes every hole whose border is a loop of at most `max_edges` edges (3..kMaxHoleEdges) by the
+// triangles of least total area across the loop, facing as the faces around it. No edge is made
+// twice, so the mesh stays edge-manifold. A vertex where two fans of faces meet (two holes touch
+// there, or one hole's border touches itself) is passed on the side of the gap each border edge
+// faces, so it is manifold once its holes are closed. Left open: loops through a vertex where
+// three fans meet or through an edge two faces run the same way, through a border vertex at the
+// position of another one (welded, their borders may close each other), or with a vertex where
+// `keep_open` says so. Faces are appended; vertices are not touched. Returns the holes closed.
+// Where there is no hole: one pass over the faces.
 inline constexpr int kMaxHoleEdges = 64;
-int64_t FillSmallHoles(core::TriangleMesh& mesh, int max_edges);
+int64_t FillSmallHoles(core::TriangleMesh& mesh, int max_edges,
+                       const std::function<bool(const core::Vec3f&)>& keep_open = {});
 
 }  // namespace lsqsurf::extract::internal

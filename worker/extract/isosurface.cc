@@ -7,6 +7,7 @@
 #include "absl/container/flat_hash_map.h"
 #include "absl/container/flat_hash_set.h"
 #include "worker/core/status.h"
+#include "worker/extract/holes.h"
 #include "worker/extract/marching_tets.h"
 
 namespace lsqsurf::extract {
@@ -75,6 +76,11 @@ const core::ParamTable<MarchingOptions>& MarchingParamTable() {
     return t;
   }();
   return *table;
+}
+
+void CloseSmallHoles(IsosurfaceResult& result, int max_edges, const std::function<bool(const Vec3f&)>& keep_open) {
+  result.stats.filled_holes += internal::FillSmallHoles(result.mesh, max_edges, keep_open);
+  result.trace = {};
 }
 
 void KeepFaces(std::span<const char> keep, TriangleMesh& mesh, SurfaceTrace& trace) {

@@ -14,6 +14,7 @@
 #pragma once
 
 #include <cstdint>
+#include <functional>
 #include <span>
 #include <vector>
 
@@ -124,6 +125,13 @@ struct IsosurfaceResult {
 // Keeps the faces flagged in `keep` and the vertices they use, renumbered in first-use order, with
 // their normals and the trace's entries (when there is one). The mesh has no attributes yet.
 void KeepFaces(std::span<const char> keep, TriangleMesh& mesh, SurfaceTrace& trace);
+
+// Closes the holes of an extracted surface whose border is a loop of up to `max_edges` edges, as
+// MarchingOptions::max_hole_edges does while marching, for a surface marched with a trace (PU's
+// kept surfaces, which the local edits join onto, stay as marched): counts them in
+// stats.filled_holes and drops the trace, which no longer covers every face. Holes with a border
+// vertex where `keep_open` says so stay (a hole an edit cut on purpose).
+void CloseSmallHoles(IsosurfaceResult& result, int max_edges, const std::function<bool(const Vec3f&)>& keep_open = {});
 
 // Extracts {F = 0} near `seeds` (normally the input points: extraction starts in their cubes).
 // Errors: kInvalidArgument (bad params, no seeds, grid too large for 21-bit coordinates),

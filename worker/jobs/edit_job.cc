@@ -2,10 +2,14 @@
 
 #include <spdlog/spdlog.h>
 
+#include <algorithm>
 #include <chrono>
+#include <functional>
 
 #include "worker/core/status.h"
 #include "worker/core/strings.h"
+#include "worker/extract/isosurface.h"
+#include "worker/jobs/shared_extraction.h"
 #include "worker/jobs/surface_job.h"
 
 namespace lsqsurf::jobs {
@@ -100,11 +104,23 @@ class EditKind final : public TypedJobKind<EditJobParams, NoInput> {
     stat("local_extraction", local ? 1 : 0);
     stat("replaced_faces", static_cast<double>(extracted->stats.replaced_faces));
     stat("seam_edges", static_cast<double>(extracted->stats.seam_edges));
+    // The next edit joins onto the surface as marched; the one delivered has its small holes
+    // closed, except the one a removal cut.
+    std::string kept_surface = pu::SerializeSurface(extracted->mesh, extracted->trace, extract);
+    std::function<bool(const core::Vec3f&)> cut_here;
+    if (edit.action == pu::PuEditAction::kRemove) {
+      cut_here = [&](const core::Vec3f& v) {
+        return std::ranges::any_of(edit_stats.changed, [&](const pu::PuEditStats::Ball& b) {
+          return (v.cast<double>() - b.centre).norm() <= b.radius;
+        });
+      };
+    }
+    extract::CloseSmallHoles(*extracted, kClosedHoleEdges, cut_here);
+    if (extracted->stats.filled_holes > 0) stat("filled_holes", static_cast<double>(extracted->stats.filled_holes));
     AddMeshStatistics(extracted->mesh, extracted->stats, &stats);
     LSQSURF_RETURN_IF_ERROR(DeliverMesh(extracted->mesh, spec, env, &stats));
     LSQSURF_RETURN_IF_ERROR(env.sink.Write(kPuFunctionArtifact, pu::SerializePu(**edited)));
-    LSQSURF_RETURN_IF_ERROR(
-        env.sink.Write(kPuSurfaceArtifact, pu::SerializeSurface(extracted->mesh, extracted->trace, extract)));
+    LSQSURF_RETURN_IF_ERROR(env.sink.Write(kPuSurfaceArtifact, std::move(kept_surface)));
     return stats;
   }
 };

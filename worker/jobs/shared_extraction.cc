@@ -13,10 +13,6 @@ absl::StatusOr<extract::IsosurfaceResult> ExtractShared(const core::ImplicitFunc
                                                         core::JobContext& ctx) {
   extract::MarchingOptions marching;
   marching.refine_steps = hints.refine_steps;
-  // Holes whose border has up to 32 edges (about ten cells around: a few kernel widths across)
-  // are slits where the field's trust ended just short of its zero; an open scan's border is far
-  // longer.
-  constexpr int kClosedHoleEdges = 32;
   marching.max_hole_edges = kClosedHoleEdges;
   if (hints.extractor == SurfaceExtractor::kJ1a) {
     extract::J1aIsosurfaceParams j1a;

@@ -19,6 +19,12 @@ namespace lsqsurf::jobs {
 // plate a third of a leaf thick needs two (its leaves' tetrahedra are then thinner than it).
 inline constexpr int kChosenWallLevels = 2;
 
+// Holes whose border has up to 32 edges (about ten cells around: a few kernel widths across) are
+// slits where the field's trust ended just short of its zero, or where a wall thinner than the
+// cells opened; an open scan's border is far longer. The shared extractor and whole PU surfaces
+// close them (extract::MarchingOptions::max_hole_edges).
+inline constexpr int kClosedHoleEdges = 32;
+
 struct ExtractionHints {
   double vertex_spacing = 0;  // Model units.
   int refine_steps = 3;
@@ -28,8 +34,7 @@ struct ExtractionHints {
   int64_t memory_bytes = 0;  // The job's memory limit (RunEnvironment::memory_bytes).
 };
 
-// Holes of up to 32 border edges are closed (a slit where the field's trust ended just short of its
-// zero). Errors: those of the extractor.
+// Holes of up to kClosedHoleEdges border edges are closed. Errors: those of the extractor.
 absl::StatusOr<extract::IsosurfaceResult> ExtractShared(const core::ImplicitFunction& field,
                                                         const core::PointCloud& cloud, const ExtractionHints& hints,
                                                         core::JobContext& ctx);

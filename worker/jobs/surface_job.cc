@@ -333,21 +333,21 @@ absl::StatusOr<extract::IsosurfaceResult> RunPu(const PuJobParams& p, const core
   extract.marching.trace = p.keep_function;  // Local edits re-extract only what they change.
   extract.max_leaves = LeavesWithin(run.memory_bytes, extract.max_leaves);
   auto extracted = pu::Extract(**field, extract, extract_ctx);
-  if (extracted.ok()) {
-    stat("extract_seconds", core::SecondsSince(start));
-    ExtractionStatistics(extracted->stats, stat);
-    if (p.keep_function) {
-      const auto keep_start = std::chrono::steady_clock::now();
-      std::string bytes = pu::SerializePu(**field);
-      stat("function_bytes", static_cast<double>(bytes.size()));
-      keep(kPuFunctionArtifact, std::move(bytes));
-      bytes = pu::SerializeSurface(extracted->mesh, extracted->trace, extract);
-      extracted->trace = {};
-      stat("surface_bytes", static_cast<double>(bytes.size()));
-      keep(kPuSurfaceArtifact, std::move(bytes));
-      stat("keep_seconds", core::SecondsSince(keep_start));
-    }
+  if (!extracted.ok()) return extracted;
+  stat("extract_seconds", core::SecondsSince(start));
+  if (p.keep_function) {
+    const auto keep_start = std::chrono::steady_clock::now();
+    std::string bytes = pu::SerializePu(**field);
+    stat("function_bytes", static_cast<double>(bytes.size()));
+    keep(kPuFunctionArtifact, std::move(bytes));
+    bytes = pu::SerializeSurface(extracted->mesh, extracted->trace, extract);
+    stat("surface_bytes", static_cast<double>(bytes.size()));
+    keep(kPuSurfaceArtifact, std::move(bytes));
+    stat("keep_seconds", core::SecondsSince(keep_start));
   }
+  // After keeping: the edits join onto the surface as marched.
+  extract::CloseSmallHoles(*extracted, kClosedHoleEdges);
+  ExtractionStatistics(extracted->stats, stat);
   return extracted;
 }
 

@@ -36,16 +36,10 @@ bool BoxMeetsRegion(const Vec3d& centre, const Vec3d& reach, const core::Box3& r
 // Adds the keys of the cells of `level` that the box of half-size `reach` around `centre` meets.
 void AddCellsInBox(const extract::AdaptiveOctree& tree, int level, const Vec3d& centre, const Vec3d& reach,
                    absl::flat_hash_set<uint64_t>& cells) {
-  const double edge = tree.CellEdge(level);
-  const int64_t n = int64_t{1} << level;
-  const auto index = [&](double v) { return std::clamp<int64_t>(static_cast<int64_t>(std::floor(v)), 0, n - 1); };
-  const Vec3d lo = (centre - reach - tree.origin()) / edge, hi = (centre + reach - tree.origin()) / edge;
-  for (int64_t z = index(lo.z()); z <= index(hi.z()); ++z)
-    for (int64_t y = index(lo.y()); y <= index(hi.y()); ++y)
-      for (int64_t x = index(lo.x()); x <= index(hi.x()); ++x) {
-        cells.insert(
-            extract::CellKey({level, static_cast<uint32_t>(x), static_cast<uint32_t>(y), static_cast<uint32_t>(z)}));
-      }
+  const extract::OctreeCell lo = tree.CellAt(level, centre - reach), hi = tree.CellAt(level, centre + reach);
+  for (uint32_t z = lo.z; z <= hi.z; ++z)
+    for (uint32_t y = lo.y; y <= hi.y; ++y)
+      for (uint32_t x = lo.x; x <= hi.x; ++x) cells.insert(extract::CellKey({level, x, y, z}));
 }
 
 // The extraction cells of levels [from, to) that a sharp fit's support meets: creases go to the

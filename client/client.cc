@@ -384,10 +384,23 @@ absl::StatusOr<v1::Job> Client::Get(const std::string& id) {
   return Unary(&v1::Reconstruction::Stub::GetJob, request);
 }
 
-absl::StatusOr<v1::ListJobsResponse> Client::List(int limit) {
+absl::StatusOr<v1::ListJobsResponse> Client::ListPage(int limit, const std::string& page_token) {
   v1::ListJobsRequest request;
   request.set_limit(limit);
+  request.set_page_token(page_token);
   return Unary(&v1::Reconstruction::Stub::ListJobs, request);
+}
+
+absl::StatusOr<v1::ListJobsResponse> Client::List(int limit) {
+  v1::ListJobsResponse all;
+  std::string token;
+  do {
+    const int wanted = limit > 0 ? limit - all.jobs_size() : 0;
+    LSQSURF_ASSIGN_OR_RETURN(v1::ListJobsResponse page, ListPage(wanted > 0 ? std::min(wanted, 1000) : 1000, token));
+    for (v1::Job& job : *page.mutable_jobs()) *all.add_jobs() = std::move(job);
+    token = page.next_page_token();
+  } while (!token.empty() && (limit <= 0 || all.jobs_size() < limit));
+  return all;
 }
 
 absl::StatusOr<v1::Job> Client::Cancel(const std::string& id) {

@@ -133,7 +133,10 @@ class Client {
   absl::StatusOr<v1::RenderResponse> Render(const std::string& id, const std::string& name,
                                             const v1::RenderOptions& options);
   absl::StatusOr<v1::Job> Get(const std::string& id);
+  // Newest first: up to `limit` jobs (0: all), following the server's pages.
   absl::StatusOr<v1::ListJobsResponse> List(int limit);
+  // One page: at most `limit` jobs (0: the server's default) after `page_token` (empty: the newest).
+  absl::StatusOr<v1::ListJobsResponse> ListPage(int limit, const std::string& page_token);
   absl::StatusOr<v1::Job> Cancel(const std::string& id);
   absl::Status Delete(const std::string& id);
   absl::StatusOr<v1::ListMethodsResponse> ListMethods();

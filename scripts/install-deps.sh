@@ -4,7 +4,8 @@
 # postgresql brings the server programs (initdb, pg_ctl) with which the tests start throwaway
 # PostgreSQL servers on loopback for the shared job store; libpq-dev is its client library;
 # pybind11-dev and the python3 packages build, install (a venv with pip, offline) and test the
-# Python package (python/); libcpp-httplib-dev serves the job page (--http-listen), chromium
+# Python package (python/); libmicrohttpd-dev serves the job page (--http-listen) and
+# libcpp-httplib-dev is the HTTP tests' client; chromium
 # shows it in the browser test;
 # libssl-dev hashes tokens and checks certificates; nginx-light is the gRPC balancer of the replica test; yamllint checks deploy/.
 # --with-poisson also installs Open3D (libopen3d-dev, large), needed only by the benchmark
@@ -27,7 +28,7 @@ packages=(
   libssl-dev openssl libsqlite3-dev libpq-dev postgresql nginx-light yamllint prometheus-cpp-dev libabsl-dev libtbb-dev libcli11-dev zlib1g-dev libpugixml-dev
   libegl-dev libgl-dev libopengl-dev libegl-mesa0 libgl1-mesa-dri libstb-dev
   pybind11-dev python3-dev python3-numpy python3-pytest python3-venv python3-pip python3-wheel python3-setuptools
-  libcpp-httplib-dev chromium
+  libmicrohttpd-dev libcpp-httplib-dev chromium
 )
 # npm fetches the job page's libraries at build time (web/package-lock.json); a Node.js that
 # brings its own npm (NodeSource's) is kept, since Debian's npm would replace it.

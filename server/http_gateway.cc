@@ -1,13 +1,15 @@
 #include "server/http_gateway.h"
 
 #include <google/protobuf/util/json_util.h>
-#include <httplib.h>
 
 #include <algorithm>
+#include <cctype>
 #include <charconv>
 #include <chrono>
 #include <map>
+#include <string_view>
 #include <utility>
+#include <vector>
 
 #include "absl/status/status.h"
 #include "lsqsurf/v1/reconstruction.grpc.pb.h"
@@ -29,28 +31,16 @@ constexpr const char* kContentSecurityPolicy =
     "default-src 'self'; script-src 'self' 'wasm-unsafe-eval'; worker-src 'self' blob:; img-src 'self' blob: data:; "
     "style-src 'self'; connect-src 'self' blob:; frame-ancestors 'none'; base-uri 'none'; form-action 'self'";
 
-void SetCommonHeaders(httplib::Response& res) {
-  res.set_header("Content-Security-Policy", kContentSecurityPolicy);
-  res.set_header("X-Content-Type-Options", "nosniff");
-  res.set_header("Referrer-Policy", "no-referrer");
-  res.set_header("Cache-Control", "no-store");
+void SetCommonHeaders(HttpAnswer& res) {
+  res.headers.emplace_back("Content-Security-Policy", kContentSecurityPolicy);
+  res.headers.emplace_back("X-Content-Type-Options", "nosniff");
+  res.headers.emplace_back("Referrer-Policy", "no-referrer");
+  res.headers.emplace_back("Cache-Control", "no-store");
 }
 
-std::string JsonString(std::string_view text) {
-  std::string out = "\"";
-  for (char c : text) {
-    if (c == '"' || c == '\\') {
-      out += '\\';
-      out += c;
-    } else if (static_cast<unsigned char>(c) < 0x20) {
-      char escaped[8];
-      std::snprintf(escaped, sizeof escaped, "\\u%04x", c);
-      out += escaped;
-    } else {
-      out += c;
-    }
-  }
-  return out + "\"";
+void SetContent(HttpAnswer& res, std::string body, std::string type) {
+  res.body = std::move(body);
+  res.headers.emplace_back("Content-Type", std::move(type));
 }
 
 int HttpStatus(grpc::StatusCode code) {
@@ -68,15 +58,16 @@ int HttpStatus(grpc::StatusCode code) {
   }
 }
 
-void Fail(httplib::Response& res, grpc::StatusCode code, std::string_view message) {
+void Fail(HttpAnswer& res, grpc::StatusCode code, std::string_view message) {
   res.status = HttpStatus(code);
-  if (code == grpc::StatusCode::UNAUTHENTICATED) res.set_header("WWW-Authenticate", "Bearer");
-  res.set_content(StrCat("{\"code\": ", JsonString(absl::StatusCodeToString(static_cast<absl::StatusCode>(code))),
-                         ", \"message\": ", JsonString(message), "}"),
-                  "application/json");
+  if (code == grpc::StatusCode::UNAUTHENTICATED) res.headers.emplace_back("WWW-Authenticate", "Bearer");
+  SetContent(res,
+             StrCat("{\"code\": ", JsonQuoted(absl::StatusCodeToString(static_cast<absl::StatusCode>(code))),
+                    ", \"message\": ", JsonQuoted(message), "}"),
+             "application/json");
 }
 
-void Reply(httplib::Response& res, const google::protobuf::Message& message) {
+void Reply(HttpAnswer& res, const google::protobuf::Message& message) {
   google::protobuf::util::JsonPrintOptions options;
   options.preserve_proto_field_names = true;
   options.always_print_primitive_fields = true;
@@ -85,14 +76,14 @@ void Reply(httplib::Response& res, const google::protobuf::Message& message) {
     Fail(res, grpc::StatusCode::INTERNAL, "the answer could not be written as JSON");
     return;
   }
-  res.set_content(json, "application/json");
+  SetContent(res, std::move(json), "application/json");
 }
 
 // A context carrying the caller's token, as a gRPC client would send it. A header gRPC could not
 // send (a line break, a space in the token) is refused here: gRPC would abort on it.
-std::unique_ptr<grpc::ClientContext> CallerContext(const httplib::Request& req, httplib::Response& res) {
+std::unique_ptr<grpc::ClientContext> CallerContext(const HttpRequest& req, HttpAnswer& res) {
   auto context = std::make_unique<grpc::ClientContext>();
-  const std::string authorization = req.get_header_value("Authorization");
+  const std::string authorization = req.header("authorization");
   if (authorization.empty()) return context;
   const std::string_view scheme = "Bearer ";
   const bool well_formed = authorization.size() <= kMaxAuthorization &&
@@ -109,7 +100,7 @@ std::unique_ptr<grpc::ClientContext> CallerContext(const httplib::Request& req, 
 }
 
 template <class Request, class Response>
-void Unary(const httplib::Request& req, httplib::Response& res, Stub& stub,
+void Unary(const HttpRequest& req, HttpAnswer& res, Stub& stub,
            grpc::Status (Stub::*call)(grpc::ClientContext*, const Request&, Response*), const Request& request) {
   auto context = CallerContext(req, res);
   if (context == nullptr) return;
@@ -131,153 +122,184 @@ const char* ResultType(std::string_view name) {
 
 // A result streamed from FetchResult as the browser takes it: one gRPC chunk held at a time.
 // The first chunk is read before answering, so that a refusal gets its own status.
-void Download(const httplib::Request& req, httplib::Response& res, Stub& stub) {
+void Download(const HttpRequest& req, HttpAnswer& res, Stub& stub, std::string job_id, std::string name) {
   struct Transfer {
     std::unique_ptr<grpc::ClientContext> context;
     std::unique_ptr<grpc::ClientReader<v1::ResultChunk>> reader;
     std::string pending;
+    size_t offset = 0;
+    ~Transfer() {
+      if (context != nullptr) context->TryCancel();  // The browser went, or the last byte went.
+    }
   };
   auto transfer = std::make_shared<Transfer>();
   transfer->context = CallerContext(req, res);
   if (transfer->context == nullptr) return;
   v1::FetchResultRequest request;
-  request.set_job_id(req.matches[1].str());
-  request.set_name(req.matches[2].str());
+  request.set_job_id(std::move(job_id));
+  request.set_name(std::move(name));
   transfer->reader = stub.FetchResult(transfer->context.get(), request);
   v1::ResultChunk first;
   if (!transfer->reader->Read(&first)) {
     if (grpc::Status s = transfer->reader->Finish(); !s.ok()) return Fail(res, s.error_code(), s.error_message());
-    res.set_content("", ResultType(request.name()));
+    SetContent(res, "", ResultType(request.name()));
     return;
   }
   transfer->pending = std::move(*first.mutable_data());
   if (!std::string_view(request.name()).ends_with(".png")) {
-    res.set_header("Content-Disposition", StrCat("attachment; filename=\"", request.name(), "\""));
+    res.headers.emplace_back("Content-Disposition", StrCat("attachment; filename=\"", request.name(), "\""));
   }
-  res.set_content_provider(
-      static_cast<size_t>(std::max<int64_t>(first.total_bytes(), 0)), ResultType(request.name()),
-      [transfer](size_t, size_t, httplib::DataSink& sink) {
-        if (transfer->pending.empty()) {
-          v1::ResultChunk chunk;
-          if (!transfer->reader->Read(&chunk)) return false;  // Fewer bytes than announced: cut off.
-          transfer->pending = std::move(*chunk.mutable_data());
-        }
-        const bool written = sink.write(transfer->pending.data(), transfer->pending.size());
-        transfer->pending.clear();
-        return written;
-      },
-      [transfer](bool) { transfer->context->TryCancel(); });
+  res.headers.emplace_back("Content-Type", ResultType(request.name()));
+  const int64_t announced = std::max<int64_t>(first.total_bytes(), 0);
+  res.stream_size = announced;
+  res.stream = [transfer, announced, sent = int64_t{0}](char* buffer, size_t room) mutable -> int64_t {
+    if (transfer->offset == transfer->pending.size()) {
+      if (sent == announced) return 0;
+      v1::ResultChunk chunk;
+      if (!transfer->reader->Read(&chunk) || chunk.data().empty()) return -1;  // Fewer bytes than announced: cut.
+      transfer->pending = std::move(*chunk.mutable_data());
+      transfer->offset = 0;
+    }
+    const size_t n = std::min(room, transfer->pending.size() - transfer->offset);
+    std::copy_n(transfer->pending.data() + transfer->offset, n, buffer);
+    transfer->offset += n;
+    sent += static_cast<int64_t>(n);
+    return static_cast<int64_t>(n);
+  };
 }
 
-void ServeAsset(const WebAsset& asset, httplib::Response& res) {
+void ServeAsset(const WebAsset& asset, HttpAnswer& res) {
   std::string type(asset.content_type);
   if (type.starts_with("text/")) type += "; charset=utf-8";
-  res.set_content(asset.bytes.data(), asset.bytes.size(), type);
+  SetContent(res, std::string(asset.bytes), std::move(type));
 }
 
-int LimitOf(const httplib::Request& req) {
+int LimitOf(const HttpRequest& req) {
   int limit = 200;
-  if (req.has_param("limit")) {
-    const std::string text = req.get_param_value("limit");
-    std::from_chars(text.data(), text.data() + text.size(), limit);
+  if (auto found = req.query.find("limit"); found != req.query.end()) {
+    std::from_chars(found->second.data(), found->second.data() + found->second.size(), limit);
   }
   return std::clamp(limit, 1, 1000);
 }
 
-}  // namespace
-
-void HttpGateway::Route(std::shared_ptr<grpc::Channel> channel) {
-  auto stub = std::shared_ptr<Stub>(v1::Reconstruction::NewStub(channel));
-  std::map<std::string, const WebAsset*, std::less<>> assets;
-  for (const WebAsset& asset : WebAssets()) assets.emplace(std::string(asset.path), &asset);
-  const WebAsset* page = assets.contains("/") ? assets.at("/") : nullptr;
-
-  auto serve_page = [page](const httplib::Request&, httplib::Response& res) {
-    if (page == nullptr) {
-      res.set_content("lsqsurfd was built without its job page (LSQSURF_WITH_WEB=OFF); the JSON API is at /api/jobs\n",
-                      "text/plain; charset=utf-8");
-      return;
+// The path's parts between slashes ("/api/jobs/ID" -> api, jobs, ID); a trailing slash adds none.
+std::vector<std::string_view> PathParts(std::string_view path) {
+  std::vector<std::string_view> parts;
+  while (!path.empty()) {
+    if (path.front() == '/') {
+      path.remove_prefix(1);
+      continue;
     }
-    ServeAsset(*page, res);
-  };
-  // Before any route (the unknown ones included): the headers every answer carries.
-  http_->set_pre_routing_handler([](const httplib::Request&, httplib::Response& res) {
-    SetCommonHeaders(res);
-    return httplib::Server::HandlerResponse::Unhandled;
-  });
-  http_->Get("/", serve_page);
-  http_->Get("/favicon.ico", [](const httplib::Request&, httplib::Response& res) { res.status = 204; });
-  http_->Get(R"(/jobs/[0-9a-f]{1,64}/?)", serve_page);
-  http_->Get(R"(/static/([A-Za-z0-9_./-]+))", [assets](const httplib::Request& req, httplib::Response& res) {
-    const auto found = assets.find(StrCat("/static/", req.matches[1].str()));
-    if (found == assets.end()) return Fail(res, grpc::StatusCode::NOT_FOUND, "no such file");
-    ServeAsset(*found->second, res);
-  });
-  http_->Get("/api/jobs", [stub](const httplib::Request& req, httplib::Response& res) {
-    v1::ListJobsRequest request;
-    request.set_limit(LimitOf(req));
-    Unary(req, res, *stub, &Stub::ListJobs, request);
-  });
-  http_->Get(R"(/api/jobs/([^/]+))", [stub](const httplib::Request& req, httplib::Response& res) {
-    v1::GetJobRequest request;
-    request.set_job_id(req.matches[1].str());
-    Unary(req, res, *stub, &Stub::GetJob, request);
-  });
-  http_->Get(R"(/api/jobs/([^/]+)/results/([^/]+))",
-             [stub](const httplib::Request& req, httplib::Response& res) { Download(req, res, *stub); });
-  http_->Get("/api/methods", [stub](const httplib::Request& req, httplib::Response& res) {
-    Unary(req, res, *stub, &Stub::ListMethods, v1::ListMethodsRequest{});
+    const size_t slash = std::min(path.find('/'), path.size());
+    parts.push_back(path.substr(0, slash));
+    path.remove_prefix(slash);
+  }
+  return parts;
+}
+
+bool IsHexId(std::string_view text) {
+  return !text.empty() && text.size() <= 64 &&
+         std::all_of(text.begin(), text.end(), [](char c) { return (c >= '0' && c <= '9') || (c >= 'a' && c <= 'f'); });
+}
+
+bool IsAssetPath(std::string_view path) {
+  return std::all_of(path.begin(), path.end(), [](char c) {
+    return std::isalnum(static_cast<unsigned char>(c)) != 0 || c == '_' || c == '.' || c == '/' || c == '-';
   });
 }
 
-absl::StatusOr<std::unique_ptr<HttpGateway>> HttpGateway::Start(std::shared_ptr<grpc::Channel> channel,
-                                                                const HttpOptions& options) {
-  const size_t colon = options.listen.rfind(':');
-  int port = -1;
-  if (colon != std::string::npos) {
-    const char* end = options.listen.data() + options.listen.size();
-    if (std::from_chars(options.listen.data() + colon + 1, end, port).ptr != end) port = -1;
+// Every route of the page and its API; `stub` reaches the gRPC service in this process.
+class Routes {
+ public:
+  explicit Routes(std::shared_ptr<grpc::Channel> channel) : stub_(v1::Reconstruction::NewStub(channel)) {
+    for (const WebAsset& asset : WebAssets()) assets_.emplace(std::string(asset.path), &asset);
+    if (auto found = assets_.find("/"); found != assets_.end()) page_ = found->second;
   }
-  if (colon == std::string::npos || colon == 0 || port < 0 || port > 65535) {
-    return absl::InvalidArgumentError(StrCat("--http-listen '", options.listen, "': expected HOST:PORT"));
-  }
-  std::unique_ptr<HttpGateway> gateway(new HttpGateway);
-  gateway->host_ = options.listen.substr(0, colon);
-  std::string bind_host = gateway->host_;
-  if (bind_host.size() > 2 && bind_host.front() == '[' && bind_host.back() == ']') {
-    bind_host = bind_host.substr(1, bind_host.size() - 2);
-  }
-  if (options.tls_cert_path.empty()) {
-    gateway->http_ = std::make_unique<httplib::Server>();
-    gateway->scheme_ = "http";
-  } else {
-    auto tls = std::make_unique<httplib::SSLServer>(options.tls_cert_path.c_str(), options.tls_key_path.c_str());
-    if (!tls->is_valid()) {
-      return absl::UnavailableError(StrCat("HTTPS cannot load ", options.tls_cert_path, " and ", options.tls_key_path));
+
+  HttpAnswer operator()(const HttpRequest& req) const {
+    HttpAnswer res;
+    SetCommonHeaders(res);
+    if (req.method != "GET" && req.method != "HEAD") {
+      res.headers.emplace_back("Allow", "GET, HEAD");
+      Fail(res, grpc::StatusCode::UNIMPLEMENTED, "only GET and HEAD are served here; jobs are submitted over gRPC");
+      res.status = 405;
+      return res;
     }
-    gateway->http_ = std::move(tls);
-    gateway->scheme_ = "https";
+    const std::vector<std::string_view> parts = PathParts(req.path);
+    if (req.path.starts_with("/static/")) {
+      Static(req.path, res);
+    } else if (!Api(req, parts, res) && !Page(parts, res)) {
+      Fail(res, grpc::StatusCode::NOT_FOUND, "no such page");
+    }
+    return res;
   }
-  httplib::Server& http = *gateway->http_;
-  const auto threads = static_cast<size_t>(std::max(1, options.threads));
-  http.new_task_queue = [threads] { return new httplib::ThreadPool(threads); };
-  http.set_read_timeout(10, 0);
-  http.set_write_timeout(60, 0);
-  http.set_keep_alive_timeout(5);
-  http.set_payload_max_length(64 << 10);  // GET requests carry no body worth more.
-  gateway->Route(std::move(channel));
-  gateway->port_ = port == 0 ? http.bind_to_any_port(bind_host) : (http.bind_to_port(bind_host, port) ? port : -1);
-  if (gateway->port_ <= 0) return absl::UnavailableError(StrCat("cannot listen on ", options.listen, " for HTTP"));
-  gateway->listener_ = std::thread([&http] { http.listen_after_bind(); });
+
+ private:
+  void Static(const std::string& path, HttpAnswer& res) const {
+    const auto found = IsAssetPath(path) ? assets_.find(path) : assets_.end();
+    if (found == assets_.end()) return Fail(res, grpc::StatusCode::NOT_FOUND, "no such file");
+    ServeAsset(*found->second, res);
+  }
+
+  bool Page(const std::vector<std::string_view>& parts, HttpAnswer& res) const {
+    if (parts.size() == 1 && parts[0] == "favicon.ico") {
+      res.status = 204;
+      return true;
+    }
+    if (!parts.empty() && !(parts.size() == 2 && parts[0] == "jobs" && IsHexId(parts[1]))) return false;
+    if (page_ == nullptr) {
+      SetContent(res, "lsqsurfd was built without its job page (LSQSURF_WITH_WEB=OFF); the JSON API is at /api/jobs\n",
+                 "text/plain; charset=utf-8");
+    } else {
+      ServeAsset(*page_, res);
+    }
+    return true;
+  }
+
+  bool Api(const HttpRequest& req, const std::vector<std::string_view>& parts, HttpAnswer& res) const {
+    if (parts.empty() || parts[0] != "api") return false;
+    if (parts.size() == 2 && parts[1] == "methods") {
+      Unary(req, res, *stub_, &Stub::ListMethods, v1::ListMethodsRequest{});
+    } else if (parts.size() == 2 && parts[1] == "jobs") {
+      v1::ListJobsRequest request;
+      request.set_limit(LimitOf(req));
+      if (auto token = req.query.find("page_token"); token != req.query.end()) request.set_page_token(token->second);
+      Unary(req, res, *stub_, &Stub::ListJobs, request);
+    } else if (parts.size() == 3 && parts[1] == "jobs") {
+      v1::GetJobRequest request;
+      request.set_job_id(std::string(parts[2]));
+      Unary(req, res, *stub_, &Stub::GetJob, request);
+    } else if (parts.size() == 5 && parts[1] == "jobs" && parts[3] == "results") {
+      Download(req, res, *stub_, std::string(parts[2]), std::string(parts[4]));
+    } else {
+      return false;
+    }
+    return true;
+  }
+
+  std::shared_ptr<Stub> stub_;
+  std::map<std::string, const WebAsset*, std::less<>> assets_;
+  const WebAsset* page_ = nullptr;
+};
+
+}  // namespace
+
+absl::StatusOr<std::unique_ptr<HttpGateway>> HttpGateway::Start(std::shared_ptr<grpc::Channel> channel,
+                                                                const HttpFrontOptions& options) {
+  std::unique_ptr<HttpGateway> gateway(new HttpGateway);
+  auto routes = std::make_shared<const Routes>(std::move(channel));
+  auto front = HttpFront::Start(options, [routes](const HttpRequest& req) { return (*routes)(req); });
+  if (!front.ok()) return front.status();
+  gateway->front_ = *std::move(front);
+  gateway->host_ = options.listen.substr(0, options.listen.rfind(':'));
+  gateway->scheme_ = gateway->front_->scheme();
+  gateway->port_ = gateway->front_->port();
   return gateway;
 }
 
 HttpGateway::~HttpGateway() { Stop(); }
 
-void HttpGateway::Stop() {
-  if (http_ != nullptr) http_->stop();
-  if (listener_.joinable()) listener_.join();
-}
+void HttpGateway::Stop() { front_.reset(); }
 
 std::string HttpGateway::address() const { return StrCat(scheme_, "://", host_, ":", port_); }
 

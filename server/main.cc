@@ -8,6 +8,7 @@
 #include <cstdlib>
 #include <filesystem>
 #include <thread>
+#include <vector>
 
 #include "server/http_gateway.h"
 #include "server/metrics.h"
@@ -74,6 +75,9 @@ struct ServerFlags {
   double stream_idle_seconds = 0;  // Set from StreamLimits::idle, whose default it shows.
   int max_streams_per_connection = 100;
   int max_threads = 64;
+  lsqsurf::server::HttpLimits http;
+  int64_t http_max_head_kib = 0;  // Set from HttpLimits::connection_memory_bytes, whose default it shows.
+  std::vector<std::string> http_hosts;
 };
 
 // `lsqsurfd tokens add|list|revoke`: edits a token file.
@@ -264,6 +268,42 @@ void DefineFlags(CLI::App& app, ServerFlags& flags, lsqsurf::jobs::JobServiceOpt
                "print every method's parameters (and the view options) as Markdown, then exit");
 }
 
+// What one client, and all of them, may hold of the --http-listen port.
+void DefineHttpFlags(CLI::App& app, ServerFlags& flags) {
+  lsqsurf::server::HttpLimits& limits = flags.http;
+  flags.http_max_head_kib = static_cast<int64_t>(limits.connection_memory_bytes >> 10);
+  app.add_option("--http-host", flags.http_hosts,
+                 "a host name the job page answers to (repeatable); besides these only IP addresses and "
+                 "localhost are, so that a web page cannot rebind its own name to this server");
+  app.add_option("--http-max-head-kib", flags.http_max_head_kib,
+                 "KiB that one HTTP request's line and headers may take (more: 431, connection closed)")
+      ->capture_default_str()
+      ->check(CLI::Range(int64_t{8}, int64_t{1024}));
+  app.add_option("--http-max-connections", limits.max_connections, "HTTP connections open at once")
+      ->capture_default_str()
+      ->check(CLI::Range(1u, 100000u));
+  app.add_option("--http-max-connections-per-peer", limits.max_connections_per_peer,
+                 "HTTP connections open at once from one address")
+      ->capture_default_str()
+      ->check(CLI::Range(1u, 100000u));
+  app.add_option("--http-head-seconds", limits.head_seconds,
+                 "seconds from an HTTP connection's start (or its previous answer) by which a request's whole "
+                 "head must have come, however it trickles")
+      ->capture_default_str()
+      ->check(CLI::Range(1u, 3600u));
+  app.add_option("--http-idle-seconds", limits.idle_seconds,
+                 "seconds without a byte either way after which an HTTP connection is closed")
+      ->capture_default_str()
+      ->check(CLI::Range(1u, 3600u));
+  app.add_option("--http-max-requests-per-connection", limits.max_requests_per_connection,
+                 "requests on one kept-alive HTTP connection")
+      ->capture_default_str()
+      ->check(CLI::Range(1u, 100000u));
+  app.add_option("--http-threads", limits.threads, "HTTP event loops (each answers its connections' requests)")
+      ->capture_default_str()
+      ->check(CLI::Range(1u, 64u));
+}
+
 // What lsqsurfd serves with: TLS (`tls` set) or plaintext, and the tokens it takes (null: none).
 struct Security {
   std::unique_ptr<lsqsurf::server::ServerTls> tls;
@@ -352,10 +392,13 @@ absl::StatusOr<std::unique_ptr<lsqsurf::server::HttpGateway>> StartHttp(const Se
   if (!flags.tls.client_ca.empty()) {
     return absl::InvalidArgumentError("--http-listen does not take client certificates (--tls-client-ca); use tokens");
   }
-  lsqsurf::server::HttpOptions options;
+  lsqsurf::server::HttpFrontOptions options;
   options.listen = flags.http_listen;
   options.tls_cert_path = flags.tls.cert;
   options.tls_key_path = flags.tls.key;
+  options.host_names = flags.http_hosts;
+  options.limits = flags.http;
+  options.limits.connection_memory_bytes = static_cast<size_t>(flags.http_max_head_kib) << 10;
   return lsqsurf::server::HttpGateway::Start(server.InProcessChannel(), options);
 }
 
@@ -369,6 +412,7 @@ int main(int argc, char** argv) {
   flags.max_render_mib = options.max_render_bytes >> 20;
   flags.stream_idle_seconds = std::chrono::duration<double>(flags.streams.idle).count();
   DefineFlags(app, flags, options);
+  DefineHttpFlags(app, flags);
   TokenCommand token_command;
   DefineTokenCommand(app, token_command);
   CLI11_PARSE(app, argc, argv);

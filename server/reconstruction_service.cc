@@ -18,6 +18,29 @@ namespace {
 // Threads that decode and submit finished uploads: a few, as each uses a core while it decodes.
 constexpr int kSubmitThreads = 2;
 
+// ListJobs pages: jobs by default and at most, and the bytes after which a page ends early
+// (a job's text parameters may take 64 KiB each; gRPC's messages end at 16 MiB).
+constexpr int kDefaultPageJobs = 100;
+constexpr int kMaxPageJobs = 1000;
+constexpr size_t kMaxPageBytes = 4 << 20;
+
+// A page token names the last job of its page by its place in the newest-first order:
+// "CREATED_MS.ID". Opaque to clients; checked as any other input.
+std::string PageToken(const jobs::JobRecord& r) { return core::StrCat(r.created_ms, ".", r.id); }
+
+std::optional<std::pair<int64_t, std::string>> ParsePageToken(const std::string& token) {
+  const size_t dot = token.find('.');
+  if (dot == std::string::npos || dot == 0 || dot > 19) return std::nullopt;
+  int64_t created = 0;
+  for (char c : std::string_view(token).substr(0, dot)) {
+    if (c < '0' || c > '9') return std::nullopt;
+    created = created * 10 + (c - '0');
+  }
+  std::string id = token.substr(dot + 1);
+  if (!jobs::IsJobIdForm(id)) return std::nullopt;
+  return std::pair{created, std::move(id)};
+}
+
 // Runs a handler body; an exception becomes a status instead of leaving the gRPC thread.
 template <class Body>
 grpc::Status Run(const char* rpc, Body&& body) {
@@ -109,6 +132,17 @@ absl::StatusOr<ReconstructionService::Admitted> ReconstructionService::Admit(grp
   return admitted;
 }
 
+absl::Status ReconstructionService::ReserveSpool(const Caller& caller, int64_t bytes) {
+  SpoolLedger::Room room;
+  std::error_code error;
+  const std::filesystem::space_info space = std::filesystem::space(spool_dir_, error);
+  if (!error) room.disk_free = static_cast<int64_t>(space.available);
+  room.min_free = jobs_.options().min_free_bytes;
+  room.quota = caller.submitter.max_stored_bytes;
+  if (room.quota > 0) room.stored = jobs_.UsageOf(caller.submitter.owner).stored_bytes;
+  return spool_.Reserve(caller.submitter.owner, bytes, room);
+}
+
 ReconstructionService::ReconstructionService(jobs::JobService& jobs, CallObserver* calls, const TokenTable* tokens,
                                              StreamLimits limits)
     : jobs_(jobs),
@@ -179,6 +213,9 @@ class ReconstructionService::Upload final : public grpc::ServerReadReactor<v1::S
     if (!ok) {
       if (!spec_.has_value()) return End(InvalidArgument("the first SubmitJob message must carry the job spec"));
       if (context_->IsCancelled()) return End(grpc::Status(grpc::StatusCode::CANCELLED, "upload cancelled"));
+      // From here the call waits on the server (a submission thread, the checks), not on its
+      // client: the idle sweeper must not cancel a job it is about to store.
+      ticket_->SetBusy(true);
       service_.Post([this] { Submit(); });
       return;
     }
@@ -192,6 +229,7 @@ class ReconstructionService::Upload final : public grpc::ServerReadReactor<v1::S
     files_.clear();
     std::error_code error;
     for (const auto& [slot, path] : paths_) std::filesystem::remove(path, error);
+    service_.spool_.Release(caller_.submitter.owner, spooled_);
     delete this;
   }
 
@@ -225,6 +263,10 @@ class ReconstructionService::Upload final : public grpc::ServerReadReactor<v1::S
                             core::StrCat("the upload exceeds ", quota ? "your quota's" : "this server's", " limit of ",
                                          limit_, " bytes"));
       }
+      if (absl::Status room = service_.ReserveSpool(caller_, static_cast<int64_t>(chunk.size())); !room.ok()) {
+        return ToGrpcStatus(room);
+      }
+      spooled_ += static_cast<int64_t>(chunk.size());
       received_ += chunk.size();
       if (message_.has_input_chunk()) input_part_bytes_ += chunk.size();
       std::ofstream& file = FileOf(slot);
@@ -274,6 +316,9 @@ class ReconstructionService::Upload final : public grpc::ServerReadReactor<v1::S
     if (now->name != caller_.name) {
       return grpc::Status(grpc::StatusCode::UNAUTHENTICATED, "the token changed during the upload");
     }
+    if (context_->IsCancelled()) {  // The client gave up while the submission waited its turn.
+      return grpc::Status(grpc::StatusCode::CANCELLED, "the submission was cancelled before its job was stored");
+    }
     jobs::Uploads uploads;
     files_.clear();  // Flushed and closed.
     for (const auto& [slot, path] : paths_) {
@@ -302,6 +347,7 @@ class ReconstructionService::Upload final : public grpc::ServerReadReactor<v1::S
   v1::SubmitJobRequest message_;
   std::optional<jobs::JobSpec> spec_;
   size_t received_ = 0;
+  int64_t spooled_ = 0;          // Reserved in the service's SpoolLedger.
   int64_t input_part_ = 0;       // The input part chunks go to now...
   size_t input_part_bytes_ = 0;  // ...and its bytes so far.
   std::map<std::string, std::string> paths_;
@@ -499,11 +545,30 @@ grpc::Status ReconstructionService::ListJobs(grpc::ServerContext* context, const
                                              v1::ListJobsResponse* response) {
   return Serve("ListJobs", context, [&](const Caller& caller) {
     if (request->limit() < 0) return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "limit must not be negative");
-    int count = 0;
-    for (const auto& r : jobs_.List()) {
+    const int page_jobs = request->limit() == 0 ? kDefaultPageJobs : std::min(request->limit(), kMaxPageJobs);
+    std::optional<std::pair<int64_t, std::string>> after;
+    if (!request->page_token().empty()) {
+      after = ParsePageToken(request->page_token());
+      if (!after) {
+        return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                            "page_token is not one this server gave; pass a response's next_page_token as it came");
+      }
+    }
+    size_t bytes = 0;
+    const jobs::JobRecord* last = nullptr;
+    for (const auto& r : jobs_.List()) {  // Newest first: by created_ms, then id, both descending.
+      if (after && (r.created_ms > after->first || (r.created_ms == after->first && r.id >= after->second))) continue;
       if (!jobs::JobService::MayView(caller.submitter, r)) continue;
-      if (request->limit() > 0 && count++ >= request->limit()) break;
-      ToProto(r, response->add_jobs());
+      v1::Job job;
+      ToProto(r, &job);
+      const size_t size = job.ByteSizeLong();
+      if (response->jobs_size() >= page_jobs || (response->jobs_size() > 0 && bytes + size > kMaxPageBytes)) {
+        response->set_next_page_token(PageToken(*last));
+        break;
+      }
+      bytes += size;
+      *response->add_jobs() = std::move(job);
+      last = &r;
     }
     return grpc::Status::OK;
   });

@@ -111,6 +111,8 @@ class ReconstructionService final : public ReconstructionBase {
   // The job if the caller may see it; kNotFound otherwise, as for a missing one; kInvalidArgument
   // for a text that is no job id.
   absl::StatusOr<jobs::JobRecord> Visible(const Caller& caller, const std::string& id) const;
+  // Room in the spool for `bytes` more of `caller`'s upload (SpoolLedger::Reserve).
+  absl::Status ReserveSpool(const Caller& caller, int64_t bytes);
   // Runs `task` on a submission thread (a finished upload's decoding and submission).
   void Post(std::function<void()> task);
   void SubmitLoop();
@@ -122,6 +124,7 @@ class ReconstructionService final : public ReconstructionBase {
   const TokenTable* tokens_;
   StreamGuard streams_;
   const std::string spool_dir_;  // Uploads in progress, one file per slot.
+  SpoolLedger spool_;            // Their bytes, by user.
 
   std::mutex submit_mutex_;
   std::condition_variable submit_wake_;

@@ -43,11 +43,17 @@ struct StreamGuard::Entry {
   grpc::CallbackServerContext* context;
   std::atomic<int64_t> last_ms;  // steady_clock milliseconds.
   bool cancelled = false;        // By the sweeper (mutex_).
+  std::atomic<bool> busy{false};
 };
 
 StreamGuard::Ticket::~Ticket() { guard_.Release(id_); }
 
 void StreamGuard::Ticket::Touch() { entry_->last_ms.store(SteadyMs(std::chrono::steady_clock::now())); }
+
+void StreamGuard::Ticket::SetBusy(bool busy) {
+  Touch();
+  entry_->busy.store(busy);
+}
 
 StreamGuard::StreamGuard(StreamLimits limits) : limits_(limits) {
   for (StreamKind kind : {StreamKind::kUpload, StreamKind::kDownload, StreamKind::kWatch, StreamKind::kReflection}) {
@@ -82,8 +88,18 @@ int StreamGuard::Limit(StreamKind kind) const {
   return 0;
 }
 
-absl::StatusOr<std::unique_ptr<StreamGuard::Ticket>> StreamGuard::Admit(StreamKind kind, const std::string& owner,
+std::string PeerHolder(const std::string& peer) {
+  // "ipv4:127.0.0.1:54321", "ipv6:[::1]:54321": the address without its port.
+  const size_t colon = peer.rfind(':');
+  const size_t kind = peer.find(':');
+  return core::StrCat("peer ", colon != std::string::npos && colon != kind ? peer.substr(0, colon) : peer);
+}
+
+absl::StatusOr<std::unique_ptr<StreamGuard::Ticket>> StreamGuard::Admit(StreamKind kind, const std::string& user,
                                                                         grpc::CallbackServerContext* context) {
+  // A client without a name is held to a user's share per address, so that one tokenless client
+  // cannot hold every stream (a space keeps "peer ..." apart from every user name).
+  const std::string owner = user.empty() && context != nullptr ? PeerHolder(context->peer()) : user;
   std::lock_guard lock(mutex_);
   core::FairSlots& slots = slots_.at(kind);
   switch (slots.TryTake(owner)) {
@@ -127,7 +143,9 @@ int StreamGuard::CancelIdle(std::chrono::steady_clock::time_point now) {
   std::lock_guard lock(mutex_);
   std::vector<Entry*> idle;
   for (const auto& [id, e] : entries_) {
-    if (e->kind != StreamKind::kWatch && !e->cancelled && e->last_ms.load() < cutoff) idle.push_back(e.get());
+    if (e->kind != StreamKind::kWatch && !e->cancelled && !e->busy.load() && e->last_ms.load() < cutoff) {
+      idle.push_back(e.get());
+    }
   }
   // A cancellation may release its entry on this thread (the mutex is recursive), so the loop
   // runs over the list taken above; each entry is touched before its own cancellation only.
@@ -138,6 +156,40 @@ int StreamGuard::CancelIdle(std::chrono::steady_clock::time_point now) {
     e->context->TryCancel();
   }
   return static_cast<int>(idle.size());
+}
+
+absl::Status SpoolLedger::Reserve(const std::string& owner, int64_t bytes, const Room& room) {
+  std::lock_guard lock(mutex_);
+  if (room.disk_free >= 0 && room.disk_free - bytes < room.min_free) {
+    return absl::ResourceExhaustedError(core::StrCat("the server's disk is nearly full (", room.disk_free >> 20,
+                                                     " MiB free, ", room.min_free >> 20,
+                                                     " MiB kept for running jobs); the upload stops here: try again "
+                                                     "later"));
+  }
+  int64_t& mine = by_owner_[owner];
+  if (room.quota > 0 && room.stored + mine + bytes > room.quota) {
+    const int64_t in_flight = mine;
+    if (mine == 0) by_owner_.erase(owner);
+    return absl::ResourceExhaustedError(core::StrCat(
+        "this upload would pass your quota of ", room.quota, " bytes: your jobs keep ", room.stored,
+        " and your uploads in progress hold ", in_flight, "; delete finished jobs or wait for your uploads"));
+  }
+  mine += bytes;
+  return absl::OkStatus();
+}
+
+void SpoolLedger::Release(const std::string& owner, int64_t bytes) {
+  std::lock_guard lock(mutex_);
+  auto it = by_owner_.find(owner);
+  if (it == by_owner_.end()) return;
+  it->second -= bytes;
+  if (it->second <= 0) by_owner_.erase(it);
+}
+
+int64_t SpoolLedger::InFlight(const std::string& owner) const {
+  std::lock_guard lock(mutex_);
+  auto it = by_owner_.find(owner);
+  return it == by_owner_.end() ? 0 : it->second;
 }
 
 }  // namespace lsqsurf::server

@@ -31,6 +31,8 @@ class CallbackServerContext;
 namespace lsqsurf::server {
 
 enum class StreamKind { kUpload, kDownload, kWatch, kReflection };
+// How an unnamed client's streams are counted: "peer ADDRESS" of a gRPC peer ("ipv4:HOST:PORT").
+std::string PeerHolder(const std::string& peer);
 const char* StreamKindName(StreamKind kind);
 
 // The bounds, each a documented lsqsurfd option.
@@ -39,8 +41,8 @@ struct StreamLimits {
   int max_downloads = 64;   // FetchResult streams.
   int max_watches = 4096;   // WatchJob streams.
   int max_reflection = 64;  // Server reflection streams (open without a token).
-  // A named user holds at most this share of each kind's streams (rounded up), so that no one
-  // holds all of them.
+  // A named user, or a client without a token at one address, holds at most this share of
+  // each kind's streams (rounded up), so that no one holds all of them.
   double per_user_share = 0.5;
   // An upload that sends nothing, a download whose client reads nothing, or a reflection stream
   // that asks nothing for this long is cancelled.
@@ -59,6 +61,9 @@ class StreamGuard {
     Ticket(const Ticket&) = delete;
     Ticket& operator=(const Ticket&) = delete;
     void Touch();
+    // While busy, the stream waits on the server, not on its client (a finished upload whose job
+    // is being checked and stored): it is never idle, whatever its last move.
+    void SetBusy(bool busy);
 
    private:
     friend class StreamGuard;
@@ -71,7 +76,8 @@ class StreamGuard {
   explicit StreamGuard(StreamLimits limits);
   ~StreamGuard();  // Stops the sweeper; every ticket must be gone.
 
-  // A place for a stream of `kind` for `owner` (empty: unnamed, held only to the kind's total).
+  // A place for a stream of `kind` for `owner` (empty: unnamed, held to a share per peer address
+  // of `context`, or only to the kind's total without one).
   // Errors: kResourceExhausted naming the bound.
   absl::StatusOr<std::unique_ptr<Ticket>> Admit(StreamKind kind, const std::string& owner,
                                                 grpc::CallbackServerContext* context);
@@ -96,6 +102,27 @@ class StreamGuard {
   std::condition_variable stop_wake_;
   bool stopping_ = false;
   std::thread sweeper_;
+};
+
+// The bytes of the uploads in progress, by user: a spool holds disk before its job exists, so
+// each chunk is counted, before it is written, against the disk's reserve for running jobs and
+// against its user's stored-bytes quota together with the user's other uploads.
+class SpoolLedger {
+ public:
+  struct Room {
+    int64_t disk_free = -1;  // Bytes free on the spool's disk; -1: unknown.
+    int64_t min_free = 0;    // Bytes kept free for running jobs (--min-free-mib).
+    int64_t quota = 0;       // The user's stored-bytes quota; 0: none.
+    int64_t stored = 0;      // What the user's jobs keep now.
+  };
+  // Errors: kResourceExhausted, saying which bound.
+  absl::Status Reserve(const std::string& owner, int64_t bytes, const Room& room);
+  void Release(const std::string& owner, int64_t bytes);
+  int64_t InFlight(const std::string& owner) const;
+
+ private:
+  mutable std::mutex mutex_;
+  std::map<std::string, int64_t> by_owner_;
 };
 
 // A reactor that ends its call at once with `status` (a refusal before any stream work).

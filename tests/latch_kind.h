@@ -23,6 +23,10 @@ class LatchKind final : public jobs::JobKind {
   std::vector<jobs::MethodInfo> Methods() const override { return {}; }
   absl::StatusOr<jobs::CheckedInput> CheckUploads(const jobs::JobSpec&, const jobs::Uploads&,
                                                   const jobs::InputLimits&) const override {
+    std::unique_lock lock(mutex_);
+    ++checking_;
+    changed_.notify_all();
+    changed_.wait(lock, [this] { return !checks_held_; });
     return jobs::CheckedInput{1, nullptr, {}};
   }
   absl::StatusOr<jobs::Statistics> Run(const jobs::JobSpec&, const jobs::Uploads&,
@@ -54,6 +58,21 @@ class LatchKind final : public jobs::JobKind {
     std::lock_guard lock(mutex_);
     return started_;
   }
+  // Holds submissions in their upload check (on the server's submission threads) until
+  // ReleaseChecks; WaitChecking(n) blocks until `n` checks have begun.
+  void HoldChecks() {
+    std::lock_guard lock(mutex_);
+    checks_held_ = true;
+  }
+  void WaitChecking(int n) const {
+    std::unique_lock lock(mutex_);
+    changed_.wait(lock, [&] { return checking_ >= n; });
+  }
+  void ReleaseChecks() const {
+    std::lock_guard lock(mutex_);
+    checks_held_ = false;
+    changed_.notify_all();
+  }
   void Release() const {
     std::lock_guard lock(mutex_);
     released_ = true;
@@ -65,6 +84,8 @@ class LatchKind final : public jobs::JobKind {
   mutable std::condition_variable changed_;
   mutable int started_ = 0;
   mutable bool released_ = false;
+  mutable int checking_ = 0;
+  mutable bool checks_held_ = false;
   std::vector<std::pair<std::string, std::string>> early_;
 };
 

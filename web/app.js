@@ -107,7 +107,9 @@ async function showList() {
       const listing = await api('/api/jobs?limit=200');
       body.replaceChildren(...(listing.jobs || []).map(jobRow));
       $('jobs').dataset.updated = String(Date.now());
-      showMessage((listing.jobs || []).length ? '' : 'No jobs yet.');
+      const shown = (listing.jobs || []).length;
+      showMessage(!shown ? 'No jobs yet.'
+        : listing.next_page_token ? `The newest ${shown} jobs; lsqsurf list shows them all.` : '');
     } catch (error) {
       showMessage(`Cannot list the jobs: ${error.message}`);
     }

@@ -93,7 +93,7 @@ def test_https_with_the_grpc_certificate(tls_server):
     assert server.http.startswith("https://")
     trusted = ssl.create_default_context(cafile=str(certificate))
     status, _, body = get(server.http + "/api/jobs", context=trusted)
-    assert status == 200 and json.loads(body) == {"jobs": []}
+    assert status == 200 and json.loads(body) == {"jobs": [], "next_page_token": ""}
     with pytest.raises(urllib.error.URLError):
         get(server.http + "/api/jobs")  # the system's roots do not know this certificate
 

@@ -155,5 +155,40 @@ TEST(Normals, StopsWhenCancelled) {
             absl::StatusCode::kCancelled);
 }
 
+// Repeats of a position are dropped before any neighbour search, the first of each kept with
+// its normal and attributes, the others in their order.
+TEST(Normals, RepeatedPositionsAreRemovedFirstKeepingEachFirstPoint) {
+  const PointCloud sphere = testing::SphereCloud(3000);
+  PointCloud repeated;
+  repeated.attributes.push_back({"index", {}});
+  std::mt19937 random(7);
+  std::uniform_int_distribution<size_t> any(0, sphere.size() - 1);
+  auto add = [&](size_t i, Vec3f normal) {
+    repeated.positions.push_back(sphere.positions[i]);
+    repeated.normals.push_back(normal);
+    repeated.attributes[0].values.push_back(static_cast<float>(i));
+  };
+  for (size_t i = 0; i < sphere.size(); ++i) add(i, sphere.normals[i]);
+  for (int r = 0; r < 9000; ++r) add(any(random), -Vec3f::UnitX());  // Repeats, after their first.
+  EXPECT_EQ(RemoveDuplicatePoints(repeated), 9000u);
+  ASSERT_EQ(repeated.size(), sphere.size());
+  ASSERT_EQ(repeated.normals.size(), sphere.size());
+  ASSERT_EQ(repeated.attributes[0].values.size(), sphere.size());
+  for (size_t i = 0; i < sphere.size(); ++i) {
+    EXPECT_EQ(repeated.positions[i], sphere.positions[i]);
+    EXPECT_EQ(repeated.normals[i], sphere.normals[i]);
+    EXPECT_EQ(repeated.attributes[0].values[i], static_cast<float>(i));
+  }
+  // A repeat before the rest of the cloud: the first of each position wins, wherever it stands.
+  PointCloud mixed;
+  mixed.positions = {Vec3f(0, 0, 1), Vec3f(1, 0, 0), Vec3f(0, 0, 1), Vec3f(0, 1, 0), Vec3f(1, 0, 0)};
+  EXPECT_EQ(RemoveDuplicatePoints(mixed), 2u);
+  EXPECT_EQ(mixed.positions, (std::vector<Vec3f>{Vec3f(0, 0, 1), Vec3f(1, 0, 0), Vec3f(0, 1, 0)}));
+  PointCloud distinct = testing::SphereCloud(500);
+  const std::vector<Vec3f> before = distinct.positions;
+  EXPECT_EQ(RemoveDuplicatePoints(distinct), 0u);
+  EXPECT_EQ(distinct.positions, before);
+}
+
 }  // namespace
 }  // namespace lsqsurf::core

@@ -3,6 +3,7 @@
 
 #include <gtest/gtest.h>
 
+#include <cstring>
 #include <filesystem>
 
 #include "tests/test_dir.h"
@@ -142,6 +143,35 @@ TEST(MeshPart, RoundTripsAndRefusesWhatDoesNotFollowOn) {
   const std::vector<std::array<int64_t, 3>> ahead = {{10, 11, 13}};
   EXPECT_FALSE(DecodeMeshPart(EncodeMeshPart(10, vertices, normals, attributes, ahead)).ok());
   for (size_t cut = 0; cut < bytes.size(); cut += 7) EXPECT_FALSE(DecodeMeshPart(bytes.substr(0, cut)).ok()) << cut;
+
+  // Read field by field as FetchResultRequest's comment lays the part out, as a client author
+  // would, with nothing of this project's: it ends exactly at the last face.
+  size_t pos = 0;
+  auto take = [&](size_t n) {
+    const std::string field = bytes.substr(pos, n);
+    pos += n;
+    return field;
+  };
+  auto u64 = [&] {
+    uint64_t v = 0;
+    std::memcpy(&v, take(8).data(), 8);
+    return v;
+  };
+  EXPECT_EQ(take(4), "LQM1");
+  EXPECT_EQ(static_cast<int64_t>(u64()), 10);  // first_vertex
+  const uint64_t n = u64();                    // positions
+  EXPECT_EQ(n, 3u);
+  take(n * 12);
+  EXPECT_EQ(u64(), n);  // normals
+  take(n * 12);
+  EXPECT_EQ(u64(), 1u);  // attributes
+  const uint64_t name_length = u64();
+  EXPECT_EQ(take(name_length), "degree");
+  EXPECT_EQ(u64(), n);  // its values, counted again
+  take(n * 4);
+  EXPECT_EQ(u64(), 2u);  // faces
+  take(2 * 24);
+  EXPECT_EQ(pos, bytes.size());
 }
 
 }  // namespace

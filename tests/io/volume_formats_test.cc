@@ -2,6 +2,7 @@
 
 #include <gtest/gtest.h>
 #include <sys/resource.h>
+#include <zlib.h>
 
 #include <cmath>
 #include <fstream>
@@ -13,6 +14,8 @@
 
 namespace lsqsurf::io {
 namespace {
+
+constexpr uint64_t kNoInflateLimit = UINT64_MAX;
 
 using volume::VolumeMesh;
 
@@ -173,7 +176,7 @@ TEST(VolumeCodec, VerticesAndCellsRoundTripSmallerThanBinaryVtk) {
   const std::string cells = EncodeCellStream(mesh);
   VolumeMesh back;
   ASSERT_TRUE(DecodeVolumeVertices(*vertices, back).ok());
-  ASSERT_TRUE(DecodeCellStream(cells, 1'000'000, back).ok());
+  ASSERT_TRUE(DecodeCellStream(cells, 1'000'000, kNoInflateLimit, back).ok());
   ExpectSameMesh(mesh, back, 2e-6f);  // 20-bit positions over a unit box.
   ASSERT_EQ(back.fields.size(), 1u);
   for (size_t i = 0; i < mesh.vertex_count(); ++i)
@@ -183,10 +186,10 @@ TEST(VolumeCodec, VerticesAndCellsRoundTripSmallerThanBinaryVtk) {
   EXPECT_LT(vertices->size() + cells.size(), vtk / 3);
   // Limits and corruption.
   VolumeMesh sink;
-  EXPECT_EQ(DecodeCellStream(cells, 10, sink).code(), absl::StatusCode::kResourceExhausted);
-  EXPECT_EQ(DecodeCellStream(cells.substr(0, cells.size() / 2), 1'000'000, sink).code(),
+  EXPECT_EQ(DecodeCellStream(cells, 10, kNoInflateLimit, sink).code(), absl::StatusCode::kResourceExhausted);
+  EXPECT_EQ(DecodeCellStream(cells.substr(0, cells.size() / 2), 1'000'000, kNoInflateLimit, sink).code(),
             absl::StatusCode::kInvalidArgument);
-  EXPECT_EQ(DecodeCellStream("LQC0", 10, sink).code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(DecodeCellStream("LQC0", 10, kNoInflateLimit, sink).code(), absl::StatusCode::kInvalidArgument);
 }
 
 // The peak resident memory of this process, bytes.
@@ -207,7 +210,7 @@ TEST(VolumeCodec, ADeclaredLengthIsNeverAllocatedBeforeItsBytesInflate) {
   ASSERT_EQ(lying.size(), 17u);
   const int64_t peak_before = PeakResidentBytes();
   VolumeMesh sink;
-  const absl::Status refused = DecodeCellStream(lying, 100'000'000, sink);
+  const absl::Status refused = DecodeCellStream(lying, 100'000'000, kNoInflateLimit, sink);
   EXPECT_EQ(refused.code(), absl::StatusCode::kInvalidArgument) << refused;
   EXPECT_NE(refused.message().find("compressed bytes can hold"), std::string_view::npos) << refused;
   // A length that its bytes could hold, with a stream that inflates to far less: refused as well.
@@ -226,11 +229,60 @@ TEST(VolumeCodec, ADeclaredLengthIsNeverAllocatedBeforeItsBytesInflate) {
   for (; claimed >= 0x80; claimed >>= 7) longer += static_cast<char>((claimed & 0x7f) | 0x80);
   longer += static_cast<char>(claimed);
   longer += cells.substr(pos);
-  const absl::Status short_stream = DecodeCellStream(longer, 100'000'000, sink);
+  const absl::Status short_stream = DecodeCellStream(longer, 100'000'000, kNoInflateLimit, sink);
   EXPECT_EQ(short_stream.code(), absl::StatusCode::kInvalidArgument) << short_stream;
   EXPECT_NE(short_stream.message().find("inflates to"), std::string_view::npos) << short_stream;
   // Neither grew the process by the declared sizes (the old decoder zeroed all 4.1 GB first).
   EXPECT_LT(PeakResidentBytes() - peak_before, int64_t{256} << 20);
+}
+
+// A real bomb: one tetrahedron, then 512 MiB of zeros, 0.5 MB compressed, its length declared
+// truly. Parsed as it inflates, it is refused at the first byte past the cell, holding a window;
+// a caller's inflation limit stops a stream that is well-formed throughout.
+TEST(VolumeCodec, AStreamThatInflatesAThousandfoldCostsItsWindowOnly) {
+  const std::string cell = {'\x01', '\x0a', '\x00', '\x02', '\x02', '\x02'};  // Count 1; a tetra 0 1 2 3.
+  const uint64_t zeros = uint64_t{512} << 20;
+  std::string packed(1 << 20, '\0');
+  z_stream z{};
+  ASSERT_EQ(deflateInit(&z, 9), Z_OK);
+  std::string out;
+  const std::string block(1 << 20, '\0');
+  auto pump = [&](const std::string& in, int flush) {
+    z.next_in = reinterpret_cast<Bytef*>(const_cast<char*>(in.data()));
+    z.avail_in = static_cast<uInt>(in.size());
+    do {
+      z.next_out = reinterpret_cast<Bytef*>(packed.data());
+      z.avail_out = static_cast<uInt>(packed.size());
+      deflate(&z, flush);
+      out.append(packed.data(), packed.size() - z.avail_out);
+    } while (z.avail_out == 0);
+  };
+  pump(cell, Z_NO_FLUSH);
+  for (uint64_t done = 0; done < zeros; done += block.size()) pump(block, Z_NO_FLUSH);
+  pump("", Z_FINISH);
+  deflateEnd(&z);
+  std::string bomb = "LQC1";
+  for (uint64_t declared = cell.size() + zeros;; declared >>= 7) {
+    bomb += static_cast<char>(declared < 0x80 ? declared : (declared & 0x7f) | 0x80);
+    if (declared < 0x80) break;
+  }
+  bomb += out;
+  ASSERT_LT(bomb.size(), size_t{1} << 20);
+  const int64_t peak_before = PeakResidentBytes();
+  VolumeMesh sink;
+  const absl::Status refused = DecodeCellStream(bomb, 100'000'000, kNoInflateLimit, sink);
+  EXPECT_EQ(refused.code(), absl::StatusCode::kInvalidArgument) << refused;
+  EXPECT_NE(refused.message().find("bytes follow the last cell"), std::string_view::npos) << refused;
+  EXPECT_LT(PeakResidentBytes() - peak_before, int64_t{64} << 20);
+
+  const VolumeMesh mesh = volume::JitteredTetMesh(core::Box3(core::Vec3d::Zero(), core::Vec3d::Ones()), 9, 0.2, 3);
+  const std::string cells = EncodeCellStream(mesh);
+  VolumeMesh back;
+  EXPECT_TRUE(DecodeCellStream(cells, 1'000'000, 1 << 20, back).ok());
+  EXPECT_EQ(back.cell_count(), mesh.cell_count());
+  const absl::Status over = DecodeCellStream(cells, 1'000'000, 4096, back);
+  EXPECT_EQ(over.code(), absl::StatusCode::kResourceExhausted) << over;
+  EXPECT_NE(over.message().find("--max-upload-mib"), std::string_view::npos) << over;
 }
 
 }  // namespace

@@ -5,6 +5,7 @@
 
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <numbers>
 
 #include "tests/test_shapes.h"
@@ -32,6 +33,43 @@ TEST(DeliveredMesh, ATiledCadPartIsOneClosedMesh) {
                                &statistics);
   EXPECT_GE(Statistic(statistics, "tiles"), 4);
   EXPECT_GT(Statistic(statistics, "seam_vertices"), 0);
+}
+
+// A cloud of few positions, each repeated hundreds of thousands of times (a 400-byte Draco upload
+// can declare that many), costs no neighbour search, which scanned all the repeats each time:
+// three positions are refused, thirty are a cloud of thirty points.
+TEST(DeliveredMesh, ACloudOfRepeatedPositionsCostsNoNeighbourSearch) {
+  core::PointCloud repeats;
+  for (int i = 0; i < 2'000'000; ++i) repeats.positions.emplace_back(float(i % 3), 0.0f, 0.0f);
+  core::LocalJobContext ctx;
+  auto refused = ReconstructSurface("iamls", *DefaultParams("iamls"), repeats, ctx);
+  ASSERT_EQ(refused.status().code(), absl::StatusCode::kInvalidArgument) << refused.status();
+  EXPECT_NE(refused.status().message().find("1999997 points repeat"), std::string::npos) << refused.status();
+  for (int i = 0; i < 2'000'000; ++i) repeats.positions[i] = {float(i % 5), float(i % 3), 0.5f * float(i % 2)};
+  auto thirty = ReconstructSurface("iamls", *DefaultParams("iamls"), repeats, ctx);
+  if (thirty.ok()) {
+    EXPECT_EQ(Statistic(thirty->statistics, "duplicate_points"), 1999970);
+  }
+
+  // Every point of a sphere three times gives the sphere's own surface, and says so.
+  const core::PointCloud sphere = testing::SphereCloud(3000);
+  core::PointCloud tripled = sphere;
+  for (int copy = 0; copy < 2; ++copy) {
+    tripled.positions.insert(tripled.positions.end(), sphere.positions.begin(), sphere.positions.end());
+    tripled.normals.insert(tripled.normals.end(), sphere.normals.begin(), sphere.normals.end());
+  }
+  auto once = ReconstructSurface("iamls", *DefaultParams("iamls"), sphere, ctx);
+  auto thrice = ReconstructSurface("iamls", *DefaultParams("iamls"), tripled, ctx);
+  ASSERT_TRUE(once.ok() && thrice.ok());
+  auto sorted = [](std::vector<core::Vec3f> v) {  // The extraction's threads may order them otherwise.
+    std::sort(v.begin(), v.end(), [](const core::Vec3f& a, const core::Vec3f& b) {
+      return std::lexicographical_compare(a.data(), a.data() + 3, b.data(), b.data() + 3);
+    });
+    return v;
+  };
+  EXPECT_EQ(sorted(thrice->mesh.vertices), sorted(once->mesh.vertices));
+  EXPECT_EQ(Statistic(thrice->statistics, "duplicate_points"), 6000);
+  EXPECT_EQ(Statistic(thrice->statistics, "input_points"), 9000);
 }
 
 TEST(DeliveredMesh, ExplicitBitsAreKeptAsAsked) {

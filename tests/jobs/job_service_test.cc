@@ -360,6 +360,35 @@ class WritingKind final : public JobKind {
   mutable bool ran_ = false;
 };
 
+// Fails quoting what it was given, as a parser quotes a bad expression.
+class QuotingKind final : public JobKind {
+ public:
+  std::string_view name() const override { return "quoting"; }
+  std::vector<MethodInfo> Methods() const override { return {}; }
+  absl::StatusOr<CheckedInput> CheckUploads(const JobSpec&, const Uploads&, const InputLimits&) const override {
+    return CheckedInput{1, nullptr, {}};
+  }
+  absl::StatusOr<Statistics> Run(const JobSpec&, const Uploads&, RunEnvironment&) const override {
+    return absl::InvalidArgumentError("cannot read 'x\n[2026-12-01 00:00:00.000] [info] [job 0] succeeded" +
+                                      std::string(20000, 'y') + "'");
+  }
+};
+
+// A failure's reason reaches the record (and the log) bounded and without the line break that
+// would forge a log line.
+TEST_F(JobServiceTest, AFailuresQuotedTextIsBoundedAndEscaped) {
+  const QuotingKind quoting;
+  options_.kind_overrides["iamls"] = &quoting;
+  JobService& s = Open();
+  auto job = s.Submit(Spec("iamls"), Input(Encode(testing::SphereCloud(100))), {});
+  ASSERT_TRUE(job.ok()) << job.status();
+  const JobRecord done = WaitTerminal(job->id);
+  EXPECT_EQ(done.state, JobState::kFailed);
+  EXPECT_EQ(done.error.find('\n'), std::string::npos);
+  EXPECT_NE(done.error.find("x\\x0a[2026"), std::string::npos) << done.error.substr(0, 80);
+  EXPECT_LT(done.error.size(), 4200u);
+}
+
 // A job's results are held to its owner's stored-bytes quota as they are written (not only its
 // upload at submission), and what a failed or cancelled job wrote counts as stored.
 TEST_F(JobServiceTest, ResultsAreHeldToTheQuotaAndEndedJobsCountWhatTheyWrote) {

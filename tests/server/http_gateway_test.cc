@@ -145,7 +145,9 @@ TEST_F(HttpGatewayTest, AUserSeesTheirJobsAndNoOneElsesWithTheGrpcRefusals) {
   EXPECT_EQ(Get("/api/jobs?limit=-7", Bearer(alice_)).status, 200);
   EXPECT_EQ(Get("/api/jobs?limit=many", Bearer(alice_)).status, 200);
   EXPECT_EQ(Get("/api/nothing", Bearer(alice_)).status, 404);
-  EXPECT_EQ(testing::HttpPost(gateway_->address(), "/api/jobs", Bearer(alice_), "{}").status, 404);
+  auto posted = testing::HttpPost(gateway_->address(), "/api/jobs", Bearer(alice_), "{}");
+  EXPECT_EQ(posted.status, 405);
+  EXPECT_EQ(posted.header("Allow"), "GET, HEAD");
   auto methods = Get("/api/methods", Bearer(alice_));
   EXPECT_GT(FromJson<v1::ListMethodsResponse>(methods.body).methods_size(), 5);
 }

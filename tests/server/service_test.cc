@@ -7,6 +7,7 @@
 #include <cmath>
 #include <filesystem>
 #include <map>
+#include <set>
 #include <sstream>
 
 #include "client/client.h"
@@ -517,6 +518,77 @@ TEST_F(ServiceTest, CsgAndEditReuseAKeptPuResult) {
   ASSERT_TRUE(orphan_done.ok());
   EXPECT_EQ(orphan_done->state(), v1::JOB_STATE_FAILED);
   EXPECT_NE(orphan_done->error().find("job:" + job->id()), std::string::npos) << orphan_done->error();
+}
+
+// Many jobs, some with 60 KiB text parameters, come back through ListJobs' pages: newest first,
+// each once, every page within its job count and under 4 MiB (a listing of them all in one
+// message once failed past gRPC's 16 MiB), and a token the server did not give is refused.
+TEST(ListJobsPaging, ManyLargeJobsComeThroughThePagesNewestFirstEachOnce) {
+  const auto dir = testing::FreshTestDir("lsqsurf-paging");
+  testing::LatchKind latch;
+  latch.Release();  // Jobs run through at once.
+  jobs::JobServiceOptions options;
+  options.data_dir = dir.string();
+  options.max_queue = 1000;
+  options.kind_overrides["iamls"] = &latch;
+  options.kind_overrides["volume"] = &latch;
+  auto jobs = jobs::JobService::Open(options);
+  ASSERT_TRUE(jobs.ok()) << jobs.status();
+  auto server = Server::Start(**jobs, {});
+  ASSERT_TRUE(server.ok()) << server.status();
+  client::Client client((*server)->address());
+  auto input = io::EncodeDracoPointCloud(testing::SphereCloud(200), {});
+  ASSERT_TRUE(input.ok());
+  std::set<std::string> submitted;
+  v1::JobSpec small;
+  small.mutable_iamls();
+  v1::JobSpec large;
+  large.mutable_volume()->set_field("f");
+  large.mutable_volume()->set_color_by(std::string(60 << 10, 'c'));
+  for (int i = 0; i < 230; ++i) {
+    auto job = client.Submit(i < 150 ? small : large, *input);
+    ASSERT_TRUE(job.ok()) << job.status();
+    submitted.insert(job->id());
+  }
+
+  auto first = client.ListPage(0, "");
+  ASSERT_TRUE(first.ok()) << first.status();
+  EXPECT_LT(first->jobs_size(), 100);  // The 80 large ones alone take 4.9 MB.
+  EXPECT_GT(first->jobs_size(), 40);
+  EXPECT_LE(first->ByteSizeLong(), size_t{(4 << 20) + (64 << 10)});
+  EXPECT_FALSE(first->next_page_token().empty());
+
+  std::vector<v1::Job> seen;
+  std::string token;
+  int pages = 0;
+  do {
+    auto page = client.ListPage(50, token);
+    ASSERT_TRUE(page.ok()) << page.status();
+    EXPECT_LE(page->jobs_size(), 50);
+    EXPECT_LE(page->ByteSizeLong(), size_t{(4 << 20) + (64 << 10)});
+    seen.insert(seen.end(), page->jobs().begin(), page->jobs().end());
+    token = page->next_page_token();
+    ++pages;
+  } while (!token.empty() && pages < 100);
+  EXPECT_GE(pages, 5);
+  std::set<std::string> listed;
+  for (size_t i = 0; i < seen.size(); ++i) {
+    listed.insert(seen[i].id());
+    if (i > 0) {
+      EXPECT_TRUE(std::pair(seen[i - 1].created_ms(), seen[i - 1].id()) > std::pair(seen[i].created_ms(), seen[i].id()))
+          << i;
+    }
+  }
+  EXPECT_EQ(seen.size(), submitted.size());
+  EXPECT_EQ(listed, submitted);
+  auto all = client.List(0);
+  ASSERT_TRUE(all.ok()) << all.status();
+  EXPECT_EQ(all->jobs_size(), 230);
+  EXPECT_EQ(client.ListPage(10, "17.not-a-job").status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(client.ListPage(10, "nonsense").status().code(), absl::StatusCode::kInvalidArgument);
+  server->reset();
+  jobs->reset();
+  std::filesystem::remove_all(dir);
 }
 
 }  // namespace

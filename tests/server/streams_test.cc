@@ -7,11 +7,15 @@
 #include <filesystem>
 #include <fstream>
 #include <string>
+#include <thread>
 
 #include "client/client.h"
 #include "grpc/reflection/v1alpha/reflection.grpc.pb.h"
 #include "server/server.h"
+#include "tests/latch_kind.h"
 #include "tests/test_dir.h"
+#include "tests/test_shapes.h"
+#include "worker/io/draco_codec.h"
 
 namespace lsqsurf::server {
 namespace {
@@ -29,10 +33,12 @@ int ThreadCount() {
 
 class StreamsTest : public ::testing::Test {
  protected:
-  void Start(StreamLimits limits) {
+  // `latch`, when given, stands in for apss's engine and checks.
+  void Start(StreamLimits limits, testing::LatchKind* latch = nullptr) {
     dir_ = testing::FreshTestDir("lsqsurf-streams");
     jobs::JobServiceOptions options;
     options.data_dir = dir_.string();
+    if (latch != nullptr) options.kind_overrides["apss"] = latch;
     auto jobs = jobs::JobService::Open(options);
     ASSERT_TRUE(jobs.ok()) << jobs.status();
     jobs_ = *std::move(jobs);
@@ -45,6 +51,8 @@ class StreamsTest : public ::testing::Test {
     server_ = *std::move(server);
   }
   void TearDown() override {
+    latch_.ReleaseChecks();
+    latch_.Release();
     server_.reset();  // Before the job service it serves.
     jobs_.reset();
     std::filesystem::remove_all(dir_);
@@ -58,6 +66,7 @@ class StreamsTest : public ::testing::Test {
   std::string address() const { return server_->address(); }
 
   std::filesystem::path dir_;
+  testing::LatchKind latch_;  // Outlives the job service that may run it.
   std::unique_ptr<jobs::JobService> jobs_;
   std::unique_ptr<Server> server_;
 };
@@ -67,6 +76,7 @@ TEST_F(StreamsTest, IdleStreamsHoldNoThreadAndAreBounded) {
   limits.max_reflection = 150;
   limits.max_uploads = 60;
   limits.idle = std::chrono::hours(1);  // Not under test here.
+  limits.per_user_share = 1.0;          // Nor the share of one client: every stream comes from here.
   Start(limits);
   auto channel = Channel();
   const int before = ThreadCount();
@@ -178,6 +188,131 @@ TEST_F(StreamsTest, AnIdleStreamIsCancelledAndTheReflectionServiceAnswers) {
   spec.mutable_spec()->mutable_iamls();
   ASSERT_TRUE(upload->Write(spec));
   EXPECT_EQ(upload->Finish().error_code(), grpc::StatusCode::CANCELLED);
+}
+
+TEST_F(StreamsTest, AFinishedUploadWaitingOnTheServerIsStoredNotCancelledAsIdle) {
+  StreamLimits limits;
+  limits.idle = std::chrono::milliseconds(300);
+  testing::LatchKind& latch = latch_;
+  latch.HoldChecks();
+  Start(limits, &latch);
+  client::Client client(address());
+  v1::JobSpec spec;
+  ASSERT_TRUE(client::SetMethod(&spec, "apss").ok());
+  auto cloud = io::EncodeDracoPointCloud(testing::SphereCloud(500), {});
+  ASSERT_TRUE(cloud.ok());
+  // The upload is whole; its check holds the submission on the server for several idle limits
+  // (the sweeper looks every second), while its client sends nothing more, as it should.
+  std::thread release([&] {
+    latch.WaitChecking(1);
+    std::this_thread::sleep_for(std::chrono::milliseconds(2500));
+    latch.ReleaseChecks();
+  });
+  auto job = client.Submit(spec, *cloud);
+  release.join();
+  ASSERT_TRUE(job.ok()) << job.status();  // Not CANCELLED (with the job stored all the same).
+  auto listed = client.List(10);
+  ASSERT_TRUE(listed.ok());
+  ASSERT_EQ(listed->jobs_size(), 1);
+  EXPECT_EQ(listed->jobs(0).id(), job->id());
+  latch.Release();
+  EXPECT_EQ(client.Watch(job->id())->state(), v1::JOB_STATE_SUCCEEDED);
+}
+
+// A client without a token holds half of a kind's streams from its address: the rest stay for
+// the others (one tokenless client held all 64 reflection slots).
+TEST_F(StreamsTest, AClientWithoutATokenHoldsItsAddresssShare) {
+  StreamLimits limits;
+  limits.max_reflection = 8;
+  limits.idle = std::chrono::hours(1);
+  Start(limits);
+  auto stub = reflection::ServerReflection::NewStub(Channel());
+  std::vector<std::unique_ptr<grpc::ClientContext>> contexts;
+  std::vector<std::unique_ptr<
+      grpc::ClientReaderWriter<reflection::ServerReflectionRequest, reflection::ServerReflectionResponse>>>
+      held;
+  reflection::ServerReflectionRequest request;
+  request.set_list_services("");
+  reflection::ServerReflectionResponse response;
+  for (int i = 0; i < 4; ++i) {  // Each answered once: it is open on the server.
+    contexts.push_back(std::make_unique<grpc::ClientContext>());
+    held.push_back(stub->ServerReflectionInfo(contexts.back().get()));
+    ASSERT_TRUE(held.back()->Write(request));
+    ASSERT_TRUE(held.back()->Read(&response));
+  }
+  grpc::ClientContext fifth_context;
+  auto fifth = stub->ServerReflectionInfo(&fifth_context);
+  EXPECT_FALSE(fifth->Read(&response));
+  const grpc::Status refused = fifth->Finish();
+  EXPECT_EQ(refused.error_code(), grpc::StatusCode::RESOURCE_EXHAUSTED);
+  EXPECT_NE(refused.error_message().find("your share"), std::string::npos) << refused.error_message();
+  EXPECT_EQ(server_->service().streams().Open(StreamKind::kReflection), 4);
+  for (auto& stream : held) stream->WritesDone();
+  for (auto& stream : held) EXPECT_TRUE(stream->Finish().ok());
+
+  EXPECT_EQ(PeerHolder("ipv4:127.0.0.1:54321"), "peer ipv4:127.0.0.1");
+  EXPECT_EQ(PeerHolder("ipv6:[::1]:443"), "peer ipv6:[::1]");
+  EXPECT_EQ(PeerHolder("unix:"), "peer unix:");
+}
+
+// Uploads in progress count before their jobs exist: against the disk's reserve for running
+// jobs, and with the user's other uploads against the user's quota.
+TEST(SpoolLedger, ChunksAreHeldToTheDisksReserveAndTheUsersQuota) {
+  SpoolLedger ledger;
+  SpoolLedger::Room room;
+  room.disk_free = 100 << 20;
+  room.min_free = 90 << 20;
+  EXPECT_TRUE(ledger.Reserve("", 9 << 20, room).ok());
+  room.disk_free = 91 << 20;  // As the disk shows once those are written.
+  const absl::Status full = ledger.Reserve("", 2 << 20, room);
+  EXPECT_EQ(full.code(), absl::StatusCode::kResourceExhausted);
+  EXPECT_NE(full.message().find("disk is nearly full"), std::string_view::npos) << full;
+  room.disk_free = -1;  // Unknown: only the quota holds.
+  room.quota = 10 << 20;
+  room.stored = 4 << 20;
+  EXPECT_TRUE(ledger.Reserve("alice", 3 << 20, room).ok());  // Another upload of hers...
+  EXPECT_TRUE(ledger.Reserve("alice", 3 << 20, room).ok());  // ...and this one: 4 + 6 MiB.
+  const absl::Status over = ledger.Reserve("alice", 1, room);
+  EXPECT_EQ(over.code(), absl::StatusCode::kResourceExhausted);
+  EXPECT_NE(over.message().find("uploads in progress hold 6291456"), std::string_view::npos) << over;
+  EXPECT_TRUE(ledger.Reserve("bob", 6 << 20, room).ok());  // Bob's quota is his own.
+  ledger.Release("alice", 3 << 20);
+  EXPECT_EQ(ledger.InFlight("alice"), 3 << 20);
+  EXPECT_TRUE(ledger.Reserve("alice", 1, room).ok());
+}
+
+// A server whose disk has less free than its reserve stops an upload at its first chunk, and
+// keeps no spool file of it.
+TEST_F(StreamsTest, AnUploadStopsWhereTheDisksReserveBegins) {
+  Start(StreamLimits{});
+  std::error_code error;
+  const auto space = std::filesystem::space(dir_, error);
+  ASSERT_FALSE(error);
+  // The reserve is a service option: a second service over the same folder, with one past the free space.
+  server_.reset();
+  jobs_.reset();
+  jobs::JobServiceOptions options;
+  options.data_dir = dir_.string();
+  options.min_free_bytes = static_cast<int64_t>(space.available) + (int64_t{1} << 30);
+  auto jobs = jobs::JobService::Open(options);
+  ASSERT_TRUE(jobs.ok()) << jobs.status();
+  jobs_ = *std::move(jobs);
+  auto server = Server::Start(*jobs_, {});
+  ASSERT_TRUE(server.ok()) << server.status();
+  server_ = *std::move(server);
+  client::Client client(address());
+  v1::JobSpec spec;
+  spec.mutable_iamls();
+  auto cloud = io::EncodeDracoPointCloud(testing::SphereCloud(20000), {});
+  ASSERT_TRUE(cloud.ok());
+  const auto refused = client.Submit(spec, *cloud);
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kResourceExhausted);
+  EXPECT_NE(refused.status().message().find("the upload stops here"), std::string_view::npos) << refused.status();
+  size_t spooled = 0;
+  for (const auto& entry : std::filesystem::recursive_directory_iterator(dir_)) {
+    spooled += entry.path().parent_path().filename() == "uploads" && entry.is_regular_file();
+  }
+  EXPECT_EQ(spooled, 0u);
 }
 
 }  // namespace

@@ -48,6 +48,42 @@ std::vector<uint32_t> MortonOrder(std::span<const Vec3f> points) {
   return order;
 }
 
+size_t RemoveDuplicatePoints(PointCloud& cloud) {
+  const size_t n = cloud.size();
+  if (n < 2) return 0;
+  // Sorted by position, ties by index: each run of equal positions starts at its first point.
+  std::vector<uint32_t> order(n);
+  std::iota(order.begin(), order.end(), 0u);
+  const auto& p = cloud.positions;
+  tbb::parallel_sort(order.begin(), order.end(), [&p](uint32_t a, uint32_t b) {
+    if (p[a].x() != p[b].x()) return p[a].x() < p[b].x();
+    if (p[a].y() != p[b].y()) return p[a].y() < p[b].y();
+    if (p[a].z() != p[b].z()) return p[a].z() < p[b].z();
+    return a < b;
+  });
+  std::vector<uint8_t> repeated(n, 0);
+  size_t removed = 0;
+  for (size_t t = 1; t < n; ++t) {
+    if (p[order[t]] == p[order[t - 1]]) {
+      repeated[order[t]] = 1;
+      ++removed;
+    }
+  }
+  if (removed == 0) return 0;
+  auto compact = [&](auto& values) {
+    if (values.size() != n) return;
+    size_t kept = 0;
+    for (size_t i = 0; i < n; ++i) {
+      if (!repeated[i]) values[kept++] = values[i];
+    }
+    values.resize(kept);
+  };
+  compact(cloud.positions);
+  compact(cloud.normals);
+  for (ScalarAttribute& attribute : cloud.attributes) compact(attribute.values);
+  return removed;
+}
+
 int64_t FindNonFinite(std::span<const Vec3f> points) {
   for (size_t i = 0; i < points.size(); ++i) {
     if (!points[i].allFinite()) return static_cast<int64_t>(i);

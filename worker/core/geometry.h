@@ -57,6 +57,14 @@ double Diagonal(const Box3& box);
 // points close in space end up close in the order (cache locality for neighbour sums).
 std::vector<uint32_t> MortonOrder(std::span<const Vec3f> points);
 
+// Removes every point whose position repeats an earlier point's exactly, with its normal and
+// attributes; the first of each position stays, and the rest keep their order. Returns how many
+// went. Why: exact repeats (a sensor's stuck pixel, a cloud merged twice, a hostile upload of
+// one position a million times) tie every neighbour search at distance 0, which makes k-nearest
+// queries scan them all. Cost: one parallel sort of n (key, index) pairs; the cloud is left
+// untouched when nothing repeats.
+size_t RemoveDuplicatePoints(PointCloud& cloud);
+
 // Finds a non-finite coordinate; returns the index of the first bad point or -1.
 int64_t FindNonFinite(std::span<const Vec3f> points);
 

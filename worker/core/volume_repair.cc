@@ -4,6 +4,7 @@
 #include <algorithm>
 #include <array>
 #include <cmath>
+#include <limits>
 #include <numeric>
 #include <span>
 
@@ -173,6 +174,26 @@ Eigen::VectorXd Terms(const Eigen::Vector3d& d, int terms) {
   return t;
 }
 
+// A vertex outside the box of its known neighbours (the front of a hole, filled from one side)
+// takes no value beyond theirs: a fit extrapolated there, ring after ring into a deep hole,
+// grows without bound (to infinity across 36 rings of a half-missing block). Inside the box
+// (neighbours all round) the fit is kept as it is, exact on quadratic fields.
+void ClampWhereOneSided(const VolumeMesh& mesh, const VertexField& f, uint32_t i, std::span<const uint32_t> near,
+                        std::vector<float>& out) {
+  Box3 around;
+  for (uint32_t j : near) around.extend(mesh.positions[j].cast<double>());
+  if (around.contains(mesh.positions[i].cast<double>())) return;
+  const auto k = static_cast<size_t>(f.components);
+  for (size_t c = 0; c < k; ++c) {
+    float lo = std::numeric_limits<float>::infinity(), hi = -lo;
+    for (uint32_t j : near) {
+      lo = std::min(lo, f.values[j * k + c]);
+      hi = std::max(hi, f.values[j * k + c]);
+    }
+    out[c] = std::clamp(out[c], lo, hi);
+  }
+}
+
 // The value at vertex i of the polynomial fitted by weighted least squares (weights 1/d^2) to
 // the known values at `near`: quadratic where at least 12 neighbours have values, linear where
 // 4 do (exact on linear fields), else, or where the neighbours do not span space, their
@@ -200,6 +221,7 @@ std::vector<float> LocalFitValue(const VolumeMesh& mesh, const VertexField& f, u
     if (!(spread.eigenvalues()[0] > 1e-8 * spread.eigenvalues()[terms - 1])) continue;
     const Eigen::MatrixXd solution = normal.ldlt().solve(rhs);
     for (size_t c = 0; c < k; ++c) out[c] = static_cast<float>(solution(0, static_cast<Eigen::Index>(c)));
+    ClampWhereOneSided(mesh, f, i, near, out);
     return out;
   }
   for (uint32_t j : near) {
@@ -233,39 +255,57 @@ absl::Status FillFromNeighbours(VolumeMesh& mesh) {
       neighbor.insert(neighbor.end(), lists[i].begin(), lists[i].end());
     }
   }
+  // Ring by ring as a breadth-first search: a ring's candidates are the missing neighbours of
+  // the ring filled before it, so each vertex and edge is visited a bounded number of times
+  // (scanning every missing vertex each ring made a long hole quadratic).
   for (VertexField& f : mesh.fields) {
     const auto k = static_cast<size_t>(f.components);
-    std::vector<uint32_t> missing;
-    for (size_t i = 0; i < n; ++i) {
-      if (Missing(f, i)) missing.push_back(static_cast<uint32_t>(i));
-    }
     std::vector<bool> known(n, true);
-    for (uint32_t i : missing) known[i] = false;
+    size_t unknown = 0;
+    for (size_t i = 0; i < n; ++i) {
+      if (Missing(f, i)) {
+        known[i] = false;
+        ++unknown;
+      }
+    }
+    std::vector<uint32_t> ring;
+    std::vector<uint32_t> queued_in_round(n, UINT32_MAX);
+    auto queue_missing_neighbours = [&](uint32_t i, uint32_t round, std::vector<uint32_t>& into) {
+      for (uint32_t e = start[i]; e < start[i + 1]; ++e) {
+        const uint32_t j = neighbor[e];
+        if (!known[j] && queued_in_round[j] != round) {
+          queued_in_round[j] = round;
+          into.push_back(j);
+        }
+      }
+    };
+    for (uint32_t i = 0; i < n; ++i) {
+      if (known[i]) queue_missing_neighbours(i, 0, ring);
+    }
     std::vector<uint32_t> known_near;
-    while (!missing.empty()) {
+    for (uint32_t round = 1; !ring.empty(); ++round) {
       std::vector<std::pair<uint32_t, std::vector<float>>> filled;
-      std::vector<uint32_t> still;
-      for (uint32_t i : missing) {
+      filled.reserve(ring.size());
+      for (uint32_t i : ring) {
         known_near.clear();
         for (uint32_t e = start[i]; e < start[i + 1]; ++e) {
           if (known[neighbor[e]]) known_near.push_back(neighbor[e]);
         }
-        if (known_near.empty()) {
-          still.push_back(i);
-          continue;
-        }
         filled.emplace_back(i, LocalFitValue(mesh, f, i, known_near));
       }
-      if (filled.empty()) {
-        return absl::InvalidArgumentError(
-            core::StrCat("field '", f.name, "' has no value anywhere in a part of the mesh (", still.size(),
-                         " vertices, among them vertex ", still.front(), " after merging duplicates)"));
-      }
+      ring.clear();
       for (auto& [i, value] : filled) {
         std::copy(value.begin(), value.end(), f.values.begin() + static_cast<std::ptrdiff_t>(i * k));
         known[i] = true;
       }
-      missing = std::move(still);
+      unknown -= filled.size();
+      for (const auto& entry : filled) queue_missing_neighbours(entry.first, round, ring);
+    }
+    if (unknown > 0) {
+      const auto first = static_cast<size_t>(std::find(known.begin(), known.end(), false) - known.begin());
+      return absl::InvalidArgumentError(
+          core::StrCat("field '", f.name, "' has no value anywhere in a part of the mesh (", unknown,
+                       " vertices, among them vertex ", first, " after merging duplicates)"));
     }
   }
   return absl::OkStatus();

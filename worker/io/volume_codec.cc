@@ -18,44 +18,98 @@ constexpr std::string_view kCellMagic = "LQC1";
 // The longest a cell can be in the payload: a type byte and 8 indices of at most 5 bytes each.
 constexpr uint64_t kMaxCellBytes = 1 + 8 * 5;
 
-// Inflates a zlib stream that must give exactly `expected` bytes. The output grows with what
-// actually inflates (never allocated at the declared size up front), so a stream that merely
-// declares a large size costs nothing.
-absl::StatusOr<std::string> Inflate(std::string_view packed, uint64_t expected) {
-  z_stream z{};
-  if (inflateInit(&z) != Z_OK) return absl::InternalError("zlib could not start");
-  struct End {
-    z_stream& z;
-    ~End() { inflateEnd(&z); }
-  } end{z};
-  std::string out;
-  z.next_in = reinterpret_cast<Bytef*>(const_cast<char*>(packed.data()));
-  z.avail_in = static_cast<uInt>(std::min<size_t>(packed.size(), UINT32_MAX));
-  int rc = Z_OK;
-  while (rc == Z_OK) {
-    if (out.size() == z.total_out) {
-      if (out.size() > expected) break;
-      // Doubling from 64 KiB, to one byte past the declared size (which tells a longer stream).
-      out.resize(std::min<uint64_t>(std::max<size_t>(out.size() * 2, 64 << 10), expected + 1));
+// A zlib stream inflated a window at a time, so that what it holds is the window, never the
+// whole payload: a stream that inflates a thousandfold (as zlib allows) costs its window only.
+class Inflater {
+ public:
+  explicit Inflater(std::string_view packed) {
+    ok_ = inflateInit(&z_) == Z_OK;
+    z_.next_in = reinterpret_cast<Bytef*>(const_cast<char*>(packed.data()));
+    z_.avail_in = static_cast<uInt>(std::min<size_t>(packed.size(), UINT32_MAX));
+  }
+  ~Inflater() {
+    if (ok_) inflateEnd(&z_);
+  }
+  Inflater(const Inflater&) = delete;
+  Inflater& operator=(const Inflater&) = delete;
+
+  // Appends up to `room` inflated bytes to `out`. Errors: kInvalidArgument (not a zlib stream, or
+  // one cut short).
+  absl::Status More(std::string& out, size_t room) {
+    if (!ok_) return absl::InternalError("zlib could not start");
+    if (ended_) return absl::OkStatus();
+    const size_t start = out.size();
+    out.resize(start + room);
+    z_.next_out = reinterpret_cast<Bytef*>(out.data() + start);
+    z_.avail_out = static_cast<uInt>(room);
+    const int rc = inflate(&z_, Z_NO_FLUSH);
+    out.resize(out.size() - z_.avail_out);
+    if (rc == Z_STREAM_END) {
+      ended_ = true;
+    } else if (rc == Z_BUF_ERROR && z_.avail_in == 0) {
+      return absl::InvalidArgumentError("the compressed bytes end before their stream does");
+    } else if (rc != Z_OK && rc != Z_BUF_ERROR) {
+      return absl::InvalidArgumentError(core::StrCat("zlib could not inflate it (code ", rc, ")"));
     }
-    z.next_out = reinterpret_cast<Bytef*>(out.data() + z.total_out);
-    z.avail_out = static_cast<uInt>(std::min<uint64_t>(out.size() - z.total_out, UINT32_MAX));
-    rc = inflate(&z, Z_NO_FLUSH);
-    if (rc == Z_BUF_ERROR && z.avail_out > 0) break;  // Input ran out before the stream's end.
-    if (rc == Z_BUF_ERROR) rc = Z_OK;
+    return absl::OkStatus();
   }
-  if (z.total_out > expected) {
-    return absl::InvalidArgumentError(
-        core::StrCat("it inflates to more than the ", expected, " bytes its header declares"));
+  bool ended() const { return ended_; }
+  uint64_t total() const { return z_.total_out; }
+
+ private:
+  z_stream z_{};
+  bool ok_ = false;
+  bool ended_ = false;
+};
+
+// The inflated payload, read through a window that always holds at least one whole cell's
+// worth of bytes ahead of `pos` (kMaxCellBytes) unless the stream has ended.
+class PayloadReader {
+ public:
+  PayloadReader(std::string_view packed, uint64_t declared, uint64_t max_bytes)
+      : inflater_(packed), declared_(declared), max_bytes_(max_bytes) {}
+
+  absl::Status Fill() {
+    while (window_.size() - pos_ < kMaxCellBytes && !inflater_.ended()) {
+      window_.erase(0, pos_);
+      pos_ = 0;
+      LSQSURF_RETURN_IF_ERROR(inflater_.More(window_, kWindowBytes));
+      if (inflater_.total() > declared_) {
+        return absl::InvalidArgumentError(
+            core::StrCat("it inflates to more than the ", declared_, " bytes its header declares"));
+      }
+      if (inflater_.total() > max_bytes_) {
+        return absl::ResourceExhaustedError(core::StrCat("it inflates past ", max_bytes_,
+                                                         " bytes, the most an upload may hold on this server or "
+                                                         "under your quota (--max-upload-mib)"));
+      }
+    }
+    return absl::OkStatus();
   }
-  if (rc != Z_STREAM_END) return absl::InvalidArgumentError(core::StrCat("zlib could not inflate it (code ", rc, ")"));
-  if (z.total_out != expected) {
-    return absl::InvalidArgumentError(
-        core::StrCat("it inflates to ", z.total_out, " bytes where its header declares ", expected));
+  bool Varint(uint64_t& value) { return GetVarint(window_, pos_, value); }
+  bool Byte(uint8_t& value) {
+    if (pos_ >= window_.size()) return false;
+    value = static_cast<uint8_t>(window_[pos_++]);
+    return true;
   }
-  out.resize(z.total_out);
-  return out;
-}
+  // Whether the stream ended exactly where the last cell did, at its declared size.
+  absl::Status CheckEnd() {
+    LSQSURF_RETURN_IF_ERROR(Fill());
+    if (pos_ != window_.size()) return absl::InvalidArgumentError("bytes follow the last cell");
+    if (!inflater_.ended() || inflater_.total() != declared_) {
+      return absl::InvalidArgumentError(
+          core::StrCat("it inflates to ", inflater_.total(), " bytes where its header declares ", declared_));
+    }
+    return absl::OkStatus();
+  }
+
+ private:
+  static constexpr size_t kWindowBytes = 64 << 10;
+  Inflater inflater_;
+  const uint64_t declared_, max_bytes_;
+  std::string window_;
+  size_t pos_ = 0;
+};
 
 }  // namespace
 
@@ -114,7 +168,8 @@ std::string EncodeCellStream(const core::VolumeMesh& mesh) {
   return out + packed;
 }
 
-absl::Status DecodeCellStream(std::string_view bytes, int64_t max_cells, core::VolumeMesh& mesh) {
+absl::Status DecodeCellStream(std::string_view bytes, int64_t max_cells, uint64_t max_inflated_bytes,
+                              core::VolumeMesh& mesh) {
   auto corrupt = [](std::string_view why) {
     return absl::InvalidArgumentError(core::StrCat("the cell stream is corrupt: ", why));
   };
@@ -133,11 +188,15 @@ absl::Status DecodeCellStream(std::string_view bytes, int64_t max_cells, core::V
     return corrupt(
         core::StrCat("it declares ", payload_size, " bytes, more than its ", compressed, " compressed bytes can hold"));
   }
-  auto payload = Inflate(bytes.substr(pos), payload_size);
-  if (!payload.ok()) return corrupt(std::string(payload.status().message()));
-  pos = 0;
+  PayloadReader payload(bytes.substr(pos), payload_size, max_inflated_bytes);
+  auto fill = [&]() -> absl::Status {
+    absl::Status s = payload.Fill();
+    if (s.ok() || s.code() == absl::StatusCode::kResourceExhausted) return s;
+    return corrupt(std::string(s.message()));
+  };
+  LSQSURF_RETURN_IF_ERROR(fill());
   uint64_t count = 0;
-  if (!GetVarint(*payload, pos, count)) return corrupt("no cell count");
+  if (!payload.Varint(count)) return corrupt("no cell count");
   if (count > static_cast<uint64_t>(max_cells)) {
     return absl::ResourceExhaustedError(
         core::StrCat("the volume has ", count, " cells; this server accepts at most ", max_cells));
@@ -147,8 +206,9 @@ absl::Status DecodeCellStream(std::string_view bytes, int64_t max_cells, core::V
   mesh.cell_offsets.assign(1, 0);
   int64_t previous = 0;
   for (uint64_t c = 0; c < count; ++c) {
-    if (pos >= payload->size()) return corrupt(core::StrCat("it ends at cell ", c, " of ", count));
-    const auto type = static_cast<uint8_t>((*payload)[pos++]);
+    LSQSURF_RETURN_IF_ERROR(fill());
+    uint8_t type = 0;
+    if (!payload.Byte(type)) return corrupt(core::StrCat("it ends at cell ", c, " of ", count));
     const int n = core::CellVertexCount(type);
     if (n == 0) {
       return absl::InvalidArgumentError(core::StrCat("cell ", c, " is a ", core::CellTypeName(type),
@@ -157,7 +217,7 @@ absl::Status DecodeCellStream(std::string_view bytes, int64_t max_cells, core::V
     }
     for (int k = 0; k < n; ++k) {
       uint64_t z = 0;
-      if (!GetVarint(*payload, pos, z)) return corrupt(core::StrCat("it ends inside cell ", c));
+      if (!payload.Varint(z)) return corrupt(core::StrCat("it ends inside cell ", c));
       const int64_t delta = static_cast<int64_t>(z >> 1) ^ -static_cast<int64_t>(z & 1);
       previous += delta;
       if (previous < 0 || previous > 0xffffffffLL) return corrupt(core::StrCat("cell ", c, " has a negative index"));
@@ -166,7 +226,7 @@ absl::Status DecodeCellStream(std::string_view bytes, int64_t max_cells, core::V
     mesh.cell_types.push_back(type);
     mesh.cell_offsets.push_back(static_cast<uint32_t>(mesh.cell_vertices.size()));
   }
-  if (pos != payload->size()) return corrupt("bytes follow the last cell");
+  if (absl::Status end = payload.CheckEnd(); !end.ok()) return corrupt(std::string(end.message()));
   if (count == 0) mesh.cell_offsets.clear();
   return absl::OkStatus();
 }

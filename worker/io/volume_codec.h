@@ -32,9 +32,11 @@ absl::StatusOr<std::string> EncodeVolumeVertices(const core::VolumeMesh& mesh, s
 absl::Status DecodeVolumeVertices(std::string_view bytes, core::VolumeMesh& mesh);
 
 std::string EncodeCellStream(const core::VolumeMesh& mesh);
-// Cells into `mesh`. Errors: kInvalidArgument (corrupt or truncated stream), kResourceExhausted
-// (more than `max_cells` cells). Indices are not checked against the vertices here
-// (ValidateVolumeMesh does).
-absl::Status DecodeCellStream(std::string_view bytes, int64_t max_cells, core::VolumeMesh& mesh);
+// Cells into `mesh`, parsed as the payload inflates (64 KiB of it held at a time). Errors:
+// kInvalidArgument (corrupt or truncated stream), kResourceExhausted (more than `max_cells`
+// cells, or a payload that inflates past `max_inflated_bytes`). Indices are not checked against
+// the vertices here (ValidateVolumeMesh does).
+absl::Status DecodeCellStream(std::string_view bytes, int64_t max_cells, uint64_t max_inflated_bytes,
+                              core::VolumeMesh& mesh);
 
 }  // namespace lsqsurf::io

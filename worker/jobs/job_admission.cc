@@ -68,10 +68,10 @@ absl::StatusOr<JobRecord> JobService::Submit(const JobSpec& spec, Uploads upload
         limit < options_.max_input_bytes ? "your quota allows" : "this server accepts", " at most ", limit));
   }
   LSQSURF_RETURN_IF_ERROR(CheckRoom(bytes + ResultReserve(bytes)));
-  auto checked =
-      KindOf(spec.method)
-          ->CheckUploads(spec, uploads,
-                         {options_.max_points, options_.min_points, options_.max_cells, options_.max_job_memory});
+  auto checked = KindOf(spec.method)
+                     ->CheckUploads(spec, uploads,
+                                    {options_.max_points, options_.min_points, options_.max_cells,
+                                     options_.max_job_memory, MaxUploadBytes(submitter)});
   if (!checked.ok()) return checked.status();
   if (const int64_t limit = options_.max_job_memory; limit > 0 && checked->memory.bytes > limit) {
     return absl::ResourceExhaustedError(core::StrCat("this job would take about ", MiB(checked->memory.bytes),

@@ -45,6 +45,9 @@ struct InputLimits {
   int64_t min_points = 16;
   int64_t max_cells = 100'000'000;  // Volume meshes.
   int64_t max_job_memory = 0;       // Bytes one job may take (0: no limit); see LeavesWithin.
+  // Bytes a compressed stream (a volume's cells) may inflate to: the most its submitter may
+  // upload, so that compression buys no more than an upload could hold (0: no limit).
+  int64_t max_inflated_bytes = 0;
 };
 
 // Memory of the extraction per visited J1a leaf, the tree, the corner values, the tetrahedra
@@ -136,7 +139,8 @@ class JobKind {
 inline constexpr InputLimits kAcceptedInputLimits{.max_points = io::DracoDecodeLimits{}.max_points,
                                                   .min_points = 0,
                                                   .max_cells = std::numeric_limits<int64_t>::max(),
-                                                  .max_job_memory = 0};
+                                                  .max_job_memory = 0,
+                                                  .max_inflated_bytes = 0};
 
 // A kind with nothing to decode from uploads.
 struct NoInput {};

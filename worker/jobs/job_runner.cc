@@ -10,6 +10,12 @@
 #include "worker/jobs/tile_exchange.h"
 
 namespace lsqsurf::jobs {
+namespace {
+
+// A failed job's stored reason, at most.
+constexpr size_t kMaxJobErrorBytes = 4096;
+
+}  // namespace
 
 // Writes a job's artifacts into the blob store, recording their names in order.
 // Each write is first admitted with what all the job's artifacts would then take (quotas).
@@ -325,12 +331,16 @@ void JobService::RunJob(const std::shared_ptr<Entry>& entry, std::shared_ptr<Dec
       });
       spdlog::info("[job {}] cancelled after {:.2f} s", id, seconds);
     } else {
+      // The reason may quote what the user sent (a CSG expression, a file's own text): kept
+      // bounded and with its control bytes escaped, in the record as in the log, where a
+      // newline would forge a line.
+      const std::string reason = core::Printable(std::string(result.status().message()), kMaxJobErrorBytes);
       Update(entry, [&](JobRecord& r) {
         r.state = JobState::kFailed;
-        r.error = std::string(result.status().message());
+        r.error = reason;
         r.stored_bytes = r.input_bytes + sink.bytes();
       });
-      spdlog::warn("[job {}] failed: {}", id, result.status().ToString());
+      spdlog::warn("[job {}] failed ({}): {}", id, absl::StatusCodeToString(result.status().code()), reason);
     }
   }
   if (options_.events != nullptr) {

@@ -622,6 +622,14 @@ absl::StatusOr<SurfaceResult> ReconstructSurface(const std::string& method, cons
   const NormalsParams& normals = *(*m)->normals(params);
   SurfaceResult result;
   result.statistics.emplace_back("input_points", static_cast<double>(cloud.size()));
+  if (const size_t repeats = core::RemoveDuplicatePoints(cloud); repeats > 0) {
+    result.statistics.emplace_back("duplicate_points", static_cast<double>(repeats));
+    if (cloud.size() < 4) {
+      return absl::InvalidArgumentError(core::StrCat("the cloud holds only ", cloud.size(), " distinct positions (",
+                                                     repeats,
+                                                     " points repeat another's exactly); a surface needs more"));
+    }
+  }
 
   double normals_share = 0.0;
   if (!cloud.has_normals()) {

@@ -40,7 +40,7 @@ const core::ParamTable<VolumeJobParams>& VolumeJobParamTable() {
 }
 
 // Decodes the uploads into a volume (not yet validated).
-absl::StatusOr<volume::VolumeMesh> DecodeVolume(const Uploads& uploads, int64_t max_cells) {
+absl::StatusOr<volume::VolumeMesh> DecodeVolume(const Uploads& uploads, const InputLimits& limits) {
   auto it = uploads.find(kInputUpload);
   if (it == uploads.end() || it->second.empty()) {
     return absl::InvalidArgumentError("no vertices were uploaded (input: a Draco point cloud with the fields)");
@@ -56,7 +56,10 @@ absl::StatusOr<volume::VolumeMesh> DecodeVolume(const Uploads& uploads, int64_t 
           "order, and the cells refer to them by index; code them with the sequential method (Draco's "
           "POINT_CLOUD_SEQUENTIAL_ENCODING, or encoding speed 10), as lsqsurf volume does");
     }
-    if (absl::Status s = io::DecodeCellStream(cells->second, max_cells, mesh); !s.ok()) {
+    if (absl::Status s = io::DecodeCellStream(
+            cells->second, limits.max_cells,
+            limits.max_inflated_bytes > 0 ? static_cast<uint64_t>(limits.max_inflated_bytes) : UINT64_MAX, mesh);
+        !s.ok()) {
       return absl::Status(s.code(), core::StrCat("cells: ", s.message()));
     }
   }
@@ -114,7 +117,7 @@ class VolumeKind final : public TypedJobKind<VolumeJobParams, RepairedVolume> {
   absl::StatusOr<Checked> Decode(const JobSpec&, const VolumeJobParams& params, const Uploads& uploads,
                                  const InputLimits& limits) const override {
     const VolumeJobParams* p = &params;
-    LSQSURF_ASSIGN_OR_RETURN(volume::VolumeMesh mesh, DecodeVolume(uploads, limits.max_cells));
+    LSQSURF_ASSIGN_OR_RETURN(volume::VolumeMesh mesh, DecodeVolume(uploads, limits));
     LSQSURF_RETURN_IF_ERROR(volume::CheckVolumeStructure(mesh, {limits.max_points, limits.max_cells}));
     LSQSURF_ASSIGN_OR_RETURN(volume::VolumeRepairs repairs, volume::RepairVolumeMesh(mesh));
     LSQSURF_RETURN_IF_ERROR(volume::ValidateVolumeMesh(mesh, {limits.max_points, limits.max_cells}));

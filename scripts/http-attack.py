@@ -1,0 +1,165 @@
+#!/usr/bin/env python3
+"""Attacks a real lsqsurfd's HTTP port (--http-listen) as a tokenless client would, and checks
+that the server stays up, bounded and answering:
+
+  1. header flood: header lines without end, reconnecting whenever the server cuts the
+     connection, until --flood-mib have been sent; the server's peak resident memory (VmHWM)
+     must grow by less than 256 MiB and it must still answer;
+  2. slowloris: 8 connections trickling a header byte every --trickle-s seconds and 80 silent
+     ones, held for --hold-s seconds, while a fresh request every half second must be answered
+     within 2 s;
+  3. rebinding: a request naming a foreign Host is refused (421), one naming 127.0.0.1 is not.
+
+  scripts/http-attack.py [--flood-mib 300] [--hold-s 30] [--trickle-s 5] [--bin build/release/bin]
+
+Prints one line per check and a closing 'N passed, N failed'; exits 1 if any failed. Starts its
+own server on a free loopback port with a throwaway data directory; all traffic stays on
+127.0.0.1. Not part of CI (the flood alone takes about a minute): run it by hand or from
+scripts/soak.sh's neighbours after a release build.
+"""
+import argparse
+import os
+import shutil
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+
+
+def free_port():
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def peak_rss_mib(pid):
+    with open(f"/proc/{pid}/status") as status:
+        for line in status:
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024
+    return -1
+
+
+def fresh_get(port, host="127.0.0.1", timeout=5.0):
+    """A well-behaved request: (status code or 0, seconds taken)."""
+    start = time.monotonic()
+    try:
+        with socket.create_connection(("127.0.0.1", port), timeout=timeout) as s:
+            s.sendall(f"GET /api/methods HTTP/1.1\r\nHost: {host}:{port}\r\nConnection: close\r\n\r\n".encode())
+            reply = b""
+            while b"\r\n" not in reply:
+                chunk = s.recv(4096)
+                if not chunk:
+                    break
+                reply += chunk
+        status = int(reply.split(b" ", 2)[1]) if reply.startswith(b"HTTP/") else 0
+    except (OSError, ValueError):
+        status = 0
+    return status, time.monotonic() - start
+
+
+def flood(port, total_bytes):
+    """Header lines without end; returns (bytes sent, connections used)."""
+    line = b"X-Endless: " + b"x" * 1000 + b"\r\n"
+    sent = connections = 0
+    while sent < total_bytes:
+        connections += 1
+        try:
+            with socket.create_connection(("127.0.0.1", port), timeout=5) as s:
+                s.sendall(b"GET / HTTP/1.1\r\nHost: 127.0.0.1\r\n")
+                while sent < total_bytes:
+                    s.sendall(line * 64)
+                    sent += len(line) * 64
+        except OSError:
+            pass
+    return sent, connections
+
+
+def slowloris(port, hold_s, trickle_s):
+    """Worst fresh-request latency while 8 trickle and 80 sit silent, and how many failed."""
+    silent = [socket.create_connection(("127.0.0.1", port)) for _ in range(80)]
+    trickling = []
+    for _ in range(8):
+        s = socket.create_connection(("127.0.0.1", port))
+        s.sendall(b"GET / HTTP/1.1\r\nHost: 127.0.0.1\r\nX-Slow: ")
+        trickling.append(s)
+    stop = threading.Event()
+
+    def trickle():
+        while not stop.wait(trickle_s):
+            for s in trickling:
+                try:
+                    s.send(b"x")
+                except OSError:
+                    pass
+
+    thread = threading.Thread(target=trickle)
+    thread.start()
+    worst, failed, end = 0.0, 0, time.monotonic() + hold_s
+    while time.monotonic() < end:
+        status, seconds = fresh_get(port)
+        worst = max(worst, seconds)
+        failed += status != 200
+        time.sleep(0.5)
+    stop.set()
+    thread.join()
+    for s in silent + trickling:
+        s.close()
+    return worst, failed
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--flood-mib", type=int, default=300)
+    parser.add_argument("--hold-s", type=float, default=30)
+    parser.add_argument("--trickle-s", type=float, default=5)
+    parser.add_argument("--bin", default="build/release/bin")
+    args = parser.parse_args()
+    work = tempfile.mkdtemp(prefix="lsqsurf-http-attack.")
+    grpc_port, http_port = free_port(), free_port()
+    server = subprocess.Popen(
+        [os.path.join(args.bin, "lsqsurfd"), "--listen", f"127.0.0.1:{grpc_port}", "--http-listen",
+         f"127.0.0.1:{http_port}", "--data-dir", os.path.join(work, "data")],
+        stdout=subprocess.DEVNULL, stderr=open(os.path.join(work, "server.log"), "w"))
+    results = []
+
+    def check(name, ok, detail):
+        results.append(ok)
+        print(f"{'PASS' if ok else 'FAIL'} {name}: {detail}", flush=True)
+
+    try:
+        for _ in range(100):
+            if fresh_get(http_port)[0] == 200:
+                break
+            time.sleep(0.1)
+        before = peak_rss_mib(server.pid)
+        start = time.monotonic()
+        sent, connections = flood(http_port, args.flood_mib << 20)
+        grown = peak_rss_mib(server.pid) - before
+        status, _ = fresh_get(http_port)
+        check("header flood", server.poll() is None and status == 200 and grown < 256,
+              f"{sent / 2**20:.0f} MiB over {connections} connections in {time.monotonic() - start:.1f} s; "
+              f"peak memory +{grown:.1f} MiB; server {'up' if server.poll() is None else 'DOWN'}, answers {status}")
+        worst, failed = slowloris(http_port, args.hold_s, args.trickle_s)
+        check("slowloris", worst < 2.0 and failed == 0,
+              f"8 trickling + 80 silent for {args.hold_s:.0f} s: slowest fresh answer {worst * 1000:.0f} ms, "
+              f"{failed} unanswered")
+        foreign, _ = fresh_get(http_port, host="rebound.example")
+        own, _ = fresh_get(http_port)
+        check("rebinding", foreign == 421 and own == 200, f"Host rebound.example: {foreign}; Host 127.0.0.1: {own}")
+    finally:
+        server.terminate()
+        try:
+            server.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            server.kill()
+            check("shutdown", False, "SIGTERM did not end the server within 10 s")
+        shutil.rmtree(work, ignore_errors=True)
+    print(f"{sum(results)} passed, {len(results) - sum(results)} failed")
+    return 0 if all(results) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -8,6 +8,7 @@
 
 #include "server/convert.h"
 #include "worker/core/strings.h"
+#include "worker/io/draco_header.h"
 #include "worker/io/files.h"
 #include "worker/jobs/job_ids.h"
 #include "worker/jobs/method_registry.h"
@@ -290,9 +291,29 @@ class ReconstructionService::Upload final : public grpc::ServerReadReactor<v1::S
       return InvalidArgument(core::StrCat("an input has at most ", jobs::kMaxInputParts, " parts"));
     }
     files_.erase(jobs::InputPartSlot(input_part_));  // Closed: no more chunks come for it.
+    // The points the parts so far declare, from their Draco headers: a cloud over the server's
+    // limit is refused now, not after the rest of its parts have come.
+    if (auto claim = io::ReadDracoClaim(HeadOf(paths_[jobs::InputPartSlot(input_part_)])); claim.ok()) {
+      declared_points_ += claim->points;
+      if (const int64_t limit = service_.jobs_.options().max_points;
+          declared_points_ > static_cast<uint64_t>(std::max<int64_t>(limit, 0))) {
+        return grpc::Status(grpc::StatusCode::RESOURCE_EXHAUSTED,
+                            core::StrCat("input parts 0 to ", input_part_, " declare ", declared_points_,
+                                         " points; this server accepts at most ", limit));
+      }
+    }
     ++input_part_;
     input_part_bytes_ = 0;
     return grpc::Status::OK;
+  }
+
+  // The first bytes of a spool file, where a Draco header lies.
+  static std::string HeadOf(const std::string& path) {
+    std::ifstream in(path, std::ios::binary);
+    std::string head(64 << 10, '\0');
+    in.read(head.data(), static_cast<std::streamsize>(head.size()));
+    head.resize(static_cast<size_t>(in.gcount()));
+    return head;
   }
 
   std::ofstream& FileOf(const std::string& slot) {
@@ -347,9 +368,10 @@ class ReconstructionService::Upload final : public grpc::ServerReadReactor<v1::S
   v1::SubmitJobRequest message_;
   std::optional<jobs::JobSpec> spec_;
   size_t received_ = 0;
-  int64_t spooled_ = 0;          // Reserved in the service's SpoolLedger.
-  int64_t input_part_ = 0;       // The input part chunks go to now...
-  size_t input_part_bytes_ = 0;  // ...and its bytes so far.
+  int64_t spooled_ = 0;           // Reserved in the service's SpoolLedger.
+  uint64_t declared_points_ = 0;  // By the Draco headers of the input parts ended so far.
+  int64_t input_part_ = 0;        // The input part chunks go to now...
+  size_t input_part_bytes_ = 0;   // ...and its bytes so far.
   std::map<std::string, std::string> paths_;
   std::map<std::string, std::unique_ptr<std::ofstream>> files_;
 };

@@ -179,8 +179,33 @@ TEST_F(ServiceTest, ACloudUploadedInPartsIsOneJob) {
   EXPECT_EQ(too_many.code(), absl::StatusCode::kResourceExhausted);
   EXPECT_NE(too_many.message().find("parts 0 to 1 of the cloud hold 200000 points"), std::string::npos) << too_many;
 
-  // A part must have chunks before it ends.
+  // The server counts the parts' declared points as each ends (a client need not check first):
+  // the second part of 100,000 is refused as it ends, before any more could come.
   auto stub = v1::Reconstruction::NewStub(grpc::CreateChannel(server_->address(), grpc::InsecureChannelCredentials()));
+  {
+    auto part = io::EncodeDracoPointCloud(testing::SphereCloud(100'000), {});
+    ASSERT_TRUE(part.ok());
+    grpc::ClientContext context;
+    v1::Job response;
+    auto writer = stub->SubmitJob(&context, &response);
+    v1::SubmitJobRequest request;
+    *request.mutable_spec() = pu;
+    ASSERT_TRUE(writer->Write(request));
+    for (int k = 0; k < 2; ++k) {
+      v1::SubmitJobRequest chunk;
+      chunk.set_input_chunk(*part);
+      v1::SubmitJobRequest end;
+      end.set_input_part_end(true);
+      if (!writer->Write(chunk) || !writer->Write(end)) break;
+    }
+    writer->WritesDone();
+    const grpc::Status refused = writer->Finish();
+    EXPECT_EQ(refused.error_code(), grpc::StatusCode::RESOURCE_EXHAUSTED);
+    EXPECT_NE(refused.error_message().find("input parts 0 to 1 declare 200000 points"), std::string::npos)
+        << refused.error_message();
+  }
+
+  // A part must have chunks before it ends.
   grpc::ClientContext context;
   v1::Job response;
   auto writer = stub->SubmitJob(&context, &response);

@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
-"""Attacks a real lsqsurfd's HTTP port (--http-listen) as a tokenless client would, and checks
-that the server stays up, bounded and answering:
+"""Attacks a real lsqsurfd as a tokenless client would, and checks that the server stays up,
+bounded and answering. On its HTTP port (--http-listen):
 
   1. header flood: header lines without end, reconnecting whenever the server cuts the
      connection, until --flood-mib have been sent; the server's peak resident memory (VmHWM)
@@ -21,6 +21,7 @@ import argparse
 import os
 import shutil
 import socket
+import struct
 import subprocess
 import sys
 import tempfile
@@ -110,6 +111,30 @@ def slowloris(port, hold_s, trickle_s):
     return worst, failed
 
 
+def repeated_points_cloud(path, parts=19, per_part=1 << 20):
+    """A binary PLY of `parts` blocks, each one position repeated `per_part` times."""
+    with open(path, "wb") as f:
+        f.write(b"ply\nformat binary_little_endian 1.0\nelement vertex %d\n" % (parts * per_part))
+        f.write(b"property float x\nproperty float y\nproperty float z\nend_header\n")
+        for k in range(parts):
+            f.write(struct.pack("<fff", k % 4 * 0.1, k // 4 * 0.1, 0.05 * k) * per_part)
+
+
+def accepted_to_end_seconds(log_path):
+    """Seconds from the job's 'accepted' line to its end in the server's log, or None."""
+    stamps = {}
+    with open(log_path) as log:
+        for line in log:
+            for event in ("accepted", "succeeded", "failed", "cancelled"):
+                if f"] {event}" in line:
+                    stamps.setdefault(event, line[:23])
+    if "accepted" not in stamps or len(stamps) < 2:
+        return None
+    parse = lambda text: time.mktime(time.strptime(text[:19], "%Y-%m-%d %H:%M:%S")) + float(text[19:23])
+    end = min(parse(v) for k, v in stamps.items() if k != "accepted")
+    return end - parse(stamps["accepted"])
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--flood-mib", type=int, default=300)
@@ -121,8 +146,10 @@ def main():
     grpc_port, http_port = free_port(), free_port()
     server = subprocess.Popen(
         [os.path.join(args.bin, "lsqsurfd"), "--listen", f"127.0.0.1:{grpc_port}", "--http-listen",
-         f"127.0.0.1:{http_port}", "--data-dir", os.path.join(work, "data")],
+         f"127.0.0.1:{http_port}", "--data-dir", os.path.join(work, "data"), "--max-job-mib", "1000000"],
         stdout=subprocess.DEVNULL, stderr=open(os.path.join(work, "server.log"), "w"))
+    # Memory estimates would refuse the repeated cloud on a small machine before it runs; the
+    # attack is on what runs.
     results = []
 
     def check(name, ok, detail):
@@ -149,10 +176,23 @@ def main():
         foreign, _ = fresh_get(http_port, host="rebound.example")
         own, _ = fresh_get(http_port)
         check("rebinding", foreign == 421 and own == 200, f"Host rebound.example: {foreign}; Host 127.0.0.1: {own}")
+
+        cloud = os.path.join(work, "repeats.ply")
+        repeated_points_cloud(cloud)
+        before = peak_rss_mib(server.pid)
+        subprocess.run([os.path.join(args.bin, "lsqsurf"), "--server", f"127.0.0.1:{grpc_port}", "-q", "reconstruct",
+                        cloud, "-o", os.path.join(work, "repeats-mesh.ply")], timeout=600,
+                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        seconds = accepted_to_end_seconds(os.path.join(work, "server.log"))
+        check("repeats", seconds is not None and seconds < 2.0,
+              f"19.9M points at 19 positions: ended {seconds if seconds is None else round(seconds, 2)} s after "
+              f"acceptance; peak memory +{peak_rss_mib(server.pid) - before:.0f} MiB")
     finally:
+        start = time.monotonic()
         server.terminate()
         try:
             server.wait(timeout=10)
+            check("shutdown", True, f"SIGTERM ended the server in {time.monotonic() - start:.1f} s")
         except subprocess.TimeoutExpired:
             server.kill()
             check("shutdown", False, "SIGTERM did not end the server within 10 s")

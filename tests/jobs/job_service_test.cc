@@ -389,6 +389,43 @@ TEST_F(JobServiceTest, AFailuresQuotedTextIsBoundedAndEscaped) {
   EXPECT_LT(done.error.size(), 4200u);
 }
 
+// Text parameters past a small spec's size are stored bytes like an upload: a user cannot fill
+// the store with 60 KiB parameters of jobs that fail at once (2,000 of them once grew the job
+// database by 245 MB while every quota read 0).
+TEST_F(JobServiceTest, LargeTextParametersCountAsStoredBytes) {
+  const QuotingKind failing;
+  options_.kind_overrides["volume"] = &failing;
+  JobService& s = Open();
+  const Uploads input = Input(Encode(testing::SphereCloud(100)));
+  const auto upload = static_cast<int64_t>(input.at(kInputUpload).size());
+  const JobSpec spec = Spec("volume", {{"field", "f"}, {"color_by", std::string(60 << 10, 'c')}});
+  const int64_t text = SpecBytes(spec);
+  EXPECT_GT(text, (60 << 10) - kFreeSpecBytes - 1);
+  EXPECT_EQ(SpecBytes(Spec("iamls")), 0);  // Small specs cost nothing.
+  const int64_t quota = 3 << 16;
+  const Submitter alice{"alice", /*max_active_jobs=*/0, /*max_stored_bytes=*/quota, /*max_upload_bytes=*/0};
+  // Each failed job keeps its upload and its text; the next is admitted with a reserve as well.
+  int64_t expected = 0;
+  while (expected * (upload + text) + 2 * upload + text <= quota) ++expected;
+  int accepted = 0;
+  absl::Status refused;
+  for (int i = 0; i < 10 && refused.ok(); ++i) {
+    auto job = s.Submit(spec, input, alice);
+    if (!job.ok()) {
+      refused = job.status();
+      break;
+    }
+    ++accepted;
+    const JobRecord done = WaitTerminal(job->id);
+    EXPECT_EQ(done.state, JobState::kFailed);
+    EXPECT_EQ(done.stored_bytes, upload + text);
+  }
+  EXPECT_EQ(accepted, expected);
+  EXPECT_EQ(refused.code(), absl::StatusCode::kResourceExhausted) << refused;
+  EXPECT_NE(refused.message().find("quota"), std::string::npos) << refused;
+  EXPECT_EQ(s.UsageOf("alice").stored_bytes, accepted * (upload + text));
+}
+
 // A job's results are held to its owner's stored-bytes quota as they are written (not only its
 // upload at submission), and what a failed or cancelled job wrote counts as stored.
 TEST_F(JobServiceTest, ResultsAreHeldToTheQuotaAndEndedJobsCountWhatTheyWrote) {

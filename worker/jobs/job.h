@@ -36,6 +36,12 @@ struct JobSpec {
   PreviewSpec preview{};  // Off unless enabled.
 };
 
+// What a job's spec adds to its stored bytes: its encoded parameters past the first
+// kFreeSpecBytes, which every job's small spec fits in. Text parameters (up to 64 KiB each) are
+// the rest: a store filled with them counts against the quotas like uploads do.
+inline constexpr int64_t kFreeSpecBytes = 4096;
+int64_t SpecBytes(const JobSpec& spec);
+
 // Uploaded bytes by slot: "input" (a Draco point cloud) and "velocity" (a legacy VTK grid).
 using Uploads = std::map<std::string, std::string>;
 inline constexpr char kInputUpload[] = "input";

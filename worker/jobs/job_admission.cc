@@ -67,7 +67,8 @@ absl::StatusOr<JobRecord> JobService::Submit(const JobSpec& spec, Uploads upload
         "the upload has ", bytes, " bytes; ",
         limit < options_.max_input_bytes ? "your quota allows" : "this server accepts", " at most ", limit));
   }
-  LSQSURF_RETURN_IF_ERROR(CheckRoom(bytes + ResultReserve(bytes)));
+  const int64_t spec_bytes = SpecBytes(spec);
+  LSQSURF_RETURN_IF_ERROR(CheckRoom(bytes + ResultReserve(bytes) + spec_bytes));
   auto checked = KindOf(spec.method)
                      ->CheckUploads(spec, uploads,
                                     {options_.max_points, options_.min_points, options_.max_cells,
@@ -86,7 +87,7 @@ absl::StatusOr<JobRecord> JobService::Submit(const JobSpec& spec, Uploads upload
   r.input_points = checked->points;
   r.input_bytes = bytes;
   // Its results are still to come: a reservation counts them until the run settles what they took.
-  r.stored_bytes = bytes + ResultReserve(bytes);
+  r.stored_bytes = bytes + ResultReserve(bytes) + spec_bytes;
   r.quota_bytes = submitter.max_stored_bytes;
   {
     std::lock_guard lock(mutex_);
@@ -222,7 +223,7 @@ int JobService::QueuedJobsOf(const std::string& owner) const {
 absl::Status JobService::AdmitResults(const std::shared_ptr<Entry>& entry, int64_t artifact_bytes) {
   std::lock_guard lock(mutex_);
   JobRecord& r = entry->record;
-  const int64_t total = r.input_bytes + artifact_bytes;
+  const int64_t total = r.input_bytes + SpecBytes(r.spec) + artifact_bytes;
   if (r.quota_bytes > 0) {
     const int64_t others = OwnerUsage(r.owner).stored_bytes - r.stored_bytes;
     if (others + total > r.quota_bytes) {

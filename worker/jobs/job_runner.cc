@@ -307,7 +307,7 @@ void JobService::RunJob(const std::shared_ptr<Entry>& entry, std::shared_ptr<Dec
         r.statistics = *std::move(result);
         r.statistics.emplace_back("wall_seconds", seconds);
         r.results = sink.names();
-        r.stored_bytes = r.input_bytes + sink.bytes();
+        r.stored_bytes = r.input_bytes + SpecBytes(r.spec) + sink.bytes();
       });
       spdlog::info("[job {}] succeeded in {:.2f} s", id, seconds);
     } else if (entry->interrupted && !entry->cancel_requested &&
@@ -327,7 +327,7 @@ void JobService::RunJob(const std::shared_ptr<Entry>& entry, std::shared_ptr<Dec
         r.state = JobState::kCancelled;
         r.error = "cancelled by request";
         r.cancel_requested = false;
-        r.stored_bytes = r.input_bytes + sink.bytes();
+        r.stored_bytes = r.input_bytes + SpecBytes(r.spec) + sink.bytes();
       });
       spdlog::info("[job {}] cancelled after {:.2f} s", id, seconds);
     } else {
@@ -338,7 +338,7 @@ void JobService::RunJob(const std::shared_ptr<Entry>& entry, std::shared_ptr<Dec
       Update(entry, [&](JobRecord& r) {
         r.state = JobState::kFailed;
         r.error = reason;
-        r.stored_bytes = r.input_bytes + sink.bytes();
+        r.stored_bytes = r.input_bytes + SpecBytes(r.spec) + sink.bytes();
       });
       spdlog::warn("[job {}] failed ({}): {}", id, absl::StatusCodeToString(result.status().code()), reason);
     }

@@ -55,6 +55,12 @@ std::string UploadBlob(const std::string& slot) {
   return UploadFiles().at(slot);
 }
 
+int64_t SpecBytes(const JobSpec& spec) {
+  const auto encoded =
+      static_cast<int64_t>(spec.method.size() + spec.params.Encode().size() + spec.preview.view.Encode().size());
+  return std::max<int64_t>(0, encoded - kFreeSpecBytes);
+}
+
 std::string InputPartSlot(int64_t part) { return part == 0 ? kInputUpload : core::StrCat(kInputUpload, ".", part); }
 
 int64_t InputPartOf(std::string_view slot) {

@@ -13,7 +13,7 @@ source scripts/container-env.sh
 command -v podman-compose >/dev/null || { echo "compose-test: podman-compose is missing" >&2; exit 2; }
 
 start=$(date +%s)
-podman build --format docker --build-arg "BASE=$base" -f docker/Dockerfile -t localhost/lsqsurf:latest .
+podman build --format docker "${host_ca_secret[@]}" --build-arg "BASE=$base" -f docker/Dockerfile -t localhost/lsqsurf:latest .
 podman build --build-arg "BASE=$base" -f docker/postgres/Dockerfile -t localhost/lsqsurf-postgres:latest .
 podman build --build-arg "BASE=$base" -f docker/nginx/Dockerfile -t localhost/lsqsurf-nginx:latest .
 echo "compose-test: images built in $(($(date +%s) - start)) s"

@@ -14,4 +14,13 @@ if [[ -z ${CONTAINERS_CONF:-} ]] && ! podman run --rm "$base" true >/dev/null 2>
   echo "$0: podman's defaults cannot start containers here; using $CONTAINERS_CONF"
   podman run --rm "$base" true
 fi
+# The host's CA bundle as a build secret (docker/Dockerfile: host_ca), for a host that reaches
+# npm through a certificate authority only it trusts; no layer of the image keeps it.
+host_ca_secret=()
+for ca in "${NODE_EXTRA_CA_CERTS:-}" "${SSL_CERT_FILE:-}" /etc/ssl/certs/ca-certificates.crt; do
+  if [[ -n $ca && -s $ca ]]; then
+    host_ca_secret=(--secret "id=host_ca,src=$ca")
+    break
+  fi
+done
 free_port() { python3 -c 'import socket; s = socket.socket(); s.bind(("127.0.0.1", 0)); print(s.getsockname()[1])'; }

@@ -25,7 +25,7 @@ cleanup() {
 trap cleanup EXIT
 
 start=$(date +%s)
-podman build --format docker --build-arg "BASE=$base" -f docker/Dockerfile -t "$image" .
+podman build --format docker "${host_ca_secret[@]}" --build-arg "BASE=$base" -f docker/Dockerfile -t "$image" .
 built=$(date +%s)
 echo "container-test: image built in $((built - start)) s, $(podman image inspect "$image" --format '{{.Size}}') bytes"
 

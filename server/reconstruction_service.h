@@ -114,8 +114,9 @@ class ReconstructionService final : public ReconstructionBase {
   // Room in the spool for `bytes` more of `caller`'s upload (SpoolLedger::Reserve).
   absl::Status ReserveSpool(const Caller& caller, int64_t bytes);
   // Runs `task` on a submission thread (a finished upload's decoding and submission).
-  void Post(std::function<void()> task);
-  void SubmitLoop();
+  void Post(std::function<void()> task, size_t upload_bytes);
+  // `small_only`: the thread kept for uploads under kSmallUploadBytes.
+  void SubmitLoop(bool small_only);
   void WatchLoop();
   void RemoveWatch(Watch* watch);
 
@@ -128,8 +129,8 @@ class ReconstructionService final : public ReconstructionBase {
 
   std::mutex submit_mutex_;
   std::condition_variable submit_wake_;
-  std::deque<std::function<void()>> submissions_;
-  bool stopping_ = false;  // submit_mutex_.
+  std::deque<std::function<void()>> submissions_, small_submissions_;  // By upload size.
+  bool stopping_ = false;                                              // submit_mutex_.
   std::vector<std::thread> submit_threads_;
 
   // Recursive: a watcher's reactions (its end, and so its removal) may run on the thread that

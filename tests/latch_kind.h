@@ -68,6 +68,10 @@ class LatchKind final : public jobs::JobKind {
     std::unique_lock lock(mutex_);
     changed_.wait(lock, [&] { return checking_ >= n; });
   }
+  bool ChecksHeld() const {
+    std::lock_guard lock(mutex_);
+    return checks_held_;
+  }
   void ReleaseChecks() const {
     std::lock_guard lock(mutex_);
     checks_held_ = false;

@@ -315,5 +315,38 @@ TEST_F(StreamsTest, AnUploadStopsWhereTheDisksReserveBegins) {
   EXPECT_EQ(spooled, 0u);
 }
 
+// Large uploads held in their checks on the server do not hold up a small one: it has a
+// submission thread of its own (two large volume uploads once held a 19 KB submission 60 s).
+TEST_F(StreamsTest, ASmallSubmissionPassesLargeOnesHeldInTheirChecks) {
+  latch_.HoldChecks();
+  Start(StreamLimits{}, &latch_);  // apss: held in its check.
+  std::vector<std::thread> large;
+  std::vector<absl::StatusOr<v1::Job>> large_jobs(3);
+  v1::JobSpec apss;
+  ASSERT_TRUE(client::SetMethod(&apss, "apss").ok());
+  const std::string big(3 << 19, 'x');  // 1.5 MiB: the check (the latch's) does not read it.
+  for (size_t k = 0; k < large_jobs.size(); ++k) {
+    large.emplace_back([&, k] { large_jobs[k] = client::Client(address()).Submit(apss, big); });
+  }
+  latch_.WaitChecking(2);  // Both threads that take large uploads hold one each.
+  std::atomic<bool> small_done{false};
+  std::thread watchdog([&] {  // Lets them go after 20 s at the latest, so a failure cannot hang.
+    for (int i = 0; i < 400 && !small_done; ++i) std::this_thread::sleep_for(std::chrono::milliseconds(50));
+    latch_.ReleaseChecks();
+  });
+  v1::JobSpec iamls;
+  iamls.mutable_iamls();
+  auto cloud = io::EncodeDracoPointCloud(testing::SphereCloud(500), {});
+  ASSERT_TRUE(cloud.ok());
+  auto small = client::Client(address()).Submit(iamls, *cloud);
+  EXPECT_TRUE(latch_.ChecksHeld());  // Accepted while the large ones still wait.
+  small_done = true;
+  watchdog.join();
+  for (std::thread& t : large) t.join();
+  ASSERT_TRUE(small.ok()) << small.status();
+  for (const auto& job : large_jobs) EXPECT_TRUE(job.ok()) << job.status();
+  latch_.Release();
+}
+
 }  // namespace
 }  // namespace lsqsurf::server

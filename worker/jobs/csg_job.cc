@@ -102,6 +102,7 @@ class CsgKind final : public TypedJobKind<CsgJobParams, NoInput> {
     csg::CsgStats csg_stats;
     auto extracted = csg::ExtractCsg(**function, Bounded(p->extract, env.memory_bytes), extract_ctx, &csg_stats);
     if (!extracted.ok()) return extracted.status();
+    LSQSURF_RETURN_IF_ERROR(env.context.CheckCancelled());  // Before measuring the whole mesh.
     stat("extract_seconds", core::SecondsSince(extract_start));
     stat("cell_size", csg_stats.cell_size);
     stat("seeds", static_cast<double>(csg_stats.seeds));

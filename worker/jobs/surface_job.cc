@@ -565,7 +565,8 @@ absl::StatusOr<std::unique_ptr<pu::PuFunction>> ReadKeptPuFunction(RunEnvironmen
 
 absl::Status DeliverMesh(const core::TriangleMesh& mesh, const JobSpec& spec, RunEnvironment& env,
                          Statistics* statistics) {
-  auto encoded = EncodeResultMesh(mesh, spec.mesh_position_bits, statistics);
+  LSQSURF_RETURN_IF_ERROR(env.context.CheckCancelled());  // Coding millions of faces takes seconds.
+  auto encoded = EncodeResultMesh(mesh, spec.mesh_position_bits, statistics, &env.context);
   if (!encoded.ok()) return encoded.status();
   LSQSURF_RETURN_IF_ERROR(env.sink.Write(kMeshArtifact, *encoded));
   if (spec.preview.enabled) {
@@ -743,14 +744,17 @@ int ChoosePositionBits(const core::TriangleMesh& mesh, int64_t distinct) {
 
 }  // namespace
 
-absl::StatusOr<std::string> EncodeResultMesh(const core::TriangleMesh& mesh, int position_bits,
-                                             Statistics* statistics) {
+absl::StatusOr<std::string> EncodeResultMesh(const core::TriangleMesh& mesh, int position_bits, Statistics* statistics,
+                                             const core::JobContext* ctx) {
   const auto start = std::chrono::steady_clock::now();
+  const auto check = [ctx] { return ctx != nullptr ? ctx->CheckCancelled() : absl::OkStatus(); };
   const int64_t distinct = core::CountDistinctPositions(mesh.vertices);
   io::DracoOptions draco;
   draco.position_bits = position_bits > 0 ? position_bits : ChoosePositionBits(mesh, distinct);
+  LSQSURF_RETURN_IF_ERROR(check());
   auto encoded = io::EncodeDracoMesh(mesh, draco);
   if (!encoded.ok()) return encoded.status();
+  LSQSURF_RETURN_IF_ERROR(check());
   // What a client decodes, merged by position, is what the statistics describe. When the round
   // trip keeps every position of a mesh without coincident vertices apart, merging changes
   // nothing and that is the engine's mesh itself; otherwise the bytes are decoded and merged.
@@ -761,10 +765,8 @@ absl::StatusOr<std::string> EncodeResultMesh(const core::TriangleMesh& mesh, int
   } else {
     const auto decode = [](const std::string& bytes) -> absl::StatusOr<core::TriangleMesh> {
       auto decoded = io::DecodeDracoMesh(bytes);
-      if (!decoded.ok()) {
-        return absl::InternalError(core::StrCat("the result mesh does not decode: ", decoded.status().message()));
-      }
-      return decoded;
+      if (decoded.ok()) return decoded;
+      return absl::InternalError(core::StrCat("the result mesh does not decode: ", decoded.status().message()));
     };
     auto delivered = decode(*encoded);
     if (!delivered.ok()) return delivered.status();
@@ -776,11 +778,13 @@ absl::StatusOr<std::string> EncodeResultMesh(const core::TriangleMesh& mesh, int
     if (dropped > 0 || delivered->vertices.size() != before) {
       spdlog::info("result mesh: {} vertices merged at {} bits, {} faces dropped", before - delivered->vertices.size(),
                    draco.position_bits, dropped);
+      LSQSURF_RETURN_IF_ERROR(check());
       encoded = io::EncodeDracoMesh(*delivered, draco);
       if (!encoded.ok()) return encoded.status();
       delivered = decode(*encoded);
       if (!delivered.ok()) return delivered.status();
     }
+    LSQSURF_RETURN_IF_ERROR(check());
     AddStatistic(statistics, "delivery_dropped_faces", static_cast<double>(dropped));
     topo = core::AnalyzeTopology(core::WeldByPosition(*delivered));
   }

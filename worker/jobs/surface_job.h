@@ -133,8 +133,10 @@ absl::StatusOr<SurfaceResult> ReconstructStreamed(const std::string& method, con
 // mesh merged by position keeps the engine's topology). Adds delivered_position_bits,
 // encode_seconds and the topology of the mesh as a client decodes and merges it
 // (boundary_edges, non_manifold_edges, degenerate_faces, components) to `statistics`.
-// Errors: those of the encoder.
-absl::StatusOr<std::string> EncodeResultMesh(const core::TriangleMesh& mesh, int position_bits, Statistics* statistics);
+// Errors: those of the encoder; kCancelled once `ctx` (when given) is, asked between the steps,
+// each of which takes seconds on a mesh of millions of faces.
+absl::StatusOr<std::string> EncodeResultMesh(const core::TriangleMesh& mesh, int position_bits, Statistics* statistics,
+                                             const core::JobContext* ctx = nullptr);
 
 // Size, extraction work and triangle quality (smallest-angle 1st percentile and median, aspect
 // ratio 99th percentile, and the share of faces per 5° bin of the smallest angle,

@@ -144,8 +144,8 @@ class VolumeKind final : public TypedJobKind<VolumeJobParams, RepairedVolume> {
                              ReconstructVolume(spec.params, input.mesh, env.context, env.memory_bytes));
     AddRepairStatistics(input.repairs, result.statistics);
     if (!result.mesh.empty()) {
-      LSQSURF_ASSIGN_OR_RETURN(std::string encoded,
-                               EncodeResultMesh(result.mesh, spec.mesh_position_bits, &result.statistics));
+      LSQSURF_ASSIGN_OR_RETURN(std::string encoded, EncodeResultMesh(result.mesh, spec.mesh_position_bits,
+                                                                     &result.statistics, &env.context));
       LSQSURF_RETURN_IF_ERROR(env.sink.Write(kMeshArtifact, encoded));
     }
     env.context.ReportProgress("keeping the field", 0.99);

@@ -8,8 +8,7 @@
 
 #include "server/convert.h"
 #include "worker/core/strings.h"
-#include "worker/io/draco_header.h"
-#include "worker/io/files.h"
+#include "worker/core/byte_view.h"
 #include "worker/jobs/job_ids.h"
 #include "worker/jobs/method_registry.h"
 
@@ -300,8 +299,8 @@ class ReconstructionService::Upload final : public grpc::ServerReadReactor<v1::S
     files_.erase(jobs::InputPartSlot(input_part_));  // Closed: no more chunks come for it.
     // The points the parts so far declare, from their Draco headers: a cloud over the server's
     // limit is refused now, not after the rest of its parts have come.
-    if (auto claim = io::ReadDracoClaim(HeadOf(paths_[jobs::InputPartSlot(input_part_)])); claim.ok()) {
-      declared_points_ += claim->points;
+    if (auto points = jobs::DeclaredPoints(HeadOf(paths_[jobs::InputPartSlot(input_part_)])); points.has_value()) {
+      declared_points_ += *points;
       if (const int64_t limit = service_.jobs_.options().max_points;
           declared_points_ > static_cast<uint64_t>(std::max<int64_t>(limit, 0))) {
         return grpc::Status(grpc::StatusCode::RESOURCE_EXHAUSTED,
@@ -317,7 +316,7 @@ class ReconstructionService::Upload final : public grpc::ServerReadReactor<v1::S
   // The first bytes of a spool file, where a Draco header lies.
   static std::string HeadOf(const std::string& path) {
     std::ifstream in(path, std::ios::binary);
-    std::string head(64 << 10, '\0');
+    std::string head(jobs::kDracoHeadBytes, '\0');
     in.read(head.data(), static_cast<std::streamsize>(head.size()));
     head.resize(static_cast<size_t>(in.gcount()));
     return head;
@@ -333,7 +332,8 @@ class ReconstructionService::Upload final : public grpc::ServerReadReactor<v1::S
   }
 
   // On a submission thread: the token asked again (one revoked meanwhile may not have the job
-  // accepted, and the quotas are those in force now), the spool read back, the job submitted.
+  // accepted, and the quotas are those in force now), the spool files mapped (never read onto
+  // the heap) and the job submitted; its store takes them by rename.
   void Submit() {
     End(Run("SubmitJob", [this] { return Accept(); }));
   }
@@ -350,12 +350,11 @@ class ReconstructionService::Upload final : public grpc::ServerReadReactor<v1::S
     jobs::Uploads uploads;
     files_.clear();  // Flushed and closed.
     for (const auto& [slot, path] : paths_) {
-      auto bytes = io::ReadFileBytes(path);
+      auto bytes = core::ByteView::MapFile(path, /*movable=*/true);
       if (!bytes.ok()) return ToGrpcStatus(bytes.status());
       uploads[slot] = *std::move(bytes);
-      std::error_code error;
-      std::filesystem::remove(path, error);
     }
+    // OnDone removes what the store did not take.
     auto record = service_.jobs_.Submit(*spec_, std::move(uploads), now->submitter);
     if (!record.ok()) return ToGrpcStatus(record.status());
     ToProto(*record, response_);

@@ -20,6 +20,7 @@ FILES = {
     "worker/front/bad_up.h": '#include "worker/jobs/job_kind.h"\n',
     "client/bad_engine.cc": '#include "worker/pu/pu.h"\n',
     "server/bad_render.cc": '#include "worker/render/render.h"\n',
+    "server/bad_codec.cc": '#include "worker/io/files.h"\n',
     "bench/bad_bench.cc": '#include "tests/test_shapes.h"\n',
     "worker/jobs/bad_private.cc": '#include "worker/pu/pu_internal.h"\n',
     # Shape rules: a friend, an untyped pointer, another module's internals, a file too long.
@@ -35,6 +36,7 @@ EXPECTED = {
     "worker/front/bad_up.h:1",
     "client/bad_engine.cc:1",
     "server/bad_render.cc:1",
+    "server/bad_codec.cc:1",
     "bench/bad_bench.cc:1",
     "worker/jobs/bad_private.cc:1",
     "worker/mls/bad_friend.h:2",

@@ -10,6 +10,7 @@
 #include "tests/postgres_cluster.h"
 #endif
 #include "tests/test_dir.h"
+#include "worker/io/files.h"
 #if LSQSURF_WITH_POSTGRESQL
 #include "worker/jobs/store/postgres_store.h"
 #endif
@@ -129,6 +130,29 @@ TEST_P(BlobStoreContract, AReaderOfAReplacedBlobFailsRatherThanMixTwoVersions) {
   } else {
     EXPECT_EQ(status.code(), absl::StatusCode::kUnavailable);
   }
+}
+
+// A spool file handed over by path: its bytes come back whole, through Read and Map, and it is
+// the store's now (the file store takes it by rename; another copies it and leaves it).
+TEST_P(BlobStoreContract, AFileHandedOverComesBackWholeAndMapped) {
+  const std::filesystem::path spool = testing::FreshTestDir("lsqsurf-spool");
+  std::filesystem::create_directories(spool);
+  const std::string path = (spool / "upload.input").string();
+  const std::string bytes = BinaryBytes(kStoreChunk * 3 / 2);
+  ASSERT_TRUE(io::WriteFileAtomically(path, bytes).ok());
+  ASSERT_TRUE(blobs_->PutFile("job5", "input.drc", path).ok());
+  if (GetParam() == "files") {
+    EXPECT_FALSE(std::filesystem::exists(path)) << "taken by rename, not copied";
+  }
+  EXPECT_TRUE(blobs_->Read("job5", "input.drc").value() == bytes);
+  auto mapped = blobs_->Map("job5", "input.drc");
+  ASSERT_TRUE(mapped.ok()) << mapped.status();
+  EXPECT_TRUE(mapped->view() == bytes);
+  EXPECT_TRUE(mapped->movable_path().empty()) << "a stored blob is never handed on by rename";
+  std::filesystem::remove(path);  // Where the store copied it, its caller removes it.
+  EXPECT_EQ(blobs_->PutFile("job5", "other", path).code(), absl::StatusCode::kNotFound);
+  EXPECT_EQ(blobs_->Map("job5", "missing").status().code(), absl::StatusCode::kNotFound);
+  std::filesystem::remove_all(spool);
 }
 
 INSTANTIATE_TEST_SUITE_P(Stores, BlobStoreContract, ::testing::Values("files", "postgresql"),

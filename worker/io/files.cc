@@ -10,6 +10,7 @@
 #include <filesystem>
 #include <fstream>
 
+#include "worker/core/byte_view.h"
 #include "worker/core/strings.h"
 #include "worker/io/obj_xyz.h"
 
@@ -80,6 +81,33 @@ absl::Status WriteFileAtomically(const std::string& path, std::string_view bytes
     ::unlink(tmp.c_str());
     return absl::PermissionDeniedError(core::StrCat(path, ": cannot rename into place: ", err));
   }
+  return absl::OkStatus();
+}
+
+absl::Status MoveFileAtomically(const std::string& from, const std::string& to) {
+  const int fd = ::open(from.c_str(), O_RDONLY | O_CLOEXEC);
+  if (fd < 0) {
+    const int error = errno;
+    if (error == ENOENT) return absl::NotFoundError(core::StrCat("no file ", from));
+    return absl::PermissionDeniedError(core::StrCat(from, ": cannot open: ", std::strerror(error)));
+  }
+  const bool flushed = ::fsync(fd) == 0;
+  const int flush_error = errno;
+  ::close(fd);
+  if (!flushed) {
+    if (flush_error == ENOSPC || flush_error == EDQUOT) {
+      return absl::ResourceExhaustedError(core::StrCat(from, ": cannot flush to disk: ", std::strerror(flush_error)));
+    }
+    return absl::DataLossError(core::StrCat(from, ": cannot flush to disk"));
+  }
+  if (::rename(from.c_str(), to.c_str()) == 0) return absl::OkStatus();
+  if (errno != EXDEV) {
+    return absl::PermissionDeniedError(core::StrCat(to, ": cannot rename into place: ", std::strerror(errno)));
+  }
+  auto mapped = core::ByteView::MapFile(from);
+  if (!mapped.ok()) return mapped.status();
+  if (absl::Status s = WriteFileAtomically(to, mapped->view()); !s.ok()) return s;
+  ::unlink(from.c_str());
   return absl::OkStatus();
 }
 

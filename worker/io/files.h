@@ -26,6 +26,10 @@ absl::StatusOr<std::string> ReadFileBytes(const std::string& path, uint64_t max_
 // Writes to a temporary file beside `path`, flushes it to disk and renames it over `path`, so
 // readers see the old file or the whole new one, never a partial write.
 absl::Status WriteFileAtomically(const std::string& path, std::string_view bytes);
+// Moves the file at `from` to `to` as WriteFileAtomically writes one: flushed to disk, then
+// renamed into place; across file systems copied (through a mapping, not the heap) and removed.
+// Errors: those of WriteFileAtomically, kNotFound (no `from`).
+absl::Status MoveFileAtomically(const std::string& from, const std::string& to);
 
 struct WriteOptions {
   PlyFormat ply_format = PlyFormat::kBinaryLittleEndian;

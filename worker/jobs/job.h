@@ -3,11 +3,13 @@
 
 #include <cstdint>
 #include <map>
+#include <optional>
 #include <string>
 #include <string_view>
 #include <utility>
 #include <vector>
 
+#include "worker/core/byte_view.h"
 #include "worker/core/params.h"
 
 namespace lsqsurf::jobs {
@@ -42,8 +44,10 @@ struct JobSpec {
 inline constexpr int64_t kFreeSpecBytes = 4096;
 int64_t SpecBytes(const JobSpec& spec);
 
-// Uploaded bytes by slot: "input" (a Draco point cloud) and "velocity" (a legacy VTK grid).
-using Uploads = std::map<std::string, std::string>;
+// Uploaded bytes by slot: "input" (a Draco point cloud) and "velocity" (a legacy VTK grid). A
+// server's uploads are its spool files mapped, a run's are its stored blobs mapped: no copy of
+// an upload sits on the heap.
+using Uploads = std::map<std::string, core::ByteView>;
 inline constexpr char kInputUpload[] = "input";
 inline constexpr char kVelocityUpload[] = "velocity";
 inline constexpr char kCellsUpload[] = "cells";  // Volume meshes: the cell stream (io/volume_codec.h).
@@ -56,6 +60,11 @@ std::string InputPartSlot(int64_t part);
 int64_t InputPartOf(std::string_view slot);
 // The input parts present, in order; a gap ends them.
 std::vector<std::string_view> InputParts(const Uploads& uploads);
+// The points an input part declares in its Draco header, read from its first bytes (64 KiB hold
+// any header) before the rest is decoded; nullopt when they are no Draco header (decoding then
+// says why).
+inline constexpr size_t kDracoHeadBytes = size_t{64} << 10;
+std::optional<uint64_t> DeclaredPoints(std::string_view head);
 
 // The parts of a mesh delivered in parts (io/mesh_part.h), numbered from 0: "mesh-part-00000.lqm".
 // They are the artifacts a job publishes while it runs: each is listed in the job's results as

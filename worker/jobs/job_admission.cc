@@ -116,7 +116,10 @@ absl::StatusOr<JobRecord> JobService::Submit(const JobSpec& spec, Uploads upload
     if (pending.active_jobs == 0) pending_.erase(submitter.owner);
   };
   for (const auto& [slot, data] : uploads) {
-    if (absl::Status s = blobs_->Put(r.id, UploadBlob(slot), data); !s.ok()) {
+    // A spooled upload moves into the store (a rename where it can); others are written.
+    const absl::Status s = data.movable_path().empty() ? blobs_->Put(r.id, UploadBlob(slot), data)
+                                                       : blobs_->PutFile(r.id, UploadBlob(slot), data.movable_path());
+    if (!s.ok()) {
       (void)blobs_->RemoveJob(r.id);
       return s;
     }

@@ -218,7 +218,7 @@ absl::StatusOr<Statistics> JobService::RunKind(const std::shared_ptr<Entry>& ent
   auto read_back = [&](const std::string& slot) -> absl::StatusOr<bool> {
     const std::string blob = UploadBlob(slot);
     if (!blobs_->Exists(record.id, blob)) return false;
-    auto bytes = blobs_->Read(record.id, blob);
+    auto bytes = blobs_->Map(record.id, blob);
     if (!bytes.ok()) return bytes.status();
     uploads[slot] = *std::move(bytes);
     return true;

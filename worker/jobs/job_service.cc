@@ -11,6 +11,7 @@
 
 #include "worker/core/status.h"
 #include "worker/core/strings.h"
+#include "worker/io/draco_header.h"
 #include "worker/jobs/job_ids.h"
 #include "worker/jobs/job_service_internal.h"
 #include "worker/jobs/method_registry.h"
@@ -101,6 +102,12 @@ std::vector<std::string_view> InputParts(const Uploads& uploads) {
     parts.push_back(it->second);
   }
   return parts;
+}
+
+std::optional<uint64_t> DeclaredPoints(std::string_view head) {
+  auto claim = io::ReadDracoClaim(head);
+  if (!claim.ok()) return std::nullopt;
+  return claim->points;
 }
 
 int64_t NowMs() {

@@ -108,7 +108,8 @@ absl::StatusOr<SurfaceInput> DecodeSurfaceInput(const Uploads& uploads, const No
   // A cloud streamed must carry its normals: estimating them needs every point's neighbours.
   if (parts.size() > 1 && *with_normals && streams(input.points)) {
     input.cloud = {};
-    for (const std::string_view part : parts) input.parts.emplace_back(part);
+    // The uploads' own bytes (a mapping), not copies.
+    for (size_t i = 0; i < parts.size(); ++i) input.parts.push_back(uploads.at(InputPartSlot(static_cast<int64_t>(i))));
   }
   return input;
 }

@@ -20,7 +20,7 @@ namespace lsqsurf::jobs {
 // decoded whole.
 struct SurfaceInput {
   core::PointCloud cloud;
-  std::vector<std::string> parts;  // Non-empty: the cloud is streamed from these; `cloud` is empty.
+  std::vector<core::ByteView> parts;  // Non-empty: the cloud is streamed from these; `cloud` is empty.
   int64_t points = 0;
   double diagonal = 0;  // Of the bounding box of all parts.
 };
@@ -36,11 +36,11 @@ absl::StatusOr<SurfaceInput> DecodeSurfaceInput(const Uploads& uploads, const No
 // The parts decoded in turn, each a chunk; they must outlive it.
 class DracoPartsSource final : public pu::PointSource {
  public:
-  explicit DracoPartsSource(const std::vector<std::string>& parts) : parts_(parts) {}
+  explicit DracoPartsSource(const std::vector<core::ByteView>& parts) : parts_(parts) {}
   absl::Status ForEachChunk(const std::function<absl::Status(const core::PointCloud&)>& visit) const override;
 
  private:
-  const std::vector<std::string>& parts_;
+  const std::vector<core::ByteView>& parts_;
 };
 
 }  // namespace lsqsurf::jobs

@@ -511,7 +511,7 @@ class SurfaceKind final : public TypedJobKind<core::ParamSet, SurfaceInput> {
     auto input = DecodeSurfaceInput(uploads, *m->normals(params), limits, streams);
     if (!input.ok()) return input.status();
     CloudSize size{input->points, input->diagonal, 0};
-    for (const std::string& part : input->parts) size.streamed_bytes += static_cast<int64_t>(part.size());
+    for (const core::ByteView& part : input->parts) size.streamed_bytes += static_cast<int64_t>(part.size());
     MemoryEstimate memory = m->memory(params, size);
     return Checked{size.points, *std::move(input), std::move(memory)};
   }

@@ -28,6 +28,15 @@ class FileReader final : public BlobReader {
   int64_t size_;
 };
 
+// A write's failure as the store reports it: a full disk is the caller's to wait out.
+absl::Status StoreFailure(const absl::Status& write, const std::string& job_id, std::string_view name) {
+  if (absl::IsResourceExhausted(write)) {
+    return absl::ResourceExhaustedError(core::StrCat("the server's disk is full: cannot store ", name, " of job ",
+                                                     job_id, "; try again once jobs have been deleted"));
+  }
+  return absl::UnavailableError(core::StrCat("cannot store ", name, ": ", write.message()));
+}
+
 }  // namespace
 
 absl::StatusOr<std::string> ReadAll(BlobReader& reader) {
@@ -47,6 +56,18 @@ absl::StatusOr<std::string> BlobStore::Read(const std::string& job_id, std::stri
   return ReadAll(**reader);
 }
 
+absl::Status BlobStore::PutFile(const std::string& job_id, std::string_view name, const std::string& path) {
+  auto bytes = core::ByteView::MapFile(path);
+  if (!bytes.ok()) return bytes.status();
+  return Put(job_id, name, bytes->view());
+}
+
+absl::StatusOr<core::ByteView> BlobStore::Map(const std::string& job_id, std::string_view name) const {
+  auto bytes = Read(job_id, name);
+  if (!bytes.ok()) return bytes.status();
+  return core::ByteView(*std::move(bytes));
+}
+
 absl::StatusOr<std::unique_ptr<LocalDirBlobStore>> LocalDirBlobStore::Open(std::string root) {
   std::error_code ec;
   std::filesystem::create_directories(root, ec);
@@ -58,16 +79,30 @@ std::string LocalDirBlobStore::PathOf(const std::string& job_id, std::string_vie
   return core::StrCat(root_, "/", job_id, "/", name);
 }
 
-absl::Status LocalDirBlobStore::Put(const std::string& job_id, std::string_view name, std::string_view bytes) {
+absl::Status LocalDirBlobStore::MakeJobFolder(const std::string& job_id) const {
   std::error_code ec;
   std::filesystem::create_directories(core::StrCat(root_, "/", job_id), ec);
   if (ec) return absl::UnavailableError(core::StrCat("cannot create the folder of job ", job_id, ": ", ec.message()));
+  return absl::OkStatus();
+}
+
+absl::Status LocalDirBlobStore::PutFile(const std::string& job_id, std::string_view name, const std::string& path) {
+  if (absl::Status s = MakeJobFolder(job_id); !s.ok()) return s;
+  absl::Status s = io::MoveFileAtomically(path, PathOf(job_id, name));
+  if (s.ok() || absl::IsNotFound(s)) return s;
+  return StoreFailure(s, job_id, name);
+}
+
+absl::StatusOr<core::ByteView> LocalDirBlobStore::Map(const std::string& job_id, std::string_view name) const {
+  auto bytes = core::ByteView::MapFile(PathOf(job_id, name));
+  if (absl::IsNotFound(bytes.status())) return absl::NotFoundError(core::StrCat("job ", job_id, " has no stored ", name));
+  return bytes;
+}
+
+absl::Status LocalDirBlobStore::Put(const std::string& job_id, std::string_view name, std::string_view bytes) {
+  if (absl::Status s = MakeJobFolder(job_id); !s.ok()) return s;
   if (absl::Status s = io::WriteFileAtomically(PathOf(job_id, name), bytes); !s.ok()) {
-    if (s.code() == absl::StatusCode::kResourceExhausted) {
-      return absl::ResourceExhaustedError(core::StrCat("the server's disk is full: cannot store ", name, " of job ",
-                                                       job_id, "; try again once jobs have been deleted"));
-    }
-    return absl::UnavailableError(core::StrCat("cannot store ", name, ": ", s.message()));
+    return StoreFailure(s, job_id, name);
   }
   return absl::OkStatus();
 }

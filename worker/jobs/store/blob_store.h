@@ -13,6 +13,7 @@
 #include <string_view>
 
 #include "absl/status/statusor.h"
+#include "worker/core/byte_view.h"
 
 namespace lsqsurf::jobs {
 
@@ -34,10 +35,17 @@ class BlobStore {
   // Stores (or replaces) a blob. Errors: kResourceExhausted (the disk is full; nothing of the
   // blob is left behind), kUnavailable.
   virtual absl::Status Put(const std::string& job_id, std::string_view name, std::string_view bytes) = 0;
+  // Stores (or replaces) a blob from the file at `path`, which it may take (a rename) rather than
+  // copy: the caller removes `path` afterwards if it is still there. Errors: those of Put,
+  // kNotFound (no such file).
+  virtual absl::Status PutFile(const std::string& job_id, std::string_view name, const std::string& path);
   // Errors: kNotFound (no such blob), kUnavailable.
   virtual absl::StatusOr<std::unique_ptr<BlobReader>> Open(const std::string& job_id, std::string_view name) const = 0;
   // The whole blob. Errors: those of Open.
   absl::StatusOr<std::string> Read(const std::string& job_id, std::string_view name) const;
+  // The whole blob, mapped read-only where the store keeps files (no copy on the heap), else
+  // read. Errors: those of Open.
+  virtual absl::StatusOr<core::ByteView> Map(const std::string& job_id, std::string_view name) const;
   virtual bool Exists(const std::string& job_id, std::string_view name) const = 0;
   // Removes one blob; removing nothing is not an error. Errors: kUnavailable.
   virtual absl::Status Remove(const std::string& job_id, std::string_view name) = 0;
@@ -61,6 +69,8 @@ class LocalDirBlobStore final : public BlobStore {
   static absl::StatusOr<std::unique_ptr<LocalDirBlobStore>> Open(std::string root);
 
   absl::Status Put(const std::string& job_id, std::string_view name, std::string_view bytes) override;
+  absl::Status PutFile(const std::string& job_id, std::string_view name, const std::string& path) override;
+  absl::StatusOr<core::ByteView> Map(const std::string& job_id, std::string_view name) const override;
   absl::StatusOr<std::unique_ptr<BlobReader>> Open(const std::string& job_id, std::string_view name) const override;
   bool Exists(const std::string& job_id, std::string_view name) const override;
   absl::Status Remove(const std::string& job_id, std::string_view name) override;
@@ -71,6 +81,8 @@ class LocalDirBlobStore final : public BlobStore {
  private:
   explicit LocalDirBlobStore(std::string root) : root_(std::move(root)) {}
   std::string PathOf(const std::string& job_id, std::string_view name) const;
+  // The job's folder, made if missing. Errors: kUnavailable.
+  absl::Status MakeJobFolder(const std::string& job_id) const;
   std::string root_;
 };
 

@@ -7,8 +7,8 @@
 #include <optional>
 
 #include "server/convert.h"
-#include "worker/core/strings.h"
 #include "worker/core/byte_view.h"
+#include "worker/core/strings.h"
 #include "worker/jobs/job_ids.h"
 #include "worker/jobs/method_registry.h"
 

@@ -1,5 +1,7 @@
 // Mapped bytes and moving files into place: what the upload path builds on to keep uploads off
 // the heap.
+#include "worker/io/files.h"
+
 #include <gtest/gtest.h>
 #include <sys/stat.h>
 
@@ -8,7 +10,6 @@
 
 #include "tests/test_dir.h"
 #include "worker/core/byte_view.h"
-#include "worker/io/files.h"
 
 namespace lsqsurf::io {
 namespace {
@@ -74,7 +75,8 @@ TEST_F(FilesTest, AMoveAcrossFileSystemsCopiesAndRemoves) {
   // /dev/shm is a tmpfs on Linux; where it shares the temporary folder's file system there is
   // no second one to move across.
   const std::filesystem::path shm = "/dev/shm";
-  struct stat temp_info {}, shm_info {};
+  struct stat temp_info {
+  }, shm_info{};
   if (::stat(dir_.c_str(), &temp_info) != 0 || ::stat(shm.c_str(), &shm_info) != 0 ||
       temp_info.st_dev == shm_info.st_dev) {
     GTEST_SKIP() << "no second file system beside " << dir_;

@@ -95,7 +95,8 @@ absl::Status LocalDirBlobStore::PutFile(const std::string& job_id, std::string_v
 
 absl::StatusOr<core::ByteView> LocalDirBlobStore::Map(const std::string& job_id, std::string_view name) const {
   auto bytes = core::ByteView::MapFile(PathOf(job_id, name));
-  if (absl::IsNotFound(bytes.status())) return absl::NotFoundError(core::StrCat("job ", job_id, " has no stored ", name));
+  if (absl::IsNotFound(bytes.status()))
+    return absl::NotFoundError(core::StrCat("job ", job_id, " has no stored ", name));
   return bytes;
 }
 

@@ -15,19 +15,33 @@
 // WatchJob streams, so GetJob is timed while a worker computes. --upload-mib M first sends one
 // upload of M MiB (bytes that are no cloud, refused once spooled) and reports how far it moved
 // the server's peak resident memory (VmHWM).
+//
+// --missing-volume N submits, as one user, a volume of N^3 vertices (hexahedra) whose field is
+// missing (NaN, in an unquantized Draco attribute as a client of its own may send) at half of
+// them, and meanwhile times small cloud submissions as another user would make them; it prints
+// their slowest time against the same submissions on the idle server, then exits.
+#include <draco/compression/encode.h>
+#include <draco/metadata/geometry_metadata.h>
+#include <draco/point_cloud/point_cloud.h>
 #include <grpcpp/grpcpp.h>
 
 #include <CLI/CLI.hpp>
 #include <algorithm>
+#include <atomic>
 #include <chrono>
+#include <cmath>
 #include <cstdio>
 #include <fstream>
 #include <string>
+#include <thread>
 #include <vector>
 
 #include "client/client.h"
 #include "grpc/reflection/v1alpha/reflection.grpc.pb.h"
 #include "lsqsurf/v1/reconstruction.grpc.pb.h"
+#include "worker/core/volume_mesh.h"
+#include "worker/io/draco_codec.h"
+#include "worker/io/volume_codec.h"
 
 namespace {
 
@@ -58,8 +72,9 @@ struct Options {
   int per_connection = 90;
   int chunk_kib = 64;
   int probes = 2000;
-  int watches = 0;     // WatchJob streams on one running job.
-  int upload_mib = 0;  // One upload of this size, sent whole before the streams open.
+  int watches = 0;         // WatchJob streams on one running job.
+  int upload_mib = 0;      // One upload of this size, sent whole before the streams open.
+  int missing_volume = 0;  // Side of the half-missing volume grid; 0: none.
 };
 
 // Sends `mib` MiB in 1 MiB chunks as one upload (bytes that are no cloud: the server spools them
@@ -111,6 +126,90 @@ void ReportBigUpload(const Options& o) {
       mib(end.peak_kib - start.peak_kib));
 }
 
+// The vertices of an n^3 grid with field "f" missing (NaN) where x < n/2, as a Draco point cloud
+// with positions quantized and the field kept as raw floats (NaN travels).
+std::string HalfMissingVertices(int n) {
+  draco::PointCloud pc;
+  const auto count = static_cast<uint32_t>(n) * static_cast<uint32_t>(n) * static_cast<uint32_t>(n);
+  pc.set_num_points(count);
+  draco::GeometryAttribute position, value;
+  position.Init(draco::GeometryAttribute::POSITION, nullptr, 3, draco::DT_FLOAT32, false, 12, 0);
+  value.Init(draco::GeometryAttribute::GENERIC, nullptr, 1, draco::DT_FLOAT32, false, 4, 0);
+  draco::PointAttribute* p = pc.attribute(pc.AddAttribute(position, true, count));
+  const int value_id = pc.AddAttribute(value, true, count);
+  draco::PointAttribute* v = pc.attribute(value_id);
+  uint32_t i = 0;
+  for (int z = 0; z < n; ++z) {
+    for (int y = 0; y < n; ++y) {
+      for (int x = 0; x < n; ++x, ++i) {
+        const float xyz[3] = {static_cast<float>(x), static_cast<float>(y), static_cast<float>(z)};
+        const float f = x < n / 2 ? std::nanf("") : static_cast<float>(x + y + z) / static_cast<float>(3 * n);
+        p->SetAttributeValue(draco::AttributeValueIndex(i), xyz);
+        v->SetAttributeValue(draco::AttributeValueIndex(i), &f);
+      }
+    }
+  }
+  auto name = std::make_unique<draco::AttributeMetadata>();
+  name->AddEntryString("name", "f");
+  pc.AddAttributeMetadata(value_id, std::move(name));
+  draco::Encoder encoder;
+  encoder.SetAttributeQuantization(draco::GeometryAttribute::POSITION, 20);
+  encoder.SetSpeedOptions(10, 10);  // Sequential: the cells refer to the vertex order.
+  draco::EncoderBuffer buffer;
+  if (!encoder.EncodePointCloudToBuffer(pc, &buffer).ok()) return {};
+  return std::string(buffer.data(), buffer.size());
+}
+
+// Submits the half-missing volume while timing small submissions; prints the times.
+int ReportMissingVolume(const Options& o) {
+  lsqsurf::core::VolumeMesh cells;
+  lsqsurf::core::AddStructuredHexahedra(cells, o.missing_volume, o.missing_volume, o.missing_volume);
+  const std::string vertices = HalfMissingVertices(o.missing_volume);
+  lsqsurf::core::PointCloud sphere;
+  for (int i = 0; i < 500; ++i) {
+    const float z = 1.0f - 2.0f * (static_cast<float>(i) + 0.5f) / 500.0f, r = std::sqrt(1.0f - z * z);
+    sphere.positions.push_back(
+        {r * std::cos(2.4f * static_cast<float>(i)), r * std::sin(2.4f * static_cast<float>(i)), z});
+  }
+  const std::string small = lsqsurf::io::EncodeDracoPointCloud(sphere, {}).value();
+  lsqsurf::v1::JobSpec small_spec, volume_spec;
+  small_spec.mutable_iamls();
+  volume_spec.mutable_volume()->set_field("f");
+  lsqsurf::client::Client small_api(o.server), volume_api(o.server);
+  const auto time_small = [&] {
+    const auto start = std::chrono::steady_clock::now();
+    auto job = small_api.Submit(small_spec, small);
+    const double ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
+    if (job.ok()) (void)small_api.Cancel(job->id());             // Untimed; the queue stays short.
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));  // A user's pace, not a flood.
+    return job.ok() ? ms : -1.0;
+  };
+  std::vector<double> idle;
+  for (int i = 0; i < 5; ++i) idle.push_back(time_small());
+  std::sort(idle.begin(), idle.end());
+  std::atomic<bool> done{false};
+  absl::Status volume_answer;
+  double volume_seconds = 0;
+  std::thread volume([&] {
+    const auto start = std::chrono::steady_clock::now();
+    volume_answer = volume_api.Submit(volume_spec, vertices, {}, lsqsurf::io::EncodeCellStream(cells)).status();
+    volume_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+    done = true;
+  });
+  std::vector<double> meanwhile;
+  while (!done) meanwhile.push_back(time_small());
+  volume.join();
+  const double slowest = meanwhile.empty() ? 0.0 : *std::max_element(meanwhile.begin(), meanwhile.end());
+  const bool all_accepted = std::none_of(meanwhile.begin(), meanwhile.end(), [](double ms) { return ms < 0; });
+  std::printf(
+      "missing volume: %d vertices (half NaN), %.1f MB, submitted in %.2f s: %s\n"
+      "small submissions meanwhile: %zu, %s; slowest %.0f ms, idle median %.0f ms: delayed by %.0f ms\n",
+      o.missing_volume * o.missing_volume * o.missing_volume, static_cast<double>(vertices.size()) / 1e6,
+      volume_seconds, volume_answer.ok() ? "accepted" : std::string(volume_answer.message()).c_str(), meanwhile.size(),
+      all_accepted ? "all accepted" : "SOME REFUSED", slowest, idle[idle.size() / 2], slowest - idle[idle.size() / 2]);
+  return volume_answer.ok() && all_accepted ? 0 : 1;
+}
+
 // Times --probes GetJob calls of a missing id, in milliseconds; `answered` counts the NOT_FOUND.
 // On a connection of its own, after a few untimed calls: what the streams sent is in by then.
 std::vector<double> TimeGetJob(const Options& o, int* answered) {
@@ -142,8 +241,11 @@ int main(int argc, char** argv) {
   app.add_option("--watches", o.watches, "WatchJob streams on one long-running job")->capture_default_str();
   app.add_option("--upload-mib", o.upload_mib, "first, one upload of this many MiB (its peak memory is reported)")
       ->capture_default_str();
+  app.add_option("--missing-volume", o.missing_volume,
+                 "only submit an N^3 volume with half its values missing, timing small submissions meanwhile");
   CLI11_PARSE(app, argc, argv);
 
+  if (o.missing_volume > 0) return ReportMissingVolume(o);
   if (o.upload_mib > 0) ReportBigUpload(o);
   lsqsurf::client::Client watched_api(o.server);
   std::string watched;

@@ -2,12 +2,12 @@
 
 #include <gtest/gtest.h>
 #include <sys/resource.h>
-#include <zlib.h>
 
 #include <cmath>
 #include <fstream>
 #include <sstream>
 
+#include "tests/zlib_bomb.h"
 #include "worker/io/files.h"
 #include "worker/io/volume_codec.h"
 #include "worker/volume/synthetic.h"
@@ -240,33 +240,7 @@ TEST(VolumeCodec, ADeclaredLengthIsNeverAllocatedBeforeItsBytesInflate) {
 // truly. Parsed as it inflates, it is refused at the first byte past the cell, holding a window;
 // a caller's inflation limit stops a stream that is well-formed throughout.
 TEST(VolumeCodec, AStreamThatInflatesAThousandfoldCostsItsWindowOnly) {
-  const std::string cell = {'\x01', '\x0a', '\x00', '\x02', '\x02', '\x02'};  // Count 1; a tetra 0 1 2 3.
-  const uint64_t zeros = uint64_t{512} << 20;
-  std::string packed(1 << 20, '\0');
-  z_stream z{};
-  ASSERT_EQ(deflateInit(&z, 9), Z_OK);
-  std::string out;
-  const std::string block(1 << 20, '\0');
-  auto pump = [&](const std::string& in, int flush) {
-    z.next_in = reinterpret_cast<Bytef*>(const_cast<char*>(in.data()));
-    z.avail_in = static_cast<uInt>(in.size());
-    do {
-      z.next_out = reinterpret_cast<Bytef*>(packed.data());
-      z.avail_out = static_cast<uInt>(packed.size());
-      deflate(&z, flush);
-      out.append(packed.data(), packed.size() - z.avail_out);
-    } while (z.avail_out == 0);
-  };
-  pump(cell, Z_NO_FLUSH);
-  for (uint64_t done = 0; done < zeros; done += block.size()) pump(block, Z_NO_FLUSH);
-  pump("", Z_FINISH);
-  deflateEnd(&z);
-  std::string bomb = "LQC1";
-  for (uint64_t declared = cell.size() + zeros;; declared >>= 7) {
-    bomb += static_cast<char>(declared < 0x80 ? declared : (declared & 0x7f) | 0x80);
-    if (declared < 0x80) break;
-  }
-  bomb += out;
+  const std::string bomb = testing::CellStreamBomb(uint64_t{512} << 20);
   ASSERT_LT(bomb.size(), size_t{1} << 20);
   const int64_t peak_before = PeakResidentBytes();
   VolumeMesh sink;

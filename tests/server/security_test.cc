@@ -3,6 +3,7 @@
 // the tests make themselves.
 #include <grpcpp/grpcpp.h>
 #include <gtest/gtest.h>
+#include <sys/resource.h>
 
 #include <filesystem>
 #include <fstream>
@@ -16,6 +17,7 @@
 #include "tests/test_ca.h"
 #include "tests/test_dir.h"
 #include "tests/test_shapes.h"
+#include "tests/zlib_bomb.h"
 #include "worker/io/draco_codec.h"
 #include "worker/io/volume_codec.h"
 #include "worker/volume/synthetic.h"
@@ -238,6 +240,44 @@ TEST_F(IsolationTest, AUserCannotSeeFetchRenderCancelOrDeleteAnothersJob) {
 // Jobs that read another job's results (csg operands, edit and probe sources) may name only
 // jobs their submitter may see: another user's answers exactly as a missing id does, at once,
 // and no job is made that could report on it.
+// The peak resident memory of this process (server and client in one), bytes.
+int64_t PeakResidentBytes() {
+  rusage usage{};
+  getrusage(RUSAGE_SELF, &usage);
+  return int64_t{usage.ru_maxrss} * 1024;
+}
+
+// A 4.2 MB cell stream that inflates to 4 GiB, sent through the server as a user's upload
+// (the server once inflated such a stream whole, 4.2 GB, before any parsing). Declaring its true
+// length, it is refused before inflating; declaring the length of its one cell, it is refused as
+// corrupt at the first byte past it. Either costs an inflation window, and the server goes on.
+TEST_F(IsolationTest, ACellStreamBombCostsTheServerItsWindowOnly) {
+  client::Client bob = server_->Connect(bob_);
+  volume::VolumeMesh mesh = volume::JitteredTetMesh(core::Box3(core::Vec3d::Zero(), core::Vec3d::Ones()), 4, 0.3, 2);
+  volume::SampleField(mesh, volume::Franke3d());
+  const std::vector<std::string> fields = {"franke"};
+  const std::string bomb = testing::CellStreamBomb(uint64_t{4} << 30);
+  ASSERT_LT(bomb.size(), size_t{5} << 20);
+  // The same deflated bytes behind a header that declares the cell's 6 bytes only. The varint of
+  // 4 GiB + 6 takes 5 bytes, that of 6 one.
+  const std::string lying = "LQC1\x06" + bomb.substr(4 + 5);
+  v1::JobSpec spec;
+  spec.mutable_volume()->set_field("franke");
+  const std::string vertices = *io::EncodeVolumeVertices(mesh, fields, {});
+  const int64_t peak_before = PeakResidentBytes();
+  auto too_long = bob.Submit(spec, vertices, {}, bomb);
+  EXPECT_EQ(too_long.status().code(), absl::StatusCode::kResourceExhausted) << too_long.status();
+  EXPECT_NE(too_long.status().message().find("cells: the cell stream declares"), std::string_view::npos)
+      << too_long.status();
+  auto corrupt = bob.Submit(spec, vertices, {}, lying);
+  EXPECT_EQ(corrupt.status().code(), absl::StatusCode::kInvalidArgument) << corrupt.status();
+  EXPECT_NE(corrupt.status().message().find("cells: the cell stream is corrupt"), std::string_view::npos)
+      << corrupt.status();
+  EXPECT_LT(PeakResidentBytes() - peak_before, int64_t{256} << 20);
+  auto fine = bob.Submit(spec, vertices, {}, io::EncodeCellStream(mesh));
+  EXPECT_TRUE(fine.ok()) << fine.status();
+}
+
 TEST_F(IsolationTest, AJobCannotReferToAnotherUsersJob) {
   client::Client alice = server_->Connect(alice_), bob = server_->Connect(bob_), root = server_->Connect(root_);
   v1::JobSpec pu;

@@ -236,7 +236,8 @@ void DefineFlags(CLI::App& app, ServerFlags& flags, lsqsurf::jobs::JobServiceOpt
       ->capture_default_str()
       ->check(CLI::Range(2, 64));
   app.add_option("--metrics-listen", flags.metrics_listen,
-                 "HOST:PORT on which to serve Prometheus metrics at /metrics (off when not given)");
+                 "HOST:PORT on which to serve Prometheus metrics at /metrics, plain HTTP under the --http-* bounds "
+                 "and Host check (off when not given)");
   app.add_option("--http-listen", flags.http_listen,
                  "HOST:PORT on which to serve the job page and its JSON API (off when not given; HTTPS with "
                  "--tls-cert; the same tokens; port 0 picks a free port, printed as 'http on URL')");
@@ -382,6 +383,18 @@ void ApplyUnits(ServerFlags& flags, lsqsurf::jobs::JobServiceOptions& options) {
 
 // The job page (--http-listen) on the gRPC server's in-process channel, under the gRPC port's
 // rules: TLS with the same files, and plaintext off loopback only with --plaintext.
+// The HTTP front's settings from the flags: the job page's, which the metrics port shares.
+lsqsurf::server::HttpFrontOptions HttpOptions(const ServerFlags& flags) {
+  lsqsurf::server::HttpFrontOptions options;
+  options.listen = flags.http_listen;
+  options.tls_cert_path = flags.tls.cert;
+  options.tls_key_path = flags.tls.key;
+  options.host_names = flags.http_hosts;
+  options.limits = flags.http;
+  options.limits.connection_memory_bytes = static_cast<size_t>(flags.http_max_head_kib) << 10;
+  return options;
+}
+
 absl::StatusOr<std::unique_ptr<lsqsurf::server::HttpGateway>> StartHttp(const ServerFlags& flags,
                                                                         lsqsurf::server::Server& server) {
   if (flags.tls.cert.empty() && !flags.plaintext && !lsqsurf::core::IsLoopback(flags.http_listen)) {
@@ -392,14 +405,7 @@ absl::StatusOr<std::unique_ptr<lsqsurf::server::HttpGateway>> StartHttp(const Se
   if (!flags.tls.client_ca.empty()) {
     return absl::InvalidArgumentError("--http-listen does not take client certificates (--tls-client-ca); use tokens");
   }
-  lsqsurf::server::HttpFrontOptions options;
-  options.listen = flags.http_listen;
-  options.tls_cert_path = flags.tls.cert;
-  options.tls_key_path = flags.tls.key;
-  options.host_names = flags.http_hosts;
-  options.limits = flags.http;
-  options.limits.connection_memory_bytes = static_cast<size_t>(flags.http_max_head_kib) << 10;
-  return lsqsurf::server::HttpGateway::Start(server.InProcessChannel(), options);
+  return lsqsurf::server::HttpGateway::Start(server.InProcessChannel(), HttpOptions(flags));
 }
 
 int main(int argc, char** argv) {
@@ -447,7 +453,12 @@ int main(int argc, char** argv) {
   }
   std::shared_ptr<lsqsurf::server::Metrics> metrics;
   if (!flags.metrics_listen.empty()) {
-    auto started = lsqsurf::server::Metrics::Start(flags.metrics_listen);
+    lsqsurf::server::HttpFrontOptions metrics_options = HttpOptions(flags);
+    metrics_options.listen = flags.metrics_listen;
+    metrics_options.tls_cert_path.clear();  // Plain HTTP, as Prometheus scrapes by default.
+    metrics_options.tls_key_path.clear();
+    metrics_options.limits.threads = 1;
+    auto started = lsqsurf::server::Metrics::Start(metrics_options);
     if (!started.ok()) {
       spdlog::critical("cannot start: {}", started.status().ToString());
       return 1;

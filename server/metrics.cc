@@ -2,9 +2,9 @@
 
 #include <prometheus/collectable.h>
 #include <prometheus/counter.h>
-#include <prometheus/exposer.h>
 #include <prometheus/histogram.h>
 #include <prometheus/registry.h>
+#include <prometheus/text_serializer.h>
 
 #include <atomic>
 #include <cctype>
@@ -67,7 +67,7 @@ class JobGauges final : public prometheus::Collectable {
 struct Metrics::State {
   std::shared_ptr<prometheus::Registry> registry = std::make_shared<prometheus::Registry>();
   std::shared_ptr<JobGauges> gauges = std::make_shared<JobGauges>();
-  std::unique_ptr<prometheus::Exposer> exposer;
+  std::unique_ptr<HttpFront> front;
   prometheus::Family<prometheus::Histogram>* job_seconds = nullptr;
   prometheus::Family<prometheus::Histogram>* stage_seconds = nullptr;
   prometheus::Family<prometheus::Histogram>* call_seconds = nullptr;
@@ -80,7 +80,7 @@ struct Metrics::State {
 Metrics::Metrics() : state_(std::make_unique<State>()) {}
 Metrics::~Metrics() = default;
 
-absl::StatusOr<std::shared_ptr<Metrics>> Metrics::Start(const std::string& address) {
+absl::StatusOr<std::shared_ptr<Metrics>> Metrics::Start(const HttpFrontOptions& options) {
   std::shared_ptr<Metrics> metrics(new Metrics());
   State& s = *metrics->state_;
   s.job_seconds = &prometheus::BuildHistogram()
@@ -114,20 +114,33 @@ absl::StatusOr<std::shared_ptr<Metrics>> Metrics::Start(const std::string& addre
                   .Help("Pictures drawn through Render")
                   .Register(*s.registry)
                   .Add({});
-  try {
-    s.exposer = std::make_unique<prometheus::Exposer>(address, /*num_threads=*/1);
-  } catch (const std::exception& e) {
-    return absl::UnavailableError(core::StrCat("cannot serve metrics on ", address, ": ", e.what()));
+  // The scrape is served by the same bounded front as the job page: a slow or silent client holds
+  // no thread and none of the server's memory past its head.
+  auto front = HttpFront::Start(options, [&s](const HttpRequest& request) {
+    HttpAnswer answer;
+    if (request.path != "/metrics") {
+      answer.status = 404;
+      answer.body = "lsqsurfd serves its metrics at /metrics\n";
+      return answer;
+    }
+    std::vector<prometheus::MetricFamily> families = s.registry->Collect();
+    for (prometheus::MetricFamily& family : s.gauges->Collect()) families.push_back(std::move(family));
+    answer.headers = {{"Content-Type", "text/plain; version=0.0.4; charset=utf-8"}};
+    answer.body = prometheus::TextSerializer().Serialize(families);
+    return answer;
+  });
+  if (!front.ok()) {
+    return absl::UnavailableError(
+        core::StrCat("cannot serve metrics on ", options.listen, ": ", front.status().message()));
   }
-  s.exposer->RegisterCollectable(s.registry);
-  s.exposer->RegisterCollectable(s.gauges);
+  s.front = *std::move(front);
   return metrics;
 }
 
 void Metrics::Watch(const jobs::JobService* service) { state_->gauges->Watch(service); }
 
 void Metrics::Stop() {
-  state_->exposer.reset();  // Joins its threads: no scrape is left in flight.
+  state_->front.reset();  // Joins its threads: no scrape is left in flight.
   state_->gauges->Watch(nullptr);
 }
 

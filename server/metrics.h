@@ -20,6 +20,7 @@
 #include <string_view>
 
 #include "absl/status/statusor.h"
+#include "server/http_front.h"
 #include "worker/jobs/job_events.h"
 
 namespace lsqsurf::jobs {
@@ -44,9 +45,9 @@ std::string StageLabel(std::string_view stage);
 
 class Metrics final : public jobs::JobEvents, public CallObserver {
  public:
-  // Serves /metrics on `address` (HOST:PORT; port 0 picks one). Errors: kUnavailable when the
-  // address cannot be bound.
-  static absl::StatusOr<std::shared_ptr<Metrics>> Start(const std::string& address);
+  // Serves /metrics on `options.listen` (HOST:PORT; port 0 picks one) under the HTTP front's
+  // bounds and Host check. Errors: kUnavailable when the address cannot be bound.
+  static absl::StatusOr<std::shared_ptr<Metrics>> Start(const HttpFrontOptions& options);
   ~Metrics() override;
 
   // The jobs whose counts the gauges report; set once the service is open.

@@ -814,21 +814,31 @@ TEST_F(EndToEnd, AGracefulStopRequeuesTheRunningJob) {
 // The checked-in parameter reference is what the tables generate: a table change that does not
 // regenerate it (lsqsurfd --parameter-reference > docs/parameters.md) fails here.
 // GET http://127.0.0.1:port/metrics over a plain socket; the body.
-std::string ScrapeMetrics(int port) {
+// A loopback connection to `port`; -1 when it cannot be made.
+int ConnectLoopback(int port) {
   const int fd = ::socket(AF_INET, SOCK_STREAM, 0);
   sockaddr_in addr{};
   addr.sin_family = AF_INET;
   addr.sin_port = htons(static_cast<uint16_t>(port));
   addr.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+  if (::connect(fd, reinterpret_cast<sockaddr*>(&addr), sizeof(addr)) == 0) return fd;
+  ::close(fd);
+  return -1;
+}
+
+// The body of the answer to GET /metrics naming `host`; its status line into `status` if given.
+std::string ScrapeMetrics(int port, const std::string& host = "127.0.0.1", std::string* status = nullptr) {
+  const int fd = ConnectLoopback(port);
   std::string response;
-  if (::connect(fd, reinterpret_cast<sockaddr*>(&addr), sizeof(addr)) == 0) {
-    const std::string request = "GET /metrics HTTP/1.0\r\nHost: 127.0.0.1\r\n\r\n";
+  if (fd >= 0) {
+    const std::string request = "GET /metrics HTTP/1.0\r\nHost: " + host + "\r\n\r\n";
     if (::write(fd, request.data(), request.size()) == static_cast<ssize_t>(request.size())) {
       char buf[4096];
       for (ssize_t n; (n = ::read(fd, buf, sizeof(buf))) > 0;) response.append(buf, static_cast<size_t>(n));
     }
   }
-  ::close(fd);
+  if (fd >= 0) ::close(fd);
+  if (status != nullptr) *status = response.substr(0, response.find("\r\n"));
   const size_t body = response.find("\r\n\r\n");
   return body == std::string::npos ? "" : response.substr(body + 4);
 }
@@ -849,7 +859,7 @@ double MetricValue(const std::string& text, const std::string& name, const std::
   return -1;
 }
 
-TEST_F(EndToEnd, MetricsCountJobsCallsAndRejections) {
+TEST_F(EndToEnd, MetricsCountJobsCallsAndRejectionsBehindTheBoundedFront) {
   const int port = testing::FreeLoopbackPort();
   Server server;
   ASSERT_NO_FATAL_FAILURE(server.Start(dir_ / "data", {"--metrics-listen", "127.0.0.1:" + std::to_string(port)}));
@@ -861,8 +871,16 @@ TEST_F(EndToEnd, MetricsCountJobsCallsAndRejections) {
   ASSERT_TRUE(client::SetMethod(&no_input, "iamls").ok());
   EXPECT_EQ(client::Client(server.address()).Submit(no_input, "").status().code(),
             absl::StatusCode::kInvalidArgument);  // A surface job needs a cloud.
+  // The port is the HTTP front's: a silent connection holds nothing a scrape needs, and a page
+  // that rebinds its name to the port is refused.
+  const int silent = ConnectLoopback(port);
+  ASSERT_GE(silent, 0);
   const std::string text = ScrapeMetrics(port);
+  ::close(silent);
   ASSERT_FALSE(text.empty()) << "no answer on the metrics port";
+  std::string refused;
+  ScrapeMetrics(port, "rebound.example", &refused);
+  EXPECT_NE(refused.find(" 421 "), std::string::npos) << refused;
   EXPECT_EQ(MetricValue(text, "lsqsurf_jobs", {"method=\"iamls\"", "state=\"succeeded\""}), 1) << text;
   EXPECT_EQ(MetricValue(text, "lsqsurf_queue_depth", {}), 0);
   EXPECT_EQ(MetricValue(text, "lsqsurf_job_duration_seconds_count", {"method=\"iamls\"", "state=\"succeeded\""}), 1);

@@ -3,6 +3,7 @@
 #include <spdlog/spdlog.h>
 
 #include <CLI/CLI.hpp>
+#include <cmath>
 #include <csignal>
 #include <cstdio>
 #include <cstdlib>
@@ -11,6 +12,7 @@
 #include <vector>
 
 #include "server/http_gateway.h"
+#include "server/limits.h"
 #include "server/metrics.h"
 #include "server/server.h"
 #include "server/tls.h"
@@ -59,18 +61,15 @@ absl::Status OpenStores(const std::string& store, const std::string& blob_dir, i
 // The command line: the job service's options, and the server's own.
 struct ServerFlags {
   std::string listen = "127.0.0.1:50051";
-  int64_t max_upload_mib = 1024;
   std::string store = "sqlite", blob_dir, metrics_listen, http_listen;
   int store_connections = 8;
-  double lease_seconds = 0;  // Set from JobServiceOptions::lease, whose default it shows.
-  bool parameter_reference = false;
+  bool parameter_reference = false, limits_reference = false;
   lsqsurf::server::TlsFiles tls;
   bool plaintext = false;
   std::string auth_tokens;
-  double retain_days = 0, max_store_gib = 0;
-  int64_t min_free_mib = 0;    // Set from JobServiceOptions::min_free_bytes, whose default it shows.
-  int64_t max_render_mib = 0;  // Set from JobServiceOptions::max_render_bytes, whose default it shows.
-  int64_t max_job_mib = -1;    // JobServiceOptions::max_job_memory; -1: three quarters of the memory.
+  // The limits' flags (server/limits.h), one per row, in its unit.
+  std::vector<double> limits;
+  std::vector<CLI::Option*> limit_options;
   lsqsurf::server::StreamLimits streams;
   double stream_idle_seconds = 0;  // Set from StreamLimits::idle, whose default it shows.
   int max_streams_per_connection = 100;
@@ -152,38 +151,38 @@ int RunTokenCommand(const TokenCommand& command) {
   return 0;
 }
 
+// One flag per row of the limits table, its default from `options`.
+void DefineLimitFlags(CLI::App& app, ServerFlags& flags, const lsqsurf::jobs::JobServiceOptions& options) {
+  const auto rows = lsqsurf::server::ServerLimits();
+  flags.limits.resize(rows.size());
+  for (size_t i = 0; i < rows.size(); ++i) {
+    const lsqsurf::server::ServerLimit& row = rows[i];
+    flags.limits[i] = row.get(options);
+    CLI::Option* option = app.add_option(lsqsurf::core::StrCat("--", row.flag), flags.limits[i], std::string(row.help));
+    option->default_str(lsqsurf::server::LimitText(row, flags.limits[i]))
+        ->check(CLI::Range(row.min, row.max).description(""));
+    if (row.integer) {
+      option->check(CLI::Validator(
+          [](const std::string& text) {
+            char* end = nullptr;
+            const double value = std::strtod(text.c_str(), &end);
+            const bool whole = end != text.c_str() && *end == '\0' && value == std::floor(value);
+            return whole ? std::string() : std::string("a whole number is expected, not ") + text;
+          },
+          ""));
+    }
+    // Its range as the table writes it (CLI11 would print the doubles it is checked in).
+    option->type_name(lsqsurf::core::StrCat(row.integer ? "INT" : "NUMBER", " in [",
+                                            lsqsurf::server::LimitText(row, row.min), ", ",
+                                            lsqsurf::server::LimitText(row, row.max), "]"));
+    flags.limit_options.push_back(option);
+  }
+}
+
 void DefineFlags(CLI::App& app, ServerFlags& flags, lsqsurf::jobs::JobServiceOptions& options) {
   app.add_option("--listen", flags.listen, "HOST:PORT to listen on; port 0 picks a free port")->capture_default_str();
+  DefineLimitFlags(app, flags, options);
   app.add_option("--data-dir", options.data_dir, "where jobs, inputs and results are kept")->capture_default_str();
-  app.add_option("--workers", options.workers, "jobs that run at once")
-      ->capture_default_str()
-      ->check(CLI::Range(1, 64));
-  app.add_option("--max-queue", options.max_queue, "queued jobs before submissions are refused")
-      ->capture_default_str()
-      ->check(CLI::Range(1, 100000));
-  app.add_option("--max-points", options.max_points, "largest accepted cloud")
-      ->capture_default_str()
-      ->check(CLI::Range(int64_t{16}, int64_t{2'000'000'000}));
-  app.add_option("--max-cells", options.max_cells, "largest accepted volume mesh, in cells")
-      ->capture_default_str()
-      ->check(CLI::Range(int64_t{1}, int64_t{2'000'000'000}));
-  app.add_option("--max-upload-mib", flags.max_upload_mib, "largest accepted upload, MiB")
-      ->capture_default_str()
-      ->check(CLI::Range(int64_t{1}, int64_t{1} << 20));
-  app.add_option("--max-renders", options.max_renders, "pictures drawn at once by Render; more are refused")
-      ->capture_default_str()
-      ->check(CLI::Range(1, 64));
-  app.add_option("--max-render-mib", flags.max_render_mib,
-                 "memory one picture of a volume field may take for its sampled grid (16 bytes a point); a "
-                 "resolution that needs more is refused")
-      ->capture_default_str()
-      ->check(CLI::Range(int64_t{16}, int64_t{1} << 20));
-  app.add_option("--max-job-mib", flags.max_job_mib,
-                 "memory one job may take, MiB: a job estimated to need more is refused at submission, and an "
-                 "extraction that grows past it stops; -1 = three quarters of the machine's (or container's) "
-                 "memory, 0 = no limit")
-      ->capture_default_str()
-      ->check(CLI::Range(int64_t{-1}, int64_t{1} << 30));
   app.add_option("--max-uploads", flags.streams.max_uploads,
                  "SubmitJob streams open at once (a named user holds at most half); more are refused")
       ->capture_default_str()
@@ -211,13 +210,6 @@ void DefineFlags(CLI::App& app, ServerFlags& flags, lsqsurf::jobs::JobServiceOpt
                  "threads gRPC may run the short calls on (streams hold none); past it calls are refused")
       ->capture_default_str()
       ->check(CLI::Range(4, 10000));
-  app.add_option("--max-attempts", options.max_attempts,
-                 "starts cut short by a crash after which a job is failed (a graceful stop does not count)")
-      ->capture_default_str()
-      ->check(CLI::Range(1, 100));
-  app.add_option("--min-points", options.min_points, "smallest accepted surface cloud")
-      ->capture_default_str()
-      ->check(CLI::Range(int64_t{4}, int64_t{1'000'000}));
   app.add_option("--store", flags.store,
                  "where jobs are kept: 'sqlite' (a file in the data directory, one server) or a "
                  "postgresql://user@host:port/database URL that several servers share (a password is better "
@@ -227,11 +219,6 @@ void DefineFlags(CLI::App& app, ServerFlags& flags, lsqsurf::jobs::JobServiceOpt
                  "where uploads and results are kept; default: the data directory with --store sqlite, the "
                  "database with --store postgresql:// (give a shared volume here to keep them out of it)");
   app.add_option("--name", options.name, "this server's name among those sharing a store (default: host name)");
-  app.add_option("--lease-seconds", flags.lease_seconds,
-                 "a running job stays this server's this long without a renewal: how long the jobs of a server "
-                 "that died wait before another runs them")
-      ->capture_default_str()
-      ->check(CLI::Range(1.0, 3600.0));
   app.add_option("--store-connections", flags.store_connections, "connections to a PostgreSQL store")
       ->capture_default_str()
       ->check(CLI::Range(2, 64));
@@ -251,20 +238,9 @@ void DefineFlags(CLI::App& app, ServerFlags& flags, lsqsurf::jobs::JobServiceOpt
   app.add_option("--auth-tokens", flags.auth_tokens,
                  "token file (`lsqsurfd tokens add`): every call then needs a token, and users see only their "
                  "own jobs (read again on SIGHUP)");
-  app.add_option("--retain-days", flags.retain_days,
-                 "delete finished jobs this many days after they ended, oldest first (0: keep them until deleted)")
-      ->capture_default_str()
-      ->check(CLI::Range(0.0, 36500.0));
-  app.add_option("--max-store-gib", flags.max_store_gib,
-                 "GiB all jobs may keep; past it the oldest finished jobs are deleted, then submissions refused "
-                 "(0: no limit)")
-      ->capture_default_str()
-      ->check(CLI::Range(0.0, 1e6));
-  app.add_option("--min-free-mib", flags.min_free_mib,
-                 "refuse submissions that would leave the data disk less than this free, for running jobs' results")
-      ->capture_default_str()
-      ->check(CLI::Range(int64_t{0}, int64_t{1} << 30));
   app.set_config("--config", "", "read options from this TOML/INI file");
+  app.add_flag("--limits-reference", flags.limits_reference,
+               "print the job service's limits (flags, defaults, ranges) as Markdown, then exit");
   app.add_flag("--parameter-reference", flags.parameter_reference,
                "print every method's parameters (and the view options) as Markdown, then exit");
 }
@@ -369,13 +345,10 @@ void Reload(Security& security) {
 
 // The flags given in user units (MiB, seconds, days) into the options' own.
 void ApplyUnits(ServerFlags& flags, lsqsurf::jobs::JobServiceOptions& options) {
-  options.max_input_bytes = flags.max_upload_mib << 20;
-  options.lease = std::chrono::milliseconds(static_cast<int64_t>(flags.lease_seconds * 1000));
-  options.retain = std::chrono::seconds(static_cast<int64_t>(flags.retain_days * 86400));
-  options.max_store_bytes = static_cast<int64_t>(flags.max_store_gib * double(int64_t{1} << 30));
-  options.min_free_bytes = flags.min_free_mib << 20;
-  options.max_render_bytes = flags.max_render_mib << 20;
-  options.max_job_memory = flags.max_job_mib < 0 ? -1 : flags.max_job_mib << 20;
+  const auto rows = lsqsurf::server::ServerLimits();
+  for (size_t i = 0; i < rows.size(); ++i) {
+    if (flags.limit_options[i]->count() > 0) rows[i].set(options, flags.limits[i]);
+  }
   flags.streams.idle = std::chrono::milliseconds(static_cast<int64_t>(flags.stream_idle_seconds * 1000));
 }
 
@@ -413,9 +386,6 @@ int main(int argc, char** argv) {
   ServerFlags flags;
   lsqsurf::jobs::JobServiceOptions options;
   options.data_dir = "lsqsurf-data";
-  flags.lease_seconds = std::chrono::duration<double>(options.lease).count();
-  flags.min_free_mib = options.min_free_bytes >> 20;
-  flags.max_render_mib = options.max_render_bytes >> 20;
   flags.stream_idle_seconds = std::chrono::duration<double>(flags.streams.idle).count();
   DefineFlags(app, flags, options);
   DefineHttpFlags(app, flags);
@@ -423,8 +393,10 @@ int main(int argc, char** argv) {
   DefineTokenCommand(app, token_command);
   CLI11_PARSE(app, argc, argv);
   if (!app.get_subcommands().empty()) return RunTokenCommand(token_command);
-  if (flags.parameter_reference) {
-    std::fputs(lsqsurf::jobs::ParameterReference().c_str(), stdout);
+  if (flags.parameter_reference || flags.limits_reference) {
+    const std::string reference =
+        flags.parameter_reference ? lsqsurf::jobs::ParameterReference() : lsqsurf::server::LimitsReference(options);
+    std::fputs(reference.c_str(), stdout);
     return 0;
   }
   ApplyUnits(flags, options);

@@ -7,6 +7,7 @@
 #include <optional>
 
 #include "server/convert.h"
+#include "server/limits.h"
 #include "worker/core/byte_view.h"
 #include "worker/core/strings.h"
 #include "worker/jobs/job_ids.h"
@@ -664,19 +665,10 @@ grpc::Status ReconstructionService::GetServerInfo(grpc::ServerContext* context, 
   return Serve("GetServerInfo", context, [&](const Caller& caller) {
     const jobs::JobServiceOptions& o = jobs_.options();
     response->set_version(LSQSURF_VERSION);
-    response->set_max_points(o.max_points);
-    response->set_max_cells(o.max_cells);
-    response->set_min_points(o.min_points);
-    response->set_max_upload_bytes(o.max_input_bytes);
+    ReportLimits(o, *response);
     response->set_max_chunk_bytes(static_cast<int64_t>(kMaxChunkBytes));
-    response->set_max_queue(o.max_queue);
-    response->set_workers(o.workers);
-    response->set_max_renders(o.max_renders);
-    response->set_max_job_memory_bytes(o.max_job_memory);
     response->set_can_render(jobs_.CanRender());
     response->set_requires_token(tokens_ != nullptr);
-    response->set_retain_seconds(o.retain.count());
-    response->set_max_store_bytes(o.max_store_bytes);
     if (caller.admin()) response->set_stored_bytes(jobs_.StoredBytes());
     v1::Account* account = response->mutable_account();
     account->set_name(caller.name);

@@ -910,6 +910,22 @@ TEST(ParameterReference, TheDocsAreGeneratedFromTheTables) {
   }
 }
 
+TEST(LimitsReference, TheDocsAreGeneratedFromTheTable) {
+  FILE* p = ::popen(LSQSURFD_PATH " --limits-reference", "r");
+  ASSERT_NE(p, nullptr);
+  std::string generated;
+  std::array<char, 4096> buf;
+  size_t n;
+  while ((n = std::fread(buf.data(), 1, buf.size(), p)) > 0) generated.append(buf.data(), n);
+  ASSERT_EQ(::pclose(p), 0);
+  auto docs = io::ReadFileBytes(LSQSURF_SOURCE_DIR "/docs/limits.md");
+  ASSERT_TRUE(docs.ok()) << docs.status();
+  EXPECT_EQ(*docs, generated) << "regenerate docs/limits.md with lsqsurfd --limits-reference";
+  for (const char* row : {"| `--max-queue` | 64 |", "| `--max-upload-mib` | 1024 |", "| `--min-free-mib` | 256 |"}) {
+    EXPECT_NE(generated.find(row), std::string::npos) << row;
+  }
+}
+
 // `lsqsurf sample`: points on the mesh with outward unit normals, as many as asked; the noise is
 // Gaussian along the normal with σ the asked share of the diagonal.
 TEST(ClientTool, SamplesACloudOnTheMeshWithTheAskedNoise) {

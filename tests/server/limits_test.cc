@@ -6,10 +6,16 @@
 
 #include <cmath>
 #include <filesystem>
+#include <fstream>
+#include <sstream>
+#include <string>
+#include <utility>
+#include <vector>
 
 #include "client/client.h"
 #include "server/server.h"
 #include "tests/test_dir.h"
+#include "worker/core/strings.h"
 
 namespace lsqsurf::server {
 namespace {
@@ -25,6 +31,49 @@ TEST(LimitTable, EveryRowIsCompleteAndNamesAServerInfoFieldOfItsOwn) {
 double Probe(const ServerLimit& limit) {
   const double value = limit.min + (limit.max - limit.min) / 7 + 1;
   return limit.integer ? std::floor(value) : std::floor(2 * value) / 2 + 0.5;
+}
+
+// A proto line declaring a field, "  int64 max_points = 2;": its type and name, or empty.
+std::pair<std::string, std::string> FieldDeclared(const std::string& line) {
+  std::istringstream words(line);
+  std::string type, name, equals, number, rest;
+  if (!(words >> type >> name >> equals >> number) || (words >> rest) || equals != "=" || type.starts_with("//") ||
+      number.size() < 2 || number.back() != ';') {
+    return {};
+  }
+  return {type, name};
+}
+
+// The comment over each reported field (or over the run of fields it belongs to) in the proto
+// names the flag that sets it, so that a client author finds the knob behind a number.
+TEST(LimitTable, TheProtoCommentOfEachReportedFieldNamesItsFlag) {
+  std::ifstream in(LSQSURF_SOURCE_DIR "/proto/lsqsurf/v1/reconstruction.proto");
+  std::vector<std::string> lines;
+  for (std::string line; std::getline(in, line);) lines.push_back(line);
+  ASSERT_GT(lines.size(), 100u);
+  const auto is_comment = [](const std::string& line) {
+    const size_t first = line.find_first_not_of(' ');
+    return first != std::string::npos && line.compare(first, 2, "//") == 0;
+  };
+  int checked = 0;
+  for (const ServerLimit& limit : ServerLimits()) {
+    if (limit.info_field.empty()) continue;
+    size_t at = 0;
+    for (; at < lines.size(); ++at) {
+      const auto [type, name] = FieldDeclared(lines[at]);
+      if (name == limit.info_field && (type == "int32" || type == "int64")) break;
+    }
+    ASSERT_LT(at, lines.size()) << "no integer field " << limit.info_field;
+    size_t above = at;
+    while (above > 0 && !FieldDeclared(lines[above - 1]).second.empty()) --above;  // Its run of fields.
+    std::string comment;
+    while (above > 0 && is_comment(lines[above - 1])) comment = lines[--above] + "\n" + comment;
+    EXPECT_NE(comment.find(core::StrCat("--", limit.flag)), std::string::npos)
+        << limit.info_field << "'s comment does not name --" << limit.flag << ":\n"
+        << comment;
+    ++checked;
+  }
+  EXPECT_GE(checked, 9);
 }
 
 TEST(LimitTable, EachFlagValueReachesItsOptionAndComesBack) {

@@ -48,12 +48,17 @@ def free_port():
         return s.getsockname()[1]
 
 
-def peak_rss_mib(pid):
+def status_mib(pid, field):
+    """A memory figure of /proc/PID/status ("VmHWM", "RssAnon"), MiB; -1 when absent."""
     with open(f"/proc/{pid}/status") as status:
         for line in status:
-            if line.startswith("VmHWM:"):
+            if line.startswith(field + ":"):
                 return int(line.split()[1]) / 1024
     return -1
+
+
+def peak_rss_mib(pid):
+    return status_mib(pid, "VmHWM")
 
 
 class AnonPeak:
@@ -65,11 +70,7 @@ class AnonPeak:
 
     @staticmethod
     def read(pid):
-        with open(f"/proc/{pid}/status") as status:
-            for line in status:
-                if line.startswith("RssAnon:"):
-                    return int(line.split()[1]) / 1024
-        return 0
+        return status_mib(pid, "RssAnon")
 
     def __enter__(self):
         self.peak = self.base

@@ -893,17 +893,26 @@ TEST_F(EndToEnd, MetricsCountJobsCallsAndRejectionsBehindTheBoundedFront) {
   EXPECT_GT(MetricValue(text, "lsqsurf_sent_bytes_total", {}), 10000);
 }
 
-TEST(ParameterReference, TheDocsAreGeneratedFromTheTables) {
-  FILE* p = ::popen(LSQSURFD_PATH " --parameter-reference", "r");
-  ASSERT_NE(p, nullptr);
+// What `lsqsurfd FLAG` prints, which must match the file under docs/ it generates; empty when
+// either cannot be had (the failure is reported).
+std::string GeneratedDoc(const std::string& flag, const std::string& doc) {
+  FILE* p = ::popen((LSQSURFD_PATH " " + flag).c_str(), "r");
+  EXPECT_NE(p, nullptr);
+  if (p == nullptr) return {};
   std::string generated;
   std::array<char, 4096> buf;
   size_t n;
   while ((n = std::fread(buf.data(), 1, buf.size(), p)) > 0) generated.append(buf.data(), n);
-  ASSERT_EQ(::pclose(p), 0);
-  auto docs = io::ReadFileBytes(LSQSURF_SOURCE_DIR "/docs/parameters.md");
-  ASSERT_TRUE(docs.ok()) << docs.status();
-  EXPECT_EQ(*docs, generated) << "regenerate docs/parameters.md with lsqsurfd --parameter-reference";
+  EXPECT_EQ(::pclose(p), 0) << flag;
+  auto docs = io::ReadFileBytes(LSQSURF_SOURCE_DIR "/docs/" + doc);
+  EXPECT_TRUE(docs.ok()) << docs.status();
+  if (!docs.ok()) return {};
+  EXPECT_EQ(*docs, generated) << "regenerate docs/" << doc << " with lsqsurfd " << flag;
+  return generated;
+}
+
+TEST(ParameterReference, TheDocsAreGeneratedFromTheTables) {
+  const std::string generated = GeneratedDoc("--parameter-reference", "parameters.md");
   for (const char* method :
        {"## iamls", "## pu", "## ramls", "## apss", "## aamls", "## imls", "## track", "## View options"}) {
     EXPECT_NE(generated.find(method), std::string::npos) << method;
@@ -911,19 +920,34 @@ TEST(ParameterReference, TheDocsAreGeneratedFromTheTables) {
 }
 
 TEST(LimitsReference, TheDocsAreGeneratedFromTheTable) {
-  FILE* p = ::popen(LSQSURFD_PATH " --limits-reference", "r");
-  ASSERT_NE(p, nullptr);
-  std::string generated;
-  std::array<char, 4096> buf;
-  size_t n;
-  while ((n = std::fread(buf.data(), 1, buf.size(), p)) > 0) generated.append(buf.data(), n);
-  ASSERT_EQ(::pclose(p), 0);
-  auto docs = io::ReadFileBytes(LSQSURF_SOURCE_DIR "/docs/limits.md");
-  ASSERT_TRUE(docs.ok()) << docs.status();
-  EXPECT_EQ(*docs, generated) << "regenerate docs/limits.md with lsqsurfd --limits-reference";
+  const std::string generated = GeneratedDoc("--limits-reference", "limits.md");
   for (const char* row : {"| `--max-queue` | 64 |", "| `--max-upload-mib` | 1024 |", "| `--min-free-mib` | 256 |"}) {
     EXPECT_NE(generated.find(row), std::string::npos) << row;
   }
+}
+
+// The README restates some limits' defaults in its prose and Security table ("`--max-queue` (64)",
+// "(default 10)"); each number it gives must be the table's (docs/limits.md), "20M" for 20000000.
+TEST(LimitsReference, TheReadmesDefaultsAreTheTables) {
+  const std::string table = GeneratedDoc("--limits-reference", "limits.md");
+  auto readme = io::ReadFileBytes(LSQSURF_SOURCE_DIR "/README.md");
+  ASSERT_TRUE(readme.ok()) << readme.status();
+  int compared = 0;
+  for (size_t row = table.find("| `--"); row != std::string::npos; row = table.find("| `--", row + 1)) {
+    const size_t flag_end = table.find('`', row + 3);
+    const std::string flag = table.substr(row + 2, flag_end + 1 - (row + 2));  // "`--max-queue`"
+    const size_t value_at = table.find("| ", flag_end) + 2;
+    const std::string value = table.substr(value_at, table.find(' ', value_at) - value_at);
+    for (size_t at = readme->find(flag + " ("); at != std::string::npos; at = readme->find(flag + " (", at + 1)) {
+      std::string said = readme->substr(at + flag.size() + 2, readme->find(')', at) - (at + flag.size() + 2));
+      if (said.starts_with("default ")) said = said.substr(8);
+      if (said.empty() || said.find_first_not_of("0123456789.M") != std::string::npos) continue;  // Prose.
+      if (said.back() == 'M') said = said.substr(0, said.size() - 1) + "000000";
+      EXPECT_EQ(said, value) << "README: " << flag << " (" << said << "), the table: " << value;
+      ++compared;
+    }
+  }
+  EXPECT_GE(compared, 6);
 }
 
 // `lsqsurf sample`: points on the mesh with outward unit normals, as many as asked; the noise is

@@ -39,6 +39,10 @@ absl::Status StoreFailure(const absl::Status& write, const std::string& job_id, 
 
 }  // namespace
 
+absl::Status NoSuchBlob(const std::string& job_id, std::string_view name) {
+  return absl::NotFoundError(core::StrCat("job ", job_id, " has no stored ", name));
+}
+
 absl::StatusOr<std::string> ReadAll(BlobReader& reader) {
   std::string all;
   all.reserve(static_cast<size_t>(reader.size()));
@@ -95,8 +99,7 @@ absl::Status LocalDirBlobStore::PutFile(const std::string& job_id, std::string_v
 
 absl::StatusOr<core::ByteView> LocalDirBlobStore::Map(const std::string& job_id, std::string_view name) const {
   auto bytes = core::ByteView::MapFile(PathOf(job_id, name));
-  if (absl::IsNotFound(bytes.status()))
-    return absl::NotFoundError(core::StrCat("job ", job_id, " has no stored ", name));
+  if (absl::IsNotFound(bytes.status())) return NoSuchBlob(job_id, name);
   return bytes;
 }
 
@@ -141,7 +144,7 @@ absl::StatusOr<std::unique_ptr<BlobReader>> LocalDirBlobStore::Open(const std::s
   const std::string path = PathOf(job_id, name);
   std::error_code ec;
   const auto size = std::filesystem::file_size(path, ec);
-  if (ec) return absl::NotFoundError(core::StrCat("job ", job_id, " has no stored ", name));
+  if (ec) return NoSuchBlob(job_id, name);
   std::ifstream in(path, std::ios::binary);
   if (!in) return absl::UnavailableError(core::StrCat("the stored ", name, " of job ", job_id, " cannot be read"));
   return std::make_unique<FileReader>(std::move(in), static_cast<int64_t>(size));

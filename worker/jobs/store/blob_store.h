@@ -29,6 +29,9 @@ class BlobReader {
 // The rest of the reader's blob. Errors: those of Next.
 absl::StatusOr<std::string> ReadAll(BlobReader& reader);
 
+// The kNotFound every store gives for a blob it does not hold.
+absl::Status NoSuchBlob(const std::string& job_id, std::string_view name);
+
 class BlobStore {
  public:
   virtual ~BlobStore() = default;

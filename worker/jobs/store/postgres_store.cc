@@ -460,7 +460,7 @@ absl::StatusOr<std::unique_ptr<BlobReader>> PostgresBlobStore::Open(const std::s
   auto found =
       pool_->Exec("SELECT generation, size, chunks FROM blobs WHERE job_id = $1 AND name = $2", {job_id, name});
   if (!found.ok()) return found.status();
-  if (found->rows.empty()) return absl::NotFoundError(core::StrCat("job ", job_id, " has no stored ", name));
+  if (found->rows.empty()) return NoSuchBlob(job_id, name);
   const auto& row = found->rows.front();
   return std::make_unique<ChunkReader>(pool_, row[0], rows::ToInt(row[1]), static_cast<int>(rows::ToInt(row[2])));
 }

@@ -58,13 +58,17 @@ struct CaseResult {
   double min_angle_p1 = 0;             // Degrees: 1 % of the triangles have a smaller smallest angle.
   bool watertight = false;
   int64_t components = 0, boundary_edges = 0;
+  int64_t vertices = 0;  // Welded by position.
+  // Against another result of the same case (--tile-points): Chamfer and Hausdorff, shares of the diagonal.
+  double chamfer_to_other = 0, hausdorff_to_other = 0;
   std::string error;
 };
 
 std::string Serialize(const CaseResult& r) {
   return core::StrCat(r.seconds, " ", r.triangles, " ", r.chamfer, " ", r.hausdorff, " ", r.normal_consistency, " ",
                       r.far_fraction, " ", r.watertight ? 1 : 0, " ", r.components, " ", r.boundary_edges, " ",
-                      r.min_angle_p1, " ", r.peak_mib, " ", r.hausdorff_with_vertices, "\n", r.error);
+                      r.min_angle_p1, " ", r.peak_mib, " ", r.hausdorff_with_vertices, " ", r.vertices, " ",
+                      r.chamfer_to_other, " ", r.hausdorff_to_other, "\n", r.error);
 }
 
 CaseResult Deserialize(const std::string& s) {
@@ -72,7 +76,8 @@ CaseResult Deserialize(const std::string& s) {
   std::istringstream in(s);
   int wt = 0;
   in >> r.seconds >> r.triangles >> r.chamfer >> r.hausdorff >> r.normal_consistency >> r.far_fraction >> wt >>
-      r.components >> r.boundary_edges >> r.min_angle_p1 >> r.peak_mib >> r.hausdorff_with_vertices;
+      r.components >> r.boundary_edges >> r.min_angle_p1 >> r.peak_mib >> r.hausdorff_with_vertices >> r.vertices >>
+      r.chamfer_to_other >> r.hausdorff_to_other;
   r.watertight = wt != 0;
   std::getline(in, r.error);
   std::getline(in, r.error);
@@ -116,7 +121,10 @@ CaseResult InChild(const std::function<CaseResult()>& body) {
 }
 
 void Measure(const core::TriangleMesh& truth, const core::TriangleMesh& mesh, size_t samples, CaseResult& r) {
-  const core::MeshTopology t = core::AnalyzeTopology(mesh);
+  // Welded by position, as STL export and most tools see the mesh.
+  const core::TriangleMesh welded = core::WeldByPosition(mesh);
+  const core::MeshTopology t = core::AnalyzeTopology(welded);
+  r.vertices = static_cast<int64_t>(welded.vertices.size());
   r.triangles = t.faces;
   r.watertight = t.watertight();
   r.components = t.components;
@@ -182,6 +190,7 @@ struct BenchOptions {
   std::string save_dir;
   std::string bin_dir;
   int poisson_depth = 0;
+  int64_t tile_points = 0;  // PU: also run every case in tiles of this many points and compare.
 };
 
 // One benchmark case: a model's ground truth and a cloud sampled from it.
@@ -216,8 +225,10 @@ void SaveResult(const BenchOptions& o, const BenchCase& c, const core::TriangleM
   }
 }
 
-// The engine called in this process's child, as the service's worker calls it.
-CaseResult RunDirect(const BenchOptions& o, const core::ParamSet& params, const BenchCase& c) {
+// The engine called in this process's child, as the service's worker calls it; its mesh also
+// goes to `keep` where given (what --tile-points compares against).
+CaseResult RunDirect(const BenchOptions& o, const core::ParamSet& params, const BenchCase& c,
+                     const std::string& keep = "") {
   return InChild([&] {
     CaseResult r;
     core::LocalJobContext ctx;
@@ -230,6 +241,7 @@ CaseResult RunDirect(const BenchOptions& o, const core::ParamSet& params, const 
       return r;
     }
     SaveResult(o, c, result->mesh);
+    if (!keep.empty()) (void)io::WriteMeshFile(keep, result->mesh);
     if (o.show_statistics) {
       for (const auto& [name, value] : result->statistics) std::printf("  %s=%g\n", name.c_str(), value);
       std::fflush(stdout);
@@ -237,6 +249,64 @@ CaseResult RunDirect(const BenchOptions& o, const core::ParamSet& params, const 
     Measure(c.truth, result->mesh, o.samples, r);
     return r;
   });
+}
+
+// A method's parameters and the name=value texts it took: each text goes to the methods whose
+// table has its name. Errors: kInvalidArgument (a bad text, value or combination).
+struct MethodParams {
+  core::ParamSet params;
+  std::vector<std::string> texts;
+};
+absl::StatusOr<MethodParams> ParseParams(const std::string& method, const std::vector<std::string>& texts) {
+  auto params = jobs::DefaultParams(method);
+  if (!params.ok()) return params.status();
+  MethodParams out{*std::move(params), {}};
+  const std::vector<core::ParamInfo> known = out.params.Describe();
+  for (const auto& p : texts) {
+    const size_t eq = p.find('=');
+    if (eq == std::string::npos) return absl::InvalidArgumentError(core::StrCat("bad --param ", p, "; use NAME=VALUE"));
+    const std::string name = p.substr(0, eq);
+    if (std::none_of(known.begin(), known.end(), [&](const core::ParamInfo& i) { return i.name == name; })) continue;
+    LSQSURF_RETURN_IF_ERROR(out.params.Parse(name, p.substr(eq + 1)));
+    out.texts.push_back(p);
+  }
+  LSQSURF_RETURN_IF_ERROR(out.params.Validate());
+  return out;
+}
+
+// The case again in tiles of o.tile_points points, measured against the truth and against the
+// untiled mesh in `untiled` (both ways): a surface must not depend on how the work was cut.
+void RunTiledComparison(const BenchOptions& o, const std::vector<std::string>& texts, const BenchCase& c,
+                        const CaseResult& direct, const std::string& untiled) {
+  std::vector<std::string> tiled_texts = texts;
+  tiled_texts.push_back(core::StrCat("tile_points=", o.tile_points));
+  auto params = ParseParams(c.method, tiled_texts);
+  if (!params.ok()) return (void)std::printf("    tiled: %s\n", params.status().ToString().c_str());
+  const CaseResult tiled = InChild([&] {
+    CaseResult r = RunDirect(o, params->params, c, untiled + ".tiled.ply");
+    if (!r.error.empty()) return r;
+    auto tiled_mesh = io::ReadMeshFile(untiled + ".tiled.ply");
+    auto whole = io::ReadMeshFile(untiled);
+    if (!tiled_mesh.ok() || !whole.ok()) return CaseResult{.error = "the meshes to compare could not be read"};
+    core::LocalJobContext ctx;
+    core::CompareParams p;
+    p.samples = o.samples;
+    auto cmp = core::CompareMeshes(*whole, *tiled_mesh, p, ctx);
+    if (!cmp.ok()) return CaseResult{.error = std::string(cmp.status().message())};
+    r.chamfer_to_other = cmp->chamfer;
+    r.hausdorff_to_other = cmp->hausdorff;
+    return r;
+  });
+  Print(c, "tiled", tiled);
+  if (tiled.error.empty() && direct.error.empty()) {
+    std::printf(
+        "    tiled (%lld points a tile) / untiled: vertices %.4fx, closed %s / %s, components %lld / %lld; "
+        "apart: Chamfer %.2e, Hausdorff %.2e of the diagonal\n",
+        static_cast<long long>(o.tile_points),
+        static_cast<double>(tiled.vertices) / static_cast<double>(direct.vertices), tiled.watertight ? "yes" : "no",
+        direct.watertight ? "yes" : "no", static_cast<long long>(tiled.components),
+        static_cast<long long>(direct.components), tiled.chamfer_to_other, tiled.hausdorff_to_other);
+  }
 }
 
 // A cloud sampled from a mesh chunk by chunk (each chunk its own seed), never whole in memory;
@@ -503,29 +573,6 @@ void RunStreamedService(const BenchOptions& o, const BenchCase& c, const std::ve
   fs::remove(mesh_path);
 }
 
-// A method's parameters and the name=value texts it took: each text goes to the methods whose
-// table has its name. Errors: kInvalidArgument (a bad text, value or combination).
-struct MethodParams {
-  core::ParamSet params;
-  std::vector<std::string> texts;
-};
-absl::StatusOr<MethodParams> ParseParams(const std::string& method, const std::vector<std::string>& texts) {
-  auto params = jobs::DefaultParams(method);
-  if (!params.ok()) return params.status();
-  MethodParams out{*std::move(params), {}};
-  const std::vector<core::ParamInfo> known = out.params.Describe();
-  for (const auto& p : texts) {
-    const size_t eq = p.find('=');
-    if (eq == std::string::npos) return absl::InvalidArgumentError(core::StrCat("bad --param ", p, "; use NAME=VALUE"));
-    const std::string name = p.substr(0, eq);
-    if (std::none_of(known.begin(), known.end(), [&](const core::ParamInfo& i) { return i.name == name; })) continue;
-    LSQSURF_RETURN_IF_ERROR(out.params.Parse(name, p.substr(eq + 1)));
-    out.texts.push_back(p);
-  }
-  LSQSURF_RETURN_IF_ERROR(out.params.Validate());
-  return out;
-}
-
 // With several methods: Chamfer and wall time of each method on each case, one row per method
 // (the seed's Figure 11 comparison as numbers).
 struct SummaryCell {
@@ -582,6 +629,8 @@ int main(int argc, char** argv) {
   app.add_flag("--face-normals", o.face_normals,
                "sample the faces' own normals, as a CAD exporter gives them (default: interpolated vertex normals)");
   app.add_option("--bin", o.bin_dir, "folder with lsqsurfd and lsqsurf (default: beside this program)");
+  app.add_option("--tile-points", o.tile_points,
+                 "pu: also run every case in tiles of this many points (tile_points) and compare the two surfaces");
   app.add_option("--poisson-depth", o.poisson_depth,
                  "also run screened Poisson (Open3D) at this depth on every cloud; 0 = off");
   CLI11_PARSE(app, argc, argv);
@@ -638,8 +687,11 @@ int main(int argc, char** argv) {
             }
             continue;
           }
-          const CaseResult direct = RunDirect(o, params[m].params, c);
+          const bool compare_tiles = o.tile_points > 0 && o.methods[m] == "pu";
+          const std::string untiled = (work / "untiled.ply").string();
+          const CaseResult direct = RunDirect(o, params[m].params, c, compare_tiles ? untiled : "");
           Print(c, "direct", direct);
+          if (compare_tiles) RunTiledComparison(o, params[m].texts, c, direct, untiled);
           summary.push_back({core::StrCat(model, "/", n, "/", noise), o.methods[m], direct});
 #if LSQSURF_WITH_POISSON
           if (o.poisson_depth > 0 && m + 1 == o.methods.size()) RunPoisson(o, c, direct);

@@ -77,6 +77,25 @@ class TurnedPolyhedron : public core::ImplicitFunction {
   Eigen::Matrix3d rotation_;
 };
 
+// A box of half-sizes a, b, c turned off the axes by PlateTurn(), its faces outward: with c small,
+// a thin plate.
+inline Eigen::Matrix3d PlateTurn() {
+  return (Eigen::AngleAxisd(0.54, Vec3d::UnitZ()) * Eigen::AngleAxisd(-0.30, Vec3d::UnitY()) *
+          Eigen::AngleAxisd(0.40, Vec3d::UnitX()))
+      .toRotationMatrix();
+}
+inline TriangleMesh TurnedPlate(double a, double b, double c) {
+  TriangleMesh plate;
+  const Eigen::Matrix3d turn = PlateTurn();
+  for (int k = 0; k < 8; ++k) {
+    const Vec3d corner((k & 1) ? a : -a, (k & 2) ? b : -b, (k & 4) ? c : -c);
+    plate.vertices.push_back((turn * corner).cast<float>());
+  }
+  plate.faces = {{0, 2, 1}, {1, 2, 3}, {4, 5, 6}, {5, 7, 6}, {0, 1, 4}, {1, 5, 4},
+                 {2, 6, 3}, {3, 6, 7}, {0, 4, 2}, {2, 4, 6}, {1, 3, 5}, {3, 7, 5}};
+  return plate;
+}
+
 inline TurnedPolyhedron Cube() {  // Edge 1.
   return TurnedPolyhedron(
       {Vec3d::UnitX(), -Vec3d::UnitX(), Vec3d::UnitY(), -Vec3d::UnitY(), Vec3d::UnitZ(), -Vec3d::UnitZ()}, 0.5);

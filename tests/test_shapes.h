@@ -3,10 +3,12 @@
 
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
 #include <memory>
 #include <numbers>
 #include <random>
+#include <vector>
 
 #include "absl/status/statusor.h"
 #include "worker/core/geometry.h"
@@ -179,6 +181,71 @@ std::unique_ptr<Function> BuildOrFail(absl::StatusOr<std::unique_ptr<Function>> 
   auto f = build(cloud, params, ctx);
   EXPECT_TRUE(f.ok()) << f.status();
   return f.ok() ? *std::move(f) : nullptr;
+}
+
+// A palm (sphere of radius 0.3) with capsule fingers down to 2.5 point spacings thick, two of
+// them side by side: the union's surface sampled uniformly by area with exact normals.
+struct Capsule {
+  core::Vec3d a, b;
+  double r;
+  double Distance(const core::Vec3d& x) const {
+    const core::Vec3d ab = b - a;
+    const double t = std::clamp((x - a).dot(ab) / ab.squaredNorm(), 0.0, 1.0);
+    return (x - (a + t * ab)).norm() - r;
+  }
+};
+
+inline core::PointCloud HandCloud(double spacing, std::vector<Capsule>& fingers) {
+  fingers = {{core::Vec3d(0, 0.25, 0), core::Vec3d(0, 0.7, 0), 0.006},
+             {core::Vec3d(0.1, 0.2, 0), core::Vec3d(0.3, 0.6, 0), 0.008},
+             {core::Vec3d(-0.1, 0.2, 0), core::Vec3d(-0.3, 0.6, 0), 0.005},
+             {core::Vec3d(0.2, 0.1, 0), core::Vec3d(0.6, 0.2, 0), 0.01},
+             {core::Vec3d(0.2, 0.1, 0.03), core::Vec3d(0.6, 0.2, 0.03), 0.01}};
+  const double palm = 0.3;
+  auto inside_other = [&](const core::Vec3d& x, int self) {
+    if (self != -1 && x.norm() < palm - 1e-9) return true;
+    for (int i = 0; i < static_cast<int>(fingers.size()); ++i) {
+      if (i != self && fingers[static_cast<size_t>(i)].Distance(x) < -1e-9) return true;
+    }
+    return false;
+  };
+  core::PointCloud cloud;
+  std::mt19937_64 rng(5);
+  std::normal_distribution<double> gauss(0, 1);
+  std::uniform_real_distribution<double> unit(0, 1);
+  // About one point per spacing² of area (the mean nearest-neighbour distance is then ~0.5 of it).
+  auto count = [&](double area) { return static_cast<size_t>(area / (spacing * spacing)); };
+  auto emit = [&](const core::Vec3d& x, const core::Vec3d& n, int self) {
+    if (inside_other(x, self)) return;
+    cloud.positions.push_back(x.cast<float>());
+    cloud.normals.push_back(n.cast<float>());
+  };
+  auto sphere = [&](const core::Vec3d& c, double r, int self) {
+    for (size_t i = count(4 * std::numbers::pi * r * r); i > 0; --i) {
+      const core::Vec3d d = core::Vec3d(gauss(rng), gauss(rng), gauss(rng)).normalized();
+      emit(c + r * d, d, self);
+    }
+  };
+  sphere(core::Vec3d::Zero(), palm, -1);
+  for (int i = 0; i < static_cast<int>(fingers.size()); ++i) {
+    const Capsule& f = fingers[static_cast<size_t>(i)];
+    const core::Vec3d axis = (f.b - f.a).normalized(), u = axis.unitOrthogonal(), v = axis.cross(u);
+    const double length = (f.b - f.a).norm();
+    for (size_t k = count(2 * std::numbers::pi * f.r * length); k > 0; --k) {
+      const double angle = 2 * std::numbers::pi * unit(rng);
+      const core::Vec3d radial = std::cos(angle) * u + std::sin(angle) * v;
+      emit(f.a + unit(rng) * length * axis + f.r * radial, radial, i);
+    }
+    // Whole end spheres; their inner halves lie inside the capsule itself and are dropped.
+    for (const core::Vec3d& end : {f.a, f.b}) {
+      for (size_t k = count(4 * std::numbers::pi * f.r * f.r); k > 0; --k) {
+        const core::Vec3d d = core::Vec3d(gauss(rng), gauss(rng), gauss(rng)).normalized();
+        if (f.Distance(end + f.r * d) < -1e-9) continue;
+        emit(end + f.r * d, d, i);
+      }
+    }
+  }
+  return cloud;
 }
 
 }  // namespace lsqsurf::testing

@@ -216,75 +216,10 @@ TEST(Pu, NoisySphereIsEstimatedAndSmoothedIntoOneClosedSurface) {
   EXPECT_GT(rms_deviation(ExtractMesh(*g)), 1.5 * smoothed);
 }
 
-// A palm (sphere of radius 0.3) with capsule fingers down to 2.5 point spacings thick, two of
-// them side by side: the union's surface sampled uniformly by area with exact normals.
-struct Capsule {
-  Vec3d a, b;
-  double r;
-  double Distance(const Vec3d& x) const {
-    const Vec3d ab = b - a;
-    const double t = std::clamp((x - a).dot(ab) / ab.squaredNorm(), 0.0, 1.0);
-    return (x - (a + t * ab)).norm() - r;
-  }
-};
-
-core::PointCloud HandCloud(double spacing, std::vector<Capsule>& fingers) {
-  fingers = {{Vec3d(0, 0.25, 0), Vec3d(0, 0.7, 0), 0.006},
-             {Vec3d(0.1, 0.2, 0), Vec3d(0.3, 0.6, 0), 0.008},
-             {Vec3d(-0.1, 0.2, 0), Vec3d(-0.3, 0.6, 0), 0.005},
-             {Vec3d(0.2, 0.1, 0), Vec3d(0.6, 0.2, 0), 0.01},
-             {Vec3d(0.2, 0.1, 0.03), Vec3d(0.6, 0.2, 0.03), 0.01}};
-  const double palm = 0.3;
-  auto inside_other = [&](const Vec3d& x, int self) {
-    if (self != -1 && x.norm() < palm - 1e-9) return true;
-    for (int i = 0; i < static_cast<int>(fingers.size()); ++i) {
-      if (i != self && fingers[static_cast<size_t>(i)].Distance(x) < -1e-9) return true;
-    }
-    return false;
-  };
-  core::PointCloud cloud;
-  std::mt19937_64 rng(5);
-  std::normal_distribution<double> gauss(0, 1);
-  std::uniform_real_distribution<double> unit(0, 1);
-  // About one point per spacing² of area (the mean nearest-neighbour distance is then ~0.5 of it).
-  auto count = [&](double area) { return static_cast<size_t>(area / (spacing * spacing)); };
-  auto emit = [&](const Vec3d& x, const Vec3d& n, int self) {
-    if (inside_other(x, self)) return;
-    cloud.positions.push_back(x.cast<float>());
-    cloud.normals.push_back(n.cast<float>());
-  };
-  auto sphere = [&](const Vec3d& c, double r, int self) {
-    for (size_t i = count(4 * std::numbers::pi * r * r); i > 0; --i) {
-      const Vec3d d = Vec3d(gauss(rng), gauss(rng), gauss(rng)).normalized();
-      emit(c + r * d, d, self);
-    }
-  };
-  sphere(Vec3d::Zero(), palm, -1);
-  for (int i = 0; i < static_cast<int>(fingers.size()); ++i) {
-    const Capsule& f = fingers[static_cast<size_t>(i)];
-    const Vec3d axis = (f.b - f.a).normalized(), u = axis.unitOrthogonal(), v = axis.cross(u);
-    const double length = (f.b - f.a).norm();
-    for (size_t k = count(2 * std::numbers::pi * f.r * length); k > 0; --k) {
-      const double angle = 2 * std::numbers::pi * unit(rng);
-      const Vec3d radial = std::cos(angle) * u + std::sin(angle) * v;
-      emit(f.a + unit(rng) * length * axis + f.r * radial, radial, i);
-    }
-    // Whole end spheres; their inner halves lie inside the capsule itself and are dropped.
-    for (const Vec3d& end : {f.a, f.b}) {
-      for (size_t k = count(4 * std::numbers::pi * f.r * f.r); k > 0; --k) {
-        const Vec3d d = Vec3d(gauss(rng), gauss(rng), gauss(rng)).normalized();
-        if (f.Distance(end + f.r * d) < -1e-9) continue;
-        emit(end + f.r * d, d, i);
-      }
-    }
-  }
-  return cloud;
-}
-
 TEST(Pu, ThinFingersStayClosed) {
-  std::vector<Capsule> fingers;
+  std::vector<testing::Capsule> fingers;
   const double spacing = 0.004;  // Fingers of radius 0.005 are 2.5 nearest-neighbour distances.
-  const core::PointCloud cloud = HandCloud(spacing, fingers);
+  const core::PointCloud cloud = testing::HandCloud(spacing, fingers);
   auto f = Build(cloud);
   ASSERT_TRUE(f);
   const core::TriangleMesh mesh = ExtractMesh(*f);
@@ -299,7 +234,7 @@ TEST(Pu, ThinFingersStayClosed) {
   // Every vertex near the true surface, and every finger tip reached.
   auto distance = [&](const Vec3d& x) {
     double d = x.norm() - 0.3;
-    for (const Capsule& c : fingers) d = std::min(d, c.Distance(x));
+    for (const testing::Capsule& c : fingers) d = std::min(d, c.Distance(x));
     return d;
   };
   double worst = 0;
@@ -307,7 +242,7 @@ TEST(Pu, ThinFingersStayClosed) {
   // Measured 3.0e-3: the concave junctions are rounded and the thinnest finger bulges by 0.6 of
   // its radius where its two sides read as a crease (general quadric fallbacks: 6.3e-3 and open).
   EXPECT_LT(worst, spacing);
-  for (const Capsule& c : fingers) {
+  for (const testing::Capsule& c : fingers) {
     float nearest = std::numeric_limits<float>::infinity();
     for (const auto& v : mesh.vertices) nearest = std::min(nearest, (v - c.b.cast<float>()).norm());
     EXPECT_NEAR(nearest, c.r, 0.25 * spacing) << "tip at " << c.b.transpose();

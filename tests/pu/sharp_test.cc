@@ -264,16 +264,8 @@ TEST(PuSharp, SpecksBesideRidgesSharperThanFineLeavesAreDropped) {
 // characteristic -4; with them one sphere, every vertex within 2.0e-5 of the plate.
 TEST(PuSharp, ThinWallOffTheAxesStaysClosed) {
   const double a = 0.05, b = 0.0375, c = 0.00072;
-  core::TriangleMesh plate;
-  const Eigen::Matrix3d turn = (Eigen::AngleAxisd(0.54, Vec3d::UnitZ()) * Eigen::AngleAxisd(-0.30, Vec3d::UnitY()) *
-                                Eigen::AngleAxisd(0.40, Vec3d::UnitX()))
-                                   .toRotationMatrix();
-  for (int k = 0; k < 8; ++k) {
-    const Vec3d corner((k & 1) ? a : -a, (k & 2) ? b : -b, (k & 4) ? c : -c);
-    plate.vertices.push_back((turn * corner).cast<float>());
-  }
-  plate.faces = {{0, 2, 1}, {1, 2, 3}, {4, 5, 6}, {5, 7, 6}, {0, 1, 4}, {1, 5, 4},
-                 {2, 6, 3}, {3, 6, 7}, {0, 4, 2}, {2, 4, 6}, {1, 3, 5}, {3, 7, 5}};
+  const Eigen::Matrix3d turn = testing::PlateTurn();
+  const core::TriangleMesh plate = testing::TurnedPlate(a, b, c);
   ASSERT_NEAR(core::EnclosedVolume(plate), 8 * a * b * c, 1e-9);  // Outward faces.
   const std::optional<extract::IsosurfaceResult> r = WithDefaults(core::SampleCloud(plate, 6'250, 7, 0.0, false));
   ASSERT_TRUE(r);

@@ -5,8 +5,13 @@
 #include <draco/mesh/mesh.h>
 #include <draco/metadata/geometry_metadata.h>
 #include <draco/point_cloud/point_cloud.h>
+#include <tbb/parallel_sort.h>
 
 #include <algorithm>
+#include <array>
+#include <bit>
+#include <cmath>
+#include <limits>
 
 #include "worker/core/status.h"
 #include "worker/core/strings.h"
@@ -236,6 +241,42 @@ absl::StatusOr<core::TriangleMesh> DecodeDracoMesh(std::string_view bytes, const
     }
   }
   return mesh;
+}
+
+// Distinct positions after Draco's quantization round trip, simulated in its float arithmetic: q = floor((x -
+// min) * (2^bits - 1) / range + 0.5) with `range` the box's largest extent, then x' = q * (range / (2^bits - 1))
+// + min. Past ~23 bits the step falls below a float's resolution at the coordinates, so distinct integers can
+// decode to the same float: the round trip, not the integers, decides what a client sees.
+int64_t DistinctAfterQuantization(const std::vector<core::Vec3f>& vertices, int bits) {
+  Eigen::Vector3f lo = Eigen::Vector3f::Constant(std::numeric_limits<float>::max());
+  Eigen::Vector3f hi = -lo;
+  for (const auto& v : vertices) lo = lo.cwiseMin(v), hi = hi.cwiseMax(v);
+  float range = (hi - lo).maxCoeff();
+  if (!(range > 0)) range = 1;
+  const auto max_quantized = static_cast<float>((uint32_t{1} << bits) - 1);
+  const float inverse_delta = max_quantized / range, delta = range / max_quantized;
+  // Bit patterns of the decoded floats: equal patterns are equal positions (x' is never -0).
+  std::vector<std::array<uint32_t, 3>> delivered(vertices.size());
+  for (size_t i = 0; i < vertices.size(); ++i) {
+    for (int c = 0; c < 3; ++c) {
+      const auto q = static_cast<int32_t>(std::floor((vertices[i][c] - lo[c]) * inverse_delta + 0.5f));
+      delivered[i][static_cast<size_t>(c)] = std::bit_cast<uint32_t>(static_cast<float>(q) * delta + lo[c]);
+    }
+  }
+  tbb::parallel_sort(delivered.begin(), delivered.end());
+  return std::unique(delivered.begin(), delivered.end()) - delivered.begin();
+}
+
+// The fewest bits from 16 to 30 at which quantization keeps every distinct position apart
+// (30 when none does), by bisection on the simulated quantization.
+int FewestPositionBits(const core::TriangleMesh& mesh, int64_t distinct) {
+  int lo = 16, hi = 30;
+  if (DistinctAfterQuantization(mesh.vertices, lo) >= distinct) return lo;
+  while (hi - lo > 1) {
+    const int mid = (lo + hi) / 2;
+    (DistinctAfterQuantization(mesh.vertices, mid) >= distinct ? hi : lo) = mid;
+  }
+  return hi;
 }
 
 }  // namespace lsqsurf::io

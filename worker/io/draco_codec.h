@@ -10,6 +10,7 @@
 #include <cstdint>
 #include <string>
 #include <string_view>
+#include <vector>
 
 #include "absl/status/statusor.h"
 #include "worker/core/geometry.h"
@@ -30,6 +31,13 @@ absl::Status Validate(const DracoOptions& options);
 // are quantized — quantization would silently corrupt it), kInternal (Draco refused to encode).
 absl::StatusOr<std::string> EncodeDracoPointCloud(const core::PointCloud& cloud, const DracoOptions& options);
 absl::StatusOr<std::string> EncodeDracoMesh(const core::TriangleMesh& mesh, const DracoOptions& options);
+
+// How many of `vertices` stay apart through the quantization round trip at `bits` bits a coordinate,
+// simulated in Draco's float arithmetic (what a client decodes).
+int64_t DistinctAfterQuantization(const std::vector<core::Vec3f>& vertices, int bits);
+// The fewest position bits from 16 to 30 at which quantization keeps `distinct` positions of `mesh`
+// apart (30 when none does).
+int FewestPositionBits(const core::TriangleMesh& mesh, int64_t distinct);
 
 enum class DracoGeometry { kPointCloud, kTriangleMesh };
 // What the data holds, from its header alone (no decoding). Errors: kInvalidArgument for data

@@ -1,15 +1,11 @@
 #include "worker/jobs/surface_job.h"
 
 #include <spdlog/spdlog.h>
-#include <tbb/parallel_sort.h>
 
 #include <algorithm>
-#include <array>
-#include <bit>
 #include <chrono>
 #include <cmath>
 #include <functional>
-#include <limits>
 #include <optional>
 
 #include "worker/core/mesh_metrics.h"
@@ -123,11 +119,11 @@ struct MethodRun {
   StatFn stat;
   KeepFn keep;
   int64_t memory_bytes = 0;  // The job's memory limit (RunEnvironment::memory_bytes).
-  // The cloud read part by part, for methods that stream it (SurfaceMethod::streams); the cloud
-  // handed over beside it is then empty.
+  // The cloud read part by part, for methods that stream it (SurfaceMethod::streams); the cloud handed over
+  // beside it is then empty.
   const pu::PointSource* source = nullptr;
-  // Where given, a streamed cloud's mesh is delivered in parts (kMeshPartArtifact) as they are
-  // made, never whole; their count goes to *parts_written and the mesh returned is empty.
+  // Where given, a streamed cloud's mesh is delivered in parts (kMeshPartArtifact) as they are made, never
+  // whole; their count goes to *parts_written and the mesh returned is empty.
   ArtifactWriteFn write;
   int64_t* parts_written = nullptr;
   TiledRun tiled;  // Where a tiled run's point files go and its tiles run.
@@ -272,13 +268,20 @@ void ExtractionStatistics(const extract::IsosurfaceStats& s, const StatFn& stat)
   stat("flipped_edges", static_cast<double>(s.flipped_edges));
 }
 
+// The job's extraction within its memory, closing small holes once the surface is whole.
+pu::PuExtractParams PuExtraction(const PuJobParams& p, const MethodRun& run) {
+  pu::PuExtractParams extract = p.extract;
+  extract.max_leaves = LeavesWithin(run.memory_bytes, extract.max_leaves);
+  extract.max_hole_edges = kClosedHoleEdges;
+  return extract;
+}
+
 // A cloud of more than tile_points points, tile by tile (pu_tiles.h). No function is kept: there
 // is none whole, and csg and edit jobs need one.
 absl::StatusOr<extract::IsosurfaceResult> RunTiledPu(const PuJobParams& p, const pu::PointSource& source,
                                                      core::JobContext& ctx, const MethodRun& run) {
   const StatFn& stat = run.stat;
-  pu::PuExtractParams extract = p.extract;
-  extract.max_leaves = LeavesWithin(run.memory_bytes, extract.max_leaves);
+  const pu::PuExtractParams extract = PuExtraction(p, run);
   pu::MeshSink mesh;
   std::optional<PartArtifactSink> parts;
   if (run.source != nullptr && run.write) parts.emplace(run.write);
@@ -329,9 +332,8 @@ absl::StatusOr<extract::IsosurfaceResult> RunPu(const PuJobParams& p, const core
   PuStatistics((*field)->stats(), stat);
   const auto start = std::chrono::steady_clock::now();
   core::SubContext extract_ctx(ctx, "extracting surface", 0.4, 1.0);
-  pu::PuExtractParams extract = p.extract;
+  pu::PuExtractParams extract = PuExtraction(p, run);
   extract.marching.trace = p.keep_function;  // Local edits re-extract only what they change.
-  extract.max_leaves = LeavesWithin(run.memory_bytes, extract.max_leaves);
   auto extracted = pu::Extract(**field, extract, extract_ctx);
   if (!extracted.ok()) return extracted;
   stat("extract_seconds", core::SecondsSince(start));
@@ -345,19 +347,18 @@ absl::StatusOr<extract::IsosurfaceResult> RunPu(const PuJobParams& p, const core
     keep(kPuSurfaceArtifact, std::move(bytes));
     stat("keep_seconds", core::SecondsSince(keep_start));
   }
-  // After keeping: the edits join onto the surface as marched.
-  extract::CloseSmallHoles(*extracted, kClosedHoleEdges);
+  // After keeping: the edits join onto the surface as marched (Extract left its holes open).
+  if (extract.marching.trace) extract::CloseSmallHoles(*extracted, kClosedHoleEdges);
   ExtractionStatistics(extracted->stats, stat);
   return extracted;
 }
 
-// The peak memory of a surface job, from the cloud's size and the extraction cell: about
-// `per_point` bytes a point for the function and `per_vertex` a vertex of the mesh (measured on
-// the spot model at 50k to 800k points: iaMLS 425 and 400, PU 130 and 500). The vertices come
-// from the cell: the shared extractor puts 4.4 a point on a surface sampled at h = 2 spacings
-// with cells of h, scaling with the square of the cell; PU's adaptive cells are up to 8 times as
-// large where the surface is flat, so its count is taken at that coarsest size (a low estimate:
-// what is refused certainly would not fit).
+// The peak memory of a surface job, from the cloud's size and the extraction cell: about `per_point` bytes a
+// point for the function and `per_vertex` a vertex of the mesh (measured on the spot model at 50k to 800k
+// points: iaMLS 425 and 400, PU 130 and 500). The vertices come from the cell: the shared extractor puts 4.4 a
+// point on a surface sampled at h = 2 spacings with cells of h, scaling with the square of the cell; PU's
+// adaptive cells are up to 8 times as large where the surface is flat, so its count is taken at that coarsest
+// size (a low estimate: what is refused certainly would not fit).
 struct CloudSize {
   int64_t points = 0;
   double diagonal = 0;         // Of the bounding box.
@@ -368,9 +369,8 @@ struct MemoryModel {
   double per_point = 0, per_vertex = 0;
 };
 
-// An explicit spacing h, in units of the cloud's spacing as estimated from its size alone (the
-// bounding box diagonal squared over the points, about a surface's area per point), taken 4
-// times more coarsely than that rough guess gives.
+// An explicit spacing h, in units of the cloud's spacing as estimated from its size alone (the bounding box
+// diagonal squared over the points, about a surface's area per point), taken 4 times more coarsely than that.
 double SpacingsOf(double h, const CloudSize& size) {
   if (size.points <= 0 || size.diagonal <= 0) return 1;
   return 2.0 * h / (0.5 * size.diagonal / std::sqrt(static_cast<double>(size.points)));
@@ -397,9 +397,9 @@ MemoryEstimate EstimatePu(const PuJobParams& p, const CloudSize& size) {
   if (size.points <= p.tiles.tile_points) {
     return EstimateMemory({130, 500}, vertices_per_point, size, "raise cell_size, or split the cloud");
   }
-  // Tiled: the decoded cloud (24 bytes a point) or the parts it streams from, one tile at a
-  // time with its margin (at most about 1.75 times its points on the bench's scans), and the
-  // welded mesh (about 60 bytes a vertex with its faces, normal and labels).
+  // Tiled: the decoded cloud (24 bytes a point) or the parts it streams from, one tile at a time with its margin
+  // (at most about 1.75 times its points on the bench's scans), and the welded mesh (about 60 bytes a vertex
+  // with its faces, normal and labels).
   const double points = static_cast<double>(size.points);
   const double cloud = size.streamed_bytes > 0 ? static_cast<double>(size.streamed_bytes) : 24 * points;
   const double tile = 1.75 * static_cast<double>(p.tiles.tile_points);
@@ -703,63 +703,22 @@ void AddMeshStatistics(const core::TriangleMesh& mesh, const extract::Isosurface
   }
 }
 
-namespace {
-
-// Distinct positions after Draco's quantization round trip, simulated in its float arithmetic:
-// q = floor((x - min) * (2^bits - 1) / range + 0.5) with `range` the box's largest extent, then
-// x' = q * (range / (2^bits - 1)) + min. Past ~23 bits the step falls below a float's resolution
-// at the coordinates, so distinct integers can decode to the same float: the round trip, not
-// the integers, decides what a client sees.
-int64_t DistinctQuantized(const std::vector<core::Vec3f>& vertices, int bits) {
-  Eigen::Vector3f lo = Eigen::Vector3f::Constant(std::numeric_limits<float>::max());
-  Eigen::Vector3f hi = -lo;
-  for (const auto& v : vertices) lo = lo.cwiseMin(v), hi = hi.cwiseMax(v);
-  float range = (hi - lo).maxCoeff();
-  if (!(range > 0)) range = 1;
-  const auto max_quantized = static_cast<float>((uint32_t{1} << bits) - 1);
-  const float inverse_delta = max_quantized / range, delta = range / max_quantized;
-  // Bit patterns of the decoded floats: equal patterns are equal positions (x' is never -0).
-  std::vector<std::array<uint32_t, 3>> delivered(vertices.size());
-  for (size_t i = 0; i < vertices.size(); ++i) {
-    for (int c = 0; c < 3; ++c) {
-      const auto q = static_cast<int32_t>(std::floor((vertices[i][c] - lo[c]) * inverse_delta + 0.5f));
-      delivered[i][static_cast<size_t>(c)] = std::bit_cast<uint32_t>(static_cast<float>(q) * delta + lo[c]);
-    }
-  }
-  tbb::parallel_sort(delivered.begin(), delivered.end());
-  return std::unique(delivered.begin(), delivered.end()) - delivered.begin();
-}
-
-// The fewest bits from 16 to 30 at which quantization keeps every distinct position apart
-// (30 when none does), by bisection on the simulated quantization.
-int ChoosePositionBits(const core::TriangleMesh& mesh, int64_t distinct) {
-  int lo = 16, hi = 30;
-  if (DistinctQuantized(mesh.vertices, lo) >= distinct) return lo;
-  while (hi - lo > 1) {
-    const int mid = (lo + hi) / 2;
-    (DistinctQuantized(mesh.vertices, mid) >= distinct ? hi : lo) = mid;
-  }
-  return hi;
-}
-
-}  // namespace
-
 absl::StatusOr<std::string> EncodeResultMesh(const core::TriangleMesh& mesh, int position_bits, Statistics* statistics,
                                              const core::JobContext* ctx) {
   const auto start = std::chrono::steady_clock::now();
   const auto check = [ctx] { return ctx != nullptr ? ctx->CheckCancelled() : absl::OkStatus(); };
   const int64_t distinct = core::CountDistinctPositions(mesh.vertices);
   io::DracoOptions draco;
-  draco.position_bits = position_bits > 0 ? position_bits : ChoosePositionBits(mesh, distinct);
+  draco.position_bits = position_bits > 0 ? position_bits : io::FewestPositionBits(mesh, distinct);
   LSQSURF_RETURN_IF_ERROR(check());
   auto encoded = io::EncodeDracoMesh(mesh, draco);
   if (!encoded.ok()) return encoded.status();
   LSQSURF_RETURN_IF_ERROR(check());
-  // What a client decodes, merged by position, is what the statistics describe. When the round
-  // trip keeps every position of a mesh without coincident vertices apart, merging changes
-  // nothing and that is the engine's mesh itself; otherwise the bytes are decoded and merged.
+  // What a client decodes, merged by position, is what the statistics describe. When the round trip keeps every
+  // position of a mesh without coincident vertices apart, merging changes nothing and that is the engine's mesh
+  // itself; otherwise the bytes are decoded and merged.
   core::MeshTopology topo;
-  const bool kept = DistinctQuantized(mesh.vertices, draco.position_bits) >= distinct;
+  const bool kept = io::DistinctAfterQuantization(mesh.vertices, draco.position_bits) >= distinct;
   if (kept && distinct == static_cast<int64_t>(mesh.vertices.size())) {
     topo = core::AnalyzeTopology(mesh);
   } else {
@@ -770,9 +729,9 @@ absl::StatusOr<std::string> EncodeResultMesh(const core::TriangleMesh& mesh, int
     };
     auto delivered = decode(*encoded);
     if (!delivered.ok()) return delivered.status();
-    // Vertices the quantization (or the engine) put together are merged as a client's weld
-    // would, and the faces that then collapse or lie on one another go, so that what is
-    // delivered stays manifold; the merged mesh is sent instead.
+    // Vertices the quantization (or the engine) put together are merged as a client's weld would, and the faces
+    // that then collapse or lie on one another go, so that what is delivered stays manifold; the merged mesh is
+    // sent instead.
     const size_t before = delivered->vertices.size();
     const int64_t dropped = core::MergeCoincidentVertices(*delivered);
     if (dropped > 0 || delivered->vertices.size() != before) {

@@ -153,6 +153,11 @@ struct PuExtractParams {
   // the surface (bunny 100k: 1st percentile of the smallest angle 1° -> 21°, Chamfer 2 % lower).
   extract::MarchingOptions marching{.crease_angle = 30, .relax_steps = 4};
   bool label_vertices = true;  // Adds the vertex attributes "depth", "degree" and "feature".
+  // Holes whose border is a loop of up to this many edges are closed once the surface is whole
+  // (extract::CloseSmallHoles): at the end of Extract where the surface is not traced (a traced one
+  // is kept as marched; its caller closes them after keeping it), and by TileJoiner once every tile
+  // is in, so that a hole across a seam closes as it does untiled. 0 = none.
+  int max_hole_edges = 0;
 };
 
 // The user-facing fields of PuExtractParams: cell_size, refine_steps and crease_angle.

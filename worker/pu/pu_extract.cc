@@ -582,6 +582,12 @@ absl::StatusOr<TileSurface> ExtractTile(const PuFunction& function, const PuExtr
   auto marched = extract::ExtractIsosurfaceOnTree(function, (*built)->tree, (*built)->start, params.max_leaves, raw,
                                                   extract_ctx, &marched_box);
   if (!marched.ok()) return marched.status();
+  // Specks go as in ExtractWhole, judged on the marched surface, which holds every speck that
+  // reaches into `core` whole (they are smaller than a finest leaf).
+  std::vector<FineZone> specks_near = SharpRidges(impl);
+  specks_near.insert(specks_near.end(), (*built)->fine_zones.begin(), (*built)->fine_zones.end());
+  marched->stats.corner_specks =
+      DropSpecksNearZones(specks_near, (*built)->fine_reach, (*built)->finest_edge, *marched);
   tile.surface = KeepOwnedFaces((*built)->tree, core, *marched, tile.seam);
   built->reset();
   *marched = {};
@@ -649,6 +655,9 @@ absl::StatusOr<extract::IsosurfaceResult> Extract(const PuFunction& function, co
         *fine = *std::move(kept);
       }
     }
+  }
+  if (params.max_hole_edges > 0 && !params.marching.trace) {
+    extract::CloseSmallHoles(fine->surface, params.max_hole_edges);
   }
   if (!params.label_vertices) return std::move(fine->surface);
   LSQSURF_RETURN_IF_ERROR(LabelVertices(function, fine->surface.mesh, ctx));

@@ -1,8 +1,10 @@
 // The steps of a tiled build that run apart from the planning: one tile's part of the surface
 // (RunTile), the bytes plans and parts travel as, and the welding of the parts (TileJoiner).
+#include <algorithm>
 #include <cmath>
 
 #include "absl/container/flat_hash_map.h"
+#include "absl/container/flat_hash_set.h"
 #include "worker/core/binary.h"
 #include "worker/core/status.h"
 #include "worker/core/strings.h"
@@ -14,7 +16,7 @@ namespace lsqsurf::pu {
 
 namespace {
 
-constexpr std::string_view kPlanMagic = "LQTP0001";
+constexpr std::string_view kPlanMagic = "LQTP0002";
 constexpr std::string_view kTileMagic = "LQT10001";
 constexpr std::string_view kPointsMagic = "LQTX0001";
 
@@ -84,6 +86,89 @@ absl::StatusOr<TilePart> DecodeTilePart(std::string_view bytes) {
   return part;
 }
 
+// The faces of the welded surface so far that touch its open border (edges with one face: the
+// seams still to be met and the holes), with their vertices' positions: what closing the whole
+// surface's small holes looks at (extract::CloseSmallHoles), held while the tiles go by.
+class OpenBorder {
+ public:
+  using Face = std::array<int64_t, 3>;
+
+  // Adds a tile's faces (in the whole mesh's numbers) and its new vertices, numbered from `first`.
+  void Add(std::span<const Face> faces, int64_t first, std::span<const core::Vec3f> vertices) {
+    for (const Face& f : faces) {
+      for (size_t k = 0; k < 3; ++k) {
+        const int64_t a = f[k], b = f[(k + 1) % 3];
+        // An edge run the other way by a face before meets it; otherwise it is open until one does.
+        if (auto twin = open_.find({b, a}); twin != open_.end()) {
+          if (--twin->second == 0) open_.erase(twin);
+        } else {
+          ++open_[{a, b}];
+        }
+      }
+      for (int64_t v : f) {
+        if (v >= first) positions_.try_emplace(v, vertices[static_cast<size_t>(v - first)]);
+      }
+      faces_.push_back(f);
+    }
+    Prune();
+  }
+
+  // Fills the holes into `fill` (whole-mesh numbers); returns how many were closed.
+  int64_t CloseHoles(int max_edges, std::vector<Face>& fill) const {
+    if (open_.empty() || max_edges < 3) return 0;
+    extract::IsosurfaceResult border;
+    absl::flat_hash_map<int64_t, uint32_t> local;
+    std::vector<int64_t> global;
+    auto number = [&](int64_t v) {
+      const auto [it, fresh] = local.try_emplace(v, static_cast<uint32_t>(global.size()));
+      if (fresh) global.push_back(v), border.mesh.vertices.push_back(positions_.at(v));
+      return it->second;
+    };
+    for (const Face& f : faces_) {
+      // A face at an earlier tile's vertex that had no open edge left (a fan met twice) is skipped.
+      if (std::all_of(f.begin(), f.end(), [&](int64_t v) { return positions_.contains(v); })) {
+        border.mesh.faces.push_back({number(f[0]), number(f[1]), number(f[2])});
+      }
+    }
+    // Only loops of open edges are holes: the edges where the faces kept here end inside the
+    // surface are not, and loops through their vertices stay as they are.
+    absl::flat_hash_set<std::array<float, 3>> on_border;
+    for (const auto& [edge, count] : open_) {
+      for (int64_t v : {edge.first, edge.second}) {
+        if (const auto p = positions_.find(v); p != positions_.end()) {
+          on_border.insert({p->second.x(), p->second.y(), p->second.z()});
+        }
+      }
+    }
+    const size_t kept = border.mesh.faces.size();
+    extract::CloseSmallHoles(border, max_edges, [&](const core::Vec3f& p) {
+      return !on_border.contains({p.x(), p.y(), p.z()});
+    });
+    for (size_t f = kept; f < border.mesh.faces.size(); ++f) {
+      const core::Triangle& t = border.mesh.faces[f];
+      fill.push_back({global[t[0]], global[t[1]], global[t[2]]});
+    }
+    return border.stats.filled_holes;
+  }
+
+ private:
+  // Keeps only the faces with a vertex on an open edge, and those vertices' positions.
+  void Prune() {
+    absl::flat_hash_set<int64_t> open_vertices;
+    for (const auto& [edge, count] : open_) open_vertices.insert(edge.first), open_vertices.insert(edge.second);
+    std::erase_if(faces_, [&](const Face& f) {
+      return std::none_of(f.begin(), f.end(), [&](int64_t v) { return open_vertices.contains(v); });
+    });
+    absl::flat_hash_set<int64_t> used;
+    for (const Face& f : faces_) used.insert(f.begin(), f.end());
+    absl::erase_if(positions_, [&](const auto& entry) { return !used.contains(entry.first); });
+  }
+
+  absl::flat_hash_map<std::pair<int64_t, int64_t>, int> open_;  // Directed edges with no face back yet.
+  std::vector<Face> faces_;
+  absl::flat_hash_map<int64_t, core::Vec3f> positions_;
+};
+
 // Numbers a tile's vertices in the whole mesh, the border ones shared with the tiles before it
 // (by lattice edge), and hands the tile to the sink.
 class TileWelder {
@@ -116,7 +201,20 @@ class TileWelder {
     }
     for (const core::Triangle& t : mesh.faces) faces_.push_back({number[t[0]], number[t[1]], number[t[2]]});
     faces_total_ += static_cast<int64_t>(faces_.size());
+    border_.Add(faces_, first, vertices_);
     return sink_.AddTile(TileOutput{tile, first, vertices_, normals_, attributes_, faces_});
+  }
+
+  // Closes the welded surface's holes of up to `max_edges` border edges, as a last part of faces
+  // between the vertices already handed over. Returns the holes closed.
+  absl::StatusOr<int64_t> CloseHoles(int64_t tile, int max_edges) {
+    std::vector<std::array<int64_t, 3>> fill;
+    const int64_t closed = border_.CloseHoles(max_edges, fill);
+    if (fill.empty()) return closed;
+    for (core::ScalarAttribute& a : attributes_) a.values.clear();
+    faces_total_ += static_cast<int64_t>(fill.size());
+    LSQSURF_RETURN_IF_ERROR(sink_.AddTile(TileOutput{tile, next_, {}, {}, attributes_, fill}));
+    return closed;
   }
   int64_t shared() const { return shared_; }
   int64_t vertices() const { return next_; }
@@ -124,6 +222,7 @@ class TileWelder {
 
  private:
   SurfaceSink& sink_;
+  OpenBorder border_;
   absl::flat_hash_map<uint64_t, int64_t> seam_;
   int64_t next_ = 0, shared_ = 0, faces_total_ = 0;
   std::vector<core::Vec3f> vertices_, normals_;
@@ -173,6 +272,7 @@ std::string EncodeTilePlan(const TilePlan& plan) {
   w.Scalar(f.root_edge), w.Scalar(f.diagonal), w.Scalar(f.mean_spacing), w.Scalar(f.noise_estimate);
   w.Scalar(f.params), w.Scalar(f.max_support);
   WriteExtractParams(plan.extract, w);
+  w.Scalar(plan.extract.max_hole_edges);  // Not in WriteExtractParams: kept surfaces do not store it.
   w.Scalar(plan.tile_level), w.Scalar(plan.data_margin), w.Scalar(plan.extraction_margin);
   w.Array<uint64_t>(plan.tiles);
   w.Scalar(plan.points), w.Scalar(plan.scratch_bytes);
@@ -186,12 +286,14 @@ absl::StatusOr<TilePlan> DecodeTilePlan(std::string_view bytes) {
   PuFrame& f = plan.frame;
   const bool read = ReadMagic(r, kPlanMagic) && ReadVec(r, f.origin) && r.Scalar(f.root_edge) && r.Scalar(f.diagonal) &&
                     r.Scalar(f.mean_spacing) && r.Scalar(f.noise_estimate) && r.Scalar(f.params) &&
-                    r.Scalar(f.max_support) && ReadExtractParams(r, plan.extract) && r.Scalar(plan.tile_level) &&
-                    r.Scalar(plan.data_margin) && r.Scalar(plan.extraction_margin) && r.Array(plan.tiles) &&
-                    r.Scalar(plan.points) && r.Scalar(plan.scratch_bytes) && r.Scalar(plan.measure_seconds) &&
-                    r.Scalar(plan.scan_seconds) && r.Scalar(plan.spacing_seconds) && r.AtEnd();
+                    r.Scalar(f.max_support) && ReadExtractParams(r, plan.extract) &&
+                    r.Scalar(plan.extract.max_hole_edges) && r.Scalar(plan.tile_level) && r.Scalar(plan.data_margin) &&
+                    r.Scalar(plan.extraction_margin) && r.Array(plan.tiles) && r.Scalar(plan.points) &&
+                    r.Scalar(plan.scratch_bytes) && r.Scalar(plan.measure_seconds) && r.Scalar(plan.scan_seconds) &&
+                    r.Scalar(plan.spacing_seconds) && r.AtEnd();
   if (!read || !(f.root_edge > 0) || !f.origin.allFinite() || plan.tile_level < 0 || plan.tile_level > 20 ||
-      !(f.max_support > 0) || !Validate(f.params).ok() || !PuExtractParamTable().Validate(plan.extract).ok()) {
+      !(f.max_support > 0) || !Validate(f.params).ok() || !PuExtractParamTable().Validate(plan.extract).ok() ||
+      plan.extract.max_hole_edges < 0) {
     return absl::InvalidArgumentError("a tile plan is unreadable");
   }
   return plan;
@@ -299,6 +401,10 @@ absl::StatusOr<TiledStats> TileJoiner::Finish() {
   s.fit.error_threshold = plan.frame.params.error_threshold;
   s.fit.min_points = plan.frame.params.min_points;
   if (s.faces == 0) return absl::FailedPreconditionError("no surface could be extracted from the tiles");
+  auto closed = st.welder.CloseHoles(s.tiles, plan.extract.max_hole_edges);
+  if (!closed.ok()) return closed.status();
+  s.extract.filled_holes += *closed;
+  s.faces = st.welder.faces();
   return s;
 }
 

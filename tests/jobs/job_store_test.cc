@@ -10,6 +10,7 @@
 #include <set>
 #include <thread>
 
+#include "absl/strings/match.h"
 #if LSQSURF_WITH_POSTGRESQL
 #include "tests/postgres_cluster.h"
 #endif
@@ -19,6 +20,7 @@
 #if LSQSURF_WITH_POSTGRESQL
 #include "worker/jobs/store/postgres_store.h"
 #endif
+#include "worker/jobs/tile_exchange.h"
 
 namespace lsqsurf::jobs {
 namespace {
@@ -274,6 +276,40 @@ TEST_P(JobStoreContract, TilesAreClaimedOnceAndALapsedTileIsRunAgain) {
   auto gone = second_->ClaimTile("helper", milliseconds(60'000));
   ASSERT_TRUE(gone.ok());
   EXPECT_FALSE(gone->has_value());
+}
+
+// A tile whose servers stopped while making it (each claim's lease lapsed: out of memory, a crash)
+// is not offered to one more server past max_attempts: the next claim fails it, and the job's own
+// server gets that reason, naming the tile, in place of its part.
+TEST_P(JobStoreContract, ATileThatStopsItsServerEveryTimeFailsItsJobNamingIt) {
+  ASSERT_TRUE(first_->Insert(Queued("t1", 1)).ok());
+  auto job = first_->Claim("coordinator", milliseconds(60'000));
+  ASSERT_TRUE(job.ok() && job->has_value()) << job.status();
+  ASSERT_TRUE(first_->AddTiles("t1", 1).ok());
+  for (const char* runner : {"crashed-a", "crashed-b"}) {
+    auto claimed = second_->ClaimTile(runner, milliseconds(0));  // Lapsed at once, as if it died.
+    ASSERT_TRUE(claimed.ok() && claimed->has_value()) << runner;
+  }
+  const std::filesystem::path blob_dir = testing::FreshTestDir("lsqsurf-tile-blobs");
+  auto blobs = LocalDirBlobStore::Open(blob_dir.string());
+  ASSERT_TRUE(blobs.ok()) << blobs.status();
+  int held = 0;
+  const TileClaimOptions claims{milliseconds(60'000), [&](const TileTask&, bool) { ++held; }, 2};
+  core::LocalJobContext ctx;
+  auto ran = RunClaimedTile(*first_, **blobs, "r1/coordinator", claims, ctx);
+  ASSERT_TRUE(ran.ok()) << ran.status();
+  EXPECT_TRUE(*ran);
+  EXPECT_EQ(held, 0) << "the tile was run a third time";
+  StoreTileExchange exchange(*first_, **blobs, "t1", "r1/coordinator", claims);
+  auto part = exchange.Part(0, ctx);
+  EXPECT_EQ(part.status().code(), absl::StatusCode::kInternal);
+  EXPECT_TRUE(
+      absl::StartsWith(part.status().message(), "tile 0: the server making it stopped on each of its 2 attempts"))
+      << part.status();
+  auto more = first_->ClaimTile("helper", milliseconds(60'000));
+  ASSERT_TRUE(more.ok());
+  EXPECT_FALSE(more->has_value()) << "the failed tile is still offered";
+  std::filesystem::remove_all(blob_dir);
 }
 
 TEST_P(JobStoreContract, CancelStopsQueuedJobsAndFlagsRunningOnes) {

@@ -196,8 +196,9 @@ bool JobService::RunOthersTile() {
       return service.shutting_down_;
     }
   } ctx(*this);
-  auto ran = RunClaimedTile(
-      *store_, *blobs_, runner_, options_.lease, [this](const TileTask& t, bool held) { HoldTile(t, held); }, ctx);
+  const TileClaimOptions claims{options_.lease, [this](const TileTask& t, bool held) { HoldTile(t, held); },
+                                options_.max_attempts};
+  auto ran = RunClaimedTile(*store_, *blobs_, runner_, claims, ctx);
   if (!ran.ok() && !absl::IsCancelled(ran.status())) {
     if (!claims_failing_.exchange(true)) spdlog::error("cannot take tiles from the store: {}", ran.status().ToString());
     return false;
@@ -257,8 +258,9 @@ absl::StatusOr<Statistics> JobService::RunKind(const std::shared_ptr<Entry>& ent
                      scratch_dir_};
   std::optional<StoreTileExchange> tiles;
   if (store_->shared()) {
-    tiles.emplace(*store_, *blobs_, record.id, runner_, options_.lease,
-                  [this](const TileTask& t, bool held) { HoldTile(t, held); });
+    tiles.emplace(*store_, *blobs_, record.id, runner_,
+                  TileClaimOptions{options_.lease, [this](const TileTask& t, bool held) { HoldTile(t, held); },
+                                   options_.max_attempts});
     env.tiles = &*tiles;
   }
   try {

@@ -38,6 +38,18 @@ absl::Status DecodeError(int64_t tile, std::string_view text) {
   return absl::Status(static_cast<absl::StatusCode>(code), core::StrCat("tile ", tile, ": ", text));
 }
 
+// A tile claimed more often than `max_attempts` stopped the server making it every time (out of
+// memory, a crash): it fails its job with that reason instead of taking down one server after
+// another. Its error blob is stored as a failed tile's, and the tile is done.
+absl::Status GiveUpTile(JobStore& store, BlobStore& blobs, const std::string& runner, const TileTask& task) {
+  const absl::Status reason = absl::InternalError(
+      core::StrCat("the server making it stopped on each of its ", task.attempts - 1,
+                   " attempts (out of memory or a crash); lower tile_points or give the servers more memory"));
+  spdlog::error("[job {}] tile {}: {}", task.job_id, task.tile, reason.message());
+  LSQSURF_RETURN_IF_ERROR(blobs.Put(task.job_id, TileBlob("error", task.tile), EncodeError(reason)));
+  return store.FinishTile(task, runner);
+}
+
 }  // namespace
 
 absl::StatusOr<TileBlobBytes> RunSharedTile(BlobStore& blobs, const std::string& job_id, int64_t tile,
@@ -68,12 +80,18 @@ absl::StatusOr<TileBlobBytes> RunSharedTile(BlobStore& blobs, const std::string&
 }
 
 absl::StatusOr<bool> RunClaimedTile(JobStore& store, BlobStore& blobs, const std::string& runner,
-                                    std::chrono::milliseconds lease, const StoreTileExchange::HoldFn& hold,
-                                    core::JobContext& ctx, const std::string& job_id) {
-  auto claimed = store.ClaimTile(runner, lease, job_id);
+                                    const TileClaimOptions& options, core::JobContext& ctx, const std::string& job_id) {
+  auto claimed = store.ClaimTile(runner, options.lease, job_id);
   if (!claimed.ok()) return claimed.status();
   if (!claimed->has_value()) return false;
   const TileTask& task = **claimed;
+  if (options.max_attempts > 0 && task.attempts > options.max_attempts) {
+    if (absl::Status s = GiveUpTile(store, blobs, runner, task); !s.ok()) {
+      spdlog::warn("[job {}] tile {}: {}", task.job_id, task.tile, s.ToString());
+    }
+    return true;
+  }
+  const StoreTileExchange::HoldFn& hold = options.hold;
   hold(task, true);
   const auto start = std::chrono::steady_clock::now();
   absl::Status ran = absl::OkStatus();
@@ -137,7 +155,7 @@ absl::StatusOr<std::string> StoreTileExchange::Part(int64_t tile, core::JobConte
       (void)blobs_.Remove(job_id_, TileBlob("part", tile));
       return part;
     }
-    auto ran = RunClaimedTile(store_, blobs_, runner_, lease_, hold_, ctx, job_id_);
+    auto ran = RunClaimedTile(store_, blobs_, runner_, claims_, ctx, job_id_);
     if (!ran.ok()) return ran.status();
     if (!*ran) std::this_thread::sleep_for(kPartPoll);  // Every tile left is with another server.
   }

@@ -71,20 +71,28 @@ struct TileBlobBytes {
 absl::StatusOr<TileBlobBytes> RunSharedTile(BlobStore& blobs, const std::string& job_id, int64_t tile,
                                             core::JobContext& ctx);
 
-// The exchange over a job store and a blob store that servers share.
-class StoreTileExchange final : public TileExchange {
- public:
+// How a server claims and runs tiles.
+struct TileClaimOptions {
   // `hold(task, true)` before this server runs a tile, `hold(task, false)` after: the tiles whose
   // leases its renewal extends.
   using HoldFn = std::function<void(const TileTask&, bool)>;
-  StoreTileExchange(JobStore& store, BlobStore& blobs, std::string job_id, std::string runner,
-                    std::chrono::milliseconds lease, HoldFn hold)
+  std::chrono::milliseconds lease{0};
+  HoldFn hold;
+  // A tile claimed more often than this (its servers stopped while making it: out of memory, a
+  // crash) fails its job, naming the tile; 0 = no limit. A server's graceful stop counts too.
+  int max_attempts = 0;
+};
+
+// The exchange over a job store and a blob store that servers share.
+class StoreTileExchange final : public TileExchange {
+ public:
+  using HoldFn = TileClaimOptions::HoldFn;
+  StoreTileExchange(JobStore& store, BlobStore& blobs, std::string job_id, std::string runner, TileClaimOptions claims)
       : store_(store),
         blobs_(blobs),
         job_id_(std::move(job_id)),
         runner_(std::move(runner)),
-        lease_(lease),
-        hold_(std::move(hold)) {}
+        claims_(std::move(claims)) {}
 
   absl::Status Publish(std::string_view plan, int64_t tiles,
                        const std::function<absl::StatusOr<std::string>(int64_t)>& points) override;
@@ -96,18 +104,18 @@ class StoreTileExchange final : public TileExchange {
   JobStore& store_;
   BlobStore& blobs_;
   std::string job_id_, runner_;
-  std::chrono::milliseconds lease_;
-  HoldFn hold_;
+  TileClaimOptions claims_;
   int64_t tiles_ = 0;
   std::map<int64_t, std::string> done_;  // Tile → the runner that finished it.
   std::set<std::string> servers_;
 };
 
-// Claims one tile of any running job for `runner`, runs it (RunSharedTile) and stores what it
-// left if the job still runs, holding the tile through `hold` meanwhile; false when there was
-// none. Errors: kCancelled (`ctx`), kUnavailable (the store).
+// Claims one tile of any running job (of `job_id` where given) for `runner`, runs it
+// (RunSharedTile) and stores what it left if the job still runs, holding the tile through
+// `options.hold` meanwhile; a tile past `options.max_attempts` is failed instead. False when there
+// was none. Errors: kCancelled (`ctx`), kUnavailable (the store).
 absl::StatusOr<bool> RunClaimedTile(JobStore& store, BlobStore& blobs, const std::string& runner,
-                                    std::chrono::milliseconds lease, const StoreTileExchange::HoldFn& hold,
-                                    core::JobContext& ctx, const std::string& job_id = "");
+                                    const TileClaimOptions& options, core::JobContext& ctx,
+                                    const std::string& job_id = "");
 
 }  // namespace lsqsurf::jobs

@@ -1132,10 +1132,12 @@ class ForwardingStore : public JobStore {
   absl::StatusOr<JobRecord> Get(const std::string& id) override { return inner_->Get(id); }
   absl::StatusOr<JobChanges> ChangesSince(int64_t seq) override { return inner_->ChangesSince(seq); }
   void WaitForOthers(std::chrono::milliseconds timeout) override { inner_->WaitForOthers(timeout); }
-  absl::Status AddTiles(const std::string& id, int64_t count) override { return inner_->AddTiles(id, count); }
+  absl::Status AddTiles(const std::string& id, int64_t count, int build) override {
+    return inner_->AddTiles(id, count, build);
+  }
   absl::StatusOr<std::optional<TileTask>> ClaimTile(const std::string& runner, std::chrono::milliseconds lease,
-                                                    const std::string& id) override {
-    return inner_->ClaimTile(runner, lease, id);
+                                                    int build, const std::string& id) override {
+    return inner_->ClaimTile(runner, lease, build, id);
   }
   absl::StatusOr<std::vector<TileTask>> RenewTiles(const std::string& runner, const std::vector<TileTask>& tiles,
                                                    std::chrono::milliseconds lease) override {

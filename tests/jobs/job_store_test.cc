@@ -225,23 +225,26 @@ TEST_P(JobStoreContract, LapsedLeasesAreRecoveredAndTheirRunnerLosesItsSay) {
   EXPECT_EQ(all->size(), 2u);
 }
 
+// The tiles' format of this build (pu::kTileFormat, as the servers give it).
+constexpr int kBuild = pu::kTileFormat;
+
 // Tiles of a running job go to every runner once; a tile whose runner stopped renewing is run
 // again by another, and the first runner can no longer finish it.
 TEST_P(JobStoreContract, TilesAreClaimedOnceAndALapsedTileIsRunAgain) {
   ASSERT_TRUE(first_->Insert(Queued("t1", 1)).ok());
   ASSERT_TRUE(first_->Insert(Queued("t2", 2)).ok());
-  ASSERT_TRUE(first_->AddTiles("t2", 2).ok());  // A queued job's tiles wait for it to run.
+  ASSERT_TRUE(first_->AddTiles("t2", 2, kBuild).ok());  // A queued job's tiles wait for it to run.
   auto job = first_->Claim("coordinator", milliseconds(60'000));
   ASSERT_TRUE(job.ok() && job->has_value()) << job.status();
   ASSERT_EQ((*job)->id, "t1");
-  auto none = second_->ClaimTile("helper", milliseconds(60'000));
+  auto none = second_->ClaimTile("helper", milliseconds(60'000), kBuild);
   ASSERT_TRUE(none.ok()) << none.status();
   EXPECT_FALSE(none->has_value()) << "a tile of a job that is not running was claimed";
 
-  ASSERT_TRUE(first_->AddTiles("t1", 3).ok());
-  auto helper = second_->ClaimTile("helper", milliseconds(60'000));
-  auto dead = first_->ClaimTile("dead-helper", milliseconds(0));  // Lapsed at once.
-  auto own = first_->ClaimTile("coordinator", milliseconds(60'000), "t1");
+  ASSERT_TRUE(first_->AddTiles("t1", 3, kBuild).ok());
+  auto helper = second_->ClaimTile("helper", milliseconds(60'000), kBuild);
+  auto dead = first_->ClaimTile("dead-helper", milliseconds(0), kBuild);  // Lapsed at once.
+  auto own = first_->ClaimTile("coordinator", milliseconds(60'000), kBuild, "t1");
   ASSERT_TRUE(dead.ok() && helper.ok() && own.ok());
   ASSERT_TRUE(dead->has_value() && helper->has_value() && own->has_value());
   EXPECT_EQ((*helper)->tile, 0);
@@ -257,10 +260,10 @@ TEST_P(JobStoreContract, TilesAreClaimedOnceAndALapsedTileIsRunAgain) {
   ASSERT_TRUE(second_->FinishTile(**helper, "helper").ok());
   ASSERT_TRUE(first_->FinishTile(**own, "coordinator").ok());
   EXPECT_EQ(first_->FinishTile(**own, "coordinator").code(), absl::StatusCode::kAborted) << "finished twice";
-  auto last = second_->ClaimTile("helper", milliseconds(60'000));
+  auto last = second_->ClaimTile("helper", milliseconds(60'000), kBuild);
   ASSERT_TRUE(last.ok() && last->has_value());
   EXPECT_EQ((*last)->tile, 2);
-  auto empty = second_->ClaimTile("helper", milliseconds(60'000), "t1");
+  auto empty = second_->ClaimTile("helper", milliseconds(60'000), kBuild, "t1");
   ASSERT_TRUE(empty.ok());
   EXPECT_FALSE(empty->has_value());
   ASSERT_TRUE(second_->FinishTile(**last, "helper").ok());
@@ -269,11 +272,20 @@ TEST_P(JobStoreContract, TilesAreClaimedOnceAndALapsedTileIsRunAgain) {
   const std::vector<std::pair<int64_t, std::string>> expected = {{0, "helper"}, {1, "coordinator"}, {2, "helper"}};
   EXPECT_EQ(*done, expected);
 
+  // A server of another build (its plans and parts in another format) leaves the tiles alone.
+  ASSERT_TRUE(first_->AddTiles("t1", 2, kBuild + 1).ok());
+  auto other = second_->ClaimTile("helper", milliseconds(60'000), kBuild);
+  ASSERT_TRUE(other.ok()) << other.status();
+  EXPECT_FALSE(other->has_value()) << "a tile of another build was claimed";
+  auto same = second_->ClaimTile("newer-helper", milliseconds(60'000), kBuild + 1);
+  ASSERT_TRUE(same.ok() && same->has_value()) << same.status();
+  EXPECT_EQ((*same)->tile, 0);
+
   // Adding tiles again starts over; removing them leaves none.
-  ASSERT_TRUE(first_->AddTiles("t1", 1).ok());
+  ASSERT_TRUE(first_->AddTiles("t1", 1, kBuild).ok());
   EXPECT_TRUE(first_->DoneTiles("t1")->empty());
   ASSERT_TRUE(first_->RemoveTiles("t1").ok());
-  auto gone = second_->ClaimTile("helper", milliseconds(60'000));
+  auto gone = second_->ClaimTile("helper", milliseconds(60'000), kBuild);
   ASSERT_TRUE(gone.ok());
   EXPECT_FALSE(gone->has_value());
 }
@@ -285,9 +297,9 @@ TEST_P(JobStoreContract, ATileThatStopsItsServerEveryTimeFailsItsJobNamingIt) {
   ASSERT_TRUE(first_->Insert(Queued("t1", 1)).ok());
   auto job = first_->Claim("coordinator", milliseconds(60'000));
   ASSERT_TRUE(job.ok() && job->has_value()) << job.status();
-  ASSERT_TRUE(first_->AddTiles("t1", 1).ok());
+  ASSERT_TRUE(first_->AddTiles("t1", 1, kBuild).ok());
   for (const char* runner : {"crashed-a", "crashed-b"}) {
-    auto claimed = second_->ClaimTile(runner, milliseconds(0));  // Lapsed at once, as if it died.
+    auto claimed = second_->ClaimTile(runner, milliseconds(0), kBuild);  // Lapsed at once, as if it died.
     ASSERT_TRUE(claimed.ok() && claimed->has_value()) << runner;
   }
   const std::filesystem::path blob_dir = testing::FreshTestDir("lsqsurf-tile-blobs");
@@ -306,7 +318,7 @@ TEST_P(JobStoreContract, ATileThatStopsItsServerEveryTimeFailsItsJobNamingIt) {
   EXPECT_TRUE(
       absl::StartsWith(part.status().message(), "tile 0: the server making it stopped on each of its 2 attempts"))
       << part.status();
-  auto more = first_->ClaimTile("helper", milliseconds(60'000));
+  auto more = first_->ClaimTile("helper", milliseconds(60'000), kBuild);
   ASSERT_TRUE(more.ok());
   EXPECT_FALSE(more->has_value()) << "the failed tile is still offered";
   std::filesystem::remove_all(blob_dir);

@@ -145,6 +145,10 @@ struct TilePlan {
   double measure_seconds = 0, scan_seconds = 0, spacing_seconds = 0;
 };
 
+// The format of plans and parts as bytes: servers of other formats cannot read each other's
+// (JobStore::ClaimTile leaves them alone). Raised with every change to either.
+inline constexpr int kTileFormat = 2;
+
 // The plan as bytes ("LQTP"), for servers of the same build. Errors: kInvalidArgument.
 std::string EncodeTilePlan(const TilePlan& plan);
 absl::StatusOr<TilePlan> DecodeTilePlan(std::string_view bytes);

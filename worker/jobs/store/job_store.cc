@@ -17,8 +17,8 @@ int64_t NowMs() {
 
 // The schema version this build writes (PRAGMA user_version). 0: the unversioned tables of
 // earlier builds; 1: runners, leases, change numbers and the removals table; 2: owners and
-// stored sizes; 3: the owner's quota a job's results are held to; 4: tiles.
-constexpr int kSchemaVersion = 4;
+// stored sizes; 3: the owner's quota a job's results are held to; 4: tiles; 5: the tiles' format.
+constexpr int kSchemaVersion = 5;
 
 // A tile's states in the job_tiles table.
 constexpr char kTileQueued[] = "0";
@@ -95,7 +95,7 @@ absl::Status SqliteJobStore::Migrate() {
                           "CREATE TABLE IF NOT EXISTS job_removals (id TEXT PRIMARY KEY, seq INTEGER)",
                           "CREATE TABLE IF NOT EXISTS job_tiles (job_id TEXT NOT NULL, tile INTEGER NOT NULL, "
                           "state INTEGER NOT NULL, runner TEXT NOT NULL, lease_expires_ms INTEGER NOT NULL, "
-                          "attempts INTEGER NOT NULL, PRIMARY KEY (job_id, tile))"}) {
+                          "attempts INTEGER NOT NULL, build INTEGER NOT NULL DEFAULT 0, PRIMARY KEY (job_id, tile))"}) {
     if (auto r = Query(sql); !r.ok()) return r.status();
   }
   // Databases written by earlier builds lack the later columns; each is added where missing,
@@ -110,6 +110,11 @@ absl::Status SqliteJobStore::Migrate() {
     const bool has = std::any_of(present->begin(), present->end(), [&](const Row& row) { return row[0] == name; });
     if (has) continue;
     if (auto r = Query(core::StrCat("ALTER TABLE jobs ADD COLUMN ", column)); !r.ok()) return r.status();
+  }
+  auto tile_columns = Query("SELECT name FROM pragma_table_info('job_tiles') WHERE name = 'build'");
+  if (!tile_columns.ok()) return tile_columns.status();
+  if (tile_columns->empty()) {
+    if (auto r = Query("ALTER TABLE job_tiles ADD COLUMN build INTEGER NOT NULL DEFAULT 0"); !r.ok()) return r.status();
   }
   // Rows of earlier builds get values where the new columns must have one.
   if (auto r = Query("UPDATE jobs SET runner = COALESCE(runner, ''), cancel_requested = COALESCE(cancel_requested, 0), "
@@ -300,20 +305,21 @@ absl::Status SqliteJobStore::Remove(const std::string& id) {
   return Query("INSERT OR REPLACE INTO job_removals (id, seq) VALUES (?1, ?2)", {id, std::to_string(++seq_)}).status();
 }
 
-absl::Status SqliteJobStore::AddTiles(const std::string& job_id, int64_t count) {
+absl::Status SqliteJobStore::AddTiles(const std::string& job_id, int64_t count, int build) {
   std::lock_guard lock(mutex_);
   if (auto r = Query("DELETE FROM job_tiles WHERE job_id = ?1", {job_id}); !r.ok()) return r.status();
   if (count <= 0) return absl::OkStatus();
   return Query(core::StrCat(
                    "WITH RECURSIVE n(i) AS (SELECT 0 UNION ALL SELECT i + 1 FROM n WHERE i + 1 < CAST(?2 AS INTEGER)) "
-                   "INSERT INTO job_tiles SELECT ?1, i, ",
-                   kTileQueued, ", '', 0, 0 FROM n"),
-               {job_id, std::to_string(count)})
+                   "INSERT INTO job_tiles (job_id, tile, state, runner, lease_expires_ms, attempts, build) SELECT ?1, "
+                   "i, ",
+                   kTileQueued, ", '', 0, 0, CAST(?3 AS INTEGER) FROM n"),
+               {job_id, std::to_string(count), std::to_string(build)})
       .status();
 }
 
 absl::StatusOr<std::optional<TileTask>> SqliteJobStore::ClaimTile(const std::string& runner,
-                                                                  std::chrono::milliseconds lease,
+                                                                  std::chrono::milliseconds lease, int build,
                                                                   const std::string& job_id) {
   std::lock_guard lock(mutex_);
   const int64_t now = NowMs();
@@ -323,9 +329,10 @@ absl::StatusOr<std::optional<TileTask>> SqliteJobStore::ClaimTile(const std::str
                    "FROM job_tiles t JOIN jobs j ON j.id = t.job_id WHERE ",
                    rows::WithStates("j.state = {running}"), " AND (t.state = ", kTileQueued,
                    " OR (t.state = ", kTileRunning,
-                   " AND t.lease_expires_ms <= ?3)) AND (?4 = '' OR t.job_id = ?4) ORDER BY t.job_id, t.tile LIMIT 1) "
+                   " AND t.lease_expires_ms <= ?3)) AND (?4 = '' OR t.job_id = ?4) AND t.build = CAST(?5 AS INTEGER) "
+                   "ORDER BY t.job_id, t.tile LIMIT 1) "
                    "RETURNING job_id, tile, attempts"),
-      {runner, std::to_string(now + lease.count()), std::to_string(now), job_id});
+      {runner, std::to_string(now + lease.count()), std::to_string(now), job_id, std::to_string(build)});
   if (!claimed.ok()) return claimed.status();
   if (claimed->empty()) return std::optional<TileTask>();
   const Row& row = claimed->front();

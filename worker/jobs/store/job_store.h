@@ -85,12 +85,13 @@ class JobStore {
 
   // Tiles. A tile is queued, then held by one runner under a lease it renews, then done. A tile
   // whose lease lapsed is claimed again like a queued one, so a dead server's tiles are re-run.
-  // Tiles 0..count-1 of a job, queued (those it had are dropped). Errors: kUnavailable.
-  virtual absl::Status AddTiles(const std::string& job_id, int64_t count) = 0;
-  // Takes the first queued or lapsed tile of a running job (of `job_id` only, when not empty)
-  // for `runner` under a lease. nullopt when there is none. Errors: kUnavailable.
+  // Tiles 0..count-1 of a job, queued (those it had are dropped), made by a server whose tiles are
+  // of format `build` (pu::kTileFormat): only servers of that format claim them. Errors: kUnavailable.
+  virtual absl::Status AddTiles(const std::string& job_id, int64_t count, int build) = 0;
+  // Takes the first queued or lapsed tile of format `build` of a running job (of `job_id` only,
+  // when not empty) for `runner` under a lease. nullopt when there is none. Errors: kUnavailable.
   virtual absl::StatusOr<std::optional<TileTask>> ClaimTile(const std::string& runner, std::chrono::milliseconds lease,
-                                                            const std::string& job_id = "") = 0;
+                                                            int build, const std::string& job_id = "") = 0;
   // Extends the leases of those of `tiles` that `runner` holds; returns those. Errors: kUnavailable.
   virtual absl::StatusOr<std::vector<TileTask>> RenewTiles(const std::string& runner,
                                                            const std::vector<TileTask>& tiles,
@@ -133,9 +134,9 @@ class SqliteJobStore final : public JobStore {
   absl::StatusOr<JobRecord> Get(const std::string& id) override;
   absl::StatusOr<JobChanges> ChangesSince(int64_t seq) override;
   void WaitForOthers(std::chrono::milliseconds timeout) override;
-  absl::Status AddTiles(const std::string& job_id, int64_t count) override;
+  absl::Status AddTiles(const std::string& job_id, int64_t count, int build) override;
   absl::StatusOr<std::optional<TileTask>> ClaimTile(const std::string& runner, std::chrono::milliseconds lease,
-                                                    const std::string& job_id) override;
+                                                    int build, const std::string& job_id) override;
   absl::StatusOr<std::vector<TileTask>> RenewTiles(const std::string& runner, const std::vector<TileTask>& tiles,
                                                    std::chrono::milliseconds lease) override;
   absl::Status FinishTile(const TileTask& tile, const std::string& runner) override;

@@ -81,6 +81,10 @@ CREATE TABLE job_tiles (job_id TEXT NOT NULL, tile BIGINT NOT NULL, state INTEGE
   runner TEXT NOT NULL, lease_expires_ms BIGINT NOT NULL, attempts INTEGER NOT NULL, PRIMARY KEY (job_id, tile));
 CREATE INDEX job_tiles_open ON job_tiles (job_id, tile) WHERE state < 2;
 )sql",
+    // 5: the format of a tile's plan and part (pu::kTileFormat): servers claim only their own.
+    R"sql(
+ALTER TABLE job_tiles ADD COLUMN build INTEGER NOT NULL DEFAULT 0;
+)sql",
 };
 constexpr int kSchemaVersion = sizeof(kMigrations) / sizeof(kMigrations[0]);
 
@@ -294,12 +298,14 @@ absl::Status PostgresJobStore::Remove(const std::string& id) {
   return NotFinished(*found);
 }
 
-absl::Status PostgresJobStore::AddTiles(const std::string& job_id, int64_t count) {
+absl::Status PostgresJobStore::AddTiles(const std::string& job_id, int64_t count, int build) {
   return pool_->Transaction([&](pg_conn* conn) -> absl::Status {
     if (auto r = pg::Exec(conn, "DELETE FROM job_tiles WHERE job_id = $1", {job_id}); !r.ok()) return r.status();
     if (auto r =
-            pg::Exec(conn, "INSERT INTO job_tiles SELECT $1, i, 0, '', 0, 0 FROM generate_series(0, $2::bigint - 1) i",
-                     {job_id, std::to_string(count)});
+            pg::Exec(conn,
+                     "INSERT INTO job_tiles (job_id, tile, state, runner, lease_expires_ms, attempts, build) SELECT "
+                     "$1, i, 0, '', 0, 0, $3::integer FROM generate_series(0, $2::bigint - 1) i",
+                     {job_id, std::to_string(count), std::to_string(build)});
         !r.ok()) {
       return r.status();
     }
@@ -309,15 +315,17 @@ absl::Status PostgresJobStore::AddTiles(const std::string& job_id, int64_t count
 }
 
 absl::StatusOr<std::optional<TileTask>> PostgresJobStore::ClaimTile(const std::string& runner,
-                                                                    std::chrono::milliseconds lease,
+                                                                    std::chrono::milliseconds lease, int build,
                                                                     const std::string& job_id) {
   auto claimed = pool_->Exec(
-      rows::WithStates("UPDATE job_tiles SET state = 1, runner = $1, lease_expires_ms = lsqsurf_now_ms() + $2, "
-                       "attempts = attempts + 1 WHERE (job_id, tile) = (SELECT t.job_id, t.tile FROM job_tiles t JOIN "
-                       "jobs j ON j.id = t.job_id WHERE j.state = {running} AND (t.state = 0 OR (t.state = 1 AND "
-                       "t.lease_expires_ms <= lsqsurf_now_ms())) AND ($3 = '' OR t.job_id = $3) ORDER BY t.job_id, "
-                       "t.tile LIMIT 1 FOR UPDATE OF t SKIP LOCKED) RETURNING job_id, tile, attempts"),
-      {runner, std::to_string(lease.count()), job_id});
+      rows::WithStates(
+          "UPDATE job_tiles SET state = 1, runner = $1, lease_expires_ms = lsqsurf_now_ms() + $2, "
+          "attempts = attempts + 1 WHERE (job_id, tile) = (SELECT t.job_id, t.tile FROM job_tiles t JOIN "
+          "jobs j ON j.id = t.job_id WHERE j.state = {running} AND (t.state = 0 OR (t.state = 1 AND "
+          "t.lease_expires_ms <= lsqsurf_now_ms())) AND ($3 = '' OR t.job_id = $3) AND t.build = $4::integer "
+          "ORDER BY t.job_id, "
+          "t.tile LIMIT 1 FOR UPDATE OF t SKIP LOCKED) RETURNING job_id, tile, attempts"),
+      {runner, std::to_string(lease.count()), job_id, std::to_string(build)});
   if (!claimed.ok()) return claimed.status();
   if (claimed->rows.empty()) return std::optional<TileTask>();
   const auto& row = claimed->rows.front();

@@ -48,9 +48,9 @@ class PostgresJobStore final : public JobStore {
   absl::StatusOr<JobRecord> Get(const std::string& id) override;
   absl::StatusOr<JobChanges> ChangesSince(int64_t seq) override;
   void WaitForOthers(std::chrono::milliseconds timeout) override;
-  absl::Status AddTiles(const std::string& job_id, int64_t count) override;
+  absl::Status AddTiles(const std::string& job_id, int64_t count, int build) override;
   absl::StatusOr<std::optional<TileTask>> ClaimTile(const std::string& runner, std::chrono::milliseconds lease,
-                                                    const std::string& job_id) override;
+                                                    int build, const std::string& job_id) override;
   absl::StatusOr<std::vector<TileTask>> RenewTiles(const std::string& runner, const std::vector<TileTask>& tiles,
                                                    std::chrono::milliseconds lease) override;
   absl::Status FinishTile(const TileTask& tile, const std::string& runner) override;

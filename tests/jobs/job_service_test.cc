@@ -1132,8 +1132,8 @@ class ForwardingStore : public JobStore {
   absl::StatusOr<JobRecord> Get(const std::string& id) override { return inner_->Get(id); }
   absl::StatusOr<JobChanges> ChangesSince(int64_t seq) override { return inner_->ChangesSince(seq); }
   void WaitForOthers(std::chrono::milliseconds timeout) override { inner_->WaitForOthers(timeout); }
-  absl::Status AddTiles(const std::string& id, int64_t count, int build) override {
-    return inner_->AddTiles(id, count, build);
+  absl::Status AddTiles(const std::string& id, int64_t count, int build, const std::vector<int64_t>& done) override {
+    return inner_->AddTiles(id, count, build, done);
   }
   absl::StatusOr<std::optional<TileTask>> ClaimTile(const std::string& runner, std::chrono::milliseconds lease,
                                                     int build, const std::string& id) override {

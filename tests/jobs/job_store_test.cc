@@ -5,6 +5,7 @@
 
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <atomic>
 #include <future>
 #include <set>
@@ -15,6 +16,7 @@
 #include "tests/postgres_cluster.h"
 #endif
 #include "tests/test_dir.h"
+#include "tests/test_shapes.h"
 #include "worker/core/strings.h"
 #include "worker/jobs/method_registry.h"
 #if LSQSURF_WITH_POSTGRESQL
@@ -321,6 +323,58 @@ TEST_P(JobStoreContract, ATileThatStopsItsServerEveryTimeFailsItsJobNamingIt) {
   auto more = first_->ClaimTile("helper", milliseconds(60'000), kBuild);
   ASSERT_TRUE(more.ok());
   EXPECT_FALSE(more->has_value()) << "the failed tile is still offered";
+  std::filesystem::remove_all(blob_dir);
+}
+
+// A tiled build whose server stopped halfway (no Clear: a kill) is run again by the job's next
+// attempt: the plan is the same but for its timings, so the parts the first attempt left are used
+// again instead of being made anew, and the surface is the one a single process makes.
+TEST_P(JobStoreContract, AResumedTiledBuildReusesThePartsOfItsEarlierAttempt) {
+  ASSERT_TRUE(first_->Insert(Queued("t1", 1)).ok());
+  auto job = first_->Claim("r1/coordinator", milliseconds(60'000));
+  ASSERT_TRUE(job.ok() && job->has_value()) << job.status();
+  const std::filesystem::path blob_dir = testing::FreshTestDir("lsqsurf-resumed-tiles");
+  auto blobs = LocalDirBlobStore::Open(blob_dir.string());
+  ASSERT_TRUE(blobs.ok()) << blobs.status();
+  const core::PointCloud cloud = testing::SphereCloud(20'000);
+  const pu::PuTileParams tiles{.tile_points = 4'000, .support_cap = 16};
+  const TileClaimOptions claims{milliseconds(60'000), [](const TileTask&, bool) {}, 2};
+  core::LocalJobContext ctx;
+  {
+    auto planned = pu::PlannedCloud::Plan(pu::CloudSource(cloud), {}, {}, tiles, ctx);
+    ASSERT_TRUE(planned.ok()) << planned.status();
+    const pu::TilePlan& plan = (*planned)->plan();
+    StoreTileExchange first_attempt(*first_, **blobs, "t1", "r1/coordinator", claims);
+    ASSERT_TRUE(first_attempt
+                    .Publish(pu::EncodeTilePlan(plan), static_cast<int64_t>(plan.tiles.size()),
+                             [&](int64_t t) -> absl::StatusOr<std::string> {
+                               auto points = (*planned)->TilePoints(static_cast<size_t>(t));
+                               if (!points.ok()) return points.status();
+                               return pu::EncodeTilePoints(*points);
+                             })
+                    .ok());
+    for (int made = 0; made < 3; ++made) {
+      auto ran = RunClaimedTile(*second_, **blobs, "r2/helper", claims, ctx);
+      ASSERT_TRUE(ran.ok() && *ran) << ran.status();
+    }
+  }  // The first attempt's server is gone, its tiles and blobs left behind.
+  StoreTileExchange second_attempt(*first_, **blobs, "t1", "r1/coordinator", claims);
+  pu::MeshSink resumed;
+  auto built = ReconstructTiledShared(pu::CloudSource(cloud), {}, {}, tiles, resumed, ctx, {"", &second_attempt});
+  ASSERT_TRUE(built.ok()) << built.status();
+  EXPECT_EQ(second_attempt.Reused(), 3);
+  EXPECT_EQ(second_attempt.Servers(), 1) << "the reused parts count for no server";
+  EXPECT_FALSE((*blobs)->Exists("t1", "tile-plan")) << "the build's blobs stay behind";
+  pu::MeshSink alone;
+  ASSERT_TRUE(pu::ReconstructTiled(pu::CloudSource(cloud), {}, {}, tiles, alone, ctx).ok());
+  ASSERT_EQ(resumed.mesh().faces.size(), alone.mesh().faces.size());
+  auto sorted = [](std::vector<core::Vec3f> v) {
+    std::sort(v.begin(), v.end(), [](const core::Vec3f& a, const core::Vec3f& b) {
+      return std::lexicographical_compare(a.data(), a.data() + 3, b.data(), b.data() + 3);
+    });
+    return v;
+  };
+  EXPECT_TRUE(sorted(resumed.mesh().vertices) == sorted(alone.mesh().vertices));
   std::filesystem::remove_all(blob_dir);
 }
 

@@ -290,7 +290,10 @@ absl::StatusOr<extract::IsosurfaceResult> RunTiledPu(const PuJobParams& p, const
                    ? ReconstructTiledShared(source, p.fit, extract, p.tiles, sink, ctx, run.tiled)
                    : pu::ReconstructTiled(source, p.fit, extract, p.tiles, sink, ctx, run.tiled.scratch_dir);
   if (!tiled.ok()) return tiled.status();
-  if (run.tiled.exchange != nullptr) stat("replicas", run.tiled.exchange->Servers());
+  if (run.tiled.exchange != nullptr) {
+    stat("replicas", run.tiled.exchange->Servers());
+    stat("reused_tiles", static_cast<double>(run.tiled.exchange->Reused()));
+  }
   if (parts.has_value()) {
     stat("mesh_parts", static_cast<double>(parts->parts()));
     stat("triangles", static_cast<double>(parts->faces()));

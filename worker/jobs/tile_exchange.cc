@@ -122,8 +122,21 @@ absl::Status StoreTileExchange::Publish(std::string_view plan, int64_t tiles,
                                         const std::function<absl::StatusOr<std::string>(int64_t)>& points) {
   tiles_ = tiles;
   done_.clear();
+  // An earlier attempt of the job (its server stopped) under the same plan: the parts it left
+  // are this plan's, to the byte.
+  std::vector<int64_t> kept;
+  if (auto earlier = blobs_.Read(job_id_, kPlanBlob); earlier.ok() && pu::SameTilePlan(*earlier, plan)) {
+    for (int64_t t = 0; t < tiles; ++t) {
+      if (blobs_.Exists(job_id_, TileBlob("part", t))) kept.push_back(t);
+    }
+  }
+  reused_ = static_cast<int64_t>(kept.size());
   LSQSURF_RETURN_IF_ERROR(blobs_.Put(job_id_, kPlanBlob, plan));
-  for (int64_t t = 0; t < tiles; ++t) {
+  for (int64_t t = 0, next_kept = 0; t < tiles; ++t) {
+    if (next_kept < reused_ && kept[static_cast<size_t>(next_kept)] == t) {
+      ++next_kept;
+      continue;
+    }
     auto bytes = points(t);
     if (!bytes.ok()) return bytes.status();
     LSQSURF_RETURN_IF_ERROR(blobs_.Put(job_id_, TileBlob("points", t), *bytes));
@@ -131,7 +144,7 @@ absl::Status StoreTileExchange::Publish(std::string_view plan, int64_t tiles,
     LSQSURF_RETURN_IF_ERROR(blobs_.Remove(job_id_, TileBlob("part", t)));
     LSQSURF_RETURN_IF_ERROR(blobs_.Remove(job_id_, TileBlob("error", t)));
   }
-  return store_.AddTiles(job_id_, tiles, pu::kTileFormat);
+  return store_.AddTiles(job_id_, tiles, pu::kTileFormat, kept);
 }
 
 absl::StatusOr<std::string> StoreTileExchange::Part(int64_t tile, core::JobContext& ctx) {
@@ -149,10 +162,10 @@ absl::StatusOr<std::string> StoreTileExchange::Part(int64_t tile, core::JobConte
       if (!absl::IsNotFound(text.status())) return text.status();
       auto part = blobs_.Read(job_id_, TileBlob("part", tile));
       if (!part.ok()) return part.status();
-      servers_.insert(ServerOf(it->second));
-      // The part is welded now: its points and bytes are not needed any more.
+      if (!it->second.empty()) servers_.insert(ServerOf(it->second));  // Not a reused part.
+      // The part is welded now: its points are not needed any more. The part stays until the
+      // build ends, for a later attempt should this server stop.
       (void)blobs_.Remove(job_id_, TileBlob("points", tile));
-      (void)blobs_.Remove(job_id_, TileBlob("part", tile));
       return part;
     }
     auto ran = RunClaimedTile(store_, blobs_, runner_, claims_, ctx, job_id_);

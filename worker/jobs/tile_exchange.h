@@ -40,6 +40,8 @@ class TileExchange {
   virtual absl::StatusOr<std::string> Part(int64_t tile, core::JobContext& ctx) = 0;
   // The servers (runner names up to the '/') that made the parts Part returned.
   virtual int Servers() const = 0;
+  // The tiles whose parts an earlier attempt of the job made under the same plan, used again.
+  virtual int64_t Reused() const = 0;
   // Drops the tiles and their blobs.
   virtual void Clear() = 0;
 };
@@ -98,6 +100,7 @@ class StoreTileExchange final : public TileExchange {
                        const std::function<absl::StatusOr<std::string>(int64_t)>& points) override;
   absl::StatusOr<std::string> Part(int64_t tile, core::JobContext& ctx) override;
   int Servers() const override { return static_cast<int>(servers_.size()); }
+  int64_t Reused() const override { return reused_; }
   void Clear() override;
 
  private:
@@ -105,7 +108,7 @@ class StoreTileExchange final : public TileExchange {
   BlobStore& blobs_;
   std::string job_id_, runner_;
   TileClaimOptions claims_;
-  int64_t tiles_ = 0;
+  int64_t tiles_ = 0, reused_ = 0;
   std::map<int64_t, std::string> done_;  // Tile → the runner that finished it.
   std::set<std::string> servers_;
 };

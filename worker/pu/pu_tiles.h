@@ -147,11 +147,14 @@ struct TilePlan {
 
 // The format of plans and parts as bytes: servers of other formats cannot read each other's
 // (JobStore::ClaimTile leaves them alone). Raised with every change to either.
-inline constexpr int kTileFormat = 2;
+inline constexpr int kTileFormat = 3;
 
 // The plan as bytes ("LQTP"), for servers of the same build. Errors: kInvalidArgument.
 std::string EncodeTilePlan(const TilePlan& plan);
 absl::StatusOr<TilePlan> DecodeTilePlan(std::string_view bytes);
+// Whether two encoded plans cut the same cloud into the same tiles with the same parameters (all
+// but the timings planning measured), so that the parts made for one are the other's.
+bool SameTilePlan(std::string_view a, std::string_view b);
 
 // The cloud's plan and each tile's points, kept in files under a directory of its own below
 // `scratch_parent` (the system's temporary directory when empty), removed with this object.

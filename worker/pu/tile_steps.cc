@@ -17,7 +17,7 @@ namespace lsqsurf::pu {
 namespace {
 
 // kTileFormat rises with any change to these formats; the plan's magic carries it.
-constexpr std::string_view kPlanMagic = "LQTP0002";
+constexpr std::string_view kPlanMagic = "LQTP0003";
 static_assert(kPlanMagic.back() - '0' == kTileFormat % 10);
 constexpr std::string_view kTileMagic = "LQT10001";
 constexpr std::string_view kPointsMagic = "LQTX0001";
@@ -32,6 +32,24 @@ void WriteMagic(core::BinaryWriter& w, std::string_view magic) {
 
 void WriteVec(core::BinaryWriter& w, const core::Vec3d& v) { w.Scalar(v.x()), w.Scalar(v.y()), w.Scalar(v.z()); }
 bool ReadVec(core::BinaryReader& r, core::Vec3d& v) { return r.Scalar(v.x()) && r.Scalar(v.y()) && r.Scalar(v.z()); }
+
+// The frame's parameters field by field, so that equal plans are equal bytes (SameTilePlan).
+static_assert(sizeof(PuParams) == 88, "a new PuParams field must travel in tile plans");
+void WriteFitParams(core::BinaryWriter& w, const PuParams& p) {
+  w.Scalar(p.error_threshold), w.Scalar(p.max_depth), w.Scalar(p.max_degree), w.Scalar(p.support_factor);
+  w.Scalar(p.min_points), w.Scalar(p.max_normal_angle), w.Scalar<uint8_t>(p.coverage_check);
+  w.Scalar(p.coverage_factor), w.Scalar<uint8_t>(p.orientation_check), w.Scalar(p.noise_level);
+  w.Scalar<uint8_t>(p.sharp), w.Scalar(p.sharp_angle);
+}
+bool ReadFitParams(core::BinaryReader& r, PuParams& p) {
+  uint8_t coverage = 0, orientation = 0, sharp = 0;
+  const bool read = r.Scalar(p.error_threshold) && r.Scalar(p.max_depth) && r.Scalar(p.max_degree) &&
+                    r.Scalar(p.support_factor) && r.Scalar(p.min_points) && r.Scalar(p.max_normal_angle) &&
+                    r.Scalar(coverage) && r.Scalar(p.coverage_factor) && r.Scalar(orientation) &&
+                    r.Scalar(p.noise_level) && r.Scalar(sharp) && r.Scalar(p.sharp_angle);
+  p.coverage_check = coverage != 0, p.orientation_check = orientation != 0, p.sharp = sharp != 0;
+  return read && coverage <= 1 && orientation <= 1 && sharp <= 1;
+}
 
 // The fit statistics a tile adds to the build's (the per-depth ones stay with the tile).
 void WriteFitStats(core::BinaryWriter& w, const PuStats& s) {
@@ -272,7 +290,8 @@ std::string EncodeTilePlan(const TilePlan& plan) {
   const PuFrame& f = plan.frame;
   WriteVec(w, f.origin);
   w.Scalar(f.root_edge), w.Scalar(f.diagonal), w.Scalar(f.mean_spacing), w.Scalar(f.noise_estimate);
-  w.Scalar(f.params), w.Scalar(f.max_support);
+  WriteFitParams(w, f.params);
+  w.Scalar(f.max_support);
   WriteExtractParams(plan.extract, w);
   w.Scalar(plan.extract.max_hole_edges);  // Not in WriteExtractParams: kept surfaces do not store it.
   w.Scalar(plan.tile_level), w.Scalar(plan.data_margin), w.Scalar(plan.extraction_margin);
@@ -287,7 +306,7 @@ absl::StatusOr<TilePlan> DecodeTilePlan(std::string_view bytes) {
   TilePlan plan;
   PuFrame& f = plan.frame;
   const bool read = ReadMagic(r, kPlanMagic) && ReadVec(r, f.origin) && r.Scalar(f.root_edge) && r.Scalar(f.diagonal) &&
-                    r.Scalar(f.mean_spacing) && r.Scalar(f.noise_estimate) && r.Scalar(f.params) &&
+                    r.Scalar(f.mean_spacing) && r.Scalar(f.noise_estimate) && ReadFitParams(r, f.params) &&
                     r.Scalar(f.max_support) && ReadExtractParams(r, plan.extract) &&
                     r.Scalar(plan.extract.max_hole_edges) && r.Scalar(plan.tile_level) && r.Scalar(plan.data_margin) &&
                     r.Scalar(plan.extraction_margin) && r.Array(plan.tiles) && r.Scalar(plan.points) &&
@@ -299,6 +318,13 @@ absl::StatusOr<TilePlan> DecodeTilePlan(std::string_view bytes) {
     return absl::InvalidArgumentError("a tile plan is unreadable");
   }
   return plan;
+}
+
+bool SameTilePlan(std::string_view a, std::string_view b) {
+  auto x = DecodeTilePlan(a), y = DecodeTilePlan(b);
+  if (!x.ok() || !y.ok()) return false;
+  for (TilePlan* plan : {&*x, &*y}) plan->measure_seconds = plan->scan_seconds = plan->spacing_seconds = 0;
+  return EncodeTilePlan(*x) == EncodeTilePlan(*y);
 }
 
 std::string EncodeTilePoints(const core::PointCloud& points) {

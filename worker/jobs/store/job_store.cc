@@ -305,17 +305,24 @@ absl::Status SqliteJobStore::Remove(const std::string& id) {
   return Query("INSERT OR REPLACE INTO job_removals (id, seq) VALUES (?1, ?2)", {id, std::to_string(++seq_)}).status();
 }
 
-absl::Status SqliteJobStore::AddTiles(const std::string& job_id, int64_t count, int build) {
+absl::Status SqliteJobStore::AddTiles(const std::string& job_id, int64_t count, int build,
+                                      const std::vector<int64_t>& done) {
   std::lock_guard lock(mutex_);
   if (auto r = Query("DELETE FROM job_tiles WHERE job_id = ?1", {job_id}); !r.ok()) return r.status();
   if (count <= 0) return absl::OkStatus();
-  return Query(core::StrCat(
-                   "WITH RECURSIVE n(i) AS (SELECT 0 UNION ALL SELECT i + 1 FROM n WHERE i + 1 < CAST(?2 AS INTEGER)) "
+  auto added = Query(
+      core::StrCat("WITH RECURSIVE n(i) AS (SELECT 0 UNION ALL SELECT i + 1 FROM n WHERE i + 1 < CAST(?2 AS INTEGER)) "
                    "INSERT INTO job_tiles (job_id, tile, state, runner, lease_expires_ms, attempts, build) SELECT ?1, "
                    "i, ",
                    kTileQueued, ", '', 0, 0, CAST(?3 AS INTEGER) FROM n"),
-               {job_id, std::to_string(count), std::to_string(build)})
-      .status();
+      {job_id, std::to_string(count), std::to_string(build)});
+  if (!added.ok()) return added.status();
+  for (int64_t tile : done) {
+    auto r = Query(core::StrCat("UPDATE job_tiles SET state = ", kTileDone, " WHERE job_id = ?1 AND tile = ?2"),
+                   {job_id, std::to_string(tile)});
+    if (!r.ok()) return r.status();
+  }
+  return absl::OkStatus();
 }
 
 absl::StatusOr<std::optional<TileTask>> SqliteJobStore::ClaimTile(const std::string& runner,

@@ -85,9 +85,11 @@ class JobStore {
 
   // Tiles. A tile is queued, then held by one runner under a lease it renews, then done. A tile
   // whose lease lapsed is claimed again like a queued one, so a dead server's tiles are re-run.
-  // Tiles 0..count-1 of a job, queued (those it had are dropped), made by a server whose tiles are
-  // of format `build` (pu::kTileFormat): only servers of that format claim them. Errors: kUnavailable.
-  virtual absl::Status AddTiles(const std::string& job_id, int64_t count, int build) = 0;
+  // Tiles 0..count-1 of a job, queued (those it had are dropped) but for those in `done`, which an
+  // earlier attempt made; made by a server whose tiles are of format `build` (pu::kTileFormat): only
+  // servers of that format claim them. Errors: kUnavailable.
+  virtual absl::Status AddTiles(const std::string& job_id, int64_t count, int build,
+                                const std::vector<int64_t>& done = {}) = 0;
   // Takes the first queued or lapsed tile of format `build` of a running job (of `job_id` only,
   // when not empty) for `runner` under a lease. nullopt when there is none. Errors: kUnavailable.
   virtual absl::StatusOr<std::optional<TileTask>> ClaimTile(const std::string& runner, std::chrono::milliseconds lease,
@@ -134,7 +136,7 @@ class SqliteJobStore final : public JobStore {
   absl::StatusOr<JobRecord> Get(const std::string& id) override;
   absl::StatusOr<JobChanges> ChangesSince(int64_t seq) override;
   void WaitForOthers(std::chrono::milliseconds timeout) override;
-  absl::Status AddTiles(const std::string& job_id, int64_t count, int build) override;
+  absl::Status AddTiles(const std::string& job_id, int64_t count, int build, const std::vector<int64_t>& done) override;
   absl::StatusOr<std::optional<TileTask>> ClaimTile(const std::string& runner, std::chrono::milliseconds lease,
                                                     int build, const std::string& job_id) override;
   absl::StatusOr<std::vector<TileTask>> RenewTiles(const std::string& runner, const std::vector<TileTask>& tiles,

@@ -298,7 +298,8 @@ absl::Status PostgresJobStore::Remove(const std::string& id) {
   return NotFinished(*found);
 }
 
-absl::Status PostgresJobStore::AddTiles(const std::string& job_id, int64_t count, int build) {
+absl::Status PostgresJobStore::AddTiles(const std::string& job_id, int64_t count, int build,
+                                        const std::vector<int64_t>& done) {
   return pool_->Transaction([&](pg_conn* conn) -> absl::Status {
     if (auto r = pg::Exec(conn, "DELETE FROM job_tiles WHERE job_id = $1", {job_id}); !r.ok()) return r.status();
     if (auto r =
@@ -308,6 +309,11 @@ absl::Status PostgresJobStore::AddTiles(const std::string& job_id, int64_t count
                      {job_id, std::to_string(count), std::to_string(build)});
         !r.ok()) {
       return r.status();
+    }
+    for (int64_t tile : done) {
+      auto r = pg::Exec(conn, "UPDATE job_tiles SET state = 2 WHERE job_id = $1 AND tile = $2::bigint",
+                        {job_id, std::to_string(tile)});
+      if (!r.ok()) return r.status();
     }
     // Idle servers wait on the jobs' channel: new tiles are work for them.
     return pg::Exec(conn, "SELECT pg_notify('lsqsurf_jobs', '')").status();

@@ -48,7 +48,7 @@ class PostgresJobStore final : public JobStore {
   absl::StatusOr<JobRecord> Get(const std::string& id) override;
   absl::StatusOr<JobChanges> ChangesSince(int64_t seq) override;
   void WaitForOthers(std::chrono::milliseconds timeout) override;
-  absl::Status AddTiles(const std::string& job_id, int64_t count, int build) override;
+  absl::Status AddTiles(const std::string& job_id, int64_t count, int build, const std::vector<int64_t>& done) override;
   absl::StatusOr<std::optional<TileTask>> ClaimTile(const std::string& runner, std::chrono::milliseconds lease,
                                                     int build, const std::string& job_id) override;
   absl::StatusOr<std::vector<TileTask>> RenewTiles(const std::string& runner, const std::vector<TileTask>& tiles,

@@ -1143,6 +1143,9 @@ class ForwardingStore : public JobStore {
                                                    std::chrono::milliseconds lease) override {
     return inner_->RenewTiles(runner, tiles, lease);
   }
+  absl::Status ReleaseTile(const TileTask& tile, const std::string& runner) override {
+    return inner_->ReleaseTile(tile, runner);
+  }
   absl::Status FinishTile(const TileTask& tile, const std::string& runner) override {
     return inner_->FinishTile(tile, runner);
   }

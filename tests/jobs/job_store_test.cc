@@ -326,6 +326,34 @@ TEST_P(JobStoreContract, ATileThatStopsItsServerEveryTimeFailsItsJobNamingIt) {
   std::filesystem::remove_all(blob_dir);
 }
 
+// A tile given back by its runner (it stops, or cannot read the tile's blobs) is queued at once,
+// and that claim does not count among the tile's attempts. A server whose blob store is not the
+// one the job's server published to gives its tile back and says so.
+TEST_P(JobStoreContract, ATileGivenBackIsClaimedAgainWithoutCountingTheAttempt) {
+  ASSERT_TRUE(first_->Insert(Queued("t1", 1)).ok());
+  auto job = first_->Claim("coordinator", milliseconds(60'000));
+  ASSERT_TRUE(job.ok() && job->has_value()) << job.status();
+  ASSERT_TRUE(first_->AddTiles("t1", 1, kBuild).ok());
+  auto held = second_->ClaimTile("helper", milliseconds(60'000), kBuild);
+  ASSERT_TRUE(held.ok() && held->has_value()) << held.status();
+  EXPECT_EQ(first_->ReleaseTile(**held, "someone-else").code(), absl::StatusCode::kAborted);
+  ASSERT_TRUE(second_->ReleaseTile(**held, "helper").ok());
+  EXPECT_EQ(second_->ReleaseTile(**held, "helper").code(), absl::StatusCode::kAborted) << "given back twice";
+
+  const std::filesystem::path blob_dir = testing::FreshTestDir("lsqsurf-unshared-blobs");
+  auto unshared = LocalDirBlobStore::Open(blob_dir.string());  // Holds none of the job's blobs.
+  ASSERT_TRUE(unshared.ok()) << unshared.status();
+  const TileClaimOptions claims{milliseconds(60'000), [](const TileTask&, bool) {}, 2};
+  core::LocalJobContext ctx;
+  auto ran = RunClaimedTile(*second_, **unshared, "r2/helper", claims, ctx);
+  EXPECT_EQ(ran.status().code(), absl::StatusCode::kFailedPrecondition) << ran.status();
+  EXPECT_TRUE(absl::StrContains(ran.status().message(), "blob store")) << ran.status();
+  auto again = first_->ClaimTile("coordinator", milliseconds(60'000), kBuild);
+  ASSERT_TRUE(again.ok() && again->has_value()) << again.status();
+  EXPECT_EQ((*again)->attempts, 1) << "a claim given back was counted";
+  std::filesystem::remove_all(blob_dir);
+}
+
 // A tiled build whose server stopped halfway (no Clear: a kill) is run again by the job's next
 // attempt: the plan is the same but for its timings, so the parts the first attempt left are used
 // again instead of being made anew, and the surface is the one a single process makes.

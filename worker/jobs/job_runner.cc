@@ -185,7 +185,7 @@ void JobService::WorkerLoop() {
 }
 
 bool JobService::RunOthersTile() {
-  if (!store_->shared()) return false;
+  if (!store_->shared() || tiles_unreadable_) return false;
   // Stopped by a shutdown; the tile's lease then lapses and another server runs it.
   struct ShutdownContext final : core::JobContext {
     const JobService& service;
@@ -199,6 +199,12 @@ bool JobService::RunOthersTile() {
   const TileClaimOptions claims{options_.lease, [this](const TileTask& t, bool held) { HoldTile(t, held); },
                                 options_.max_attempts};
   auto ran = RunClaimedTile(*store_, *blobs_, runner_, claims, ctx);
+  if (absl::IsFailedPrecondition(ran.status())) {
+    spdlog::error("{}; this server takes no more tiles of other servers' jobs (is --blob-dir shared with them?)",
+                  ran.status().message());
+    tiles_unreadable_ = true;
+    return false;
+  }
   if (!ran.ok() && !absl::IsCancelled(ran.status())) {
     if (!claims_failing_.exchange(true)) spdlog::error("cannot take tiles from the store: {}", ran.status().ToString());
     return false;

@@ -287,6 +287,9 @@ class JobService {
   std::atomic<bool> sync_stop_{false};
   std::atomic<bool> store_reachable_{true};
   std::atomic<bool> claims_failing_{false};
+  // Set once a tile of another server's job could not be read from this server's blob store: it
+  // takes no more tiles (each would only wait out its lease).
+  std::atomic<bool> tiles_unreadable_{false};
   int64_t synced_seq_ = 0;  // The store's change number this service has seen (sync thread).
   bool shutting_down_ = false;
   struct HeldInput {

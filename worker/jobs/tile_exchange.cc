@@ -95,7 +95,23 @@ absl::StatusOr<bool> RunClaimedTile(JobStore& store, BlobStore& blobs, const std
   hold(task, true);
   const auto start = std::chrono::steady_clock::now();
   absl::Status ran = absl::OkStatus();
-  if (auto made = RunSharedTile(blobs, task.job_id, task.tile, ctx); !made.ok()) {
+  auto made = RunSharedTile(blobs, task.job_id, task.tile, ctx);
+  // Not this tile's fault, so not one of its attempts: this server stops, or cannot see the blobs
+  // the job's server published (its blob store is not the one the others share) while the job runs.
+  const bool stopping = absl::IsCancelled(made.status()) && ctx.IsCancelled();
+  const bool unreadable = absl::IsNotFound(made.status()) && [&] {
+    auto job = store.Get(task.job_id);
+    return job.ok() && job->state == JobState::kRunning;
+  }();
+  if (stopping || unreadable) {
+    hold(task, false);
+    if (absl::Status s = store.ReleaseTile(task, runner); !s.ok() && !absl::IsAborted(s)) return s;
+    if (stopping) return made.status();
+    return absl::FailedPreconditionError(
+        core::StrCat("tile ", task.tile, " of job ", task.job_id, " cannot be read from this server's blob store (",
+                     made.status().message(), "): it is not the store the other servers share"));
+  }
+  if (!made.ok()) {
     ran = made.status();
   } else {
     // Only for a job that still runs: a part stored after its job was deleted would stay behind.

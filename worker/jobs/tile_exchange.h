@@ -8,7 +8,10 @@
 // order as they come (pu::TileJoiner), so the surface is the one a single server makes.
 //
 // Blobs of the job while it runs: tile-plan, tile-points-N, tile-part-N (or tile-error-N, the
-// reason a tile could not be made); all are removed when the build ends.
+// reason a tile could not be made); all are removed when the build ends. A build resumed after its
+// server stopped uses the parts the earlier attempt made under the same plan (Reused). A tile
+// whose servers stopped while making it more than TileClaimOptions::max_attempts times fails its
+// job; tiles are claimed only by servers of the same pu::kTileFormat.
 #pragma once
 
 #include <chrono>
@@ -116,7 +119,9 @@ class StoreTileExchange final : public TileExchange {
 // Claims one tile of any running job (of `job_id` where given) for `runner`, runs it
 // (RunSharedTile) and stores what it left if the job still runs, holding the tile through
 // `options.hold` meanwhile; a tile past `options.max_attempts` is failed instead. False when there
-// was none. Errors: kCancelled (`ctx`), kUnavailable (the store).
+// was none. A tile not made because this server stops or cannot read its blobs is given back
+// (JobStore::ReleaseTile). Errors: kCancelled (`ctx`), kFailedPrecondition (the tile's blobs are
+// not in `blobs` while its job runs: this server's blob store is not the shared one), kUnavailable.
 absl::StatusOr<bool> RunClaimedTile(JobStore& store, BlobStore& blobs, const std::string& runner,
                                     const TileClaimOptions& options, core::JobContext& ctx,
                                     const std::string& job_id = "");

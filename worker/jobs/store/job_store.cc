@@ -374,6 +374,18 @@ absl::Status SqliteJobStore::FinishTile(const TileTask& tile, const std::string&
   return absl::OkStatus();
 }
 
+absl::Status SqliteJobStore::ReleaseTile(const TileTask& tile, const std::string& runner) {
+  std::lock_guard lock(mutex_);
+  auto r = Query(core::StrCat("UPDATE job_tiles SET state = ", kTileQueued,
+                              ", runner = '', attempts = attempts - 1 WHERE job_id = ?1 AND tile = ?2 AND runner = ?3 "
+                              "AND state = ",
+                              kTileRunning, " RETURNING tile"),
+                 {tile.job_id, std::to_string(tile.tile), runner});
+  if (!r.ok()) return r.status();
+  if (r->empty()) return TileNotHeld(tile, runner);
+  return absl::OkStatus();
+}
+
 absl::StatusOr<std::vector<std::pair<int64_t, std::string>>> SqliteJobStore::DoneTiles(const std::string& job_id) {
   std::lock_guard lock(mutex_);
   auto r = Query(

@@ -100,6 +100,10 @@ class JobStore {
                                                            std::chrono::milliseconds lease) = 0;
   // Marks a tile that `runner` holds done. Errors: kAborted (not held by it), kUnavailable.
   virtual absl::Status FinishTile(const TileTask& tile, const std::string& runner) = 0;
+  // Gives back a tile that `runner` holds and did not make for reasons of its own (it stops, or
+  // cannot read the tile's blobs): queued again, this claim not counted among its attempts.
+  // Errors: kAborted (not held by it), kUnavailable.
+  virtual absl::Status ReleaseTile(const TileTask& tile, const std::string& runner) = 0;
   // The done tiles of a job, in tile order, with the runner that finished each. Errors: kUnavailable.
   virtual absl::StatusOr<std::vector<std::pair<int64_t, std::string>>> DoneTiles(const std::string& job_id) = 0;
   // Drops a job's tiles (Remove does too). Errors: kUnavailable.
@@ -142,6 +146,7 @@ class SqliteJobStore final : public JobStore {
   absl::StatusOr<std::vector<TileTask>> RenewTiles(const std::string& runner, const std::vector<TileTask>& tiles,
                                                    std::chrono::milliseconds lease) override;
   absl::Status FinishTile(const TileTask& tile, const std::string& runner) override;
+  absl::Status ReleaseTile(const TileTask& tile, const std::string& runner) override;
   absl::StatusOr<std::vector<std::pair<int64_t, std::string>>> DoneTiles(const std::string& job_id) override;
   absl::Status RemoveTiles(const std::string& job_id) override;
 

@@ -361,6 +361,17 @@ absl::Status PostgresJobStore::FinishTile(const TileTask& tile, const std::strin
   return absl::OkStatus();
 }
 
+absl::Status PostgresJobStore::ReleaseTile(const TileTask& tile, const std::string& runner) {
+  auto r = pool_->Exec(
+      "UPDATE job_tiles SET state = 0, runner = '', attempts = attempts - 1 WHERE job_id = $1 AND tile = $2 AND "
+      "runner = $3 AND state = 1",
+      {tile.job_id, std::to_string(tile.tile), runner});
+  if (!r.ok()) return r.status();
+  if (r->affected == 0) return TileNotHeld(tile, runner);
+  // Idle servers wait on the jobs' channel: the tile is work for them again.
+  return pool_->Exec("SELECT pg_notify('lsqsurf_jobs', '')").status();
+}
+
 absl::StatusOr<std::vector<std::pair<int64_t, std::string>>> PostgresJobStore::DoneTiles(const std::string& job_id) {
   auto r = pool_->Exec("SELECT tile, runner FROM job_tiles WHERE job_id = $1 AND state = 2 ORDER BY tile", {job_id});
   if (!r.ok()) return r.status();

@@ -54,6 +54,7 @@ class PostgresJobStore final : public JobStore {
   absl::StatusOr<std::vector<TileTask>> RenewTiles(const std::string& runner, const std::vector<TileTask>& tiles,
                                                    std::chrono::milliseconds lease) override;
   absl::Status FinishTile(const TileTask& tile, const std::string& runner) override;
+  absl::Status ReleaseTile(const TileTask& tile, const std::string& runner) override;
   absl::StatusOr<std::vector<std::pair<int64_t, std::string>>> DoneTiles(const std::string& job_id) override;
   absl::Status RemoveTiles(const std::string& job_id) override;
 

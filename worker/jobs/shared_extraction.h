@@ -11,7 +11,7 @@
 #include "worker/core/implicit_function.h"
 #include "worker/core/job_context.h"
 #include "worker/extract/isosurface.h"
-#include "worker/jobs/surface_job.h"
+#include "worker/jobs/surface_params.h"
 
 namespace lsqsurf::jobs {
 

@@ -11,7 +11,7 @@
 #include "worker/core/geometry.h"
 #include "worker/jobs/job.h"
 #include "worker/jobs/job_kind.h"
-#include "worker/jobs/surface_job.h"
+#include "worker/jobs/surface_params.h"
 #include "worker/pu/pu_tiles.h"
 
 namespace lsqsurf::jobs {

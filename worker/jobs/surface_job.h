@@ -17,9 +17,9 @@
 #include "absl/status/statusor.h"
 #include "worker/core/geometry.h"
 #include "worker/core/job_context.h"
-#include "worker/core/normals.h"
 #include "worker/extract/isosurface.h"
 #include "worker/jobs/job_kind.h"
+#include "worker/jobs/surface_params.h"
 #include "worker/jobs/tile_exchange.h"
 #include "worker/mls/algebraic_mls.h"
 #include "worker/mls/gaussian_mls.h"
@@ -28,15 +28,6 @@
 #include "worker/pu/pu_tiles.h"
 
 namespace lsqsurf::jobs {
-
-// Normals for clouds that come without them.
-struct NormalsParams {
-  bool estimate_normals = true;  // PCA + spanning-tree orientation; false rejects clouds without normals.
-  int normal_neighbors = core::NormalEstimationParams{}.neighbors;  // Smallest k of the PCA, 3..128.
-};
-
-// Where the shared extractor looks for the surface, for the methods without their own.
-enum class SurfaceExtractor { kUniformGrid = 0, kJ1a = 1 };
 
 struct IamlsJobParams {
   mls::IamlsParams fit;

@@ -20,9 +20,6 @@ constexpr std::chrono::milliseconds kPartPoll(200);
 
 std::string TileBlob(std::string_view kind, int64_t tile) { return core::StrCat("tile-", kind, "-", tile); }
 
-// The server a runner name belongs to ("r1/5f3a…" → "r1").
-std::string ServerOf(const std::string& runner) { return runner.substr(0, runner.find('/')); }
-
 // A failed tile's status as the text of its error blob: the code's number, a newline, the message.
 std::string EncodeError(const absl::Status& status) {
   return core::StrCat(static_cast<int>(status.code()), "\n", status.message());
@@ -178,7 +175,7 @@ absl::StatusOr<std::string> StoreTileExchange::Part(int64_t tile, core::JobConte
       if (!absl::IsNotFound(text.status())) return text.status();
       auto part = blobs_.Read(job_id_, TileBlob("part", tile));
       if (!part.ok()) return part.status();
-      if (!it->second.empty()) servers_.insert(ServerOf(it->second));  // Not a reused part.
+      if (!it->second.empty()) servers_.insert(it->second);  // Not a reused part.
       // The part is welded now: its points are not needed any more. The part stays until the
       // build ends, for a later attempt should this server stop.
       (void)blobs_.Remove(job_id_, TileBlob("points", tile));

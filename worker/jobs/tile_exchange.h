@@ -41,7 +41,8 @@ class TileExchange {
   // Tile `tile`'s part, once a server has made it; meanwhile this server runs tiles of the build
   // itself. Errors: kCancelled, kUnavailable, the error that tile met.
   virtual absl::StatusOr<std::string> Part(int64_t tile, core::JobContext& ctx) = 0;
-  // The servers (runner names up to the '/') that made the parts Part returned.
+  // The servers that made the parts Part returned: their runner names, one per process (servers
+  // of one name, as replicas on one host without --name are, count apart).
   virtual int Servers() const = 0;
   // The tiles whose parts an earlier attempt of the job made under the same plan, used again.
   virtual int64_t Reused() const = 0;

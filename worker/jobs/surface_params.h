@@ -1,0 +1,18 @@
+// worker/jobs/surface_params.h — the parts of a surface job's parameters that its input and the
+// shared extractor read too (below surface_job.h, which includes this).
+#pragma once
+
+#include "worker/core/normals.h"
+
+namespace lsqsurf::jobs {
+
+// Normals for clouds that come without them.
+struct NormalsParams {
+  bool estimate_normals = true;  // PCA + spanning-tree orientation; false rejects clouds without normals.
+  int normal_neighbors = core::NormalEstimationParams{}.neighbors;  // Smallest k of the PCA, 3..128.
+};
+
+// Where the shared extractor looks for the surface, for the methods without their own.
+enum class SurfaceExtractor { kUniformGrid = 0, kJ1a = 1 };
+
+}  // namespace lsqsurf::jobs

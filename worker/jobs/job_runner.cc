@@ -186,7 +186,7 @@ void JobService::WorkerLoop() {
 
 bool JobService::RunOthersTile() {
   if (!store_->shared() || tiles_unreadable_) return false;
-  // Stopped by a shutdown; the tile's lease then lapses and another server runs it.
+  // Stopped by a shutdown; the tile is then given back (JobStore::ReleaseTile) for another server.
   struct ShutdownContext final : core::JobContext {
     const JobService& service;
     explicit ShutdownContext(const JobService& s) : service(s) {}

@@ -351,7 +351,7 @@ absl::StatusOr<extract::IsosurfaceResult> RunPu(const PuJobParams& p, const core
     stat("keep_seconds", core::SecondsSince(keep_start));
   }
   // After keeping: the edits join onto the surface as marched (Extract left its holes open).
-  if (extract.marching.trace) extract::CloseSmallHoles(*extracted, kClosedHoleEdges);
+  if (extract.marching.trace) extract::CloseSmallHoles(*extracted, extract.max_hole_edges);
   ExtractionStatistics(extracted->stats, stat);
   return extracted;
 }

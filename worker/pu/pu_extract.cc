@@ -330,9 +330,11 @@ absl::StatusOr<std::unique_ptr<ExtractionTree>> BuildExtractionTree(const PuFunc
 // specks (smaller than a finest leaf, within `reach` of a zone) are dropped; the tip is then cut
 // as it would be without the finer leaves. The leaves of `cell_size` do the same along ridges
 // sharper than 30° (an 8-point hull's 28.6° edge at 100k points: three specks along it), so their
-// creases are zones here too. Returns the specks dropped.
-int64_t DropSpecksNearZones(std::span<const FineZone> zones, double reach, double finest_edge,
-                            extract::IsosurfaceResult& result) {
+// creases are zones here too (SharpRidges, added to `refined`). Returns the specks dropped.
+int64_t DropSpecksNearZones(const PuFunction::Impl& impl, std::span<const FineZone> refined, double reach,
+                            double finest_edge, extract::IsosurfaceResult& result) {
+  std::vector<FineZone> zones = SharpRidges(impl);
+  zones.insert(zones.end(), refined.begin(), refined.end());
   if (zones.empty()) return 0;
   auto near_zone = [&](const core::Box3& box) {
     const double half_diagonal = core::Diagonal(box) / 2;
@@ -442,11 +444,9 @@ absl::StatusOr<WholeExtraction> ExtractWhole(const PuFunction& function, const P
   if (!surface.ok()) return surface.status();
   WholeExtraction out{*std::move(surface), std::move((*built)->fine_zones), (*built)->fine_reach};
   out.surface.stats.tree_seconds = tree_seconds;
-  std::vector<FineZone> specks_near = SharpRidges(impl);
   const std::span<const FineZone> refined = speck_zones.empty() ? std::span<const FineZone>(out.zones) : speck_zones;
-  specks_near.insert(specks_near.end(), refined.begin(), refined.end());
   out.surface.stats.corner_specks =
-      DropSpecksNearZones(specks_near, out.fine_reach, (*built)->finest_edge, out.surface);
+      DropSpecksNearZones(impl, refined, out.fine_reach, (*built)->finest_edge, out.surface);
   return out;
 }
 
@@ -584,10 +584,8 @@ absl::StatusOr<TileSurface> ExtractTile(const PuFunction& function, const PuExtr
   if (!marched.ok()) return marched.status();
   // Specks go as in ExtractWhole, judged on the marched surface, which holds every speck that
   // reaches into `core` whole (they are smaller than a finest leaf).
-  std::vector<FineZone> specks_near = SharpRidges(impl);
-  specks_near.insert(specks_near.end(), (*built)->fine_zones.begin(), (*built)->fine_zones.end());
   marched->stats.corner_specks =
-      DropSpecksNearZones(specks_near, (*built)->fine_reach, (*built)->finest_edge, *marched);
+      DropSpecksNearZones(impl, (*built)->fine_zones, (*built)->fine_reach, (*built)->finest_edge, *marched);
   tile.surface = KeepOwnedFaces((*built)->tree, core, *marched, tile.seam);
   built->reset();
   *marched = {};

@@ -12,6 +12,7 @@
 #include <random>
 
 #include "absl/container/flat_hash_map.h"
+#include "tests/pu/tiled_compare.h"
 #include "tests/test_dir.h"
 #include "tests/test_shapes.h"
 #include "worker/core/kd_tree.h"
@@ -23,86 +24,13 @@
 namespace lsqsurf::pu {
 namespace {
 
-struct Runs {
-  core::TriangleMesh whole, tiled;
-  TiledStats stats;
-  double diagonal = 0;
-};
-
-Runs RunBoth(const core::PointCloud& cloud, const PuExtractParams& extract, const PuTileParams& tiles) {
-  Runs runs;
-  core::LocalJobContext ctx;
-  MeshSink sink;
-  auto tiled = ReconstructTiled(CloudSource(cloud, 7000), PuParams{}, extract, tiles, sink, ctx);
-  EXPECT_TRUE(tiled.ok()) << tiled.status();
-  if (!tiled.ok()) return runs;
-  runs.stats = *tiled;
-  runs.tiled = std::move(sink.mesh());
-  EXPECT_EQ(static_cast<int64_t>(runs.tiled.faces.size()), runs.stats.faces);
-  runs.diagonal = runs.stats.frame.diagonal;
-  // The same frame, untiled.
-  auto function = BuildPuInFrame(cloud, runs.stats.frame, nullptr, ctx);
-  EXPECT_TRUE(function.ok()) << function.status();
-  if (!function.ok()) return runs;
-  auto whole = Extract(**function, extract, ctx);
-  EXPECT_TRUE(whole.ok()) << whole.status();
-  if (whole.ok()) runs.whole = std::move(whole->mesh);
-  std::printf(
-      "  %zu points: %lld tiles at level %d (largest %lld points, margin %.3g), %zu / %zu faces, %lld seam "
-      "vertices\n",
-      cloud.size(), static_cast<long long>(runs.stats.tiles), runs.stats.tile_level,
-      static_cast<long long>(runs.stats.largest_tile), runs.stats.margin, runs.tiled.faces.size(),
-      runs.whole.faces.size(), static_cast<long long>(runs.stats.seam_vertices));
-  return runs;
-}
-
-// Every vertex of `b` within `tolerance` of one of `a`, one to one, and the faces the same triples.
-void ExpectSameMesh(const core::TriangleMesh& a, const core::TriangleMesh& b, double tolerance) {
-  ASSERT_EQ(a.vertices.size(), b.vertices.size());
-  ASSERT_EQ(a.faces.size(), b.faces.size());
-  core::KdTree index(a.vertices);
-  std::vector<uint32_t> to_a(b.vertices.size());
-  std::vector<char> used(a.vertices.size(), 0);
-  double worst = 0;
-  for (size_t v = 0; v < b.vertices.size(); ++v) {
-    const core::Neighbor n = index.Nearest(b.vertices[v]);
-    worst = std::max(worst, static_cast<double>(std::sqrt(n.distance2)));
-    to_a[v] = n.index;
-    EXPECT_FALSE(used[n.index]) << "two vertices near vertex " << n.index;
-    used[n.index] = 1;
-  }
-  EXPECT_LE(worst, tolerance);
-  auto sorted = [](core::Triangle t) {
-    // The same triangle up to a rotation of its corners (orientation kept).
-    const auto first = std::min_element(t.begin(), t.end()) - t.begin();
-    std::rotate(t.begin(), t.begin() + first, t.end());
-    return t;
-  };
-  std::vector<core::Triangle> fa, fb;
-  for (const core::Triangle& t : a.faces) fa.push_back(sorted(t));
-  for (core::Triangle t : b.faces) {
-    for (uint32_t& v : t) v = to_a[v];
-    fb.push_back(sorted(t));
-  }
-  std::sort(fa.begin(), fa.end());
-  std::sort(fb.begin(), fb.end());
-  EXPECT_TRUE(fa == fb) << "the tiled faces are not the untiled ones";
-}
-
-void ExpectClosed(const core::TriangleMesh& mesh, int euler) {
-  const core::MeshTopology welded = core::AnalyzeTopology(core::WeldByPosition(mesh));
-  EXPECT_TRUE(welded.watertight());
-  EXPECT_TRUE(welded.consistently_oriented());
-  EXPECT_EQ(welded.components, 1);
-  EXPECT_EQ(welded.euler_characteristic(), euler);
-}
-
-PuExtractParams RawMarching() {
-  PuExtractParams extract;
-  extract.marching.relax_steps = 0;
-  extract.marching.crease_angle = 0;
-  return extract;
-}
+using compare::ClosingHoles;
+using compare::ExpectClosed;
+using compare::ExpectSameMesh;
+using compare::ExpectSameSurface;
+using compare::RawMarching;
+using compare::RunBoth;
+using compare::Runs;
 
 TEST(PuTiles, ASphereInManyTilesIsTheUntiledSphere) {
   const core::PointCloud cloud = testing::SphereCloud(20'000);
@@ -183,37 +111,6 @@ TEST(PuTiles, ALongDrilledBlockInManyTilesIsTheUntiledBlock) {
               1e-4 * core::EnclosedVolume(finished.whole));
 }
 
-// The finished surfaces (creases split, relaxed, holes closed) tiled and untiled: the same
-// closedness and pieces once welded by position, vertex counts within 0.5 %, and the two surfaces
-// within `apart` of each other (mean both ways, shares of the diagonal). Relaxation holds a tile's
-// border vertices where they were marched, so the two are alike rather than equal (a sphere's
-// 20k points in 8 tiles: 2.2e-6 apart).
-void ExpectSameSurface(const Runs& runs, double apart) {
-  const core::MeshTopology whole = core::AnalyzeTopology(core::WeldByPosition(runs.whole));
-  const core::MeshTopology tiled = core::AnalyzeTopology(core::WeldByPosition(runs.tiled));
-  EXPECT_EQ(tiled.watertight(), whole.watertight());
-  EXPECT_EQ(tiled.boundary_edges, whole.boundary_edges);
-  EXPECT_EQ(tiled.components, whole.components);
-  EXPECT_EQ(tiled.euler_characteristic(), whole.euler_characteristic());
-  const double ratio = static_cast<double>(tiled.vertices) / static_cast<double>(whole.vertices);
-  EXPECT_NEAR(ratio, 1.0, 5e-3);
-  core::LocalJobContext ctx;
-  auto cmp = core::CompareMeshes(runs.whole, runs.tiled, {.samples = 200'000}, ctx);
-  ASSERT_TRUE(cmp.ok()) << cmp.status();
-  std::printf(
-      "  finished: vertices %.4f of the untiled, %lld components, Euler characteristic %lld; apart: %.3g and %.3g "
-      "(means), %.3g (Hausdorff)\n",
-      ratio, static_cast<long long>(tiled.components), static_cast<long long>(tiled.euler_characteristic()),
-      cmp->mean_ref_to_cand, cmp->mean_cand_to_ref, cmp->hausdorff);
-  EXPECT_LT(cmp->mean_ref_to_cand, apart);
-  EXPECT_LT(cmp->mean_cand_to_ref, apart);
-}
-
-PuExtractParams ClosingHoles(PuExtractParams extract) {
-  extract.max_hole_edges = 32;  // The surface job's.
-  return extract;
-}
-
 // A hole of a few edges across a seam (points taken away over a small cap where tiles meet) is
 // closed once the tiles are welded, as the untiled surface closes it.
 TEST(PuTiles, ASmallHoleAcrossASeamClosesAsUntiled) {
@@ -241,6 +138,34 @@ TEST(PuTiles, ASmallHoleAcrossASeamClosesAsUntiled) {
   const Runs closed = RunBoth(holed, ClosingHoles({}), tiles);
   ExpectClosed(closed.tiled, 2);
   ExpectSameSurface(closed, 1e-5);
+}
+
+// An untiled build's frame (MeasureFrame, in memory) is the one a plan fixes when the cloud fits
+// one tile, and a plan of many tiles measures the same spacing and root cube.
+TEST(PuTiles, TheUntiledFrameIsTheOneTilePlansFrame) {
+  const core::PointCloud cloud = testing::DrilledBlockCloud(30'000, 2.0, 0.6, 0.3, 0.3);
+  core::LocalJobContext ctx;
+  auto frame = MeasureFrame(cloud, PuParams{}, PuExtractParams{}, PuTileParams{}, ctx);
+  ASSERT_TRUE(frame.ok()) << frame.status();
+  auto one = PlannedCloud::Plan(CloudSource(cloud, 7000), PuParams{}, PuExtractParams{}, PuTileParams{}, ctx);
+  ASSERT_TRUE(one.ok()) << one.status();
+  ASSERT_EQ((*one)->plan().tiles.size(), 1u);
+  const PuFrame& planned = (*one)->plan().frame;
+  EXPECT_EQ(frame->origin, planned.origin);
+  EXPECT_EQ(frame->root_edge, planned.root_edge);
+  EXPECT_EQ(frame->diagonal, planned.diagonal);
+  EXPECT_EQ(frame->mean_spacing, planned.mean_spacing);
+  EXPECT_EQ(frame->noise_estimate, planned.noise_estimate);
+  EXPECT_EQ(frame->max_support, planned.max_support);
+  EXPECT_EQ(frame->params.error_threshold, planned.params.error_threshold);
+  EXPECT_EQ(frame->params.min_points, planned.params.min_points);
+  auto many = PlannedCloud::Plan(CloudSource(cloud, 7000), PuParams{}, PuExtractParams{},
+                                 {.tile_points = 4'000, .support_cap = 64}, ctx);
+  ASSERT_TRUE(many.ok()) << many.status();
+  EXPECT_GE((*many)->plan().tiles.size(), 8u);
+  EXPECT_EQ((*many)->plan().frame.root_edge, frame->root_edge);
+  EXPECT_NEAR((*many)->plan().frame.mean_spacing, frame->mean_spacing, 1e-3 * frame->mean_spacing);
+  EXPECT_NEAR((*many)->plan().frame.max_support, frame->max_support, 1e-3 * frame->max_support);
 }
 
 // The frame's noise is the median of the tiles' estimates: on a noisy sphere it is the untiled

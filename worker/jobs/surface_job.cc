@@ -329,13 +329,19 @@ absl::StatusOr<extract::IsosurfaceResult> RunPu(const PuJobParams& p, const core
   if (static_cast<int64_t>(cloud.size()) > p.tiles.tile_points) return RunTiledPu(p, pu::CloudSource(cloud), ctx, run);
   const StatFn& stat = run.stat;
   const KeepFn& keep = run.keep;
+  pu::PuExtractParams extract = PuExtraction(p, run);
+  // In the frame a tiled build fixes, as its one tile, so that the surface does not depend on
+  // tile_points; no other tile's sums must match this one's, so they run in the kd-tree's order.
   core::SubContext build_ctx(ctx, "fitting", 0.0, 0.4);
-  auto field = pu::BuildPu(cloud, p.fit, build_ctx);
+  const auto frame_start = std::chrono::steady_clock::now();
+  const auto frame = pu::MeasureFrame(cloud, p.fit, extract, p.tiles, build_ctx);
+  if (!frame.ok()) return frame.status();
+  stat("frame_seconds", core::SecondsSince(frame_start));
+  auto field = pu::BuildPuInFrame(cloud, *frame, nullptr, build_ctx, pu::SumOrder::kAsFound);
   if (!field.ok()) return field.status();
   PuStatistics((*field)->stats(), stat);
   const auto start = std::chrono::steady_clock::now();
   core::SubContext extract_ctx(ctx, "extracting surface", 0.4, 1.0);
-  pu::PuExtractParams extract = PuExtraction(p, run);
   extract.marching.trace = p.keep_function;  // Local edits re-extract only what they change.
   auto extracted = pu::Extract(**field, extract, extract_ctx);
   if (!extracted.ok()) return extracted;

@@ -566,7 +566,7 @@ absl::StatusOr<TileSurface> ExtractTile(const PuFunction& function, const PuExtr
   const double reach = ExtractionReach(impl.root_edge, function.stats().mean_spacing, params);
   const core::Box3 region(core.min() - Vec3d::Constant(reach), core.max() + Vec3d::Constant(reach));
   core::SubContext build_ctx(ctx, "building the tile's J1a tree", 0.0, 0.2);
-  auto built = BuildExtractionTree(function, impl, params, &region, build_ctx);
+  auto built = BuildExtractionTree(function, impl, params, &region, build_ctx, FineLeaves::kCornersAndAcuteCreases);
   if (!built.ok()) return built.status();
   TileSurface tile;
   if ((*built)->start.empty()) return tile;

@@ -603,7 +603,8 @@ absl::StatusOr<std::unique_ptr<PuFunction>> BuildPu(const core::PointCloud& clou
 }
 
 absl::StatusOr<std::unique_ptr<PuFunction>> BuildPuInFrame(const core::PointCloud& cloud, const PuFrame& frame,
-                                                           const core::Box3* region, core::JobContext& ctx) {
+                                                           const core::Box3* region, core::JobContext& ctx,
+                                                           SumOrder order) {
   LSQSURF_RETURN_IF_ERROR(Validate(frame.params));
   LSQSURF_RETURN_IF_ERROR(CheckCloud(cloud));
   const auto start = std::chrono::steady_clock::now();
@@ -624,7 +625,7 @@ absl::StatusOr<std::unique_ptr<PuFunction>> BuildPuInFrame(const core::PointClou
   stats.min_points = frame.params.min_points;
   BuildContext bc(impl.params, impl, impl.cloud->normals, impl.params.error_threshold * frame.diagonal);
   bc.max_support = frame.max_support;
-  bc.canonical_order = true;
+  bc.canonical_order = order == SumOrder::kCanonical;
   bc.region = region;
   return GrowAndIndex(bc, std::move(built), start, ctx);
 }

@@ -269,6 +269,15 @@ absl::Status MeasureTile(const core::PointCloud& cloud, const core::Box3& cube, 
   return absl::OkStatus();
 }
 
+absl::StatusOr<Measured> MeasuredFrom(ProbeSums sums, double known_sigma) {
+  if (sums.probes == 0) return absl::InvalidArgumentError("the points have no spacing to size cells by");
+  Measured m;
+  m.mean_spacing = sums.distance_sum / static_cast<double>(sums.probes);
+  m.noise.sigma = known_sigma >= 0 ? known_sigma : WeightedMedian(std::move(sums.sigmas));
+  m.noise.points_in_ball = WeightedMedian(std::move(sums.balls));
+  return m;
+}
+
 absl::StatusOr<Measured> MeasureTiles(const Bucketed& tiles, const TileGrid& grid, const TileGrid& histogram_grid,
                                       const absl::flat_hash_map<uint64_t, int64_t>& histogram, double known_sigma,
                                       core::JobContext& ctx) {
@@ -296,12 +305,22 @@ absl::StatusOr<Measured> MeasureTiles(const Bucketed& tiles, const TileGrid& gri
     ctx.ReportProgress("measuring the tiles", static_cast<double>(t + 1) / static_cast<double>(tiles.keys.size()));
     LSQSURF_RETURN_IF_ERROR(ctx.CheckCancelled());
   }
-  if (sums.probes == 0) return absl::InvalidArgumentError("the points have no spacing to size cells by");
-  Measured m;
-  m.mean_spacing = sums.distance_sum / static_cast<double>(sums.probes);
-  m.noise.sigma = known_sigma >= 0 ? known_sigma : WeightedMedian(std::move(sums.sigmas));
-  m.noise.points_in_ball = WeightedMedian(std::move(sums.balls));
-  return m;
+  return MeasuredFrom(std::move(sums), known_sigma);
+}
+
+// What the frame takes from the measures and the margins.
+void FixFrame(const Measured& measured, const Margins& margins, const PuParams& fit, PuFrame& frame) {
+  frame.mean_spacing = measured.mean_spacing;
+  PuStats effective;
+  frame.params = EffectiveParams(fit, measured.noise, frame.diagonal, effective);
+  frame.noise_estimate = effective.noise_estimate;
+  frame.max_support = margins.max_support;
+}
+
+absl::Status ValidateTiledParams(const PuParams& fit, const PuExtractParams& extract, const PuTileParams& tiles) {
+  LSQSURF_RETURN_IF_ERROR(Validate(fit));
+  LSQSURF_RETURN_IF_ERROR(PuTileParamTable().Validate(tiles));
+  return PuExtractParamTable().Validate(extract);
 }
 
 }  // namespace
@@ -331,9 +350,7 @@ absl::StatusOr<std::unique_ptr<PlannedCloud>> PlannedCloud::Plan(const PointSour
                                                                  const PuExtractParams& extract,
                                                                  const PuTileParams& tiles, core::JobContext& ctx,
                                                                  const std::string& scratch_parent) {
-  LSQSURF_RETURN_IF_ERROR(Validate(fit));
-  LSQSURF_RETURN_IF_ERROR(PuTileParamTable().Validate(tiles));
-  LSQSURF_RETURN_IF_ERROR(PuExtractParamTable().Validate(extract));
+  LSQSURF_RETURN_IF_ERROR(ValidateTiledParams(fit, extract, tiles));
   const auto start = std::chrono::steady_clock::now();
   TilePlan plan;
   const auto bounds = ScanBounds(source, ctx);
@@ -378,11 +395,7 @@ absl::StatusOr<std::unique_ptr<PlannedCloud>> PlannedCloud::Plan(const PointSour
     spacing = 1.1 * measured.mean_spacing;
   }
   histogram->clear();
-  frame.mean_spacing = measured.mean_spacing;
-  PuStats effective;
-  frame.params = EffectiveParams(fit, measured.noise, frame.diagonal, effective);
-  frame.noise_estimate = effective.noise_estimate;
-  frame.max_support = margins.max_support;
+  FixFrame(measured, margins, fit, frame);
   plan.data_margin = margins.data;
   plan.extraction_margin = margins.extraction;
   plan.tiles = std::move(bucketed.keys);
@@ -390,6 +403,38 @@ absl::StatusOr<std::unique_ptr<PlannedCloud>> PlannedCloud::Plan(const PointSour
   plan.measure_seconds = core::SecondsSince(start);
   auto files = std::make_unique<Files>(Files{*std::move(scratch), std::move(bucketed.buckets)});
   return std::unique_ptr<PlannedCloud>(new PlannedCloud(std::move(plan), std::move(files)));
+}
+
+absl::StatusOr<PuFrame> MeasureFrame(const core::PointCloud& cloud, const PuParams& fit, const PuExtractParams& extract,
+                                     const PuTileParams& tiles, core::JobContext& ctx) {
+  LSQSURF_RETURN_IF_ERROR(ValidateTiledParams(fit, extract, tiles));
+  const CloudSource source(cloud);
+  const auto bounds = ScanBounds(source, ctx);
+  if (!bounds.ok()) return bounds.status();
+  PuFrame frame;
+  frame.diagonal = core::Diagonal(bounds->box);
+  RootCube(bounds->box, frame.origin, frame.root_edge);
+  const TileGrid histogram_grid =
+      TileGrid::AtLevel(frame.origin, frame.root_edge, HistogramLevel(*bounds, frame.root_edge));
+  const auto histogram = Histogram(source, histogram_grid, ctx);
+  if (!histogram.ok()) return histogram.status();
+  // As MeasureTiles measures the one tile of a plan whose tile is the root cube.
+  absl::flat_hash_set<uint64_t> probe_cells;
+  for (const auto& [key, count] : *histogram) {
+    if (IsProbeCell(key)) probe_cells.insert(key);
+  }
+  if (probe_cells.empty()) {
+    for (const auto& [key, count] : *histogram) probe_cells.insert(key);
+  }
+  const double known_sigma = fit.noise_level >= 0 ? fit.noise_level * frame.diagonal : -1.0;
+  const TileGrid one_tile = TileGrid::AtLevel(frame.origin, frame.root_edge, 0);
+  const core::Box3 root = one_tile.Cube(one_tile.CellOf(bounds->box.center()));
+  ProbeSums sums;
+  LSQSURF_RETURN_IF_ERROR(MeasureTile(cloud, root, histogram_grid, probe_cells, known_sigma, sums, ctx));
+  const auto measured = MeasuredFrom(std::move(sums), known_sigma);
+  if (!measured.ok()) return measured.status();
+  FixFrame(*measured, MarginsFor(measured->mean_spacing, frame, fit, extract, tiles), fit, frame);
+  return frame;
 }
 
 absl::StatusOr<TiledStats> ReconstructTiled(const PointSource& source, const PuParams& fit,

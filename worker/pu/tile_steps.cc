@@ -17,7 +17,7 @@ namespace lsqsurf::pu {
 namespace {
 
 // kTileFormat rises with any change to these formats; the plan's magic carries it.
-constexpr std::string_view kPlanMagic = "LQTP0003";
+constexpr std::string_view kPlanMagic = "LQTP0004";
 static_assert(kPlanMagic.back() - '0' == kTileFormat % 10);
 constexpr std::string_view kTileMagic = "LQT10001";
 constexpr std::string_view kPointsMagic = "LQTX0001";

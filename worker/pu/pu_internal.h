@@ -302,12 +302,13 @@ std::string_view ReadMesh(core::BinaryReader& r, core::TriangleMesh& mesh);
 // whole tree's: four cells of the coarsest level Extract keeps around the data (pu_extract.cc).
 double ExtractionReach(double root_edge, double mean_spacing, const PuExtractParams& params);
 
-// One tile's part of Extract: the faces whose J1a leaf has its centre in `core` (half-open), marched
-// on a tree built over `core` and its ExtractionReach, with Extract's finer leaves at corners,
-// acute creases and thin walls (but not its topology fallback, a decision over the whole
-// surface), so that they are the whole surface's faces there; then creases and relaxation with the tile's border
-// vertices (`seam`) fixed, so that neighbouring tiles meet on the same vertices (named by trace.vertex_edges).
-// `function` must be exact over `core` grown by ExtractionReach (BuildPuInFrame with that region).
+// One tile's part of Extract: the faces whose J1a leaf has its centre in `core` (half-open),
+// marched on a tree built over `core` and its ExtractionReach with Extract's finer leaves at
+// corners, acute creases and thin walls (not its topology fallback, a decision over the whole
+// surface), so that they are the whole surface's faces there; then creases and relaxation with
+// the tile's border vertices (`seam`) fixed, so that neighbouring tiles meet on the same vertices
+// (named by trace.vertex_edges). `function` must be exact over `core` grown by ExtractionReach
+// (BuildPuInFrame with that region).
 struct TileSurface {
   extract::IsosurfaceResult surface;  // Traced.
   std::vector<char> seam;             // Per vertex.

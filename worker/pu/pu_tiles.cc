@@ -212,6 +212,16 @@ constexpr uint64_t kProbeShare = 8;
 
 bool IsProbeCell(uint64_t key) { return ((key * 0x9E3779B97F4A7C15ull) >> 32) % kProbeShare == 0; }
 
+// The probe cells of a tile's histogram cells: its hashed share, or all of them where that is none.
+absl::flat_hash_set<uint64_t> ProbeCellsAmong(std::span<const uint64_t> cells) {
+  absl::flat_hash_set<uint64_t> probe_cells;
+  for (uint64_t key : cells) {
+    if (IsProbeCell(key)) probe_cells.insert(key);
+  }
+  if (probe_cells.empty()) probe_cells.insert(cells.begin(), cells.end());
+  return probe_cells;
+}
+
 struct Measured {
   double mean_spacing = 0;
   core::NoiseEstimate noise;
@@ -281,7 +291,7 @@ absl::StatusOr<Measured> MeasuredFrom(ProbeSums sums, double known_sigma) {
 absl::StatusOr<Measured> MeasureTiles(const Bucketed& tiles, const TileGrid& grid, const TileGrid& histogram_grid,
                                       const absl::flat_hash_map<uint64_t, int64_t>& histogram, double known_sigma,
                                       core::JobContext& ctx) {
-  // The probe cells of each tile: its hashed share, or all of its cells where that is none.
+  // The histogram cells of each tile, whose probe cells it measures.
   absl::flat_hash_map<uint64_t, std::vector<uint64_t>> cells_of_tile;
   for (const auto& [key, count] : histogram) {
     const core::Box3 cell = histogram_grid.Cube(TileGrid::FromKey(key));
@@ -291,11 +301,7 @@ absl::StatusOr<Measured> MeasureTiles(const Bucketed& tiles, const TileGrid& gri
   for (size_t t = 0; t < tiles.keys.size(); ++t) {
     const auto cells = cells_of_tile.find(tiles.keys[t]);
     if (cells == cells_of_tile.end()) continue;
-    absl::flat_hash_set<uint64_t> probe_cells;
-    for (uint64_t key : cells->second) {
-      if (IsProbeCell(key)) probe_cells.insert(key);
-    }
-    if (probe_cells.empty()) probe_cells.insert(cells->second.begin(), cells->second.end());
+    const absl::flat_hash_set<uint64_t> probe_cells = ProbeCellsAmong(cells->second);
     const core::Box3 cube = grid.Cube(TileGrid::FromKey(tiles.keys[t]));
     const core::Vec3d reach = core::Vec3d::Constant(histogram_grid.edge);
     const core::Box3 needed(cube.min() - reach, cube.max() + reach);
@@ -419,13 +425,10 @@ absl::StatusOr<PuFrame> MeasureFrame(const core::PointCloud& cloud, const PuPara
   const auto histogram = Histogram(source, histogram_grid, ctx);
   if (!histogram.ok()) return histogram.status();
   // As MeasureTiles measures the one tile of a plan whose tile is the root cube.
-  absl::flat_hash_set<uint64_t> probe_cells;
-  for (const auto& [key, count] : *histogram) {
-    if (IsProbeCell(key)) probe_cells.insert(key);
-  }
-  if (probe_cells.empty()) {
-    for (const auto& [key, count] : *histogram) probe_cells.insert(key);
-  }
+  std::vector<uint64_t> cells;
+  cells.reserve(histogram->size());
+  for (const auto& [key, count] : *histogram) cells.push_back(key);
+  const absl::flat_hash_set<uint64_t> probe_cells = ProbeCellsAmong(cells);
   const double known_sigma = fit.noise_level >= 0 ? fit.noise_level * frame.diagonal : -1.0;
   const TileGrid one_tile = TileGrid::AtLevel(frame.origin, frame.root_edge, 0);
   const core::Box3 root = one_tile.Cube(one_tile.CellOf(bounds->box.center()));

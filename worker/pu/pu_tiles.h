@@ -54,14 +54,15 @@ struct PuFrame {
   double max_support = 0;     // Model units.
 };
 
-// F of `cloud` in `frame`: with `region`, exact over it (equal to the build over the whole cloud)
-// when `cloud` holds every point within 2 × max_support of it (and within coverage_factor ×
-// max_support, the coverage test's reach, where that is more); cells whose supports cannot reach
-// it are not grown. Errors: as BuildPu.
 // How a fit sums over its neighbours: in an order of the points alone (kCanonical), so that a
 // tile's sums are the whole cloud's to the last bit, or in the kd-tree's (kAsFound: 15 % less
 // fitting time on a noisy 100k-point bunny; the function then differs from the tiles' by rounding).
 enum class SumOrder { kCanonical, kAsFound };
+
+// F of `cloud` in `frame`: with `region`, exact over it (equal to the build over the whole cloud)
+// when `cloud` holds every point within 2 × max_support of it (and within coverage_factor ×
+// max_support, the coverage test's reach, where that is more); cells whose supports cannot reach
+// it are not grown. Errors: as BuildPu.
 absl::StatusOr<std::unique_ptr<PuFunction>> BuildPuInFrame(const core::PointCloud& cloud, const PuFrame& frame,
                                                            const core::Box3* region, core::JobContext& ctx,
                                                            SumOrder order = SumOrder::kCanonical);

@@ -10,7 +10,9 @@
 #include "server/limits.h"
 #include "worker/core/byte_view.h"
 #include "worker/core/strings.h"
+#include "worker/jobs/job_admission.h"
 #include "worker/jobs/job_ids.h"
+#include "worker/jobs/job_retention.h"
 #include "worker/jobs/method_registry.h"
 
 namespace lsqsurf::server {
@@ -143,7 +145,7 @@ absl::Status ReconstructionService::ReserveSpool(const Caller& caller, int64_t b
   if (!error) room.disk_free = static_cast<int64_t>(space.available);
   room.min_free = jobs_.options().min_free_bytes;
   room.quota = caller.submitter.max_stored_bytes;
-  if (room.quota > 0) room.stored = jobs_.UsageOf(caller.submitter.owner).stored_bytes;
+  if (room.quota > 0) room.stored = jobs_.admission().UsageOf(caller.submitter.owner).stored_bytes;
   return spool_.Reserve(caller.submitter.owner, bytes, room);
 }
 
@@ -212,7 +214,7 @@ class ReconstructionService::Upload final : public grpc::ServerReadReactor<v1::S
         caller_(std::move(caller)),
         call_(std::move(call)),
         ticket_(std::move(ticket)),
-        limit_(static_cast<size_t>(service.jobs_.MaxUploadBytes(caller_.submitter))),
+        limit_(static_cast<size_t>(service.jobs_.admission().MaxUploadBytes(caller_.submitter))),
         prefix_((std::filesystem::path(service.spool_dir_) / jobs::NewJobId()).string()) {
     StartRead(&message_);
   }
@@ -587,7 +589,7 @@ grpc::Status ReconstructionService::ListJobs(grpc::ServerContext* context, const
     const jobs::JobRecord* last = nullptr;
     for (const auto& r : jobs_.List()) {  // Newest first: by created_ms, then id, both descending.
       if (after && (r.created_ms > after->first || (r.created_ms == after->first && r.id >= after->second))) continue;
-      if (!jobs::JobService::MayView(caller.submitter, r)) continue;
+      if (!jobs::MayView(caller.submitter, r)) continue;
       v1::Job job;
       ToProto(r, &job);
       const size_t size = job.ByteSizeLong();
@@ -618,7 +620,7 @@ grpc::Status ReconstructionService::DeleteJob(grpc::ServerContext* context, cons
                                               v1::DeleteJobResponse*) {
   return Serve("DeleteJob", context, [&](const Caller& caller) {
     if (auto visible = Visible(caller, request->job_id()); !visible.ok()) return ToGrpcStatus(visible.status());
-    return ToGrpcStatus(jobs_.Delete(request->job_id()));
+    return ToGrpcStatus(jobs_.retention().Delete(request->job_id()));
   });
 }
 
@@ -669,14 +671,14 @@ grpc::Status ReconstructionService::GetServerInfo(grpc::ServerContext* context, 
     response->set_max_chunk_bytes(static_cast<int64_t>(kMaxChunkBytes));
     response->set_can_render(jobs_.CanRender());
     response->set_requires_token(tokens_ != nullptr);
-    if (caller.admin()) response->set_stored_bytes(jobs_.StoredBytes());
+    if (caller.admin()) response->set_stored_bytes(jobs_.admission().StoredBytes());
     v1::Account* account = response->mutable_account();
     account->set_name(caller.name);
     account->set_admin(caller.admin());
     account->set_max_jobs(caller.submitter.max_active_jobs);
     account->set_max_stored_bytes(caller.submitter.max_stored_bytes);
     account->set_max_upload_bytes(caller.submitter.max_upload_bytes);
-    const jobs::JobService::Usage usage = jobs_.UsageOf(caller.submitter.owner);
+    const jobs::JobService::Usage usage = jobs_.admission().UsageOf(caller.submitter.owner);
     account->set_active_jobs(usage.active_jobs);
     account->set_stored_bytes(usage.stored_bytes);
     return grpc::Status::OK;

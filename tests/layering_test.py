@@ -29,6 +29,12 @@ FILES = {
     "worker/pu/bad_reach.cc": "void F() { extract::internal::FinishSurface(); }\n",
     "server/bad_long.cc": "int x;\n" * 801,
     "worker/extract/own.cc": "namespace extract::internal {}\n" + "int y;\n" * 790,
+    # A job-layer class of 21 member functions is refused; 20, with data members of function
+    # type and a nested struct's, pass.
+    "worker/jobs/bad_big.h": "class Big {\n public:\n" + "".join(f"  void F{i}(int x);\n" for i in range(21)) + "};\n",
+    "worker/jobs/fits.h": "class Fits final : public Base {\n public:\n  Fits(int a,\n       int b);\n" +
+    "".join(f"  int G{i}() const {{ return {i}; }}\n" for i in range(19)) +
+    " private:\n  struct Part {\n    void H();\n  };\n  std::function<void()> done_;\n  std::mutex m_;\n};\n",
 }
 EXPECTED = {
     "worker/io/bad_codec.cc:2",
@@ -43,6 +49,7 @@ EXPECTED = {
     "worker/jobs/bad_void.cc:2",
     "worker/pu/bad_reach.cc:1",
     "server/bad_long.cc:801",
+    "worker/jobs/bad_big.h:1",
 }
 
 

@@ -26,6 +26,8 @@
 #include "worker/io/draco_codec.h"
 #include "worker/io/files.h"
 #include "worker/io/mesh_part.h"
+#include "worker/jobs/job_admission.h"
+#include "worker/jobs/job_retention.h"
 #include "worker/jobs/method_registry.h"
 #if LSQSURF_WITH_POSTGRESQL
 #include "worker/jobs/store/postgres_store.h"
@@ -250,7 +252,7 @@ TEST_F(JobServiceTest, RunningJobsCancelOnlyThroughTheirEngine) {
   auto job = s.Submit(Spec("iamls"), Input(Encode(testing::SphereCloud(1000))));
   ASSERT_TRUE(job.ok());
   latch_.WaitStarted(1);
-  EXPECT_EQ(s.Delete(job->id).code(), absl::StatusCode::kFailedPrecondition);  // Not while running.
+  EXPECT_EQ(s.retention().Delete(job->id).code(), absl::StatusCode::kFailedPrecondition);  // Not while running.
   auto requested = s.Cancel(job->id);
   ASSERT_TRUE(requested.ok());
   EXPECT_EQ(requested->state, JobState::kRunning);  // CANCELLED follows when the engine stops.
@@ -258,7 +260,7 @@ TEST_F(JobServiceTest, RunningJobsCancelOnlyThroughTheirEngine) {
   EXPECT_EQ(stopped.state, JobState::kCancelled);
   EXPECT_EQ(s.Cancel(job->id).status().code(), absl::StatusCode::kFailedPrecondition);
   EXPECT_EQ(s.OpenResult(job->id, "").status().code(), absl::StatusCode::kFailedPrecondition);
-  ASSERT_TRUE(s.Delete(job->id).ok());
+  ASSERT_TRUE(s.retention().Delete(job->id).ok());
   EXPECT_EQ(s.Get(job->id).status().code(), absl::StatusCode::kNotFound);
   EXPECT_FALSE(std::filesystem::exists(dir_ / "jobs" / job->id));
 }
@@ -297,27 +299,27 @@ TEST_F(JobServiceTest, QuotasHoldPerOwnerAndFinishedJobsCountTheirResults) {
   latch_.Release();
   const JobRecord done = WaitTerminal(first->id);
   EXPECT_EQ(done.stored_bytes, upload + static_cast<int64_t>(std::string("released").size()));
-  EXPECT_EQ(s.UsageOf("alice").active_jobs, 0);
-  EXPECT_EQ(s.UsageOf("alice").stored_bytes, done.stored_bytes);
+  EXPECT_EQ(s.admission().UsageOf("alice").active_jobs, 0);
+  EXPECT_EQ(s.admission().UsageOf("alice").stored_bytes, done.stored_bytes);
   auto third = s.Submit(Spec("iamls"), input, alice);
   ASSERT_TRUE(third.ok()) << third.status();
   ASSERT_EQ(WaitTerminal(third->id).state, JobState::kSucceeded);
   auto fourth = s.Submit(Spec("iamls"), input, alice);  // 2 jobs kept + this upload and reserve > 4 uploads.
   EXPECT_EQ(fourth.status().code(), absl::StatusCode::kResourceExhausted);
   EXPECT_NE(fourth.status().message().find("delete finished jobs"), std::string::npos) << fourth.status();
-  ASSERT_TRUE(s.Delete(first->id).ok());
+  ASSERT_TRUE(s.retention().Delete(first->id).ok());
   auto fifth = s.Submit(Spec("iamls"), input, alice);
   ASSERT_TRUE(fifth.ok()) << fifth.status();
   ASSERT_EQ(WaitTerminal(fifth->id).state, JobState::kSucceeded);
   // The upload limit: the submitter's when lower than the server's.
   alice.max_upload_bytes = upload - 1;
-  EXPECT_EQ(s.MaxUploadBytes(alice), upload - 1);
+  EXPECT_EQ(s.admission().MaxUploadBytes(alice), upload - 1);
   EXPECT_EQ(s.Submit(Spec("iamls"), input, alice).status().code(), absl::StatusCode::kResourceExhausted);
   // Owners survive a restart.
-  const int64_t kept = s.UsageOf("alice").stored_bytes;
+  const int64_t kept = s.admission().UsageOf("alice").stored_bytes;
   JobService& reopened = Open();
   EXPECT_EQ(reopened.Get(third->id)->owner, "alice");
-  EXPECT_EQ(reopened.UsageOf("alice").stored_bytes, kept);
+  EXPECT_EQ(reopened.admission().UsageOf("alice").stored_bytes, kept);
 }
 
 // Writes one artifact of a given size, then ends as told: succeeded, failed, or held until it is
@@ -423,7 +425,7 @@ TEST_F(JobServiceTest, LargeTextParametersCountAsStoredBytes) {
   EXPECT_EQ(accepted, expected);
   EXPECT_EQ(refused.code(), absl::StatusCode::kResourceExhausted) << refused;
   EXPECT_NE(refused.message().find("quota"), std::string::npos) << refused;
-  EXPECT_EQ(s.UsageOf("alice").stored_bytes, accepted * (upload + text));
+  EXPECT_EQ(s.admission().UsageOf("alice").stored_bytes, accepted * (upload + text));
 }
 
 // A job's results are held to its owner's stored-bytes quota as they are written (not only its
@@ -460,8 +462,8 @@ TEST_F(JobServiceTest, ResultsAreHeldToTheQuotaAndEndedJobsCountWhatTheyWrote) {
   const JobRecord cancelled_done = WaitTerminal(cancelled->id);
   EXPECT_EQ(cancelled_done.state, JobState::kCancelled);
   EXPECT_EQ(cancelled_done.stored_bytes, 2 * upload);
-  EXPECT_EQ(s.UsageOf("alice").stored_bytes, 5 * upload);
-  EXPECT_EQ(s.StoredBytes(), 5 * upload);  // The server's own limit sees them as well.
+  EXPECT_EQ(s.admission().UsageOf("alice").stored_bytes, 5 * upload);
+  EXPECT_EQ(s.admission().StoredBytes(), 5 * upload);  // The server's own limit sees them as well.
   // The quota is full: nothing more is accepted until jobs are deleted.
   EXPECT_EQ(s.Submit(Spec("apss"), input, alice).status().code(), absl::StatusCode::kResourceExhausted);
 }
@@ -545,22 +547,22 @@ TEST_F(JobServiceTest, RetentionDeletesTheOldestFinishedJobsAndNeverAQueuedOrRun
   auto queued = s->Submit(Spec("iamls"), input);
   ASSERT_TRUE(running.ok() && queued.ok());
   latch_.WaitStarted(started + 1);
-  const int64_t kept = s->StoredBytes();
+  const int64_t kept = s->admission().StoredBytes();
   EXPECT_EQ(kept, 3 * 1000 + 2 * (1000 + ResultReserve(1000)));  // The two unfinished reserve for results.
   const int64_t now = s->Get(finished.back())->updated_ms;
-  EXPECT_EQ(s->SweepFinished(now + 1), 0);  // No limits set: nothing goes.
+  EXPECT_EQ(s->retention().SweepFinished(now + 1), 0);  // No limits set: nothing goes.
 
   // Over the byte limit: the oldest finished job goes first, and only as many as needed.
   options_.max_store_bytes = kept - 1;
   s = &Open();
-  EXPECT_EQ(s->SweepFinished(now), 1);
+  EXPECT_EQ(s->retention().SweepFinished(now), 1);
   EXPECT_EQ(s->Get(finished[0]).status().code(), absl::StatusCode::kNotFound);
   EXPECT_TRUE(s->Get(finished[1]).ok());
   // Past their age every finished job goes; the queued and running ones stay whatever the limit.
   options_.retain = std::chrono::hours(48);
   options_.max_store_bytes = 1;
   s = &Open();
-  EXPECT_EQ(s->SweepFinished(now + int64_t{49} * 3600 * 1000), 2);
+  EXPECT_EQ(s->retention().SweepFinished(now + int64_t{49} * 3600 * 1000), 2);
   EXPECT_FALSE(IsTerminal(s->Get(running->id)->state));
   EXPECT_FALSE(IsTerminal(s->Get(queued->id)->state));
   EXPECT_FALSE(std::filesystem::exists(dir_ / "jobs" / finished[1]));
@@ -1319,7 +1321,7 @@ TEST_F(SharedJobServiceTest, TwoServicesShareOneQueueAndAnswerForEachOthersJobs)
   auto reader = a_->OpenResult(on_b, "held.txt");
   ASSERT_TRUE(reader.ok()) << reader.status();
   EXPECT_EQ(ReadAll(**reader).value(), "released");
-  ASSERT_TRUE(a_->Delete(on_b).ok());
+  ASSERT_TRUE(a_->retention().Delete(on_b).ok());
   WaitUntil(*b_, on_b, [](const auto& r) { return !r.ok(); });
   EXPECT_EQ(b_->Get(on_b).status().code(), absl::StatusCode::kNotFound);
   EXPECT_EQ(b_->List().size(), 1u);
@@ -1344,7 +1346,7 @@ TEST_F(SharedJobServiceTest, AJobDeletedElsewhereAsItsRunEndsLeavesNothingBehind
   gate->WaitWritten();
   const JobRecord done = WaitUntil(*a_, job->id, [](const auto& r) { return r.ok() && IsTerminal(r->state); });
   ASSERT_EQ(done.state, JobState::kSucceeded) << done.error;
-  ASSERT_TRUE(a_->Delete(job->id).ok());
+  ASSERT_TRUE(a_->retention().Delete(job->id).ok());
   gate->WaitTwoLooks();
   gate->Open();
   // B's run ends; the job is gone from B as from the store, and B says so to its watchers.

@@ -1,3 +1,5 @@
+#include "worker/jobs/job_admission.h"
+
 #include <spdlog/spdlog.h>
 
 #include <algorithm>
@@ -6,7 +8,6 @@
 #include "worker/core/status.h"
 #include "worker/core/strings.h"
 #include "worker/jobs/job_ids.h"
-#include "worker/jobs/job_service.h"
 #include "worker/jobs/job_service_internal.h"
 #include "worker/jobs/method_registry.h"
 #include "worker/render/render.h"
@@ -44,18 +45,37 @@ absl::StatusOr<int64_t> CheckUploadSlots(const JobSpec& spec, const MethodInfo& 
 
 }  // namespace
 
-absl::StatusOr<JobRecord> JobService::Submit(const JobSpec& spec, Uploads uploads, const Submitter& submitter) {
+namespace {
+
+int QueuedJobs(const JobEntries& jobs) {
+  int queued = 0;
+  for (const auto& [id, e] : jobs) queued += e->record.state == JobState::kQueued;
+  return queued;
+}
+
+int QueuedJobsOf(const JobEntries& jobs, const std::string& owner) {
+  int queued = 0;
+  for (const auto& [id, e] : jobs) queued += e->record.state == JobState::kQueued && e->record.owner == owner;
+  return queued;
+}
+
+}  // namespace
+
+absl::StatusOr<JobRecord> JobAdmission::Submit(const JobSpec& spec, Uploads uploads, const Submitter& submitter) {
   LSQSURF_RETURN_IF_ERROR(ValidateSpec(spec));
+  const JobKind* kind = KindFor(options_.kind_overrides, spec.method);
   // A job that reads another's results may name only jobs its submitter may see; the run reads
-  // no others (RunKind).
-  for (const std::string& referenced : KindOf(spec.method)->ReferencedJobs(spec)) {
+  // no others (JobRunner).
+  for (const std::string& referenced : kind->ReferencedJobs(spec)) {
     if (!IsJobIdForm(referenced)) return absl::InvalidArgumentError(core::StrCat("a referenced ", kNotAJobId));
-    LSQSURF_RETURN_IF_ERROR(GetFor(submitter, referenced).status());
+    auto record = table_.Get(referenced);
+    if (!record.ok()) return record.status();
+    if (!MayView(submitter, *record)) return NoSuchJob(referenced);
   }
   if (spec.preview.enabled) {
-    if (auto r = renderer_->Get(); !r.ok()) {
+    if (absl::Status s = pictures_.RendererStatus(); !s.ok()) {
       return absl::UnavailableError(
-          core::StrCat("this server cannot draw previews (", r.status().message(), "); submit the job without one"));
+          core::StrCat("this server cannot draw previews (", s.message(), "); submit the job without one"));
     }
   }
   const MethodEntry* method = FindMethod(spec.method);
@@ -69,8 +89,7 @@ absl::StatusOr<JobRecord> JobService::Submit(const JobSpec& spec, Uploads upload
   }
   const int64_t spec_bytes = SpecBytes(spec);
   LSQSURF_RETURN_IF_ERROR(CheckRoom(bytes + ResultReserve(bytes) + spec_bytes));
-  auto checked = KindOf(spec.method)
-                     ->CheckUploads(spec, uploads,
+  auto checked = kind->CheckUploads(spec, uploads,
                                     {options_.max_points, options_.min_points, options_.max_cells,
                                      options_.max_job_memory, MaxUploadBytes(submitter)});
   if (!checked.ok()) return checked.status();
@@ -89,86 +108,88 @@ absl::StatusOr<JobRecord> JobService::Submit(const JobSpec& spec, Uploads upload
   // Its results are still to come: a reservation counts them until the run settles what they took.
   r.stored_bytes = bytes + ResultReserve(bytes) + spec_bytes;
   r.quota_bytes = submitter.max_stored_bytes;
+  if (table_.shutting_down()) return absl::UnavailableError("the server is shutting down");
   {
     std::lock_guard lock(mutex_);
-    if (shutting_down_) return absl::UnavailableError("the server is shutting down");
-    if (const int queued = QueuedJobs(); queued >= options_.max_queue) {
+    const auto [queued, queued_of_owner] = table_.Locked([&](const JobEntries& jobs) {
+      return std::pair{QueuedJobs(jobs), submitter.owner.empty() ? 0 : QueuedJobsOf(jobs, submitter.owner)};
+    });
+    if (queued >= options_.max_queue) {
       return absl::ResourceExhaustedError(
           core::StrCat("the job queue is full (", queued, " jobs waiting); try again later"));
     }
     // A named user may fill half of the queue (rounded up), so that others still get in.
-    if (!submitter.owner.empty() && 2 * QueuedJobsOf(submitter.owner) >= options_.max_queue) {
-      return absl::ResourceExhaustedError(core::StrCat("you have ", QueuedJobsOf(submitter.owner),
+    if (!submitter.owner.empty() && 2 * queued_of_owner >= options_.max_queue) {
+      return absl::ResourceExhaustedError(core::StrCat("you have ", queued_of_owner,
                                                        " jobs waiting, half of this server's queue; submit more once "
                                                        "they have started"));
     }
     LSQSURF_RETURN_IF_ERROR(CheckQuota(submitter, r.stored_bytes));
     // Held against the quota until the job's entry counts itself.
-    Usage& pending = pending_[submitter.owner];
+    JobUsage& pending = pending_[submitter.owner];
     ++pending.active_jobs;
     pending.stored_bytes += r.stored_bytes;
   }
   const absl::Cleanup release_pending = [&] {
     std::lock_guard lock(mutex_);
-    Usage& pending = pending_[submitter.owner];
+    JobUsage& pending = pending_[submitter.owner];
     --pending.active_jobs;
     pending.stored_bytes -= r.stored_bytes;
     if (pending.active_jobs == 0) pending_.erase(submitter.owner);
   };
   for (const auto& [slot, data] : uploads) {
     // A spooled upload moves into the store (a rename where it can); others are written.
-    const absl::Status s = data.movable_path().empty() ? blobs_->Put(r.id, UploadBlob(slot), data)
-                                                       : blobs_->PutFile(r.id, UploadBlob(slot), data.movable_path());
+    const absl::Status s = data.movable_path().empty() ? blobs_.Put(r.id, UploadBlob(slot), data)
+                                                       : blobs_.PutFile(r.id, UploadBlob(slot), data.movable_path());
     if (!s.ok()) {
-      (void)blobs_->RemoveJob(r.id);
+      (void)blobs_.RemoveJob(r.id);
       return s;
     }
   }
-  {
-    // The decoded input waits with the job while the waiting ones hold at most max_points
-    // points. It is in place before the job is stored: a worker may claim it at once.
-    std::lock_guard lock(mutex_);
-    if (checked->decoded != nullptr && decoded_points_ + r.input_points <= options_.max_points) {
-      decoded_[r.id] = {std::move(checked->decoded), r.input_points};
-      decoded_points_ += r.input_points;
-    }
-  }
+  // The decoded input waits with the job while the waiting ones hold at most max_points points.
+  // It is in place before the job is stored: a worker may claim it at once.
+  decoded_.Keep(r.id, std::move(checked->decoded), r.input_points);
   // Stored before it is visible: a job the caller hears of survives a crash.
-  if (absl::Status s = store_->Insert(r); !s.ok()) {
-    (void)blobs_->RemoveJob(r.id);
-    std::lock_guard lock(mutex_);
-    ReleaseDecoded(r.id);
+  if (absl::Status s = store_.Insert(r); !s.ok()) {
+    (void)blobs_.RemoveJob(r.id);
+    decoded_.Take(r.id);
     return s;
   }
-  {
-    std::lock_guard lock(mutex_);
-    std::shared_ptr<Entry>& entry = jobs_[r.id];
+  table_.Locked([&](JobEntries& jobs) {
+    std::shared_ptr<JobEntry>& entry = jobs[r.id];
     // A worker may have claimed the job already; its entry stays.
     if (entry == nullptr) {
-      entry = std::make_shared<Entry>();
+      entry = std::make_shared<JobEntry>();
       entry->record = r;
     }
-    ++work_signal_;
-  }
-  work_available_.notify_one();
+    return 0;
+  });
+  wake_workers_();
   spdlog::info("[job {}] accepted: method {}, {} points, {} bytes", r.id, spec.method, r.input_points, r.input_bytes);
   return r;
 }
 
-int64_t JobService::MaxUploadBytes(const Submitter& submitter) const {
+int64_t JobAdmission::MaxUploadBytes(const Submitter& submitter) const {
   return submitter.max_upload_bytes > 0 ? std::min(submitter.max_upload_bytes, options_.max_input_bytes)
                                         : options_.max_input_bytes;
 }
 
-JobService::Usage JobService::UsageOf(const std::string& owner) const {
+JobUsage JobAdmission::UsageOf(const std::string& owner) const {
   std::lock_guard lock(mutex_);
-  return OwnerUsage(owner);
+  return table_.Locked([&](const JobEntries& jobs) { return OwnerUsage(jobs, owner); });
 }
 
-JobService::Usage JobService::OwnerUsage(const std::string& owner) const {
-  Usage usage;
+int64_t JobAdmission::StoredBytes() const {
+  std::lock_guard lock(mutex_);
+  int64_t total = retention_.RecordedBytes();
+  for (const auto& [owner, usage] : pending_) total += usage.stored_bytes;
+  return total;
+}
+
+JobUsage JobAdmission::OwnerUsage(const JobEntries& jobs, const std::string& owner) const {
+  JobUsage usage;
   if (auto it = pending_.find(owner); it != pending_.end()) usage = it->second;
-  for (const auto& [id, e] : jobs_) {
+  for (const auto& [id, e] : jobs) {
     if (e->record.owner != owner) continue;
     usage.active_jobs += !IsTerminal(e->record.state);
     usage.stored_bytes += e->record.stored_bytes;
@@ -176,9 +197,9 @@ JobService::Usage JobService::OwnerUsage(const std::string& owner) const {
   return usage;
 }
 
-absl::Status JobService::CheckQuota(const Submitter& submitter, int64_t job_bytes) const {
+absl::Status JobAdmission::CheckQuota(const Submitter& submitter, int64_t job_bytes) const {
   if (submitter.max_active_jobs <= 0 && submitter.max_stored_bytes <= 0) return absl::OkStatus();
-  const Usage usage = OwnerUsage(submitter.owner);
+  const JobUsage usage = table_.Locked([&](const JobEntries& jobs) { return OwnerUsage(jobs, submitter.owner); });
   if (submitter.max_active_jobs > 0 && usage.active_jobs >= submitter.max_active_jobs) {
     return absl::ResourceExhaustedError(core::StrCat(
         "you have ", usage.active_jobs, " jobs queued or running, your quota's limit; wait for one to end"));
@@ -192,9 +213,9 @@ absl::Status JobService::CheckQuota(const Submitter& submitter, int64_t job_byte
   return absl::OkStatus();
 }
 
-absl::Status JobService::CheckRoom(int64_t job_bytes) {
+absl::Status JobAdmission::CheckRoom(int64_t job_bytes) {
   if (options_.max_store_bytes > 0 && StoredBytes() + job_bytes > options_.max_store_bytes) {
-    SweepFinished(NowMs(), job_bytes);
+    retention_.SweepFinished(NowMs(), job_bytes);
     if (const int64_t kept = StoredBytes(); kept + job_bytes > options_.max_store_bytes) {
       return absl::ResourceExhaustedError(core::StrCat(
           "the server's store is full: its jobs keep ", kept, " of ", options_.max_store_bytes,
@@ -202,7 +223,7 @@ absl::Status JobService::CheckRoom(int64_t job_bytes) {
           " (its upload and a reserve for its results); try again once jobs have finished and been deleted"));
     }
   }
-  if (const int64_t available = blobs_->AvailableBytes();
+  if (const int64_t available = blobs_.AvailableBytes();
       available >= 0 && available - job_bytes < options_.min_free_bytes) {
     return absl::ResourceExhaustedError(core::StrCat("the server's disk is nearly full (", available >> 20,
                                                      " MiB free, ", options_.min_free_bytes >> 20,
@@ -211,33 +232,23 @@ absl::Status JobService::CheckRoom(int64_t job_bytes) {
   return absl::OkStatus();
 }
 
-int JobService::QueuedJobs() const {
-  int queued = 0;
-  for (const auto& [id, e] : jobs_) queued += e->record.state == JobState::kQueued;
-  return queued;
-}
-
-int JobService::QueuedJobsOf(const std::string& owner) const {
-  int queued = 0;
-  for (const auto& [id, e] : jobs_) queued += e->record.state == JobState::kQueued && e->record.owner == owner;
-  return queued;
-}
-
-absl::Status JobService::AdmitResults(const std::shared_ptr<Entry>& entry, int64_t artifact_bytes) {
+absl::Status JobAdmission::AdmitResults(const std::shared_ptr<JobEntry>& entry, int64_t artifact_bytes) {
   std::lock_guard lock(mutex_);
-  JobRecord& r = entry->record;
-  const int64_t total = r.input_bytes + SpecBytes(r.spec) + artifact_bytes;
-  if (r.quota_bytes > 0) {
-    const int64_t others = OwnerUsage(r.owner).stored_bytes - r.stored_bytes;
-    if (others + total > r.quota_bytes) {
-      return absl::ResourceExhaustedError(core::StrCat("the job's results would take your jobs past your quota of ",
-                                                       r.quota_bytes, " stored bytes (the others keep ", others,
-                                                       "); delete finished jobs to make room"));
+  return table_.Locked([&](const JobEntries& jobs) -> absl::Status {
+    JobRecord& r = entry->record;
+    const int64_t total = r.input_bytes + SpecBytes(r.spec) + artifact_bytes;
+    if (r.quota_bytes > 0) {
+      const int64_t others = OwnerUsage(jobs, r.owner).stored_bytes - r.stored_bytes;
+      if (others + total > r.quota_bytes) {
+        return absl::ResourceExhaustedError(core::StrCat("the job's results would take your jobs past your quota of ",
+                                                         r.quota_bytes, " stored bytes (the others keep ", others,
+                                                         "); delete finished jobs to make room"));
+      }
     }
-  }
-  // The reservation stands until the run settles; past it, what was written counts at once.
-  r.stored_bytes = std::max(r.stored_bytes, total);
-  return absl::OkStatus();
+    // The reservation stands until the run settles; past it, what was written counts at once.
+    r.stored_bytes = std::max(r.stored_bytes, total);
+    return absl::OkStatus();
+  });
 }
 
 }  // namespace lsqsurf::jobs

@@ -1,3 +1,5 @@
+#include "worker/jobs/job_runner.h"
+
 #include <spdlog/spdlog.h>
 
 #include <algorithm>
@@ -5,7 +7,6 @@
 
 #include "worker/core/status.h"
 #include "worker/core/strings.h"
-#include "worker/jobs/job_service.h"
 #include "worker/jobs/job_service_internal.h"
 #include "worker/jobs/tile_exchange.h"
 
@@ -72,12 +73,18 @@ class BlobSink final : public ArtifactSink {
   std::map<std::string, int64_t> sizes_;
 };
 
+namespace {
+
 // Progress of a running job, published to watchers at most every half percent, and written to
 // a shared store (for the other services' watchers) at most twice a second.
-class JobService::Context : public core::JobContext {
+class RunContext : public core::JobContext {
  public:
-  Context(JobService& service, std::shared_ptr<Entry> entry, std::string method)
-      : service_(service), entry_(std::move(entry)), method_(std::move(method)) {}
+  RunContext(JobTable& table, bool shared_store, JobEvents* events, std::shared_ptr<JobEntry> entry, std::string method)
+      : table_(table),
+        shared_store_(shared_store),
+        events_(events),
+        entry_(std::move(entry)),
+        method_(std::move(method)) {}
   void ReportProgress(std::string_view stage, double fraction) override {
     std::lock_guard lock(mutex_);
     if (stage == last_stage_ && std::abs(fraction - last_fraction_) < 0.005) return;
@@ -85,9 +92,9 @@ class JobService::Context : public core::JobContext {
     if (stage != last_stage_) EndStage(now);
     last_stage_.assign(stage);
     last_fraction_ = fraction;
-    const bool persist = service_.store_->shared() && now - last_persisted_ >= std::chrono::milliseconds(500);
+    const bool persist = shared_store_ && now - last_persisted_ >= std::chrono::milliseconds(500);
     if (persist) last_persisted_ = now;
-    service_.Update(
+    table_.Update(
         entry_,
         [&](JobRecord& r) {
           r.stage = last_stage_;
@@ -107,15 +114,16 @@ class JobService::Context : public core::JobContext {
 
  private:
   void EndStage(std::chrono::steady_clock::time_point now) {  // mutex_ held.
-    if (!last_stage_.empty() && service_.options_.events != nullptr) {
-      service_.options_.events->StageEnded(method_, last_stage_,
-                                           std::chrono::duration<double>(now - stage_start_).count());
+    if (!last_stage_.empty() && events_ != nullptr) {
+      events_->StageEnded(method_, last_stage_, std::chrono::duration<double>(now - stage_start_).count());
     }
     stage_start_ = now;
   }
 
-  JobService& service_;
-  std::shared_ptr<Entry> entry_;
+  JobTable& table_;
+  const bool shared_store_;
+  JobEvents* const events_;
+  std::shared_ptr<JobEntry> entry_;
   const std::string method_;
   std::mutex mutex_;
   std::string last_stage_;
@@ -124,17 +132,10 @@ class JobService::Context : public core::JobContext {
   std::chrono::steady_clock::time_point stage_start_ = std::chrono::steady_clock::now();
 };
 
-std::shared_ptr<DecodedInput> JobService::ReleaseDecoded(const std::string& id) {
-  auto it = decoded_.find(id);
-  if (it == decoded_.end()) return nullptr;
-  decoded_points_ -= it->second.points;
-  std::shared_ptr<DecodedInput> input = std::move(it->second.input);
-  decoded_.erase(it);
-  return input;
-}
+}  // namespace
 
-std::shared_ptr<JobService::Entry> JobService::ClaimNext(std::shared_ptr<DecodedInput>* decoded) {
-  auto claimed = store_->Claim(runner_, options_.lease);
+std::shared_ptr<JobEntry> JobRunner::ClaimNext(std::shared_ptr<DecodedInput>* decoded) {
+  auto claimed = parts_.store.Claim(runner_, options_.lease);
   if (!claimed.ok()) {
     // Once per outage, not at every poll of every worker.
     if (!claims_failing_.exchange(true))
@@ -143,62 +144,66 @@ std::shared_ptr<JobService::Entry> JobService::ClaimNext(std::shared_ptr<Decoded
   }
   claims_failing_ = false;
   if (!claimed->has_value()) return nullptr;
-  std::shared_ptr<Entry> entry;
-  {
-    std::lock_guard lock(mutex_);
-    *decoded = ReleaseDecoded((*claimed)->id);
-    entry = Adopt(**std::move(claimed));
-    entry->held = true;
-    // A cancellation that reached the store between the claim and this line is in the record
-    // kept (Adopt keeps the newer one); the run must see it, as no one will tell it again.
-    entry->cancel_requested = entry->record.cancel_requested;
-    entry->lost = false;
-    // A shutdown that began during the claim has marked the held jobs already: this one goes
-    // back to the queue at once instead of running until it ends.
-    entry->interrupted = shutting_down_;
-  }
-  NotifyChanged();
-  return entry;
+  *decoded = parts_.decoded.Take((*claimed)->id);
+  return parts_.table.Hold(**std::move(claimed));
 }
 
-void JobService::WorkerLoop() {
+void JobRunner::Start() {
+  for (int i = 0; i < options_.workers; ++i) workers_.emplace_back([this] { WorkerLoop(); });
+}
+
+void JobRunner::Stop() {
+  {
+    std::lock_guard lock(mutex_);
+    stop_ = true;
+  }
+  work_available_.notify_all();
+  for (auto& t : workers_) t.join();
+  workers_.clear();
+}
+
+void JobRunner::WakeWorkers() {
+  {
+    std::lock_guard lock(mutex_);
+    ++work_signal_;
+  }
+  work_available_.notify_all();
+}
+
+void JobRunner::WorkerLoop() {
   for (;;) {
     uint64_t signal = 0;
     {
       std::lock_guard lock(mutex_);
-      if (shutting_down_) return;
+      if (stop_) return;
       signal = work_signal_;
     }
     std::shared_ptr<DecodedInput> decoded;
-    if (std::shared_ptr<Entry> entry = ClaimNext(&decoded)) {
+    if (std::shared_ptr<JobEntry> entry = ClaimNext(&decoded)) {
       RunJob(entry, std::move(decoded));
       continue;
     }
     if (RunOthersTile()) continue;
     // Nothing to claim: wait for a submission, another service's job, or the next poll.
     std::unique_lock lock(mutex_);
-    const auto woken = [&] { return shutting_down_ || work_signal_ != signal; };
+    const auto woken = [&] { return stop_ || work_signal_ != signal; };
     // A store of its own gets jobs only through Submit; the long wait there only guards
     // against a claim that failed.
-    work_available_.wait_for(lock, store_->shared() ? options_.poll : std::chrono::milliseconds(10'000), woken);
+    work_available_.wait_for(lock, parts_.store.shared() ? options_.poll : std::chrono::milliseconds(10'000), woken);
   }
 }
 
-bool JobService::RunOthersTile() {
-  if (!store_->shared() || tiles_unreadable_) return false;
+bool JobRunner::RunOthersTile() {
+  if (!parts_.store.shared() || tiles_unreadable_) return false;
   // Stopped by a shutdown; the tile is then given back (JobStore::ReleaseTile) for another server.
   struct ShutdownContext final : core::JobContext {
-    const JobService& service;
-    explicit ShutdownContext(const JobService& s) : service(s) {}
+    const JobTable& table;
+    explicit ShutdownContext(const JobTable& t) : table(t) {}
     void ReportProgress(std::string_view, double) override {}
-    bool IsCancelled() const override {
-      std::lock_guard lock(service.mutex_);
-      return service.shutting_down_;
-    }
-  } ctx(*this);
-  const TileClaimOptions claims{options_.lease, [this](const TileTask& t, bool held) { HoldTile(t, held); },
-                                options_.max_attempts};
-  auto ran = RunClaimedTile(*store_, *blobs_, runner_, claims, ctx);
+    bool IsCancelled() const override { return table.shutting_down(); }
+  } ctx(parts_.table);
+  const TileClaimOptions claims{options_.lease, parts_.hold_tile, options_.max_attempts};
+  auto ran = RunClaimedTile(parts_.store, parts_.blobs, runner_, claims, ctx);
   if (absl::IsFailedPrecondition(ran.status())) {
     spdlog::error("{}; this server takes no more tiles of other servers' jobs (is --blob-dir shared with them?)",
                   ran.status().message());
@@ -212,20 +217,16 @@ bool JobService::RunOthersTile() {
   return ran.ok() && *ran;
 }
 
-absl::StatusOr<Statistics> JobService::RunKind(const std::shared_ptr<Entry>& entry, BlobSink& sink,
-                                               std::shared_ptr<DecodedInput> decoded) {
+absl::StatusOr<Statistics> JobRunner::RunKind(const std::shared_ptr<JobEntry>& entry, BlobSink& sink,
+                                              std::shared_ptr<DecodedInput> decoded) {
   // The run works on its own copy: the record is replaced whenever its state is stored.
-  JobRecord record;
-  {
-    std::lock_guard lock(mutex_);
-    record = entry->record;
-  }
+  const JobRecord record = parts_.table.Snapshot(*entry);
   Uploads uploads;
   // A decoded input stands in for the uploads; without one they are read back.
   auto read_back = [&](const std::string& slot) -> absl::StatusOr<bool> {
     const std::string blob = UploadBlob(slot);
-    if (!blobs_->Exists(record.id, blob)) return false;
-    auto bytes = blobs_->Map(record.id, blob);
+    if (!parts_.blobs.Exists(record.id, blob)) return false;
+    auto bytes = parts_.blobs.Map(record.id, blob);
     if (!bytes.ok()) return bytes.status();
     uploads[slot] = *std::move(bytes);
     return true;
@@ -240,33 +241,32 @@ absl::StatusOr<Statistics> JobService::RunKind(const std::shared_ptr<Entry>& ent
     if (!read.ok()) return read.status();
     if (!*read) break;
   }
-  const JobKind* kind = KindOf(record.spec.method);
+  const JobKind* kind = KindFor(options_.kind_overrides, record.spec.method);
   if (kind == nullptr) return absl::FailedPreconditionError(core::StrCat("no method '", record.spec.method, "'"));
-  Context ctx(*this, entry, record.spec.method);
+  RunContext ctx(parts_.table, parts_.store.shared(), options_.events.get(), entry, record.spec.method);
   struct StageEnd {
-    Context& ctx;
+    RunContext& ctx;
     ~StageEnd() { ctx.Finish(); }
   } stage_end{ctx};
   // Only the jobs the spec names, whose visibility to the submitter Submit checked.
   const std::vector<std::string> referenced = kind->ReferencedJobs(record.spec);
   RunEnvironment env{sink,
                      ctx,
-                     renderer_.get(),
+                     &parts_.pictures.renderer(),
                      std::move(decoded),
                      [this, referenced](const std::string& id, const std::string& name) -> absl::StatusOr<std::string> {
                        if (std::find(referenced.begin(), referenced.end(), id) == referenced.end())
                          return NoSuchJob(id);
-                       auto reader = OpenResult(id, name);
+                       auto reader = OpenJobResult(parts_.table, parts_.blobs, id, name);
                        if (!reader.ok()) return reader.status();
                        return ReadAll(**reader);
                      },
                      options_.max_job_memory,
                      scratch_dir_};
   std::optional<StoreTileExchange> tiles;
-  if (store_->shared()) {
-    tiles.emplace(*store_, *blobs_, record.id, runner_,
-                  TileClaimOptions{options_.lease, [this](const TileTask& t, bool held) { HoldTile(t, held); },
-                                   options_.max_attempts});
+  if (parts_.store.shared()) {
+    tiles.emplace(parts_.store, parts_.blobs, record.id, runner_,
+                  TileClaimOptions{options_.lease, parts_.hold_tile, options_.max_attempts});
     env.tiles = &*tiles;
   }
   try {
@@ -278,19 +278,20 @@ absl::StatusOr<Statistics> JobService::RunKind(const std::shared_ptr<Entry>& ent
   }
 }
 
-void JobService::RunJob(const std::shared_ptr<Entry>& entry, std::shared_ptr<DecodedInput> decoded) {
+void JobRunner::RunJob(const std::shared_ptr<JobEntry>& entry, std::shared_ptr<DecodedInput> decoded) {
   const std::string id = entry->record.id;
   const auto run_start = std::chrono::steady_clock::now();
   if (entry->record.state == JobState::kFailed) {
     // Its stored spec no longer decodes here: the claim read it back failed, with the reason.
-    Update(entry, [](JobRecord&) {});
+    parts_.table.Update(entry, [](JobRecord&) {});
   } else {
     spdlog::info("[job {}] started (attempt {})", id, entry->record.attempts);
     const auto start = std::chrono::steady_clock::now();
     BlobSink sink(
-        *blobs_, id, [this, &entry](int64_t artifact_bytes) { return AdmitResults(entry, artifact_bytes); },
+        parts_.blobs, id,
+        [this, &entry](int64_t artifact_bytes) { return parts_.admission.AdmitResults(entry, artifact_bytes); },
         [this, &entry](const std::string& name) {
-          Update(entry, [&](JobRecord& r) {
+          parts_.table.Update(entry, [&](JobRecord& r) {
             if (std::find(r.results.begin(), r.results.end(), name) == r.results.end()) r.results.push_back(name);
           });
         });
@@ -300,7 +301,7 @@ void JobService::RunJob(const std::shared_ptr<Entry>& entry, std::shared_ptr<Dec
       spdlog::warn("[job {}] ran {:.2f} s under a lapsed lease; its outcome is dropped", id, seconds);
       // Should the store still show it as this server's, it goes back to the queue, not held
       // against it; otherwise the write is refused and the store's state stands.
-      Update(entry, [](JobRecord& r) {
+      parts_.table.Update(entry, [](JobRecord& r) {
         r.state = JobState::kQueued;
         r.stage.clear();
         r.progress = 0;
@@ -308,7 +309,7 @@ void JobService::RunJob(const std::shared_ptr<Entry>& entry, std::shared_ptr<Dec
         ++r.interruptions;
       });
     } else if (result.ok()) {
-      Update(entry, [&](JobRecord& r) {
+      parts_.table.Update(entry, [&](JobRecord& r) {
         r.state = JobState::kSucceeded;
         r.stage = "done";
         r.progress = 1;
@@ -321,7 +322,7 @@ void JobService::RunJob(const std::shared_ptr<Entry>& entry, std::shared_ptr<Dec
     } else if (entry->interrupted && !entry->cancel_requested &&
                result.status().code() == absl::StatusCode::kCancelled) {
       // Interrupted by a shutdown, and nobody asked to cancel it: it runs again later.
-      Update(entry, [](JobRecord& r) {
+      parts_.table.Update(entry, [](JobRecord& r) {
         r.state = JobState::kQueued;
         r.stage.clear();
         r.progress = 0;
@@ -331,7 +332,7 @@ void JobService::RunJob(const std::shared_ptr<Entry>& entry, std::shared_ptr<Dec
       spdlog::info("[job {}] interrupted by shutdown; will resume on restart", id);
     } else if (result.status().code() == absl::StatusCode::kCancelled) {
       // What it wrote stays with it (until it is deleted), so it counts as stored.
-      Update(entry, [&](JobRecord& r) {
+      parts_.table.Update(entry, [&](JobRecord& r) {
         r.state = JobState::kCancelled;
         r.error = "cancelled by request";
         r.cancel_requested = false;
@@ -343,7 +344,7 @@ void JobService::RunJob(const std::shared_ptr<Entry>& entry, std::shared_ptr<Dec
       // bounded and with its control bytes escaped, in the record as in the log, where a
       // newline would forge a line.
       const std::string reason = core::Printable(std::string(result.status().message()), kMaxJobErrorBytes);
-      Update(entry, [&](JobRecord& r) {
+      parts_.table.Update(entry, [&](JobRecord& r) {
         r.state = JobState::kFailed;
         r.error = reason;
         r.stored_bytes = r.input_bytes + SpecBytes(r.spec) + sink.bytes();
@@ -352,34 +353,11 @@ void JobService::RunJob(const std::shared_ptr<Entry>& entry, std::shared_ptr<Dec
     }
   }
   if (options_.events != nullptr) {
-    JobRecord ended;
-    {
-      std::lock_guard lock(mutex_);
-      ended = entry->record;
-    }
+    const JobRecord ended = parts_.table.Snapshot(*entry);
     options_.events->JobEnded(ended.spec.method, ended.state,
                               std::chrono::duration<double>(std::chrono::steady_clock::now() - run_start).count());
   }
-  {
-    std::lock_guard lock(mutex_);
-    entry->held = false;
-    if (!entry->lost && !entry->removed_elsewhere) return;
-    entry->record.seq = 0;  // Whatever the store holds now replaces this run's view.
-  }
-  auto stored = store_->Get(id);
-  {
-    std::lock_guard lock(mutex_);
-    if (stored.ok()) {
-      Adopt(*std::move(stored));
-    } else if (stored.status().code() == absl::StatusCode::kNotFound) {
-      // Deleted elsewhere while it ran here: nothing of it stays on this server either.
-      if (auto it = jobs_.find(id); it != jobs_.end() && it->second == entry) {
-        ReleaseDecoded(id);
-        jobs_.erase(it);
-      }
-    }
-  }
-  NotifyChanged();
+  parts_.table.Release(entry);
 }
 
 }  // namespace lsqsurf::jobs

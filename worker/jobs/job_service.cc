@@ -12,12 +12,16 @@
 #include "worker/core/status.h"
 #include "worker/core/strings.h"
 #include "worker/io/draco_header.h"
+#include "worker/jobs/job_admission.h"
 #include "worker/jobs/job_ids.h"
+#include "worker/jobs/job_pictures.h"
+#include "worker/jobs/job_replication.h"
+#include "worker/jobs/job_retention.h"
+#include "worker/jobs/job_runner.h"
 #include "worker/jobs/job_service_internal.h"
+#include "worker/jobs/job_table.h"
 #include "worker/jobs/method_registry.h"
-#include "worker/jobs/volume_job.h"
 #include "worker/pu/pu_tiles.h"
-#include "worker/render/render.h"
 
 namespace lsqsurf::jobs {
 namespace {
@@ -133,12 +137,34 @@ void RecoverStoppedRun(JobRecord& r, int max_attempts) {
   r.updated_ms = NowMs();
 }
 
-JobService::JobService(JobServiceOptions options)
-    : options_(std::move(options)),
-      runner_(RunnerName(options_.name)),
-      renderer_(std::make_unique<render::SharedRenderer>()),
-      render_slots_(options_.max_renders),
-      volume_pictures_(std::make_unique<VolumePictures>(options_.max_render_bytes)) {
+const JobKind* KindFor(const std::map<std::string, const JobKind*>& overrides, const std::string& method) {
+  if (auto it = overrides.find(method); it != overrides.end()) return it->second;
+  const MethodEntry* m = FindMethod(method);
+  return m ? m->kind : nullptr;
+}
+
+absl::StatusOr<std::unique_ptr<BlobReader>> OpenJobResult(const JobTable& table, BlobStore& blobs,
+                                                          const std::string& id, const std::string& name) {
+  auto r = table.Get(id);
+  if (!r.ok()) return r.status();
+  // A running job's published parts are there already (each stored whole before it is listed).
+  const bool published = r->state == JobState::kRunning && MeshPartOf(name) >= 0;
+  if (r->state != JobState::kSucceeded && !published) {
+    return absl::FailedPreconditionError(core::StrCat("job ", id, " is ", JobStateName(r->state),
+                                                      "; results exist only for succeeded jobs (and the mesh parts "
+                                                      "of a running one)"));
+  }
+  if (!name.empty() && !IsArtifactNameForm(name)) return absl::InvalidArgumentError(kNotAnArtifactName);
+  const std::string artifact = name.empty() && !r->results.empty() ? r->results.front() : name;
+  if (std::find(r->results.begin(), r->results.end(), artifact) == r->results.end()) {
+    std::string names;
+    for (const auto& n : r->results) core::StrAppend(&names, names.empty() ? "" : ", ", n);
+    return absl::NotFoundError(core::StrCat("job ", id, " has no result '", artifact, "'; it has: ", names));
+  }
+  return blobs.Open(id, artifact);
+}
+
+JobService::JobService(JobServiceOptions options) : options_(std::move(options)), runner_(RunnerName(options_.name)) {
   if (options_.max_job_memory < 0) options_.max_job_memory = PhysicalMemoryBytes() / 4 * 3;
 }
 
@@ -156,95 +182,74 @@ absl::StatusOr<std::unique_ptr<JobService>> JobService::Open(const JobServiceOpt
     return absl::UnavailableError(core::StrCat("cannot create data directory ", options.data_dir, ": ", ec.message()));
   }
   std::unique_ptr<JobService> service(new JobService(options));
+  JobService& s = *service;
   if (options.blobs != nullptr) {
-    service->blobs_ = options.blobs;
+    s.blobs_ = options.blobs;
   } else {
     auto blobs = LocalDirBlobStore::Open((std::filesystem::path(options.data_dir) / "jobs").string());
     if (!blobs.ok()) return blobs.status();
-    service->blobs_ = *std::move(blobs);
+    s.blobs_ = *std::move(blobs);
   }
   if (options.store != nullptr) {
-    service->store_ = options.store;
+    s.store_ = options.store;
   } else {
     auto store = SqliteJobStore::Open((std::filesystem::path(options.data_dir) / "jobs.db").string());
     if (!store.ok()) return store.status();
-    service->store_ = *std::move(store);
+    s.store_ = *std::move(store);
   }
-  // In a store of its own every running job was this service's before it stopped; in a shared
-  // one only those whose lease lapsed are known to be orphans (the sync thread goes on looking).
-  LSQSURF_RETURN_IF_ERROR(service->RecoverLapsed(!service->store_->shared()));
-  auto all = service->store_->ChangesSince(0);
-  if (!all.ok()) return all.status();
-  for (JobRecord& r : all->changed) service->Adopt(std::move(r));
-  service->synced_seq_ = all->seq;
-  const bool shared = service->store_->shared();
-  if (!shared) service->RemoveOrphanedBlobs();
   // Large temporary files (a tiled build's points) stay beside the data, not in a temporary
   // directory that may be memory; those of a crashed run go now.
-  service->scratch_dir_ = (std::filesystem::path(options.data_dir) / "scratch").string();
-  std::filesystem::create_directories(service->scratch_dir_, ec);
-  if (ec) return absl::UnavailableError(core::StrCat("cannot create ", service->scratch_dir_, ": ", ec.message()));
-  auto swept = pu::SweepAbandonedScratch(service->scratch_dir_);
+  s.scratch_dir_ = (std::filesystem::path(options.data_dir) / "scratch").string();
+  std::filesystem::create_directories(s.scratch_dir_, ec);
+  if (ec) return absl::UnavailableError(core::StrCat("cannot create ", s.scratch_dir_, ": ", ec.message()));
+
+  const JobServiceOptions& o = s.options_;
+  s.decoded_ = std::make_unique<DecodedInputs>(o.max_points);
+  s.table_ = std::make_unique<JobTable>(s.store_, *s.decoded_);
+  s.pictures_ = std::make_unique<JobPictures>(*s.table_, *s.blobs_, o.max_renders, o.max_render_bytes);
+  s.retention_ = std::make_unique<JobRetention>(RetentionLimits{o.retain, o.max_store_bytes, o.sweep_interval},
+                                                *s.table_, *s.store_, *s.blobs_);
+  const auto wake_workers = [&s] { s.runner_threads_->WakeWorkers(); };
+  s.admission_ = std::make_unique<JobAdmission>(o, *s.table_, *s.decoded_, *s.retention_, *s.pictures_, *s.store_,
+                                                *s.blobs_, wake_workers);
+  s.replication_ = std::make_unique<JobReplication>(o, s.runner_, *s.table_, *s.store_, wake_workers);
+  s.runner_threads_ = std::make_unique<JobRunner>(
+      o, s.runner_, s.scratch_dir_,
+      JobRunner::Parts{*s.table_, *s.decoded_, *s.admission_, *s.pictures_, *s.store_, *s.blobs_,
+                       [&s](const TileTask& task, bool held) { s.replication_->HoldTile(task, held); }});
+
+  // In a store of its own every running job was this service's before it stopped; in a shared
+  // one only those whose lease lapsed are known to be orphans (the sync thread goes on looking).
+  const bool shared = s.store_->shared();
+  LSQSURF_RETURN_IF_ERROR(s.replication_->RecoverLapsed(!shared));
+  LSQSURF_RETURN_IF_ERROR(s.replication_->LoadAll());
+  if (!shared) s.retention_->RemoveOrphanedBlobs();
+  auto swept = pu::SweepAbandonedScratch(s.scratch_dir_);
   if (!swept.ok()) return swept.status();
   if (*swept > 0) spdlog::info("removed the scratch files of {} runs that ended in a crash", *swept);
-  const int64_t job_memory = service->options_.max_job_memory;
-  spdlog::info("job service {}: {} jobs on record, {} queued, {} workers, {}, data in {}{}", service->runner_,
-               service->jobs_.size(), service->QueuedJobs(), options.workers,
+  const auto [on_record, queued] = s.table_->Locked([](const JobEntries& jobs) {
+    int waiting = 0;
+    for (const auto& [id, e] : jobs) waiting += e->record.state == JobState::kQueued;
+    return std::pair{jobs.size(), waiting};
+  });
+  const int64_t job_memory = o.max_job_memory;
+  spdlog::info("job service {}: {} jobs on record, {} queued, {} workers, {}, data in {}{}", s.runner_, on_record,
+               queued, o.workers,
                job_memory > 0 ? core::StrCat("at most ", MiB(job_memory), " MiB a job") : "no memory limit per job",
-               options.data_dir, shared ? ", store shared with other servers" : "");
-  for (int i = 0; i < options.workers; ++i) service->workers_.emplace_back([s = service.get()] { s->WorkerLoop(); });
-  if (shared) service->sync_thread_ = std::thread([s = service.get()] { s->SyncLoop(); });
-  if (options.retain.count() > 0 || options.max_store_bytes > 0) {
-    service->sweep_thread_ = std::thread([s = service.get()] {
-      std::unique_lock lock(s->mutex_);
-      while (!s->sweep_wake_.wait_for(lock, s->options_.sweep_interval, [s] { return s->shutting_down_; })) {
-        lock.unlock();
-        s->SweepFinished(NowMs());
-        lock.lock();
-      }
-    });
-  }
+               o.data_dir, shared ? ", store shared with other servers" : "");
+  s.runner_threads_->Start();
+  s.replication_->Start();
+  s.retention_->Start();
   return service;
 }
 
 JobService::~JobService() { Shutdown(); }
 
-const JobKind* JobService::KindOf(const std::string& method) const {
-  if (auto it = options_.kind_overrides.find(method); it != options_.kind_overrides.end()) return it->second;
-  const MethodEntry* m = FindMethod(method);
-  return m ? m->kind : nullptr;
+absl::StatusOr<JobRecord> JobService::Submit(const JobSpec& spec, Uploads uploads, const Submitter& submitter) {
+  return admission_->Submit(spec, std::move(uploads), submitter);
 }
 
-std::shared_ptr<JobService::Entry> JobService::Adopt(JobRecord record) {
-  std::shared_ptr<Entry>& entry = jobs_[record.id];
-  if (entry == nullptr) entry = std::make_shared<Entry>();
-  if (entry->held || (entry->record.seq >= record.seq && !entry->record.id.empty())) return entry;
-  record.version = entry->record.version + 1;
-  entry->record = std::move(record);
-  // A job another service took (or that ended) no longer needs the input decoded here.
-  if (entry->record.state != JobState::kQueued) ReleaseDecoded(entry->record.id);
-  return entry;
-}
-
-std::shared_ptr<JobService::Entry> JobService::Find(const std::string& id) const {
-  {
-    std::lock_guard lock(mutex_);
-    if (auto it = jobs_.find(id); it != jobs_.end()) return it->second;
-  }
-  // Another service may have accepted it a moment ago.
-  if (!store_->shared()) return nullptr;
-  auto stored = store_->Get(id);
-  if (!stored.ok()) return nullptr;
-  std::lock_guard lock(mutex_);
-  return const_cast<JobService*>(this)->Adopt(*std::move(stored));
-}
-
-absl::StatusOr<JobRecord> JobService::Get(const std::string& id) const {
-  std::shared_ptr<Entry> entry = Find(id);
-  if (entry == nullptr) return NoSuchJob(id);
-  std::lock_guard lock(mutex_);
-  return entry->record;
-}
+absl::StatusOr<JobRecord> JobService::Get(const std::string& id) const { return table_->Get(id); }
 
 absl::StatusOr<JobRecord> JobService::GetFor(const Submitter& who, const std::string& id) const {
   auto record = Get(id);
@@ -252,167 +257,45 @@ absl::StatusOr<JobRecord> JobService::GetFor(const Submitter& who, const std::st
   return record;
 }
 
-std::vector<JobRecord> JobService::List() const {
-  std::lock_guard lock(mutex_);
-  std::vector<JobRecord> out;
-  for (const auto& [id, e] : jobs_) out.push_back(e->record);
-  std::sort(out.begin(), out.end(), [](const JobRecord& a, const JobRecord& b) {
-    return a.created_ms != b.created_ms ? a.created_ms > b.created_ms : a.id > b.id;
-  });
-  return out;
-}
+std::vector<JobRecord> JobService::List() const { return table_->List(); }
 
-void JobService::Update(const std::shared_ptr<Entry>& entry, const std::function<void(JobRecord&)>& change,
-                        bool persist) {
-  if (!persist) {
-    {
-      std::lock_guard lock(mutex_);
-      change(entry->record);
-      entry->record.updated_ms = NowMs();
-      ++entry->record.version;
-    }
-    NotifyChanged();
-    return;
-  }
-  // A stored change shows here only once the store has it: whoever sees it (a watcher that then
-  // cancels or deletes the job, through this server or another) finds the store agreeing. The
-  // held job's record changes only through here meanwhile (progress is reported under the
-  // context's lock, and the run ends after its last report).
-  JobRecord next;
-  {
-    std::lock_guard lock(mutex_);
-    next = entry->record;
-    ++entry->writes_in_flight;
-  }
-  change(next);
-  next.updated_ms = NowMs();
-  const int64_t seq = Persist(entry, next);
-  {
-    std::lock_guard lock(mutex_);
-    // A change seen during the write that is newer than the write itself (or, when the write
-    // failed, than what this run had stored before) was another service's.
-    if (entry->seq_seen_while_writing > (seq != 0 ? seq : entry->record.seq)) MarkLost(*entry, next.id);
-    next.version = entry->record.version + 1;
-    next.seq = std::max(entry->record.seq, seq);
-    entry->record = std::move(next);
-    if (--entry->writes_in_flight == 0) entry->seq_seen_while_writing = 0;
-  }
-  NotifyChanged();
-}
-
-int64_t JobService::Persist(const std::shared_ptr<Entry>& entry, const JobRecord& record) {
-  absl::StatusOr<int64_t> seq;
-  {
-    std::lock_guard store_lock(store_mutex_);
-    seq = store_->WriteHeld(record);
-  }
-  if (seq.ok()) return *seq;
-  if (seq.status().code() == absl::StatusCode::kAborted) {
-    // Its lease lapsed (this service stalled or lost the store): another service runs it now.
-    MarkLost(*entry, record.id);
-  } else {
-    spdlog::error("[job {}] cannot store its state: {}", record.id, seq.status().ToString());
-  }
-  return 0;
-}
-
-absl::StatusOr<JobRecord> JobService::Cancel(const std::string& id) {
-  auto cancelled = store_->Cancel(id, "cancelled by request before it started");
-  if (!cancelled.ok()) return cancelled.status();
-  JobRecord r;
-  {
-    std::lock_guard lock(mutex_);
-    std::shared_ptr<Entry> entry = Adopt(*cancelled);
-    if (entry->held) entry->cancel_requested = true;
-    r = entry->record;
-  }
-  NotifyChanged();
-  spdlog::info(
-      "[job {}] {}", id,
-      cancelled->state == JobState::kCancelled ? "cancelled while queued" : "cancellation requested while running");
-  return r;
-}
-
-absl::Status JobService::Delete(const std::string& id) {
-  LSQSURF_RETURN_IF_ERROR(store_->Remove(id));
-  {
-    std::lock_guard lock(mutex_);
-    if (auto it = jobs_.find(id); it != jobs_.end()) {
-      ReleaseDecoded(id);
-      jobs_.erase(it);
-    }
-  }
-  if (absl::Status s = blobs_->RemoveJob(id); !s.ok()) spdlog::error("[job {}] {}", id, s.ToString());
-  NotifyChanged();
-  spdlog::info("[job {}] deleted", id);
-  return absl::OkStatus();
-}
+absl::StatusOr<JobRecord> JobService::Cancel(const std::string& id) { return table_->Cancel(id); }
 
 absl::StatusOr<std::unique_ptr<BlobReader>> JobService::OpenResult(const std::string& id,
                                                                    const std::string& name) const {
-  auto r = Get(id);
-  if (!r.ok()) return r.status();
-  // A running job's published parts are there already (each stored whole before it is listed).
-  const bool published = r->state == JobState::kRunning && MeshPartOf(name) >= 0;
-  if (r->state != JobState::kSucceeded && !published) {
-    return absl::FailedPreconditionError(core::StrCat("job ", id, " is ", JobStateName(r->state),
-                                                      "; results exist only for succeeded jobs (and the mesh parts "
-                                                      "of a running one)"));
-  }
-  if (!name.empty() && !IsArtifactNameForm(name)) return absl::InvalidArgumentError(kNotAnArtifactName);
-  const std::string artifact = name.empty() && !r->results.empty() ? r->results.front() : name;
-  if (std::find(r->results.begin(), r->results.end(), artifact) == r->results.end()) {
-    std::string names;
-    for (const auto& n : r->results) core::StrAppend(&names, names.empty() ? "" : ", ", n);
-    return absl::NotFoundError(core::StrCat("job ", id, " has no result '", artifact, "'; it has: ", names));
-  }
-  return blobs_->Open(id, artifact);
+  return OpenJobResult(*table_, *blobs_, id, name);
 }
 
-void JobService::NotifyChanged() {
-  {
-    std::lock_guard lock(mutex_);
-    ++changes_;
-  }
-  changed_.notify_all();
+absl::StatusOr<RenderedPicture> JobService::Render(const Submitter& who, const std::string& id, const std::string& name,
+                                                   const core::ParamSet& view, const core::JobContext* ctx) {
+  auto record = GetFor(who, id);
+  if (!record.ok()) return record.status();
+  return pictures_->Render(who.owner, *record, name, view, ctx);
 }
+
+bool JobService::CanRender() { return pictures_->CanRender(); }
 
 uint64_t JobService::WaitForAnyChange(uint64_t seen, std::chrono::milliseconds timeout) const {
-  std::unique_lock lock(mutex_);
-  // A shutdown counts as a change (Shutdown notifies), once: waiting on it would not wait.
-  changed_.wait_for(lock, timeout, [&] { return changes_ != seen; });
-  return changes_;
+  return table_->WaitForAnyChange(seen, timeout);
 }
 
 absl::StatusOr<JobRecord> JobService::WaitForChange(const std::string& id, uint64_t seen_version,
                                                     std::chrono::milliseconds timeout) const {
-  std::shared_ptr<Entry> entry = Find(id);
-  if (entry == nullptr) return NoSuchJob(id);
-  std::unique_lock lock(mutex_);
-  changed_.wait_for(lock, timeout,
-                    [&] { return entry->record.version != seen_version || shutting_down_ || !jobs_.contains(id); });
-  if (!jobs_.contains(id)) return absl::NotFoundError(core::StrCat("job '", id, "' was deleted"));
-  return entry->record;
+  return table_->WaitForChange(id, seen_version, timeout);
 }
 
+bool JobService::StoreReachable() const { return replication_->StoreReachable(); }
+
+bool JobService::shutting_down() const { return table_->shutting_down(); }
+
 void JobService::Shutdown() {
-  {
-    std::lock_guard lock(mutex_);
-    if (shutting_down_ && workers_.empty() && !sync_thread_.joinable() && !sweep_thread_.joinable()) return;
-    shutting_down_ = true;
-    for (auto& [id, e] : jobs_) {
-      if (e->held) e->interrupted = true;
-    }
-  }
-  work_available_.notify_all();
-  NotifyChanged();
-  sweep_wake_.notify_all();
-  if (sweep_thread_.joinable()) sweep_thread_.join();
-  for (auto& t : workers_) t.join();
-  workers_.clear();
+  std::lock_guard lock(shutdown_mutex_);
+  if (table_ == nullptr) return;  // Open failed before the parts were made.
+  table_->BeginShutdown();
+  retention_->Stop();
+  runner_threads_->Stop();
   // The leases are renewed until the interrupted jobs are back in the queue.
-  sync_stop_ = true;
-  if (sync_thread_.joinable()) sync_thread_.join();
+  replication_->Stop();
 }
 
 }  // namespace lsqsurf::jobs

@@ -1,16 +1,21 @@
-// worker/jobs/job_service_internal.h — what the job service's parts (job_service.cc: the record
-// table; job_admission.cc; job_retention.cc; job_runner.cc; job_replication.cc; job_pictures.cc)
-// share. Only those files include it.
+// worker/jobs/job_service_internal.h — helpers the job service's parts (job_service.cc,
+// job_table, job_admission, job_retention, job_runner, job_replication, job_pictures) share.
+// Only those files include it.
 #pragma once
 
-#include <atomic>
 #include <cstdint>
 #include <map>
+#include <memory>
 #include <string>
 
-#include "worker/jobs/job_service.h"
+#include "absl/status/statusor.h"
+#include "worker/jobs/job.h"
+#include "worker/jobs/job_kind.h"
+#include "worker/jobs/store/blob_store.h"
 
 namespace lsqsurf::jobs {
+
+class JobTable;  // job_table.h
 
 inline int64_t MiB(int64_t bytes) { return (bytes + (int64_t{1} << 20) - 1) >> 20; }
 
@@ -26,18 +31,11 @@ std::string UploadBlob(const std::string& slot);
 // queued again, or failed once such stops add up to `max_attempts`.
 void RecoverStoppedRun(JobRecord& r, int max_attempts);
 
-struct JobService::Entry {
-  JobRecord record;   // Guarded by mutex_.
-  bool held = false;  // This service runs the job; guarded by mutex_.
-  std::atomic<bool> cancel_requested{false};
-  std::atomic<bool> interrupted{false};  // Shutdown: re-queue rather than cancel.
-  std::atomic<bool> lost{false};         // The lease lapsed: another service may run it now.
-  // This run's writes to the store under way, and the newest change that arrived meanwhile
-  // looking like another service's (it may be one of them, stored but not yet recorded here);
-  // guarded by mutex_.
-  int writes_in_flight = 0;
-  int64_t seq_seen_while_writing = 0;
-  bool removed_elsewhere = false;  // Deleted through another service while held; guarded by mutex_.
-};
+// The kind that runs `method`'s jobs: a test's override, else the registry's; null if none.
+const JobKind* KindFor(const std::map<std::string, const JobKind*>& overrides, const std::string& method);
+
+// A result artifact of job `id` for reading, as JobService::OpenResult answers.
+absl::StatusOr<std::unique_ptr<BlobReader>> OpenJobResult(const JobTable& table, BlobStore& blobs,
+                                                          const std::string& id, const std::string& name);
 
 }  // namespace lsqsurf::jobs

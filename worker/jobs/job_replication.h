@@ -1,0 +1,65 @@
+// worker/jobs/job_replication.h — what a service does for the servers it shares a store with:
+// it follows their changes (a notification, else polling every `poll`), passes cancellations on
+// to its runs, renews the leases of the jobs and tiles it runs, and recovers the jobs of servers
+// whose lease lapsed. With a store of its own only the recovery at start applies.
+#pragma once
+
+#include <atomic>
+#include <cstdint>
+#include <functional>
+#include <mutex>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "absl/status/status.h"
+#include "worker/jobs/job_service_options.h"
+#include "worker/jobs/job_table.h"
+
+namespace lsqsurf::jobs {
+
+// Thread-safe.
+class JobReplication {
+ public:
+  // `wake_workers` is told when another server queued a job.
+  JobReplication(const JobServiceOptions& options, std::string runner, JobTable& table, JobStore& store,
+                 std::function<void()> wake_workers)
+      : options_(options),
+        runner_(std::move(runner)),
+        table_(table),
+        store_(store),
+        wake_workers_(std::move(wake_workers)) {}
+  ~JobReplication() { Stop(); }
+
+  // Takes every job on record into the table (at start). Errors: the store's.
+  absl::Status LoadAll();
+  // Requeues (or fails, or cancels) the jobs of runners whose lease lapsed; every running job
+  // with `every_running`. Errors: the store's.
+  absl::Status RecoverLapsed(bool every_running);
+  // Shared stores: follows the others on a thread of its own until Stop.
+  void Start();
+  void Stop();  // Idempotent; call once the runs have ended, whose leases it renews until then.
+  // Adds (or, with held false, drops) a tile this service runs to those whose leases it renews.
+  void HoldTile(const TileTask& task, bool held);
+  // Whether the store answered the last look (always true for a store of its own).
+  bool StoreReachable() const { return store_reachable_.load(); }
+
+ private:
+  void SyncLoop();
+  void SyncChanges();
+  void RenewLeases();
+
+  const JobServiceOptions& options_;
+  const std::string runner_;
+  JobTable& table_;
+  JobStore& store_;
+  const std::function<void()> wake_workers_;
+  std::mutex tiles_mutex_;
+  std::vector<TileTask> held_tiles_;  // Tiles this service runs now (tiles_mutex_).
+  int64_t synced_seq_ = 0;            // The store's change number this service has seen (sync thread).
+  std::atomic<bool> stop_{false};
+  std::atomic<bool> store_reachable_{true};
+  std::thread thread_;
+};
+
+}  // namespace lsqsurf::jobs

@@ -36,9 +36,9 @@ TEST(DecodedInputs, KeepsOnlyWhatItsBudgetHolds) {
   DecodedInputs decoded(100);
   EXPECT_TRUE(decoded.Keep("a", std::make_shared<DecodedInput>(), 60));
   EXPECT_FALSE(decoded.Keep("b", std::make_shared<DecodedInput>(), 50));  // 110 > 100.
-  EXPECT_FALSE(decoded.Keep("c", nullptr, 1));                           // Nothing to keep.
+  EXPECT_FALSE(decoded.Keep("c", nullptr, 1));                            // Nothing to keep.
   EXPECT_NE(decoded.Take("a"), nullptr);
-  EXPECT_EQ(decoded.Take("a"), nullptr);  // Taken once.
+  EXPECT_EQ(decoded.Take("a"), nullptr);                                 // Taken once.
   EXPECT_TRUE(decoded.Keep("b", std::make_shared<DecodedInput>(), 50));  // The budget is back.
   EXPECT_EQ(decoded.Take("unknown"), nullptr);
 }

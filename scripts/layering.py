@@ -9,7 +9,9 @@ folder's private header (NAME_internal.h) included from another folder. And the 
 keep modules apart: no product source over 800 lines, no `friend` under worker/ (an engine's
 state is an opaque Impl its own files define), no `shared_ptr<void>`, nothing outside
 worker/extract naming `extract::internal`, and no class in a worker/jobs header declaring more than
-20 member functions (split it into parts with state of their own).
+20 member functions (split it into parts with state of their own), and no include cycle among the
+modules of worker/jobs (a module is a header with its source; a cycle is reported at the
+include that closes it, in the first of its modules by name).
 
 Usage: layering.py [--root DIR]   (DIR: the checkout, default the current directory)
 Prints one line per forbidden include (file:line: what it includes, and why not) and exits 1
@@ -112,8 +114,52 @@ def shape_violations(source, home, lines):
     return found
 
 
+def module_of(source):
+    return os.path.splitext(source)[0]
+
+
+def include_cycles(edges):
+    """edges: {module: {included module: (source, line)}}. One line per cycle (a strongly
+    connected set of modules), at the include from its first module to another of the set."""
+    order, low, stack, on_stack, cycles = {}, {}, [], set(), []
+
+    def visit(module):
+        order[module] = low[module] = len(order)
+        stack.append(module)
+        on_stack.add(module)
+        for target in sorted(edges.get(module, ())):
+            if target not in order:
+                visit(target)
+                low[module] = min(low[module], low[target])
+            elif target in on_stack:
+                low[module] = min(low[module], order[target])
+        if low[module] == order[module]:
+            members = []
+            while True:
+                member = stack.pop()
+                on_stack.discard(member)
+                members.append(member)
+                if member == module:
+                    break
+            if len(members) > 1:
+                cycles.append(sorted(members))
+
+    for module in sorted(edges):
+        if module not in order:
+            visit(module)
+    found = []
+    for members in cycles:
+        first = members[0]
+        target = min(t for t in edges[first] if t in members)
+        source, number = edges[first][target]
+        names = ", ".join(os.path.relpath(m, "worker/jobs") for m in members)
+        found.append(f"{source}:{number}: includes {target}.h: an include cycle among the job modules {names}")
+    return found
+
+
 def violations(root):
     found = []
+    job_module_edges = {}
     for top in ("worker", "server", "client", "python", "bench"):
         for directory, _, files in os.walk(os.path.join(root, top)):
             for name in sorted(files):
@@ -133,10 +179,15 @@ def violations(root):
                     match = INCLUDE.match(line)
                     if not match:
                         continue
-                    why = judge(home, match.group(1))
+                    included = match.group(1)
+                    if home == "worker/jobs" and folder_of(included) == "worker/jobs":
+                        here, there = module_of(source), module_of(included)
+                        if here != there:
+                            job_module_edges.setdefault(here, {}).setdefault(there, (source, number))
+                    why = judge(home, included)
                     if why:
-                        found.append(f"{source}:{number}: includes {match.group(1)}: {why}")
-    return found
+                        found.append(f"{source}:{number}: includes {included}: {why}")
+    return found + include_cycles(job_module_edges)
 
 
 def judge(home, included):

@@ -45,7 +45,7 @@ absl::Status OpenStores(const std::string& store, const std::string& blob_dir, i
     return absl::InvalidArgumentError("--store takes 'sqlite' or a postgresql://user@host:port/database URL");
   }
 #if LSQSURF_WITH_POSTGRESQL
-  auto shared = jobs::PostgresJobStore::Open(store, connections);
+  auto shared = jobs::PostgresJobStore::Open(store, jobs::RegistrySpecTables(), connections);
   if (!shared.ok()) return shared.status();
   if (options.blobs == nullptr) options.blobs = std::make_shared<jobs::PostgresBlobStore>((*shared)->pool());
   options.store = *std::move(shared);

@@ -32,6 +32,11 @@ FILES = {
     # A job-layer class of 21 member functions is refused; 20, with data members of function
     # type and a nested struct's, pass.
     "worker/jobs/bad_big.h": "class Big {\n public:\n" + "".join(f"  void F{i}(int x);\n" for i in range(21)) + "};\n",
+    # Job modules in a cycle (a header and the other's source) are refused at the first module's
+    # include; a header included by its own source is no cycle.
+    "worker/jobs/loop_a.h": '#include "worker/jobs/loop_b.h"\n',
+    "worker/jobs/loop_b.h": "int b;\n",
+    "worker/jobs/loop_b.cc": '#include "worker/jobs/loop_b.h"\n#include "worker/jobs/loop_a.h"\n',
     "worker/jobs/fits.h": "class Fits final : public Base {\n public:\n  Fits(int a,\n       int b);\n" +
     "".join(f"  int G{i}() const {{ return {i}; }}\n" for i in range(19)) +
     " private:\n  struct Part {\n    void H();\n  };\n  std::function<void()> done_;\n  std::mutex m_;\n};\n",
@@ -50,6 +55,7 @@ EXPECTED = {
     "worker/pu/bad_reach.cc:1",
     "server/bad_long.cc:801",
     "worker/jobs/bad_big.h:1",
+    "worker/jobs/loop_a.h:1",
 }
 
 

@@ -12,6 +12,7 @@
 #include "tests/test_dir.h"
 #include "worker/io/files.h"
 #if LSQSURF_WITH_POSTGRESQL
+#include "worker/jobs/method_registry.h"
 #include "worker/jobs/store/postgres_store.h"
 #endif
 
@@ -32,7 +33,7 @@ class BlobStoreContract : public ::testing::TestWithParam<std::string> {
     std::string why_not;
     testing::PostgresCluster* cluster = testing::SharedPostgresCluster(&why_not);
     if (cluster == nullptr) GTEST_SKIP() << why_not;
-    auto store = PostgresJobStore::Open(cluster->NewDatabase());  // Makes the tables.
+    auto store = PostgresJobStore::Open(cluster->NewDatabase(), RegistrySpecTables());  // Makes the tables.
     ASSERT_TRUE(store.ok()) << store.status();
     blobs_ = std::make_unique<PostgresBlobStore>((*store)->pool());
 #else

@@ -48,7 +48,7 @@ class JobPartsTest : public ::testing::Test {
   void SetUp() override {
     dir_ = testing::FreshTestDir("lsqsurf-parts");
     std::filesystem::create_directories(dir_);
-    auto store = SqliteJobStore::Open((dir_ / "jobs.db").string());
+    auto store = SqliteJobStore::Open((dir_ / "jobs.db").string(), RegistrySpecTables());
     ASSERT_TRUE(store.ok()) << store.status();
     store_ = *std::move(store);
     auto blobs = LocalDirBlobStore::Open((dir_ / "jobs").string());

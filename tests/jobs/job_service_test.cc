@@ -15,6 +15,7 @@
 #include <set>
 
 #include "absl/cleanup/cleanup.h"
+#include "absl/strings/match.h"
 #include "stb_image.h"
 #include "tests/latch_kind.h"
 #if LSQSURF_WITH_POSTGRESQL
@@ -1043,7 +1044,8 @@ TEST_F(JobServiceTest, DatabasesFromEarlierVersionsStillOpen) {
 
 TEST_F(JobServiceTest, QueuedJobsWhoseSpecNoLongerFitsFailWithTheReason) {
   {
-    auto store = SqliteJobStore::Open((std::filesystem::create_directories(dir_), dir_ / "jobs.db").string());
+    auto store = SqliteJobStore::Open((std::filesystem::create_directories(dir_), dir_ / "jobs.db").string(),
+                                      RegistrySpecTables());
     ASSERT_TRUE(store.ok());
     JobRecord stale;
     stale.id = "eeee";
@@ -1066,7 +1068,7 @@ TEST_F(JobServiceTest, CrashedJobsRunAgainOnceThenFail) {
   ASSERT_TRUE(io::WriteFileAtomically((dir_ / "jobs" / "aaaa" / "input.drc").string(), input).ok());
   ASSERT_TRUE(io::WriteFileAtomically((dir_ / "jobs" / "bbbb" / "input.drc").string(), input).ok());
   {
-    auto store = SqliteJobStore::Open((dir_ / "jobs.db").string());
+    auto store = SqliteJobStore::Open((dir_ / "jobs.db").string(), RegistrySpecTables());
     ASSERT_TRUE(store.ok());
     JobRecord once;
     once.id = "aaaa";
@@ -1134,6 +1136,9 @@ class ForwardingStore : public JobStore {
   absl::StatusOr<JobRecord> Get(const std::string& id) override { return inner_->Get(id); }
   absl::StatusOr<JobChanges> ChangesSince(int64_t seq) override { return inner_->ChangesSince(seq); }
   void WaitForOthers(std::chrono::milliseconds timeout) override { inner_->WaitForOthers(timeout); }
+  absl::StatusOr<std::string> Agree(const std::string& key, const std::string& value) override {
+    return inner_->Agree(key, value);
+  }
   absl::Status AddTiles(const std::string& id, int64_t count, int build, const std::vector<int64_t>& done) override {
     return inner_->AddTiles(id, count, build, done);
   }
@@ -1255,20 +1260,26 @@ class SharedJobServiceTest : public ::testing::Test {
   std::unique_ptr<JobService> OpenService(
       const std::string& name, testing::LatchKind* latch, std::chrono::milliseconds lease,
       const std::function<std::shared_ptr<JobStore>(std::shared_ptr<JobStore>)>& wrap = nullptr) {
-    auto store = PostgresJobStore::Open(url_);
-    EXPECT_TRUE(store.ok()) << store.status();
-    if (!store.ok()) return nullptr;
+    auto service = TryOpenService(name, latch, lease, wrap);
+    EXPECT_TRUE(service.ok()) << service.status();
+    return service.ok() ? *std::move(service) : nullptr;
+  }
+  // The same, with the bytes in `blobs` rather than in the database, and the error kept.
+  absl::StatusOr<std::unique_ptr<JobService>> TryOpenService(
+      const std::string& name, testing::LatchKind* latch, std::chrono::milliseconds lease,
+      const std::function<std::shared_ptr<JobStore>(std::shared_ptr<JobStore>)>& wrap = nullptr,
+      std::shared_ptr<BlobStore> blobs = nullptr) {
+    auto store = PostgresJobStore::Open(url_, RegistrySpecTables());
+    if (!store.ok()) return store.status();
     JobServiceOptions options;
     options.data_dir = (dir_ / name).string();
     options.name = name;
     options.lease = lease;
-    options.blobs = std::make_shared<PostgresBlobStore>((*store)->pool());
+    options.blobs = blobs != nullptr ? blobs : std::make_shared<PostgresBlobStore>((*store)->pool());
     options.store = *std::move(store);
     if (wrap) options.store = wrap(options.store);
     if (latch != nullptr) options.kind_overrides["iamls"] = latch;
-    auto service = JobService::Open(options);
-    EXPECT_TRUE(service.ok()) << service.status();
-    return service.ok() ? *std::move(service) : nullptr;
+    return JobService::Open(options);
   }
   static JobRecord WaitUntil(JobService& s, const std::string& id,
                              const std::function<bool(const absl::StatusOr<JobRecord>&)>& done) {
@@ -1287,6 +1298,43 @@ class SharedJobServiceTest : public ::testing::Test {
   testing::LatchKind latch_a_, latch_b_;
   std::unique_ptr<JobService> a_, b_;
 };
+
+// A server whose --blob-dir is a folder of its own would take jobs whose uploads it cannot read:
+// it is refused at start, saying why, while servers on the one shared folder start and run.
+TEST_F(SharedJobServiceTest, AServerWhoseBlobStoreIsNotTheSharedOneDoesNotStart) {
+  const auto folder = [&](const std::string& name) -> std::shared_ptr<BlobStore> {
+    auto blobs = LocalDirBlobStore::Open((dir_ / name).string());
+    EXPECT_TRUE(blobs.ok()) << blobs.status();
+    return blobs.ok() ? std::shared_ptr<BlobStore>(*std::move(blobs)) : nullptr;
+  };
+  auto a = TryOpenService("a", nullptr, std::chrono::seconds(10), nullptr, folder("shared-blobs"));
+  ASSERT_TRUE(a.ok()) << a.status();
+  a_ = *std::move(a);
+  auto b = TryOpenService("b", nullptr, std::chrono::seconds(10), nullptr, folder("shared-blobs"));
+  ASSERT_TRUE(b.ok()) << b.status();
+  b_ = *std::move(b);
+  auto apart = TryOpenService("c", nullptr, std::chrono::seconds(10), nullptr, folder("c-own-blobs"));
+  EXPECT_EQ(apart.status().code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_TRUE(absl::StrContains(apart.status().message(), "--blob-dir")) << apart.status();
+  // The refused server left nothing in the shared folder, nor anything behind in its own.
+  const auto blobs_in = [&](const std::string& name) {
+    int count = 0;
+    for (const auto& entry : std::filesystem::recursive_directory_iterator(dir_ / name)) {
+      count += entry.is_regular_file();
+    }
+    return count;
+  };
+  EXPECT_EQ(blobs_in("shared-blobs"), 1);  // A's witness; B's own went once it had read A's.
+  EXPECT_EQ(blobs_in("c-own-blobs"), 0);
+
+  // B runs a job A accepted (A stops at once, handing it back if it took it): its upload is read
+  // from the folder they share.
+  auto job = a_->Submit(Spec("iamls"), Input(Encode(testing::SphereCloud(1000))));
+  ASSERT_TRUE(job.ok()) << job.status();
+  a_.reset();
+  const JobRecord done = WaitUntil(*b_, job->id, [](const auto& r) { return r.ok() && IsTerminal(r->state); });
+  EXPECT_EQ(done.state, JobState::kSucceeded) << done.error;
+}
 
 TEST_F(SharedJobServiceTest, TwoServicesShareOneQueueAndAnswerForEachOthersJobs) {
   a_ = OpenService("a", &latch_a_, std::chrono::seconds(10));

@@ -46,7 +46,7 @@ class JobStoreContract : public ::testing::TestWithParam<std::string> {
     if (GetParam() == "sqlite") {
       dir_ = testing::FreshTestDir("lsqsurf-store");
       std::filesystem::create_directories(dir_);
-      auto store = SqliteJobStore::Open((dir_ / "jobs.db").string());
+      auto store = SqliteJobStore::Open((dir_ / "jobs.db").string(), RegistrySpecTables());
       ASSERT_TRUE(store.ok()) << store.status();
       first_ = *std::move(store);
       second_ = first_;  // One server: both names share the one store.
@@ -58,9 +58,9 @@ class JobStoreContract : public ::testing::TestWithParam<std::string> {
     if (cluster == nullptr) GTEST_SKIP() << why_not;
     url_ = cluster->NewDatabase();
     ASSERT_FALSE(url_.empty());
-    auto a = PostgresJobStore::Open(url_);
+    auto a = PostgresJobStore::Open(url_, RegistrySpecTables());
     ASSERT_TRUE(a.ok()) << a.status();
-    auto b = PostgresJobStore::Open(url_);  // Migrating an up-to-date database changes nothing.
+    auto b = PostgresJobStore::Open(url_, RegistrySpecTables());  // Migrating an up-to-date database changes nothing.
     ASSERT_TRUE(b.ok()) << b.status();
     first_ = *std::move(a);
     second_ = *std::move(b);
@@ -72,6 +72,18 @@ class JobStoreContract : public ::testing::TestWithParam<std::string> {
     first_.reset();
     second_.reset();
     if (!dir_.empty()) std::filesystem::remove_all(dir_);
+  }
+
+  // Another store over the same database, reading specs with `tables`.
+  std::shared_ptr<JobStore> Reopen(SpecTables tables) {
+#if LSQSURF_WITH_POSTGRESQL
+    if (!url_.empty()) {
+      auto store = PostgresJobStore::Open(url_, std::move(tables));
+      return store.ok() ? std::shared_ptr<JobStore>(*std::move(store)) : nullptr;
+    }
+#endif
+    auto store = SqliteJobStore::Open((dir_ / "jobs.db").string(), std::move(tables));
+    return store.ok() ? std::shared_ptr<JobStore>(*std::move(store)) : nullptr;
   }
 
   std::filesystem::path dir_;
@@ -127,6 +139,63 @@ TEST_P(JobStoreContract, RecordsRoundTripAndIdsAreUnique) {
   ASSERT_TRUE(text_back.ok()) << text_back.status();
   EXPECT_EQ(text_back->spec.params.GetText("expression").value_or(""), expression);
   EXPECT_EQ(text_back->quota_bytes, int64_t{5} << 30);
+}
+
+// The store knows no method: a stored spec is read with the tables it was given, so that a build
+// without the method fails the job that still waits for it, and leaves a finished one as it was.
+TEST_P(JobStoreContract, StoredSpecsAreReadWithTheTablesTheStoreWasGiven) {
+  ASSERT_TRUE(first_->Insert(Queued("waiting", 100)).ok());
+  JobRecord finished = Queued("finished", 101);
+  finished.state = JobState::kSucceeded;
+  finished.results = {"mesh.drc"};
+  ASSERT_TRUE(first_->Insert(finished).ok());
+
+  std::vector<std::string> asked;
+  SpecTables without_methods{[&asked](std::string_view method) -> absl::StatusOr<core::ParamSet> {
+                               asked.emplace_back(method);
+                               return absl::InvalidArgumentError("no methods in this build");
+                             },
+                             DefaultView};
+  std::shared_ptr<JobStore> other = Reopen(std::move(without_methods));
+  ASSERT_NE(other, nullptr);
+  auto waiting = other->Get("waiting");
+  ASSERT_TRUE(waiting.ok()) << waiting.status();
+  EXPECT_EQ(waiting->state, JobState::kFailed);
+  EXPECT_TRUE(absl::StrContains(waiting->error, "no method 'iamls'")) << waiting->error;
+  EXPECT_EQ(asked, std::vector<std::string>{"iamls"});
+  auto kept = other->Get("finished");
+  ASSERT_TRUE(kept.ok()) << kept.status();
+  EXPECT_EQ(kept->state, JobState::kSucceeded);
+  EXPECT_EQ(kept->results, finished.results);
+
+  // With the registry's tables the same row reads back as it was stored.
+  auto again = first_->Get("waiting");
+  ASSERT_TRUE(again.ok()) << again.status();
+  EXPECT_EQ(again->state, JobState::kQueued);
+  EXPECT_EQ(again->spec.params.Encode(), DefaultParams("iamls")->Encode());
+}
+
+TEST_P(JobStoreContract, TheFirstValueAgreedOnIsEveryonesAfterIt) {
+  auto first = first_->Agree("colour", "red");
+  ASSERT_TRUE(first.ok()) << first.status();
+  EXPECT_EQ(*first, "red");
+  auto later = second_->Agree("colour", "blue");
+  ASSERT_TRUE(later.ok()) << later.status();
+  EXPECT_EQ(*later, "red");
+  // Servers starting at once: one of them decides, and all of them hear the same value.
+  std::vector<std::future<absl::StatusOr<std::string>>> racing;
+  for (int i = 0; i < 8; ++i) {
+    JobStore& store = i % 2 == 0 ? *first_ : *second_;
+    racing.push_back(std::async(std::launch::async, [&store, i] { return store.Agree("race", std::to_string(i)); }));
+  }
+  std::set<std::string> heard;
+  for (auto& f : racing) {
+    auto value = f.get();
+    ASSERT_TRUE(value.ok()) << value.status();
+    heard.insert(*value);
+  }
+  ASSERT_EQ(heard.size(), 1u);
+  EXPECT_LT(std::stoi(*heard.begin()), 8);
 }
 
 TEST_P(JobStoreContract, ClaimsTakeTheOldestOnceAndOnlyTheHolderWrites) {
@@ -494,7 +563,8 @@ TEST(PostgresUrl, PasswordsNeverReachMessages) {
   EXPECT_EQ(pg::Redacted("postgresql://lsqsurf@db/jobs"), "postgresql://lsqsurf@db/jobs");
   EXPECT_EQ(pg::Redacted("host=db password = 's3 cret' user=x"), "host=db password = *** user=x");
   EXPECT_EQ(pg::Redacted("host=db password=s3cret"), "host=db password=***");
-  auto refused = PostgresJobStore::Open("postgresql://lsqsurf:s3cret@127.0.0.1:1/jobs?connect_timeout=2");
+  auto refused =
+      PostgresJobStore::Open("postgresql://lsqsurf:s3cret@127.0.0.1:1/jobs?connect_timeout=2", RegistrySpecTables());
   ASSERT_FALSE(refused.ok());
   EXPECT_EQ(refused.status().code(), absl::StatusCode::kUnavailable);
   EXPECT_EQ(std::string(refused.status().message()).find("s3cret"), std::string::npos) << refused.status();

@@ -1,13 +1,44 @@
 #include "worker/jobs/job_replication.h"
 
+#include <fmt/format.h>
 #include <spdlog/spdlog.h>
 
 #include <algorithm>
+#include <random>
 #include <set>
 
+#include "worker/core/status.h"
+#include "worker/core/strings.h"
 #include "worker/jobs/job_service_internal.h"
 
 namespace lsqsurf::jobs {
+namespace {
+
+// Where the witness of a shared blob store lives: a folder no job id can name (ids are hex).
+constexpr char kWitnessFolder[] = "shared-store-witness";
+constexpr char kWitnessSetting[] = "blob_store_witness";
+
+}  // namespace
+
+absl::Status JobReplication::CheckBlobsShared(BlobStore& blobs) {
+  std::random_device random;
+  const std::string mine = fmt::format("witness-{:08x}{:08x}", random(), random());
+  // Written before it is named, so that whoever reads the name can read the blob.
+  LSQSURF_RETURN_IF_ERROR(blobs.Put(kWitnessFolder, mine, runner_));
+  auto named = store_.Agree(kWitnessSetting, mine);
+  if (named.ok() && *named == mine) return absl::OkStatus();  // This server is the first.
+  (void)blobs.Remove(kWitnessFolder, mine);
+  if (!named.ok()) return named.status();
+  auto seen = blobs.Read(kWitnessFolder, *named);
+  if (seen.ok()) return absl::OkStatus();
+  if (!absl::IsNotFound(seen.status())) return seen.status();
+  return absl::FailedPreconditionError(core::StrCat(
+      "this server's blob store does not hold the blob ", kWitnessFolder, "/", *named,
+      " that the servers sharing its job store left there: its --blob-dir is not the one they share. Give every "
+      "server the same shared volume, or no --blob-dir at all (the database then keeps the bytes). If the shared "
+      "blob store was replaced on purpose, run `DELETE FROM settings WHERE key = '",
+      kWitnessSetting, "'` on the database first"));
+}
 
 absl::Status JobReplication::LoadAll() {
   auto all = store_.ChangesSince(0);

@@ -15,6 +15,7 @@
 #include "absl/status/status.h"
 #include "worker/jobs/job_service_options.h"
 #include "worker/jobs/job_table.h"
+#include "worker/jobs/store/blob_store.h"
 
 namespace lsqsurf::jobs {
 
@@ -31,6 +32,11 @@ class JobReplication {
         wake_workers_(std::move(wake_workers)) {}
   ~JobReplication() { Stop(); }
 
+  // A shared store's servers must share their blob store too (each runs jobs whose uploads
+  // another took): the first server to start leaves a witness blob and names it in the job
+  // store; one that cannot read that blob has a blob store of its own and must not start.
+  // Errors: kFailedPrecondition saying so, the stores' own.
+  absl::Status CheckBlobsShared(BlobStore& blobs);
   // Takes every job on record into the table (at start). Errors: the store's.
   absl::Status LoadAll();
   // Requeues (or fails, or cancels) the jobs of runners whose lease lapsed; every running job

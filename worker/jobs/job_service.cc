@@ -193,7 +193,8 @@ absl::StatusOr<std::unique_ptr<JobService>> JobService::Open(const JobServiceOpt
   if (options.store != nullptr) {
     s.store_ = options.store;
   } else {
-    auto store = SqliteJobStore::Open((std::filesystem::path(options.data_dir) / "jobs.db").string());
+    auto store =
+        SqliteJobStore::Open((std::filesystem::path(options.data_dir) / "jobs.db").string(), RegistrySpecTables());
     if (!store.ok()) return store.status();
     s.store_ = *std::move(store);
   }
@@ -221,6 +222,7 @@ absl::StatusOr<std::unique_ptr<JobService>> JobService::Open(const JobServiceOpt
   // In a store of its own every running job was this service's before it stopped; in a shared
   // one only those whose lease lapsed are known to be orphans (the sync thread goes on looking).
   const bool shared = s.store_->shared();
+  if (shared) LSQSURF_RETURN_IF_ERROR(s.replication_->CheckBlobsShared(*s.blobs_));
   LSQSURF_RETURN_IF_ERROR(s.replication_->RecoverLapsed(!shared));
   LSQSURF_RETURN_IF_ERROR(s.replication_->LoadAll());
   if (!shared) s.retention_->RemoveOrphanedBlobs();

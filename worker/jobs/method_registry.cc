@@ -42,6 +42,8 @@ absl::StatusOr<core::ParamSet> DefaultParams(std::string_view method) {
 
 core::ParamSet DefaultView() { return core::ParamSet(render::ViewParamTable()); }
 
+SpecTables RegistrySpecTables() { return {DefaultParams, DefaultView}; }
+
 std::string ParameterReference() {
   std::string out =
       "# Parameter reference\n\n"

@@ -10,6 +10,7 @@
 #include "worker/core/params.h"
 #include "worker/jobs/job.h"
 #include "worker/jobs/job_kind.h"
+#include "worker/jobs/store/spec_tables.h"
 
 namespace lsqsurf::jobs {
 
@@ -27,6 +28,8 @@ const MethodEntry* FindMethod(std::string_view name);
 absl::StatusOr<core::ParamSet> DefaultParams(std::string_view method);
 // View options (render::RenderParams) at their defaults: what previews and pictures take.
 core::ParamSet DefaultView();
+// DefaultParams and DefaultView, for a job store to read stored specs with.
+SpecTables RegistrySpecTables();
 
 // The parameter reference of every method and of the view options, as Markdown: what
 // docs/parameters.md holds (`lsqsurfd --parameter-reference` prints it).

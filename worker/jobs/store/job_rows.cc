@@ -6,7 +6,6 @@
 
 #include "absl/strings/str_replace.h"
 #include "worker/core/strings.h"
-#include "worker/jobs/method_registry.h"
 
 namespace lsqsurf::jobs::rows {
 namespace {
@@ -43,11 +42,11 @@ std::string EncodePreview(const PreviewSpec& p) {
   return core::StrCat(p.view.Encode(), "turntable=", Number(p.turntable_deg_per_frame), ";");
 }
 
-PreviewSpec DecodePreview(std::string_view text, std::string colour) {
+PreviewSpec DecodePreview(std::string_view text, std::string colour, const SpecTables& tables) {
   PreviewSpec p;
   if (text.empty()) return p;
   p.enabled = true;
-  p.view = DefaultView();
+  p.view = tables.view();
   // Rows written before the view options had a table used shorter names.
   static const std::pair<const char*, const char*> kRenamed[] = {{"up", "up_axis"},
                                                                  {"azimuth", "azimuth_deg"},
@@ -164,12 +163,12 @@ std::vector<std::string> JobColumns(const JobRecord& r) {
           std::to_string(r.quota_bytes)};
 }
 
-JobRecord FromColumns(const std::vector<std::string>& c) {
+JobRecord FromColumns(const std::vector<std::string>& c, const SpecTables& tables) {
   JobRecord r;
   r.id = c[0];
   r.spec.method = c[1];
   std::string unusable;  // Why the stored spec cannot run any more.
-  if (auto params = DefaultParams(r.spec.method); params.ok()) {
+  if (auto params = tables.params(r.spec.method); params.ok()) {
     r.spec.params = *std::move(params);
     if (absl::Status s = r.spec.params.Decode(c[2]); !s.ok()) unusable = std::string(s.message());
   } else {
@@ -189,7 +188,7 @@ JobRecord FromColumns(const std::vector<std::string>& c) {
   for (std::string name; std::getline(ss, name, ';');) {
     if (!name.empty()) r.results.push_back(name);
   }
-  r.spec.preview = DecodePreview(c[14], c[15]);
+  r.spec.preview = DecodePreview(c[14], c[15], tables);
   r.interruptions = static_cast<int>(ToInt(c[16]));
   r.progress = ToDouble(c[17]);
   r.runner = c[18];

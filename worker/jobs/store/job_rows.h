@@ -9,6 +9,7 @@
 #include <vector>
 
 #include "worker/jobs/job.h"
+#include "worker/jobs/store/spec_tables.h"
 
 namespace lsqsurf::jobs::rows {
 
@@ -53,7 +54,7 @@ std::string HeldAssignments(char placeholder);
 std::vector<std::string> HeldColumns(const JobRecord& record);
 // The record a row of kColumnCount texts holds. A stored spec that no longer decodes (its
 // method is gone, or a value left its range) comes back failed with the reason.
-JobRecord FromColumns(const std::vector<std::string>& row);
+JobRecord FromColumns(const std::vector<std::string>& row, const SpecTables& tables);
 
 // `sql` with the states named instead of numbered: {queued}, {running}, {succeeded}, {failed},
 // {cancelled}, and {finished} for the list of the last three ("(2, 3, 4)").

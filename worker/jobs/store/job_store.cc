@@ -17,8 +17,9 @@ int64_t NowMs() {
 
 // The schema version this build writes (PRAGMA user_version). 0: the unversioned tables of
 // earlier builds; 1: runners, leases, change numbers and the removals table; 2: owners and
-// stored sizes; 3: the owner's quota a job's results are held to; 4: tiles; 5: the tiles' format.
-constexpr int kSchemaVersion = 5;
+// stored sizes; 3: the owner's quota a job's results are held to; 4: tiles; 5: the tiles' format;
+// 6: the settings servers agree on (Agree).
+constexpr int kSchemaVersion = 6;
 
 // A tile's states in the job_tiles table.
 constexpr char kTileQueued[] = "0";
@@ -57,7 +58,7 @@ bool IsTerminal(JobState state) {
   return state == JobState::kSucceeded || state == JobState::kFailed || state == JobState::kCancelled;
 }
 
-absl::StatusOr<std::unique_ptr<SqliteJobStore>> SqliteJobStore::Open(const std::string& path) {
+absl::StatusOr<std::unique_ptr<SqliteJobStore>> SqliteJobStore::Open(const std::string& path, SpecTables tables) {
   sqlite3* db = nullptr;
   if (sqlite3_open_v2(path.c_str(), &db, SQLITE_OPEN_READWRITE | SQLITE_OPEN_CREATE | SQLITE_OPEN_FULLMUTEX, nullptr) !=
       SQLITE_OK) {
@@ -65,7 +66,7 @@ absl::StatusOr<std::unique_ptr<SqliteJobStore>> SqliteJobStore::Open(const std::
     sqlite3_close(db);
     return absl::UnavailableError(core::StrCat("cannot open job database ", path, ": ", msg));
   }
-  std::unique_ptr<SqliteJobStore> store(new SqliteJobStore(db));
+  std::unique_ptr<SqliteJobStore> store(new SqliteJobStore(db, std::move(tables)));
   std::lock_guard lock(store->mutex_);
   if (absl::Status s = store->Migrate(); !s.ok()) return s;
   auto last = store->Query(
@@ -95,7 +96,8 @@ absl::Status SqliteJobStore::Migrate() {
                           "CREATE TABLE IF NOT EXISTS job_removals (id TEXT PRIMARY KEY, seq INTEGER)",
                           "CREATE TABLE IF NOT EXISTS job_tiles (job_id TEXT NOT NULL, tile INTEGER NOT NULL, "
                           "state INTEGER NOT NULL, runner TEXT NOT NULL, lease_expires_ms INTEGER NOT NULL, "
-                          "attempts INTEGER NOT NULL, build INTEGER NOT NULL DEFAULT 0, PRIMARY KEY (job_id, tile))"}) {
+                          "attempts INTEGER NOT NULL, build INTEGER NOT NULL DEFAULT 0, PRIMARY KEY (job_id, tile))",
+                          "CREATE TABLE IF NOT EXISTS settings (key TEXT PRIMARY KEY, value TEXT NOT NULL)"}) {
     if (auto r = Query(sql); !r.ok()) return r.status();
   }
   // Databases written by earlier builds lack the later columns; each is added where missing,
@@ -172,7 +174,7 @@ absl::StatusOr<std::vector<JobRecord>> SqliteJobStore::QueryJobs(const std::stri
   if (!found.ok()) return found.status();
   std::vector<JobRecord> out;
   out.reserve(found->size());
-  for (const Row& row : *found) out.push_back(rows::FromColumns(row));
+  for (const Row& row : *found) out.push_back(rows::FromColumns(row, tables_));
   return out;
 }
 
@@ -216,7 +218,7 @@ absl::StatusOr<std::optional<JobRecord>> SqliteJobStore::Claim(const std::string
   if (!claimed.ok()) return claimed.status();
   if (claimed->empty()) return std::optional<JobRecord>();
   ++seq_;
-  return std::optional<JobRecord>(rows::FromColumns(claimed->front()));
+  return std::optional<JobRecord>(rows::FromColumns(claimed->front(), tables_));
 }
 
 absl::StatusOr<int64_t> SqliteJobStore::WriteHeld(const JobRecord& record) {
@@ -427,6 +429,17 @@ absl::StatusOr<JobChanges> SqliteJobStore::ChangesSince(int64_t seq) {
 void SqliteJobStore::WaitForOthers(std::chrono::milliseconds timeout) {
   // Nobody else writes to this database.
   std::this_thread::sleep_for(timeout);
+}
+
+absl::StatusOr<std::string> SqliteJobStore::Agree(const std::string& key, const std::string& value) {
+  std::lock_guard lock(mutex_);
+  if (auto r = Query("INSERT OR IGNORE INTO settings (key, value) VALUES (?1, ?2)", {key, value}); !r.ok()) {
+    return r.status();
+  }
+  auto kept = Query("SELECT value FROM settings WHERE key = ?1", {key});
+  if (!kept.ok()) return kept.status();
+  if (kept->empty()) return absl::UnavailableError(core::StrCat("the setting '", key, "' was not kept"));
+  return kept->front().front();
 }
 
 }  // namespace lsqsurf::jobs

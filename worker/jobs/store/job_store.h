@@ -21,6 +21,7 @@
 
 #include "absl/status/statusor.h"
 #include "worker/jobs/job.h"
+#include "worker/jobs/store/spec_tables.h"
 
 struct sqlite3;
 
@@ -82,6 +83,9 @@ class JobStore {
   virtual absl::StatusOr<JobChanges> ChangesSince(int64_t seq) = 0;
   // Returns when another server may have written, or after `timeout`.
   virtual void WaitForOthers(std::chrono::milliseconds timeout) = 0;
+  // The value kept under `key`, keeping `value` there first where there is none: the first
+  // caller decides, and every caller after it, on any server, gets that value. Errors: kUnavailable.
+  virtual absl::StatusOr<std::string> Agree(const std::string& key, const std::string& value) = 0;
 
   // Tiles. A tile is queued, then held by one runner under a lease it renews, then done. A tile
   // whose lease lapsed is claimed again like a queued one, so a dead server's tiles are re-run.
@@ -122,8 +126,9 @@ absl::Status NotFinished(const JobRecord& record);
 // Calls are serialized by an internal mutex. Not shared: one server opens it at a time.
 class SqliteJobStore final : public JobStore {
  public:
-  // Opens (creating if needed) the database at `path`. Errors: kUnavailable with SQLite's reason.
-  static absl::StatusOr<std::unique_ptr<SqliteJobStore>> Open(const std::string& path);
+  // Opens (creating if needed) the database at `path`; stored specs are read with `tables`.
+  // Errors: kUnavailable with SQLite's reason.
+  static absl::StatusOr<std::unique_ptr<SqliteJobStore>> Open(const std::string& path, SpecTables tables);
   ~SqliteJobStore() override;
 
   bool shared() const override { return false; }
@@ -140,6 +145,7 @@ class SqliteJobStore final : public JobStore {
   absl::StatusOr<JobRecord> Get(const std::string& id) override;
   absl::StatusOr<JobChanges> ChangesSince(int64_t seq) override;
   void WaitForOthers(std::chrono::milliseconds timeout) override;
+  absl::StatusOr<std::string> Agree(const std::string& key, const std::string& value) override;
   absl::Status AddTiles(const std::string& job_id, int64_t count, int build, const std::vector<int64_t>& done) override;
   absl::StatusOr<std::optional<TileTask>> ClaimTile(const std::string& runner, std::chrono::milliseconds lease,
                                                     int build, const std::string& job_id) override;
@@ -152,13 +158,14 @@ class SqliteJobStore final : public JobStore {
 
  private:
   using Row = std::vector<std::string>;
-  explicit SqliteJobStore(sqlite3* db) : db_(db) {}
+  SqliteJobStore(sqlite3* db, SpecTables tables) : tables_(std::move(tables)), db_(db) {}
   absl::Status Migrate();
   // Runs one statement with text parameters; the rows it returns, as text. mutex_ held.
   absl::StatusOr<std::vector<Row>> Query(const std::string& sql, const std::vector<std::string>& params = {});
   absl::StatusOr<std::vector<JobRecord>> QueryJobs(const std::string& where, const std::vector<std::string>& params);
   // Writes the record over a job that `held_by` runs; kAborted when it does not. mutex_ held.
   absl::StatusOr<int64_t> Replace(const JobRecord& record, const std::string& held_by);
+  const SpecTables tables_;
   std::mutex mutex_;
   sqlite3* db_;
   int64_t seq_ = 0;  // The last change number given (mutex_).

@@ -85,6 +85,10 @@ CREATE INDEX job_tiles_open ON job_tiles (job_id, tile) WHERE state < 2;
     R"sql(
 ALTER TABLE job_tiles ADD COLUMN build INTEGER NOT NULL DEFAULT 0;
 )sql",
+    // 6: the settings servers agree on (Agree).
+    R"sql(
+CREATE TABLE settings (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+)sql",
 };
 constexpr int kSchemaVersion = sizeof(kMigrations) / sizeof(kMigrations[0]);
 
@@ -128,11 +132,12 @@ absl::Status MigratePostgres(pg::Pool& pool) {
   });
 }
 
-absl::StatusOr<std::unique_ptr<PostgresJobStore>> PostgresJobStore::Open(const std::string& url, int connections) {
+absl::StatusOr<std::unique_ptr<PostgresJobStore>> PostgresJobStore::Open(const std::string& url, SpecTables tables,
+                                                                         int connections) {
   auto pool = pg::Pool::Open(url, connections);
   if (!pool.ok()) return pool.status();
   if (absl::Status s = MigratePostgres(**pool); !s.ok()) return s;
-  std::unique_ptr<PostgresJobStore> store(new PostgresJobStore(*std::move(pool)));
+  std::unique_ptr<PostgresJobStore> store(new PostgresJobStore(*std::move(pool), std::move(tables)));
   std::lock_guard lock(store->listen_mutex_);
   if (absl::Status s = store->Listen(); !s.ok()) return s;
   return store;
@@ -147,6 +152,18 @@ absl::Status PostgresJobStore::Listen() {
   if (!conn.ok()) return conn.status();
   listener_ = *conn;
   return pg::Exec(listener_, "LISTEN lsqsurf_jobs").status();
+}
+
+absl::StatusOr<std::string> PostgresJobStore::Agree(const std::string& key, const std::string& value) {
+  // Two statements: the second one's snapshot sees a row a concurrent first caller committed
+  // while this insert waited on it (the insert then does nothing).
+  auto inserted =
+      pool_->Exec("INSERT INTO settings (key, value) VALUES ($1, $2) ON CONFLICT (key) DO NOTHING", {key, value});
+  if (!inserted.ok()) return inserted.status();
+  auto kept = pool_->Exec("SELECT value FROM settings WHERE key = $1", {key});
+  if (!kept.ok()) return kept.status();
+  if (kept->rows.empty()) return absl::UnavailableError(core::StrCat("the setting '", key, "' was not kept"));
+  return kept->rows.front().front();
 }
 
 void PostgresJobStore::WaitForOthers(std::chrono::milliseconds timeout) {
@@ -179,7 +196,7 @@ absl::StatusOr<std::vector<JobRecord>> PostgresJobStore::QueryJobs(const std::st
   if (!found.ok()) return found.status();
   std::vector<JobRecord> out;
   out.reserve(found->rows.size());
-  for (const auto& row : found->rows) out.push_back(rows::FromColumns(row));
+  for (const auto& row : found->rows) out.push_back(rows::FromColumns(row, tables_));
   return out;
 }
 
@@ -204,7 +221,7 @@ absl::StatusOr<std::optional<JobRecord>> PostgresJobStore::Claim(const std::stri
       {runner, std::to_string(lease.count()), std::to_string(NowMs())});
   if (!claimed.ok()) return claimed.status();
   if (claimed->rows.empty()) return std::optional<JobRecord>();
-  return std::optional<JobRecord>(rows::FromColumns(claimed->rows.front()));
+  return std::optional<JobRecord>(rows::FromColumns(claimed->rows.front(), tables_));
 }
 
 namespace {
@@ -258,7 +275,7 @@ absl::StatusOr<std::vector<JobRecord>> PostgresJobStore::RecoverLapsed(bool ever
                      every_running ? "" : " AND lease_expires_ms <= lsqsurf_now_ms()", " FOR UPDATE SKIP LOCKED"));
     if (!lapsed.ok()) return lapsed.status();
     for (const auto& row : lapsed->rows) {
-      JobRecord r = rows::FromColumns(row);
+      JobRecord r = rows::FromColumns(row, tables_);
       const std::string runner = r.runner;
       recover(r);
       auto seq = WriteHeldOn(conn, r, runner);
@@ -283,7 +300,7 @@ absl::StatusOr<JobRecord> PostgresJobStore::Cancel(const std::string& id, const 
           rows::ColumnList()),
       {id, reason, std::to_string(NowMs())});
   if (!changed.ok()) return changed.status();
-  if (!changed->rows.empty()) return rows::FromColumns(changed->rows.front());
+  if (!changed->rows.empty()) return rows::FromColumns(changed->rows.front(), tables_);
   auto found = Get(id);
   if (!found.ok()) return found.status();
   return AlreadyFinished(*found);
@@ -404,7 +421,7 @@ absl::StatusOr<JobChanges> PostgresJobStore::ChangesSince(int64_t seq) {
     auto changed =
         pg::Exec(conn, core::StrCat("SELECT ", rows::ColumnList(), " FROM jobs WHERE seq > $1 ORDER BY seq"), {since});
     if (!changed.ok()) return changed.status();
-    for (const auto& row : changed->rows) out.changed.push_back(rows::FromColumns(row));
+    for (const auto& row : changed->rows) out.changed.push_back(rows::FromColumns(row, tables_));
     auto removed = pg::Exec(conn, "SELECT id FROM job_removals WHERE seq > $1 ORDER BY seq", {since});
     if (!removed.ok()) return removed.status();
     for (auto& row : removed->rows) out.removed.push_back(std::move(row[0]));

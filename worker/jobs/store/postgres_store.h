@@ -30,8 +30,10 @@ namespace lsqsurf::jobs {
 class PostgresJobStore final : public JobStore {
  public:
   // Connects to `url` (a libpq URI, postgresql://user@host:port/db, or "key=value ..." text),
-  // migrates the schema and listens for the others' changes. Errors: kUnavailable.
-  static absl::StatusOr<std::unique_ptr<PostgresJobStore>> Open(const std::string& url, int connections = 8);
+  // migrates the schema and listens for the others' changes; stored specs are read with `tables`.
+  // Errors: kUnavailable.
+  static absl::StatusOr<std::unique_ptr<PostgresJobStore>> Open(const std::string& url, SpecTables tables,
+                                                                int connections = 8);
   ~PostgresJobStore() override;
 
   bool shared() const override { return true; }
@@ -48,6 +50,7 @@ class PostgresJobStore final : public JobStore {
   absl::StatusOr<JobRecord> Get(const std::string& id) override;
   absl::StatusOr<JobChanges> ChangesSince(int64_t seq) override;
   void WaitForOthers(std::chrono::milliseconds timeout) override;
+  absl::StatusOr<std::string> Agree(const std::string& key, const std::string& value) override;
   absl::Status AddTiles(const std::string& job_id, int64_t count, int build, const std::vector<int64_t>& done) override;
   absl::StatusOr<std::optional<TileTask>> ClaimTile(const std::string& runner, std::chrono::milliseconds lease,
                                                     int build, const std::string& job_id) override;
@@ -62,10 +65,12 @@ class PostgresJobStore final : public JobStore {
   const std::shared_ptr<pg::Pool>& pool() const { return pool_; }
 
  private:
-  explicit PostgresJobStore(std::shared_ptr<pg::Pool> pool) : pool_(std::move(pool)) {}
+  PostgresJobStore(std::shared_ptr<pg::Pool> pool, SpecTables tables)
+      : pool_(std::move(pool)), tables_(std::move(tables)) {}
   absl::StatusOr<std::vector<JobRecord>> QueryJobs(const std::string& where, const std::vector<pg::Param>& params);
   absl::Status Listen();  // listen_mutex_ held.
   std::shared_ptr<pg::Pool> pool_;
+  const SpecTables tables_;
   std::mutex listen_mutex_;
   pg_conn* listener_ = nullptr;  // LISTENs on lsqsurf_jobs; guarded by listen_mutex_.
 };

@@ -219,6 +219,9 @@ void DefineFlags(CLI::App& app, ServerFlags& flags, lsqsurf::jobs::JobServiceOpt
                  "where uploads and results are kept; default: the data directory with --store sqlite, the "
                  "database with --store postgresql:// (give a shared volume here to keep them out of it)");
   app.add_option("--name", options.name, "this server's name among those sharing a store (default: host name)");
+  // Hidden: only the mixed-build check (scripts/netns-replicas.sh) makes a server claim tiles as
+  // one of another build would.
+  app.add_option("--tile-format", options.tile_format, "tests of mixed builds: the tile format to claim in")->group("");
   app.add_option("--store-connections", flags.store_connections, "connections to a PostgreSQL store")
       ->capture_default_str()
       ->check(CLI::Range(2, 64));

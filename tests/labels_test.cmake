@@ -10,7 +10,7 @@ endfunction()
 
 listed(slow slow_tests)
 listed(e2e e2e_tests)
-foreach(name Replicas.ThreeBehindABalancerLoseNoJobWhenOneIsKilled DeliveredMesh)
+foreach(name Replicas.ThreeBehindABalancerLoseNoJobWhenOneIsKilled Replicas.OnSeparateMachinesSimulated DeliveredMesh)
   if(NOT slow_tests MATCHES "${name}")
     message(FATAL_ERROR "${name} is not labelled slow:\n${slow_tests}")
   endif()

@@ -193,6 +193,12 @@ void JobRunner::WorkerLoop() {
   }
 }
 
+TileClaimOptions JobRunner::TileClaims() const {
+  TileClaimOptions claims{options_.lease, parts_.hold_tile, options_.max_attempts};
+  if (options_.tile_format != 0) claims.build = options_.tile_format;
+  return claims;
+}
+
 bool JobRunner::RunOthersTile() {
   if (!parts_.store.shared() || tiles_unreadable_) return false;
   // Stopped by a shutdown; the tile is then given back (JobStore::ReleaseTile) for another server.
@@ -202,7 +208,7 @@ bool JobRunner::RunOthersTile() {
     void ReportProgress(std::string_view, double) override {}
     bool IsCancelled() const override { return table.shutting_down(); }
   } ctx(parts_.table);
-  const TileClaimOptions claims{options_.lease, parts_.hold_tile, options_.max_attempts};
+  const TileClaimOptions claims = TileClaims();
   auto ran = RunClaimedTile(parts_.store, parts_.blobs, runner_, claims, ctx);
   if (absl::IsFailedPrecondition(ran.status())) {
     spdlog::error("{}; this server takes no more tiles of other servers' jobs (is --blob-dir shared with them?)",
@@ -265,8 +271,7 @@ absl::StatusOr<Statistics> JobRunner::RunKind(const std::shared_ptr<JobEntry>& e
                      scratch_dir_};
   std::optional<StoreTileExchange> tiles;
   if (parts_.store.shared()) {
-    tiles.emplace(parts_.store, parts_.blobs, record.id, runner_,
-                  TileClaimOptions{options_.lease, parts_.hold_tile, options_.max_attempts});
+    tiles.emplace(parts_.store, parts_.blobs, record.id, runner_, TileClaims());
     env.tiles = &*tiles;
   }
   try {

@@ -19,6 +19,7 @@
 #include "worker/jobs/job_pictures.h"
 #include "worker/jobs/job_service_options.h"
 #include "worker/jobs/job_table.h"
+#include "worker/jobs/tile_exchange.h"
 
 namespace lsqsurf::jobs {
 
@@ -58,6 +59,8 @@ class JobRunner {
                                      std::shared_ptr<DecodedInput> decoded);
   // Shared stores: runs one tile of another job spread over the servers; false when none waits.
   bool RunOthersTile();
+  // How this service claims and runs tiles (its lease, attempt limit and tile format).
+  TileClaimOptions TileClaims() const;
 
   const JobServiceOptions& options_;
   const std::string runner_;

@@ -63,6 +63,9 @@ struct JobServiceOptions {
   std::chrono::milliseconds sweep_interval{60'000};
   // Told of stages and runs as they end (metrics); null: nobody.
   std::shared_ptr<JobEvents> events;
+  // Tests of a mixed rolling update only: the tile format this service publishes and claims tiles
+  // in, as a server of another build would; 0: its own (pu::kTileFormat).
+  int tile_format = 0;
   // Tests only: replaces the kind that runs a method's jobs (e.g. one that blocks on a latch).
   std::map<std::string, const JobKind*> kind_overrides;
 };

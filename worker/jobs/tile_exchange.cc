@@ -78,7 +78,7 @@ absl::StatusOr<TileBlobBytes> RunSharedTile(BlobStore& blobs, const std::string&
 
 absl::StatusOr<bool> RunClaimedTile(JobStore& store, BlobStore& blobs, const std::string& runner,
                                     const TileClaimOptions& options, core::JobContext& ctx, const std::string& job_id) {
-  auto claimed = store.ClaimTile(runner, options.lease, pu::kTileFormat, job_id);
+  auto claimed = store.ClaimTile(runner, options.lease, options.build, job_id);
   if (!claimed.ok()) return claimed.status();
   if (!claimed->has_value()) return false;
   const TileTask& task = **claimed;
@@ -157,7 +157,7 @@ absl::Status StoreTileExchange::Publish(std::string_view plan, int64_t tiles,
     LSQSURF_RETURN_IF_ERROR(blobs_.Remove(job_id_, TileBlob("part", t)));
     LSQSURF_RETURN_IF_ERROR(blobs_.Remove(job_id_, TileBlob("error", t)));
   }
-  return store_.AddTiles(job_id_, tiles, pu::kTileFormat, kept);
+  return store_.AddTiles(job_id_, tiles, claims_.build, kept);
 }
 
 absl::StatusOr<std::string> StoreTileExchange::Part(int64_t tile, core::JobContext& ctx) {

@@ -87,6 +87,9 @@ struct TileClaimOptions {
   // A tile claimed more often than this (its servers stopped while making it: out of memory, a
   // crash) fails its job, naming the tile; 0 = no limit. A server's graceful stop counts too.
   int max_attempts = 0;
+  // The tile format this server publishes its tiles as and claims others' in: its build's
+  // (pu::kTileFormat), or another one to test a mixed rolling update.
+  int build = pu::kTileFormat;
 };
 
 // The exchange over a job store and a blob store that servers share.

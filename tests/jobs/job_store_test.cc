@@ -29,6 +29,15 @@ namespace {
 
 using std::chrono::milliseconds;
 
+// Tables of this build's format that know no method; the methods asked for go to `asked`.
+SpecTables WithoutMethods(std::vector<std::string>* asked) {
+  return {[asked](std::string_view method) -> absl::StatusOr<core::ParamSet> {
+            asked->emplace_back(method);
+            return absl::InvalidArgumentError("no methods in this build");
+          },
+          DefaultView, kSpecFormat};
+}
+
 JobRecord Queued(const std::string& id, int64_t created_ms) {
   JobRecord r;
   r.id = id;
@@ -151,11 +160,7 @@ TEST_P(JobStoreContract, StoredSpecsAreReadWithTheTablesTheStoreWasGiven) {
   ASSERT_TRUE(first_->Insert(finished).ok());
 
   std::vector<std::string> asked;
-  SpecTables without_methods{[&asked](std::string_view method) -> absl::StatusOr<core::ParamSet> {
-                               asked.emplace_back(method);
-                               return absl::InvalidArgumentError("no methods in this build");
-                             },
-                             DefaultView};
+  SpecTables without_methods = WithoutMethods(&asked);
   std::shared_ptr<JobStore> other = Reopen(std::move(without_methods));
   ASSERT_NE(other, nullptr);
   auto waiting = other->Get("waiting");
@@ -173,6 +178,46 @@ TEST_P(JobStoreContract, StoredSpecsAreReadWithTheTablesTheStoreWasGiven) {
   ASSERT_TRUE(again.ok()) << again.status();
   EXPECT_EQ(again->state, JobState::kQueued);
   EXPECT_EQ(again->spec.params.Encode(), DefaultParams("iamls")->Encode());
+}
+
+// A rolling update mixes builds: a job stored by a server of a newer spec format is claimed only
+// by servers of that format or a newer one; the jobs of older formats are everyone's.
+TEST_P(JobStoreContract, JobsAreClaimedOnlyByServersOfTheirSpecFormatOrNewer) {
+  SpecTables newer = RegistrySpecTables(), oldest = RegistrySpecTables();
+  newer.format = kSpecFormat + 1;
+  oldest.format = 0;  // Stores before formats were kept.
+  std::shared_ptr<JobStore> new_server = Reopen(newer), old_server = Reopen(oldest);
+  ASSERT_NE(new_server, nullptr);
+  ASSERT_NE(old_server, nullptr);
+  ASSERT_TRUE(new_server->Insert(Queued("newer", 100)).ok());
+  ASSERT_TRUE(old_server->Insert(Queued("oldest", 200)).ok());
+  ASSERT_TRUE(first_->Insert(Queued("this", 300)).ok());
+
+  // This build passes over the newer job, though it is the oldest, and takes the others.
+  std::vector<std::string> claimed;
+  for (;;) {
+    auto job = first_->Claim("this-build", std::chrono::seconds(30));
+    ASSERT_TRUE(job.ok()) << job.status();
+    if (!job->has_value()) break;
+    claimed.push_back((*job)->id);
+  }
+  EXPECT_EQ(claimed, (std::vector<std::string>{"oldest", "this"}));
+  // It sees the newer job as stored, even where it cannot read its spec: not failed.
+  std::vector<std::string> asked;
+  auto seen = [&] {
+    std::shared_ptr<JobStore> reader = Reopen(WithoutMethods(&asked));
+    return reader != nullptr ? reader->Get("newer") : absl::UnavailableError("cannot reopen the store");
+  }();
+  EXPECT_EQ(asked, std::vector<std::string>{"iamls"});
+  ASSERT_TRUE(seen.ok()) << seen.status();
+  EXPECT_EQ(seen->state, JobState::kQueued) << seen->error;
+  EXPECT_EQ(seen->spec_format, kSpecFormat + 1);
+
+  auto taken = new_server->Claim("newer-build", std::chrono::seconds(30));
+  ASSERT_TRUE(taken.ok()) << taken.status();
+  ASSERT_TRUE(taken->has_value());
+  EXPECT_EQ((*taken)->id, "newer");
+  EXPECT_EQ((*taken)->spec_format, kSpecFormat + 1);
 }
 
 TEST_P(JobStoreContract, TheFirstValueAgreedOnIsEveryonesAfterIt) {

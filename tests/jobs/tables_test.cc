@@ -4,9 +4,12 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <cstdio>
+#include <iterator>
 #include <limits>
 
 #include "worker/front/front_tracking.h"
+#include "worker/jobs/method_registry.h"
 #include "worker/mls/algebraic_mls.h"
 #include "worker/mls/iamls.h"
 #include "worker/pu/pu.h"
@@ -74,6 +77,20 @@ TEST(DescriptorTables, EveryEngineValidatesWhatItsTableStates) {
 }
 
 // The cross-field rules are the engines' too: a combination each field allows alone is refused.
+// The spec format a job is stored with (JobRecord::spec_format) is raised with every change to
+// the methods' tables: the last format listed is this build's tables.
+TEST(SpecFormats, TheLastFormatListedHasThisBuildsTables) {
+  const auto& formats = jobs::kSpecFormats;
+  for (size_t i = 1; i < std::size(formats); ++i) EXPECT_EQ(formats[i].format, formats[i - 1].format + 1);
+  char fingerprint[24];
+  std::snprintf(fingerprint, sizeof(fingerprint), "0x%016llx",
+                static_cast<unsigned long long>(jobs::SpecFingerprint()));
+  EXPECT_EQ(formats[std::size(formats) - 1].fingerprint, jobs::SpecFingerprint())
+      << "a method, parameter or view option changed: append {" << jobs::kSpecFormat + 1 << ", " << fingerprint
+      << "} to kSpecFormats in worker/jobs/method_registry.h";
+  EXPECT_EQ(jobs::RegistrySpecTables().format, jobs::kSpecFormat);
+}
+
 TEST(DescriptorTables, CrossFieldRulesNameWhatToChange) {
   front::TrackingParams p;
   p.marker_spacing = 0.6;

@@ -97,8 +97,12 @@ struct JobRecord {
   int64_t quota_bytes = 0;
   int64_t stored_bytes = 0;       // Its uploads and results as stored, or reserved until it ends (quotas).
   bool cancel_requested = false;  // Running: its runner is asked to stop it.
-  int64_t seq = 0;                // The store's change number of this state (job_store.h).
-  uint64_t version = 0;           // Bumped on every change this server sees (watchers compare it).
+  // The spec format of the server that stored it (SpecTables::format): only servers of that
+  // format or a newer one claim it, so that a rolling update never runs a job on a server too
+  // old to read its spec whole.
+  int spec_format = 0;
+  int64_t seq = 0;       // The store's change number of this state (job_store.h).
+  uint64_t version = 0;  // Bumped on every change this server sees (watchers compare it).
 };
 
 }  // namespace lsqsurf::jobs

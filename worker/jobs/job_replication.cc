@@ -54,6 +54,13 @@ absl::Status JobReplication::LoadAll() {
 absl::Status JobReplication::RecoverLapsed(bool every_running) {
   auto recovered =
       store_.RecoverLapsed(every_running, [this](JobRecord& r) { RecoverStoppedRun(r, options_.max_attempts); });
+  // A full disk must not keep the server from starting (to serve what it stored, and let jobs be
+  // deleted): the interrupted jobs stay as stored and are recovered at a start with room.
+  if (absl::IsResourceExhausted(recovered.status())) {
+    spdlog::error("cannot queue interrupted jobs again: {}; they resume at a start with room",
+                  recovered.status().ToString());
+    return absl::OkStatus();
+  }
   if (!recovered.ok()) return recovered.status();
   for (const JobRecord& r : *recovered) {
     spdlog::warn("[job {}] its server ({}) stopped while it ran: {}", r.id, r.runner,

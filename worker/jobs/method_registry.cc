@@ -42,7 +42,26 @@ absl::StatusOr<core::ParamSet> DefaultParams(std::string_view method) {
 
 core::ParamSet DefaultView() { return core::ParamSet(render::ViewParamTable()); }
 
-SpecTables RegistrySpecTables() { return {DefaultParams, DefaultView}; }
+SpecTables RegistrySpecTables() { return {DefaultParams, DefaultView, kSpecFormat}; }
+
+uint64_t SpecFingerprint() {
+  // FNV-1a over "method|name:type;..." for every method, then the view options.
+  uint64_t hash = 14695981039346656037ull;
+  const auto add = [&hash](std::string_view text) {
+    for (const char c : text) hash = (hash ^ static_cast<unsigned char>(c)) * 1099511628211ull;
+  };
+  const auto add_table = [&add](std::string_view owner, const core::ParamSet& table) {
+    add(owner);
+    add("|");
+    for (const core::ParamInfo& info : table.Describe()) {
+      add(info.name);
+      add(core::StrCat(":", static_cast<int>(info.type), ";"));
+    }
+  };
+  for (const auto& m : Methods()) add_table(m.info.name, m.info.defaults);
+  add_table("view", DefaultView());
+  return hash;
+}
 
 std::string ParameterReference() {
   std::string out =

@@ -2,6 +2,8 @@
 // job spec at the service boundary.
 #pragma once
 
+#include <cstdint>
+#include <iterator>
 #include <string>
 #include <string_view>
 #include <vector>
@@ -28,7 +30,22 @@ const MethodEntry* FindMethod(std::string_view name);
 absl::StatusOr<core::ParamSet> DefaultParams(std::string_view method);
 // View options (render::RenderParams) at their defaults: what previews and pictures take.
 core::ParamSet DefaultView();
-// DefaultParams and DefaultView, for a job store to read stored specs with.
+// A hash of every method's name with its parameters' names and types, and of the view options':
+// what changes when a spec written by this build may not read whole in another.
+uint64_t SpecFingerprint();
+
+// Each spec format with the fingerprint of the tables it had. A change to the methods' tables
+// appends the next format with the new fingerprint (tables_test holds the last one to this
+// build's), so that servers of an older build leave the jobs of a newer one alone.
+struct SpecFormat {
+  int format;
+  uint64_t fingerprint;
+};
+inline constexpr SpecFormat kSpecFormats[] = {{1, 0x8c12ce01196d0c16}};
+// This build's spec format: what its stores write and claim up to (SpecTables::format).
+inline constexpr int kSpecFormat = kSpecFormats[std::size(kSpecFormats) - 1].format;
+
+// DefaultParams, DefaultView and kSpecFormat, for a job store to read stored specs with.
 SpecTables RegistrySpecTables();
 
 // The parameter reference of every method and of the view options, as Markdown: what

@@ -112,7 +112,10 @@ const std::string& ColumnList() {
 }
 
 namespace {
-bool IsHeldColumn(std::string_view name) { return name != "id" && name != "seq" && name != "cancel_requested"; }
+// The spec format stays the one the job was stored with.
+bool IsHeldColumn(std::string_view name) {
+  return name != "id" && name != "seq" && name != "cancel_requested" && name != "spec_format";
+}
 }  // namespace
 
 std::string HeldAssignments(char placeholder) {
@@ -160,7 +163,13 @@ std::vector<std::string> JobColumns(const JobRecord& r) {
           r.cancel_requested ? "1" : "0",
           r.owner,
           std::to_string(r.stored_bytes),
-          std::to_string(r.quota_bytes)};
+          std::to_string(r.quota_bytes),
+          std::to_string(r.spec_format)};
+}
+
+JobRecord WithFormat(JobRecord record, int format) {
+  record.spec_format = format;
+  return record;
 }
 
 JobRecord FromColumns(const std::vector<std::string>& c, const SpecTables& tables) {
@@ -196,9 +205,11 @@ JobRecord FromColumns(const std::vector<std::string>& c, const SpecTables& table
   r.owner = c[20];
   r.stored_bytes = ToInt(c[21]);
   r.quota_bytes = ToInt(c[22]);
-  r.seq = ToInt(c[23]);
-  // A stored spec that no longer decodes cannot run: it fails with the reason.
-  if (!unusable.empty() && !IsTerminal(r.state)) {
+  r.spec_format = static_cast<int>(ToInt(c[23]));
+  r.seq = ToInt(c[24]);
+  // A stored spec that no longer decodes cannot run: it fails with the reason. One of a newer
+  // format is left as it is: a newer server runs it.
+  if (!unusable.empty() && !IsTerminal(r.state) && r.spec_format <= tables.format) {
     r.state = JobState::kFailed;
     r.error = std::move(unusable);
   }

@@ -37,14 +37,18 @@ inline constexpr const char* kColumnNames[] = {"id",
                                                "owner",
                                                "stored_bytes",
                                                "quota_bytes",
+                                               "spec_format",
                                                "seq"};
 inline constexpr int kColumnCount = sizeof(kColumnNames) / sizeof(kColumnNames[0]);
 
 // "id, method, ..., seq".
 const std::string& ColumnList();
 
-// The record's values for every column but seq (a new row).
+// The record's values for every column but seq (a new row). A store writes its own format into
+// spec_format (WithFormat).
 std::vector<std::string> JobColumns(const JobRecord& record);
+// `record` as a store of spec format `format` stores it.
+JobRecord WithFormat(JobRecord record, int format);
 
 // A runner's write of a job it holds sets every column but id, seq and cancel_requested (which
 // another server may raise meanwhile). "method = ?2, parameters = ?3, ...": the assignments,
@@ -53,7 +57,8 @@ std::vector<std::string> JobColumns(const JobRecord& record);
 std::string HeldAssignments(char placeholder);
 std::vector<std::string> HeldColumns(const JobRecord& record);
 // The record a row of kColumnCount texts holds. A stored spec that no longer decodes (its
-// method is gone, or a value left its range) comes back failed with the reason.
+// method is gone, or a value left its range) comes back failed with the reason, unless it is of
+// a newer format than `tables` (a newer server's job, which this one never claims).
 JobRecord FromColumns(const std::vector<std::string>& row, const SpecTables& tables);
 
 // `sql` with the states named instead of numbered: {queued}, {running}, {succeeded}, {failed},

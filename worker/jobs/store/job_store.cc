@@ -18,8 +18,8 @@ int64_t NowMs() {
 // The schema version this build writes (PRAGMA user_version). 0: the unversioned tables of
 // earlier builds; 1: runners, leases, change numbers and the removals table; 2: owners and
 // stored sizes; 3: the owner's quota a job's results are held to; 4: tiles; 5: the tiles' format;
-// 6: the settings servers agree on (Agree).
-constexpr int kSchemaVersion = 6;
+// 6: the settings servers agree on (Agree). 7: the spec format of each job.
+constexpr int kSchemaVersion = 7;
 
 // A tile's states in the job_tiles table.
 constexpr char kTileQueued[] = "0";
@@ -107,7 +107,7 @@ absl::Status SqliteJobStore::Migrate() {
   for (const char* column :
        {"preview TEXT", "preview_color TEXT", "interruptions INTEGER", "progress REAL", "runner TEXT",
         "cancel_requested INTEGER", "seq INTEGER", "lease_expires_ms INTEGER", "owner TEXT NOT NULL DEFAULT ''",
-        "stored_bytes INTEGER", "quota_bytes INTEGER NOT NULL DEFAULT 0"}) {
+        "stored_bytes INTEGER", "quota_bytes INTEGER NOT NULL DEFAULT 0", "spec_format INTEGER NOT NULL DEFAULT 0"}) {
     const std::string name(column, std::string_view(column).find(' '));
     const bool has = std::any_of(present->begin(), present->end(), [&](const Row& row) { return row[0] == name; });
     if (has) continue;
@@ -180,7 +180,7 @@ absl::StatusOr<std::vector<JobRecord>> SqliteJobStore::QueryJobs(const std::stri
 
 absl::Status SqliteJobStore::Insert(const JobRecord& record) {
   std::lock_guard lock(mutex_);
-  std::vector<std::string> values = rows::JobColumns(record);
+  std::vector<std::string> values = rows::JobColumns(rows::WithFormat(record, tables_.format));
   values.push_back(std::to_string(++seq_));
   std::string placeholders;
   for (int i = 1; i <= rows::kColumnCount; ++i) core::StrAppend(&placeholders, i > 1 ? ", ?" : "?", i);
@@ -207,14 +207,16 @@ absl::StatusOr<std::optional<JobRecord>> SqliteJobStore::Claim(const std::string
                                                                std::chrono::milliseconds lease) {
   std::lock_guard lock(mutex_);
   const int64_t now = NowMs();
-  auto claimed =
-      Query(core::StrCat(rows::WithStates("UPDATE jobs SET state = {running}, stage = 'starting', progress = 0, "
-                                          "attempts = attempts + 1, cancel_requested = 0, runner = ?1, "
-                                          "lease_expires_ms = ?2, updated_ms = ?3, seq = ?4 WHERE id = (SELECT id "
-                                          "FROM jobs WHERE state = {queued} ORDER BY created_ms, id LIMIT 1) "
-                                          "RETURNING "),
-                         rows::ColumnList()),
-            {runner, std::to_string(now + lease.count()), std::to_string(now), std::to_string(seq_ + 1)});
+  auto claimed = Query(
+      core::StrCat(rows::WithStates("UPDATE jobs SET state = {running}, stage = 'starting', progress = 0, "
+                                    "attempts = attempts + 1, cancel_requested = 0, runner = ?1, "
+                                    "lease_expires_ms = ?2, updated_ms = ?3, seq = ?4 WHERE id = (SELECT id "
+                                    "FROM jobs WHERE state = {queued} AND spec_format <= ?5 ORDER BY created_ms, id "
+                                    "LIMIT 1) "
+                                    "RETURNING "),
+                   rows::ColumnList()),
+      {runner, std::to_string(now + lease.count()), std::to_string(now), std::to_string(seq_ + 1),
+       std::to_string(tables_.format)});
   if (!claimed.ok()) return claimed.status();
   if (claimed->empty()) return std::optional<JobRecord>();
   ++seq_;

@@ -89,6 +89,10 @@ ALTER TABLE job_tiles ADD COLUMN build INTEGER NOT NULL DEFAULT 0;
     R"sql(
 CREATE TABLE settings (key TEXT PRIMARY KEY, value TEXT NOT NULL);
 )sql",
+    // 7: the spec format of each job (SpecTables::format): servers claim only jobs they can read.
+    R"sql(
+ALTER TABLE jobs ADD COLUMN spec_format INTEGER NOT NULL DEFAULT 0;
+)sql",
 };
 constexpr int kSchemaVersion = sizeof(kMigrations) / sizeof(kMigrations[0]);
 
@@ -205,20 +209,22 @@ absl::Status PostgresJobStore::Insert(const JobRecord& record) {
   for (int i = 1; i < rows::kColumnCount; ++i) core::StrAppend(&placeholders, i > 1 ? ", $" : "$", i);
   return pool_
       ->Exec(core::StrCat("INSERT INTO jobs (", InsertColumns(), ") VALUES (", placeholders, ")"),
-             Params(rows::JobColumns(record)))
+             Params(rows::JobColumns(rows::WithFormat(record, tables_.format))))
       .status();
 }
 
 absl::StatusOr<std::optional<JobRecord>> PostgresJobStore::Claim(const std::string& runner,
                                                                  std::chrono::milliseconds lease) {
   auto claimed = pool_->Exec(
-      core::StrCat(rows::WithStates("UPDATE jobs SET state = {running}, stage = 'starting', progress = 0, attempts = "
-                                    "attempts + 1, cancel_requested = 0, runner = $1, lease_expires_ms = "
-                                    "lsqsurf_now_ms() + $2, updated_ms = $3 WHERE id = (SELECT id FROM jobs WHERE "
-                                    "state = {queued} ORDER BY created_ms, id LIMIT 1 FOR UPDATE SKIP LOCKED) "
-                                    "RETURNING "),
-                   rows::ColumnList()),
-      {runner, std::to_string(lease.count()), std::to_string(NowMs())});
+      core::StrCat(
+          rows::WithStates("UPDATE jobs SET state = {running}, stage = 'starting', progress = 0, attempts = "
+                           "attempts + 1, cancel_requested = 0, runner = $1, lease_expires_ms = "
+                           "lsqsurf_now_ms() + $2, updated_ms = $3 WHERE id = (SELECT id FROM jobs WHERE "
+                           "state = {queued} AND spec_format <= $4 ORDER BY created_ms, id LIMIT 1 FOR UPDATE SKIP "
+                           "LOCKED) "
+                           "RETURNING "),
+          rows::ColumnList()),
+      {runner, std::to_string(lease.count()), std::to_string(NowMs()), std::to_string(tables_.format)});
   if (!claimed.ok()) return claimed.status();
   if (claimed->rows.empty()) return std::optional<JobRecord>();
   return std::optional<JobRecord>(rows::FromColumns(claimed->rows.front(), tables_));

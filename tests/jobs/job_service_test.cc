@@ -1336,6 +1336,40 @@ TEST_F(SharedJobServiceTest, AServerWhoseBlobStoreIsNotTheSharedOneDoesNotStart)
   EXPECT_EQ(done.state, JobState::kSucceeded) << done.error;
 }
 
+// An idle worker takes the tiles of a running tiled build before a new job: the build that has
+// begun finishes first. B's one worker finds a queued job (held on a latch once it runs) and
+// A's tiled build; it makes tiles of the build until none is left, and only then the job.
+TEST_F(SharedJobServiceTest, AnIdleWorkerTakesTheTilesOfARunningBuildBeforeANewJob) {
+  a_ = OpenService("a", nullptr, std::chrono::seconds(10));
+  ASSERT_NE(a_, nullptr);
+  auto build = a_->Submit(Spec("pu", {{"tile_points", "1000"}, {"support_cap", "16"}}),
+                          Input(Encode(testing::SphereCloud(16'000))));
+  ASSERT_TRUE(build.ok()) << build.status();
+  // A's one worker runs the build; once its tiles are queued (one is made), a job waits behind it.
+  auto store = PostgresJobStore::Open(url_, RegistrySpecTables());
+  ASSERT_TRUE(store.ok()) << store.status();
+  const auto give_up = std::chrono::steady_clock::now() + std::chrono::minutes(2);
+  for (;;) {
+    auto done = (*store)->DoneTiles(build->id);
+    ASSERT_TRUE(done.ok()) << done.status();
+    if (!done->empty()) break;
+    ASSERT_LT(std::chrono::steady_clock::now(), give_up) << "the build made no tile";
+    (*store)->WaitForOthers(std::chrono::milliseconds(100));
+  }
+  auto waiting = a_->Submit(Spec("iamls"), Input(Encode(testing::SphereCloud(1000))));
+  ASSERT_TRUE(waiting.ok()) << waiting.status();
+  b_ = OpenService("b", &latch_b_, std::chrono::seconds(10));
+  ASSERT_NE(b_, nullptr);
+  const JobRecord built = WaitUntil(*a_, build->id, [](const auto& r) { return r.ok() && IsTerminal(r->state); });
+  ASSERT_EQ(built.state, JobState::kSucceeded) << built.error;
+  EXPECT_EQ(Statistic(built, "replicas"), 2) << "B took the new job before the build's tiles";
+  latch_b_.WaitStarted(1);  // Then B runs the job.
+  EXPECT_EQ(b_->Get(waiting->id)->runner.substr(0, 2), "b/");
+  latch_b_.Release();
+  const JobRecord ran = WaitUntil(*b_, waiting->id, [](const auto& r) { return r.ok() && IsTerminal(r->state); });
+  EXPECT_EQ(ran.state, JobState::kSucceeded) << ran.error;
+}
+
 TEST_F(SharedJobServiceTest, TwoServicesShareOneQueueAndAnswerForEachOthersJobs) {
   a_ = OpenService("a", &latch_a_, std::chrono::seconds(10));
   b_ = OpenService("b", &latch_b_, std::chrono::seconds(10));

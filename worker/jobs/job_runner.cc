@@ -178,12 +178,13 @@ void JobRunner::WorkerLoop() {
       if (stop_) return;
       signal = work_signal_;
     }
+    // The tiles of a build that has begun come before a new job, so that it finishes first.
+    if (RunOthersTile()) continue;
     std::shared_ptr<DecodedInput> decoded;
     if (std::shared_ptr<JobEntry> entry = ClaimNext(&decoded)) {
       RunJob(entry, std::move(decoded));
       continue;
     }
-    if (RunOthersTile()) continue;
     // Nothing to claim: wait for a submission, another service's job, or the next poll.
     std::unique_lock lock(mutex_);
     const auto woken = [&] { return stop_ || work_signal_ != signal; };

@@ -1,7 +1,7 @@
 // worker/jobs/job_runner.h — the worker threads of a service: each claims the oldest queued job
 // from the store, runs its kind with a progress and cancellation context and an artifact sink
-// held to the job's quota, and records how it ended; with a shared store, a worker that finds no
-// job runs a tile of another server's tiled build.
+// held to the job's quota, and records how it ended; with a shared store, a worker runs the tiles
+// of other servers' tiled builds first, then new jobs.
 #pragma once
 
 #include <atomic>

@@ -1343,7 +1343,7 @@ TEST_F(SharedJobServiceTest, AnIdleWorkerTakesTheTilesOfARunningBuildBeforeANewJ
   a_ = OpenService("a", nullptr, std::chrono::seconds(10));
   ASSERT_NE(a_, nullptr);
   auto build = a_->Submit(Spec("pu", {{"tile_points", "1000"}, {"support_cap", "16"}}),
-                          Input(Encode(testing::SphereCloud(16'000))));
+                          Input(Encode(testing::SphereCloud(8'000))));
   ASSERT_TRUE(build.ok()) << build.status();
   // A's one worker runs the build; once its tiles are queued (one is made), a job waits behind it.
   auto store = PostgresJobStore::Open(url_, RegistrySpecTables());
@@ -1353,6 +1353,7 @@ TEST_F(SharedJobServiceTest, AnIdleWorkerTakesTheTilesOfARunningBuildBeforeANewJ
     auto done = (*store)->DoneTiles(build->id);
     ASSERT_TRUE(done.ok()) << done.status();
     if (!done->empty()) break;
+    ASSERT_FALSE(IsTerminal(a_->Get(build->id)->state)) << "the build ended untiled";
     ASSERT_LT(std::chrono::steady_clock::now(), give_up) << "the build made no tile";
     (*store)->WaitForOthers(std::chrono::milliseconds(100));
   }
@@ -1362,6 +1363,7 @@ TEST_F(SharedJobServiceTest, AnIdleWorkerTakesTheTilesOfARunningBuildBeforeANewJ
   ASSERT_NE(b_, nullptr);
   const JobRecord built = WaitUntil(*a_, build->id, [](const auto& r) { return r.ok() && IsTerminal(r->state); });
   ASSERT_EQ(built.state, JobState::kSucceeded) << built.error;
+  ASSERT_GE(Statistic(built, "tiles"), 4) << "too few tiles to share";
   EXPECT_EQ(Statistic(built, "replicas"), 2) << "B took the new job before the build's tiles";
   latch_b_.WaitStarted(1);  // Then B runs the job.
   EXPECT_EQ(b_->Get(waiting->id)->runner.substr(0, 2), "b/");

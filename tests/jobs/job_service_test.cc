@@ -1116,8 +1116,9 @@ class ForwardingStore : public JobStore {
   explicit ForwardingStore(std::shared_ptr<JobStore> inner) : inner_(std::move(inner)) {}
   bool shared() const override { return inner_->shared(); }
   absl::Status Insert(const JobRecord& r) override { return inner_->Insert(r); }
-  absl::StatusOr<std::optional<JobRecord>> Claim(const std::string& runner, std::chrono::milliseconds lease) override {
-    return inner_->Claim(runner, lease);
+  absl::StatusOr<std::optional<JobRecord>> Claim(const std::string& runner, std::chrono::milliseconds lease,
+                                                 const ClaimScope& scope) override {
+    return inner_->Claim(runner, lease, scope);
   }
   absl::StatusOr<int64_t> WriteHeld(const JobRecord& r) override { return inner_->WriteHeld(r); }
   absl::StatusOr<std::vector<std::pair<std::string, bool>>> Renew(const std::string& runner,
@@ -1139,27 +1140,6 @@ class ForwardingStore : public JobStore {
   absl::StatusOr<std::string> Agree(const std::string& key, const std::string& value) override {
     return inner_->Agree(key, value);
   }
-  absl::Status AddTiles(const std::string& id, int64_t count, int build, const std::vector<int64_t>& done) override {
-    return inner_->AddTiles(id, count, build, done);
-  }
-  absl::StatusOr<std::optional<TileTask>> ClaimTile(const std::string& runner, std::chrono::milliseconds lease,
-                                                    int build, const std::string& id) override {
-    return inner_->ClaimTile(runner, lease, build, id);
-  }
-  absl::StatusOr<std::vector<TileTask>> RenewTiles(const std::string& runner, const std::vector<TileTask>& tiles,
-                                                   std::chrono::milliseconds lease) override {
-    return inner_->RenewTiles(runner, tiles, lease);
-  }
-  absl::Status ReleaseTile(const TileTask& tile, const std::string& runner) override {
-    return inner_->ReleaseTile(tile, runner);
-  }
-  absl::Status FinishTile(const TileTask& tile, const std::string& runner) override {
-    return inner_->FinishTile(tile, runner);
-  }
-  absl::StatusOr<std::vector<std::pair<int64_t, std::string>>> DoneTiles(const std::string& id) override {
-    return inner_->DoneTiles(id);
-  }
-  absl::Status RemoveTiles(const std::string& id) override { return inner_->RemoveTiles(id); }
 
  protected:
   std::shared_ptr<JobStore> inner_;
@@ -1171,9 +1151,10 @@ class ForwardingStore : public JobStore {
 class CutOffStore final : public ForwardingStore {
  public:
   using ForwardingStore::ForwardingStore;
-  absl::StatusOr<std::optional<JobRecord>> Claim(const std::string& runner, std::chrono::milliseconds lease) override {
+  absl::StatusOr<std::optional<JobRecord>> Claim(const std::string& runner, std::chrono::milliseconds lease,
+                                                 const ClaimScope& scope) override {
     if (claimed_) return absl::UnavailableError("claims are cut off");
-    auto claimed = inner_->Claim(runner, lease);
+    auto claimed = inner_->Claim(runner, lease, scope);
     if (claimed.ok() && claimed->has_value()) claimed_ = true;
     return claimed;
   }
@@ -1350,9 +1331,11 @@ TEST_F(SharedJobServiceTest, AnIdleWorkerTakesTheTilesOfARunningBuildBeforeANewJ
   ASSERT_TRUE(store.ok()) << store.status();
   const auto give_up = std::chrono::steady_clock::now() + std::chrono::minutes(2);
   for (;;) {
-    auto done = (*store)->DoneTiles(build->id);
-    ASSERT_TRUE(done.ok()) << done.status();
-    if (!done->empty()) break;
+    auto all = (*store)->ChangesSince(0);
+    ASSERT_TRUE(all.ok()) << all.status();
+    if (std::any_of(all->changed.begin(), all->changed.end(),
+                    [&](const JobRecord& r) { return r.parent == build->id && r.state == JobState::kSucceeded; }))
+      break;
     ASSERT_FALSE(IsTerminal(a_->Get(build->id)->state)) << "the build ended untiled";
     ASSERT_LT(std::chrono::steady_clock::now(), give_up) << "the build made no tile";
     (*store)->WaitForOthers(std::chrono::milliseconds(100));

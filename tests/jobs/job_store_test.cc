@@ -18,6 +18,7 @@
 #include "tests/test_dir.h"
 #include "tests/test_shapes.h"
 #include "worker/core/strings.h"
+#include "worker/jobs/job_replication.h"
 #include "worker/jobs/method_registry.h"
 #if LSQSURF_WITH_POSTGRESQL
 #include "worker/jobs/store/postgres_store.h"
@@ -341,152 +342,171 @@ TEST_P(JobStoreContract, LapsedLeasesAreRecoveredAndTheirRunnerLosesItsSay) {
   EXPECT_EQ(all->size(), 2u);
 }
 
-// The tiles' format of this build (pu::kTileFormat, as the servers give it).
-constexpr int kBuild = pu::kTileFormat;
+// The child jobs' format of this build's tiles, as the servers claim them.
+const int kTiles = TileChildFormat(pu::kTileFormat);
 
-// Tiles of a running job go to every runner once; a tile whose runner stopped renewing is run
-// again by another, and the first runner can no longer finish it.
-TEST_P(JobStoreContract, TilesAreClaimedOnceAndALapsedTileIsRunAgain) {
-  ASSERT_TRUE(first_->Insert(Queued("t1", 1)).ok());
-  ASSERT_TRUE(first_->Insert(Queued("t2", 2)).ok());
-  ASSERT_TRUE(first_->AddTiles("t2", 2, kBuild).ok());  // A queued job's tiles wait for it to run.
-  auto job = first_->Claim("coordinator", milliseconds(60'000));
-  ASSERT_TRUE(job.ok() && job->has_value()) << job.status();
-  ASSERT_EQ((*job)->id, "t1");
-  auto none = second_->ClaimTile("helper", milliseconds(60'000), kBuild);
-  ASSERT_TRUE(none.ok()) << none.status();
-  EXPECT_FALSE(none->has_value()) << "a tile of a job that is not running was claimed";
-
-  ASSERT_TRUE(first_->AddTiles("t1", 3, kBuild).ok());
-  auto helper = second_->ClaimTile("helper", milliseconds(60'000), kBuild);
-  auto dead = first_->ClaimTile("dead-helper", milliseconds(0), kBuild);  // Lapsed at once.
-  auto own = first_->ClaimTile("coordinator", milliseconds(60'000), kBuild, "t1");
-  ASSERT_TRUE(dead.ok() && helper.ok() && own.ok());
-  ASSERT_TRUE(dead->has_value() && helper->has_value() && own->has_value());
-  EXPECT_EQ((*helper)->tile, 0);
-  EXPECT_EQ((*dead)->tile, 1);
-  EXPECT_EQ((*own)->tile, 1) << "the lapsed tile is claimed again first";
-  EXPECT_EQ((*own)->attempts, 2);
-  EXPECT_EQ(second_->FinishTile(**dead, "dead-helper").code(), absl::StatusCode::kAborted);
-  auto renewed = second_->RenewTiles("helper", {**helper, **dead}, milliseconds(60'000));
-  ASSERT_TRUE(renewed.ok()) << renewed.status();
-  ASSERT_EQ(renewed->size(), 1u);
-  EXPECT_EQ(renewed->front().tile, 0);
-  EXPECT_EQ(first_->FinishTile(**helper, "coordinator").code(), absl::StatusCode::kAborted);
-  ASSERT_TRUE(second_->FinishTile(**helper, "helper").ok());
-  ASSERT_TRUE(first_->FinishTile(**own, "coordinator").ok());
-  EXPECT_EQ(first_->FinishTile(**own, "coordinator").code(), absl::StatusCode::kAborted) << "finished twice";
-  auto last = second_->ClaimTile("helper", milliseconds(60'000), kBuild);
-  ASSERT_TRUE(last.ok() && last->has_value());
-  EXPECT_EQ((*last)->tile, 2);
-  auto empty = second_->ClaimTile("helper", milliseconds(60'000), kBuild, "t1");
-  ASSERT_TRUE(empty.ok());
-  EXPECT_FALSE(empty->has_value());
-  ASSERT_TRUE(second_->FinishTile(**last, "helper").ok());
-  auto done = first_->DoneTiles("t1");
-  ASSERT_TRUE(done.ok()) << done.status();
-  const std::vector<std::pair<int64_t, std::string>> expected = {{0, "helper"}, {1, "coordinator"}, {2, "helper"}};
-  EXPECT_EQ(*done, expected);
-
-  // A server of another build (its plans and parts in another format) leaves the tiles alone.
-  ASSERT_TRUE(first_->AddTiles("t1", 2, kBuild + 1).ok());
-  auto other = second_->ClaimTile("helper", milliseconds(60'000), kBuild);
-  ASSERT_TRUE(other.ok()) << other.status();
-  EXPECT_FALSE(other->has_value()) << "a tile of another build was claimed";
-  auto same = second_->ClaimTile("newer-helper", milliseconds(60'000), kBuild + 1);
-  ASSERT_TRUE(same.ok() && same->has_value()) << same.status();
-  EXPECT_EQ((*same)->tile, 0);
-
-  // Adding tiles again starts over; removing them leaves none.
-  ASSERT_TRUE(first_->AddTiles("t1", 1, kBuild).ok());
-  EXPECT_TRUE(first_->DoneTiles("t1")->empty());
-  ASSERT_TRUE(first_->RemoveTiles("t1").ok());
-  auto gone = second_->ClaimTile("helper", milliseconds(60'000), kBuild);
-  ASSERT_TRUE(gone.ok());
-  EXPECT_FALSE(gone->has_value());
+JobRecord Child(const std::string& parent, int64_t index, int64_t created_ms, int format = kTiles) {
+  JobRecord r;
+  r.id = core::StrCat(parent, "-t", index);
+  r.spec.method = kTileMethod;
+  r.created_ms = r.updated_ms = created_ms;
+  r.parent = parent;
+  r.child_index = index;
+  r.spec_format = format;
+  return r;
 }
 
-// A tile whose servers stopped while making it (each claim's lease lapsed: out of memory, a crash)
-// is not offered to one more server past max_attempts: the next claim fails it, and the job's own
-// server gets that reason, naming the tile, in place of its part.
-TEST_P(JobStoreContract, ATileThatStopsItsServerEveryTimeFailsItsJobNamingIt) {
-  ASSERT_TRUE(first_->Insert(Queued("t1", 1)).ok());
-  auto job = first_->Claim("coordinator", milliseconds(60'000));
-  ASSERT_TRUE(job.ok() && job->has_value()) << job.status();
-  ASSERT_TRUE(first_->AddTiles("t1", 1, kBuild).ok());
-  for (const char* runner : {"crashed-a", "crashed-b"}) {
-    auto claimed = second_->ClaimTile(runner, milliseconds(0), kBuild);  // Lapsed at once, as if it died.
-    ASSERT_TRUE(claimed.ok() && claimed->has_value()) << runner;
+std::vector<JobRecord> ChildrenIn(JobStore& store, const std::string& parent) {
+  std::vector<JobRecord> out;
+  auto all = store.ChangesSince(0);
+  if (!all.ok()) return out;
+  for (JobRecord& r : all->changed) {
+    if (r.parent == parent) out.push_back(std::move(r));
   }
+  return out;
+}
+
+// Children of a running job are claimed before any other job, in order, and only by servers of
+// their format (a server of a build before child jobs, which asks for none, never takes one);
+// children of a job that does not run wait. Removing the parent removes its children.
+TEST_P(JobStoreContract, ChildJobsOfARunningJobComeFirstAndOnlyToServersOfTheirFormat) {
+  ASSERT_TRUE(first_->Insert(Queued("p1", 1)).ok());
+  ASSERT_TRUE(first_->Insert(Queued("p2", 2)).ok());
+  ASSERT_TRUE(first_->Insert(Queued("p3", 3)).ok());
+  ASSERT_TRUE(first_->Insert(Child("p2", 0, 2)).ok());  // Its parent is queued: it waits.
+  auto p1 = first_->Claim("coordinator", milliseconds(60'000), {kTiles, ""});
+  ASSERT_TRUE(p1.ok() && p1->has_value()) << p1.status();
+  ASSERT_EQ((*p1)->id, "p1");
+  for (int64_t t = 0; t < 2; ++t) ASSERT_TRUE(first_->Insert(Child("p1", t, 1)).ok());
+  auto stored = second_->Get("p1-t1");
+  ASSERT_TRUE(stored.ok()) << stored.status();
+  EXPECT_EQ(stored->parent, "p1");
+  EXPECT_EQ(stored->child_index, 1);
+  EXPECT_EQ(stored->spec_format, kTiles) << "a child's format was replaced by the store's";
+  EXPECT_EQ(stored->state, JobState::kQueued) << "a child's spec is read as a job's";
+
+  auto other = second_->Claim("other-build", milliseconds(60'000), {kTiles + 1, "p1"});
+  ASSERT_TRUE(other.ok()) << other.status();
+  EXPECT_FALSE(other->has_value()) << "a child of another format was claimed";
+  auto old = second_->Claim("old-build", milliseconds(60'000));  // Asks for no children.
+  ASSERT_TRUE(old.ok() && old->has_value()) << old.status();
+  EXPECT_EQ((*old)->id, "p2");
+  auto own = first_->Claim("coordinator", milliseconds(60'000), {kTiles, "p2"});
+  ASSERT_TRUE(own.ok() && own->has_value()) << own.status();
+  EXPECT_EQ((*own)->id, "p2-t0") << "a claim of one job's children took another's";
+  for (const char* expected : {"p1-t0", "p1-t1"}) {
+    auto helper = second_->Claim("helper", milliseconds(60'000), {kTiles, ""});
+    ASSERT_TRUE(helper.ok() && helper->has_value()) << helper.status();
+    EXPECT_EQ((*helper)->id, expected) << "children before the queued job p3, in order";
+  }
+  auto next = second_->Claim("helper", milliseconds(60'000), {kTiles, ""});
+  ASSERT_TRUE(next.ok() && next->has_value());
+  EXPECT_EQ((*next)->id, "p3");
+
+  // p1 ends while a child still runs: removing p1 removes both, and the removals are reported.
+  JobRecord done = **p1;
+  done.state = JobState::kSucceeded;
+  ASSERT_TRUE(first_->WriteHeld(done).ok());
+  auto before = second_->ChangesSince(0);
+  ASSERT_TRUE(before.ok());
+  ASSERT_TRUE(second_->Remove("p1").ok());
+  EXPECT_EQ(first_->Get("p1-t1").status().code(), absl::StatusCode::kNotFound);
+  EXPECT_TRUE(ChildrenIn(*first_, "p1").empty());
+  auto after = first_->ChangesSince(before->seq);
+  ASSERT_TRUE(after.ok());
+  EXPECT_EQ(std::set<std::string>(after->removed.begin(), after->removed.end()),
+            std::set<std::string>({"p1", "p1-t0", "p1-t1"}));
+}
+
+// The tile jobs of a build as tests drive them: this store's records, and `runner` making a
+// queued child of the build here when asked (a claim, RunTileJob, the final write).
+TileJobs StoreTileJobs(JobStore& store, BlobStore& blobs, const std::string& runner) {
+  TileJobs jobs;
+  jobs.get = [&store](const std::string& id) { return store.Get(id); };
+  jobs.children = [&store](const std::string& parent) { return ChildrenIn(store, parent); };
+  jobs.run_one = [&store, &blobs, runner](const std::string& parent) -> absl::StatusOr<bool> {
+    auto claimed = store.Claim(runner, milliseconds(60'000), {kTiles, parent});
+    if (!claimed.ok()) return claimed.status();
+    if (!claimed->has_value()) return false;
+    JobRecord child = **claimed;
+    core::LocalJobContext ctx;
+    const absl::Status made = RunTileJob(blobs, child, ctx, [] { return true; });
+    child.state = made.ok() ? JobState::kSucceeded : JobState::kFailed;
+    child.error = std::string(made.message());
+    auto written = store.WriteHeld(child);
+    if (!written.ok()) return written.status();
+    return true;
+  };
+  jobs.wait = [&store](milliseconds timeout) { store.WaitForOthers(std::min(timeout, milliseconds(50))); };
+  jobs.wait_limit = milliseconds(50);
+  return jobs;
+}
+
+// A tile whose servers stopped while making it (each claim's lease lapsed: out of memory, a
+// crash) is not run once more past max_attempts: its child job fails, and the build's server gets
+// that reason, naming the tile, in place of its part; a later attempt of the build, under the same
+// plan, fails the same way at once.
+TEST_P(JobStoreContract, ATileThatStopsItsServerEveryTimeFailsItsBuildNamingIt) {
+  ASSERT_TRUE(first_->Insert(Queued("t1", 1)).ok());
+  auto job = first_->Claim("coordinator", milliseconds(60'000), {kTiles, ""});
+  ASSERT_TRUE(job.ok() && job->has_value()) << job.status();
   const std::filesystem::path blob_dir = testing::FreshTestDir("lsqsurf-tile-blobs");
   auto blobs = LocalDirBlobStore::Open(blob_dir.string());
   ASSERT_TRUE(blobs.ok()) << blobs.status();
-  int held = 0;
-  const TileClaimOptions claims{milliseconds(60'000), [&](const TileTask&, bool) { ++held; }, 2};
+  TileJobs jobs = StoreTileJobs(*first_, **blobs, "coordinator");
+  jobs.run_one = [](const std::string&) -> absl::StatusOr<bool> { return false; };  // Helpers make it.
+  StoreTileExchange exchange(*first_, **blobs, **job, jobs);
   core::LocalJobContext ctx;
-  auto ran = RunClaimedTile(*first_, **blobs, "r1/coordinator", claims, ctx);
-  ASSERT_TRUE(ran.ok()) << ran.status();
-  EXPECT_TRUE(*ran);
-  EXPECT_EQ(held, 0) << "the tile was run a third time";
-  StoreTileExchange exchange(*first_, **blobs, "t1", "r1/coordinator", claims);
+  auto planned = pu::PlannedCloud::Plan(pu::CloudSource(testing::SphereCloud(2'000)), {}, {}, {}, ctx);
+  ASSERT_TRUE(planned.ok()) << planned.status();
+  const std::string plan = pu::EncodeTilePlan((*planned)->plan());  // Nobody makes the tile here.
+  ASSERT_TRUE(exchange.Publish(plan, 1, [](int64_t) -> absl::StatusOr<std::string> { return "points"; }).ok());
+  for (const char* runner : {"crashed-a", "crashed-b"}) {
+    auto claimed = second_->Claim(runner, milliseconds(0), {kTiles, ""});  // Lapsed at once, as if it died.
+    ASSERT_TRUE(claimed.ok() && claimed->has_value()) << runner;
+    EXPECT_EQ((*claimed)->parent, "t1");
+    auto recovered = second_->RecoverLapsed(false, [](JobRecord& r) { RecoverStoppedRun(r, 2); });
+    ASSERT_TRUE(recovered.ok()) << recovered.status();
+    ASSERT_EQ(recovered->size(), 1u) << "only the tile's lease lapsed";
+  }
   auto part = exchange.Part(0, ctx);
   EXPECT_EQ(part.status().code(), absl::StatusCode::kInternal);
   EXPECT_TRUE(
       absl::StartsWith(part.status().message(), "tile 0: the server making it stopped on each of its 2 attempts"))
       << part.status();
-  auto more = first_->ClaimTile("helper", milliseconds(60'000), kBuild);
+  auto more = second_->Claim("helper", milliseconds(60'000), {kTiles, ""});
   ASSERT_TRUE(more.ok());
   EXPECT_FALSE(more->has_value()) << "the failed tile is still offered";
-  std::filesystem::remove_all(blob_dir);
-}
-
-// A tile given back by its runner (it stops, or cannot read the tile's blobs) is queued at once,
-// and that claim does not count among the tile's attempts. A server whose blob store is not the
-// one the job's server published to gives its tile back and says so.
-TEST_P(JobStoreContract, ATileGivenBackIsClaimedAgainWithoutCountingTheAttempt) {
-  ASSERT_TRUE(first_->Insert(Queued("t1", 1)).ok());
-  auto job = first_->Claim("coordinator", milliseconds(60'000));
-  ASSERT_TRUE(job.ok() && job->has_value()) << job.status();
-  ASSERT_TRUE(first_->AddTiles("t1", 1, kBuild).ok());
-  auto held = second_->ClaimTile("helper", milliseconds(60'000), kBuild);
-  ASSERT_TRUE(held.ok() && held->has_value()) << held.status();
-  EXPECT_EQ(first_->ReleaseTile(**held, "someone-else").code(), absl::StatusCode::kAborted);
-  ASSERT_TRUE(second_->ReleaseTile(**held, "helper").ok());
-  EXPECT_EQ(second_->ReleaseTile(**held, "helper").code(), absl::StatusCode::kAborted) << "given back twice";
-
-  const std::filesystem::path blob_dir = testing::FreshTestDir("lsqsurf-unshared-blobs");
-  auto unshared = LocalDirBlobStore::Open(blob_dir.string());  // Holds none of the job's blobs.
-  ASSERT_TRUE(unshared.ok()) << unshared.status();
-  const TileClaimOptions claims{milliseconds(60'000), [](const TileTask&, bool) {}, 2};
-  core::LocalJobContext ctx;
-  auto ran = RunClaimedTile(*second_, **unshared, "r2/helper", claims, ctx);
-  EXPECT_EQ(ran.status().code(), absl::StatusCode::kFailedPrecondition) << ran.status();
-  EXPECT_TRUE(absl::StrContains(ran.status().message(), "blob store")) << ran.status();
-  auto again = first_->ClaimTile("coordinator", milliseconds(60'000), kBuild);
-  ASSERT_TRUE(again.ok() && again->has_value()) << again.status();
-  EXPECT_EQ((*again)->attempts, 1) << "a claim given back was counted";
+  JobRecord next_attempt = **job;
+  ++next_attempt.attempts;
+  StoreTileExchange again(*first_, **blobs, next_attempt, jobs);
+  const absl::Status republished =
+      again.Publish(plan, 1, [](int64_t) -> absl::StatusOr<std::string> { return "points"; });
+  EXPECT_TRUE(absl::StartsWith(republished.message(), "tile 0: the server making it")) << republished;
+  again.Clear();
+  EXPECT_TRUE(ChildrenIn(*first_, "t1").empty()) << "the build's tile jobs stay behind";
   std::filesystem::remove_all(blob_dir);
 }
 
 // A tiled build whose server stopped halfway (no Clear: a kill) is run again by the job's next
-// attempt: the plan is the same but for its timings, so the parts the first attempt left are used
-// again instead of being made anew, and the surface is the one a single process makes.
-TEST_P(JobStoreContract, AResumedTiledBuildReusesThePartsOfItsEarlierAttempt) {
+// attempt: the plan is the same but for its timings, so the tiles the first attempt's children
+// made are used again instead of being made anew, and the surface is the one a single process
+// makes. A server whose blob store is not the one the build published to says so.
+TEST_P(JobStoreContract, AResumedTiledBuildReusesTheTilesOfItsEarlierAttempt) {
   ASSERT_TRUE(first_->Insert(Queued("t1", 1)).ok());
-  auto job = first_->Claim("r1/coordinator", milliseconds(60'000));
+  auto job = first_->Claim("r1/coordinator", milliseconds(60'000), {kTiles, ""});
   ASSERT_TRUE(job.ok() && job->has_value()) << job.status();
   const std::filesystem::path blob_dir = testing::FreshTestDir("lsqsurf-resumed-tiles");
   auto blobs = LocalDirBlobStore::Open(blob_dir.string());
   ASSERT_TRUE(blobs.ok()) << blobs.status();
   const core::PointCloud cloud = testing::SphereCloud(20'000);
   const pu::PuTileParams tiles{.tile_points = 4'000, .support_cap = 16};
-  const TileClaimOptions claims{milliseconds(60'000), [](const TileTask&, bool) {}, 2};
   core::LocalJobContext ctx;
   {
     auto planned = pu::PlannedCloud::Plan(pu::CloudSource(cloud), {}, {}, tiles, ctx);
     ASSERT_TRUE(planned.ok()) << planned.status();
     const pu::TilePlan& plan = (*planned)->plan();
-    StoreTileExchange first_attempt(*first_, **blobs, "t1", "r1/coordinator", claims);
+    StoreTileExchange first_attempt(*first_, **blobs, **job, StoreTileJobs(*first_, **blobs, "r1/coordinator"));
     ASSERT_TRUE(first_attempt
                     .Publish(pu::EncodeTilePlan(plan), static_cast<int64_t>(plan.tiles.size()),
                              [&](int64_t t) -> absl::StatusOr<std::string> {
@@ -495,18 +515,29 @@ TEST_P(JobStoreContract, AResumedTiledBuildReusesThePartsOfItsEarlierAttempt) {
                                return pu::EncodeTilePoints(*points);
                              })
                     .ok());
+    const std::filesystem::path other_dir = testing::FreshTestDir("lsqsurf-unshared-blobs");
+    auto unshared = LocalDirBlobStore::Open(other_dir.string());  // Holds none of the build's blobs.
+    ASSERT_TRUE(unshared.ok()) << unshared.status();
+    const absl::Status unreadable = RunTileJob(**unshared, ChildrenIn(*first_, "t1").front(), ctx, [] { return true; });
+    EXPECT_EQ(unreadable.code(), absl::StatusCode::kFailedPrecondition) << unreadable;
+    EXPECT_TRUE(absl::StrContains(unreadable.message(), "blob store")) << unreadable;
+    std::filesystem::remove_all(other_dir);
+    const TileJobs helper = StoreTileJobs(*second_, **blobs, "r2/helper");
     for (int made = 0; made < 3; ++made) {
-      auto ran = RunClaimedTile(*second_, **blobs, "r2/helper", claims, ctx);
+      auto ran = helper.run_one("t1");
       ASSERT_TRUE(ran.ok() && *ran) << ran.status();
     }
-  }  // The first attempt's server is gone, its tiles and blobs left behind.
-  StoreTileExchange second_attempt(*first_, **blobs, "t1", "r1/coordinator", claims);
+  }  // The first attempt's server is gone, its tile jobs and blobs left behind.
+  JobRecord resumed_job = **job;
+  ++resumed_job.attempts;
+  StoreTileExchange second_attempt(*first_, **blobs, resumed_job, StoreTileJobs(*first_, **blobs, "r1/coordinator"));
   pu::MeshSink resumed;
   auto built = ReconstructTiledShared(pu::CloudSource(cloud), {}, {}, tiles, resumed, ctx, {"", &second_attempt});
   ASSERT_TRUE(built.ok()) << built.status();
   EXPECT_EQ(second_attempt.Reused(), 3);
   EXPECT_EQ(second_attempt.Servers(), 1) << "the reused parts count for no server";
   EXPECT_FALSE((*blobs)->Exists("t1", "tile-plan")) << "the build's blobs stay behind";
+  EXPECT_TRUE(ChildrenIn(*first_, "t1").empty()) << "the build's tile jobs stay behind";
   pu::MeshSink alone;
   ASSERT_TRUE(pu::ReconstructTiled(pu::CloudSource(cloud), {}, {}, tiles, alone, ctx).ok());
   ASSERT_EQ(resumed.mesh().faces.size(), alone.mesh().faces.size());

@@ -75,6 +75,10 @@ int64_t MeshPartOf(std::string_view name);
 
 using Statistics = std::vector<std::pair<std::string, double>>;  // Name (units in it), value.
 
+// Child jobs' spec formats start here, above any format a job's spec has: a server of a build
+// older than child jobs never claims one.
+inline constexpr int kChildFormatBase = 1 << 20;
+
 struct JobRecord {
   std::string id;
   JobSpec spec;
@@ -101,8 +105,15 @@ struct JobRecord {
   // format or a newer one claim it, so that a rolling update never runs a job on a server too
   // old to read its spec whole.
   int spec_format = 0;
-  int64_t seq = 0;       // The store's change number of this state (job_store.h).
-  uint64_t version = 0;  // Bumped on every change this server sees (watchers compare it).
+  // A child job is a part of its parent's run that any server may make (a tile of a tiled PU
+  // build): queued by the parent's run, claimed before new jobs while the parent runs, under the
+  // same leases, attempt limits and recovery as any job; never listed, and removed with the
+  // parent. Its spec_format is the format of its part (kChildFormatBase and up), which only
+  // servers of that same format claim. Empty for a job a user submitted.
+  std::string parent;
+  int64_t child_index = 0;  // Which part of the parent's run (the tile).
+  int64_t seq = 0;          // The store's change number of this state (job_store.h).
+  uint64_t version = 0;     // Bumped on every change this server sees (watchers compare it).
 };
 
 }  // namespace lsqsurf::jobs

@@ -20,6 +20,29 @@ constexpr char kWitnessSetting[] = "blob_store_witness";
 
 }  // namespace
 
+void RecoverStoppedRun(JobRecord& r, int max_attempts) {
+  if (r.cancel_requested) {
+    r.state = JobState::kCancelled;
+    r.error = "cancelled by request (its server stopped while it ran)";
+  } else if (r.attempts - r.interruptions >= max_attempts && !r.parent.empty()) {
+    // A tile's child job: its build reports this, naming the tile (DecodeTileError).
+    r.state = JobState::kFailed;
+    r.error = core::StrCat("the server making it stopped on each of its ", r.attempts - r.interruptions,
+                           " attempts (out of memory or a crash); lower tile_points or give the servers more memory");
+  } else if (r.attempts - r.interruptions >= max_attempts) {
+    r.state = JobState::kFailed;
+    r.error = core::StrCat("the server stopped while this job was running, ", r.attempts - r.interruptions,
+                           " times; giving up (the input may crash the engine)");
+  } else {
+    r.state = JobState::kQueued;
+  }
+  r.stage.clear();
+  r.progress = 0;
+  r.results.clear();  // Parts a run published (MeshPartArtifact); the next run publishes them again.
+  r.cancel_requested = false;
+  r.updated_ms = NowMs();
+}
+
 absl::Status JobReplication::CheckBlobsShared(BlobStore& blobs) {
   std::random_device random;
   const std::string mine = fmt::format("witness-{:08x}{:08x}", random(), random());
@@ -123,13 +146,6 @@ void JobReplication::SyncChanges() {
   if (queued) wake_workers_();
 }
 
-void JobReplication::HoldTile(const TileTask& task, bool held) {
-  std::lock_guard lock(tiles_mutex_);
-  const auto same = [&](const TileTask& t) { return t.job_id == task.job_id && t.tile == task.tile; };
-  std::erase_if(held_tiles_, same);
-  if (held) held_tiles_.push_back(task);
-}
-
 void JobReplication::RenewLeases() {
   const std::vector<std::string> running = table_.Locked([](const JobEntries& jobs) {
     std::vector<std::string> ids;
@@ -138,16 +154,6 @@ void JobReplication::RenewLeases() {
     }
     return ids;
   });
-  std::vector<TileTask> tiles;
-  {
-    std::lock_guard lock(tiles_mutex_);
-    tiles = held_tiles_;
-  }
-  // A tile lost here is claimed by another server; this one's part, should it still come, is
-  // the same surface and is not counted as the tile's.
-  if (auto renewed = store_.RenewTiles(runner_, tiles, options_.lease); !renewed.ok()) {
-    spdlog::warn("cannot renew the leases of the running tiles: {}", renewed.status().ToString());
-  }
   auto held = store_.Renew(runner_, running, options_.lease);
   if (!held.ok()) {
     spdlog::warn("cannot renew the leases of the running jobs: {}", held.status().ToString());

@@ -1,6 +1,6 @@
 // worker/jobs/job_replication.h — what a service does for the servers it shares a store with:
 // it follows their changes (a notification, else polling every `poll`), passes cancellations on
-// to its runs, renews the leases of the jobs and tiles it runs, and recovers the jobs of servers
+// to its runs, renews the leases of the jobs it runs (tiles' child jobs too), and recovers the jobs of servers
 // whose lease lapsed. With a store of its own only the recovery at start applies.
 #pragma once
 
@@ -18,6 +18,11 @@
 #include "worker/jobs/store/blob_store.h"
 
 namespace lsqsurf::jobs {
+
+// The new state of a job whose runner stopped while it ran: cancelled if that was asked for,
+// queued again, or failed once such stops add up to `max_attempts` (a tile's child job with a
+// reason its build reports, naming the tile).
+void RecoverStoppedRun(JobRecord& r, int max_attempts);
 
 // Thread-safe.
 class JobReplication {
@@ -45,8 +50,6 @@ class JobReplication {
   // Shared stores: follows the others on a thread of its own until Stop.
   void Start();
   void Stop();  // Idempotent; call once the runs have ended, whose leases it renews until then.
-  // Adds (or, with held false, drops) a tile this service runs to those whose leases it renews.
-  void HoldTile(const TileTask& task, bool held);
   // Whether the store answered the last look (always true for a store of its own).
   bool StoreReachable() const { return store_reachable_.load(); }
 
@@ -60,9 +63,7 @@ class JobReplication {
   JobTable& table_;
   JobStore& store_;
   const std::function<void()> wake_workers_;
-  std::mutex tiles_mutex_;
-  std::vector<TileTask> held_tiles_;  // Tiles this service runs now (tiles_mutex_).
-  int64_t synced_seq_ = 0;            // The store's change number this service has seen (sync thread).
+  int64_t synced_seq_ = 0;  // The store's change number this service has seen (sync thread).
   std::atomic<bool> stop_{false};
   std::atomic<bool> store_reachable_{true};
   std::thread thread_;

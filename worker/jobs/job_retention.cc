@@ -15,7 +15,13 @@ namespace lsqsurf::jobs {
 absl::Status JobRetention::Delete(const std::string& id) {
   LSQSURF_RETURN_IF_ERROR(store_.Remove(id));
   table_.Locked([&](const JobEntries& jobs) {
-    if (jobs.contains(id)) table_.EraseLocked(id);
+    std::vector<std::string> gone = {id};
+    for (const auto& [child, e] : jobs) {
+      if (e->record.parent == id && !e->held) gone.push_back(child);  // Removed with it (JobStore::Remove).
+    }
+    for (const std::string& g : gone) {
+      if (jobs.contains(g)) table_.EraseLocked(g);
+    }
     return 0;
   });
   if (absl::Status s = blobs_.RemoveJob(id); !s.ok()) spdlog::error("[job {}] {}", id, s.ToString());
@@ -58,7 +64,8 @@ int JobRetention::SweepFinished(int64_t now_ms, int64_t room) {
   table_.Locked([&](const JobEntries& jobs) {
     for (const auto& [id, e] : jobs) {
       total += e->record.stored_bytes;
-      if (IsTerminal(e->record.state)) {
+      // A tile's job goes with its build.
+      if (IsTerminal(e->record.state) && e->record.parent.empty()) {
         finished.push_back({e->record.updated_ms, e->record.seq, e->record.stored_bytes, id});
       }
     }

@@ -134,8 +134,12 @@ class RunContext : public core::JobContext {
 
 }  // namespace
 
-std::shared_ptr<JobEntry> JobRunner::ClaimNext(std::shared_ptr<DecodedInput>* decoded) {
-  auto claimed = parts_.store.Claim(runner_, options_.lease);
+ClaimScope JobRunner::Scope(const std::string& parent) const {
+  return {TileChildFormat(options_.tile_format != 0 ? options_.tile_format : pu::kTileFormat), parent};
+}
+
+std::shared_ptr<JobEntry> JobRunner::ClaimNext(const ClaimScope& scope, std::shared_ptr<DecodedInput>* decoded) {
+  auto claimed = parts_.store.Claim(runner_, options_.lease, scope);
   if (!claimed.ok()) {
     // Once per outage, not at every poll of every worker.
     if (!claims_failing_.exchange(true))
@@ -178,10 +182,9 @@ void JobRunner::WorkerLoop() {
       if (stop_) return;
       signal = work_signal_;
     }
-    // The tiles of a build that has begun come before a new job, so that it finishes first.
-    if (RunOthersTile()) continue;
+    // The tiles of a build that has begun come before a new job (Scope), so that it finishes first.
     std::shared_ptr<DecodedInput> decoded;
-    if (std::shared_ptr<JobEntry> entry = ClaimNext(&decoded)) {
+    if (std::shared_ptr<JobEntry> entry = ClaimNext(Scope(), &decoded)) {
       RunJob(entry, std::move(decoded));
       continue;
     }
@@ -194,40 +197,62 @@ void JobRunner::WorkerLoop() {
   }
 }
 
-TileClaimOptions JobRunner::TileClaims() const {
-  TileClaimOptions claims{options_.lease, parts_.hold_tile, options_.max_attempts};
-  if (options_.tile_format != 0) claims.build = options_.tile_format;
-  return claims;
+TileJobs JobRunner::TileJobsOf() {
+  TileJobs jobs;
+  jobs.get = [this](const std::string& id) { return parts_.table.Get(id); };
+  jobs.children = [this](const std::string& parent) {
+    return parts_.table.Locked([&](const JobEntries& entries) {
+      std::vector<JobRecord> out;
+      for (const auto& [id, e] : entries) {
+        if (e->record.parent == parent) out.push_back(e->record);
+      }
+      return out;
+    });
+  };
+  jobs.run_one = [this](const std::string& parent) -> absl::StatusOr<bool> {
+    std::shared_ptr<DecodedInput> none;
+    std::shared_ptr<JobEntry> entry = ClaimNext(Scope(parent), &none);
+    if (entry == nullptr) return false;
+    RunJob(entry, nullptr);
+    return true;
+  };
+  jobs.wait = [this, seen = uint64_t{0}](std::chrono::milliseconds timeout) mutable {
+    seen = parts_.table.WaitForAnyChange(seen, timeout);
+  };
+  jobs.wait_limit = options_.lease;
+  jobs.child_format = Scope().child_format;
+  return jobs;
 }
 
-bool JobRunner::RunOthersTile() {
-  if (!parts_.store.shared() || tiles_unreadable_) return false;
-  // Stopped by a shutdown; the tile is then given back (JobStore::ReleaseTile) for another server.
-  struct ShutdownContext final : core::JobContext {
-    const JobTable& table;
-    explicit ShutdownContext(const JobTable& t) : table(t) {}
-    void ReportProgress(std::string_view, double) override {}
-    bool IsCancelled() const override { return table.shutting_down(); }
-  } ctx(parts_.table);
-  const TileClaimOptions claims = TileClaims();
-  auto ran = RunClaimedTile(parts_.store, parts_.blobs, runner_, claims, ctx);
-  if (absl::IsFailedPrecondition(ran.status())) {
-    spdlog::error("{}; this server takes no more tiles of other servers' jobs (is --blob-dir shared with them?)",
-                  ran.status().message());
-    tiles_unreadable_ = true;
-    return false;
+absl::StatusOr<Statistics> JobRunner::RunTile(const std::shared_ptr<JobEntry>& entry, const JobRecord& record) {
+  RunContext ctx(parts_.table, parts_.store.shared(), options_.events.get(), entry, record.spec.method);
+  struct StageEnd {
+    RunContext& ctx;
+    ~StageEnd() { ctx.Finish(); }
+  } stage_end{ctx};
+  const auto parent_running = [this, &record] {
+    auto parent = parts_.store.Get(record.parent);
+    return parent.ok() && parent->state == JobState::kRunning;
+  };
+  // A tile that throws fails its build, as a job's run does (RunKind), and never the server.
+  const auto start = std::chrono::steady_clock::now();
+  try {
+    LSQSURF_RETURN_IF_ERROR(RunTileJob(parts_.blobs, record, ctx, parent_running));
+  } catch (const std::bad_alloc&) {
+    return absl::ResourceExhaustedError("the tile ran out of memory");
+  } catch (const std::exception& e) {
+    return absl::InternalError(core::StrCat("engine error: ", e.what()));
   }
-  if (!ran.ok() && !absl::IsCancelled(ran.status())) {
-    if (!claims_failing_.exchange(true)) spdlog::error("cannot take tiles from the store: {}", ran.status().ToString());
-    return false;
-  }
-  return ran.ok() && *ran;
+  spdlog::info("[job {}] tile {} made here in {:.2f} s (attempt {})", record.parent, record.child_index,
+               core::SecondsSince(start), record.attempts);
+  return Statistics{};
 }
 
 absl::StatusOr<Statistics> JobRunner::RunKind(const std::shared_ptr<JobEntry>& entry, BlobSink& sink,
                                               std::shared_ptr<DecodedInput> decoded) {
   // The run works on its own copy: the record is replaced whenever its state is stored.
   const JobRecord record = parts_.table.Snapshot(*entry);
+  if (!record.parent.empty()) return RunTile(entry, record);
   Uploads uploads;
   // A decoded input stands in for the uploads; without one they are read back.
   auto read_back = [&](const std::string& slot) -> absl::StatusOr<bool> {
@@ -248,13 +273,13 @@ absl::StatusOr<Statistics> JobRunner::RunKind(const std::shared_ptr<JobEntry>& e
     if (!read.ok()) return read.status();
     if (!*read) break;
   }
-  const JobKind* kind = KindFor(options_.kind_overrides, record.spec.method);
-  if (kind == nullptr) return absl::FailedPreconditionError(core::StrCat("no method '", record.spec.method, "'"));
   RunContext ctx(parts_.table, parts_.store.shared(), options_.events.get(), entry, record.spec.method);
   struct StageEnd {
     RunContext& ctx;
     ~StageEnd() { ctx.Finish(); }
   } stage_end{ctx};
+  const JobKind* kind = KindFor(options_.kind_overrides, record.spec.method);
+  if (kind == nullptr) return absl::FailedPreconditionError(core::StrCat("no method '", record.spec.method, "'"));
   // Only the jobs the spec names, whose visibility to the submitter Submit checked.
   const std::vector<std::string> referenced = kind->ReferencedJobs(record.spec);
   RunEnvironment env{sink,
@@ -272,7 +297,7 @@ absl::StatusOr<Statistics> JobRunner::RunKind(const std::shared_ptr<JobEntry>& e
                      scratch_dir_};
   std::optional<StoreTileExchange> tiles;
   if (parts_.store.shared()) {
-    tiles.emplace(parts_.store, parts_.blobs, record.id, runner_, TileClaims());
+    tiles.emplace(parts_.store, parts_.blobs, record, TileJobsOf());
     env.tiles = &*tiles;
   }
   try {

@@ -1,7 +1,7 @@
 // worker/jobs/job_runner.h — the worker threads of a service: each claims the oldest queued job
 // from the store, runs its kind with a progress and cancellation context and an artifact sink
-// held to the job's quota, and records how it ended; with a shared store, a worker runs the tiles
-// of other servers' tiled builds first, then new jobs.
+// held to the job's quota, and records how it ended. Child jobs (the tiles of tiled builds on a
+// shared store) are claimed before new jobs.
 #pragma once
 
 #include <atomic>
@@ -28,8 +28,6 @@ class BlobSink;  // job_runner.cc
 // Thread-safe.
 class JobRunner {
  public:
-  // Holds (held true) or drops the lease renewals of a tile this service runs (JobReplication).
-  using HoldTile = std::function<void(const TileTask& task, bool held)>;
   struct Parts {
     JobTable& table;
     DecodedInputs& decoded;
@@ -37,7 +35,6 @@ class JobRunner {
     JobPictures& pictures;
     JobStore& store;
     BlobStore& blobs;
-    HoldTile hold_tile;
   };
   // `runner` is this service's name in the store; `scratch_dir` where runs keep large temporaries.
   JobRunner(const JobServiceOptions& options, std::string runner, std::string scratch_dir, Parts parts)
@@ -52,15 +49,17 @@ class JobRunner {
 
  private:
   void WorkerLoop();
-  // Claims the oldest queued job; null when none is queued or the store failed.
-  std::shared_ptr<JobEntry> ClaimNext(std::shared_ptr<DecodedInput>* decoded);
+  // Claims the oldest queued job within `scope`; null when none is queued or the store failed.
+  std::shared_ptr<JobEntry> ClaimNext(const ClaimScope& scope, std::shared_ptr<DecodedInput>* decoded);
+  // What this service claims: children of its own tile format first, then new jobs.
+  ClaimScope Scope(const std::string& parent = "") const;
   void RunJob(const std::shared_ptr<JobEntry>& entry, std::shared_ptr<DecodedInput> decoded);
   absl::StatusOr<Statistics> RunKind(const std::shared_ptr<JobEntry>& entry, BlobSink& sink,
                                      std::shared_ptr<DecodedInput> decoded);
-  // Shared stores: runs one tile of another job spread over the servers; false when none waits.
-  bool RunOthersTile();
-  // How this service claims and runs tiles (its lease, attempt limit and tile format).
-  TileClaimOptions TileClaims() const;
+  // A tile's child job: its part of another job's tiled build (tile_exchange.h).
+  absl::StatusOr<Statistics> RunTile(const std::shared_ptr<JobEntry>& entry, const JobRecord& record);
+  // The table and workers as a tiled build's run follows and helps its tile jobs.
+  TileJobs TileJobsOf();
 
   const JobServiceOptions& options_;
   const std::string runner_;
@@ -72,9 +71,6 @@ class JobRunner {
   bool stop_ = false;                       // mutex_.
   std::vector<std::thread> workers_;
   std::atomic<bool> claims_failing_{false};
-  // Set once a tile of another server's job could not be read from this server's blob store: it
-  // takes no more tiles (each would only wait out its lease).
-  std::atomic<bool> tiles_unreadable_{false};
 };
 
 }  // namespace lsqsurf::jobs

@@ -119,24 +119,6 @@ int64_t NowMs() {
       .count();
 }
 
-void RecoverStoppedRun(JobRecord& r, int max_attempts) {
-  if (r.cancel_requested) {
-    r.state = JobState::kCancelled;
-    r.error = "cancelled by request (its server stopped while it ran)";
-  } else if (r.attempts - r.interruptions >= max_attempts) {
-    r.state = JobState::kFailed;
-    r.error = core::StrCat("the server stopped while this job was running, ", r.attempts - r.interruptions,
-                           " times; giving up (the input may crash the engine)");
-  } else {
-    r.state = JobState::kQueued;
-  }
-  r.stage.clear();
-  r.progress = 0;
-  r.results.clear();  // Parts a run published (MeshPartArtifact); the next run publishes them again.
-  r.cancel_requested = false;
-  r.updated_ms = NowMs();
-}
-
 const JobKind* KindFor(const std::map<std::string, const JobKind*>& overrides, const std::string& method) {
   if (auto it = overrides.find(method); it != overrides.end()) return it->second;
   const MethodEntry* m = FindMethod(method);
@@ -216,8 +198,7 @@ absl::StatusOr<std::unique_ptr<JobService>> JobService::Open(const JobServiceOpt
   s.replication_ = std::make_unique<JobReplication>(o, s.runner_, *s.table_, *s.store_, wake_workers);
   s.runner_threads_ = std::make_unique<JobRunner>(
       o, s.runner_, s.scratch_dir_,
-      JobRunner::Parts{*s.table_, *s.decoded_, *s.admission_, *s.pictures_, *s.store_, *s.blobs_,
-                       [&s](const TileTask& task, bool held) { s.replication_->HoldTile(task, held); }});
+      JobRunner::Parts{*s.table_, *s.decoded_, *s.admission_, *s.pictures_, *s.store_, *s.blobs_});
 
   // In a store of its own every running job was this service's before it stopped; in a shared
   // one only those whose lease lapsed are known to be orphans (the sync thread goes on looking).
@@ -231,7 +212,7 @@ absl::StatusOr<std::unique_ptr<JobService>> JobService::Open(const JobServiceOpt
   if (*swept > 0) spdlog::info("removed the scratch files of {} runs that ended in a crash", *swept);
   const auto [on_record, queued] = s.table_->Locked([](const JobEntries& jobs) {
     int waiting = 0;
-    for (const auto& [id, e] : jobs) waiting += e->record.state == JobState::kQueued;
+    for (const auto& [id, e] : jobs) waiting += e->record.state == JobState::kQueued && e->record.parent.empty();
     return std::pair{jobs.size(), waiting};
   });
   const int64_t job_memory = o.max_job_memory;

@@ -27,10 +27,6 @@ const std::map<std::string, std::string>& UploadFiles();
 // The blob of an upload slot: UploadFiles(), and "input.n.drc" for input part n > 0.
 std::string UploadBlob(const std::string& slot);
 
-// The new state of a job whose runner stopped while it ran: cancelled if that was asked for,
-// queued again, or failed once such stops add up to `max_attempts`.
-void RecoverStoppedRun(JobRecord& r, int max_attempts);
-
 // The kind that runs `method`'s jobs: a test's override, else the registry's; null if none.
 const JobKind* KindFor(const std::map<std::string, const JobKind*>& overrides, const std::string& method);
 

@@ -71,7 +71,7 @@ class JobTable {
   // A copy of the job's record. Errors: kNotFound.
   absl::StatusOr<JobRecord> Get(const std::string& id) const;
   JobRecord Snapshot(const JobEntry& entry) const;
-  std::vector<JobRecord> List() const;  // Newest first.
+  std::vector<JobRecord> List() const;  // Newest first; no child jobs (JobRecord::parent).
   // Runs `f` with the entries under the table's lock (AdoptLocked and EraseLocked may be called
   // from it); returns what `f` returns. `f` must not call the store nor the table's other methods.
   template <typename F>

@@ -1,17 +1,20 @@
 // worker/jobs/tile_exchange.h — one tiled PU build spread over the servers that share a store.
 //
-// The server running the job plans it (pu::PlannedCloud), puts the plan and each tile's points
-// in the blob store and queues the tiles in the job store. Every server with an idle worker
-// claims tiles of running jobs (JobStore::ClaimTile), runs them from those blobs alone
-// (RunSharedTile) and stores their parts; a tile whose server died is claimed again when its
-// lease lapses. The job's server runs tiles too while it waits, and welds the parts in tile
-// order as they come (pu::TileJoiner), so the surface is the one a single server makes.
+// A tile is a child job of the build's job (JobRecord::parent), in the one job queue. The
+// server running the build plans it (pu::PlannedCloud), puts the plan and each tile's points in
+// the blob store under the build's job, and queues one child job per tile. Any server's worker
+// claims children of running builds before new jobs (ClaimScope), makes the tile's part from
+// those blobs (RunTileJob) and stores it under the build's job; leases, takeover, attempt limits,
+// cancellation and metrics are the job path's. The build's server runs its own children while it
+// waits and otherwise sleeps on the job table's changes (the store's change feed); it welds the
+// parts in tile order as they come (pu::TileJoiner), so the surface is the one a single server
+// makes.
 //
-// Blobs of the job while it runs: tile-plan, tile-points-N, tile-part-N (or tile-error-N, the
-// reason a tile could not be made); all are removed when the build ends. A build resumed after its
-// server stopped uses the parts the earlier attempt made under the same plan (Reused). A tile
-// whose servers stopped while making it more than TileClaimOptions::max_attempts times fails its
-// job; tiles are claimed only by servers of the same pu::kTileFormat.
+// Blobs of the build's job while it runs: tile-plan, tile-points-N, tile-part-N; all are removed,
+// with the children, when the build ends. A build resumed after its server stopped takes over the
+// children an earlier attempt queued under the same plan, finished ones included (Reused); a tile
+// whose child failed (its servers stopped on each of max_attempts runs) fails the build, naming it.
+// Children are of the format TileChildFormat(pu::kTileFormat): only servers of that format claim them.
 #pragma once
 
 #include <chrono>
@@ -65,43 +68,45 @@ absl::StatusOr<pu::TiledStats> ReconstructTiledShared(const pu::PointSource& sou
                                                       pu::SurfaceSink& sink, core::JobContext& ctx,
                                                       const TiledRun& run);
 
-// What a tile leaves in the blob store: its part (tile-part-N), or where it failed the reason, for
-// the job's server to report (tile-error-N).
-struct TileBlobBytes {
-  std::string name;
-  std::string bytes;
+// The spec method of a tile's child job, never one of the registry's.
+inline constexpr char kTileMethod[] = "tile";
+// The spec format of the child jobs of tiles of format `tile_format` (pu::kTileFormat).
+inline int TileChildFormat(int tile_format) { return kChildFormatBase + tile_format; }
+
+// Makes the part of the tile child job `child` from the blobs its build's server published and
+// stores it under the build's job, if `parent_running` still says so when it is made. Errors:
+// kCancelled (`ctx`, or the build ended), kFailedPrecondition (the tile's blobs are not in
+// `blobs` while the build runs: this server's blob store is not the shared one), and the
+// tile's own, each with its code in the message for the build (DecodeTileError).
+absl::Status RunTileJob(BlobStore& blobs, const JobRecord& child, core::JobContext& ctx,
+                        const std::function<bool()>& parent_running);
+
+// A tile child's stored error, as the build's server reports it: "tile N: ..." with the code
+// RunTileJob kept.
+absl::Status DecodeTileError(int64_t tile, std::string_view stored);
+
+// How a build's server follows the child jobs of its tiles and helps with them: the job
+// runner's table and workers.
+struct TileJobs {
+  // The newest record of a job this server knows. Errors: kNotFound.
+  std::function<absl::StatusOr<JobRecord>(const std::string& id)> get;
+  // The child jobs of `parent` this server knows of, in any state.
+  std::function<std::vector<JobRecord>(const std::string& parent)> children;
+  // Claims one queued child of `parent` and runs it here to its end; false when none was queued.
+  // Errors: kUnavailable.
+  std::function<absl::StatusOr<bool>(const std::string& parent)> run_one;
+  // Returns when any job changed (here or on another server), or after `timeout`.
+  std::function<void(std::chrono::milliseconds timeout)> wait;
+  std::chrono::milliseconds wait_limit{30'000};  // The longest wait between two looks.
+  int child_format = TileChildFormat(pu::kTileFormat);
 };
 
-// Makes tile `tile` of job `job_id` from the blobs its server published. Errors: kCancelled,
-// kNotFound (the build is gone), kUnavailable.
-absl::StatusOr<TileBlobBytes> RunSharedTile(BlobStore& blobs, const std::string& job_id, int64_t tile,
-                                            core::JobContext& ctx);
-
-// How a server claims and runs tiles.
-struct TileClaimOptions {
-  // `hold(task, true)` before this server runs a tile, `hold(task, false)` after: the tiles whose
-  // leases its renewal extends.
-  using HoldFn = std::function<void(const TileTask&, bool)>;
-  std::chrono::milliseconds lease{0};
-  HoldFn hold;
-  // A tile claimed more often than this (its servers stopped while making it: out of memory, a
-  // crash) fails its job, naming the tile; 0 = no limit. A server's graceful stop counts too.
-  int max_attempts = 0;
-  // The tile format this server publishes its tiles as and claims others' in: its build's
-  // (pu::kTileFormat), or another one to test a mixed rolling update.
-  int build = pu::kTileFormat;
-};
-
-// The exchange over a job store and a blob store that servers share.
+// The exchange over child jobs in a job store and a blob store that servers share.
 class StoreTileExchange final : public TileExchange {
  public:
-  using HoldFn = TileClaimOptions::HoldFn;
-  StoreTileExchange(JobStore& store, BlobStore& blobs, std::string job_id, std::string runner, TileClaimOptions claims)
-      : store_(store),
-        blobs_(blobs),
-        job_id_(std::move(job_id)),
-        runner_(std::move(runner)),
-        claims_(std::move(claims)) {}
+  // `parent` is the build's job as its run holds it.
+  StoreTileExchange(JobStore& store, BlobStore& blobs, JobRecord parent, TileJobs jobs)
+      : store_(store), blobs_(blobs), parent_(std::move(parent)), jobs_(std::move(jobs)) {}
 
   absl::Status Publish(std::string_view plan, int64_t tiles,
                        const std::function<absl::StatusOr<std::string>(int64_t)>& points) override;
@@ -111,23 +116,17 @@ class StoreTileExchange final : public TileExchange {
   void Clear() override;
 
  private:
+  // Queues a child job for tile `tile` of this attempt.
+  absl::Status QueueChild(int64_t tile);
+
   JobStore& store_;
   BlobStore& blobs_;
-  std::string job_id_, runner_;
-  TileClaimOptions claims_;
+  const JobRecord parent_;
+  TileJobs jobs_;
   int64_t tiles_ = 0, reused_ = 0;
-  std::map<int64_t, std::string> done_;  // Tile → the runner that finished it.
+  std::vector<std::string> child_of_tile_;  // The child job making each tile.
+  std::set<int64_t> reused_tiles_;
   std::set<std::string> servers_;
 };
-
-// Claims one tile of any running job (of `job_id` where given) for `runner`, runs it
-// (RunSharedTile) and stores what it left if the job still runs, holding the tile through
-// `options.hold` meanwhile; a tile past `options.max_attempts` is failed instead. False when there
-// was none. A tile not made because this server stops or cannot read its blobs is given back
-// (JobStore::ReleaseTile). Errors: kCancelled (`ctx`), kFailedPrecondition (the tile's blobs are
-// not in `blobs` while its job runs: this server's blob store is not the shared one), kUnavailable.
-absl::StatusOr<bool> RunClaimedTile(JobStore& store, BlobStore& blobs, const std::string& runner,
-                                    const TileClaimOptions& options, core::JobContext& ctx,
-                                    const std::string& job_id = "");
 
 }  // namespace lsqsurf::jobs

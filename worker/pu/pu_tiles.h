@@ -159,7 +159,7 @@ struct TilePlan {
 
 // The format of plans and parts, as bytes and as what a part holds (4: tiles refine acute creases
 // and thin walls as untiled): servers of other formats cannot read each other's
-// (JobStore::ClaimTile leaves them alone). Raised with every change to either.
+// (their child jobs are of another format: jobs::TileChildFormat). Raised with every change to either.
 inline constexpr int kTileFormat = 4;
 
 // The plan as bytes ("LQTP"), for servers of the same build. Errors: kInvalidArgument.

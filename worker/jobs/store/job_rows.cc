@@ -112,9 +112,10 @@ const std::string& ColumnList() {
 }
 
 namespace {
-// The spec format stays the one the job was stored with.
+// The spec format stays the one the job was stored with, a child job its parent's.
 bool IsHeldColumn(std::string_view name) {
-  return name != "id" && name != "seq" && name != "cancel_requested" && name != "spec_format";
+  return name != "id" && name != "seq" && name != "cancel_requested" && name != "spec_format" && name != "parent" &&
+         name != "child_index";
 }
 }  // namespace
 
@@ -164,11 +165,13 @@ std::vector<std::string> JobColumns(const JobRecord& r) {
           r.owner,
           std::to_string(r.stored_bytes),
           std::to_string(r.quota_bytes),
-          std::to_string(r.spec_format)};
+          std::to_string(r.spec_format),
+          r.parent,
+          std::to_string(r.child_index)};
 }
 
 JobRecord WithFormat(JobRecord record, int format) {
-  record.spec_format = format;
+  if (record.parent.empty()) record.spec_format = format;
   return record;
 }
 
@@ -177,7 +180,10 @@ JobRecord FromColumns(const std::vector<std::string>& c, const SpecTables& table
   r.id = c[0];
   r.spec.method = c[1];
   std::string unusable;  // Why the stored spec cannot run any more.
-  if (auto params = tables.params(r.spec.method); params.ok()) {
+  r.parent = c[24];
+  if (!r.parent.empty()) {
+    // A child job's spec is its parent's business (a tile of a build): nothing to decode.
+  } else if (auto params = tables.params(r.spec.method); params.ok()) {
     r.spec.params = *std::move(params);
     if (absl::Status s = r.spec.params.Decode(c[2]); !s.ok()) unusable = std::string(s.message());
   } else {
@@ -206,7 +212,8 @@ JobRecord FromColumns(const std::vector<std::string>& c, const SpecTables& table
   r.stored_bytes = ToInt(c[21]);
   r.quota_bytes = ToInt(c[22]);
   r.spec_format = static_cast<int>(ToInt(c[23]));
-  r.seq = ToInt(c[24]);
+  r.child_index = ToInt(c[25]);
+  r.seq = ToInt(c[26]);
   // A stored spec that no longer decodes cannot run: it fails with the reason. One of a newer
   // format is left as it is: a newer server runs it.
   if (!unusable.empty() && !IsTerminal(r.state) && r.spec_format <= tables.format) {

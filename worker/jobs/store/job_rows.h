@@ -38,6 +38,8 @@ inline constexpr const char* kColumnNames[] = {"id",
                                                "stored_bytes",
                                                "quota_bytes",
                                                "spec_format",
+                                               "parent",
+                                               "child_index",
                                                "seq"};
 inline constexpr int kColumnCount = sizeof(kColumnNames) / sizeof(kColumnNames[0]);
 
@@ -45,7 +47,7 @@ inline constexpr int kColumnCount = sizeof(kColumnNames) / sizeof(kColumnNames[0
 const std::string& ColumnList();
 
 // The record's values for every column but seq (a new row). A store writes its own format into
-// spec_format (WithFormat).
+// the spec_format of a job a user submitted (WithFormat); a child job keeps its part's.
 std::vector<std::string> JobColumns(const JobRecord& record);
 // `record` as a store of spec format `format` stores it.
 JobRecord WithFormat(JobRecord record, int format);

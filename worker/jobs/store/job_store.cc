@@ -18,21 +18,13 @@ int64_t NowMs() {
 // The schema version this build writes (PRAGMA user_version). 0: the unversioned tables of
 // earlier builds; 1: runners, leases, change numbers and the removals table; 2: owners and
 // stored sizes; 3: the owner's quota a job's results are held to; 4: tiles; 5: the tiles' format;
-// 6: the settings servers agree on (Agree). 7: the spec format of each job.
-constexpr int kSchemaVersion = 7;
-
-// A tile's states in the job_tiles table.
-constexpr char kTileQueued[] = "0";
-constexpr char kTileRunning[] = "1";
-constexpr char kTileDone[] = "2";
+// 6: the settings servers agree on (Agree). 7: the spec format of each job. 8: child jobs in
+// place of the tiles' table.
+constexpr int kSchemaVersion = 8;
 
 }  // namespace
 
 absl::Status NoSuchJob(const std::string& id) { return absl::NotFoundError(core::StrCat("no job with id '", id, "'")); }
-
-absl::Status TileNotHeld(const TileTask& tile, const std::string& runner) {
-  return absl::AbortedError(core::StrCat("tile ", tile.tile, " of job ", tile.job_id, " is not held by ", runner));
-}
 
 absl::Status AlreadyFinished(const JobRecord& r) {
   return absl::FailedPreconditionError(core::StrCat("job ", r.id, " has already ", JobStateName(r.state)));
@@ -88,16 +80,14 @@ absl::Status SqliteJobStore::Migrate() {
     }
     return absl::OkStatus();
   }
-  for (const char* sql : {"PRAGMA journal_mode=WAL", "PRAGMA synchronous=FULL",
-                          "CREATE TABLE IF NOT EXISTS jobs (id TEXT PRIMARY KEY, method TEXT, "
-                          "parameters TEXT, mesh_bits INTEGER, state INTEGER, stage TEXT, "
-                          "attempts INTEGER, error TEXT, created_ms INTEGER, updated_ms INTEGER, "
-                          "input_points INTEGER, input_bytes INTEGER, statistics TEXT, results TEXT)",
-                          "CREATE TABLE IF NOT EXISTS job_removals (id TEXT PRIMARY KEY, seq INTEGER)",
-                          "CREATE TABLE IF NOT EXISTS job_tiles (job_id TEXT NOT NULL, tile INTEGER NOT NULL, "
-                          "state INTEGER NOT NULL, runner TEXT NOT NULL, lease_expires_ms INTEGER NOT NULL, "
-                          "attempts INTEGER NOT NULL, build INTEGER NOT NULL DEFAULT 0, PRIMARY KEY (job_id, tile))",
-                          "CREATE TABLE IF NOT EXISTS settings (key TEXT PRIMARY KEY, value TEXT NOT NULL)"}) {
+  for (const char* sql :
+       {"PRAGMA journal_mode=WAL", "PRAGMA synchronous=FULL",
+        "CREATE TABLE IF NOT EXISTS jobs (id TEXT PRIMARY KEY, method TEXT, "
+        "parameters TEXT, mesh_bits INTEGER, state INTEGER, stage TEXT, "
+        "attempts INTEGER, error TEXT, created_ms INTEGER, updated_ms INTEGER, "
+        "input_points INTEGER, input_bytes INTEGER, statistics TEXT, results TEXT)",
+        "CREATE TABLE IF NOT EXISTS job_removals (id TEXT PRIMARY KEY, seq INTEGER)", "DROP TABLE IF EXISTS job_tiles",
+        "CREATE TABLE IF NOT EXISTS settings (key TEXT PRIMARY KEY, value TEXT NOT NULL)"}) {
     if (auto r = Query(sql); !r.ok()) return r.status();
   }
   // Databases written by earlier builds lack the later columns; each is added where missing,
@@ -107,16 +97,12 @@ absl::Status SqliteJobStore::Migrate() {
   for (const char* column :
        {"preview TEXT", "preview_color TEXT", "interruptions INTEGER", "progress REAL", "runner TEXT",
         "cancel_requested INTEGER", "seq INTEGER", "lease_expires_ms INTEGER", "owner TEXT NOT NULL DEFAULT ''",
-        "stored_bytes INTEGER", "quota_bytes INTEGER NOT NULL DEFAULT 0", "spec_format INTEGER NOT NULL DEFAULT 0"}) {
+        "stored_bytes INTEGER", "quota_bytes INTEGER NOT NULL DEFAULT 0", "spec_format INTEGER NOT NULL DEFAULT 0",
+        "parent TEXT NOT NULL DEFAULT ''", "child_index INTEGER NOT NULL DEFAULT 0"}) {
     const std::string name(column, std::string_view(column).find(' '));
     const bool has = std::any_of(present->begin(), present->end(), [&](const Row& row) { return row[0] == name; });
     if (has) continue;
     if (auto r = Query(core::StrCat("ALTER TABLE jobs ADD COLUMN ", column)); !r.ok()) return r.status();
-  }
-  auto tile_columns = Query("SELECT name FROM pragma_table_info('job_tiles') WHERE name = 'build'");
-  if (!tile_columns.ok()) return tile_columns.status();
-  if (tile_columns->empty()) {
-    if (auto r = Query("ALTER TABLE job_tiles ADD COLUMN build INTEGER NOT NULL DEFAULT 0"); !r.ok()) return r.status();
   }
   // Rows of earlier builds get values where the new columns must have one.
   if (auto r = Query("UPDATE jobs SET runner = COALESCE(runner, ''), cancel_requested = COALESCE(cancel_requested, 0), "
@@ -129,7 +115,8 @@ absl::Status SqliteJobStore::Migrate() {
     return r.status();
   }
   for (const char* sql : {"CREATE INDEX IF NOT EXISTS jobs_by_state ON jobs (state, created_ms, id)",
-                          "CREATE INDEX IF NOT EXISTS jobs_by_seq ON jobs (seq)"}) {
+                          "CREATE INDEX IF NOT EXISTS jobs_by_seq ON jobs (seq)",
+                          "CREATE INDEX IF NOT EXISTS jobs_by_parent ON jobs (parent) WHERE parent <> ''"}) {
     if (auto r = Query(sql); !r.ok()) return r.status();
   }
   if (auto r = Query(core::StrCat("PRAGMA user_version = ", kSchemaVersion)); !r.ok()) return r.status();
@@ -204,19 +191,21 @@ absl::StatusOr<int64_t> SqliteJobStore::Replace(const JobRecord& record, const s
 }
 
 absl::StatusOr<std::optional<JobRecord>> SqliteJobStore::Claim(const std::string& runner,
-                                                               std::chrono::milliseconds lease) {
+                                                               std::chrono::milliseconds lease,
+                                                               const ClaimScope& scope) {
   std::lock_guard lock(mutex_);
   const int64_t now = NowMs();
   auto claimed = Query(
       core::StrCat(rows::WithStates("UPDATE jobs SET state = {running}, stage = 'starting', progress = 0, "
                                     "attempts = attempts + 1, cancel_requested = 0, runner = ?1, "
-                                    "lease_expires_ms = ?2, updated_ms = ?3, seq = ?4 WHERE id = (SELECT id "
-                                    "FROM jobs WHERE state = {queued} AND spec_format <= ?5 ORDER BY created_ms, id "
-                                    "LIMIT 1) "
-                                    "RETURNING "),
+                                    "lease_expires_ms = ?2, updated_ms = ?3, seq = ?4 WHERE id = (SELECT id FROM jobs "
+                                    "WHERE state = {queued} AND ((parent = '' AND ?6 = '' AND spec_format <= ?5) OR "
+                                    "(parent <> '' AND spec_format = CAST(?7 AS INTEGER) AND (?6 = '' OR parent = ?6) "
+                                    "AND parent IN (SELECT p.id FROM jobs p WHERE p.state = {running}))) ORDER BY "
+                                    "parent = '', created_ms, child_index, id LIMIT 1) RETURNING "),
                    rows::ColumnList()),
       {runner, std::to_string(now + lease.count()), std::to_string(now), std::to_string(seq_ + 1),
-       std::to_string(tables_.format)});
+       std::to_string(tables_.format), scope.parent, std::to_string(scope.child_format)});
   if (!claimed.ok()) return claimed.status();
   if (claimed->empty()) return std::optional<JobRecord>();
   ++seq_;
@@ -305,105 +294,14 @@ absl::Status SqliteJobStore::Remove(const std::string& id) {
     if (!found.ok()) return found.status();
     return found->empty() ? NoSuchJob(id) : NotFinished(found->front());
   }
-  if (auto r = Query("DELETE FROM job_tiles WHERE job_id = ?1", {id}); !r.ok()) return r.status();
-  return Query("INSERT OR REPLACE INTO job_removals (id, seq) VALUES (?1, ?2)", {id, std::to_string(++seq_)}).status();
-}
-
-absl::Status SqliteJobStore::AddTiles(const std::string& job_id, int64_t count, int build,
-                                      const std::vector<int64_t>& done) {
-  std::lock_guard lock(mutex_);
-  if (auto r = Query("DELETE FROM job_tiles WHERE job_id = ?1", {job_id}); !r.ok()) return r.status();
-  if (count <= 0) return absl::OkStatus();
-  auto added = Query(
-      core::StrCat("WITH RECURSIVE n(i) AS (SELECT 0 UNION ALL SELECT i + 1 FROM n WHERE i + 1 < CAST(?2 AS INTEGER)) "
-                   "INSERT INTO job_tiles (job_id, tile, state, runner, lease_expires_ms, attempts, build) SELECT ?1, "
-                   "i, ",
-                   kTileQueued, ", '', 0, 0, CAST(?3 AS INTEGER) FROM n"),
-      {job_id, std::to_string(count), std::to_string(build)});
-  if (!added.ok()) return added.status();
-  for (int64_t tile : done) {
-    auto r = Query(core::StrCat("UPDATE job_tiles SET state = ", kTileDone, " WHERE job_id = ?1 AND tile = ?2"),
-                   {job_id, std::to_string(tile)});
+  auto children = Query("DELETE FROM jobs WHERE parent = ?1 RETURNING id", {id});
+  if (!children.ok()) return children.status();
+  children->push_back({id});
+  for (const Row& gone : *children) {
+    auto r = Query("INSERT OR REPLACE INTO job_removals (id, seq) VALUES (?1, ?2)", {gone[0], std::to_string(++seq_)});
     if (!r.ok()) return r.status();
   }
   return absl::OkStatus();
-}
-
-absl::StatusOr<std::optional<TileTask>> SqliteJobStore::ClaimTile(const std::string& runner,
-                                                                  std::chrono::milliseconds lease, int build,
-                                                                  const std::string& job_id) {
-  std::lock_guard lock(mutex_);
-  const int64_t now = NowMs();
-  auto claimed = Query(
-      core::StrCat("UPDATE job_tiles SET state = ", kTileRunning,
-                   ", runner = ?1, lease_expires_ms = ?2, attempts = attempts + 1 WHERE rowid = (SELECT t.rowid "
-                   "FROM job_tiles t JOIN jobs j ON j.id = t.job_id WHERE ",
-                   rows::WithStates("j.state = {running}"), " AND (t.state = ", kTileQueued,
-                   " OR (t.state = ", kTileRunning,
-                   " AND t.lease_expires_ms <= ?3)) AND (?4 = '' OR t.job_id = ?4) AND t.build = CAST(?5 AS INTEGER) "
-                   "ORDER BY t.job_id, t.tile LIMIT 1) "
-                   "RETURNING job_id, tile, attempts"),
-      {runner, std::to_string(now + lease.count()), std::to_string(now), job_id, std::to_string(build)});
-  if (!claimed.ok()) return claimed.status();
-  if (claimed->empty()) return std::optional<TileTask>();
-  const Row& row = claimed->front();
-  return std::optional<TileTask>(TileTask{row[0], rows::ToInt(row[1]), static_cast<int>(rows::ToInt(row[2]))});
-}
-
-absl::StatusOr<std::vector<TileTask>> SqliteJobStore::RenewTiles(const std::string& runner,
-                                                                 const std::vector<TileTask>& tiles,
-                                                                 std::chrono::milliseconds lease) {
-  std::lock_guard lock(mutex_);
-  std::vector<TileTask> held;
-  const std::string until = std::to_string(NowMs() + lease.count());
-  for (const TileTask& t : tiles) {
-    auto r = Query(core::StrCat("UPDATE job_tiles SET lease_expires_ms = ?4 WHERE job_id = ?1 AND tile = ?2 AND "
-                                "runner = ?3 AND state = ",
-                                kTileRunning, " RETURNING tile"),
-                   {t.job_id, std::to_string(t.tile), runner, until});
-    if (!r.ok()) return r.status();
-    if (!r->empty()) held.push_back(t);
-  }
-  return held;
-}
-
-absl::Status SqliteJobStore::FinishTile(const TileTask& tile, const std::string& runner) {
-  std::lock_guard lock(mutex_);
-  auto r = Query(
-      core::StrCat("UPDATE job_tiles SET state = ", kTileDone,
-                   " WHERE job_id = ?1 AND tile = ?2 AND runner = ?3 AND state = ", kTileRunning, " RETURNING tile"),
-      {tile.job_id, std::to_string(tile.tile), runner});
-  if (!r.ok()) return r.status();
-  if (r->empty()) return TileNotHeld(tile, runner);
-  return absl::OkStatus();
-}
-
-absl::Status SqliteJobStore::ReleaseTile(const TileTask& tile, const std::string& runner) {
-  std::lock_guard lock(mutex_);
-  auto r = Query(core::StrCat("UPDATE job_tiles SET state = ", kTileQueued,
-                              ", runner = '', attempts = attempts - 1 WHERE job_id = ?1 AND tile = ?2 AND runner = ?3 "
-                              "AND state = ",
-                              kTileRunning, " RETURNING tile"),
-                 {tile.job_id, std::to_string(tile.tile), runner});
-  if (!r.ok()) return r.status();
-  if (r->empty()) return TileNotHeld(tile, runner);
-  return absl::OkStatus();
-}
-
-absl::StatusOr<std::vector<std::pair<int64_t, std::string>>> SqliteJobStore::DoneTiles(const std::string& job_id) {
-  std::lock_guard lock(mutex_);
-  auto r = Query(
-      core::StrCat("SELECT tile, runner FROM job_tiles WHERE job_id = ?1 AND state = ", kTileDone, " ORDER BY tile"),
-      {job_id});
-  if (!r.ok()) return r.status();
-  std::vector<std::pair<int64_t, std::string>> out;
-  for (const Row& row : *r) out.emplace_back(rows::ToInt(row[0]), row[1]);
-  return out;
-}
-
-absl::Status SqliteJobStore::RemoveTiles(const std::string& job_id) {
-  std::lock_guard lock(mutex_);
-  return Query("DELETE FROM job_tiles WHERE job_id = ?1", {job_id}).status();
 }
 
 absl::StatusOr<JobRecord> SqliteJobStore::Get(const std::string& id) {

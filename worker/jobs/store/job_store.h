@@ -35,11 +35,13 @@ struct JobChanges {
   int64_t seq = 0;  // Give this to the next call.
 };
 
-// One tile of a job spread over the servers (a tiled PU build): any server may run it.
-struct TileTask {
-  std::string job_id;
-  int64_t tile = 0;
-  int attempts = 0;  // Claims so far, this one included.
+// Which queued jobs a claim may take.
+struct ClaimScope {
+  // Child jobs (JobRecord::parent) of exactly this spec format, of running parents only, come
+  // before any other job; 0: none.
+  int child_format = 0;
+  // Only the children of this job (a parent's run making its own parts); "": any job.
+  std::string parent;
 };
 
 // Implementations are thread-safe; every write is durable when it returns. Every write gives
@@ -52,10 +54,11 @@ class JobStore {
 
   // Stores a new job as the record says. Errors: kAlreadyExists, kUnavailable.
   virtual absl::Status Insert(const JobRecord& record) = 0;
-  // Takes the oldest queued job for `runner`: it becomes running, with stage "starting", one
-  // more attempt and a lease of `lease`. nullopt when none is queued. Errors: kUnavailable.
-  virtual absl::StatusOr<std::optional<JobRecord>> Claim(const std::string& runner,
-                                                         std::chrono::milliseconds lease) = 0;
+  // Takes the oldest queued job within `scope` for `runner`: it becomes running, with stage
+  // "starting", one more attempt and a lease of `lease`. A job a user submitted is claimed only by
+  // a store of its spec format or a newer one. nullopt when none is queued. Errors: kUnavailable.
+  virtual absl::StatusOr<std::optional<JobRecord>> Claim(const std::string& runner, std::chrono::milliseconds lease,
+                                                         const ClaimScope& scope = {}) = 0;
   // Replaces the record of a job that `record.runner` holds (running under that runner). A
   // runner whose lease lapsed has no say any more. Returns the new change number. Errors:
   // kAborted (not held by that runner), kUnavailable.
@@ -73,7 +76,8 @@ class JobStore {
   // A queued job becomes cancelled with `reason`; a running one is flagged (its runner stops
   // it). Returns the record after that. Errors: kNotFound, kFailedPrecondition (finished).
   virtual absl::StatusOr<JobRecord> Cancel(const std::string& id, const std::string& reason) = 0;
-  // Removes a finished job. Errors: kNotFound, kFailedPrecondition (not finished).
+  // Removes a finished job, and its child jobs in any state. Errors: kNotFound,
+  // kFailedPrecondition (not finished).
   virtual absl::Status Remove(const std::string& id) = 0;
 
   // Errors: kNotFound, kUnavailable.
@@ -86,38 +90,11 @@ class JobStore {
   // The value kept under `key`, keeping `value` there first where there is none: the first
   // caller decides, and every caller after it, on any server, gets that value. Errors: kUnavailable.
   virtual absl::StatusOr<std::string> Agree(const std::string& key, const std::string& value) = 0;
-
-  // Tiles. A tile is queued, then held by one runner under a lease it renews, then done. A tile
-  // whose lease lapsed is claimed again like a queued one, so a dead server's tiles are re-run.
-  // Tiles 0..count-1 of a job, queued (those it had are dropped) but for those in `done`, which an
-  // earlier attempt made; made by a server whose tiles are of format `build` (pu::kTileFormat): only
-  // servers of that format claim them. Errors: kUnavailable.
-  virtual absl::Status AddTiles(const std::string& job_id, int64_t count, int build,
-                                const std::vector<int64_t>& done = {}) = 0;
-  // Takes the first queued or lapsed tile of format `build` of a running job (of `job_id` only,
-  // when not empty) for `runner` under a lease. nullopt when there is none. Errors: kUnavailable.
-  virtual absl::StatusOr<std::optional<TileTask>> ClaimTile(const std::string& runner, std::chrono::milliseconds lease,
-                                                            int build, const std::string& job_id = "") = 0;
-  // Extends the leases of those of `tiles` that `runner` holds; returns those. Errors: kUnavailable.
-  virtual absl::StatusOr<std::vector<TileTask>> RenewTiles(const std::string& runner,
-                                                           const std::vector<TileTask>& tiles,
-                                                           std::chrono::milliseconds lease) = 0;
-  // Marks a tile that `runner` holds done. Errors: kAborted (not held by it), kUnavailable.
-  virtual absl::Status FinishTile(const TileTask& tile, const std::string& runner) = 0;
-  // Gives back a tile that `runner` holds and did not make for reasons of its own (it stops, or
-  // cannot read the tile's blobs): queued again, this claim not counted among its attempts.
-  // Errors: kAborted (not held by it), kUnavailable.
-  virtual absl::Status ReleaseTile(const TileTask& tile, const std::string& runner) = 0;
-  // The done tiles of a job, in tile order, with the runner that finished each. Errors: kUnavailable.
-  virtual absl::StatusOr<std::vector<std::pair<int64_t, std::string>>> DoneTiles(const std::string& job_id) = 0;
-  // Drops a job's tiles (Remove does too). Errors: kUnavailable.
-  virtual absl::Status RemoveTiles(const std::string& job_id) = 0;
 };
 
 // The messages both stores give for a job that is not there or in the wrong state.
 absl::Status NoSuchJob(const std::string& id);
 absl::Status AlreadyFinished(const JobRecord& record);
-absl::Status TileNotHeld(const TileTask& tile, const std::string& runner);
 absl::Status NotFinished(const JobRecord& record);
 
 // One database file for one server: a jobs table and a table of removals (WAL journal,
@@ -133,7 +110,8 @@ class SqliteJobStore final : public JobStore {
 
   bool shared() const override { return false; }
   absl::Status Insert(const JobRecord& record) override;
-  absl::StatusOr<std::optional<JobRecord>> Claim(const std::string& runner, std::chrono::milliseconds lease) override;
+  absl::StatusOr<std::optional<JobRecord>> Claim(const std::string& runner, std::chrono::milliseconds lease,
+                                                 const ClaimScope& scope) override;
   absl::StatusOr<int64_t> WriteHeld(const JobRecord& record) override;
   absl::StatusOr<std::vector<std::pair<std::string, bool>>> Renew(const std::string& runner,
                                                                   const std::vector<std::string>& ids,
@@ -146,15 +124,6 @@ class SqliteJobStore final : public JobStore {
   absl::StatusOr<JobChanges> ChangesSince(int64_t seq) override;
   void WaitForOthers(std::chrono::milliseconds timeout) override;
   absl::StatusOr<std::string> Agree(const std::string& key, const std::string& value) override;
-  absl::Status AddTiles(const std::string& job_id, int64_t count, int build, const std::vector<int64_t>& done) override;
-  absl::StatusOr<std::optional<TileTask>> ClaimTile(const std::string& runner, std::chrono::milliseconds lease,
-                                                    int build, const std::string& job_id) override;
-  absl::StatusOr<std::vector<TileTask>> RenewTiles(const std::string& runner, const std::vector<TileTask>& tiles,
-                                                   std::chrono::milliseconds lease) override;
-  absl::Status FinishTile(const TileTask& tile, const std::string& runner) override;
-  absl::Status ReleaseTile(const TileTask& tile, const std::string& runner) override;
-  absl::StatusOr<std::vector<std::pair<int64_t, std::string>>> DoneTiles(const std::string& job_id) override;
-  absl::Status RemoveTiles(const std::string& job_id) override;
 
  private:
   using Row = std::vector<std::string>;

@@ -93,6 +93,13 @@ CREATE TABLE settings (key TEXT PRIMARY KEY, value TEXT NOT NULL);
     R"sql(
 ALTER TABLE jobs ADD COLUMN spec_format INTEGER NOT NULL DEFAULT 0;
 )sql",
+    // 8: child jobs (a tile is a job: JobRecord::parent) in place of the tiles' own table.
+    R"sql(
+ALTER TABLE jobs ADD COLUMN parent TEXT NOT NULL DEFAULT '';
+ALTER TABLE jobs ADD COLUMN child_index BIGINT NOT NULL DEFAULT 0;
+CREATE INDEX jobs_children ON jobs (parent) WHERE parent <> '';
+DROP TABLE job_tiles;
+)sql",
 };
 constexpr int kSchemaVersion = sizeof(kMigrations) / sizeof(kMigrations[0]);
 
@@ -214,17 +221,20 @@ absl::Status PostgresJobStore::Insert(const JobRecord& record) {
 }
 
 absl::StatusOr<std::optional<JobRecord>> PostgresJobStore::Claim(const std::string& runner,
-                                                                 std::chrono::milliseconds lease) {
+                                                                 std::chrono::milliseconds lease,
+                                                                 const ClaimScope& scope) {
   auto claimed = pool_->Exec(
       core::StrCat(
           rows::WithStates("UPDATE jobs SET state = {running}, stage = 'starting', progress = 0, attempts = "
                            "attempts + 1, cancel_requested = 0, runner = $1, lease_expires_ms = "
                            "lsqsurf_now_ms() + $2, updated_ms = $3 WHERE id = (SELECT id FROM jobs WHERE "
-                           "state = {queued} AND spec_format <= $4 ORDER BY created_ms, id LIMIT 1 FOR UPDATE SKIP "
-                           "LOCKED) "
-                           "RETURNING "),
+                           "state = {queued} AND ((parent = '' AND $5 = '' AND spec_format <= $4) OR (parent <> '' "
+                           "AND spec_format = $6::integer AND ($5 = '' OR parent = $5) AND parent IN (SELECT p.id "
+                           "FROM jobs p WHERE p.state = {running}))) ORDER BY parent = '', created_ms, child_index, "
+                           "id LIMIT 1 FOR UPDATE SKIP LOCKED) RETURNING "),
           rows::ColumnList()),
-      {runner, std::to_string(lease.count()), std::to_string(NowMs()), std::to_string(tables_.format)});
+      {runner, std::to_string(lease.count()), std::to_string(NowMs()), std::to_string(tables_.format), scope.parent,
+       std::to_string(scope.child_format)});
   if (!claimed.ok()) return claimed.status();
   if (claimed->rows.empty()) return std::optional<JobRecord>();
   return std::optional<JobRecord>(rows::FromColumns(claimed->rows.front(), tables_));
@@ -313,98 +323,19 @@ absl::StatusOr<JobRecord> PostgresJobStore::Cancel(const std::string& id, const 
 }
 
 absl::Status PostgresJobStore::Remove(const std::string& id) {
-  auto removed = pool_->Exec(rows::WithStates("DELETE FROM jobs WHERE id = $1 AND state IN {finished}"), {id});
-  if (!removed.ok()) return removed.status();
-  if (removed->affected > 0) return RemoveTiles(id);
+  bool removed = false;
+  absl::Status s = pool_->Transaction([&](pg_conn* conn) -> absl::Status {
+    auto parent = pg::Exec(conn, rows::WithStates("DELETE FROM jobs WHERE id = $1 AND state IN {finished}"), {id});
+    if (!parent.ok()) return parent.status();
+    removed = parent->affected > 0;
+    if (!removed) return absl::OkStatus();
+    return pg::Exec(conn, "DELETE FROM jobs WHERE parent = $1", {id}).status();
+  });
+  if (!s.ok()) return s;
+  if (removed) return absl::OkStatus();
   auto found = Get(id);
   if (!found.ok()) return found.status();
   return NotFinished(*found);
-}
-
-absl::Status PostgresJobStore::AddTiles(const std::string& job_id, int64_t count, int build,
-                                        const std::vector<int64_t>& done) {
-  return pool_->Transaction([&](pg_conn* conn) -> absl::Status {
-    if (auto r = pg::Exec(conn, "DELETE FROM job_tiles WHERE job_id = $1", {job_id}); !r.ok()) return r.status();
-    if (auto r =
-            pg::Exec(conn,
-                     "INSERT INTO job_tiles (job_id, tile, state, runner, lease_expires_ms, attempts, build) SELECT "
-                     "$1, i, 0, '', 0, 0, $3::integer FROM generate_series(0, $2::bigint - 1) i",
-                     {job_id, std::to_string(count), std::to_string(build)});
-        !r.ok()) {
-      return r.status();
-    }
-    for (int64_t tile : done) {
-      auto r = pg::Exec(conn, "UPDATE job_tiles SET state = 2 WHERE job_id = $1 AND tile = $2::bigint",
-                        {job_id, std::to_string(tile)});
-      if (!r.ok()) return r.status();
-    }
-    // Idle servers wait on the jobs' channel: new tiles are work for them.
-    return pg::Exec(conn, "SELECT pg_notify('lsqsurf_jobs', '')").status();
-  });
-}
-
-absl::StatusOr<std::optional<TileTask>> PostgresJobStore::ClaimTile(const std::string& runner,
-                                                                    std::chrono::milliseconds lease, int build,
-                                                                    const std::string& job_id) {
-  auto claimed = pool_->Exec(
-      rows::WithStates(
-          "UPDATE job_tiles SET state = 1, runner = $1, lease_expires_ms = lsqsurf_now_ms() + $2, "
-          "attempts = attempts + 1 WHERE (job_id, tile) = (SELECT t.job_id, t.tile FROM job_tiles t JOIN "
-          "jobs j ON j.id = t.job_id WHERE j.state = {running} AND (t.state = 0 OR (t.state = 1 AND "
-          "t.lease_expires_ms <= lsqsurf_now_ms())) AND ($3 = '' OR t.job_id = $3) AND t.build = $4::integer "
-          "ORDER BY t.job_id, "
-          "t.tile LIMIT 1 FOR UPDATE OF t SKIP LOCKED) RETURNING job_id, tile, attempts"),
-      {runner, std::to_string(lease.count()), job_id, std::to_string(build)});
-  if (!claimed.ok()) return claimed.status();
-  if (claimed->rows.empty()) return std::optional<TileTask>();
-  const auto& row = claimed->rows.front();
-  return std::optional<TileTask>(TileTask{row[0], rows::ToInt(row[1]), static_cast<int>(rows::ToInt(row[2]))});
-}
-
-absl::StatusOr<std::vector<TileTask>> PostgresJobStore::RenewTiles(const std::string& runner,
-                                                                   const std::vector<TileTask>& tiles,
-                                                                   std::chrono::milliseconds lease) {
-  std::vector<TileTask> held;
-  for (const TileTask& t : tiles) {
-    auto r = pool_->Exec(
-        "UPDATE job_tiles SET lease_expires_ms = lsqsurf_now_ms() + $4 WHERE job_id = $1 AND tile = $2 AND "
-        "runner = $3 AND state = 1",
-        {t.job_id, std::to_string(t.tile), runner, std::to_string(lease.count())});
-    if (!r.ok()) return r.status();
-    if (r->affected > 0) held.push_back(t);
-  }
-  return held;
-}
-
-absl::Status PostgresJobStore::FinishTile(const TileTask& tile, const std::string& runner) {
-  auto r = pool_->Exec("UPDATE job_tiles SET state = 2 WHERE job_id = $1 AND tile = $2 AND runner = $3 AND state = 1",
-                       {tile.job_id, std::to_string(tile.tile), runner});
-  if (!r.ok()) return r.status();
-  if (r->affected == 0) return TileNotHeld(tile, runner);
-  return absl::OkStatus();
-}
-
-absl::Status PostgresJobStore::ReleaseTile(const TileTask& tile, const std::string& runner) {
-  auto r = pool_->Exec(
-      "UPDATE job_tiles SET state = 0, runner = '', attempts = attempts - 1 WHERE job_id = $1 AND tile = $2 AND "
-      "runner = $3 AND state = 1",
-      {tile.job_id, std::to_string(tile.tile), runner});
-  if (!r.ok()) return r.status();
-  if (r->affected == 0) return TileNotHeld(tile, runner);
-  // Idle servers wait on the jobs' channel: the tile is work for them again.
-  return pool_->Exec("SELECT pg_notify('lsqsurf_jobs', '')").status();
-}
-
-absl::StatusOr<std::vector<std::pair<int64_t, std::string>>> PostgresJobStore::DoneTiles(const std::string& job_id) {
-  auto r = pool_->Exec("SELECT tile, runner FROM job_tiles WHERE job_id = $1 AND state = 2 ORDER BY tile", {job_id});
-  if (!r.ok()) return r.status();
-  std::vector<std::pair<int64_t, std::string>> out;
-  for (const auto& row : r->rows) out.emplace_back(rows::ToInt(row[0]), row[1]);
-  return out;
-}
-
-absl::Status PostgresJobStore::RemoveTiles(const std::string& job_id) {
-  return pool_->Exec("DELETE FROM job_tiles WHERE job_id = $1", {job_id}).status();
 }
 
 absl::StatusOr<JobRecord> PostgresJobStore::Get(const std::string& id) {

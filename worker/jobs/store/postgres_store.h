@@ -38,7 +38,8 @@ class PostgresJobStore final : public JobStore {
 
   bool shared() const override { return true; }
   absl::Status Insert(const JobRecord& record) override;
-  absl::StatusOr<std::optional<JobRecord>> Claim(const std::string& runner, std::chrono::milliseconds lease) override;
+  absl::StatusOr<std::optional<JobRecord>> Claim(const std::string& runner, std::chrono::milliseconds lease,
+                                                 const ClaimScope& scope) override;
   absl::StatusOr<int64_t> WriteHeld(const JobRecord& record) override;
   absl::StatusOr<std::vector<std::pair<std::string, bool>>> Renew(const std::string& runner,
                                                                   const std::vector<std::string>& ids,
@@ -51,15 +52,6 @@ class PostgresJobStore final : public JobStore {
   absl::StatusOr<JobChanges> ChangesSince(int64_t seq) override;
   void WaitForOthers(std::chrono::milliseconds timeout) override;
   absl::StatusOr<std::string> Agree(const std::string& key, const std::string& value) override;
-  absl::Status AddTiles(const std::string& job_id, int64_t count, int build, const std::vector<int64_t>& done) override;
-  absl::StatusOr<std::optional<TileTask>> ClaimTile(const std::string& runner, std::chrono::milliseconds lease,
-                                                    int build, const std::string& job_id) override;
-  absl::StatusOr<std::vector<TileTask>> RenewTiles(const std::string& runner, const std::vector<TileTask>& tiles,
-                                                   std::chrono::milliseconds lease) override;
-  absl::Status FinishTile(const TileTask& tile, const std::string& runner) override;
-  absl::Status ReleaseTile(const TileTask& tile, const std::string& runner) override;
-  absl::StatusOr<std::vector<std::pair<int64_t, std::string>>> DoneTiles(const std::string& job_id) override;
-  absl::Status RemoveTiles(const std::string& job_id) override;
 
   // The pool, for a blob store on the same database.
   const std::shared_ptr<pg::Pool>& pool() const { return pool_; }

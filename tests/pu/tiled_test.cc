@@ -168,6 +168,41 @@ TEST(PuTiles, TheUntiledFrameIsTheOneTilePlansFrame) {
   EXPECT_NEAR((*many)->plan().frame.max_support, frame->max_support, 1e-3 * frame->max_support);
 }
 
+// The error threshold follows the sampling on clouds denser than it: at most threshold_spacings
+// mean spacings (as a share of the diagonal), in a plan of one tile as in one of many; a cloud
+// coarser than that keeps error_threshold, and threshold_spacings = 0 keeps it at any density.
+TEST(PuTiles, ADenseCloudsThresholdFollowsItsSpacing) {
+  const core::PointCloud cloud = testing::SphereCloud(20'000);
+  core::LocalJobContext ctx;
+  PuParams fit;
+  fit.noise_level = 0;  // Exact data: the noise adjustment stays out of it.
+  auto frame_with = [&](double threshold_spacings, int64_t tile_points) -> absl::StatusOr<PuFrame> {
+    const PuTileParams tiles{.tile_points = tile_points, .support_cap = 64, .threshold_spacings = threshold_spacings};
+    if (tile_points >= static_cast<int64_t>(cloud.size())) return MeasureFrame(cloud, fit, {}, tiles, ctx);
+    auto planned = PlannedCloud::Plan(CloudSource(cloud, 7000), fit, {}, tiles, ctx);
+    if (!planned.ok()) return planned.status();
+    return (*planned)->plan().frame;
+  };
+  auto sparse = frame_with(PuTileParams{}.threshold_spacings, 1'000'000);
+  ASSERT_TRUE(sparse.ok()) << sparse.status();
+  const double spacing = sparse->mean_spacing / sparse->diagonal;  // About 3.6e-3 of the diagonal.
+  ASSERT_GT(PuTileParams{}.threshold_spacings * spacing, fit.error_threshold) << "the sphere is too dense for this";
+  EXPECT_EQ(sparse->params.error_threshold, fit.error_threshold);
+  // A tenth of the default threshold in spacings makes this cloud "dense".
+  const double dense_factor = 0.1 * fit.error_threshold / spacing;
+  auto dense = frame_with(dense_factor, 1'000'000);
+  ASSERT_TRUE(dense.ok()) << dense.status();
+  EXPECT_NEAR(dense->params.error_threshold, dense_factor * dense->mean_spacing / dense->diagonal,
+              1e-12 * fit.error_threshold);
+  EXPECT_NEAR(dense->params.error_threshold, 0.1 * fit.error_threshold, 0.01 * fit.error_threshold);
+  auto tiled = frame_with(dense_factor, 4'000);
+  ASSERT_TRUE(tiled.ok()) << tiled.status();
+  EXPECT_NEAR(tiled->params.error_threshold, dense->params.error_threshold, 1e-3 * dense->params.error_threshold);
+  auto off = frame_with(0, 1'000'000);
+  ASSERT_TRUE(off.ok()) << off.status();
+  EXPECT_EQ(off->params.error_threshold, fit.error_threshold);
+}
+
 // The frame's noise is the median of the tiles' estimates: on a noisy sphere it is the untiled
 // estimate's, the effective parameters follow it, and the tiles still close.
 TEST(PuTiles, ANoisySphereGetsTheNoiseOfTheWholeCloud) {

@@ -8,7 +8,7 @@ namespace lsqsurf::pu {
 const core::ParamTable<PuParams>& PuParamTable() {
   static const auto* table = [] {
     auto* t = new core::ParamTable<PuParams>();
-    t->Real<&PuParams::error_threshold>("error_threshold", 1e-6, 0.1, "share of the diagonal",
+    t->Real<&PuParams::error_threshold>("error_threshold", kMinErrorThreshold, 0.1, "share of the diagonal",
                                         "largest fitting error accepted in a cell; set it near the noise amplitude "
                                         "for noisy scans")
         .Integer<&PuParams::max_depth>("max_depth", 1, 18, "levels", "octree levels below the root cube")

@@ -43,10 +43,13 @@
 
 namespace lsqsurf::pu {
 
+inline constexpr double kMinErrorThreshold = 1e-6;  // The smallest error_threshold.
+
 struct PuParams {
   double error_threshold = 2e-4;  // ε0: largest Taubin distance accepted in a leaf, as a share of
                                   // the bounding-box diagonal, 1e-6..0.1. Noisy scans need about
-                                  // the noise amplitude.
+                                  // the noise amplitude. Surface jobs lower it on dense clouds
+                                  // (PuTileParams::threshold_spacings).
   int max_depth = 12;             // Octree levels below the root cube, 1..18.
   int max_degree = 4;             // Highest polynomial degree, 0..4.
   double support_factor = 0.75;   // α: support radius = α × leaf diagonal, 0.55..2.

@@ -404,4 +404,9 @@ HttpFront::~HttpFront() {
 std::string HttpFront::scheme() const { return state_->scheme; }
 int HttpFront::port() const { return state_->port; }
 
+size_t HttpFront::open_connections() const {
+  std::lock_guard lock(state_->mutex);
+  return state_->connections.size();
+}
+
 }  // namespace lsqsurf::server

@@ -98,6 +98,9 @@ class HttpFront {
 
   std::string scheme() const;  // "http" or "https".
   int port() const;
+  // Connections open now, those being closed for want of room included; a connection whose client
+  // has gone counts until the library has noticed.
+  size_t open_connections() const;
 
   struct State;  // Defined in http_front.cc, where the library's callbacks reach it.
 

@@ -4,6 +4,8 @@
 // the return-if-error helpers, so these macros stand in for them.
 #pragma once
 
+#include <exception>
+#include <new>
 #include <string>
 #include <string_view>
 
@@ -15,6 +17,20 @@ namespace lsqsurf::core {
 // `status` with "`context`: " before its message, and its code kept.
 inline absl::Status WithContext(std::string_view context, const absl::Status& status) {
   return absl::Status(status.code(), std::string(context) + ": " + std::string(status.message()));
+}
+
+// What `run` returns (an absl::Status or StatusOr), or what it throws as a status: out of memory
+// as kResourceExhausted ("the `subject` ran out of memory"), anything else as kInternal. So that
+// an engine that throws fails its own job and never the server.
+template <typename Run>
+auto CatchEngineErrors(std::string_view subject, Run&& run) -> decltype(run()) {
+  try {
+    return run();
+  } catch (const std::bad_alloc&) {
+    return absl::ResourceExhaustedError("the " + std::string(subject) + " ran out of memory");
+  } catch (const std::exception& e) {
+    return absl::InternalError("engine error: " + std::string(e.what()));
+  }
 }
 
 }  // namespace lsqsurf::core

@@ -116,4 +116,7 @@ struct JobRecord {
   uint64_t version = 0;     // Bumped on every change this server sees (watchers compare it).
 };
 
+// Whether `record` is a part of another job's run (JobRecord::parent), not a user's job.
+inline bool IsChildJob(const JobRecord& record) { return !record.parent.empty(); }
+
 }  // namespace lsqsurf::jobs

@@ -50,14 +50,14 @@ namespace {
 // Child jobs (a build's tiles) count as part of their build, which is counted already.
 int QueuedJobs(const JobEntries& jobs) {
   int queued = 0;
-  for (const auto& [id, e] : jobs) queued += e->record.state == JobState::kQueued && e->record.parent.empty();
+  for (const auto& [id, e] : jobs) queued += e->record.state == JobState::kQueued && !IsChildJob(e->record);
   return queued;
 }
 
 int QueuedJobsOf(const JobEntries& jobs, const std::string& owner) {
   int queued = 0;
   for (const auto& [id, e] : jobs) {
-    queued += e->record.state == JobState::kQueued && e->record.owner == owner && e->record.parent.empty();
+    queued += e->record.state == JobState::kQueued && e->record.owner == owner && !IsChildJob(e->record);
   }
   return queued;
 }
@@ -194,7 +194,7 @@ JobUsage JobAdmission::OwnerUsage(const JobEntries& jobs, const std::string& own
   if (auto it = pending_.find(owner); it != pending_.end()) usage = it->second;
   for (const auto& [id, e] : jobs) {
     if (e->record.owner != owner) continue;
-    usage.active_jobs += !IsTerminal(e->record.state) && e->record.parent.empty();
+    usage.active_jobs += !IsTerminal(e->record.state) && !IsChildJob(e->record);
     usage.stored_bytes += e->record.stored_bytes;
   }
   return usage;

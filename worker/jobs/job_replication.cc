@@ -24,7 +24,7 @@ void RecoverStoppedRun(JobRecord& r, int max_attempts) {
   if (r.cancel_requested) {
     r.state = JobState::kCancelled;
     r.error = "cancelled by request (its server stopped while it ran)";
-  } else if (r.attempts - r.interruptions >= max_attempts && !r.parent.empty()) {
+  } else if (r.attempts - r.interruptions >= max_attempts && IsChildJob(r)) {
     // A tile's child job: its build reports this, naming the tile (DecodeTileError).
     r.state = JobState::kFailed;
     r.error = core::StrCat("the server making it stopped on each of its ", r.attempts - r.interruptions,

@@ -65,7 +65,7 @@ int JobRetention::SweepFinished(int64_t now_ms, int64_t room) {
     for (const auto& [id, e] : jobs) {
       total += e->record.stored_bytes;
       // A tile's job goes with its build.
-      if (IsTerminal(e->record.state) && e->record.parent.empty()) {
+      if (IsTerminal(e->record.state) && !IsChildJob(e->record)) {
         finished.push_back({e->record.updated_ms, e->record.seq, e->record.stored_bytes, id});
       }
     }

@@ -234,15 +234,8 @@ absl::StatusOr<Statistics> JobRunner::RunTile(const std::shared_ptr<JobEntry>& e
     auto parent = parts_.store.Get(record.parent);
     return parent.ok() && parent->state == JobState::kRunning;
   };
-  // A tile that throws fails its build, as a job's run does (RunKind), and never the server.
   const auto start = std::chrono::steady_clock::now();
-  try {
-    LSQSURF_RETURN_IF_ERROR(RunTileJob(parts_.blobs, record, ctx, parent_running));
-  } catch (const std::bad_alloc&) {
-    return absl::ResourceExhaustedError("the tile ran out of memory");
-  } catch (const std::exception& e) {
-    return absl::InternalError(core::StrCat("engine error: ", e.what()));
-  }
+  LSQSURF_RETURN_IF_ERROR(RunTileJob(parts_.blobs, record, ctx, parent_running));
   spdlog::info("[job {}] tile {} made here in {:.2f} s (attempt {})", record.parent, record.child_index,
                core::SecondsSince(start), record.attempts);
   return Statistics{};
@@ -252,7 +245,7 @@ absl::StatusOr<Statistics> JobRunner::RunKind(const std::shared_ptr<JobEntry>& e
                                               std::shared_ptr<DecodedInput> decoded) {
   // The run works on its own copy: the record is replaced whenever its state is stored.
   const JobRecord record = parts_.table.Snapshot(*entry);
-  if (!record.parent.empty()) return RunTile(entry, record);
+  if (IsChildJob(record)) return RunTile(entry, record);
   Uploads uploads;
   // A decoded input stands in for the uploads; without one they are read back.
   auto read_back = [&](const std::string& slot) -> absl::StatusOr<bool> {
@@ -300,13 +293,7 @@ absl::StatusOr<Statistics> JobRunner::RunKind(const std::shared_ptr<JobEntry>& e
     tiles.emplace(parts_.store, parts_.blobs, record, TileJobsOf());
     env.tiles = &*tiles;
   }
-  try {
-    return kind->Run(record.spec, uploads, env);
-  } catch (const std::bad_alloc&) {
-    return absl::ResourceExhaustedError("the job ran out of memory");
-  } catch (const std::exception& e) {
-    return absl::InternalError(core::StrCat("engine error: ", e.what()));
-  }
+  return core::CatchEngineErrors("job", [&] { return kind->Run(record.spec, uploads, env); });
 }
 
 void JobRunner::RunJob(const std::shared_ptr<JobEntry>& entry, std::shared_ptr<DecodedInput> decoded) {

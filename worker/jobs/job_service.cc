@@ -212,7 +212,7 @@ absl::StatusOr<std::unique_ptr<JobService>> JobService::Open(const JobServiceOpt
   if (*swept > 0) spdlog::info("removed the scratch files of {} runs that ended in a crash", *swept);
   const auto [on_record, queued] = s.table_->Locked([](const JobEntries& jobs) {
     int waiting = 0;
-    for (const auto& [id, e] : jobs) waiting += e->record.state == JobState::kQueued && e->record.parent.empty();
+    for (const auto& [id, e] : jobs) waiting += e->record.state == JobState::kQueued && !IsChildJob(e->record);
     return std::pair{jobs.size(), waiting};
   });
   const int64_t job_memory = o.max_job_memory;

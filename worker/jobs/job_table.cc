@@ -71,7 +71,7 @@ std::vector<JobRecord> JobTable::List() const {
   std::lock_guard lock(mutex_);
   std::vector<JobRecord> out;
   for (const auto& [id, e] : jobs_) {
-    if (e->record.parent.empty()) out.push_back(e->record);  // A tile's job is its build's business.
+    if (!IsChildJob(e->record)) out.push_back(e->record);  // A tile's job is its build's business.
   }
   std::sort(out.begin(), out.end(), [](const JobRecord& a, const JobRecord& b) {
     return a.created_ms != b.created_ms ? a.created_ms > b.created_ms : a.id > b.id;

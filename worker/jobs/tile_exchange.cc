@@ -3,8 +3,6 @@
 #include <spdlog/spdlog.h>
 
 #include <algorithm>
-#include <exception>
-#include <new>
 
 #include "worker/core/status.h"
 #include "worker/core/strings.h"
@@ -43,7 +41,8 @@ absl::Status RunTileJob(BlobStore& blobs, const JobRecord& child, core::JobConte
                         const std::function<bool()>& parent_running) {
   const std::string& build = child.parent;
   const int64_t tile = child.child_index;
-  auto part = [&]() -> absl::StatusOr<std::string> {
+  // A tile that throws fails its build with the code it would have as a job, never the server.
+  auto part = core::CatchEngineErrors("tile", [&]() -> absl::StatusOr<std::string> {
     auto plan_bytes = blobs.Read(build, kPlanBlob);
     if (!plan_bytes.ok()) return plan_bytes.status();
     auto point_bytes = blobs.Read(build, TileBlob("points", tile));
@@ -54,7 +53,7 @@ absl::Status RunTileJob(BlobStore& blobs, const JobRecord& child, core::JobConte
     if (!points.ok()) return points.status();
     point_bytes->clear();
     return pu::RunTile(*plan, static_cast<size_t>(tile), *std::move(points), ctx);
-  }();
+  });
   if (absl::IsCancelled(part.status())) return part.status();
   if (absl::IsNotFound(part.status()) && parent_running()) {
     return TileError(absl::FailedPreconditionError(core::StrCat(

@@ -171,7 +171,7 @@ std::vector<std::string> JobColumns(const JobRecord& r) {
 }
 
 JobRecord WithFormat(JobRecord record, int format) {
-  if (record.parent.empty()) record.spec_format = format;
+  if (!IsChildJob(record)) record.spec_format = format;
   return record;
 }
 
@@ -181,7 +181,7 @@ JobRecord FromColumns(const std::vector<std::string>& c, const SpecTables& table
   r.spec.method = c[1];
   std::string unusable;  // Why the stored spec cannot run any more.
   r.parent = c[24];
-  if (!r.parent.empty()) {
+  if (IsChildJob(r)) {
     // A child job's spec is its parent's business (a tile of a build): nothing to decode.
   } else if (auto params = tables.params(r.spec.method); params.ok()) {
     r.spec.params = *std::move(params);

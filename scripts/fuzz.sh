@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Fuzzes every parser and decoder that sees client bytes with libFuzzer (clang from Debian):
-# PLY, OBJ, XYZ, legacy VTK volumes, VTU, the velocity grid, the Draco wrapper, the uploads as
+# PLY, PCD, OBJ, XYZ, legacy VTK volumes, VTU, the velocity grid, the Draco wrapper, the uploads as
 # the job service checks them, and the proto-to-spec conversion.
 #
 #   scripts/fuzz.sh [SECONDS] [TARGET...]   SECONDS per target (default 60); all targets by default
@@ -15,7 +15,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-targets_all=(ply obj xyz vtk_volume vtu velocity_grid draco uploads job_spec)
+targets_all=(ply pcd obj xyz vtk_volume vtu velocity_grid draco uploads job_spec)
 
 bash scripts/install-deps.sh --with-fuzz >/dev/null
 cmake --preset fuzz >/dev/null

@@ -26,7 +26,7 @@ packages=(
   libeigen3-dev libnanoflann-dev libdraco-dev draco
   libspdlog-dev libfmt-dev
   libgtest-dev libgmock-dev libbenchmark-dev
-  libssl-dev openssl libsqlite3-dev libpq-dev postgresql nginx-light yamllint prometheus-cpp-dev libabsl-dev libtbb-dev libcli11-dev zlib1g-dev libpugixml-dev
+  libssl-dev openssl libsqlite3-dev libpq-dev postgresql nginx-light yamllint prometheus-cpp-dev libabsl-dev libtbb-dev libcli11-dev zlib1g-dev libpugixml-dev liblzf-dev
   iproute2 util-linux
   libegl-dev libgl-dev libopengl-dev libegl-mesa0 libgl1-mesa-dri libstb-dev
   pybind11-dev python3-dev python3-numpy python3-pytest python3-venv python3-pip python3-wheel python3-setuptools

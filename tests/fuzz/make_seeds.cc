@@ -11,6 +11,7 @@
 #include "worker/io/draco_codec.h"
 #include "worker/io/files.h"
 #include "worker/io/obj_xyz.h"
+#include "worker/io/pcd.h"
 #include "worker/io/ply.h"
 #include "worker/io/volume_codec.h"
 #include "worker/io/volume_formats.h"
@@ -53,6 +54,17 @@ int main(int argc, char** argv) {
   Write("ply", "mesh_ascii.ply", io::EncodePly(mesh, io::PlyFormat::kAscii));
   Write("ply", "mesh_binary.ply", io::EncodePly(mesh, io::PlyFormat::kBinaryLittleEndian));
   Write("ply", "cloud_ascii.ply", io::EncodePly(cloud_mesh, io::PlyFormat::kAscii));
+  core::PointCloud coloured = cloud;
+  for (const char* channel : {"red", "green", "blue", "intensity"}) {
+    coloured.attributes.push_back({channel, std::vector<float>(cloud.size())});
+    for (size_t i = 0; i < cloud.size(); ++i) coloured.attributes.back().values[i] = static_cast<float>((i * 37) % 256);
+  }
+  Write("pcd", "cloud_ascii.pcd", io::EncodePcd(coloured, io::PcdEncoding::kAscii));
+  Write("pcd", "cloud_binary.pcd", io::EncodePcd(coloured, io::PcdEncoding::kBinary));
+  Write("pcd", "cloud_compressed.pcd", io::EncodePcd(coloured, io::PcdEncoding::kBinaryCompressed));
+  // And two the Point Cloud Library wrote (tests/data/pcd).
+  Write("pcd", "pcl_ascii.pcd", *io::ReadFileBytes(LSQSURF_SOURCE_DIR "/tests/data/pcd/lamppost.pcd"));
+  Write("pcd", "pcl_compressed.pcd", *io::ReadFileBytes(LSQSURF_SOURCE_DIR "/tests/data/pcd/milk_color.pcd"));
   Write("obj", "mesh.obj", io::EncodeObj(mesh));
   Write("xyz", "cloud.xyzn", io::EncodeXyz(cloud));
   core::PointCloud bare = cloud;

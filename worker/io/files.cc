@@ -23,8 +23,16 @@ absl::StatusOr<FileFormat> FormatFromPath(std::string_view path) {
   if (ext == ".obj") return FileFormat::kObj;
   if (ext == ".xyz" || ext == ".xyzn" || ext == ".txt") return FileFormat::kXyz;
   if (ext == ".drc") return FileFormat::kDraco;
+  if (ext == ".pcd") return FileFormat::kPcd;
+  if (ext == ".laz" || ext == ".e57") {
+    return absl::InvalidArgumentError(
+        core::StrCat(path, ": ", ext,
+                     " files cannot be read here (no library for them); convert the file to .ply or .pcd first, "
+                     "e.g. with PDAL (pdal translate in",
+                     ext, " out.ply) or CloudCompare"));
+  }
   return absl::InvalidArgumentError(
-      core::StrCat(path, ": unsupported file type '", ext, "' (use .ply, .obj, .xyz, .xyzn or .drc)"));
+      core::StrCat(path, ": unsupported file type '", ext, "' (use .ply, .pcd, .obj, .xyz, .xyzn or .drc)"));
 }
 
 absl::StatusOr<std::string> ReadFileBytes(const std::string& path, uint64_t max_bytes) {
@@ -140,8 +148,9 @@ absl::StatusOr<core::TriangleMesh> ReadMeshFile(const std::string& path) {
       if (!mesh.ok()) return absl::InvalidArgumentError(core::StrCat(path, ": ", mesh.status().message()));
       return mesh;
     }
-    case FileFormat::kXyz: {
-      auto cloud = ParseXyz(*bytes, path);
+    case FileFormat::kXyz:
+    case FileFormat::kPcd: {
+      auto cloud = *format == FileFormat::kXyz ? ParseXyz(*bytes, path) : ParsePcd(*bytes, path);
       if (!cloud.ok()) return cloud.status();
       return MeshFromCloud(*std::move(cloud));
     }
@@ -152,10 +161,11 @@ absl::StatusOr<core::TriangleMesh> ReadMeshFile(const std::string& path) {
 absl::StatusOr<core::PointCloud> ReadPointCloudFile(const std::string& path) {
   auto format = FormatFromPath(path);
   if (!format.ok()) return format.status();
-  if (*format == FileFormat::kXyz || *format == FileFormat::kDraco) {
+  if (*format == FileFormat::kXyz || *format == FileFormat::kDraco || *format == FileFormat::kPcd) {
     auto bytes = ReadFileBytes(path);
     if (!bytes.ok()) return bytes.status();
     if (*format == FileFormat::kXyz) return ParseXyz(*bytes, path);
+    if (*format == FileFormat::kPcd) return ParsePcd(*bytes, path);
     auto cloud = DecodeDracoPointCloud(*bytes);
     if (!cloud.ok()) return absl::InvalidArgumentError(core::StrCat(path, ": ", cloud.status().message()));
     return cloud;
@@ -178,6 +188,13 @@ absl::Status WriteMeshFile(const std::string& path, const core::TriangleMesh& me
       return WriteFileAtomically(path, *bytes);
     }
     case FileFormat::kXyz: return WriteFileAtomically(path, EncodeXyz(CloudFromMesh(mesh)));
+    case FileFormat::kPcd:
+      if (!mesh.faces.empty()) {
+        return absl::InvalidArgumentError(core::StrCat(path,
+                                                       ": a .pcd file holds points only; write the mesh as "
+                                                       ".ply, .obj or .drc"));
+      }
+      return WriteFileAtomically(path, EncodePcd(CloudFromMesh(mesh), PcdEncoding::kBinaryCompressed));
   }
   return absl::InternalError("unreachable");
 }

@@ -41,6 +41,28 @@ class XyzStream final : public PointStream {
   XyzReader reader_;
 };
 
+// A PCD file from its mapping.
+class PcdStream final : public PointStream {
+ public:
+  PcdStream(std::shared_ptr<const MappedFile> file, std::unique_ptr<PcdReader> reader)
+      : file_(std::move(file)), reader_(std::move(reader)) {}
+  absl::StatusOr<core::PointCloud> Next(size_t max_points) override {
+    core::PointCloud cloud;
+    LSQSURF_RETURN_IF_ERROR(reader_->Read(std::max<size_t>(max_points, 1), cloud));
+    file_->Release(reader_->offset());
+    return cloud;
+  }
+  std::optional<core::Vec3d> sensor_position() const override {
+    const PcdInfo& info = reader_->info();
+    if (!info.has_viewpoint) return std::nullopt;
+    return core::Vec3d(info.viewpoint[0], info.viewpoint[1], info.viewpoint[2]);
+  }
+
+ private:
+  std::shared_ptr<const MappedFile> file_;
+  std::unique_ptr<PcdReader> reader_;
+};
+
 // A cloud read whole, handed out in chunks.
 class WholeCloudStream final : public PointStream {
  public:
@@ -54,6 +76,11 @@ class WholeCloudStream final : public PointStream {
     if (cloud_.has_normals()) {
       chunk.normals.assign(cloud_.normals.begin() + static_cast<ptrdiff_t>(begin),
                            cloud_.normals.begin() + static_cast<ptrdiff_t>(end));
+    }
+    for (const core::ScalarAttribute& a : cloud_.attributes) {
+      if (a.values.size() != cloud_.size()) continue;
+      chunk.attributes.push_back({a.name, std::vector<float>(a.values.begin() + static_cast<ptrdiff_t>(begin),
+                                                             a.values.begin() + static_cast<ptrdiff_t>(end))});
     }
     return chunk;
   }
@@ -103,16 +130,23 @@ void MappedFile::Release(size_t before) const {
 absl::StatusOr<std::unique_ptr<PointStream>> OpenPointStream(const std::string& path) {
   auto format = FormatFromPath(path);
   if (!format.ok()) return format.status();
-  if (*format == FileFormat::kPly || *format == FileFormat::kXyz) {
+  if (*format == FileFormat::kPly || *format == FileFormat::kXyz || *format == FileFormat::kPcd) {
     auto file = MappedFile::Open(path);
     if (!file.ok()) return file.status();
     if (*format == FileFormat::kXyz) return StreamXyz(*std::move(file));
+    if (*format == FileFormat::kPcd) return StreamPcd(*std::move(file));
     auto stream = StreamPlyVertices(*std::move(file));
     if (!stream.ok() || *stream != nullptr) return stream;
   }
   auto cloud = ReadPointCloudFile(path);
   if (!cloud.ok()) return cloud.status();
   return std::make_unique<WholeCloudStream>(*std::move(cloud));
+}
+
+absl::StatusOr<std::unique_ptr<PointStream>> StreamPcd(std::shared_ptr<const MappedFile> file) {
+  auto reader = PcdReader::Open(file->bytes(), file->path());
+  if (!reader.ok()) return reader.status();
+  return std::make_unique<PcdStream>(std::move(file), *std::move(reader));
 }
 
 std::unique_ptr<PointStream> StreamXyz(std::shared_ptr<const MappedFile> file) {

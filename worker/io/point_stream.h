@@ -1,14 +1,16 @@
 // worker/io/point_stream.h — the points of a file a chunk at a time, for clouds larger than the
 // memory one would spend on them whole.
 //
-// PLY files whose vertex element comes first and XYZ files are read from a read-only mapping
-// whose pages are dropped once their points are handed out: the reader holds one chunk. Other
-// files (OBJ, Draco, PLY with the vertices after another element) are read whole and handed out
-// in chunks. Positions and normals only; other properties are skipped.
+// PLY files whose vertex element comes first, XYZ files and PCD files are read from a read-only
+// mapping whose pages are dropped once their points are handed out: the reader holds one chunk
+// (a compressed PCD, its inflated block). Other files (OBJ, Draco, PLY with the vertices after
+// another element) are read whole and handed out in chunks. Streamed PLY gives positions and
+// normals only; PCD and the files read whole give their attributes too.
 #pragma once
 
 #include <cstddef>
 #include <memory>
+#include <optional>
 #include <string>
 #include <string_view>
 
@@ -44,6 +46,8 @@ class PointStream {
   // The next points, at most `max_points` (at least 1); an empty cloud after the last. Errors:
   // kInvalidArgument naming the file and where it went wrong.
   virtual absl::StatusOr<core::PointCloud> Next(size_t max_points) = 0;
+  // Where the sensor that made the points stood, when the file says (a PCD's VIEWPOINT).
+  virtual std::optional<core::Vec3d> sensor_position() const { return std::nullopt; }
 };
 
 // Errors: those of MappedFile::Open and of the file's header, and an unsupported extension.
@@ -52,6 +56,8 @@ absl::StatusOr<std::unique_ptr<PointStream>> OpenPointStream(const std::string& 
 // A PLY file's vertex element a chunk at a time; nullptr (not an error) when the vertex element
 // does not come first, so that it cannot be streamed. Errors: a bad header.
 absl::StatusOr<std::unique_ptr<PointStream>> StreamPlyVertices(std::shared_ptr<const MappedFile> file);
+// A PCD file a chunk at a time (pcd.h's rules).
+absl::StatusOr<std::unique_ptr<PointStream>> StreamPcd(std::shared_ptr<const MappedFile> file);
 // An XYZ point list a chunk at a time (ParseXyz's rules).
 std::unique_ptr<PointStream> StreamXyz(std::shared_ptr<const MappedFile> file);
 

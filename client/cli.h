@@ -123,9 +123,11 @@ struct JobFlags {
 };
 
 // A cloud file's upload: .drc as it is (one part), other formats read and encoded with unit
-// normals in parts of client::kPointsPerPart points. An empty path uploads nothing.
+// normals in parts of client::kPointsPerPart points. An empty path uploads nothing. `sensor`,
+// when given, receives where the file says its sensor stood (a PCD's VIEWPOINT), if it says.
 absl::StatusOr<client::PartSource> CloudUpload(const std::string& path,
-                                               int64_t points_per_part = client::kPointsPerPart);
+                                               int64_t points_per_part = client::kPointsPerPart,
+                                               std::optional<lsqsurf::core::Vec3d>* sensor = nullptr);
 // The same in one part, for jobs that take their cloud whole (track); "" for an empty path.
 absl::StatusOr<std::string> CloudBytes(const std::string& path);
 
@@ -210,6 +212,7 @@ struct SurfaceCommand {
 
   // Fills EditParams from `lsqsurf edit ID --ball x,y,z,r --set degree=N | --refit error_threshold=E | --remove`.
   absl::Status ApplyEdit(v1::JobSpec* spec) const;
+  absl::Status UseFileViewpoint(const std::optional<lsqsurf::core::Vec3d>& sensor, bool quiet, v1::JobSpec* spec) const;
 
   int Run(const Globals& g, bool wait) const;
   void AddPartFlag(CLI::App* command) {

@@ -85,7 +85,8 @@ client::Client Connect(const Globals& g) { return client::Client(g.server, g.con
 namespace {
 
 // `points_per_part` points at most in a part; a .drc file is one part as it is.
-absl::StatusOr<client::PartSource> CloudFileParts(const std::string& path, int64_t points_per_part) {
+absl::StatusOr<client::PartSource> CloudFileParts(const std::string& path, int64_t points_per_part,
+                                                  std::optional<lsqsurf::core::Vec3d>* sensor) {
   if (path.empty()) return client::PartSource([] { return absl::StatusOr<std::string>(std::string()); });
   if (lsqsurf::io::FormatFromPath(path).value_or(lsqsurf::io::FileFormat::kPly) == lsqsurf::io::FileFormat::kDraco) {
     auto bytes = lsqsurf::io::ReadFileBytes(path);
@@ -96,6 +97,7 @@ absl::StatusOr<client::PartSource> CloudFileParts(const std::string& path, int64
   // Read as it is sent: the client holds one part of a cloud larger than its memory.
   auto points = lsqsurf::io::OpenPointStream(path);
   if (!points.ok()) return points.status();
+  if (sensor != nullptr) *sensor = (*points)->sensor_position();
   auto parts = client::StreamParts(*std::move(points), {}, points_per_part);
   // Errors name the file (the readers' do already).
   return client::PartSource([parts, path]() -> absl::StatusOr<std::string> {
@@ -108,13 +110,14 @@ absl::StatusOr<client::PartSource> CloudFileParts(const std::string& path, int64
 }  // namespace
 
 absl::StatusOr<std::string> CloudBytes(const std::string& path) {
-  auto parts = CloudFileParts(path, std::numeric_limits<int64_t>::max());
+  auto parts = CloudFileParts(path, std::numeric_limits<int64_t>::max(), nullptr);
   if (!parts.ok()) return parts.status();
   return (*parts)();
 }
 
-absl::StatusOr<client::PartSource> CloudUpload(const std::string& path, int64_t points_per_part) {
-  return CloudFileParts(path, points_per_part);
+absl::StatusOr<client::PartSource> CloudUpload(const std::string& path, int64_t points_per_part,
+                                               std::optional<lsqsurf::core::Vec3d>* sensor) {
+  return CloudFileParts(path, points_per_part, sensor);
 }
 
 namespace {

@@ -45,6 +45,22 @@ absl::Status SurfaceCommand::ApplyEdit(v1::JobSpec* spec) const {
   return client::SetParamAssignment(spec, assignment);
 }
 
+// The sensor position a file gives becomes the job's viewpoint, unless --param viewpoint=... set
+// one (an empty one: none).
+absl::Status SurfaceCommand::UseFileViewpoint(const std::optional<lsqsurf::core::Vec3d>& sensor, bool quiet,
+                                              v1::JobSpec* spec) const {
+  if (!sensor.has_value()) return absl::OkStatus();
+  for (const std::string& p : job.params) {
+    if (p.rfind("viewpoint=", 0) == 0) return absl::OkStatus();
+  }
+  const std::string value = StrCat(sensor->x(), ",", sensor->y(), ",", sensor->z());
+  if (!quiet) {
+    std::fprintf(stderr, "the file's sensor stood at (%s): estimated normals face it (--param viewpoint= to not)\n",
+                 value.c_str());
+  }
+  return client::SetParam(spec, "viewpoint", value);
+}
+
 int SurfaceCommand::Run(const Globals& g, bool wait) const {
   auto spec = job.Spec();
   if (!spec.ok()) return Fail(std::string(spec.status().message()));
@@ -63,8 +79,10 @@ int SurfaceCommand::Run(const Globals& g, bool wait) const {
     if (!upload.ok()) return Fail(std::string(upload.status().message()));
     accepted = c.Submit(*spec, upload->input, {}, upload->cells);
   } else {
-    auto parts = CloudUpload(input, part_points);
+    std::optional<lsqsurf::core::Vec3d> sensor;
+    auto parts = CloudUpload(input, part_points, &sensor);
     if (!parts.ok()) return Fail(std::string(parts.status().message()));
+    if (absl::Status s = UseFileViewpoint(sensor, g.quiet, &*spec); !s.ok()) return Fail(std::string(s.message()));
     // A file that turns out unreadable while it is sent is this side's failure, not the server's.
     absl::Status unreadable;
     accepted = c.SubmitParts(*spec, [&]() -> absl::StatusOr<std::string> {

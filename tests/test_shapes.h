@@ -5,6 +5,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
 #include <memory>
 #include <numbers>
 #include <random>
@@ -243,6 +244,42 @@ inline core::PointCloud HandCloud(double spacing, std::vector<Capsule>& fingers)
         if (f.Distance(end + f.r * d) < -1e-9) continue;
         emit(end + f.r * d, d, i);
       }
+    }
+  }
+  return cloud;
+}
+
+// A depth camera's view of a ball on a table: rays from `eye` through a 160 x 120 grid, each
+// kept at its first hit, with the surface's normal there (toward the camera, as every surface a
+// camera sees is). Rays that hit nothing are missing pixels.
+inline core::PointCloud BallOnATableView(const core::Vec3d& eye) {
+  core::PointCloud cloud;
+  const core::Vec3d centre(0, 0, 0.3), forward = (centre - eye).normalized();
+  const core::Vec3d right = forward.cross(core::Vec3d::UnitZ()).normalized(), up = right.cross(forward);
+  const double radius = 0.3;
+  for (int row = 0; row < 120; ++row) {
+    for (int column = 0; column < 160; ++column) {
+      const core::Vec3d ray =
+          (forward + 0.6 * ((column - 79.5) / 80.0) * right + 0.45 * ((row - 59.5) / 60.0) * up).normalized();
+      double nearest = std::numeric_limits<double>::infinity();
+      core::Vec3d normal = core::Vec3d::Zero();
+      const core::Vec3d to_eye = eye - centre;  // The ball: |eye + t ray - centre| = radius.
+      const double b = ray.dot(to_eye), c = to_eye.squaredNorm() - radius * radius;
+      if (const double disc = b * b - c; disc > 0 && -b - std::sqrt(disc) > 0) {
+        nearest = -b - std::sqrt(disc);
+        normal = (eye + nearest * ray - centre).normalized();
+      }
+      if (ray.z() < 0) {  // The table, z = 0, within 1.5 of the ball.
+        const double t = -eye.z() / ray.z();
+        const core::Vec3d hit = eye + t * ray;
+        if (t < nearest && std::abs(hit.x()) < 1.5 && std::abs(hit.y()) < 1.5) {
+          nearest = t;
+          normal = core::Vec3d::UnitZ();
+        }
+      }
+      if (!std::isfinite(nearest)) continue;
+      cloud.positions.push_back((eye + nearest * ray).cast<float>());
+      cloud.normals.push_back(normal.cast<float>());
     }
   }
   return cloud;

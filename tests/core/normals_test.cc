@@ -192,3 +192,29 @@ TEST(Normals, RepeatedPositionsAreRemovedFirstKeepingEachFirstPoint) {
 
 }  // namespace
 }  // namespace lsqsurf::core
+
+namespace lsqsurf::core {
+namespace {
+
+TEST(NormalEstimation, ASingleViewsNormalsFaceItsSensor) {
+  for (const Vec3d& eye : {Vec3d(0, -2.5, 1.6), Vec3d(1.8, 1.2, 0.9)}) {
+    const PointCloud view = testing::BallOnATableView(eye);
+    ASSERT_GT(view.size(), 9000u);
+    LocalJobContext ctx;
+    NormalEstimationParams params;
+    params.viewpoint = eye;
+    auto normals = EstimateNormals(view.positions, params, ctx);
+    ASSERT_TRUE(normals.ok()) << normals.status();
+    const AngleReport report = Compare(*normals, view.normals);
+    // Where the ball meets the table and at its silhouette a PCA normal may lean, but none is
+    // turned away from the camera.
+    EXPECT_EQ(report.flipped, 0) << "of " << view.size();
+    EXPECT_LT(report.mean_degrees, 3.0);
+    for (size_t i = 0; i < view.size(); ++i) {
+      ASSERT_GE((*normals)[i].cast<double>().dot(eye - view.positions[i].cast<double>()), -1e-3) << i;
+    }
+  }
+}
+
+}  // namespace
+}  // namespace lsqsurf::core

@@ -157,6 +157,39 @@ TEST_F(EndToEnd, PuMeshCarriesDepthAndDegreeToThePly) {
   EXPECT_LE(ranges["degree"].second, 5.0f);
 }
 
+// A single view written as PCL writes one, with the camera's position in its VIEWPOINT and no
+// normals: the client passes the position on, and the surface faces the camera.
+TEST_F(EndToEnd, APcdViewsViewpointTurnsItsSurfaceTowardTheCamera) {
+  Server server;
+  ASSERT_NO_FATAL_FAILURE(server.Start(dir_ / "data"));
+  const core::Vec3d eye(0, -2.5, 1.6);
+  core::PointCloud view = testing::BallOnATableView(eye);
+  view.normals.clear();
+  const std::string in = (dir_ / "view.pcd").string();
+  ASSERT_TRUE(io::WriteFileAtomically(
+                  in, io::EncodePcd(view, io::PcdEncoding::kBinaryCompressed, {eye.x(), eye.y(), eye.z(), 1, 0, 0, 0}))
+                  .ok());
+  const std::string out = (dir_ / "view.ply").string();
+  const ClientRun r = Client(server.address(), "reconstruct " + in + " -o " + out + " --stats");
+  ASSERT_EQ(r.code, 0) << r.output;
+  EXPECT_NE(r.output.find("normals_toward_viewpoint = 1"), std::string::npos) << r.output;
+  auto mesh = io::ReadMeshFile(out);
+  ASSERT_TRUE(mesh.ok()) << mesh.status();
+  double facing = 0, total = 0;
+  for (const core::Triangle& t : mesh->faces) {
+    const core::Vec3d a = mesh->vertices[t[0]].cast<double>(), b = mesh->vertices[t[1]].cast<double>(),
+                      c = mesh->vertices[t[2]].cast<double>();
+    const core::Vec3d normal = (b - a).cross(c - a);
+    total += normal.norm();
+    if (normal.dot(eye - (a + b + c) / 3) > 0) facing += normal.norm();
+  }
+  EXPECT_GT(facing / total, 0.99);
+  // An empty viewpoint says the file's is not to be used.
+  const ClientRun unset = Client(server.address(), "reconstruct " + in + " -o " + out + " --stats --param viewpoint=");
+  ASSERT_EQ(unset.code, 0) << unset.output;
+  EXPECT_EQ(unset.output.find("normals_toward_viewpoint"), std::string::npos) << unset.output;
+}
+
 // A cloud larger than a part goes up in parts; a PU job over tile_points then streams it and
 // delivers its mesh in parts, which the client joins into one file as they come.
 TEST_F(EndToEnd, ACloudSentInPartsComesBackAsOneClosedMesh) {

@@ -316,7 +316,16 @@ TEST(Iamls, RejectsBadParametersWithActionableMessages) {
   p.epsilon = 2.5;
   auto diverging = BuildIamls(cloud, p, ctx);
   ASSERT_EQ(diverging.status().code(), absl::StatusCode::kInvalidArgument);
-  EXPECT_NE(std::string(diverging.status().message()).find("diverge"), std::string::npos);
+  const std::string advice(diverging.status().message());
+  EXPECT_NE(advice.find("diverge"), std::string::npos);
+  // The advice was measured: the value it names converges on this cloud.
+  const size_t named = advice.find("; epsilon=");
+  ASSERT_NE(named, std::string::npos) << advice;
+  p.epsilon = std::stod(advice.substr(named + 10));
+  EXPECT_LT(p.epsilon, 2.5);
+  auto advised = BuildIamls(cloud, p, ctx);
+  ASSERT_TRUE(advised.ok()) << advised.status();
+  EXPECT_LT((*advised)->stats().largest_eigenvalue, 2.0);
   p.epsilon = -1;
   EXPECT_EQ(BuildIamls(cloud, p, ctx).status().code(), absl::StatusCode::kInvalidArgument);
   p.epsilon = 0.01;  // Neither 0 (chosen) nor within [0.05, 3].
@@ -335,6 +344,33 @@ TEST(Iamls, RejectsBadParametersWithActionableMessages) {
   core::PointCloud no_normals = cloud;
   no_normals.normals.clear();
   EXPECT_EQ(BuildIamls(no_normals, {}, ctx).status().code(), absl::StatusCode::kInvalidArgument);
+}
+
+// A camera's single view packs its rows far tighter than its columns where the table is seen
+// at a grazing angle: the ε chosen from the noise gives a kernel matrix whose largest
+// eigenvalue passes 2 there. The choice is lowered until the iteration converges, and never
+// refused.
+TEST(Iamls, TheChosenEpsilonIsNeverOneItRefuses) {
+  core::LocalJobContext ctx;
+  const core::PointCloud view = testing::BallOnATableView(core::Vec3d(0, -2.5, 1.6));
+  IamlsParams given;
+  given.epsilon = ChooseIamlsParameters(0).epsilon;  // What exact data get.
+  auto refused = BuildIamls(view, given, ctx);
+  ASSERT_FALSE(refused.ok()) << "the view no longer needs a lower epsilon; make the test's case harder";
+  auto chosen = BuildIamls(view, {}, ctx);
+  ASSERT_TRUE(chosen.ok()) << chosen.status();
+  const IamlsStats& stats = (*chosen)->stats();
+  EXPECT_TRUE(stats.epsilon_lowered > 0 || stats.iterations_cut);
+  if (!stats.iterations_cut) {
+    EXPECT_LT(stats.largest_eigenvalue, 2.0);
+    EXPECT_LT(stats.epsilon, given.epsilon);
+  }
+  // The surface passes through the data.
+  double worst = 0;
+  for (size_t i = 0; i < view.size(); i += 37) {
+    worst = std::max(worst, std::abs((*chosen)->Value(view.positions[i].cast<double>()).value));
+  }
+  EXPECT_LT(worst, 0.5 * (*chosen)->spacing());
 }
 
 }  // namespace

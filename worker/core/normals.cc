@@ -9,6 +9,7 @@
 
 #include "worker/core/kd_tree.h"
 #include "worker/core/parallel.h"
+#include "worker/core/status.h"
 
 namespace lsqsurf::core {
 
@@ -206,6 +207,52 @@ absl::Status VoteSigns(const std::vector<uint64_t>& offset, const std::vector<ui
   return absl::OkStatus();
 }
 
+// Normals seen from nearer edge-on than this cosine (about 80° from the line of sight) are
+// not turned by the viewpoint alone.
+constexpr double kGrazingCosine = 0.17;
+
+// Turns each normal toward `viewpoint`; those seen nearly edge-on take the sign their
+// confidently turned graph neighbours agree on, and keep the viewpoint's where none has one.
+absl::Status OrientTowardViewpoint(std::span<const Vec3f> points, const Vec3d& viewpoint,
+                                   const std::vector<uint32_t>& knn, size_t k, JobContext& ctx,
+                                   std::vector<Vec3f>& normals) {
+  const size_t n = points.size();
+  std::vector<uint8_t> confident(n, 0);
+  absl::Status status = ParallelFor(
+      n, 4096,
+      [&](size_t begin, size_t end) {
+        for (size_t i = begin; i < end; ++i) {
+          const Vec3d sight = viewpoint - points[i].cast<double>();
+          const double length = sight.norm();
+          const double cosine = length > 0 ? normals[i].cast<double>().dot(sight) / length : 1.0;
+          if (cosine < 0) normals[i] = -normals[i];
+          confident[i] = std::abs(cosine) > kGrazingCosine;
+        }
+      },
+      &ctx);
+  if (!status.ok()) return status;
+  std::vector<uint8_t> flip(n, 0);
+  status = ParallelFor(
+      n, 4096,
+      [&](size_t begin, size_t end) {
+        for (size_t i = begin; i < end; ++i) {
+          if (confident[i]) continue;
+          double agreement = 0;
+          for (size_t j = 0; j < k; ++j) {
+            const uint32_t other = knn[i * k + j];
+            if (other != i && confident[other]) agreement += normals[other].dot(normals[i]);
+          }
+          flip[i] = agreement < 0;
+        }
+      },
+      &ctx);
+  if (!status.ok()) return status;
+  for (size_t i = 0; i < n; ++i) {
+    if (flip[i]) normals[i] = -normals[i];
+  }
+  return absl::OkStatus();
+}
+
 }  // namespace
 
 absl::StatusOr<std::vector<Vec3f>> EstimateNormals(std::span<const Vec3f> points, const NormalEstimationParams& params,
@@ -244,6 +291,12 @@ absl::StatusOr<std::vector<Vec3f>> EstimateNormals(std::span<const Vec3f> points
       },
       &ctx, [&](double f) { pca_ctx.Report(f); });
   if (!status.ok()) return status;
+  if (params.viewpoint.has_value()) {
+    SubContext orient_ctx(ctx, "orienting normals toward the sensor", 0.6, 1.0);
+    LSQSURF_RETURN_IF_ERROR(OrientTowardViewpoint(points, *params.viewpoint, knn, k, orient_ctx, normals));
+    orient_ctx.Report(1.0);
+    return normals;
+  }
   std::vector<uint8_t> kinds(n * k, kAlong), bridge(n, 0);
   if (absl::Status layers = FindLayers(points, normals, knn, k, ctx, kinds, bridge); !layers.ok()) return layers;
 

@@ -6,6 +6,7 @@
 #include <chrono>
 #include <cmath>
 #include <functional>
+#include <limits>
 #include <optional>
 
 #include "worker/core/mesh_metrics.h"
@@ -33,7 +34,17 @@ const core::ParamTable<NormalsParams>& NormalsTable() {
                                               "orientation); false rejects clouds without normals")
         .Integer<&NormalsParams::normal_neighbors>("normal_neighbors", 3, 128, "points",
                                                    "nearest neighbours of the normal estimate (2, 4 or 8 "
-                                                   "times as many where these do not lie flat)");
+                                                   "times as many where these do not lie flat)")
+        .RealList<&NormalsParams::viewpoint>(
+            "viewpoint", 3, -std::numeric_limits<double>::infinity(), std::numeric_limits<double>::infinity(),
+            "model units",
+            "where the sensor stood (x,y,z): estimated normals face it; empty = unknown (oriented by "
+            "propagation); the client sets it from a PCD file's VIEWPOINT")
+        .AddRule([](const NormalsParams& p) {
+          if (p.viewpoint.empty() || p.viewpoint.size() == 3) return absl::OkStatus();
+          return absl::InvalidArgumentError(
+              core::StrCat("viewpoint takes three numbers x,y,z (or none), not ", p.viewpoint.size()));
+        });
     return t;
   }();
   return *table;
@@ -177,6 +188,8 @@ absl::StatusOr<extract::IsosurfaceResult> RunIamls(const IamlsJobParams& p, cons
     stat("noise_to_spacing", fit.noise_ratio);
   }
   if (fit.largest_eigenvalue > 0) stat("largest_eigenvalue", fit.largest_eigenvalue);
+  if (fit.epsilon_lowered > 0) stat("epsilon_lowered", fit.epsilon_lowered);
+  if (fit.iterations_cut) stat("iterations_cut", 1);
   stat("thin_samples", static_cast<double>(fit.thin_samples));
   if (!fit.residuals.empty()) stat("final_residual_over_h", fit.residuals.back());
   const auto extract_start = std::chrono::steady_clock::now();
@@ -651,6 +664,10 @@ absl::StatusOr<SurfaceResult> ReconstructSurface(const std::string& method, cons
     core::SubContext sub(ctx, "estimating normals", 0.0, normals_share);
     core::NormalEstimationParams np;
     np.neighbors = normals.normal_neighbors;
+    if (normals.viewpoint.size() == 3) {
+      np.viewpoint = core::Vec3d(normals.viewpoint[0], normals.viewpoint[1], normals.viewpoint[2]);
+      result.statistics.emplace_back("normals_toward_viewpoint", 1);
+    }
     auto estimated = core::EstimateNormals(cloud.positions, np, sub);
     if (!estimated.ok()) return estimated.status();
     cloud.normals = *std::move(estimated);

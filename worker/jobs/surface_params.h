@@ -2,6 +2,8 @@
 // shared extractor read too (below surface_job.h, which includes this).
 #pragma once
 
+#include <vector>
+
 #include "worker/core/normals.h"
 
 namespace lsqsurf::jobs {
@@ -10,6 +12,10 @@ namespace lsqsurf::jobs {
 struct NormalsParams {
   bool estimate_normals = true;  // PCA + spanning-tree orientation; false rejects clouds without normals.
   int normal_neighbors = core::NormalEstimationParams{}.neighbors;  // Smallest k of the PCA, 3..128.
+  // Where the sensor stood (x, y, z in the cloud's units), or empty when unknown: estimated
+  // normals are turned toward it (core::NormalEstimationParams::viewpoint). The client fills it
+  // from a file that says (a PCD's VIEWPOINT).
+  std::vector<double> viewpoint;
 };
 
 // Where the shared extractor looks for the surface, for the methods without their own.

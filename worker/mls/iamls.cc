@@ -488,50 +488,100 @@ double MaxAbsDifference(std::span<const double> a, std::span<const double> b) {
   return most;
 }
 
+// The kernel's shape for ε: its scale, width and truncation radius.
+void SetKernel(IamlsFunction::Impl& impl, double h, double eps, double cutoff) {
+  impl.eps2 = eps * eps;
+  impl.scale = eps * eps * eps / std::pow(std::numbers::pi, 1.5);
+  impl.radius = static_cast<float>(cutoff * h / eps);
+}
+
+// Richardson iteration converges iff the spectrum of the symmetric A lies in (0, 2); a margin.
+constexpr double kMaxStableEigenvalue = 1.98;
+// Lower ε at most this many times looking for one under which it converges: on clouds where the
+// kernel matrix's largest eigenvalue does not fall with ε (dense rows seen edge-on, where a
+// smaller ε gathers more neighbours), lowering does not help.
+constexpr int kMaxLowerings = 6;
+constexpr double kMinEpsilon = 0.05;  // The parameter's lower bound.
+
 // Richardson iteration c ← c + (s − A c) on the stored kernel matrix (two or more iterations).
-absl::Status IterateWithMatrix(IamlsFunction::Impl& impl, IamlsStats& stats, std::vector<double>& c,
-                               core::SubContext& setup_ctx, core::JobContext& ctx) {
+// Where the iteration would diverge under ε, ε is lowered (by the ε³ law of the largest
+// eigenvalue, then measured again) when it was chosen; a given ε is refused, with advice that
+// was measured to converge. Returns false when no ε tried converges and ε was chosen: the
+// caller then makes one iteration, which cannot diverge.
+absl::StatusOr<bool> IterateWithMatrix(IamlsFunction::Impl& impl, IamlsStats& stats, bool epsilon_chosen,
+                                       std::vector<double>& c, core::SubContext& setup_ctx, core::JobContext& ctx) {
   const size_t n = impl.positions.size();
-  const double h = stats.spacing;
+  const double h = stats.spacing, given = stats.epsilon;
   std::vector<double> s(n);
-  LSQSURF_ASSIGN_OR_RETURN(KernelMatrix a, FillKernelMatrix(impl, s, setup_ctx, ctx));
-  stats.mean_neighbors = static_cast<double>(a.row_start[n]) / static_cast<double>(n);
-  double weight_sum = 0;
-  for (float v : a.value) weight_sum += v;
-  stats.mean_sample_weight = weight_sum / static_cast<double>(n);
-  // It converges iff the spectrum of the symmetric A lies in (0, 2): estimate its largest
-  // eigenvalue with a few power steps before iterating.
-  core::SubContext iter_ctx(ctx, "iterating iaMLS", 0.4, 1.0);
-  auto largest = LargestEigenvalue(a, ctx);
-  if (!largest.ok()) return largest.status();
-  const double lambda = *largest, eps = stats.epsilon;
-  stats.largest_eigenvalue = lambda;
-  if (lambda >= 1.98) {
-    // λ_max grows roughly like ε³ (the self term 2.5 ε³/π^{3/2} dominates); suggest an ε that
-    // brings it to about 1.5.
-    const double suggested = eps * std::cbrt(1.5 / lambda);
-    return absl::InvalidArgumentError(
-        fmt::format("epsilon={:.3g} makes the iaMLS iteration diverge on this cloud (largest eigenvalue of "
-                    "the kernel matrix {:.3g}, must be below 2); use epsilon <= {:.2f} or iterations=1",
-                    eps, lambda, suggested));
-  }
-  c.assign(n, 0.0);
-  std::vector<double> ac;
-  for (int it = 0; it < stats.iterations; ++it) {
-    a.Multiply(c, ac);
-    double max_residual = 0;
-    for (size_t k = 0; k < n; ++k) {
-      const double residual = s[k] - ac[k];  // F⁽ⁱᵗ⁾(x_k); the data value there is 0.
-      max_residual = std::max(max_residual, std::abs(residual));
-      c[k] += residual;
+  double eps = given;
+  double previous_eps = 0, previous_lambda = 0;
+  for (int attempt = 0;; ++attempt) {
+    SetKernel(impl, h, eps, stats.cutoff);
+    std::fill(impl.wall_marks.begin(), impl.wall_marks.end(), 0);
+    LSQSURF_ASSIGN_OR_RETURN(KernelMatrix a, FillKernelMatrix(impl, s, setup_ctx, ctx));
+    auto largest = LargestEigenvalue(a, ctx);
+    if (!largest.ok()) return largest.status();
+    const double lambda = *largest;
+    if (attempt == 0) stats.largest_eigenvalue = lambda;
+    if (lambda >= kMaxStableEigenvalue) {
+      // λ_max grows like ε^p: p = 3 where the self term 2.5 ε³/π^{3/2} dominates, less where a
+      // smaller ε's wider kernel gathers more neighbours; p is measured from the last two tries.
+      // Aim at about 1.5.
+      double power = 3;
+      if (previous_lambda > 0) power = std::log(previous_lambda / lambda) / std::log(previous_eps / eps);
+      const double ratio = power > 0.2 ? std::clamp(std::pow(1.5 / lambda, 1 / power), 0.25, 0.95) : 0.0;
+      const double next = std::floor(100 * eps * ratio) / 100;
+      previous_eps = eps;
+      previous_lambda = lambda;
+      if (attempt < kMaxLowerings && next >= kMinEpsilon && next < eps) {
+        eps = next;
+        continue;
+      }
+      if (epsilon_chosen) return false;
+      if (attempt == 0 || eps == given) {
+        return absl::InvalidArgumentError(
+            fmt::format("epsilon={:.3g} makes the iaMLS iteration diverge on this cloud (largest eigenvalue of "
+                        "the kernel matrix {:.3g}, must be below 2); use iterations=1",
+                        given, stats.largest_eigenvalue));
+      }
+      return absl::InvalidArgumentError(fmt::format(
+          "epsilon={:.3g} makes the iaMLS iteration diverge on this cloud (largest eigenvalue of the kernel "
+          "matrix {:.3g}, must be below 2), and so does {:.3g}; use iterations=1",
+          given, stats.largest_eigenvalue, eps));
     }
-    stats.residuals.push_back(max_residual / h);
-    iter_ctx.Report(static_cast<double>(it + 1) / stats.iterations);
-    if (ctx.IsCancelled()) return absl::CancelledError("cancelled by request");
+    if (eps != given && !epsilon_chosen) {
+      return absl::InvalidArgumentError(
+          fmt::format("epsilon={:.3g} makes the iaMLS iteration diverge on this cloud (largest eigenvalue of "
+                      "the kernel matrix {:.3g}, must be below 2); epsilon={:.2f} converges here (largest "
+                      "eigenvalue {:.3g}), or use iterations=1",
+                      given, stats.largest_eigenvalue, eps, lambda));
+    }
+    stats.epsilon_lowered = attempt;
+    stats.epsilon = eps;
+    stats.largest_eigenvalue = lambda;
+    stats.mean_neighbors = static_cast<double>(a.row_start[n]) / static_cast<double>(n);
+    double weight_sum = 0;
+    for (float v : a.value) weight_sum += v;
+    stats.mean_sample_weight = weight_sum / static_cast<double>(n);
+    core::SubContext iter_ctx(ctx, "iterating iaMLS", 0.4, 1.0);
+    c.assign(n, 0.0);
+    std::vector<double> ac;
+    for (int it = 0; it < stats.iterations; ++it) {
+      a.Multiply(c, ac);
+      double max_residual = 0;
+      for (size_t k = 0; k < n; ++k) {
+        const double residual = s[k] - ac[k];  // F⁽ⁱᵗ⁾(x_k); the data value there is 0.
+        max_residual = std::max(max_residual, std::abs(residual));
+        c[k] += residual;
+      }
+      stats.residuals.push_back(max_residual / h);
+      iter_ctx.Report(static_cast<double>(it + 1) / stats.iterations);
+      if (ctx.IsCancelled()) return absl::CancelledError("cancelled by request");
+    }
+    a.Multiply(c, ac);
+    stats.residuals.push_back(MaxAbsDifference(s, ac) / h);
+    return true;
   }
-  a.Multiply(c, ac);
-  stats.residuals.push_back(MaxAbsDifference(s, ac) / h);
-  return absl::OkStatus();
 }
 
 // No iteration or one: c = 0 or c = s (the first step from c = 0 needs no product), with the
@@ -569,19 +619,29 @@ absl::StatusOr<std::unique_ptr<IamlsFunction>> BuildIamls(const core::PointCloud
   impl->positions = std::move(points->positions);
   impl->normals = std::move(points->normals);
   impl->tree = std::move(points->tree);
-  const double h = points->spacing, eps = stats.epsilon;
+  const double h = points->spacing;
   impl->inv_h2 = 1.0 / (h * h);
-  impl->eps2 = eps * eps;
-  impl->scale = eps * eps * eps / std::pow(std::numbers::pi, 1.5);
-  impl->radius = static_cast<float>(stats.cutoff * h / eps);
+  SetKernel(*impl, h, stats.epsilon, stats.cutoff);
   impl->inv_facing_radius2 = 4.0 / (h * h);  // ρ = h / 2, about one sample spacing.
   impl->wall_marks.assign(impl->positions.size(), 0);
   impl->thin_walls = stats.thin_walls;
   setup_ctx.Report(0.2);
   stats.spacing = h;
   std::vector<double> c;
-  LSQSURF_RETURN_IF_ERROR(stats.iterations <= 1 ? IterateStreamed(*impl, stats, c, ctx)
-                                                : IterateWithMatrix(*impl, stats, c, setup_ctx, ctx));
+  bool iterated = false;
+  if (stats.iterations > 1) {
+    LSQSURF_ASSIGN_OR_RETURN(iterated, IterateWithMatrix(*impl, stats, params.epsilon == 0, c, setup_ctx, ctx));
+  }
+  if (!iterated) {
+    if (stats.iterations > 1) {  // No chosen ε converged: one step with the first, which cannot diverge.
+      stats.iterations = 1;
+      stats.iterations_cut = true;
+      stats.epsilon_lowered = 0;
+      SetKernel(*impl, h, stats.epsilon, stats.cutoff);
+      std::fill(impl->wall_marks.begin(), impl->wall_marks.end(), 0);
+    }
+    LSQSURF_RETURN_IF_ERROR(IterateStreamed(*impl, stats, c, ctx));
+  }
   // ΣΨ at the samples sets the scale of "clearly positive" for the ghost-sheet guard.
   impl->fallback_scale = stats.mean_sample_weight;
   impl->min_kernel_sum = params.min_weight * stats.mean_sample_weight;

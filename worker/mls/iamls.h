@@ -90,6 +90,10 @@ struct IamlsStats {
   double noise_ratio = -1;        // σ / mean nearest-neighbour distance; -1 likewise.
   double largest_eigenvalue = 0;  // Of the kernel matrix; the iteration needs it below 2 (0: not computed,
                                   // one iteration cannot diverge).
+  // A chosen ε under which the iteration would diverge is lowered until it does not (times it
+  // was), and where lowering does not help the iterations are cut to one (which cannot diverge).
+  int epsilon_lowered = 0;
+  bool iterations_cut = false;
   std::vector<double> residuals;  // max_i |F(x_i)| / h before each iteration and after the last.
   double mean_neighbors = 0;      // Points within the truncation radius, per point.
   double mean_sample_weight = 0;  // Mean ΣΨ at the samples.

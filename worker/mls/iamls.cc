@@ -502,6 +502,7 @@ constexpr double kMaxStableEigenvalue = 1.98;
 // smaller ε gathers more neighbours), lowering does not help.
 constexpr int kMaxLowerings = 6;
 constexpr double kMinEpsilon = 0.05;  // The parameter's lower bound.
+constexpr double kChosenEpsilonFloor = 0.5;
 
 // Richardson iteration c ← c + (s − A c) on the stored kernel matrix (two or more iterations).
 // Where the iteration would diverge under ε, ε is lowered (by the ε³ law of the largest
@@ -533,7 +534,10 @@ absl::StatusOr<bool> IterateWithMatrix(IamlsFunction::Impl& impl, IamlsStats& st
       const double next = std::floor(100 * eps * ratio) / 100;
       previous_eps = eps;
       previous_lambda = lambda;
-      if (attempt < kMaxLowerings && next >= kMinEpsilon && next < eps) {
+      // A chosen ε is not lowered past half: the kernel's reach, and the cost with it, grows as
+      // 1/ε³, and one iteration at the chosen ε is cheaper than three at an eighth of it.
+      const bool affordable = !epsilon_chosen || next >= kChosenEpsilonFloor * given;
+      if (attempt < kMaxLowerings && next >= kMinEpsilon && next < eps && affordable) {
         eps = next;
         continue;
       }

@@ -190,6 +190,49 @@ TEST_F(EndToEnd, APcdViewsViewpointTurnsItsSurfaceTowardTheCamera) {
   EXPECT_EQ(unset.output.find("normals_toward_viewpoint"), std::string::npos) << unset.output;
 }
 
+// A coloured scan keeps its colour: every method's mesh carries red, green and blue, written as
+// viewers read them (uchar PLY properties, OBJ vertex colours), within a few levels of the colour
+// at the vertex's place.
+TEST_F(EndToEnd, AColouredCloudsMeshKeepsItsColours) {
+  Server server;
+  ASSERT_NO_FATAL_FAILURE(server.Start(dir_ / "data"));
+  core::PointCloud cloud = testing::SphereCloud(20000);
+  auto colour_at = [](const core::Vec3f& p) {  // A smooth colour field over the sphere.
+    return core::Vec3f(127.5f * (1 + p.x()), 127.5f * (1 + p.y()), 127.5f * (1 + p.z() * p.z()) - 1);
+  };
+  for (const char* channel : {"red", "green", "blue"}) cloud.attributes.push_back({channel, {}});
+  for (const core::Vec3f& p : cloud.positions) {
+    for (int c = 0; c < 3; ++c) cloud.attributes[static_cast<size_t>(c)].values.push_back(std::round(colour_at(p)[c]));
+  }
+  const std::string in = WriteCloud("coloured.ply", cloud);
+  for (const std::string method : {"iamls", "pu"}) {
+    const std::string ply = (dir_ / (method + ".ply")).string(), obj = (dir_ / (method + ".obj")).string();
+    const ClientRun r =
+        Client(server.address(), "reconstruct " + in + " -o " + ply + " -o " + obj + " --stats --method " + method);
+    ASSERT_EQ(r.code, 0) << r.output;
+    EXPECT_NE(r.output.find("carried_attributes = 3"), std::string::npos) << r.output;
+    auto bytes = io::ReadFileBytes(ply);
+    ASSERT_TRUE(bytes.ok());
+    EXPECT_NE(bytes->find("property uchar red\nproperty uchar green\nproperty uchar blue\n"), std::string::npos);
+    for (const std::string& path : {ply, obj}) {
+      auto mesh = io::ReadMeshFile(path);
+      ASSERT_TRUE(mesh.ok()) << mesh.status();
+      std::vector<const core::ScalarAttribute*> rgb;
+      for (const auto& a : mesh->vertex_attributes) {
+        if (a.name == "red" || a.name == "green" || a.name == "blue") rgb.push_back(&a);
+      }
+      ASSERT_EQ(rgb.size(), 3u) << path;
+      double worst = 0;
+      for (size_t v = 0; v < mesh->vertices.size(); ++v) {
+        const core::Vec3f expected = colour_at(mesh->vertices[v].normalized());
+        for (int c = 0; c < 3; ++c)
+          worst = std::max<double>(worst, std::abs(rgb[static_cast<size_t>(c)]->values[v] - expected[c]));
+      }
+      EXPECT_LT(worst, 4.0) << path;
+    }
+  }
+}
+
 // A cloud larger than a part goes up in parts; a PU job over tile_points then streams it and
 // delivers its mesh in parts, which the client joins into one file as they come.
 TEST_F(EndToEnd, ACloudSentInPartsComesBackAsOneClosedMesh) {

@@ -1,5 +1,6 @@
 #include "worker/io/obj_xyz.h"
 
+#include <algorithm>
 #include <cstdint>
 
 #include "worker/core/status.h"
@@ -26,11 +27,13 @@ bool ReadVec3(std::string_view& rest, core::Vec3f& out) {
   return true;
 }
 
+constexpr const char* kColourChannels[3] = {"red", "green", "blue"};
+
 }  // namespace
 
 absl::StatusOr<core::TriangleMesh> ParseObj(std::string_view text, std::string_view name) {
   core::TriangleMesh mesh;
-  std::vector<core::Vec3f> normals;
+  std::vector<core::Vec3f> normals, colours;
   LineReader lines(text);
   std::string_view line;
   std::vector<uint32_t> polygon;
@@ -38,9 +41,11 @@ absl::StatusOr<core::TriangleMesh> ParseObj(std::string_view text, std::string_v
     std::string_view rest = line;
     const std::string_view key = NextToken(rest);
     if (key == "v") {
-      core::Vec3f p;
+      core::Vec3f p, rgb;
       if (!ReadVec3(rest, p)) return LineError(name, lines.line_number(), "expected 'v x y z'");
       mesh.vertices.push_back(p);
+      // A vertex colour, 0..1 ("v x y z r g b", as MeshLab writes it): kept when every vertex has one.
+      if (ReadVec3(rest, rgb)) colours.push_back(rgb);
     } else if (key == "vn") {
       core::Vec3f n;
       if (!ReadVec3(rest, n)) return LineError(name, lines.line_number(), "expected 'vn x y z'");
@@ -67,15 +72,35 @@ absl::StatusOr<core::TriangleMesh> ParseObj(std::string_view text, std::string_v
   }
   if (mesh.vertices.empty()) return absl::InvalidArgumentError(core::StrCat(name, ": OBJ file has no vertices"));
   if (normals.size() == mesh.vertices.size()) mesh.normals = std::move(normals);
+  if (!colours.empty() && colours.size() == mesh.vertices.size()) {
+    for (int c = 0; c < 3; ++c) {
+      core::ScalarAttribute channel{kColourChannels[c], std::vector<float>(colours.size())};
+      for (size_t v = 0; v < colours.size(); ++v) channel.values[v] = 255 * colours[v][c];
+      mesh.vertex_attributes.push_back(std::move(channel));
+    }
+  }
   return mesh;
 }
 
 std::string EncodeObj(const core::TriangleMesh& mesh) {
   std::string out = "# written by lsqsurf\n";
   const bool normals = mesh.normals.size() == mesh.vertices.size() && !mesh.vertices.empty();
-  for (const auto& v : mesh.vertices) {
+  const core::ScalarAttribute* channel[3] = {nullptr, nullptr, nullptr};
+  for (const auto& a : mesh.vertex_attributes) {
+    for (int c = 0; c < 3; ++c) {
+      if (a.name == kColourChannels[c] && a.values.size() == mesh.vertices.size()) channel[c] = &a;
+    }
+  }
+  const bool colour = channel[0] != nullptr && channel[1] != nullptr && channel[2] != nullptr;
+  for (size_t i = 0; i < mesh.vertices.size(); ++i) {
+    const auto& v = mesh.vertices[i];
     out += "v ";
-    internal::AppendFloats(out, {v.x(), v.y(), v.z()});
+    if (colour) {  // Vertex colours 0..1 after the position, as MeshLab and Open3D read them.
+      auto unit = [&](int c) { return std::clamp(channel[c]->values[i] / 255.0f, 0.0f, 1.0f); };
+      internal::AppendFloats(out, {v.x(), v.y(), v.z(), unit(0), unit(1), unit(2)});
+    } else {
+      internal::AppendFloats(out, {v.x(), v.y(), v.z()});
+    }
   }
   if (normals) {
     for (const auto& n : mesh.normals) {

@@ -264,7 +264,7 @@ class ElementReader {
     if (layout_.is_vertex) {
       if (saw_vertex) return Fail("two vertex elements");
       saw_vertex = true;
-      LSQSURF_RETURN_IF_ERROR(SizeVertices(e_.count, /*with_attributes=*/true));
+      LSQSURF_RETURN_IF_ERROR(SizeVertices(e_.count));
     }
     if (layout_.is_face && layout_.face_list < 0) return Fail("PLY face element has no vertex_indices list");
     for (uint64_t r = 0; r < e_.count; ++r) LSQSURF_RETURN_IF_ERROR(ReadRecord(r));
@@ -272,9 +272,9 @@ class ElementReader {
   }
 
   // Streaming a vertex element: CheckCount() first, then records [first, first + n) into the
-  // mesh's first n vertices, without their other properties.
+  // mesh's first n vertices, with their other properties.
   absl::Status ReadVertices(uint64_t first, uint64_t n) {
-    LSQSURF_RETURN_IF_ERROR(SizeVertices(n, /*with_attributes=*/false));
+    LSQSURF_RETURN_IF_ERROR(SizeVertices(n));
     first_ = first;
     for (uint64_t r = first; r < first + n; ++r) LSQSURF_RETURN_IF_ERROR(ReadRecord(r));
     return absl::OkStatus();
@@ -309,11 +309,10 @@ class ElementReader {
   }
   float Scalar(int index) const { return static_cast<float>(scalars_[static_cast<size_t>(index)]); }
 
-  absl::Status SizeVertices(uint64_t n, bool with_attributes) {
+  absl::Status SizeVertices(uint64_t n) {
     if (layout_.x < 0 || layout_.y < 0 || layout_.z < 0) return Fail("PLY vertex element lacks x, y or z");
     mesh_.vertices.resize(n);
     if (layout_.has_normals()) mesh_.normals.resize(n);
-    if (!with_attributes) layout_.extra.clear();
     for (int k : layout_.extra) {
       mesh_.vertex_attributes.push_back({e_.properties[static_cast<size_t>(k)].name, std::vector<float>(n)});
     }
@@ -397,6 +396,7 @@ class PlyVertexStream final : public PointStream {
     core::PointCloud cloud;
     cloud.positions = std::move(chunk_.vertices);
     cloud.normals = std::move(chunk_.normals);
+    cloud.attributes = std::move(chunk_.vertex_attributes);
     chunk_ = {};
     return cloud;
   }
@@ -447,6 +447,10 @@ void Append(std::string& out, const void* p, size_t n, bool swap) {
   for (size_t i = 0; i < n; ++i) out.push_back(c[n - 1 - i]);
 }
 
+bool IsColourChannel(const std::string& name) { return name == "red" || name == "green" || name == "blue"; }
+
+uint8_t ColourByte(float v) { return static_cast<uint8_t>(std::clamp(std::lround(v), 0L, 255L)); }
+
 }  // namespace
 
 std::string EncodePly(const core::TriangleMesh& mesh, PlyFormat format) {
@@ -459,7 +463,14 @@ std::string EncodePly(const core::TriangleMesh& mesh, PlyFormat format) {
   core::StrAppend(&out, "element vertex ", mesh.vertices.size(), "\n");
   out += "property float x\nproperty float y\nproperty float z\n";
   if (normals) out += "property float nx\nproperty float ny\nproperty float nz\n";
-  for (const auto& a : mesh.vertex_attributes) core::StrAppend(&out, "property float ", a.name, "\n");
+  // Colour as viewers read it: red, green and blue as uchar, when all three are there.
+  int channels = 0;
+  for (const auto& a : mesh.vertex_attributes) channels += IsColourChannel(a.name);
+  const bool colour = channels == 3;
+  auto as_byte = [&](const core::ScalarAttribute& a) { return colour && IsColourChannel(a.name); };
+  for (const auto& a : mesh.vertex_attributes) {
+    core::StrAppend(&out, "property ", as_byte(a) ? "uchar " : "float ", a.name, "\n");
+  }
   if (!mesh.faces.empty()) {
     core::StrAppend(&out, "element face ", mesh.faces.size(), "\nproperty list uchar int vertex_indices\n");
   }
@@ -469,10 +480,17 @@ std::string EncodePly(const core::TriangleMesh& mesh, PlyFormat format) {
       const auto& v = mesh.vertices[i];
       std::vector<float> row = {v.x(), v.y(), v.z()};
       if (normals) row.insert(row.end(), {mesh.normals[i].x(), mesh.normals[i].y(), mesh.normals[i].z()});
-      for (const auto& a : mesh.vertex_attributes) row.push_back(a.values[i]);
       for (size_t k = 0; k < row.size(); ++k) {
         if (k > 0) out.push_back(' ');
         internal::AppendFloat(out, row[k]);
+      }
+      for (const auto& a : mesh.vertex_attributes) {
+        out.push_back(' ');
+        if (as_byte(a)) {
+          core::StrAppend(&out, static_cast<int>(ColourByte(a.values[i])));
+        } else {
+          internal::AppendFloat(out, a.values[i]);
+        }
       }
       out.push_back('\n');
     }
@@ -486,7 +504,13 @@ std::string EncodePly(const core::TriangleMesh& mesh, PlyFormat format) {
     for (int k = 0; k < 3; ++k) Append(out, &mesh.vertices[i][k], 4, swap);
     if (normals)
       for (int k = 0; k < 3; ++k) Append(out, &mesh.normals[i][k], 4, swap);
-    for (const auto& a : mesh.vertex_attributes) Append(out, &a.values[i], 4, swap);
+    for (const auto& a : mesh.vertex_attributes) {
+      if (as_byte(a)) {
+        out.push_back(static_cast<char>(ColourByte(a.values[i])));
+      } else {
+        Append(out, &a.values[i], 4, swap);
+      }
+    }
   }
   for (const auto& f : mesh.faces) {
     out.push_back(3);

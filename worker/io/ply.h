@@ -21,7 +21,8 @@ enum class PlyFormat { kAscii, kBinaryLittleEndian, kBinaryBigEndian };
 // `name` is used in error messages only (normally the file path).
 absl::StatusOr<core::TriangleMesh> ParsePly(std::string_view bytes, std::string_view name);
 
-// Vertices (with normals and attributes when present) and faces; attributes as float.
+// Vertices (with normals and attributes when present) and faces; attributes as float, except
+// red, green and blue together, which are written as uchar (0..255), as viewers read colour.
 std::string EncodePly(const core::TriangleMesh& mesh, PlyFormat format);
 
 }  // namespace lsqsurf::io

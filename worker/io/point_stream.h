@@ -4,8 +4,8 @@
 // PLY files whose vertex element comes first, XYZ files and PCD files are read from a read-only
 // mapping whose pages are dropped once their points are handed out: the reader holds one chunk
 // (a compressed PCD, its inflated block). Other files (OBJ, Draco, PLY with the vertices after
-// another element) are read whole and handed out in chunks. Streamed PLY gives positions and
-// normals only; PCD and the files read whole give their attributes too.
+// another element) are read whole and handed out in chunks. Every stream gives the points'
+// attributes (colour, intensity, any scalar property) with them.
 #pragma once
 
 #include <cstddef>

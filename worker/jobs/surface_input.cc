@@ -10,7 +10,7 @@
 namespace lsqsurf::jobs {
 namespace {
 
-absl::Status CheckCloud(const core::PointCloud& cloud, const NormalsParams& normals, const InputLimits& limits) {
+absl::Status CheckCloud(const core::PointCloud& cloud, const PointParams& normals, const InputLimits& limits) {
   if (cloud.empty()) return absl::InvalidArgumentError("the point cloud is empty");
   if (static_cast<int64_t>(cloud.size()) > limits.max_points) {
     return absl::ResourceExhaustedError(
@@ -63,7 +63,7 @@ absl::Status DracoPartsSource::ForEachChunk(const std::function<absl::Status(con
 }
 
 // Decodes and checks every part; keeps them whole for a streaming method, else concatenates.
-absl::StatusOr<SurfaceInput> DecodeSurfaceInput(const Uploads& uploads, const NormalsParams& normals,
+absl::StatusOr<SurfaceInput> DecodeSurfaceInput(const Uploads& uploads, const PointParams& normals,
                                                 const InputLimits& limits,
                                                 const std::function<bool(int64_t points)>& streams) {
   const std::vector<std::string_view> parts = InputParts(uploads);
@@ -92,10 +92,23 @@ absl::StatusOr<SurfaceInput> DecodeSurfaceInput(const Uploads& uploads, const No
     bounds.extend(core::BoundingBox(cloud->positions));
     if (parts.size() == 1) {
       input.cloud = *std::move(cloud);
-    } else {  // Other attributes are ignored (as the proto says), so they need not agree.
+    } else {
       auto append = [](std::vector<core::Vec3f>& to, const std::vector<core::Vec3f>& from) {
         to.insert(to.end(), from.begin(), from.end());
       };
+      // Attributes are kept that every part has, in part 0's order; the others need not agree.
+      if (i == 0) {
+        input.cloud.attributes = std::move(cloud->attributes);
+      } else {
+        std::erase_if(input.cloud.attributes, [&](core::ScalarAttribute& kept) {
+          for (core::ScalarAttribute& a : cloud->attributes) {
+            if (a.name != kept.name || a.values.size() != cloud->size()) continue;
+            kept.values.insert(kept.values.end(), a.values.begin(), a.values.end());
+            return false;
+          }
+          return true;
+        });
+      }
       append(input.cloud.positions, cloud->positions);
       append(input.cloud.normals, cloud->normals);
     }

@@ -9,6 +9,7 @@
 #include <limits>
 #include <optional>
 
+#include "worker/core/attribute_transfer.h"
 #include "worker/core/mesh_metrics.h"
 #include "worker/core/status.h"
 #include "worker/core/strings.h"
@@ -26,21 +27,25 @@ namespace {
 
 constexpr char kMeshArtifact[] = "mesh.drc";
 
-const core::ParamTable<NormalsParams>& NormalsTable() {
+const core::ParamTable<PointParams>& PointParamsTable() {
   static const auto* table = [] {
-    auto* t = new core::ParamTable<NormalsParams>();
-    t->Flag<&NormalsParams::estimate_normals>("estimate_normals",
-                                              "estimate normals when the cloud has none (PCA + spanning-tree "
-                                              "orientation); false rejects clouds without normals")
-        .Integer<&NormalsParams::normal_neighbors>("normal_neighbors", 3, 128, "points",
-                                                   "nearest neighbours of the normal estimate (2, 4 or 8 "
-                                                   "times as many where these do not lie flat)")
-        .RealList<&NormalsParams::viewpoint>(
+    auto* t = new core::ParamTable<PointParams>();
+    t->Flag<&PointParams::estimate_normals>("estimate_normals",
+                                            "estimate normals when the cloud has none (PCA + spanning-tree "
+                                            "orientation); false rejects clouds without normals")
+        .Integer<&PointParams::normal_neighbors>("normal_neighbors", 3, 128, "points",
+                                                 "nearest neighbours of the normal estimate (2, 4 or 8 "
+                                                 "times as many where these do not lie flat)")
+        .RealList<&PointParams::viewpoint>(
             "viewpoint", 3, -std::numeric_limits<double>::infinity(), std::numeric_limits<double>::infinity(),
             "model units",
             "where the sensor stood (x,y,z): estimated normals face it; empty = unknown (oriented by "
             "propagation); the client sets it from a PCD file's VIEWPOINT")
-        .AddRule([](const NormalsParams& p) {
+        .Text<&PointParams::point_attributes>(
+            "point_attributes",
+            "per-point attributes of the cloud carried to the mesh vertices, by name, comma-separated; empty = "
+            "colour (red,green,blue) and intensity, those the cloud has; none = none")
+        .AddRule([](const PointParams& p) {
           if (p.viewpoint.empty() || p.viewpoint.size() == 3) return absl::OkStatus();
           return absl::InvalidArgumentError(
               core::StrCat("viewpoint takes three numbers x,y,z (or none), not ", p.viewpoint.size()));
@@ -74,7 +79,7 @@ const core::ParamTable<IamlsJobParams>& IamlsTable() {
          {"grid", static_cast<int>(SurfaceExtractor::kUniformGrid),
           "surface-following uniform Kuhn grid (a little faster)"}},
         "where the zero set is extracted");
-    t->Include(&IamlsJobParams::normals, NormalsTable());
+    t->Include(&IamlsJobParams::normals, PointParamsTable());
     t->Real<&IamlsJobParams::min_component>("min_component", 0, 100, "kernel widths",
                                             "components whose bounding-box diagonal is below this many kernel "
                                             "widths (h/epsilon) are removed as unresolved; 0 keeps all");
@@ -91,7 +96,7 @@ const core::ParamTable<P>& MlsTable(const core::ParamTable<decltype(P::fit)>& fi
     auto* t = new core::ParamTable<P>();
     t->Include(&P::fit, fit_table);
     AddExtractionHints(*t);
-    t->Include(&P::normals, NormalsTable());
+    t->Include(&P::normals, PointParamsTable());
     return t;
   }();
   return *table;
@@ -103,7 +108,7 @@ const core::ParamTable<PuJobParams>& PuTable() {
     t->Include(&PuJobParams::fit, pu::PuParamTable())
         .Include(&PuJobParams::extract, pu::PuExtractParamTable())
         .Include(&PuJobParams::tiles, pu::PuTileParamTable())
-        .Include(&PuJobParams::normals, NormalsTable())
+        .Include(&PuJobParams::normals, PointParamsTable())
         .Flag<&PuJobParams::keep_function>("keep_function",
                                            "keep the fitted function with the results (function.lqpu) so that csg "
                                            "and edit jobs can use it without refitting; about 40 bytes per point");
@@ -435,7 +440,7 @@ struct SurfaceMethod {
   std::function<absl::StatusOr<extract::IsosurfaceResult>(const core::ParamSet&, const core::PointCloud&,
                                                           core::JobContext&, const MethodRun&)>
       run;
-  std::function<const NormalsParams*(const core::ParamSet&)> normals;
+  std::function<const PointParams*(const core::ParamSet&)> normals;
   std::function<MemoryEstimate(const core::ParamSet&, const CloudSize&)> memory;
   // Whether a cloud of this many points in parts is read part by part (MethodRun::source) rather
   // than decoded whole; null: never.
@@ -454,7 +459,7 @@ SurfaceMethod MakeMethod(std::string name, std::string description, const core::
     if (p == nullptr) return absl::InternalError("parameters of another method");
     return run(*p, cloud, ctx, how);
   };
-  m.normals = [](const core::ParamSet& params) -> const NormalsParams* {
+  m.normals = [](const core::ParamSet& params) -> const PointParams* {
     const P* p = params.As<P>();
     return p ? &p->normals : nullptr;
   };
@@ -635,6 +640,30 @@ absl::Status RunMethod(const SurfaceMethod& m, const core::ParamSet& params, con
   return absl::OkStatus();
 }
 
+// The cloud's per-point attributes the job keeps (PointParams::point_attributes), onto the mesh.
+absl::Status CarryPointAttributes(const PointParams& points, const core::PointCloud& cloud, core::JobContext& ctx,
+                                  SurfaceResult& result) {
+  std::vector<std::string> names;
+  if (points.point_attributes.empty()) {
+    names = core::DefaultCarriedAttributes(cloud);
+  } else if (points.point_attributes != "none") {
+    for (std::string_view rest = points.point_attributes; !rest.empty();) {
+      const size_t comma = rest.find(',');
+      std::string_view name = rest.substr(0, comma);
+      rest = comma == std::string_view::npos ? std::string_view() : rest.substr(comma + 1);
+      while (!name.empty() && name.front() == ' ') name.remove_prefix(1);
+      while (!name.empty() && name.back() == ' ') name.remove_suffix(1);
+      if (!name.empty()) names.emplace_back(name);
+    }
+  }
+  if (names.empty()) return absl::OkStatus();
+  const auto start = std::chrono::steady_clock::now();
+  LSQSURF_RETURN_IF_ERROR(core::CarryAttributes(cloud, names, result.mesh, ctx));
+  result.statistics.emplace_back("carried_attributes", static_cast<double>(names.size()));
+  result.statistics.emplace_back("carry_seconds", core::SecondsSince(start));
+  return absl::OkStatus();
+}
+
 }  // namespace
 
 absl::StatusOr<SurfaceResult> ReconstructSurface(const std::string& method, const core::ParamSet& params,
@@ -642,7 +671,7 @@ absl::StatusOr<SurfaceResult> ReconstructSurface(const std::string& method, cons
                                                  const TiledRun& tiled) {
   auto m = CheckedMethod(method, params);
   if (!m.ok()) return m.status();
-  const NormalsParams& normals = *(*m)->normals(params);
+  const PointParams& normals = *(*m)->normals(params);
   SurfaceResult result;
   result.statistics.emplace_back("input_points", static_cast<double>(cloud.size()));
   if (const size_t repeats = core::RemoveDuplicatePoints(cloud); repeats > 0) {
@@ -674,8 +703,12 @@ absl::StatusOr<SurfaceResult> ReconstructSurface(const std::string& method, cons
     result.statistics.emplace_back("normals_seconds", core::SecondsSince(start));
   }
 
-  core::SubContext engine_ctx(ctx, method, normals_share, 1.0);
+  core::SubContext engine_ctx(ctx, method, normals_share, 0.98);
   LSQSURF_RETURN_IF_ERROR(RunMethod(**m, params, cloud, nullptr, nullptr, engine_ctx, memory_bytes, tiled, result));
+  if (result.mesh_parts == 0) {
+    core::SubContext carry_ctx(ctx, "carrying the points' attributes", 0.98, 1.0);
+    LSQSURF_RETURN_IF_ERROR(CarryPointAttributes(normals, cloud, carry_ctx, result));
+  }
   return result;
 }
 

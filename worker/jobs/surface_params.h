@@ -2,20 +2,26 @@
 // shared extractor read too (below surface_job.h, which includes this).
 #pragma once
 
+#include <string>
 #include <vector>
 
 #include "worker/core/normals.h"
 
 namespace lsqsurf::jobs {
 
-// Normals for clouds that come without them.
-struct NormalsParams {
+// How a surface job takes its cloud's points: normals for clouds that come without them, where
+// the sensor stood, and which per-point attributes its mesh keeps.
+struct PointParams {
   bool estimate_normals = true;  // PCA + spanning-tree orientation; false rejects clouds without normals.
   int normal_neighbors = core::NormalEstimationParams{}.neighbors;  // Smallest k of the PCA, 3..128.
   // Where the sensor stood (x, y, z in the cloud's units), or empty when unknown: estimated
   // normals are turned toward it (core::NormalEstimationParams::viewpoint). The client fills it
   // from a file that says (a PCD's VIEWPOINT).
   std::vector<double> viewpoint;
+  // Per-point attributes carried to the mesh's vertices (core::CarryAttributes), by name,
+  // separated by commas; empty = colour (red, green, blue) and intensity, those the cloud has;
+  // "none" = none.
+  std::string point_attributes;
 };
 
 // Where the shared extractor looks for the surface, for the methods without their own.

@@ -9,7 +9,6 @@
 #include <limits>
 #include <optional>
 
-#include "worker/core/attribute_transfer.h"
 #include "worker/core/mesh_metrics.h"
 #include "worker/core/status.h"
 #include "worker/core/strings.h"
@@ -20,40 +19,13 @@
 #include "worker/jobs/pictures.h"
 #include "worker/jobs/shared_extraction.h"
 #include "worker/jobs/surface_input.h"
+#include "worker/jobs/surface_points.h"
 #include "worker/render/render.h"
 
 namespace lsqsurf::jobs {
 namespace {
 
 constexpr char kMeshArtifact[] = "mesh.drc";
-
-const core::ParamTable<PointParams>& PointParamsTable() {
-  static const auto* table = [] {
-    auto* t = new core::ParamTable<PointParams>();
-    t->Flag<&PointParams::estimate_normals>("estimate_normals",
-                                            "estimate normals when the cloud has none (PCA + spanning-tree "
-                                            "orientation); false rejects clouds without normals")
-        .Integer<&PointParams::normal_neighbors>("normal_neighbors", 3, 128, "points",
-                                                 "nearest neighbours of the normal estimate (2, 4 or 8 "
-                                                 "times as many where these do not lie flat)")
-        .RealList<&PointParams::viewpoint>(
-            "viewpoint", 3, -std::numeric_limits<double>::infinity(), std::numeric_limits<double>::infinity(),
-            "model units",
-            "where the sensor stood (x,y,z): estimated normals face it; empty = unknown (oriented by "
-            "propagation); the client sets it from a PCD file's VIEWPOINT")
-        .Text<&PointParams::point_attributes>(
-            "point_attributes",
-            "per-point attributes of the cloud carried to the mesh vertices, by name, comma-separated; empty = "
-            "colour (red,green,blue) and intensity, those the cloud has; none = none")
-        .AddRule([](const PointParams& p) {
-          if (p.viewpoint.empty() || p.viewpoint.size() == 3) return absl::OkStatus();
-          return absl::InvalidArgumentError(
-              core::StrCat("viewpoint takes three numbers x,y,z (or none), not ", p.viewpoint.size()));
-        });
-    return t;
-  }();
-  return *table;
-}
 
 template <class P>
 void AddExtractionHints(core::ParamTable<P>& t) {
@@ -640,30 +612,6 @@ absl::Status RunMethod(const SurfaceMethod& m, const core::ParamSet& params, con
   return absl::OkStatus();
 }
 
-// The cloud's per-point attributes the job keeps (PointParams::point_attributes), onto the mesh.
-absl::Status CarryPointAttributes(const PointParams& points, const core::PointCloud& cloud, core::JobContext& ctx,
-                                  SurfaceResult& result) {
-  std::vector<std::string> names;
-  if (points.point_attributes.empty()) {
-    names = core::DefaultCarriedAttributes(cloud);
-  } else if (points.point_attributes != "none") {
-    for (std::string_view rest = points.point_attributes; !rest.empty();) {
-      const size_t comma = rest.find(',');
-      std::string_view name = rest.substr(0, comma);
-      rest = comma == std::string_view::npos ? std::string_view() : rest.substr(comma + 1);
-      while (!name.empty() && name.front() == ' ') name.remove_prefix(1);
-      while (!name.empty() && name.back() == ' ') name.remove_suffix(1);
-      if (!name.empty()) names.emplace_back(name);
-    }
-  }
-  if (names.empty()) return absl::OkStatus();
-  const auto start = std::chrono::steady_clock::now();
-  LSQSURF_RETURN_IF_ERROR(core::CarryAttributes(cloud, names, result.mesh, ctx));
-  result.statistics.emplace_back("carried_attributes", static_cast<double>(names.size()));
-  result.statistics.emplace_back("carry_seconds", core::SecondsSince(start));
-  return absl::OkStatus();
-}
-
 }  // namespace
 
 absl::StatusOr<SurfaceResult> ReconstructSurface(const std::string& method, const core::ParamSet& params,
@@ -707,7 +655,7 @@ absl::StatusOr<SurfaceResult> ReconstructSurface(const std::string& method, cons
   LSQSURF_RETURN_IF_ERROR(RunMethod(**m, params, cloud, nullptr, nullptr, engine_ctx, memory_bytes, tiled, result));
   if (result.mesh_parts == 0) {
     core::SubContext carry_ctx(ctx, "carrying the points' attributes", 0.98, 1.0);
-    LSQSURF_RETURN_IF_ERROR(CarryPointAttributes(normals, cloud, carry_ctx, result));
+    LSQSURF_RETURN_IF_ERROR(CarryPointAttributes(normals, cloud, carry_ctx, result.mesh, result.statistics));
   }
   return result;
 }

@@ -1,0 +1,23 @@
+// worker/jobs/surface_points.h — how every surface method takes its cloud's points
+// (PointParams): the parameter table they all include, and the attributes carried to the mesh.
+#pragma once
+
+#include "absl/status/status.h"
+#include "worker/core/geometry.h"
+#include "worker/core/job_context.h"
+#include "worker/core/params.h"
+#include "worker/jobs/job.h"
+#include "worker/jobs/surface_params.h"
+
+namespace lsqsurf::jobs {
+
+// estimate_normals, normal_neighbors, viewpoint and point_attributes.
+const core::ParamTable<PointParams>& PointParamsTable();
+
+// The cloud's per-point attributes `points` names (by default colour and intensity, those it
+// has) onto `mesh`'s vertices, with the statistics carried_attributes and carry_seconds.
+// Errors: kInvalidArgument naming an attribute the cloud lacks, kCancelled.
+absl::Status CarryPointAttributes(const PointParams& points, const core::PointCloud& cloud, core::JobContext& ctx,
+                                  core::TriangleMesh& mesh, Statistics& statistics);
+
+}  // namespace lsqsurf::jobs

@@ -34,6 +34,7 @@ class LatchKind final : public jobs::JobKind {
     for (const auto& [name, bytes] : early_) {
       if (absl::Status s = env.sink.Write(name, bytes); !s.ok()) return s;
     }
+    for (const auto& [stage, fraction] : progress_) env.context.ReportProgress(stage, fraction);
     std::unique_lock lock(mutex_);
     ++started_;
     changed_.notify_all();
@@ -49,6 +50,8 @@ class LatchKind final : public jobs::JobKind {
   void WriteBeforeHolding(std::string name, std::string bytes) {
     early_.emplace_back(std::move(name), std::move(bytes));
   }
+  // Progress every job reports, in order, before it holds (set before jobs run).
+  void ReportBeforeHolding(std::vector<std::pair<std::string, double>> progress) { progress_ = std::move(progress); }
   // Blocks until `n` jobs have started.
   void WaitStarted(int n) const {
     std::unique_lock lock(mutex_);
@@ -91,6 +94,7 @@ class LatchKind final : public jobs::JobKind {
   mutable int checking_ = 0;
   mutable bool checks_held_ = false;
   std::vector<std::pair<std::string, std::string>> early_;
+  std::vector<std::pair<std::string, double>> progress_;
 };
 
 }  // namespace lsqsurf::testing

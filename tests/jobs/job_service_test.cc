@@ -146,6 +146,23 @@ TEST_F(JobServiceTest, EverySurfaceMethodReconstructsASphere) {
   }
 }
 
+// An engine that runs a stage again (PU's topology fallback extracts the whole surface anew)
+// reports a smaller fraction than before; what watchers see does not go back.
+TEST_F(JobServiceTest, ProgressNeverGoesBackwards) {
+  latch_.ReportBeforeHolding({{"extracting surface", 0.9}, {"extracting surface without finer leaves", 0.5}});
+  HoldIamlsJobs();
+  JobService& s = Open();
+  auto job = s.Submit(Spec("iamls"), Input(Encode(testing::SphereCloud(1000))));
+  ASSERT_TRUE(job.ok());
+  latch_.WaitStarted(1);  // Both reported, the job held running.
+  auto held = s.Get(job->id);
+  ASSERT_TRUE(held.ok());
+  EXPECT_EQ(held->stage, "extracting surface without finer leaves");
+  EXPECT_EQ(held->progress, 0.9);
+  latch_.Release();
+  EXPECT_EQ(WaitTerminal(job->id).state, JobState::kSucceeded);
+}
+
 TEST_F(JobServiceTest, EstimatesMissingNormalsByDefault) {
   JobService& s = Open();
   core::PointCloud cloud = testing::SphereCloud(4000);

@@ -98,7 +98,9 @@ class RunContext : public core::JobContext {
         entry_,
         [&](JobRecord& r) {
           r.stage = last_stage_;
-          r.progress = std::clamp(fraction, 0.0, 1.0);
+          // Never backwards, whatever share an engine's later stage was given: a user reads
+          // progress as how much of the job is done.
+          r.progress = std::max(r.progress, std::clamp(fraction, 0.0, 1.0));
         },
         persist);
   }

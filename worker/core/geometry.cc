@@ -70,18 +70,23 @@ size_t RemoveDuplicatePoints(PointCloud& cloud) {
     }
   }
   if (removed == 0) return 0;
+  RemovePoints(cloud, repeated);
+  return removed;
+}
+
+void RemovePoints(PointCloud& cloud, const std::vector<uint8_t>& remove) {
+  const size_t n = cloud.size();
   auto compact = [&](auto& values) {
     if (values.size() != n) return;
     size_t kept = 0;
     for (size_t i = 0; i < n; ++i) {
-      if (!repeated[i]) values[kept++] = values[i];
+      if (!remove[i]) values[kept++] = values[i];
     }
     values.resize(kept);
   };
-  compact(cloud.positions);
   compact(cloud.normals);
   for (ScalarAttribute& attribute : cloud.attributes) compact(attribute.values);
-  return removed;
+  compact(cloud.positions);
 }
 
 int64_t FindNonFinite(std::span<const Vec3f> points) {

@@ -65,6 +65,10 @@ std::vector<uint32_t> MortonOrder(std::span<const Vec3f> points);
 // untouched when nothing repeats.
 size_t RemoveDuplicatePoints(PointCloud& cloud);
 
+// Removes the points `remove` marks (one flag per point), with their normals and attributes;
+// the others keep their order.
+void RemovePoints(PointCloud& cloud, const std::vector<uint8_t>& remove);
+
 // Finds a non-finite coordinate; returns the index of the first bad point or -1.
 int64_t FindNonFinite(std::span<const Vec3f> points);
 

@@ -42,9 +42,9 @@ struct SpecFormat {
   uint64_t fingerprint;
 };
 // 2: PU's threshold_spacings.
-// 3: viewpoint and point_attributes, for every surface method.
+// 3: viewpoint, point_attributes and remove_outliers, for every surface method.
 inline constexpr SpecFormat kSpecFormats[] = {
-    {1, 0x8c12ce01196d0c16}, {2, 0x81bc4845708e1243}, {3, 0x52f11945ef667b31}};
+    {1, 0x8c12ce01196d0c16}, {2, 0x81bc4845708e1243}, {3, 0x3149fd7d771d4a39}};
 // This build's spec format: what its stores write and claim up to (SpecTables::format).
 inline constexpr int kSpecFormat = kSpecFormats[std::size(kSpecFormats) - 1].format;
 

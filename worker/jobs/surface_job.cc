@@ -10,6 +10,7 @@
 #include <optional>
 
 #include "worker/core/mesh_metrics.h"
+#include "worker/core/outliers.h"
 #include "worker/core/status.h"
 #include "worker/core/strings.h"
 #include "worker/extract/isosurface.h"
@@ -629,6 +630,12 @@ absl::StatusOr<SurfaceResult> ReconstructSurface(const std::string& method, cons
                                                      repeats,
                                                      " points repeat another's exactly); a surface needs more"));
     }
+  }
+
+  if (normals.remove_outliers) {
+    auto removed = core::RemoveIsolatedPoints(cloud, {}, ctx);
+    if (!removed.ok()) return removed.status();
+    if (*removed > 0) result.statistics.emplace_back("outliers_removed", static_cast<double>(*removed));
   }
 
   double normals_share = 0.0;

@@ -22,6 +22,9 @@ struct PointParams {
   // separated by commas; empty = colour (red, green, blue) and intensity, those the cloud has;
   // "none" = none.
   std::string point_attributes;
+  // Isolated points (flying pixels, dust, stray returns; core::RemoveIsolatedPoints) are
+  // removed before anything else reads the cloud.
+  bool remove_outliers = true;
 };
 
 // Where the shared extractor looks for the surface, for the methods without their own.

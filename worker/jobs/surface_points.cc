@@ -28,6 +28,10 @@ const core::ParamTable<PointParams>& PointParamsTable() {
             "point_attributes",
             "per-point attributes of the cloud carried to the mesh vertices, by name, comma-separated; empty = "
             "colour (red,green,blue) and intensity, those the cloud has; none = none")
+        .Flag<&PointParams::remove_outliers>(
+            "remove_outliers",
+            "remove isolated points first (their 8th neighbour 4 times farther than their neighbours' is; "
+            "statistic outliers_removed)")
         .AddRule([](const PointParams& p) {
           if (p.viewpoint.empty() || p.viewpoint.size() == 3) return absl::OkStatus();
           return absl::InvalidArgumentError(

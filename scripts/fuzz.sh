@@ -37,11 +37,14 @@ mkdir -p "$work/logs"
 run_one() {
   local t=$1
   mkdir -p "$work/corpus/$t" "$work/crashes/$t" "tests/fuzz/regressions/$t"
+  # Files other programs wrote (tests/data/TARGET, where there are any) seed it too.
+  local elsewhere=()
+  [[ -d tests/data/$t ]] && elsewhere=("tests/data/$t")
   # rss_limit bounds a run's memory (a decoder asked to allocate far too much counts as a bug);
   # -timeout flags an input that takes longer than 10 s.
   "$work/bin/fuzz_$t" -max_total_time="$seconds" -rss_limit_mb=2048 -timeout=10 -print_final_stats=1 \
     -artifact_prefix="$work/crashes/$t/" "$work/corpus/$t" "tests/fuzz/seeds/$t" "tests/fuzz/regressions/$t" \
-    >"$work/logs/$t.log" 2>&1
+    "${elsewhere[@]}" >"$work/logs/$t.log" 2>&1
 }
 
 status=0

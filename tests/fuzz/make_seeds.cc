@@ -62,9 +62,6 @@ int main(int argc, char** argv) {
   Write("pcd", "cloud_ascii.pcd", io::EncodePcd(coloured, io::PcdEncoding::kAscii));
   Write("pcd", "cloud_binary.pcd", io::EncodePcd(coloured, io::PcdEncoding::kBinary));
   Write("pcd", "cloud_compressed.pcd", io::EncodePcd(coloured, io::PcdEncoding::kBinaryCompressed));
-  // And two the Point Cloud Library wrote (tests/data/pcd).
-  Write("pcd", "pcl_ascii.pcd", *io::ReadFileBytes(LSQSURF_SOURCE_DIR "/tests/data/pcd/lamppost.pcd"));
-  Write("pcd", "pcl_compressed.pcd", *io::ReadFileBytes(LSQSURF_SOURCE_DIR "/tests/data/pcd/milk_color.pcd"));
   Write("obj", "mesh.obj", io::EncodeObj(mesh));
   Write("xyz", "cloud.xyzn", io::EncodeXyz(cloud));
   core::PointCloud bare = cloud;

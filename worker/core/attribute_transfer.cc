@@ -24,7 +24,8 @@ const ScalarAttribute* Find(const PointCloud& cloud, std::string_view name) {
 
 std::vector<std::string> DefaultCarriedAttributes(const PointCloud& cloud) {
   std::vector<std::string> names;
-  if (Find(cloud, "red") && Find(cloud, "green") && Find(cloud, "blue")) names = {"red", "green", "blue"};
+  if (ColourChannels(cloud.attributes, cloud.size())[0] != nullptr)
+    names.assign(kColourChannels.begin(), kColourChannels.end());
   if (Find(cloud, "intensity")) names.push_back("intensity");
   return names;
 }

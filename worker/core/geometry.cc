@@ -74,6 +74,17 @@ size_t RemoveDuplicatePoints(PointCloud& cloud) {
   return removed;
 }
 
+std::array<const ScalarAttribute*, 3> ColourChannels(std::span<const ScalarAttribute> attributes, size_t count) {
+  std::array<const ScalarAttribute*, 3> channels = {nullptr, nullptr, nullptr};
+  for (const ScalarAttribute& a : attributes) {
+    for (size_t c = 0; c < 3; ++c) {
+      if (a.name == kColourChannels[c] && a.values.size() == count && channels[c] == nullptr) channels[c] = &a;
+    }
+  }
+  if (channels[0] == nullptr || channels[1] == nullptr || channels[2] == nullptr) return {nullptr, nullptr, nullptr};
+  return channels;
+}
+
 void RemovePoints(PointCloud& cloud, const std::vector<uint8_t>& remove) {
   const size_t n = cloud.size();
   auto compact = [&](auto& values) {

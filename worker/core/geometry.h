@@ -24,6 +24,13 @@ struct ScalarAttribute {
   std::vector<float> values;
 };
 
+// Colour travels as three scalars of these names, 0..255 (as a PLY's uchar colour reads).
+inline constexpr std::array<const char*, 3> kColourChannels = {"red", "green", "blue"};
+
+// The red, green and blue attributes among `attributes` that hold `count` values each, in that
+// order; all three null unless every one is there.
+std::array<const ScalarAttribute*, 3> ColourChannels(std::span<const ScalarAttribute> attributes, size_t count);
+
 // An unorganized point set with optional unit normals and optional named scalars.
 struct PointCloud {
   std::vector<Vec3f> positions;  // Model units.

@@ -27,8 +27,6 @@ bool ReadVec3(std::string_view& rest, core::Vec3f& out) {
   return true;
 }
 
-constexpr const char* kColourChannels[3] = {"red", "green", "blue"};
-
 }  // namespace
 
 absl::StatusOr<core::TriangleMesh> ParseObj(std::string_view text, std::string_view name) {
@@ -74,7 +72,7 @@ absl::StatusOr<core::TriangleMesh> ParseObj(std::string_view text, std::string_v
   if (normals.size() == mesh.vertices.size()) mesh.normals = std::move(normals);
   if (!colours.empty() && colours.size() == mesh.vertices.size()) {
     for (int c = 0; c < 3; ++c) {
-      core::ScalarAttribute channel{kColourChannels[c], std::vector<float>(colours.size())};
+      core::ScalarAttribute channel{core::kColourChannels[static_cast<size_t>(c)], std::vector<float>(colours.size())};
       for (size_t v = 0; v < colours.size(); ++v) channel.values[v] = 255 * colours[v][c];
       mesh.vertex_attributes.push_back(std::move(channel));
     }
@@ -85,18 +83,13 @@ absl::StatusOr<core::TriangleMesh> ParseObj(std::string_view text, std::string_v
 std::string EncodeObj(const core::TriangleMesh& mesh) {
   std::string out = "# written by lsqsurf\n";
   const bool normals = mesh.normals.size() == mesh.vertices.size() && !mesh.vertices.empty();
-  const core::ScalarAttribute* channel[3] = {nullptr, nullptr, nullptr};
-  for (const auto& a : mesh.vertex_attributes) {
-    for (int c = 0; c < 3; ++c) {
-      if (a.name == kColourChannels[c] && a.values.size() == mesh.vertices.size()) channel[c] = &a;
-    }
-  }
-  const bool colour = channel[0] != nullptr && channel[1] != nullptr && channel[2] != nullptr;
+  const auto channel = core::ColourChannels(mesh.vertex_attributes, mesh.vertices.size());
+  const bool colour = channel[0] != nullptr;
   for (size_t i = 0; i < mesh.vertices.size(); ++i) {
     const auto& v = mesh.vertices[i];
     out += "v ";
     if (colour) {  // Vertex colours 0..1 after the position, as MeshLab and Open3D read them.
-      auto unit = [&](int c) { return std::clamp(channel[c]->values[i] / 255.0f, 0.0f, 1.0f); };
+      auto unit = [&](size_t c) { return std::clamp(channel[c]->values[i] / 255.0f, 0.0f, 1.0f); };
       internal::AppendFloats(out, {v.x(), v.y(), v.z(), unit(0), unit(1), unit(2)});
     } else {
       internal::AppendFloats(out, {v.x(), v.y(), v.z()});

@@ -402,7 +402,7 @@ absl::Status PcdReader::Read(size_t max_points, core::PointCloud& cloud) {
   const bool colour = s.rgb >= 0;
   if (cloud.attributes.empty()) {
     if (colour) {
-      for (const char* n : {"red", "green", "blue"}) cloud.attributes.push_back({n, {}});
+      for (const char* n : core::kColourChannels) cloud.attributes.push_back({n, {}});
     }
     for (const std::string& n : s.scalar_names) cloud.attributes.push_back({n, {}});
   }
@@ -457,19 +457,13 @@ std::string EncodePcd(const core::PointCloud& cloud, PcdEncoding encoding, const
                          [&cloud, i](size_t p) { return cloud.normals[p][i]; }});
     }
   }
-  const core::ScalarAttribute* channel[3] = {nullptr, nullptr, nullptr};
-  const std::string_view channel_names[3] = {"red", "green", "blue"};
-  for (const core::ScalarAttribute& a : cloud.attributes) {
-    for (int c = 0; c < 3; ++c) {
-      if (a.name == channel_names[c]) channel[c] = &a;
-    }
-  }
-  const bool colour = channel[0] != nullptr && channel[1] != nullptr && channel[2] != nullptr;
+  const auto channel = core::ColourChannels(cloud.attributes, cloud.size());
+  const bool colour = channel[0] != nullptr;
   if (colour) {
     columns.push_back({"rgb", 'F', [channel](size_t p) {
                          uint32_t bits = 0;
-                         for (int c = 0; c < 3; ++c) {
-                           const float v = std::clamp(std::round(channel[c]->values[p]), 0.0f, 255.0f);
+                         for (const core::ScalarAttribute* c : channel) {
+                           const float v = std::clamp(std::round(c->values[p]), 0.0f, 255.0f);
                            bits = (bits << 8) | static_cast<uint32_t>(v);
                          }
                          return std::bit_cast<float>(bits);

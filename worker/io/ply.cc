@@ -447,8 +447,6 @@ void Append(std::string& out, const void* p, size_t n, bool swap) {
   for (size_t i = 0; i < n; ++i) out.push_back(c[n - 1 - i]);
 }
 
-bool IsColourChannel(const std::string& name) { return name == "red" || name == "green" || name == "blue"; }
-
 uint8_t ColourByte(float v) { return static_cast<uint8_t>(std::clamp(std::lround(v), 0L, 255L)); }
 
 }  // namespace
@@ -464,10 +462,10 @@ std::string EncodePly(const core::TriangleMesh& mesh, PlyFormat format) {
   out += "property float x\nproperty float y\nproperty float z\n";
   if (normals) out += "property float nx\nproperty float ny\nproperty float nz\n";
   // Colour as viewers read it: red, green and blue as uchar, when all three are there.
-  int channels = 0;
-  for (const auto& a : mesh.vertex_attributes) channels += IsColourChannel(a.name);
-  const bool colour = channels == 3;
-  auto as_byte = [&](const core::ScalarAttribute& a) { return colour && IsColourChannel(a.name); };
+  const auto channels = core::ColourChannels(mesh.vertex_attributes, mesh.vertices.size());
+  auto as_byte = [&](const core::ScalarAttribute& a) {
+    return std::find(channels.begin(), channels.end(), &a) != channels.end();
+  };
   for (const auto& a : mesh.vertex_attributes) {
     core::StrAppend(&out, "property ", as_byte(a) ? "uchar " : "float ", a.name, "\n");
   }

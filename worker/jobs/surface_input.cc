@@ -10,7 +10,7 @@
 namespace lsqsurf::jobs {
 namespace {
 
-absl::Status CheckCloud(const core::PointCloud& cloud, const PointParams& normals, const InputLimits& limits) {
+absl::Status CheckCloud(const core::PointCloud& cloud, const PointParams& points, const InputLimits& limits) {
   if (cloud.empty()) return absl::InvalidArgumentError("the point cloud is empty");
   if (static_cast<int64_t>(cloud.size()) > limits.max_points) {
     return absl::ResourceExhaustedError(
@@ -28,7 +28,7 @@ absl::Status CheckCloud(const core::PointCloud& cloud, const PointParams& normal
             "normal ", i, " has length ", len, "; normals must be unit vectors (normalize them before upload)"));
       }
     }
-  } else if (!normals.estimate_normals) {
+  } else if (!points.estimate_normals) {
     return absl::InvalidArgumentError(
         "the cloud has no normals and estimate_normals is false; upload normals or allow estimation");
   }
@@ -63,7 +63,7 @@ absl::Status DracoPartsSource::ForEachChunk(const std::function<absl::Status(con
 }
 
 // Decodes and checks every part; keeps them whole for a streaming method, else concatenates.
-absl::StatusOr<SurfaceInput> DecodeSurfaceInput(const Uploads& uploads, const PointParams& normals,
+absl::StatusOr<SurfaceInput> DecodeSurfaceInput(const Uploads& uploads, const PointParams& points,
                                                 const InputLimits& limits,
                                                 const std::function<bool(int64_t points)>& streams) {
   const std::vector<std::string_view> parts = InputParts(uploads);
@@ -81,7 +81,7 @@ absl::StatusOr<SurfaceInput> DecodeSurfaceInput(const Uploads& uploads, const Po
     }
     InputLimits part_limits = limits;
     part_limits.min_points = parts.size() == 1 ? limits.min_points : 1;
-    if (absl::Status s = CheckCloud(*cloud, normals, part_limits); !s.ok()) return core::WithContext(name, s);
+    if (absl::Status s = CheckCloud(*cloud, points, part_limits); !s.ok()) return core::WithContext(name, s);
     if (with_normals.value_or(cloud->has_normals()) != cloud->has_normals()) {
       return absl::InvalidArgumentError(core::StrCat(name, " ", cloud->has_normals() ? "has" : "lacks",
                                                      " normals and part 0 does not; give every part the same "

@@ -29,7 +29,7 @@ struct SurfaceInput {
 // normals whose points `streams` says go part by part are kept as they came; else they are
 // joined. Errors: kInvalidArgument naming the part (undecodable, a mesh, bad points or normals,
 // parts with and without normals), kResourceExhausted (over max_points).
-absl::StatusOr<SurfaceInput> DecodeSurfaceInput(const Uploads& uploads, const PointParams& normals,
+absl::StatusOr<SurfaceInput> DecodeSurfaceInput(const Uploads& uploads, const PointParams& points,
                                                 const InputLimits& limits,
                                                 const std::function<bool(int64_t points)>& streams);
 

@@ -52,7 +52,7 @@ const core::ParamTable<IamlsJobParams>& IamlsTable() {
          {"grid", static_cast<int>(SurfaceExtractor::kUniformGrid),
           "surface-following uniform Kuhn grid (a little faster)"}},
         "where the zero set is extracted");
-    t->Include(&IamlsJobParams::normals, PointParamsTable());
+    t->Include(&IamlsJobParams::points, PointParamsTable());
     t->Real<&IamlsJobParams::min_component>("min_component", 0, 100, "kernel widths",
                                             "components whose bounding-box diagonal is below this many kernel "
                                             "widths (h/epsilon) are removed as unresolved; 0 keeps all");
@@ -62,14 +62,14 @@ const core::ParamTable<IamlsJobParams>& IamlsTable() {
 }
 
 // The table of an MLS method on the shared extractor: its engine's table, the extraction hints
-// and the normals.
+// and the points' parameters.
 template <class P>
 const core::ParamTable<P>& MlsTable(const core::ParamTable<decltype(P::fit)>& fit_table) {
   static const auto* table = [&] {
     auto* t = new core::ParamTable<P>();
     t->Include(&P::fit, fit_table);
     AddExtractionHints(*t);
-    t->Include(&P::normals, PointParamsTable());
+    t->Include(&P::points, PointParamsTable());
     return t;
   }();
   return *table;
@@ -81,7 +81,7 @@ const core::ParamTable<PuJobParams>& PuTable() {
     t->Include(&PuJobParams::fit, pu::PuParamTable())
         .Include(&PuJobParams::extract, pu::PuExtractParamTable())
         .Include(&PuJobParams::tiles, pu::PuTileParamTable())
-        .Include(&PuJobParams::normals, PointParamsTable())
+        .Include(&PuJobParams::points, PointParamsTable())
         .Flag<&PuJobParams::keep_function>("keep_function",
                                            "keep the fitted function with the results (function.lqpu) so that csg "
                                            "and edit jobs can use it without refitting; about 40 bytes per point");
@@ -413,7 +413,7 @@ struct SurfaceMethod {
   std::function<absl::StatusOr<extract::IsosurfaceResult>(const core::ParamSet&, const core::PointCloud&,
                                                           core::JobContext&, const MethodRun&)>
       run;
-  std::function<const PointParams*(const core::ParamSet&)> normals;
+  std::function<const PointParams*(const core::ParamSet&)> points;
   std::function<MemoryEstimate(const core::ParamSet&, const CloudSize&)> memory;
   // Whether a cloud of this many points in parts is read part by part (MethodRun::source) rather
   // than decoded whole; null: never.
@@ -432,9 +432,9 @@ SurfaceMethod MakeMethod(std::string name, std::string description, const core::
     if (p == nullptr) return absl::InternalError("parameters of another method");
     return run(*p, cloud, ctx, how);
   };
-  m.normals = [](const core::ParamSet& params) -> const PointParams* {
+  m.points = [](const core::ParamSet& params) -> const PointParams* {
     const P* p = params.As<P>();
-    return p ? &p->normals : nullptr;
+    return p ? &p->points : nullptr;
   };
   m.memory = [memory](const core::ParamSet& params, const CloudSize& size) {
     const P* p = params.As<P>();
@@ -506,9 +506,9 @@ class SurfaceKind final : public TypedJobKind<core::ParamSet, SurfaceInput> {
   absl::StatusOr<Checked> Decode(const JobSpec& spec, const core::ParamSet& params, const Uploads& uploads,
                                  const InputLimits& limits) const override {
     const SurfaceMethod* m = FindSurfaceMethod(spec.method);
-    if (m == nullptr || m->normals(params) == nullptr) return absl::InternalError("not a surface method");
+    if (m == nullptr || m->points(params) == nullptr) return absl::InternalError("not a surface method");
     const auto streams = [&](int64_t points) { return m->streams && m->streams(params, points); };
-    auto input = DecodeSurfaceInput(uploads, *m->normals(params), limits, streams);
+    auto input = DecodeSurfaceInput(uploads, *m->points(params), limits, streams);
     if (!input.ok()) return input.status();
     CloudSize size{input->points, input->diagonal, 0};
     for (const core::ByteView& part : input->parts) size.streamed_bytes += static_cast<int64_t>(part.size());
@@ -587,7 +587,7 @@ namespace {
 
 absl::StatusOr<const SurfaceMethod*> CheckedMethod(const std::string& method, const core::ParamSet& params) {
   const SurfaceMethod* m = FindSurfaceMethod(method);
-  if (m == nullptr || m->normals(params) == nullptr) {
+  if (m == nullptr || m->points(params) == nullptr) {
     return absl::InvalidArgumentError(core::StrCat("'", method, "' is not a surface method with these parameters"));
   }
   LSQSURF_RETURN_IF_ERROR(params.Validate());
@@ -620,7 +620,7 @@ absl::StatusOr<SurfaceResult> ReconstructSurface(const std::string& method, cons
                                                  const TiledRun& tiled) {
   auto m = CheckedMethod(method, params);
   if (!m.ok()) return m.status();
-  const PointParams& normals = *(*m)->normals(params);
+  const PointParams& points = *(*m)->points(params);
   SurfaceResult result;
   result.statistics.emplace_back("input_points", static_cast<double>(cloud.size()));
   if (const size_t repeats = core::RemoveDuplicatePoints(cloud); repeats > 0) {
@@ -632,7 +632,7 @@ absl::StatusOr<SurfaceResult> ReconstructSurface(const std::string& method, cons
     }
   }
 
-  if (normals.remove_outliers) {
+  if (points.remove_outliers) {
     auto removed = core::RemoveIsolatedPoints(cloud, {}, ctx);
     if (!removed.ok()) return removed.status();
     if (*removed > 0) result.statistics.emplace_back("outliers_removed", static_cast<double>(*removed));
@@ -640,16 +640,16 @@ absl::StatusOr<SurfaceResult> ReconstructSurface(const std::string& method, cons
 
   double normals_share = 0.0;
   if (!cloud.has_normals()) {
-    if (!normals.estimate_normals) {
+    if (!points.estimate_normals) {
       return absl::InvalidArgumentError("the cloud has no normals and estimate_normals is false");
     }
     normals_share = 0.2;
     const auto start = std::chrono::steady_clock::now();
     core::SubContext sub(ctx, "estimating normals", 0.0, normals_share);
     core::NormalEstimationParams np;
-    np.neighbors = normals.normal_neighbors;
-    if (normals.viewpoint.size() == 3) {
-      np.viewpoint = core::Vec3d(normals.viewpoint[0], normals.viewpoint[1], normals.viewpoint[2]);
+    np.neighbors = points.normal_neighbors;
+    if (points.viewpoint.size() == 3) {
+      np.viewpoint = core::Vec3d(points.viewpoint[0], points.viewpoint[1], points.viewpoint[2]);
       result.statistics.emplace_back("normals_toward_viewpoint", 1);
     }
     auto estimated = core::EstimateNormals(cloud.positions, np, sub);
@@ -662,7 +662,7 @@ absl::StatusOr<SurfaceResult> ReconstructSurface(const std::string& method, cons
   LSQSURF_RETURN_IF_ERROR(RunMethod(**m, params, cloud, nullptr, nullptr, engine_ctx, memory_bytes, tiled, result));
   if (result.mesh_parts == 0) {
     core::SubContext carry_ctx(ctx, "carrying the points' attributes", 0.98, 1.0);
-    LSQSURF_RETURN_IF_ERROR(CarryPointAttributes(normals, cloud, carry_ctx, result.mesh, result.statistics));
+    LSQSURF_RETURN_IF_ERROR(CarryPointAttributes(points, cloud, carry_ctx, result.mesh, result.statistics));
   }
   return result;
 }

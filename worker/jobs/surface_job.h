@@ -38,7 +38,7 @@ struct IamlsJobParams {
   // makes the lattice miss it everywhere, and the splits cost more than they mend).
   int wall_levels = -1;
   SurfaceExtractor extractor = SurfaceExtractor::kJ1a;
-  PointParams normals;
+  PointParams points;  // Normals, viewpoint, attributes, outliers.
   // Components whose bounding-box diagonal is below this many kernel widths (h/ε) are removed:
   // the kernel averages over all of such a component, so it cannot have resolved it; on noisy
   // scans they are bubbles of noise. 0 keeps every component; 0..100.
@@ -54,7 +54,7 @@ struct MlsJobParams {
   double cell_size = 1.0;  // Spacing of the extraction vertices in units of h.
   int refine_steps = 3;
   int wall_levels = -1;  // As IamlsJobParams::wall_levels; -1 = 2 (no noise estimate here).
-  PointParams normals;
+  PointParams points;    // Normals, viewpoint, attributes, outliers.
 };
 template <mls::AlgebraicFit kFit>
 using AlgebraicJobParams = MlsJobParams<mls::AlgebraicMlsParams, kFit>;
@@ -69,7 +69,7 @@ struct PuJobParams {
   pu::PuParams fit;
   pu::PuExtractParams extract;
   pu::PuTileParams tiles;
-  PointParams normals;
+  PointParams points;         // Normals, viewpoint, attributes, outliers.
   bool keep_function = true;  // Store the fitted function (kPuFunctionArtifact) and the traced surface
                               // (kPuSurfaceArtifact) for csg and edit jobs.
 };

@@ -5,6 +5,7 @@
 #pragma once
 
 #include <CLI/CLI.hpp>
+#include <array>
 #include <cstdint>
 #include <optional>
 #include <string>
@@ -19,6 +20,7 @@ namespace lsqsurf::cli {
 
 namespace v1 = lsqsurf::v1;
 namespace client = lsqsurf::client;
+using lsqsurf::core::StrAppend;
 using lsqsurf::core::StrCat;
 
 // Exit codes: 0 success; 1 the job failed or the server refused the request; 2 the job was
@@ -123,11 +125,19 @@ struct JobFlags {
 };
 
 // A cloud file's upload: .drc as it is (one part), other formats read and encoded with unit
-// normals in parts of client::kPointsPerPart points. An empty path uploads nothing. `sensor`,
-// when given, receives where the file says its sensor stood (a PCD's VIEWPOINT), if it says.
+// normals in parts of client::kPointsPerPart points. An empty path uploads nothing. `facts`,
+// when given, receives what the file says beyond its points.
+// What a cloud file says beyond its points.
+struct CloudFileFacts {
+  // Where its sensors stood (a PCD's VIEWPOINT, a PTX file's scanners); with more than one, each
+  // point's attribute "scan" says whose it is.
+  std::vector<lsqsurf::core::Vec3d> sensors;
+  std::array<double, 3> shift = {0, 0, 0};  // Taken off its coordinates (a georeferenced LAS file's).
+};
+
 absl::StatusOr<client::PartSource> CloudUpload(const std::string& path,
                                                int64_t points_per_part = client::kPointsPerPart,
-                                               std::optional<lsqsurf::core::Vec3d>* sensor = nullptr);
+                                               CloudFileFacts* facts = nullptr);
 // The same in one part, for jobs that take their cloud whole (track); "" for an empty path.
 absl::StatusOr<std::string> CloudBytes(const std::string& path);
 
@@ -212,7 +222,7 @@ struct SurfaceCommand {
 
   // Fills EditParams from `lsqsurf edit ID --ball x,y,z,r --set degree=N | --refit error_threshold=E | --remove`.
   absl::Status ApplyEdit(v1::JobSpec* spec) const;
-  absl::Status UseFileViewpoint(const std::optional<lsqsurf::core::Vec3d>& sensor, bool quiet, v1::JobSpec* spec) const;
+  absl::Status UseFileFacts(const CloudFileFacts& facts, bool quiet, v1::JobSpec* spec) const;
 
   int Run(const Globals& g, bool wait) const;
   void AddPartFlag(CLI::App* command) {

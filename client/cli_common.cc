@@ -86,7 +86,7 @@ namespace {
 
 // `points_per_part` points at most in a part; a .drc file is one part as it is.
 absl::StatusOr<client::PartSource> CloudFileParts(const std::string& path, int64_t points_per_part,
-                                                  std::optional<lsqsurf::core::Vec3d>* sensor) {
+                                                  CloudFileFacts* facts) {
   if (path.empty()) return client::PartSource([] { return absl::StatusOr<std::string>(std::string()); });
   if (lsqsurf::io::FormatFromPath(path).value_or(lsqsurf::io::FileFormat::kPly) == lsqsurf::io::FileFormat::kDraco) {
     auto bytes = lsqsurf::io::ReadFileBytes(path);
@@ -97,7 +97,7 @@ absl::StatusOr<client::PartSource> CloudFileParts(const std::string& path, int64
   // Read as it is sent: the client holds one part of a cloud larger than its memory.
   auto points = lsqsurf::io::OpenPointStream(path);
   if (!points.ok()) return points.status();
-  if (sensor != nullptr) *sensor = (*points)->sensor_position();
+  if (facts != nullptr) *facts = {(*points)->sensor_positions(), (*points)->coordinate_shift()};
   auto parts = client::StreamParts(*std::move(points), {}, points_per_part);
   // Errors name the file (the readers' do already).
   return client::PartSource([parts, path]() -> absl::StatusOr<std::string> {
@@ -116,8 +116,8 @@ absl::StatusOr<std::string> CloudBytes(const std::string& path) {
 }
 
 absl::StatusOr<client::PartSource> CloudUpload(const std::string& path, int64_t points_per_part,
-                                               std::optional<lsqsurf::core::Vec3d>* sensor) {
-  return CloudFileParts(path, points_per_part, sensor);
+                                               CloudFileFacts* facts) {
+  return CloudFileParts(path, points_per_part, facts);
 }
 
 namespace {

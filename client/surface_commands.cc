@@ -45,18 +45,33 @@ absl::Status SurfaceCommand::ApplyEdit(v1::JobSpec* spec) const {
   return client::SetParamAssignment(spec, assignment);
 }
 
-// The sensor position a file gives becomes the job's viewpoint, unless --param viewpoint=... set
-// one (an empty one: none).
-absl::Status SurfaceCommand::UseFileViewpoint(const std::optional<lsqsurf::core::Vec3d>& sensor, bool quiet,
-                                              v1::JobSpec* spec) const {
-  if (!sensor.has_value()) return absl::OkStatus();
+// The sensor positions a file gives become the job's viewpoint, unless --param viewpoint=... set
+// one (an empty one: none); a shift of its coordinates is said, since the mesh keeps it.
+absl::Status SurfaceCommand::UseFileFacts(const CloudFileFacts& facts, bool quiet, v1::JobSpec* spec) const {
+  if (!quiet && facts.shift != std::array<double, 3>{0, 0, 0}) {
+    std::fprintf(stderr,
+                 "the file's coordinates are too large for float precision: the points and the mesh are moved by "
+                 "(-%s, -%s, -%s); add it back to place the mesh\n",
+                 StrCat(facts.shift[0]).c_str(), StrCat(facts.shift[1]).c_str(), StrCat(facts.shift[2]).c_str());
+  }
+  if (facts.sensors.empty()) return absl::OkStatus();
   for (const std::string& p : job.params) {
     if (p.rfind("viewpoint=", 0) == 0) return absl::OkStatus();
   }
-  const std::string value = StrCat(sensor->x(), ",", sensor->y(), ",", sensor->z());
+  std::string value;
+  for (const lsqsurf::core::Vec3d& s : facts.sensors) {
+    StrAppend(&value, value.empty() ? "" : ",", s.x(), ",", s.y(), ",", s.z());
+  }
   if (!quiet) {
-    std::fprintf(stderr, "the file's sensor stood at (%s): estimated normals face it (--param viewpoint= to not)\n",
-                 value.c_str());
+    if (facts.sensors.size() == 1) {
+      std::fprintf(stderr, "the file's sensor stood at (%s): estimated normals face it (--param viewpoint= to not)\n",
+                   value.c_str());
+    } else {
+      std::fprintf(stderr,
+                   "the file holds %zu scans with their scanners' positions: each point's estimated normal faces "
+                   "its own scanner (--param viewpoint= to not)\n",
+                   facts.sensors.size());
+    }
   }
   return client::SetParam(spec, "viewpoint", value);
 }
@@ -79,10 +94,10 @@ int SurfaceCommand::Run(const Globals& g, bool wait) const {
     if (!upload.ok()) return Fail(std::string(upload.status().message()));
     accepted = c.Submit(*spec, upload->input, {}, upload->cells);
   } else {
-    std::optional<lsqsurf::core::Vec3d> sensor;
-    auto parts = CloudUpload(input, part_points, &sensor);
+    CloudFileFacts facts;
+    auto parts = CloudUpload(input, part_points, &facts);
     if (!parts.ok()) return Fail(std::string(parts.status().message()));
-    if (absl::Status s = UseFileViewpoint(sensor, g.quiet, &*spec); !s.ok()) return Fail(std::string(s.message()));
+    if (absl::Status s = UseFileFacts(facts, g.quiet, &*spec); !s.ok()) return Fail(std::string(s.message()));
     // A file that turns out unreadable while it is sent is this side's failure, not the server's.
     absl::Status unreadable;
     accepted = c.SubmitParts(*spec, [&]() -> absl::StatusOr<std::string> {

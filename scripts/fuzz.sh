@@ -15,7 +15,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-targets_all=(ply pcd obj xyz vtk_volume vtu velocity_grid draco uploads job_spec)
+targets_all=(ply pcd las ptx obj xyz vtk_volume vtu velocity_grid draco uploads job_spec)
 
 bash scripts/install-deps.sh --with-fuzz >/dev/null
 cmake --preset fuzz >/dev/null

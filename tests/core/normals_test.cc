@@ -202,7 +202,7 @@ TEST(NormalEstimation, ASingleViewsNormalsFaceItsSensor) {
     ASSERT_GT(view.size(), 9000u);
     LocalJobContext ctx;
     NormalEstimationParams params;
-    params.viewpoint = eye;
+    params.viewpoints = {eye};
     auto normals = EstimateNormals(view.positions, params, ctx);
     ASSERT_TRUE(normals.ok()) << normals.status();
     const AngleReport report = Compare(*normals, view.normals);
@@ -214,6 +214,37 @@ TEST(NormalEstimation, ASingleViewsNormalsFaceItsSensor) {
       ASSERT_GE((*normals)[i].cast<double>().dot(eye - view.positions[i].cast<double>()), -1e-3) << i;
     }
   }
+}
+
+// Two stations' scans of one scene, merged: each point's normal faces its own scanner. With the
+// first station's position for all, the second's far side turns the wrong way.
+TEST(NormalEstimation, MergedStationsNormalsFaceEachPointsOwnScanner) {
+  const Vec3d eyes[2] = {Vec3d(0, -2.5, 1.6), Vec3d(0.4, 2.6, 1.4)};
+  PointCloud merged;
+  std::vector<uint32_t> station;
+  for (uint32_t s = 0; s < 2; ++s) {
+    const PointCloud view = testing::BallOnATableView(eyes[s]);
+    merged.positions.insert(merged.positions.end(), view.positions.begin(), view.positions.end());
+    merged.normals.insert(merged.normals.end(), view.normals.begin(), view.normals.end());
+    station.insert(station.end(), view.size(), s);
+  }
+  LocalJobContext ctx;
+  NormalEstimationParams params;
+  params.viewpoints = {eyes[0], eyes[1]};
+  params.station = station;
+  auto normals = EstimateNormals(merged.positions, params, ctx);
+  ASSERT_TRUE(normals.ok()) << normals.status();
+  const AngleReport report = Compare(*normals, merged.normals);
+  EXPECT_LT(report.flipped, static_cast<int>(merged.size() / 1000)) << "of " << merged.size();
+
+  params.station.clear();
+  auto one_eye = EstimateNormals(merged.positions, params, ctx);
+  ASSERT_TRUE(one_eye.ok());
+  EXPECT_GT(Compare(*one_eye, merged.normals).flipped, static_cast<int>(merged.size() / 100));
+
+  params.station = station;
+  params.viewpoints = {eyes[0]};
+  EXPECT_EQ(EstimateNormals(merged.positions, params, ctx).status().code(), absl::StatusCode::kInvalidArgument);
 }
 
 }  // namespace

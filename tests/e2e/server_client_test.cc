@@ -28,6 +28,7 @@
 #include "tests/test_shapes.h"
 #include "worker/core/mesh_metrics.h"
 #include "worker/io/files.h"
+#include "worker/io/pts_ptx.h"
 #include "worker/io/volume_formats.h"
 #include "worker/volume/synthetic.h"
 
@@ -188,6 +189,34 @@ TEST_F(EndToEnd, APcdViewsViewpointTurnsItsSurfaceTowardTheCamera) {
   const ClientRun unset = Client(server.address(), "reconstruct " + in + " -o " + out + " --stats --param viewpoint=");
   ASSERT_EQ(unset.code, 0) << unset.output;
   EXPECT_EQ(unset.output.find("normals_toward_viewpoint"), std::string::npos) << unset.output;
+}
+
+// Two stations of a terrestrial scanner exported as PTX: the client passes both positions on,
+// each point's normal faces its own scanner, and the surface faces one of them everywhere.
+TEST_F(EndToEnd, APtxFilesStationsEachTurnTheirOwnPointsTowardThem) {
+  Server server;
+  ASSERT_NO_FATAL_FAILURE(server.Start(dir_ / "data"));
+  const core::Vec3d eyes[2] = {core::Vec3d(0, -2.5, 1.6), core::Vec3d(0.4, 2.6, 1.4)};
+  core::PointCloud views[2] = {testing::BallOnATableView(eyes[0]), testing::BallOnATableView(eyes[1])};
+  for (core::PointCloud& v : views) v.normals.clear();
+  const std::string in = (dir_ / "stations.ptx").string();
+  ASSERT_TRUE(io::WriteFileAtomically(in, io::EncodePtx({{eyes[0], &views[0]}, {eyes[1], &views[1]}})).ok());
+  const std::string out = (dir_ / "stations.ply").string();
+  const ClientRun r = Client(server.address(), "reconstruct " + in + " -o " + out + " --stats");
+  ASSERT_EQ(r.code, 0) << r.output;
+  EXPECT_NE(r.output.find("normals_toward_viewpoint = 2"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("holds 2 scans"), std::string::npos) << r.output;
+  auto mesh = io::ReadMeshFile(out);
+  ASSERT_TRUE(mesh.ok()) << mesh.status();
+  double facing = 0, total = 0;
+  for (const core::Triangle& t : mesh->faces) {
+    const core::Vec3d a = mesh->vertices[t[0]].cast<double>(), b = mesh->vertices[t[1]].cast<double>(),
+                      c = mesh->vertices[t[2]].cast<double>();
+    const core::Vec3d normal = (b - a).cross(c - a), centre = (a + b + c) / 3;
+    total += normal.norm();
+    if (normal.dot(eyes[0] - centre) > 0 || normal.dot(eyes[1] - centre) > 0) facing += normal.norm();
+  }
+  EXPECT_GT(facing / total, 0.99);
 }
 
 // A coloured scan keeps its colour: every method's mesh carries red, green and blue, written as

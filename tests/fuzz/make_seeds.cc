@@ -10,9 +10,11 @@
 #include "worker/core/sphere_mesh.h"
 #include "worker/io/draco_codec.h"
 #include "worker/io/files.h"
+#include "worker/io/las.h"
 #include "worker/io/obj_xyz.h"
 #include "worker/io/pcd.h"
 #include "worker/io/ply.h"
+#include "worker/io/pts_ptx.h"
 #include "worker/io/volume_codec.h"
 #include "worker/io/volume_formats.h"
 #include "worker/io/vtk_grid.h"
@@ -62,6 +64,15 @@ int main(int argc, char** argv) {
   Write("pcd", "cloud_ascii.pcd", io::EncodePcd(coloured, io::PcdEncoding::kAscii));
   Write("pcd", "cloud_binary.pcd", io::EncodePcd(coloured, io::PcdEncoding::kBinary));
   Write("pcd", "cloud_compressed.pcd", io::EncodePcd(coloured, io::PcdEncoding::kBinaryCompressed));
+  coloured.attributes.push_back({"classification", std::vector<float>(cloud.size(), 2.0f)});
+  Write("las", "cloud_1_2_format3.las", io::EncodeLas(coloured, {.version_minor = 2, .point_format = 3}));
+  Write("las", "cloud_1_4_format10.las", io::EncodeLas(coloured, {.version_minor = 4, .point_format = 10}));
+  core::PointCloud half = coloured;
+  half.positions.resize(cloud.size() / 2);
+  for (auto& a : half.attributes) a.values.resize(half.positions.size());
+  Write("ptx", "two_stations.ptx",
+        io::EncodePtx({{core::Vec3d(0, 0, 3), &half, half.size(), 1}, {core::Vec3d(2, 1, 0), &coloured}}));
+  Write("ptx", "cloud.pts", "3\n1 2 3 -5 10 20 30\n4 5 6 0 1 2 3\n7 8 9 100 4 5 6\n");
   Write("obj", "mesh.obj", io::EncodeObj(mesh));
   Write("xyz", "cloud.xyzn", io::EncodeXyz(cloud));
   core::PointCloud bare = cloud;

@@ -10,6 +10,7 @@
 #include "worker/core/kd_tree.h"
 #include "worker/core/parallel.h"
 #include "worker/core/status.h"
+#include "worker/core/strings.h"
 
 namespace lsqsurf::core {
 
@@ -19,6 +20,12 @@ absl::Status Validate(const NormalEstimationParams& params) {
   }
   if (params.scales < 1 || params.scales > 4) {
     return absl::InvalidArgumentError("normal estimation scales must be between 1 and 4");
+  }
+  for (uint32_t s : params.station) {
+    if (s >= params.viewpoints.size()) {
+      return absl::InvalidArgumentError(StrCat("a point's scan is ", s, " but the viewpoint gives only ",
+                                               params.viewpoints.size(), " sensor positions"));
+    }
   }
   return absl::OkStatus();
 }
@@ -211,17 +218,21 @@ absl::Status VoteSigns(const std::vector<uint64_t>& offset, const std::vector<ui
 // not turned by the viewpoint alone.
 constexpr double kGrazingCosine = 0.17;
 
-// Turns each normal toward `viewpoint`; those seen nearly edge-on take the sign their
-// confidently turned graph neighbours agree on, and keep the viewpoint's where none has one.
-absl::Status OrientTowardViewpoint(std::span<const Vec3f> points, const Vec3d& viewpoint,
+// Turns each normal toward its sensor; those seen nearly edge-on take the sign their
+// confidently turned graph neighbours agree on, and keep the sensor's where none has one.
+absl::Status OrientTowardViewpoint(std::span<const Vec3f> points, const NormalEstimationParams& params,
                                    const std::vector<uint32_t>& knn, size_t k, JobContext& ctx,
                                    std::vector<Vec3f>& normals) {
   const size_t n = points.size();
+  if (!params.station.empty() && params.station.size() != n) {
+    return absl::InvalidArgumentError(StrCat(params.station.size(), " scan indices for ", n, " points"));
+  }
   std::vector<uint8_t> confident(n, 0);
   absl::Status status = ParallelFor(
       n, 4096,
       [&](size_t begin, size_t end) {
         for (size_t i = begin; i < end; ++i) {
+          const Vec3d& viewpoint = params.viewpoints[params.station.empty() ? 0 : params.station[i]];
           const Vec3d sight = viewpoint - points[i].cast<double>();
           const double length = sight.norm();
           const double cosine = length > 0 ? normals[i].cast<double>().dot(sight) / length : 1.0;
@@ -291,9 +302,9 @@ absl::StatusOr<std::vector<Vec3f>> EstimateNormals(std::span<const Vec3f> points
       },
       &ctx, [&](double f) { pca_ctx.Report(f); });
   if (!status.ok()) return status;
-  if (params.viewpoint.has_value()) {
+  if (!params.viewpoints.empty()) {
     SubContext orient_ctx(ctx, "orienting normals toward the sensor", 0.6, 1.0);
-    LSQSURF_RETURN_IF_ERROR(OrientTowardViewpoint(points, *params.viewpoint, knn, k, orient_ctx, normals));
+    LSQSURF_RETURN_IF_ERROR(OrientTowardViewpoint(points, params, knn, k, orient_ctx, normals));
     orient_ctx.Report(1.0);
     return normals;
   }

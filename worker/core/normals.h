@@ -14,14 +14,14 @@
 // that reached it. Each connected part is finally turned outward: the sign that
 // makes Σ (p_i − centroid) · n_i positive, which is outward for closed, roughly star-shaped parts.
 //
-// Where the sensor's position is known (a single view, or one scanner station), no tree is
-// needed: a sensor sees only surfaces that face it, so each normal is turned toward it, as
+// Where the sensor's position is known (a single view, or each point's scanner station), no tree
+// is needed: a sensor sees only surfaces that face it, so each normal is turned toward it, as
 // PCL's and Open3D's camera orientation do. Only points seen nearly edge-on (their normal
 // within about 10° of square to the line of sight, where the PCA sign toward the sensor is
 // noise) take the sign on which their confidently turned neighbours agree.
 #pragma once
 
-#include <optional>
+#include <cstdint>
 #include <vector>
 
 #include "absl/status/statusor.h"
@@ -36,8 +36,11 @@ struct NormalEstimationParams {
   // plain PCA of the k nearest. At σ = 0.1 % of the diagonal on a torus whose tube is 1 % of it,
   // four sizes turn 0.1 % of the normals the wrong way against 4.6 % with one.
   int scales = 4;
-  // The sensor's position, when known: every normal is turned toward it (above).
-  std::optional<Vec3d> viewpoint;
+  // Where the sensors stood, when known: every normal is turned toward its own (above); empty:
+  // unknown, oriented by propagation.
+  std::vector<Vec3d> viewpoints;
+  // Which of `viewpoints` saw each point (a scan index per point); empty: the first saw all.
+  std::vector<uint32_t> station;
 };
 
 absl::Status Validate(const NormalEstimationParams& params);

@@ -13,6 +13,7 @@
 #include "worker/core/byte_view.h"
 #include "worker/core/strings.h"
 #include "worker/io/obj_xyz.h"
+#include "worker/io/pts_ptx.h"
 
 namespace lsqsurf::io {
 
@@ -24,16 +25,45 @@ absl::StatusOr<FileFormat> FormatFromPath(std::string_view path) {
   if (ext == ".xyz" || ext == ".xyzn" || ext == ".txt") return FileFormat::kXyz;
   if (ext == ".drc") return FileFormat::kDraco;
   if (ext == ".pcd") return FileFormat::kPcd;
-  if (ext == ".laz" || ext == ".e57") {
+  if (ext == ".las") return FileFormat::kLas;
+  if (ext == ".pts") return FileFormat::kPts;
+  if (ext == ".ptx") return FileFormat::kPtx;
+  if (ext == ".laz") {
+    return absl::InvalidArgumentError(core::StrCat(
+        path,
+        ": .laz files cannot be read here (no LAZ library in Debian 12); decompress it to .las first, e.g. with "
+        "laszip -i in.laz -o out.las, or pdal translate in.laz out.las"));
+  }
+  if (ext == ".e57") {
     return absl::InvalidArgumentError(
         core::StrCat(path, ": ", ext,
-                     " files cannot be read here (no library for them); convert the file to .ply or .pcd first, "
-                     "e.g. with PDAL (pdal translate in",
-                     ext, " out.ply) or CloudCompare"));
+                     " files cannot be read here (no E57 library in Debian 12); convert the file to .ply, .pcd, "
+                     ".las or .ptx first, e.g. with PDAL (pdal translate in.e57 out.las) or CloudCompare"));
   }
-  return absl::InvalidArgumentError(
-      core::StrCat(path, ": unsupported file type '", ext, "' (use .ply, .pcd, .obj, .xyz, .xyzn or .drc)"));
+  return absl::InvalidArgumentError(core::StrCat(path, ": unsupported file type '", ext,
+                                                 "' (use .ply, .pcd, .las, .pts, .ptx, .obj, .xyz, .xyzn or .drc)"));
 }
+
+namespace {
+
+// The point-cloud-only formats, parsed whole.
+absl::StatusOr<core::PointCloud> ParseCloudOnly(FileFormat format, std::string_view bytes, const std::string& path) {
+  switch (format) {
+    case FileFormat::kXyz: return ParseXyz(bytes, path);
+    case FileFormat::kPcd: return ParsePcd(bytes, path);
+    case FileFormat::kLas: return ParseLas(bytes, path);
+    case FileFormat::kPts: return ParsePts(bytes, path);
+    case FileFormat::kPtx: return ParsePtx(bytes, path);
+    default: return absl::InternalError("not a point-cloud-only format");
+  }
+}
+
+bool CloudOnly(FileFormat format) {
+  return format == FileFormat::kXyz || format == FileFormat::kPcd || format == FileFormat::kLas ||
+         format == FileFormat::kPts || format == FileFormat::kPtx;
+}
+
+}  // namespace
 
 absl::StatusOr<std::string> ReadFileBytes(const std::string& path, uint64_t max_bytes) {
   std::error_code ec;
@@ -149,8 +179,11 @@ absl::StatusOr<core::TriangleMesh> ReadMeshFile(const std::string& path) {
       return mesh;
     }
     case FileFormat::kXyz:
-    case FileFormat::kPcd: {
-      auto cloud = *format == FileFormat::kXyz ? ParseXyz(*bytes, path) : ParsePcd(*bytes, path);
+    case FileFormat::kPcd:
+    case FileFormat::kLas:
+    case FileFormat::kPts:
+    case FileFormat::kPtx: {
+      auto cloud = ParseCloudOnly(*format, *bytes, path);
       if (!cloud.ok()) return cloud.status();
       return MeshFromCloud(*std::move(cloud));
     }
@@ -161,11 +194,10 @@ absl::StatusOr<core::TriangleMesh> ReadMeshFile(const std::string& path) {
 absl::StatusOr<core::PointCloud> ReadPointCloudFile(const std::string& path) {
   auto format = FormatFromPath(path);
   if (!format.ok()) return format.status();
-  if (*format == FileFormat::kXyz || *format == FileFormat::kDraco || *format == FileFormat::kPcd) {
+  if (CloudOnly(*format) || *format == FileFormat::kDraco) {
     auto bytes = ReadFileBytes(path);
     if (!bytes.ok()) return bytes.status();
-    if (*format == FileFormat::kXyz) return ParseXyz(*bytes, path);
-    if (*format == FileFormat::kPcd) return ParsePcd(*bytes, path);
+    if (CloudOnly(*format)) return ParseCloudOnly(*format, *bytes, path);
     auto cloud = DecodeDracoPointCloud(*bytes);
     if (!cloud.ok()) return absl::InvalidArgumentError(core::StrCat(path, ": ", cloud.status().message()));
     return cloud;
@@ -195,6 +227,16 @@ absl::Status WriteMeshFile(const std::string& path, const core::TriangleMesh& me
                                                        ".ply, .obj or .drc"));
       }
       return WriteFileAtomically(path, EncodePcd(CloudFromMesh(mesh), PcdEncoding::kBinaryCompressed));
+    case FileFormat::kLas:
+      if (!mesh.faces.empty()) {
+        return absl::InvalidArgumentError(
+            core::StrCat(path, ": a .las file holds points only; write the mesh as .ply, .obj or .drc"));
+      }
+      return WriteFileAtomically(path, EncodeLas(CloudFromMesh(mesh)));
+    case FileFormat::kPts:
+    case FileFormat::kPtx:
+      return absl::InvalidArgumentError(
+          core::StrCat(path, ": .pts and .ptx are read, not written here; write points as .ply, .pcd or .las"));
   }
   return absl::InternalError("unreachable");
 }

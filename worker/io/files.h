@@ -1,8 +1,9 @@
 // worker/io/files.h — reading and writing geometry files by extension, atomically.
 //
-// Extensions: .ply, .obj, .xyz / .xyzn / .txt (point lists), .drc (Draco), .pcd (point clouds
-// only). Readers load the whole file (bounded by `max_bytes`) and hand it to the strict parsers.
-// Formats with no reader here (.laz, .e57) are refused with the conversion that makes one.
+// Extensions: .ply, .obj, .xyz / .xyzn / .txt (point lists), .drc (Draco); point clouds only:
+// .pcd, .las, and the scanner exports .pts and .ptx (read, not written). Readers load the whole file (bounded by
+// `max_bytes`) and hand it to the strict parsers. Formats with no reader here (.laz, .e57) are refused with the
+// conversion that makes one.
 #pragma once
 
 #include <cstdint>
@@ -12,12 +13,13 @@
 #include "absl/status/statusor.h"
 #include "worker/core/geometry.h"
 #include "worker/io/draco_codec.h"
+#include "worker/io/las.h"
 #include "worker/io/pcd.h"
 #include "worker/io/ply.h"
 
 namespace lsqsurf::io {
 
-enum class FileFormat { kPly, kObj, kXyz, kDraco, kPcd };
+enum class FileFormat { kPly, kObj, kXyz, kDraco, kPcd, kLas, kPts, kPtx };
 
 // Errors: kInvalidArgument naming the unsupported extension.
 absl::StatusOr<FileFormat> FormatFromPath(std::string_view path);

@@ -8,11 +8,13 @@
 #include <algorithm>
 #include <cerrno>
 #include <cstring>
+#include <type_traits>
 
 #include "worker/core/status.h"
 #include "worker/core/strings.h"
 #include "worker/io/files.h"
 #include "worker/io/obj_xyz.h"
+#include "worker/io/pts_ptx.h"
 
 namespace lsqsurf::io {
 namespace {
@@ -24,43 +26,34 @@ absl::Status OpenError(const std::string& path, int error) {
   return absl::InvalidArgumentError(why);
 }
 
-// An XYZ list from its mapping.
-class XyzStream final : public PointStream {
+// A reader (XyzReader, PcdReader, LasReader, PtsReader, PtxReader) over a file's mapping: each
+// chunk read gives back the pages before it.
+template <class Reader>
+class MappedStream final : public PointStream {
  public:
-  explicit XyzStream(std::shared_ptr<const MappedFile> file)
-      : file_(std::move(file)), reader_(file_->bytes(), file_->path()) {}
-  absl::StatusOr<core::PointCloud> Next(size_t max_points) override {
-    core::PointCloud cloud;
-    LSQSURF_RETURN_IF_ERROR(reader_.Read(std::max<size_t>(max_points, 1), cloud));
-    file_->Release(reader_.offset());
-    return cloud;
+  MappedStream(std::shared_ptr<const MappedFile> file, std::unique_ptr<Reader> reader,
+               std::vector<core::Vec3d> sensors = {})
+      : file_(std::move(file)), reader_(std::move(reader)), sensors_(std::move(sensors)) {
+    // Readers that looked through the file when they opened (PTX's scan headers, LAS's colour
+    // sample) leave pages behind; they are read again from the cache when needed.
+    file_->Release(file_->bytes().size());
   }
-
- private:
-  std::shared_ptr<const MappedFile> file_;
-  XyzReader reader_;
-};
-
-// A PCD file from its mapping.
-class PcdStream final : public PointStream {
- public:
-  PcdStream(std::shared_ptr<const MappedFile> file, std::unique_ptr<PcdReader> reader)
-      : file_(std::move(file)), reader_(std::move(reader)) {}
   absl::StatusOr<core::PointCloud> Next(size_t max_points) override {
     core::PointCloud cloud;
     LSQSURF_RETURN_IF_ERROR(reader_->Read(std::max<size_t>(max_points, 1), cloud));
     file_->Release(reader_->offset());
     return cloud;
   }
-  std::optional<core::Vec3d> sensor_position() const override {
-    const PcdInfo& info = reader_->info();
-    if (!info.has_viewpoint) return std::nullopt;
-    return core::Vec3d(info.viewpoint[0], info.viewpoint[1], info.viewpoint[2]);
+  std::vector<core::Vec3d> sensor_positions() const override { return sensors_; }
+  std::array<double, 3> coordinate_shift() const override {
+    if constexpr (std::is_same_v<Reader, LasReader>) return reader_->info().shift;
+    return {0, 0, 0};
   }
 
  private:
   std::shared_ptr<const MappedFile> file_;
-  std::unique_ptr<PcdReader> reader_;
+  std::unique_ptr<Reader> reader_;
+  std::vector<core::Vec3d> sensors_;
 };
 
 // A cloud read whole, handed out in chunks.
@@ -130,11 +123,17 @@ void MappedFile::Release(size_t before) const {
 absl::StatusOr<std::unique_ptr<PointStream>> OpenPointStream(const std::string& path) {
   auto format = FormatFromPath(path);
   if (!format.ok()) return format.status();
-  if (*format == FileFormat::kPly || *format == FileFormat::kXyz || *format == FileFormat::kPcd) {
+  if (*format != FileFormat::kObj && *format != FileFormat::kDraco) {
     auto file = MappedFile::Open(path);
     if (!file.ok()) return file.status();
-    if (*format == FileFormat::kXyz) return StreamXyz(*std::move(file));
-    if (*format == FileFormat::kPcd) return StreamPcd(*std::move(file));
+    switch (*format) {
+      case FileFormat::kXyz: return StreamXyz(*std::move(file));
+      case FileFormat::kPcd: return StreamPcd(*std::move(file));
+      case FileFormat::kLas: return StreamLas(*std::move(file));
+      case FileFormat::kPts: return StreamPts(*std::move(file));
+      case FileFormat::kPtx: return StreamPtx(*std::move(file));
+      default: break;
+    }
     auto stream = StreamPlyVertices(*std::move(file));
     if (!stream.ok() || *stream != nullptr) return stream;
   }
@@ -146,11 +145,34 @@ absl::StatusOr<std::unique_ptr<PointStream>> OpenPointStream(const std::string& 
 absl::StatusOr<std::unique_ptr<PointStream>> StreamPcd(std::shared_ptr<const MappedFile> file) {
   auto reader = PcdReader::Open(file->bytes(), file->path());
   if (!reader.ok()) return reader.status();
-  return std::make_unique<PcdStream>(std::move(file), *std::move(reader));
+  std::vector<core::Vec3d> sensors;
+  if (const PcdInfo& info = (*reader)->info(); info.has_viewpoint) {
+    sensors.emplace_back(info.viewpoint[0], info.viewpoint[1], info.viewpoint[2]);
+  }
+  return std::make_unique<MappedStream<PcdReader>>(std::move(file), *std::move(reader), std::move(sensors));
+}
+
+absl::StatusOr<std::unique_ptr<PointStream>> StreamLas(std::shared_ptr<const MappedFile> file) {
+  auto reader = LasReader::Open(file->bytes(), file->path());
+  if (!reader.ok()) return reader.status();
+  return std::make_unique<MappedStream<LasReader>>(std::move(file), *std::move(reader));
+}
+
+absl::StatusOr<std::unique_ptr<PointStream>> StreamPtx(std::shared_ptr<const MappedFile> file) {
+  auto reader = PtxReader::Open(file->bytes(), file->path());
+  if (!reader.ok()) return reader.status();
+  std::vector<core::Vec3d> sensors = (*reader)->info().stations;
+  return std::make_unique<MappedStream<PtxReader>>(std::move(file), *std::move(reader), std::move(sensors));
+}
+
+std::unique_ptr<PointStream> StreamPts(std::shared_ptr<const MappedFile> file) {
+  auto reader = std::make_unique<PtsReader>(file->bytes(), file->path());
+  return std::make_unique<MappedStream<PtsReader>>(std::move(file), std::move(reader));
 }
 
 std::unique_ptr<PointStream> StreamXyz(std::shared_ptr<const MappedFile> file) {
-  return std::make_unique<XyzStream>(std::move(file));
+  auto reader = std::make_unique<XyzReader>(file->bytes(), file->path());
+  return std::make_unique<MappedStream<XyzReader>>(std::move(file), std::move(reader));
 }
 
 }  // namespace lsqsurf::io

@@ -648,9 +648,9 @@ absl::StatusOr<SurfaceResult> ReconstructSurface(const std::string& method, cons
     core::SubContext sub(ctx, "estimating normals", 0.0, normals_share);
     core::NormalEstimationParams np;
     np.neighbors = points.normal_neighbors;
-    if (points.viewpoint.size() == 3) {
-      np.viewpoint = core::Vec3d(points.viewpoint[0], points.viewpoint[1], points.viewpoint[2]);
-      result.statistics.emplace_back("normals_toward_viewpoint", 1);
+    LSQSURF_RETURN_IF_ERROR(ChooseViewpoints(points, cloud, np));
+    if (!np.viewpoints.empty()) {
+      result.statistics.emplace_back("normals_toward_viewpoint", static_cast<double>(np.viewpoints.size()));
     }
     auto estimated = core::EstimateNormals(cloud.positions, np, sub);
     if (!estimated.ok()) return estimated.status();

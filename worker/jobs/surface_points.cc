@@ -1,6 +1,7 @@
 #include "worker/jobs/surface_points.h"
 
 #include <chrono>
+#include <cmath>
 #include <limits>
 #include <string_view>
 
@@ -9,6 +10,11 @@
 #include "worker/core/strings.h"
 
 namespace lsqsurf::jobs {
+namespace {
+
+constexpr int kMaxViewpoints = 4096;  // Scanner stations of one job.
+
+}  // namespace
 
 const core::ParamTable<PointParams>& PointParamsTable() {
   static const auto* table = [] {
@@ -20,10 +26,11 @@ const core::ParamTable<PointParams>& PointParamsTable() {
                                                  "nearest neighbours of the normal estimate (2, 4 or 8 "
                                                  "times as many where these do not lie flat)")
         .RealList<&PointParams::viewpoint>(
-            "viewpoint", 3, -std::numeric_limits<double>::infinity(), std::numeric_limits<double>::infinity(),
-            "model units",
-            "where the sensor stood (x,y,z): estimated normals face it; empty = unknown (oriented by "
-            "propagation); the client sets it from a PCD file's VIEWPOINT")
+            "viewpoint", 3 * kMaxViewpoints, -std::numeric_limits<double>::infinity(),
+            std::numeric_limits<double>::infinity(), "model units",
+            "where the sensor stood (x,y,z): estimated normals face it; several x,y,z: one per scan, each "
+            "point's attribute scan naming its own; empty = unknown (oriented by propagation); the client "
+            "sets it from a PCD file's VIEWPOINT and a PTX file's scanner positions")
         .Text<&PointParams::point_attributes>(
             "point_attributes",
             "per-point attributes of the cloud carried to the mesh vertices, by name, comma-separated; empty = "
@@ -33,13 +40,41 @@ const core::ParamTable<PointParams>& PointParamsTable() {
             "remove isolated points first (their 8th neighbour 4 times farther than their neighbours' is; "
             "statistic outliers_removed)")
         .AddRule([](const PointParams& p) {
-          if (p.viewpoint.empty() || p.viewpoint.size() == 3) return absl::OkStatus();
+          if (p.viewpoint.size() % 3 == 0) return absl::OkStatus();
           return absl::InvalidArgumentError(
-              core::StrCat("viewpoint takes three numbers x,y,z (or none), not ", p.viewpoint.size()));
+              core::StrCat("viewpoint takes three numbers x,y,z per sensor (or none), not ", p.viewpoint.size()));
         });
     return t;
   }();
   return *table;
+}
+
+absl::Status ChooseViewpoints(const PointParams& points, const core::PointCloud& cloud,
+                              core::NormalEstimationParams& normals) {
+  const size_t count = points.viewpoint.size() / 3;
+  for (size_t v = 0; v < count; ++v) {
+    normals.viewpoints.emplace_back(points.viewpoint[3 * v], points.viewpoint[3 * v + 1], points.viewpoint[3 * v + 2]);
+  }
+  if (count <= 1) return absl::OkStatus();
+  const core::ScalarAttribute* scan = nullptr;
+  for (const core::ScalarAttribute& a : cloud.attributes) {
+    if (a.name == "scan" && a.values.size() == cloud.size()) scan = &a;
+  }
+  if (scan == nullptr) {
+    return absl::InvalidArgumentError(core::StrCat("viewpoint gives ", count,
+                                                   " sensor positions, but the cloud has no per-point attribute "
+                                                   "scan saying which saw each point"));
+  }
+  normals.station.reserve(cloud.size());
+  for (size_t i = 0; i < cloud.size(); ++i) {
+    const float s = scan->values[i];
+    if (!(s >= 0) || s >= static_cast<float>(count) || s != std::floor(s)) {
+      return absl::InvalidArgumentError(core::StrCat("point ", i, "'s scan is ", s, ", not one of the ", count,
+                                                     " sensor positions viewpoint gives (0 to ", count - 1, ")"));
+    }
+    normals.station.push_back(static_cast<uint32_t>(s));
+  }
+  return absl::OkStatus();
 }
 
 absl::Status CarryPointAttributes(const PointParams& points, const core::PointCloud& cloud, core::JobContext& ctx,

@@ -5,6 +5,7 @@
 #include "absl/status/status.h"
 #include "worker/core/geometry.h"
 #include "worker/core/job_context.h"
+#include "worker/core/normals.h"
 #include "worker/core/params.h"
 #include "worker/jobs/job.h"
 #include "worker/jobs/surface_params.h"
@@ -17,6 +18,12 @@ const core::ParamTable<PointParams>& PointParamsTable();
 // The cloud's per-point attributes `points` names (by default colour and intensity, those it
 // has) onto `mesh`'s vertices, with the statistics carried_attributes and carry_seconds.
 // Errors: kInvalidArgument naming an attribute the cloud lacks, kCancelled.
+// The sensors `points.viewpoint` gives, into `normals`: one position for every point, or several
+// with the cloud's per-point attribute "scan" naming each point's. Errors: kInvalidArgument (no
+// scan attribute, a scan index that is not one of the positions').
+absl::Status ChooseViewpoints(const PointParams& points, const core::PointCloud& cloud,
+                              core::NormalEstimationParams& normals);
+
 absl::Status CarryPointAttributes(const PointParams& points, const core::PointCloud& cloud, core::JobContext& ctx,
                                   core::TriangleMesh& mesh, Statistics& statistics);
 

@@ -86,8 +86,8 @@ int Compare(const std::string& reference, const std::string& candidate, size_t s
   std::printf(
       "chamfer            %.4e\nhausdorff          %.4e\nhausdorff_corners  %.4e\nnormal_consistency %.5f\n"
       "far_fraction       %.4e\nmean_ref_to_cand   %.4e\nmean_cand_to_ref   %.4e\ndiagonal           %.6g\n",
-      r->chamfer, r->hausdorff, r->hausdorff_with_vertices, r->normal_consistency, r->far_fraction,
-      r->mean_ref_to_cand, r->mean_cand_to_ref, r->diagonal);
+      r->chamfer, r->hausdorff, r->hausdorff_with_vertices, r->normal_consistency, r->far_fraction, r->mean_ref_to_cand,
+      r->mean_cand_to_ref, r->diagonal);
   return 0;
 }
 

@@ -8,7 +8,8 @@
 # libcpp-httplib-dev is the HTTP tests' client; chromium
 # shows it in the browser test;
 # libssl-dev hashes tokens and checks certificates; nginx-light is the gRPC balancer of the replica test; yamllint checks deploy/;
-# iproute2 and util-linux (ip, unshare, runuser) make the namespaces of scripts/netns-replicas.sh.
+# iproute2 and util-linux (ip, unshare, runuser) make the namespaces of scripts/netns-replicas.sh;
+# libembree-dev ray-casts the simulated sensors of bench/sensor_sim.cc.
 # --with-poisson also installs Open3D (libopen3d-dev, large), needed only by the benchmark
 # preset `bench-poisson` that runs screened Poisson side by side; --with-openvdb installs
 # libopenvdb-dev, needed only by the preset `bench-openvdb` (the level-set reference of the
@@ -26,7 +27,7 @@ packages=(
   libeigen3-dev libnanoflann-dev libdraco-dev draco
   libspdlog-dev libfmt-dev
   libgtest-dev libgmock-dev libbenchmark-dev
-  libssl-dev openssl libsqlite3-dev libpq-dev postgresql nginx-light yamllint prometheus-cpp-dev libabsl-dev libtbb-dev libcli11-dev zlib1g-dev libpugixml-dev liblzf-dev
+  libssl-dev openssl libsqlite3-dev libpq-dev postgresql nginx-light yamllint prometheus-cpp-dev libabsl-dev libtbb-dev libcli11-dev zlib1g-dev libpugixml-dev liblzf-dev libembree-dev
   iproute2 util-linux
   libegl-dev libgl-dev libopengl-dev libegl-mesa0 libgl1-mesa-dri libstb-dev
   pybind11-dev python3-dev python3-numpy python3-pytest python3-venv python3-pip python3-wheel python3-setuptools

@@ -1,0 +1,54 @@
+#!/usr/bin/env bash
+# Simulated sensors on known meshes, through a server with defaults, measured against the truth.
+#
+#   bench/sensor_bench.sh [MESH ...]     (default: the shared meshes)
+#
+# For each mesh: a depth camera's single view (PCD with its VIEWPOINT), four merged depth views
+# and a four-station terrestrial lidar (PTX with each sensor's position and 0.1 % registration
+# error), each reconstructed with PU and iaMLS; a clean sample of the same size with PU for the
+# time it costs on a clean cloud. Prints one row per run: wall time, the report's measures
+# (bench/sensor_sim.cc: facing, components, fragments, boundary edges, invented and covered
+# shares, mean distance to the truth, colour error). Needs a release build with Embree
+# (lsqsurf-sensor-sim). Leaves its files in $WORK (default a temporary folder).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+bin=build/release/bin
+work=${WORK:-$(mktemp -d)}
+mkdir -p "$work"
+meshes=("$@")
+if [[ ${#meshes[@]} -eq 0 ]]; then
+  shared=${SHARED_MESHES:-../shared/data/meshes}
+  meshes=("$shared"/stanford-bunny.obj "$shared"/spot.obj "$shared"/homer.obj "$shared"/fandisk.obj)
+fi
+port=$((20000 + RANDOM % 20000))
+"$bin"/lsqsurfd --listen 127.0.0.1:$port --data-dir "$work/server" --workers 1 >"$work/server.log" 2>&1 &
+server=$!
+trap 'kill $server 2>/dev/null || true' EXIT
+export LSQSURF_SERVER=127.0.0.1:$port
+for _ in $(seq 50); do "$bin"/lsqsurf -q methods >/dev/null 2>&1 && break; sleep 0.2; done
+
+run() {  # run NAME MESH SCAN METHOD
+  local name=$1 mesh=$2 scan=$3 method=$4 out="$work/$1.$4.ply" start end
+  start=$(date +%s.%N)
+  "$bin"/lsqsurf -q reconstruct "$scan" -o "$out" --method "$method" >"$work/$1.$4.log" 2>&1 || {
+    echo "$name $method FAILED: $(tail -1 "$work/$1.$4.log")"; return; }
+  end=$(date +%s.%N)
+  printf '%-28s %-6s wall %6.1f s  ' "$name" "$method" "$(echo "$end - $start" | bc)"
+  "$bin"/lsqsurf-sensor-sim report --truth "$mesh" --scan "$scan" --mesh "$out" |
+    awk '{printf "%s %s  ", $1, $2} END {print ""}'
+}
+
+for mesh in "${meshes[@]}"; do
+  base=$(basename "$mesh" .obj)
+  "$bin"/lsqsurf-sensor-sim depth "$mesh" -o "$work/$base.view.pcd" 2>/dev/null
+  "$bin"/lsqsurf-sensor-sim depth "$mesh" --views 4 -o "$work/$base.views.ptx" 2>/dev/null
+  "$bin"/lsqsurf-sensor-sim lidar "$mesh" -o "$work/$base.lidar.ptx" 2>/dev/null
+  points=$("$bin"/lsqsurf-sensor-sim report --truth "$mesh" --scan "$work/$base.view.pcd" --mesh "$mesh" |
+    awk '$1 == "scan_points" {print $2}')
+  "$bin"/lsqsurf sample "$mesh" -o "$work/$base.clean.ply" --points "$points" >/dev/null
+  run "$base.clean-$points" "$mesh" "$work/$base.clean.ply" pu
+  for scan in view.pcd views.ptx lidar.ptx; do
+    for method in pu iamls; do run "$base.$scan" "$mesh" "$work/$base.$scan" $method; done
+  done
+done
+echo "files in $work"

@@ -9,6 +9,7 @@
 #include <pybind11/pybind11.h>
 #include <pybind11/stl.h>
 
+#include <array>
 #include <cmath>
 #include <cstring>
 #include <memory>
@@ -21,6 +22,7 @@
 #include "worker/core/address.h"
 #include "worker/io/draco_codec.h"
 #include "worker/io/mesh_part.h"
+#include "worker/io/point_stream.h"
 
 namespace lsqsurf::python {
 namespace {
@@ -77,7 +79,8 @@ std::vector<core::Vec3f> ToVectors(const Points& array, const char* what) {
   return out;
 }
 
-core::PointCloud ToCloud(const Points& points, const std::optional<Points>& normals) {
+core::PointCloud ToCloud(const Points& points, const std::optional<Points>& normals,
+                         const py::dict& attributes = py::dict()) {
   core::PointCloud cloud;
   cloud.positions = ToVectors(points, "points");
   if (normals) {
@@ -88,6 +91,14 @@ core::PointCloud ToCloud(const Points& points, const std::optional<Points>& norm
       if (!(length > 0)) throw py::value_error("normals row " + std::to_string(i) + " is zero");
       cloud.normals[i] /= length;  // The server takes unit normals.
     }
+  }
+  for (const auto& [name, values] : attributes) {
+    const auto array = py::array_t<float, py::array::c_style | py::array::forcecast>::ensure(values);
+    const std::string key = py::str(name);
+    if (!array || array.ndim() != 1 || static_cast<size_t>(array.shape(0)) != cloud.size()) {
+      throw py::value_error("attribute " + key + " must have one value per point");
+    }
+    cloud.attributes.push_back({key, std::vector<float>(array.data(), array.data() + array.shape(0))});
   }
   return cloud;
 }
@@ -141,6 +152,46 @@ py::dict DecodeMeshPart(const py::bytes& bytes) {
   out["faces"] = faces;
   out["normals"] = VectorArray(part->normals);
   out["attributes"] = AttributeArrays(part->attributes);
+  return out;
+}
+
+// A point cloud file (any format the CLI reads) as NumPy arrays, with what the file says of its
+// sensors and of a shift of its coordinates.
+py::dict ReadCloud(const std::string& path) {
+  core::PointCloud cloud;
+  std::vector<core::Vec3d> sensors;
+  std::array<double, 3> shift{};
+  absl::Status read = [&]() -> absl::Status {
+    py::gil_scoped_release unlocked;
+    auto stream = io::OpenPointStream(path);
+    if (!stream.ok()) return stream.status();
+    sensors = (*stream)->sensor_positions();
+    shift = (*stream)->coordinate_shift();
+    for (;;) {
+      auto chunk = (*stream)->Next(size_t{1} << 20);
+      if (!chunk.ok()) return chunk.status();
+      if (chunk->size() == 0) return absl::OkStatus();
+      if (cloud.size() == 0) {
+        cloud = *std::move(chunk);
+        continue;
+      }
+      cloud.positions.insert(cloud.positions.end(), chunk->positions.begin(), chunk->positions.end());
+      cloud.normals.insert(cloud.normals.end(), chunk->normals.begin(), chunk->normals.end());
+      for (size_t a = 0; a < cloud.attributes.size() && a < chunk->attributes.size(); ++a) {
+        auto& to = cloud.attributes[a].values;
+        to.insert(to.end(), chunk->attributes[a].values.begin(), chunk->attributes[a].values.end());
+      }
+    }
+  }();
+  ThrowIfInvalid(read);
+  py::array_t<double> stations({static_cast<py::ssize_t>(sensors.size()), py::ssize_t{3}});
+  for (size_t i = 0; i < sensors.size(); ++i) std::memcpy(stations.mutable_data() + 3 * i, sensors[i].data(), 24);
+  py::dict out;
+  out["points"] = VectorArray(cloud.positions);
+  out["normals"] = VectorArray(cloud.normals);
+  out["attributes"] = AttributeArrays(cloud.attributes);
+  out["sensors"] = stations;
+  out["shift"] = py::make_tuple(shift[0], shift[1], shift[2]);
   return out;
 }
 
@@ -254,8 +305,8 @@ class Connection {
 
   // A cloud in parts of `part_points` points, each coded as it is sent.
   std::string SubmitCloud(const Spec& spec, const Points& points, const std::optional<Points>& normals,
-                          int64_t part_points) {
-    auto cloud = std::make_shared<const core::PointCloud>(ToCloud(points, normals));
+                          const py::dict& attributes, int64_t part_points) {
+    auto cloud = std::make_shared<const core::PointCloud>(ToCloud(points, normals, attributes));
     return Unary([&] { return client_.SubmitParts(spec.spec(), client::CloudParts(cloud, {}, part_points)); });
   }
   std::string Submit(const Spec& spec, const py::bytes& input, const py::bytes& velocity, const py::bytes& cells) {
@@ -370,12 +421,13 @@ PYBIND11_MODULE(_native, m) {
       .def("cancel", &Connection::Cancel, py::arg("id"))
       .def("delete", &Connection::Delete, py::arg("id"))
       .def("submit_cloud", &Connection::SubmitCloud, py::arg("spec"), py::arg("points"), py::arg("normals"),
-           py::arg("part_points"))
+           py::arg("attributes"), py::arg("part_points"))
       .def("submit", &Connection::Submit, py::arg("spec"), py::arg("input"), py::arg("velocity"), py::arg("cells"))
       .def("watch", &Connection::Watch, py::arg("id"), py::arg("on_event"))
       .def("fetch", &Connection::Fetch, py::arg("id"), py::arg("name"))
       .def("render", &Connection::Render, py::arg("id"), py::arg("name"), py::arg("options"));
   m.def("decode_mesh", &DecodeMesh, py::arg("data"));
+  m.def("read_cloud", &ReadCloud, py::arg("path"));
   m.def("decode_mesh_part", &DecodeMeshPart, py::arg("data"));
   m.def("encode_cloud", &EncodeCloud, py::arg("points"), py::arg("normals"), py::arg("exact"));
   m.def("encode_volume", &EncodeVolume, py::arg("points"), py::arg("corners"), py::arg("offsets"), py::arg("types"),

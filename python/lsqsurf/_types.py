@@ -66,6 +66,37 @@ class Job:
         )
 
 
+class Cloud:
+    """A point cloud as a file holds it (``read_cloud``): ``points`` (N×3 float32), ``normals``
+    (N×3, or 0×3 when the file has none), ``attributes`` (name -> one float32 per point: colour
+    as "red", "green", "blue" in 0..255, "intensity", ...), ``sensors`` (K×3: where the file
+    says its sensors stood, a PCD's VIEWPOINT or a PTX file's scanners; with more than one,
+    ``attributes["scan"]`` says whose each point is) and ``shift`` (subtracted from the file's
+    coordinates, as for a georeferenced LAS file, so that float keeps their precision)."""
+
+    def __init__(self, points, normals=None, attributes=None, sensors=None, shift=(0.0, 0.0, 0.0)):
+        self.points = np.asarray(points, dtype=np.float32).reshape(-1, 3)
+        self.normals = np.zeros((0, 3), np.float32) if normals is None else np.asarray(normals, np.float32)
+        self.attributes = dict(attributes or {})
+        self.sensors = np.zeros((0, 3)) if sensors is None else np.asarray(sensors, dtype=np.float64).reshape(-1, 3)
+        self.shift = tuple(float(v) for v in shift)
+
+    @property
+    def colors(self):
+        """N×3 uint8 colours, or None when the cloud has none."""
+        return _colors(self.attributes, len(self.points))
+
+    def __repr__(self):
+        return f"Cloud({len(self.points)} points, attributes {sorted(self.attributes)})"
+
+
+def _colors(attributes, count):
+    channels = [attributes.get(name) for name in ("red", "green", "blue")]
+    if any(c is None or len(c) != count for c in channels):
+        return None
+    return np.clip(np.rint(np.stack(channels, axis=1)), 0, 255).astype(np.uint8)
+
+
 class Mesh:
     """A triangle mesh: ``vertices`` (N×3 float32), ``faces`` (M×3 int64, counter-clockwise seen
     from outside), ``normals`` (N×3, or 0×3 when the result has none), ``attributes`` (name ->
@@ -82,6 +113,11 @@ class Mesh:
     @property
     def statistics(self):
         return self.job.statistics if self.job is not None else {}
+
+    @property
+    def colors(self):
+        """N×3 uint8 vertex colours (carried from a coloured cloud), or None when it has none."""
+        return _colors(self.attributes, len(self.vertices))
 
     def __repr__(self):
         return f"Mesh({len(self.vertices)} vertices, {len(self.faces)} faces)"
@@ -123,7 +159,9 @@ class Mesh:
         """A ``trimesh.Trimesh`` (needs the trimesh package)."""
         import trimesh  # noqa: PLC0415 - optional
 
-        return trimesh.Trimesh(vertices=self.vertices, faces=self.faces, process=False)
+        colors = self.colors
+        return trimesh.Trimesh(vertices=self.vertices, faces=self.faces, process=False,
+                               vertex_colors=colors if colors is not None else None)
 
     def to_open3d(self):
         """An ``open3d.geometry.TriangleMesh`` (needs the open3d package)."""
@@ -135,4 +173,6 @@ class Mesh:
         )
         if len(self.normals) == len(self.vertices):
             mesh.vertex_normals = open3d.utility.Vector3dVector(self.normals.astype(np.float64))
+        if self.colors is not None:
+            mesh.vertex_colors = open3d.utility.Vector3dVector(self.colors.astype(np.float64) / 255.0)
         return mesh

@@ -10,11 +10,20 @@ import numpy as np
 
 from . import _native, _params
 from ._errors import JobFailed
-from ._types import Job, Mesh
+from ._types import Cloud, Job, Mesh
 
 DEFAULT_ADDRESS = "127.0.0.1:50051"
 # VTK cell type codes by name, for Client.volume.
 CELL_TYPES = {"tetra": 10, "hexahedron": 12, "wedge": 13, "pyramid": 14, "quadratic_tetra": 24, "quadratic_hexahedron": 25}
+
+
+def read_cloud(path):
+    """The point cloud in a file the CLI reads (PLY, PCD, LAS, PTS, PTX, XYZ, OBJ, Draco) as a
+    Cloud, with its attributes and its sensors' positions. Raises ValueError for a file that
+    cannot be read, naming it and what is wrong."""
+    raw = _native.read_cloud(os.fspath(path))
+    normals = raw["normals"] if len(raw["normals"]) else None
+    return Cloud(raw["points"], normals, raw["attributes"], raw["sensors"], raw["shift"])
 
 
 def _pem(value):
@@ -102,19 +111,29 @@ class Client:
         return spec
 
     def submit(self, points=None, normals=None, *, method="pu", preview=None, mesh_bits=0, part_points=None,
-               **params):
-        """Uploads a point cloud (N×3, float32 or float64; ``normals`` N×3 or None) and returns
-        the accepted Job without waiting. ``params`` are the method's parameters (see
-        ``methods()``); ``preview`` a dict of view options to draw preview.png with;
-        ``mesh_bits`` the result's Draco position bits (0: chosen per mesh)."""
+               attributes=None, **params):
+        """Uploads a point cloud (N×3, float32 or float64; ``normals`` N×3 or None; a Cloud as
+        ``read_cloud`` gives, with its attributes and sensors) and returns the accepted Job
+        without waiting. ``attributes`` maps names to one value per point (colour as "red",
+        "green", "blue" in 0..255, "intensity", ...), carried to the mesh. ``params`` are the
+        method's parameters (see ``methods()``); ``preview`` a dict of view options to draw
+        preview.png with; ``mesh_bits`` the result's Draco position bits (0: chosen per mesh)."""
+        if isinstance(points, Cloud):
+            cloud = points
+            points, normals = cloud.points, cloud.normals if normals is None else normals
+            attributes = cloud.attributes if attributes is None else attributes
+            if len(cloud.sensors) and "viewpoint" not in params:
+                params["viewpoint"] = [float(v) for v in np.asarray(cloud.sensors).reshape(-1)]
         spec = self._spec(method, params, preview, mesh_bits)
         if points is None:
             return Job.from_json(self._connection.submit(spec, b"", b"", b""))
         points = _points(points, "points")
+        if normals is not None and len(normals) == 0:
+            normals = None
         if normals is not None:
             normals = _points(normals, "normals")
         per_part = int(part_points or _native.points_per_part)
-        return Job.from_json(self._connection.submit_cloud(spec, points, normals, per_part))
+        return Job.from_json(self._connection.submit_cloud(spec, points, normals, dict(attributes or {}), per_part))
 
     def watch(self, job):
         """The job's states as they change, as an iterator of Job, ending with its final state."""
@@ -190,10 +209,11 @@ class Client:
             job,
         )
 
-    def reconstruct(self, points, normals=None, method="pu", progress=None, **params):
-        """A surface through the points: submits, waits (``progress(job)`` on each state) and
-        returns the Mesh. Keyword parameters are the method's (``methods()[method]``)."""
-        job = self.submit(points, normals, method=method, **params)
+    def reconstruct(self, points, normals=None, method="pu", progress=None, attributes=None, **params):
+        """A surface through the points (an N×3 array, or a Cloud from ``read_cloud``): submits,
+        waits (``progress(job)`` on each state) and returns the Mesh. Keyword parameters are the
+        method's (``methods()[method]``)."""
+        job = self.submit(points, normals, method=method, attributes=attributes, **params)
         return self.mesh(self.wait(job, progress))
 
     # --- the other kinds of job -------------------------------------------------------------

@@ -226,3 +226,34 @@ def test_tls(tls_server):
     assert plain.value.code_name == "UNAVAILABLE"
     with pytest.raises(ValueError, match="go together"):
         lsqsurf.Client(server.address, tls_cert=certificate)
+
+
+DATA = __import__("pathlib").Path(__file__).resolve().parents[2] / "tests" / "data"
+
+
+def test_read_cloud_gives_a_files_points_colours_and_sensor():
+    # An RGB-D view PCL wrote (binary_compressed, packed colour, a VIEWPOINT).
+    milk = lsqsurf.read_cloud(DATA / "pcd" / "milk_color.pcd")
+    assert milk.points.shape == (13704, 3) and len(milk.normals) == 0
+    assert milk.colors.shape == (13704, 3) and milk.colors.dtype == np.uint8
+    assert milk.sensors.shape == (1, 3)
+    # A georeferenced LAS file: moved by whole units near the origin, and the shift said.
+    utm = lsqsurf.read_cloud(DATA / "las" / "utm_1_2_format1.las")
+    assert utm.shift[0] == 500012.0 and utm.shift[1] == 4000002.0
+    assert np.max(np.abs(utm.points[:, :2])) < 20
+    assert set(utm.attributes) == {"intensity", "classification"} and utm.colors is None
+    with pytest.raises(ValueError, match="unsupported file type"):
+        lsqsurf.read_cloud(DATA / "las" / "make_las.py")
+
+
+def test_a_coloured_clouds_mesh_keeps_its_colours(client):
+    points, normals = sphere_cloud(20000)
+    # Red where x > 0, blue elsewhere: each vertex takes its side's colour.
+    red = np.where(points[:, 0] > 0, 250.0, 10.0)
+    cloud = lsqsurf.Cloud(points, normals, {"red": red, "green": np.full(len(points), 60.0), "blue": 260.0 - red})
+    mesh = client.reconstruct(cloud, method="iamls")
+    assert mesh.colors is not None and mesh.colors.shape == (len(mesh.vertices), 3)
+    away = np.abs(mesh.vertices[:, 0]) > 0.05
+    expected = np.where(mesh.vertices[away, 0] > 0, 250, 10)
+    assert np.max(np.abs(mesh.colors[away, 0].astype(int) - expected)) <= 2
+    assert np.all(mesh.colors[:, 1] == 60)

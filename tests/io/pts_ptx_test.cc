@@ -136,6 +136,16 @@ TEST(Ptx, RoundTripsSeveralStationsAndStreamsThem) {
   std::filesystem::remove_all(dir);
 }
 
+TEST(Ptx, ScansOfPositionsAloneCarryOnlyTheirScan) {
+  const std::string identity = "1 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n";
+  auto cloud =
+      ParsePtx(Header(1, 1, "0 0 0", identity) + "1 2 3\n" + Header(1, 1, "0 0 0", identity) + "4 5 6\n", "bare.ptx");
+  ASSERT_TRUE(cloud.ok()) << cloud.status();
+  ASSERT_EQ(cloud->attributes.size(), 1u);
+  EXPECT_EQ(cloud->attributes[0].name, "scan");
+  EXPECT_EQ(cloud->attributes[0].values, (std::vector<float>{0, 1}));
+}
+
 TEST(Ptx, BrokenFilesAreRefusedBeforeAPointIsHandedOut) {
   const std::string identity = "1 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n";
   ExpectRefused(PtxReader::Open(Header(2, 2, "0 0 0", identity) + "1 1 1 0.5\n", "short.ptx").status(),

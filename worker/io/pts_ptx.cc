@@ -259,7 +259,9 @@ absl::Status PtxReader::Read(size_t max_points, core::PointCloud& cloud) {
       continue;
     }
     AddColumns(s.columns, cloud);
-    if (many && cloud.attributes.back().name != "scan") cloud.attributes.push_back({"scan", {}});
+    if (many && (cloud.attributes.empty() || cloud.attributes.back().name != "scan")) {
+      cloud.attributes.push_back({"scan", {}});
+    }
     const Eigen::Vector4d local(v[0], v[1], v[2], 1.0);
     const Eigen::Vector4d world = scan.transform.transpose() * local;
     cloud.positions.emplace_back(static_cast<float>(world[0]), static_cast<float>(world[1]),

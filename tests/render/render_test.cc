@@ -142,6 +142,34 @@ TEST_F(RenderTest, ColouredAttributeFollowsTheLegend) {
   }
 }
 
+// color=rgb draws the vertices' own colour: the upper half of the sphere orange, the lower
+// blue, each pixel with its colour's chromaticity (shading scales the channels alike), no legend.
+TEST_F(RenderTest, TrueColourDrawsTheVerticesOwnColour) {
+  RenderParams p = SphereView(512);
+  p.specular = 0;
+  p.color_attribute = kTrueColour;
+  core::TriangleMesh sphere = core::SphereMesh(128, 256);
+  const float upper[3] = {230, 120, 20}, lower[3] = {20, 90, 240};
+  for (int c = 0; c < 3; ++c) {
+    core::ScalarAttribute channel{core::kColourChannels[c], {}};
+    for (const core::Vec3f& v : sphere.vertices) channel.values.push_back(v.z() > 0 ? upper[c] : lower[c]);
+    sphere.vertex_attributes.push_back(std::move(channel));
+  }
+  auto image = renderer_->RenderMesh(sphere, p);
+  ASSERT_TRUE(image.ok()) << image.status();
+  for (const auto& [py, want] : {std::pair{170, upper}, std::pair{340, lower}}) {
+    const auto got = image->At(256, py);
+    const double want_sum = want[0] + want[1] + want[2], got_sum = got[0] + got[1] + got[2];
+    ASSERT_GT(got_sum, 60) << py;
+    for (size_t c = 0; c < 3; ++c) EXPECT_NEAR(got[c] / got_sum, want[c] / want_sum, 0.03) << py << " " << c;
+  }
+  // No colour bar where a scalar would have one: the background.
+  const auto bar = image->At(p.width - 16, p.height / 2);
+  EXPECT_EQ(bar[0] + bar[1] + bar[2], 3 * 255);
+  // Without the three channels it says so.
+  EXPECT_EQ(renderer_->RenderMesh(core::SphereMesh(16, 32), p).status().code(), absl::StatusCode::kInvalidArgument);
+}
+
 TEST_F(RenderTest, CullingHiddenFacesLeavesThePictureUnchanged) {
   // The closed sphere is drawn with its back faces culled; the same sphere less one face on the
   // far side is open, so every face is drawn. Only silhouette samples may differ (there a back

@@ -58,7 +58,8 @@ const core::ParamTable<RenderParams>& ViewParamTable() {
             [](const RenderParams& p) { return static_cast<double>(static_cast<int>(p.camera.up)); },
             [](RenderParams& p, double v) { p.camera.up = static_cast<UpAxis>(static_cast<int>(v)); })
         .Text<&RenderParams::color_attribute>("color",
-                                              "per-vertex scalar to colour by, with a legend; empty = plain shading")
+                                              "per-vertex scalar to colour by, with a legend; rgb = the vertices' "
+                                              "own colour (red, green, blue); empty = plain shading")
         .Real<&RenderParams::color_min>("color_min", -1e300, 1e300, "",
                                         "colour map bounds; the data's range unless color_min < color_max")
         .Real<&RenderParams::color_max>("color_max", -1e300, 1e300, "", "see color_min")

@@ -78,6 +78,7 @@ void EglRenderer::SetUniforms(const RenderParams& p, const View& view, double lo
   gl_.Uniform1i(uniform("flat_shading"), p.shading == Shading::kFlat ? 1 : 0);
   gl_.Uniform1i(uniform("has_normals"), has_normals ? 1 : 0);
   gl_.Uniform1i(uniform("use_colormap"), colour ? 1 : 0);
+  gl_.Uniform1i(uniform("packed_rgb"), colour && p.color_attribute == kTrueColour ? 1 : 0);
   gl_.Uniform3f(uniform("base_color"), p.base_color[0], p.base_color[1], p.base_color[2]);
   const Eigen::Vector3f light = Eigen::Vector3f(-std::tan(0.4363f), std::tan(0.4363f), 1.0f).normalized();  // 25°.
   gl_.Uniform3f(uniform("light_dir"), light.x(), light.y(), light.z());
@@ -194,7 +195,9 @@ void EglRenderer::DrawInto(const Drawable& d, const RenderParams& p, const Pictu
 }
 
 absl::StatusOr<Image> EglRenderer::FinishPicture(Picture& picture, const RenderParams& p, RenderInfo* info) {
-  if (picture.coloured && p.legend) DrawLegend(p.width, p.height, picture.lo, picture.hi);
+  if (picture.coloured && p.legend && p.color_attribute != kTrueColour) {
+    DrawLegend(p.width, p.height, picture.lo, picture.hi);
+  }
   GLenum error = GL_NO_ERROR;
   Image image = ReadBack(picture.targets, p.width, p.height, &error);
   ReleaseTargets(picture.targets);

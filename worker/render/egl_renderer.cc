@@ -48,7 +48,8 @@ absl::StatusOr<Image> EglRenderer::RenderMesh(const core::TriangleMesh& mesh, co
                                               RenderInfo* info) {
   LSQSURF_RETURN_IF_ERROR(Validate(params));
   if (mesh.faces.empty()) return absl::InvalidArgumentError("the mesh has no triangles to draw");
-  auto scalars = FindScalars(mesh.vertex_attributes, params.color_attribute);
+  std::vector<float> packed;
+  auto scalars = FindScalars(mesh.vertex_attributes, params.color_attribute, packed);
   if (!scalars.ok()) return scalars.status();
   return Enqueue({mesh.vertices, mesh.normals, *scalars, mesh.faces}, params, info);
 }
@@ -57,7 +58,8 @@ absl::StatusOr<Image> EglRenderer::RenderPoints(const core::PointCloud& cloud, c
                                                 RenderInfo* info) {
   LSQSURF_RETURN_IF_ERROR(Validate(params));
   if (cloud.positions.empty()) return absl::InvalidArgumentError("the point cloud is empty");
-  auto scalars = FindScalars(cloud.attributes, params.color_attribute);
+  std::vector<float> packed;
+  auto scalars = FindScalars(cloud.attributes, params.color_attribute, packed);
   if (!scalars.ok()) return scalars.status();
   return Enqueue({cloud.positions, cloud.normals, *scalars, {}}, params, info);
 }
@@ -73,7 +75,8 @@ absl::StatusOr<Image> EglRenderer::RenderMeshPieces(const MeshPieces& pieces, co
   if (data_range) lo = INFINITY, hi = -INFINITY;
   LSQSURF_RETURN_IF_ERROR(pieces.ForEach([&](const core::TriangleMesh& piece) -> absl::Status {
     if (piece.faces.empty()) return absl::OkStatus();
-    auto scalars = FindScalars(piece.vertex_attributes, params.color_attribute);
+    std::vector<float> packed;
+    auto scalars = FindScalars(piece.vertex_attributes, params.color_attribute, packed);
     if (!scalars.ok()) return scalars.status();
     box.extend(core::BoundingBox(piece.vertices));
     faces += static_cast<int64_t>(piece.faces.size());
@@ -92,7 +95,8 @@ absl::StatusOr<Image> EglRenderer::RenderMeshPieces(const MeshPieces& pieces, co
     picture->coloured = !params.color_attribute.empty();
     const absl::Status drawn = pieces.ForEach([&](const core::TriangleMesh& piece) -> absl::Status {
       if (piece.faces.empty()) return absl::OkStatus();
-      auto scalars = FindScalars(piece.vertex_attributes, params.color_attribute);
+      std::vector<float> packed;
+      auto scalars = FindScalars(piece.vertex_attributes, params.color_attribute, packed);
       if (!scalars.ok()) return scalars.status();
       // Pieces are open: every face is drawn, two-sided.
       DrawInto({piece.vertices, piece.normals, *scalars, piece.faces, box}, params, *picture);
@@ -129,8 +133,24 @@ absl::StatusOr<Image> EglRenderer::RenderVolume(const VolumeGrid& grid, const Re
 }
 
 absl::StatusOr<std::span<const float>> EglRenderer::FindScalars(const std::vector<core::ScalarAttribute>& attributes,
-                                                                const std::string& name) {
+                                                                const std::string& name, std::vector<float>& packed) {
   if (name.empty()) return std::span<const float>();
+  if (name == kTrueColour) {
+    const size_t n = attributes.empty() ? 0 : attributes.front().values.size();
+    const auto channel = core::ColourChannels(attributes, n);
+    if (channel[0] == nullptr) {
+      return absl::InvalidArgumentError("color=rgb needs the attributes red, green and blue; this result has none");
+    }
+    packed.resize(n);
+    for (size_t i = 0; i < n; ++i) {
+      uint32_t bits = 0;
+      for (const core::ScalarAttribute* c : channel) {
+        bits = (bits << 8) | static_cast<uint32_t>(std::clamp(std::round(c->values[i]), 0.0f, 255.0f));
+      }
+      packed[i] = static_cast<float>(bits);
+    }
+    return std::span<const float>(packed);
+  }
   std::string known;
   for (const core::ScalarAttribute& a : attributes) {
     if (a.name == name) return std::span<const float>(a.values);

@@ -58,8 +58,10 @@ class EglRenderer final : public Renderer {
  private:
   EglRenderer() = default;
 
+  // The attribute `name` colours by; for "rgb" (the vertices' own colour) red, green and blue
+  // packed as r·65536 + g·256 + b, exact in a float, into `packed`.
   static absl::StatusOr<std::span<const float>> FindScalars(const std::vector<core::ScalarAttribute>& attributes,
-                                                            const std::string& name);
+                                                            const std::string& name, std::vector<float>& packed);
 
   // Measures the geometry on the calling thread, then draws it on the render thread.
   absl::StatusOr<Image> Enqueue(Drawable d, const RenderParams& params, RenderInfo* info);

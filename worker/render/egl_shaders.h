@@ -13,14 +13,19 @@ uniform mat4 model_view;
 uniform mat4 projection;
 uniform vec2 scalar_map;   // (min, 1 / (max - min))
 uniform float point_size;
+uniform int packed_rgb;    // The scalar is a colour, r·65536 + g·256 + b.
 out vec3 view_position;
 out vec3 view_normal;
 out float color_t;
+out vec3 vertex_rgb;
 void main() {
   vec4 p = model_view * vec4(position, 1.0);
   view_position = p.xyz;
   view_normal = mat3(model_view) * normal;
   color_t = (scalar - scalar_map.x) * scalar_map.y;
+  // Unpacked in integers, exactly, before the channels are interpolated apart.
+  uint bits = uint(max(scalar, 0.0) + 0.5);
+  vertex_rgb = packed_rgb != 0 ? vec3((bits >> 16) & 255u, (bits >> 8) & 255u, bits & 255u) / 255.0 : vec3(0.0);
   gl_PointSize = point_size;
   gl_Position = projection * p;
 }
@@ -32,10 +37,12 @@ inline constexpr char kSurfaceFragment[] = R"(#version 450 core
 in vec3 view_position;
 in vec3 view_normal;
 in float color_t;
+in vec3 vertex_rgb;
 uniform int mode;
 uniform int flat_shading;
 uniform int has_normals;
 uniform int use_colormap;
+uniform int packed_rgb;
 uniform vec3 base_color;
 uniform vec3 light_dir;
 uniform float specular;
@@ -56,7 +63,9 @@ void main() {
   }
   vec3 v = normalize(-view_position);
   if (dot(n, v) < 0.0) n = -n;  // Two-sided: open surfaces show their back faces lit too.
-  vec3 albedo = use_colormap != 0 ? texture(colormap, vec2(clamp(color_t, 0.0, 1.0), 0.5)).rgb : base_color;
+  vec3 albedo = packed_rgb != 0   ? vertex_rgb
+               : use_colormap != 0 ? texture(colormap, vec2(clamp(color_t, 0.0, 1.0), 0.5)).rgb
+                                   : base_color;
   float diffuse = max(dot(n, light_dir), 0.0);
   float highlight = specular * pow(max(dot(n, normalize(light_dir + v)), 0.0), 48.0);
   fragment = vec4(albedo * (0.18 + 0.82 * diffuse) + vec3(highlight), 1.0);

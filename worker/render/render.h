@@ -52,6 +52,9 @@ enum class Shading { kSmooth, kFlat };
 // the colour map and the opacity transfer function) or the first crossing of an iso-value.
 enum class VolumeMode { kDirect = 0, kIsosurface = 1 };
 
+// The colour attribute that draws the vertices' own colour (attributes red, green, blue).
+inline constexpr char kTrueColour[] = "rgb";
+
 struct RenderParams {
   int width = 1024, height = 1024;  // 16..kMaxImageSide.
   Camera camera;
@@ -62,8 +65,9 @@ struct RenderParams {
   std::array<float, 3> background = {1.0f, 1.0f, 1.0f};
   std::array<float, 3> base_color = {0.78f, 0.80f, 0.84f};  // Without a colour attribute.
   double specular = 0.25;  // Blinn–Phong highlight strength, 0..1 (0 = Lambert only).
-  // Name of a per-vertex (or per-point) scalar to colour through the colour map; empty = none.
-  // The map spans [color_min, color_max]; equal bounds (the default) mean the data's range.
+  // Name of a per-vertex (or per-point) scalar to colour through the colour map; empty = none;
+  // kTrueColour: the vertices' own colour (red, green, blue 0..255), without a legend. The map
+  // spans [color_min, color_max]; equal bounds (the default) mean the data's range.
   std::string color_attribute;
   double color_min = 0, color_max = 0;
   bool legend = true;     // A colour bar with its bounds, when colouring.

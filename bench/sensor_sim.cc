@@ -56,6 +56,20 @@ bool ParseVec(const std::string& text, Vec3d& out) {
   return std::sscanf(text.c_str(), "%lf,%lf,%lf", &out.x(), &out.y(), &out.z()) == 3;
 }
 
+// A unit up direction and two unit directions square to it and to each other: the plane the
+// sensors circle the object in.
+struct Horizon {
+  Vec3d up, side, other;
+};
+
+bool ParseUp(const std::string& text, Horizon& h) {
+  if (!ParseVec(text, h.up) || !(h.up.norm() > 0)) return false;
+  h.up.normalize();
+  h.side = (std::abs(h.up.x()) < 0.9 ? h.up.cross(Vec3d::UnitX()) : h.up.cross(Vec3d::UnitY())).normalized();
+  h.other = h.up.cross(h.side);
+  return true;
+}
+
 // The mesh in an Embree scene, with what a hit needs to colour itself.
 class Scene {
  public:
@@ -214,16 +228,15 @@ int RunDepth(const DepthOptions& o) {
   auto mesh = io::ReadMeshFile(o.mesh);
   if (!mesh.ok()) return Fail(std::string(mesh.status().message()));
   const Scene scene(*mesh);
-  Vec3d up(0, 1, 0), first_eye;
-  if (!ParseVec(o.up_text, up)) return Fail("--up takes x,y,z");
+  Horizon h;
+  if (!ParseUp(o.up_text, h)) return Fail("--up takes x,y,z");
+  const Vec3d& up = h.up;
+  Vec3d first_eye;
   // Around the object in the plane square to `up`, a little above it.
-  const Vec3d side = std::abs(up.normalized().x()) < 0.9 ? up.cross(Vec3d::UnitX()).normalized()
-                                                         : up.cross(Vec3d::UnitY()).normalized();
-  const Vec3d other = up.normalized().cross(side);
   std::vector<Vec3d> eyes;
   for (int v = 0; v < o.views; ++v) {
     const double angle = 2 * M_PI * v / o.views;
-    const Vec3d direction = (std::cos(angle) * side + std::sin(angle) * other + 0.35 * up.normalized()).normalized();
+    const Vec3d direction = (std::cos(angle) * h.side + std::sin(angle) * h.other + 0.35 * up).normalized();
     eyes.push_back(scene.centre() + direction * o.distance * scene.diagonal());
   }
   if (!o.eye_text.empty()) {
@@ -270,12 +283,9 @@ int RunLidar(const LidarOptions& o) {
   auto mesh = io::ReadMeshFile(o.mesh);
   if (!mesh.ok()) return Fail(std::string(mesh.status().message()));
   const Scene scene(*mesh);
-  Vec3d up(0, 1, 0);
-  if (!ParseVec(o.up_text, up)) return Fail("--up takes x,y,z");
-  up.normalize();
-  const Vec3d side =
-      std::abs(up.x()) < 0.9 ? up.cross(Vec3d::UnitX()).normalized() : up.cross(Vec3d::UnitY()).normalized();
-  const Vec3d other = up.cross(side);
+  Horizon h;
+  if (!ParseUp(o.up_text, h)) return Fail("--up takes x,y,z");
+  const Vec3d &up = h.up, &side = h.side, &other = h.other;
   std::mt19937_64 rng(o.seed);
   std::normal_distribution<double> normal;
   const double grazing = std::cos(o.grazing_deg * M_PI / 180.0);

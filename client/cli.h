@@ -124,9 +124,6 @@ struct JobFlags {
   }
 };
 
-// A cloud file's upload: .drc as it is (one part), other formats read and encoded with unit
-// normals in parts of client::kPointsPerPart points. An empty path uploads nothing. `facts`,
-// when given, receives what the file says beyond its points.
 // What a cloud file says beyond its points.
 struct CloudFileFacts {
   // Where its sensors stood (a PCD's VIEWPOINT, a PTX file's scanners); with more than one, each
@@ -135,6 +132,9 @@ struct CloudFileFacts {
   std::array<double, 3> shift = {0, 0, 0};  // Taken off its coordinates (a georeferenced LAS file's).
 };
 
+// A cloud file's upload: .drc as it is (one part), other formats read and encoded with unit
+// normals in parts of client::kPointsPerPart points. An empty path uploads nothing. `facts`,
+// when given, receives what the file says beyond its points.
 absl::StatusOr<client::PartSource> CloudUpload(const std::string& path,
                                                int64_t points_per_part = client::kPointsPerPart,
                                                CloudFileFacts* facts = nullptr);

@@ -29,7 +29,7 @@ int main(int argc, char** argv) {
 
   SurfaceCommand surface;
   auto* reconstruct = app.add_subcommand("reconstruct", "upload a cloud, wait, and write the mesh");
-  reconstruct->add_option("input", surface.input, "point cloud (.ply .pcd .las .pts .ptx .obj .xyz .xyzn .drc)")
+  reconstruct->add_option("input", surface.input, StrCat("point cloud (", lsqsurf::io::KnownExtensions(), ")"))
       ->required();
   reconstruct->add_option("-o,--output", surface.outputs, "mesh to write (.ply .obj .drc); repeat for several")
       ->required();

@@ -173,13 +173,8 @@ py::dict ReadCloud(const std::string& path) {
       if (chunk->size() == 0) return absl::OkStatus();
       if (cloud.size() == 0) {
         cloud = *std::move(chunk);
-        continue;
-      }
-      cloud.positions.insert(cloud.positions.end(), chunk->positions.begin(), chunk->positions.end());
-      cloud.normals.insert(cloud.normals.end(), chunk->normals.begin(), chunk->normals.end());
-      for (size_t a = 0; a < cloud.attributes.size() && a < chunk->attributes.size(); ++a) {
-        auto& to = cloud.attributes[a].values;
-        to.insert(to.end(), chunk->attributes[a].values.begin(), chunk->attributes[a].values.end());
+      } else {
+        core::AppendCloud(cloud, *chunk);
       }
     }
   }();

@@ -158,6 +158,21 @@ TEST_F(EndToEnd, PuMeshCarriesDepthAndDegreeToThePly) {
   EXPECT_LE(ranges["degree"].second, 5.0f);
 }
 
+// The share of the mesh's area whose faces (by their winding) face at least one of `eyes`.
+double AreaFacing(const core::TriangleMesh& mesh, const std::vector<core::Vec3d>& eyes) {
+  double facing = 0, total = 0;
+  for (const core::Triangle& t : mesh.faces) {
+    const core::Vec3d a = mesh.vertices[t[0]].cast<double>(), b = mesh.vertices[t[1]].cast<double>(),
+                      c = mesh.vertices[t[2]].cast<double>();
+    const core::Vec3d normal = (b - a).cross(c - a), centre = (a + b + c) / 3;
+    total += normal.norm();
+    if (std::any_of(eyes.begin(), eyes.end(), [&](const core::Vec3d& e) { return normal.dot(e - centre) > 0; })) {
+      facing += normal.norm();
+    }
+  }
+  return total > 0 ? facing / total : 0;
+}
+
 // A single view written as PCL writes one, with the camera's position in its VIEWPOINT and no
 // normals: the client passes the position on, and the surface faces the camera.
 TEST_F(EndToEnd, APcdViewsViewpointTurnsItsSurfaceTowardTheCamera) {
@@ -176,15 +191,7 @@ TEST_F(EndToEnd, APcdViewsViewpointTurnsItsSurfaceTowardTheCamera) {
   EXPECT_NE(r.output.find("normals_toward_viewpoint = 1"), std::string::npos) << r.output;
   auto mesh = io::ReadMeshFile(out);
   ASSERT_TRUE(mesh.ok()) << mesh.status();
-  double facing = 0, total = 0;
-  for (const core::Triangle& t : mesh->faces) {
-    const core::Vec3d a = mesh->vertices[t[0]].cast<double>(), b = mesh->vertices[t[1]].cast<double>(),
-                      c = mesh->vertices[t[2]].cast<double>();
-    const core::Vec3d normal = (b - a).cross(c - a);
-    total += normal.norm();
-    if (normal.dot(eye - (a + b + c) / 3) > 0) facing += normal.norm();
-  }
-  EXPECT_GT(facing / total, 0.99);
+  EXPECT_GT(AreaFacing(*mesh, {eye}), 0.99);
   // An empty viewpoint says the file's is not to be used.
   const ClientRun unset = Client(server.address(), "reconstruct " + in + " -o " + out + " --stats --param viewpoint=");
   ASSERT_EQ(unset.code, 0) << unset.output;
@@ -208,15 +215,7 @@ TEST_F(EndToEnd, APtxFilesStationsEachTurnTheirOwnPointsTowardThem) {
   EXPECT_NE(r.output.find("holds 2 scans"), std::string::npos) << r.output;
   auto mesh = io::ReadMeshFile(out);
   ASSERT_TRUE(mesh.ok()) << mesh.status();
-  double facing = 0, total = 0;
-  for (const core::Triangle& t : mesh->faces) {
-    const core::Vec3d a = mesh->vertices[t[0]].cast<double>(), b = mesh->vertices[t[1]].cast<double>(),
-                      c = mesh->vertices[t[2]].cast<double>();
-    const core::Vec3d normal = (b - a).cross(c - a), centre = (a + b + c) / 3;
-    total += normal.norm();
-    if (normal.dot(eyes[0] - centre) > 0 || normal.dot(eyes[1] - centre) > 0) facing += normal.norm();
-  }
-  EXPECT_GT(facing / total, 0.99);
+  EXPECT_GT(AreaFacing(*mesh, {eyes[0], eyes[1]}), 0.99);
 }
 
 // A coloured scan keeps its colour: every method's mesh carries red, green and blue, written as

@@ -85,6 +85,27 @@ std::array<const ScalarAttribute*, 3> ColourChannels(std::span<const ScalarAttri
   return channels;
 }
 
+uint32_t PackedColour(const std::array<const ScalarAttribute*, 3>& channels, size_t i) {
+  uint32_t bits = 0;
+  for (const ScalarAttribute* c : channels) {
+    bits = (bits << 8) | static_cast<uint32_t>(std::clamp(std::round(c->values[i]), 0.0f, 255.0f));
+  }
+  return bits;
+}
+
+void AppendCloud(PointCloud& cloud, const PointCloud& more) {
+  std::erase_if(cloud.attributes, [&](ScalarAttribute& kept) {
+    for (const ScalarAttribute& a : more.attributes) {
+      if (a.name != kept.name || a.values.size() != more.size()) continue;
+      kept.values.insert(kept.values.end(), a.values.begin(), a.values.end());
+      return false;
+    }
+    return true;
+  });
+  cloud.positions.insert(cloud.positions.end(), more.positions.begin(), more.positions.end());
+  cloud.normals.insert(cloud.normals.end(), more.normals.begin(), more.normals.end());
+}
+
 void RemovePoints(PointCloud& cloud, const std::vector<uint8_t>& remove) {
   const size_t n = cloud.size();
   auto compact = [&](auto& values) {

@@ -30,6 +30,9 @@ inline constexpr std::array<const char*, 3> kColourChannels = {"red", "green", "
 // The red, green and blue attributes among `attributes` that hold `count` values each, in that
 // order; all three null unless every one is there.
 std::array<const ScalarAttribute*, 3> ColourChannels(std::span<const ScalarAttribute> attributes, size_t count);
+// Element `i`'s colour as 0xRRGGBB (each channel rounded and clamped to 0..255), from
+// ColourChannels' non-null three.
+uint32_t PackedColour(const std::array<const ScalarAttribute*, 3>& channels, size_t i);
 
 // An unorganized point set with optional unit normals and optional named scalars.
 struct PointCloud {
@@ -75,6 +78,11 @@ size_t RemoveDuplicatePoints(PointCloud& cloud);
 // Removes the points `remove` marks (one flag per point), with their normals and attributes;
 // the others keep their order.
 void RemovePoints(PointCloud& cloud, const std::vector<uint8_t>& remove);
+
+// Appends `more`'s points and normals to `cloud`; of `cloud`'s attributes, those `more` has too
+// (by name, one value per point) are appended, the others dropped, so that every attribute
+// left covers every point.
+void AppendCloud(PointCloud& cloud, const PointCloud& more);
 
 // Finds a non-finite coordinate; returns the index of the first bad point or -1.
 int64_t FindNonFinite(std::span<const Vec3f> points);

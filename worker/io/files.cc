@@ -9,6 +9,7 @@
 #include <cstring>
 #include <filesystem>
 #include <fstream>
+#include <utility>
 
 #include "worker/core/byte_view.h"
 #include "worker/core/strings.h"
@@ -17,17 +18,29 @@
 
 namespace lsqsurf::io {
 
+namespace {
+
+// Every extension read or written, and its format.
+constexpr std::pair<const char*, FileFormat> kExtensions[] = {
+    {".ply", FileFormat::kPly}, {".pcd", FileFormat::kPcd},   {".las", FileFormat::kLas}, {".pts", FileFormat::kPts},
+    {".ptx", FileFormat::kPtx}, {".obj", FileFormat::kObj},   {".xyz", FileFormat::kXyz}, {".xyzn", FileFormat::kXyz},
+    {".txt", FileFormat::kXyz}, {".drc", FileFormat::kDraco},
+};
+
+}  // namespace
+
+std::string KnownExtensions() {
+  std::string out;
+  for (const auto& [ext, format] : kExtensions) core::StrAppend(&out, out.empty() ? "" : " ", ext);
+  return out;
+}
+
 absl::StatusOr<FileFormat> FormatFromPath(std::string_view path) {
   std::string ext = std::filesystem::path(path).extension().string();
   std::transform(ext.begin(), ext.end(), ext.begin(), [](unsigned char c) { return std::tolower(c); });
-  if (ext == ".ply") return FileFormat::kPly;
-  if (ext == ".obj") return FileFormat::kObj;
-  if (ext == ".xyz" || ext == ".xyzn" || ext == ".txt") return FileFormat::kXyz;
-  if (ext == ".drc") return FileFormat::kDraco;
-  if (ext == ".pcd") return FileFormat::kPcd;
-  if (ext == ".las") return FileFormat::kLas;
-  if (ext == ".pts") return FileFormat::kPts;
-  if (ext == ".ptx") return FileFormat::kPtx;
+  for (const auto& [known, format] : kExtensions) {
+    if (ext == known) return format;
+  }
   if (ext == ".laz") {
     return absl::InvalidArgumentError(core::StrCat(
         path,
@@ -40,8 +53,8 @@ absl::StatusOr<FileFormat> FormatFromPath(std::string_view path) {
                      " files cannot be read here (no E57 library in Debian 12); convert the file to .ply, .pcd, "
                      ".las or .ptx first, e.g. with PDAL (pdal translate in.e57 out.las) or CloudCompare"));
   }
-  return absl::InvalidArgumentError(core::StrCat(path, ": unsupported file type '", ext,
-                                                 "' (use .ply, .pcd, .las, .pts, .ptx, .obj, .xyz, .xyzn or .drc)"));
+  return absl::InvalidArgumentError(
+      core::StrCat(path, ": unsupported file type '", ext, "' (use one of ", KnownExtensions(), ")"));
 }
 
 namespace {
@@ -210,6 +223,10 @@ absl::StatusOr<core::PointCloud> ReadPointCloudFile(const std::string& path) {
 absl::Status WriteMeshFile(const std::string& path, const core::TriangleMesh& mesh, const WriteOptions& options) {
   auto format = FormatFromPath(path);
   if (!format.ok()) return format.status();
+  if ((*format == FileFormat::kPcd || *format == FileFormat::kLas) && !mesh.faces.empty()) {
+    return absl::InvalidArgumentError(core::StrCat(path, ": a ", std::filesystem::path(path).extension().string(),
+                                                   " file holds points only; write the mesh as .ply, .obj or .drc"));
+  }
   switch (*format) {
     case FileFormat::kPly: return WriteFileAtomically(path, EncodePly(mesh, options.ply_format));
     case FileFormat::kObj: return WriteFileAtomically(path, EncodeObj(mesh));
@@ -221,18 +238,8 @@ absl::Status WriteMeshFile(const std::string& path, const core::TriangleMesh& me
     }
     case FileFormat::kXyz: return WriteFileAtomically(path, EncodeXyz(CloudFromMesh(mesh)));
     case FileFormat::kPcd:
-      if (!mesh.faces.empty()) {
-        return absl::InvalidArgumentError(core::StrCat(path,
-                                                       ": a .pcd file holds points only; write the mesh as "
-                                                       ".ply, .obj or .drc"));
-      }
       return WriteFileAtomically(path, EncodePcd(CloudFromMesh(mesh), PcdEncoding::kBinaryCompressed));
-    case FileFormat::kLas:
-      if (!mesh.faces.empty()) {
-        return absl::InvalidArgumentError(
-            core::StrCat(path, ": a .las file holds points only; write the mesh as .ply, .obj or .drc"));
-      }
-      return WriteFileAtomically(path, EncodeLas(CloudFromMesh(mesh)));
+    case FileFormat::kLas: return WriteFileAtomically(path, EncodeLas(CloudFromMesh(mesh)));
     case FileFormat::kPts:
     case FileFormat::kPtx:
       return absl::InvalidArgumentError(

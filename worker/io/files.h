@@ -21,6 +21,9 @@ namespace lsqsurf::io {
 
 enum class FileFormat { kPly, kObj, kXyz, kDraco, kPcd, kLas, kPts, kPtx };
 
+// Every extension FormatFromPath knows, space-separated (for messages and help).
+std::string KnownExtensions();
+
 // Errors: kInvalidArgument naming the unsupported extension.
 absl::StatusOr<FileFormat> FormatFromPath(std::string_view path);
 

@@ -460,14 +460,8 @@ std::string EncodePcd(const core::PointCloud& cloud, PcdEncoding encoding, const
   const auto channel = core::ColourChannels(cloud.attributes, cloud.size());
   const bool colour = channel[0] != nullptr;
   if (colour) {
-    columns.push_back({"rgb", 'F', [channel](size_t p) {
-                         uint32_t bits = 0;
-                         for (const core::ScalarAttribute* c : channel) {
-                           const float v = std::clamp(std::round(c->values[p]), 0.0f, 255.0f);
-                           bits = (bits << 8) | static_cast<uint32_t>(v);
-                         }
-                         return std::bit_cast<float>(bits);
-                       }});
+    columns.push_back(
+        {"rgb", 'F', [channel](size_t p) { return std::bit_cast<float>(core::PackedColour(channel, p)); }});
   }
   for (const core::ScalarAttribute& a : cloud.attributes) {
     if (colour && (&a == channel[0] || &a == channel[1] || &a == channel[2])) continue;

@@ -90,27 +90,11 @@ absl::StatusOr<SurfaceInput> DecodeSurfaceInput(const Uploads& uploads, const Po
     with_normals = cloud->has_normals();
     input.points += static_cast<int64_t>(cloud->size());
     bounds.extend(core::BoundingBox(cloud->positions));
-    if (parts.size() == 1) {
+    // Attributes are kept that every part has, in part 0's order; the others need not agree.
+    if (i == 0) {
       input.cloud = *std::move(cloud);
     } else {
-      auto append = [](std::vector<core::Vec3f>& to, const std::vector<core::Vec3f>& from) {
-        to.insert(to.end(), from.begin(), from.end());
-      };
-      // Attributes are kept that every part has, in part 0's order; the others need not agree.
-      if (i == 0) {
-        input.cloud.attributes = std::move(cloud->attributes);
-      } else {
-        std::erase_if(input.cloud.attributes, [&](core::ScalarAttribute& kept) {
-          for (core::ScalarAttribute& a : cloud->attributes) {
-            if (a.name != kept.name || a.values.size() != cloud->size()) continue;
-            kept.values.insert(kept.values.end(), a.values.begin(), a.values.end());
-            return false;
-          }
-          return true;
-        });
-      }
-      append(input.cloud.positions, cloud->positions);
-      append(input.cloud.normals, cloud->normals);
+      core::AppendCloud(input.cloud, *cloud);
     }
   }
   if (input.points < limits.min_points) {

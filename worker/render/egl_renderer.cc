@@ -142,13 +142,7 @@ absl::StatusOr<std::span<const float>> EglRenderer::FindScalars(const std::vecto
       return absl::InvalidArgumentError("color=rgb needs the attributes red, green and blue; this result has none");
     }
     packed.resize(n);
-    for (size_t i = 0; i < n; ++i) {
-      uint32_t bits = 0;
-      for (const core::ScalarAttribute* c : channel) {
-        bits = (bits << 8) | static_cast<uint32_t>(std::clamp(std::round(c->values[i]), 0.0f, 255.0f));
-      }
-      packed[i] = static_cast<float>(bits);
-    }
+    for (size_t i = 0; i < n; ++i) packed[i] = static_cast<float>(core::PackedColour(channel, i));
     return std::span<const float>(packed);
   }
   std::string known;

@@ -15,6 +15,7 @@
 #include "worker/io/draco_codec.h"
 #include "worker/jobs/method_registry.h"
 #include "worker/jobs/surface_job.h"
+#include "worker/jobs/surface_points.h"
 
 namespace lsqsurf::jobs {
 namespace {
@@ -70,6 +71,52 @@ TEST(DeliveredMesh, ACloudOfRepeatedPositionsCostsNoNeighbourSearch) {
   EXPECT_EQ(sorted(thrice->mesh.vertices), sorted(once->mesh.vertices));
   EXPECT_EQ(Statistic(thrice->statistics, "duplicate_points"), 6000);
   EXPECT_EQ(Statistic(thrice->statistics, "input_points"), 9000);
+}
+
+// A sphere scanned all round but its north cap (a region no view reached) comes back open by
+// default, and closed on request: one closed component through PU and iaMLS alike, near the
+// sphere where the data were, with the vertices of the cap marked `filled` and those under the
+// points not.
+TEST(DeliveredMesh, AnOpenCloudClosesOnRequestAndTheFillingIsMarked) {
+  core::PointCloud open = testing::SphereCloud(20'000);
+  for (size_t i = open.size(); i-- > 0;) {
+    if (open.positions[i].z() > 0.7f) {
+      open.positions.erase(open.positions.begin() + static_cast<std::ptrdiff_t>(i));
+      open.normals.erase(open.normals.begin() + static_cast<std::ptrdiff_t>(i));
+    }
+  }
+  for (const std::string method : {"pu", "iamls"}) {
+    SCOPED_TRACE(method);
+    core::ParamSet params = *DefaultParams(method);
+    ASSERT_TRUE(params.Set("fill_holes", true).ok());
+    Statistics statistics;
+    ExpectDeliveredKeepsTopology(method, open, /*genus=*/0, &params, &statistics);
+    EXPECT_GE(Statistic(statistics, "holes_filled"), 1);
+    EXPECT_EQ(Statistic(statistics, "holes_left"), 0);
+
+    core::LocalJobContext ctx;
+    auto result = ReconstructSurface(method, params, open, ctx);
+    ASSERT_TRUE(result.ok()) << result.status();
+    EXPECT_EQ(core::AnalyzeTopology(result->mesh).components, 1);
+    // Left as they are, the methods keep the cap open.
+    auto unfilled = ReconstructSurface(method, *DefaultParams(method), open, ctx);
+    ASSERT_TRUE(unfilled.ok()) << unfilled.status();
+    EXPECT_GE(core::AnalyzeTopology(unfilled->mesh).boundary_loops, 1);
+    const auto filled =
+        std::ranges::find(result->mesh.vertex_attributes, std::string(kFilledAttribute), &core::ScalarAttribute::name);
+    ASSERT_NE(filled, result->mesh.vertex_attributes.end());
+    ASSERT_EQ(filled->values.size(), result->mesh.vertices.size());
+    size_t cap = 0, cap_marked = 0, measured = 0, measured_marked = 0;
+    for (size_t v = 0; v < result->mesh.vertices.size(); ++v) {
+      const core::Vec3f& x = result->mesh.vertices[v];
+      EXPECT_NEAR(x.norm(), 1.0, 0.1) << "vertex " << v;
+      if (x.z() > 0.85f) ++cap, cap_marked += filled->values[v] == 1.0f;
+      if (x.z() < 0.6f) ++measured, measured_marked += filled->values[v] == 1.0f;
+    }
+    EXPECT_GT(cap, 50u);
+    EXPECT_EQ(cap_marked, cap);
+    EXPECT_EQ(measured_marked, 0u) << "of " << measured;
+  }
 }
 
 TEST(DeliveredMesh, ExplicitBitsAreKeptAsAsked) {

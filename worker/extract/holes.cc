@@ -21,51 +21,6 @@ constexpr uint32_t kNoVertex = std::numeric_limits<uint32_t>::max();
 uint64_t Undirected(uint32_t a, uint32_t b) { return a < b ? (uint64_t{a} << 32) | b : (uint64_t{b} << 32) | a; }
 uint64_t Directed(uint32_t a, uint32_t b) { return (uint64_t{a} << 32) | b; }
 
-// The least-area triangulation of the loop (Barequet & Sharir's dynamic programme): cost[i][j]
-// is the least area of a fan over loop[i..j] closed by the chord (i, j). Chords that are edges of
-// the mesh already are not used. A vertex the loop passes twice takes chords at its first pass
-// only, so no chord is made twice. Appends the triangles; false where no triangulation avoids them.
-template <typename IsEdge>
-bool TriangulateLoop(const std::vector<uint32_t>& loop, const std::vector<Vec3f>& vertices, const IsEdge& is_edge,
-                     std::vector<Triangle>& out) {
-  const size_t n = loop.size();
-  std::vector<bool> again(n, false);
-  for (size_t i = 1; i < n; ++i)
-    again[i] = std::find(loop.begin(), loop.begin() + static_cast<std::ptrdiff_t>(i), loop[i]) !=
-               loop.begin() + static_cast<std::ptrdiff_t>(i);
-  constexpr double kNone = std::numeric_limits<double>::infinity();
-  std::vector<double> cost(n * n, kNone);
-  std::vector<uint32_t> split(n * n, 0);
-  auto at = [n](size_t i, size_t j) { return i * n + j; };
-  for (size_t i = 0; i + 1 < n; ++i) cost[at(i, i + 1)] = 0;
-  for (size_t span = 2; span < n; ++span) {
-    for (size_t i = 0; i + span < n; ++i) {
-      const size_t j = i + span;
-      // (0, n−1) is a border edge; every other chord must be new.
-      if (!(i == 0 && j == n - 1) && (again[i] || again[j] || is_edge(loop[i], loop[j]))) continue;
-      const Vec3f &a = vertices[loop[i]], &c = vertices[loop[j]];
-      for (size_t k = i + 1; k < j; ++k) {
-        const double sides = cost[at(i, k)] + cost[at(k, j)];
-        if (sides == kNone) continue;
-        const double area = 0.5 * static_cast<double>((vertices[loop[k]] - a).cross(c - a).norm());
-        if (sides + area < cost[at(i, j)]) cost[at(i, j)] = sides + area, split[at(i, j)] = static_cast<uint32_t>(k);
-      }
-    }
-  }
-  if (cost[at(0, n - 1)] == kNone) return false;
-  std::vector<std::pair<size_t, size_t>> pending = {{0, n - 1}};
-  while (!pending.empty()) {
-    const auto [i, j] = pending.back();
-    pending.pop_back();
-    if (j - i < 2) continue;
-    const size_t k = split[at(i, j)];
-    out.push_back({loop[i], loop[k], loop[j]});
-    pending.push_back({i, k});
-    pending.push_back({k, j});
-  }
-  return true;
-}
-
 // Each vertex's faces: a twin edge or a chord is looked up among a few faces, in linear time and
 // memory (a hash of every edge cost a large mesh 10 % more time for the few holes it has).
 class Fans {
@@ -178,34 +133,92 @@ struct HoleLoops {
 
 }  // namespace
 
-int64_t FillSmallHoles(core::TriangleMesh& mesh, int max_edges, const std::function<bool(const Vec3f&)>& keep_open) {
-  max_edges = std::min(max_edges, kMaxHoleEdges);
-  if (max_edges < 3 || mesh.faces.empty()) return 0;
-  // A closed mesh (the common case) pays one pass over its faces.
-  uint64_t unmatched = 0;
-  for (const Triangle& t : mesh.faces) unmatched += core::UnmatchedEdgeSum(t);
-  if (unmatched == 0) return 0;
-  const Fans fans(mesh);
-  HoleLoops loops(mesh, fans);
-  if (loops.next.empty()) return 0;
-  // Border vertices at one position: welded, their borders may close each other.
-  absl::flat_hash_map<std::array<float, 3>, uint32_t> at;
-  auto weld = [&](uint32_t v) {
-    const Vec3f& p = mesh.vertices[v];
-    const auto [it, fresh] = at.try_emplace(std::array<float, 3>{p.x(), p.y(), p.z()}, v);
-    if (!fresh) loops.tangled.insert(v), loops.tangled.insert(it->second);
-  };
-  for (const auto& [v, unused] : loops.next) weld(v);
-  for (uint32_t v : loops.pinches) weld(v);
-  absl::flat_hash_set<uint64_t> added;  // Edges of the fillings so far.
-  auto is_edge = [&](uint32_t a, uint32_t b) {
-    return std::ranges::any_of(fans.Of(a), [&](uint32_t g) { return fans.Has(g, b); }) ||
-           added.contains(Undirected(a, b));
-  };
-  int64_t filled = 0;
+double TriangleArea(const Vec3f& a, const Vec3f& b, const Vec3f& c) {
+  return 0.5 * static_cast<double>((b - a).cross(c - a).norm());
+}
+
+// Barequet & Sharir's dynamic programme: cost[i][j] is the least cost of a fan over loop[i..j]
+// closed by the chord (i, j).
+bool TriangulateLoop(const std::vector<uint32_t>& loop, const std::vector<Vec3f>& vertices,
+                     const std::function<bool(uint32_t, uint32_t)>& is_edge,
+                     const std::function<double(const Vec3f&, const Vec3f&, const Vec3f&)>& cost_of,
+                     std::vector<Triangle>& out) {
+  const size_t n = loop.size();
+  std::vector<bool> again(n, false);
+  for (size_t i = 1; i < n; ++i)
+    again[i] = std::find(loop.begin(), loop.begin() + static_cast<std::ptrdiff_t>(i), loop[i]) !=
+               loop.begin() + static_cast<std::ptrdiff_t>(i);
+  constexpr double kNone = std::numeric_limits<double>::infinity();
+  std::vector<double> cost(n * n, kNone);
+  std::vector<uint32_t> split(n * n, 0);
+  auto at = [n](size_t i, size_t j) { return i * n + j; };
+  for (size_t i = 0; i + 1 < n; ++i) cost[at(i, i + 1)] = 0;
+  for (size_t span = 2; span < n; ++span) {
+    for (size_t i = 0; i + span < n; ++i) {
+      const size_t j = i + span;
+      // (0, n−1) is a border edge; every other chord must be new.
+      if (!(i == 0 && j == n - 1) && (again[i] || again[j] || is_edge(loop[i], loop[j]))) continue;
+      const Vec3f &a = vertices[loop[i]], &c = vertices[loop[j]];
+      for (size_t k = i + 1; k < j; ++k) {
+        const double sides = cost[at(i, k)] + cost[at(k, j)];
+        if (sides == kNone) continue;
+        const double total = sides + cost_of(a, vertices[loop[k]], c);
+        if (total < cost[at(i, j)]) cost[at(i, j)] = total, split[at(i, j)] = static_cast<uint32_t>(k);
+      }
+    }
+  }
+  if (cost[at(0, n - 1)] == kNone) return false;
+  std::vector<std::pair<size_t, size_t>> pending = {{0, n - 1}};
+  while (!pending.empty()) {
+    const auto [i, j] = pending.back();
+    pending.pop_back();
+    if (j - i < 2) continue;
+    const size_t k = split[at(i, j)];
+    out.push_back({loop[i], loop[k], loop[j]});
+    pending.push_back({i, k});
+    pending.push_back({k, j});
+  }
+  return true;
+}
+
+struct HoleBorders::State {
+  const core::TriangleMesh& mesh;
+  const size_t vertices;  // The mesh's when made; later ones have no fans.
+  Fans fans;
+  HoleLoops loops;
+  explicit State(const core::TriangleMesh& m) : mesh(m), vertices(m.vertices.size()), fans(m), loops(m, fans) {
+    // Border vertices at one position: welded, their borders may close each other.
+    absl::flat_hash_map<std::array<float, 3>, uint32_t> at;
+    auto weld = [&](uint32_t v) {
+      const Vec3f& p = mesh.vertices[v];
+      const auto [it, fresh] = at.try_emplace(std::array<float, 3>{p.x(), p.y(), p.z()}, v);
+      if (!fresh) loops.tangled.insert(v), loops.tangled.insert(it->second);
+    };
+    for (const auto& [v, unused] : loops.next) weld(v);
+    for (uint32_t v : loops.pinches) weld(v);
+  }
+};
+
+HoleBorders::HoleBorders(const core::TriangleMesh& mesh) : state_(std::make_unique<State>(mesh)) {}
+HoleBorders::~HoleBorders() = default;
+
+bool HoleBorders::IsEdge(uint32_t a, uint32_t b) const {
+  const Fans& fans = state_->fans;
+  if (a >= state_->vertices || b >= state_->vertices) return false;
+  return std::ranges::any_of(fans.Of(a), [&](uint32_t g) { return fans.Has(g, b); });
+}
+
+void HoleBorders::FacesAround(uint32_t v, std::vector<uint32_t>& out) const {
+  out.clear();
+  if (v >= state_->vertices) return;
+  for (uint32_t g : state_->fans.Of(v)) out.push_back(g);
+}
+
+std::vector<std::vector<uint32_t>> HoleBorders::Loops(size_t max_edges) {
+  const HoleLoops& loops = state_->loops;
+  std::vector<std::vector<uint32_t>> found;
   absl::flat_hash_set<uint32_t> visited;  // Ordinary vertices; a pinch vertex is on two loops.
   std::vector<uint32_t> loop;
-  std::vector<Triangle> patch;
   for (const auto& [first, unused] : loops.next) {
     if (visited.contains(first)) continue;
     loop.clear();
@@ -220,20 +233,40 @@ int64_t FillSmallHoles(core::TriangleMesh& mesh, int max_edges, const std::funct
       loop.push_back(v);
       usable &= !loops.tangled.contains(v);
       // Too long to close: the rest of it is walked from its own vertices, a stretch at a time.
-      if (loop.size() > static_cast<size_t>(max_edges)) break;
+      if (max_edges > 0 && loop.size() > max_edges) break;
       const uint32_t after = loops.After(previous, v);
       previous = v, v = after;
     }
+    if (closed && !usable && max_edges == 0) ++tangled_loops_;
     if (!closed || !usable || loop.size() < 3) continue;
-    if (keep_open && std::ranges::any_of(loop, [&](uint32_t v) { return keep_open(mesh.vertices[v]); })) continue;
     // Three border edges around a face of their own: a lone triangle, not a hole.
-    if (loop.size() == 3 && std::ranges::any_of(fans.Of(loop[0]), [&](uint32_t g) {
-          return fans.Has(g, loop[1]) && fans.Has(g, loop[2]);
+    if (loop.size() == 3 && std::ranges::any_of(state_->fans.Of(loop[0]), [&](uint32_t g) {
+          return state_->fans.Has(g, loop[1]) && state_->fans.Has(g, loop[2]);
         })) {
       continue;
     }
+    found.push_back(loop);
+  }
+  return found;
+}
+
+int64_t FillSmallHoles(core::TriangleMesh& mesh, int max_edges, const std::function<bool(const Vec3f&)>& keep_open) {
+  max_edges = std::min(max_edges, kMaxHoleEdges);
+  if (max_edges < 3 || mesh.faces.empty()) return 0;
+  // A closed mesh (the common case) pays one pass over its faces.
+  uint64_t unmatched = 0;
+  for (const Triangle& t : mesh.faces) unmatched += core::UnmatchedEdgeSum(t);
+  if (unmatched == 0) return 0;
+  HoleBorders borders(mesh);
+  const std::vector<std::vector<uint32_t>> loops = borders.Loops(static_cast<size_t>(max_edges));
+  absl::flat_hash_set<uint64_t> added;  // Edges of the fillings so far.
+  auto is_edge = [&](uint32_t a, uint32_t b) { return borders.IsEdge(a, b) || added.contains(Undirected(a, b)); };
+  int64_t filled = 0;
+  std::vector<Triangle> patch;
+  for (const std::vector<uint32_t>& loop : loops) {
+    if (keep_open && std::ranges::any_of(loop, [&](uint32_t v) { return keep_open(mesh.vertices[v]); })) continue;
     patch.clear();
-    if (!TriangulateLoop(loop, mesh.vertices, is_edge, patch)) continue;
+    if (!TriangulateLoop(loop, mesh.vertices, is_edge, TriangleArea, patch)) continue;
     for (const Triangle& t : patch) {
       for (size_t s = 0; s < 3; ++s) added.insert(Undirected(t[s], t[(s + 1) % 3]));
       mesh.faces.push_back(t);

@@ -661,7 +661,13 @@ absl::StatusOr<SurfaceResult> ReconstructSurface(const std::string& method, cons
   core::SubContext engine_ctx(ctx, method, normals_share, 0.98);
   LSQSURF_RETURN_IF_ERROR(RunMethod(**m, params, cloud, nullptr, nullptr, engine_ctx, memory_bytes, tiled, result));
   if (result.mesh_parts == 0) {
-    core::SubContext carry_ctx(ctx, "carrying the points' attributes", 0.98, 1.0);
+    core::SubContext fill_ctx(ctx, "filling holes", 0.98, 0.99);
+    LSQSURF_RETURN_IF_ERROR(CloseHolesOnRequest(points, cloud, fill_ctx, result.mesh, result.statistics));
+    if (points.fill_holes) {
+      AddStatistic(&result.statistics, "triangles", static_cast<double>(result.mesh.faces.size()));
+      AddStatistic(&result.statistics, "vertices", static_cast<double>(result.mesh.vertices.size()));
+    }
+    core::SubContext carry_ctx(ctx, "carrying the points' attributes", 0.99, 1.0);
     LSQSURF_RETURN_IF_ERROR(CarryPointAttributes(points, cloud, carry_ctx, result.mesh, result.statistics));
   }
   return result;
@@ -674,6 +680,11 @@ absl::StatusOr<SurfaceResult> ReconstructStreamed(const std::string& method, con
   auto m = CheckedMethod(method, params);
   if (!m.ok()) return m.status();
   if (!(*m)->streams) return absl::InvalidArgumentError(core::StrCat("'", method, "' cannot stream a cloud"));
+  if ((*m)->points(params)->fill_holes) {
+    return absl::InvalidArgumentError(
+        "fill_holes needs the whole mesh in memory, and a cloud this large is delivered in parts; leave "
+        "fill_holes off, or split the cloud");
+  }
   SurfaceResult result;
   result.statistics.emplace_back("input_points", static_cast<double>(points));
   result.statistics.emplace_back("input_streamed", 1);

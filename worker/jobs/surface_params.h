@@ -25,6 +25,10 @@ struct PointParams {
   // Isolated points (flying pixels, dust, stray returns; core::RemoveIsolatedPoints) are
   // removed before anything else reads the cloud.
   bool remove_outliers = true;
+  // The holes the data leave closed (extract::FillHoles), each vertex farther than three
+  // spacings from the data marked in the vertex attribute "filled"; false: the surface stays
+  // open where nothing was measured.
+  bool fill_holes = false;
 };
 
 // Where the shared extractor looks for the surface, for the methods without their own.

@@ -6,8 +6,11 @@
 #include <string_view>
 
 #include "worker/core/attribute_transfer.h"
+#include "worker/core/kd_tree.h"
+#include "worker/core/parallel.h"
 #include "worker/core/status.h"
 #include "worker/core/strings.h"
+#include "worker/extract/hole_filling.h"
 
 namespace lsqsurf::jobs {
 namespace {
@@ -35,6 +38,11 @@ const core::ParamTable<PointParams>& PointParamsTable() {
             "point_attributes",
             "per-point attributes of the cloud carried to the mesh vertices, by name, comma-separated; empty = "
             "colour (red,green,blue) and intensity, those the cloud has; none = none")
+        .Flag<&PointParams::fill_holes>(
+            "fill_holes",
+            "close the holes the data leave (smooth patches spanning each border), so the mesh is closed; "
+            "vertex attribute filled = 1 where a vertex lies farther than 3 spacings from every point "
+            "(statistics holes_filled, holes_left)")
         .Flag<&PointParams::remove_outliers>(
             "remove_outliers",
             "remove isolated points first (their 8th neighbour 4 times farther than their neighbours' is; "
@@ -97,6 +105,62 @@ absl::Status CarryPointAttributes(const PointParams& points, const core::PointCl
   LSQSURF_RETURN_IF_ERROR(core::CarryAttributes(cloud, names, mesh, ctx));
   statistics.emplace_back("carried_attributes", static_cast<double>(names.size()));
   statistics.emplace_back("carry_seconds", core::SecondsSince(start));
+  return absl::OkStatus();
+}
+
+core::ScalarAttribute UnmeasuredVertices(const core::PointCloud& cloud, const core::TriangleMesh& mesh,
+                                         core::JobContext& ctx) {
+  core::ScalarAttribute filled{kFilledAttribute, std::vector<float>(mesh.vertices.size(), 0.0f)};
+  if (cloud.size() < 2) return filled;
+  const core::KdTree tree(cloud.positions);
+  constexpr size_t kAround = 8;
+  std::vector<float> nearest(cloud.size());
+  // Errors are cancellation only, which the caller checks next.
+  (void)core::ParallelFor(
+      cloud.size(), 4096,
+      [&](size_t begin, size_t end) {
+        std::vector<core::Neighbor> found;
+        for (size_t i = begin; i < end; ++i) {
+          tree.Knn(cloud.positions[i], 2, found);
+          nearest[i] = found.size() > 1 ? std::sqrt(found[1].distance2) : 0.0f;
+        }
+      },
+      &ctx);
+  (void)core::ParallelFor(
+      mesh.vertices.size(), 4096,
+      [&](size_t begin, size_t end) {
+        std::vector<core::Neighbor> found;
+        std::vector<float> spacings;
+        for (size_t v = begin; v < end; ++v) {
+          tree.Knn(mesh.vertices[v], kAround, found);
+          spacings.clear();
+          for (const core::Neighbor& n : found) spacings.push_back(nearest[n.index]);
+          std::nth_element(spacings.begin(), spacings.begin() + static_cast<std::ptrdiff_t>(spacings.size() / 2),
+                           spacings.end());
+          const double spacing = spacings[spacings.size() / 2];
+          if (std::sqrt(static_cast<double>(found[0].distance2)) > kUnmeasuredSpacings * spacing) filled.values[v] = 1;
+        }
+      },
+      &ctx);
+  return filled;
+}
+
+absl::Status CloseHolesOnRequest(const PointParams& points, const core::PointCloud& cloud, core::JobContext& ctx,
+                                 core::TriangleMesh& mesh, Statistics& statistics) {
+  if (!points.fill_holes) return absl::OkStatus();
+  const auto start = std::chrono::steady_clock::now();
+  auto filled = extract::FillHoles(mesh, {}, ctx);
+  if (!filled.ok()) return filled.status();
+  core::ScalarAttribute unmeasured = UnmeasuredVertices(cloud, mesh, ctx);
+  LSQSURF_RETURN_IF_ERROR(ctx.CheckCancelled());
+  double marked = 0;
+  for (float f : unmeasured.values) marked += f;
+  mesh.vertex_attributes.push_back(std::move(unmeasured));
+  statistics.emplace_back("holes_filled", static_cast<double>(filled->holes_filled));
+  statistics.emplace_back("holes_left", static_cast<double>(filled->holes_left));
+  statistics.emplace_back("fill_vertices", static_cast<double>(filled->vertices_added));
+  statistics.emplace_back("filled_vertices", marked);
+  statistics.emplace_back("fill_seconds", core::SecondsSince(start));
   return absl::OkStatus();
 }
 

@@ -15,16 +15,31 @@ namespace lsqsurf::jobs {
 // estimate_normals, normal_neighbors, viewpoint and point_attributes.
 const core::ParamTable<PointParams>& PointParamsTable();
 
-// The cloud's per-point attributes `points` names (by default colour and intensity, those it
-// has) onto `mesh`'s vertices, with the statistics carried_attributes and carry_seconds.
-// Errors: kInvalidArgument naming an attribute the cloud lacks, kCancelled.
 // The sensors `points.viewpoint` gives, into `normals`: one position for every point, or several
 // with the cloud's per-point attribute "scan" naming each point's. Errors: kInvalidArgument (no
 // scan attribute, a scan index that is not one of the positions').
 absl::Status ChooseViewpoints(const PointParams& points, const core::PointCloud& cloud,
                               core::NormalEstimationParams& normals);
 
+// The cloud's per-point attributes `points` names (by default colour and intensity, those it
+// has) onto `mesh`'s vertices, with the statistics carried_attributes and carry_seconds.
+// Errors: kInvalidArgument naming an attribute the cloud lacks, kCancelled.
 absl::Status CarryPointAttributes(const PointParams& points, const core::PointCloud& cloud, core::JobContext& ctx,
                                   core::TriangleMesh& mesh, Statistics& statistics);
+
+// Where `points.fill_holes` asks: the holes of `mesh` closed (extract::FillHoles) and the
+// vertex attribute kFilledAttribute added, with the statistics holes_filled, holes_left,
+// filled_vertices and fill_seconds. Errors: kCancelled.
+absl::Status CloseHolesOnRequest(const PointParams& points, const core::PointCloud& cloud, core::JobContext& ctx,
+                                 core::TriangleMesh& mesh, Statistics& statistics);
+
+// The vertex attribute of a closed surface: 1 where a vertex lies farther than
+// kUnmeasuredSpacings local spacings from every point of the cloud (the surface there was not
+// measured: a filled hole, or the method's own extrapolation), 0 elsewhere. The local spacing is
+// the median, over the vertex's 8 nearest points, of each one's distance to its nearest other.
+inline constexpr char kFilledAttribute[] = "filled";
+inline constexpr double kUnmeasuredSpacings = 3.0;
+core::ScalarAttribute UnmeasuredVertices(const core::PointCloud& cloud, const core::TriangleMesh& mesh,
+                                         core::JobContext& ctx);
 
 }  // namespace lsqsurf::jobs

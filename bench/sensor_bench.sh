@@ -6,7 +6,10 @@
 # For each mesh: a depth camera's single view (PCD with its VIEWPOINT), four merged depth views
 # and a four-station terrestrial lidar (PTX with each sensor's position and 0.1 % registration
 # error), each reconstructed with PU and iaMLS; a clean sample of the same size with PU for the
-# time it costs on a clean cloud. Prints one row per run: wall time, the report's measures
+# time it costs on a clean cloud; the merged views and the lidar again with fill_holes=true, whose
+# rows add watertight and the marked area's precision and recall against the invented area
+# (filled_precision: the share of the marked area farther than 3 spacings from every point;
+# filled_recall: the share of that area marked). Prints one row per run: wall time, the report's measures
 # (bench/sensor_sim.cc: facing, components, fragments, boundary edges, invented and covered
 # shares, mean distance to the truth, colour error). Needs a release build with Embree
 # (lsqsurf-sensor-sim). Leaves its files in $WORK (default a temporary folder).
@@ -27,11 +30,13 @@ trap 'kill $server 2>/dev/null || true' EXIT
 export LSQSURF_SERVER=127.0.0.1:$port
 for _ in $(seq 50); do "$bin"/lsqsurf -q methods >/dev/null 2>&1 && break; sleep 0.2; done
 
-run() {  # run NAME MESH SCAN METHOD
-  local name=$1 mesh=$2 scan=$3 method=$4 out="$work/$1.$4.ply" start end
+run() {  # run NAME MESH SCAN METHOD [PARAM ...]
+  local name=$1 mesh=$2 scan=$3 method=$4 out="$work/$1.$4.ply" log="$work/$1.$4.log" start end params=()
+  shift 4
+  for p in "$@"; do params+=(--param "$p"); done
   start=$(date +%s.%N)
-  "$bin"/lsqsurf -q reconstruct "$scan" -o "$out" --method "$method" >"$work/$1.$4.log" 2>&1 || {
-    echo "$name $method FAILED: $(tail -1 "$work/$1.$4.log")"; return; }
+  "$bin"/lsqsurf -q reconstruct "$scan" -o "$out" --method "$method" "${params[@]}" >"$log" 2>&1 || {
+    echo "$name $method FAILED: $(tail -1 "$log")"; return; }
   end=$(date +%s.%N)
   printf '%-28s %-6s wall %6.1f s  ' "$name" "$method" "$(echo "$end - $start" | bc)"
   "$bin"/lsqsurf-sensor-sim report --truth "$mesh" --scan "$scan" --mesh "$out" |
@@ -49,6 +54,9 @@ for mesh in "${meshes[@]}"; do
   run "$base.clean-$points" "$mesh" "$work/$base.clean.ply" pu
   for scan in view.pcd views.ptx lidar.ptx; do
     for method in pu iamls; do run "$base.$scan" "$mesh" "$work/$base.$scan" $method; done
+  done
+  for scan in views.ptx lidar.ptx; do
+    for method in pu iamls; do run "$base.$scan.filled" "$mesh" "$work/$base.$scan" $method fill_holes=true; done
   done
 done
 echo "files in $work"

@@ -404,6 +404,22 @@ int RunReport(const ReportOptions& o) {
     if (std::sqrt(points.Nearest(centre.cast<float>()).distance2) > 3 * spacing) invented += s;
     distance += s * std::sqrt(truth_tree.Closest(centre).distance2);
   }
+  // The vertices the job marked as filled (attribute `filled`) against the invented area: a face
+  // is marked where most of its vertices are.
+  const auto filled = std::ranges::find(result->vertex_attributes, std::string("filled"), &core::ScalarAttribute::name);
+  double marked = 0, marked_invented = 0, unwelded_invented = 0;
+  if (filled != result->vertex_attributes.end()) {
+    for (const core::Triangle& f : result->faces) {
+      const Vec3d a = result->vertices[f[0]].cast<double>(), b = result->vertices[f[1]].cast<double>(),
+                  c = result->vertices[f[2]].cast<double>();
+      const double s = 0.5 * (b - a).cross(c - a).norm();
+      const bool far = std::sqrt(points.Nearest(((a + b + c) / 3).cast<float>()).distance2) > 3 * spacing;
+      const bool mark = filled->values[f[0]] + filled->values[f[1]] + filled->values[f[2]] >= 1.5f;
+      unwelded_invented += far ? s : 0;
+      marked += mark ? s : 0;
+      marked_invented += mark && far ? s : 0;
+    }
+  }
   double fragments = 0;
   for (double c : component_area) {
     if (c < o.fragment * area) fragments += c;
@@ -438,6 +454,13 @@ int RunReport(const ReportOptions& o) {
       static_cast<long long>(topology.components), fragments / area, static_cast<long long>(topology.boundary_edges),
       invented / area, static_cast<double>(covered) / static_cast<double>(std::max<size_t>(checked, 1)),
       distance / area / diagonal);
+  std::printf("watertight         %d\n", topology.watertight() ? 1 : 0);
+  if (filled != result->vertex_attributes.end()) {
+    // Precision: the share of the marked area that is invented; recall: of the invented area marked.
+    std::printf("filled_marked      %.4f\nfilled_precision   %.4f\nfilled_recall      %.4f\n", marked / area,
+                marked > 0 ? marked_invented / marked : 1.0,
+                unwelded_invented > 0 ? marked_invented / unwelded_invented : 1.0);
+  }
   if (!colour_error.empty()) {
     std::printf("colour_mean        %.2f\ncolour_median      %.0f\ncolour_p90         %.0f\n", colour_mean,
                 colour_error[colour_error.size() / 2], colour_error[colour_error.size() * 9 / 10]);

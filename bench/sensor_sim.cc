@@ -26,6 +26,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
+#include <numeric>
 #include <random>
 #include <string>
 #include <vector>
@@ -325,6 +326,31 @@ int RunLidar(const LidarOptions& o) {
   return status.ok() ? 0 : Fail(std::string(status.message()));
 }
 
+// The area a job marked as filled (vertex attribute `filled`; a face is marked where most of its
+// vertices are) against the area farther than 3 spacings from every scan point.
+struct FilledMarking {
+  bool present = false;
+  double marked = 0, invented = 0, marked_invented = 0;
+};
+
+FilledMarking MeasureFilledMarking(const core::TriangleMesh& mesh, const core::KdTree& points, double spacing) {
+  FilledMarking m;
+  const auto filled = std::ranges::find(mesh.vertex_attributes, std::string("filled"), &core::ScalarAttribute::name);
+  if (filled == mesh.vertex_attributes.end()) return m;
+  m.present = true;
+  for (const core::Triangle& f : mesh.faces) {
+    const Vec3d a = mesh.vertices[f[0]].cast<double>(), b = mesh.vertices[f[1]].cast<double>(),
+                c = mesh.vertices[f[2]].cast<double>();
+    const double s = 0.5 * (b - a).cross(c - a).norm();
+    const bool far = std::sqrt(points.Nearest(((a + b + c) / 3).cast<float>()).distance2) > 3 * spacing;
+    const bool mark = filled->values[f[0]] + filled->values[f[1]] + filled->values[f[2]] >= 1.5f;
+    m.invented += far ? s : 0;
+    m.marked += mark ? s : 0;
+    m.marked_invented += mark && far ? s : 0;
+  }
+  return m;
+}
+
 struct ReportOptions {
   std::string truth, scan, mesh;
   std::vector<std::string> eyes;
@@ -404,22 +430,7 @@ int RunReport(const ReportOptions& o) {
     if (std::sqrt(points.Nearest(centre.cast<float>()).distance2) > 3 * spacing) invented += s;
     distance += s * std::sqrt(truth_tree.Closest(centre).distance2);
   }
-  // The vertices the job marked as filled (attribute `filled`) against the invented area: a face
-  // is marked where most of its vertices are.
-  const auto filled = std::ranges::find(result->vertex_attributes, std::string("filled"), &core::ScalarAttribute::name);
-  double marked = 0, marked_invented = 0, unwelded_invented = 0;
-  if (filled != result->vertex_attributes.end()) {
-    for (const core::Triangle& f : result->faces) {
-      const Vec3d a = result->vertices[f[0]].cast<double>(), b = result->vertices[f[1]].cast<double>(),
-                  c = result->vertices[f[2]].cast<double>();
-      const double s = 0.5 * (b - a).cross(c - a).norm();
-      const bool far = std::sqrt(points.Nearest(((a + b + c) / 3).cast<float>()).distance2) > 3 * spacing;
-      const bool mark = filled->values[f[0]] + filled->values[f[1]] + filled->values[f[2]] >= 1.5f;
-      unwelded_invented += far ? s : 0;
-      marked += mark ? s : 0;
-      marked_invented += mark && far ? s : 0;
-    }
-  }
+  const FilledMarking marking = MeasureFilledMarking(*result, points, spacing);
   double fragments = 0;
   for (double c : component_area) {
     if (c < o.fragment * area) fragments += c;
@@ -443,9 +454,8 @@ int RunReport(const ReportOptions& o) {
     }
   }
   std::sort(colour_error.begin(), colour_error.end());
-  double colour_mean = 0;
-  for (double e : colour_error) colour_mean += e;
-  if (!colour_error.empty()) colour_mean /= static_cast<double>(colour_error.size());
+  const double colour_mean = std::accumulate(colour_error.begin(), colour_error.end(), 0.0) /
+                             static_cast<double>(std::max<size_t>(colour_error.size(), 1));
   std::printf("scan_points        %zu\nspacing            %.4e\n", scan->size(), spacing / diagonal);
   if (!eyes.empty()) std::printf("facing             %.4f\n", facing / area);
   std::printf(
@@ -455,11 +465,11 @@ int RunReport(const ReportOptions& o) {
       invented / area, static_cast<double>(covered) / static_cast<double>(std::max<size_t>(checked, 1)),
       distance / area / diagonal);
   std::printf("watertight         %d\n", topology.watertight() ? 1 : 0);
-  if (filled != result->vertex_attributes.end()) {
+  if (marking.present) {
     // Precision: the share of the marked area that is invented; recall: of the invented area marked.
-    std::printf("filled_marked      %.4f\nfilled_precision   %.4f\nfilled_recall      %.4f\n", marked / area,
-                marked > 0 ? marked_invented / marked : 1.0,
-                unwelded_invented > 0 ? marked_invented / unwelded_invented : 1.0);
+    std::printf("filled_marked      %.4f\nfilled_precision   %.4f\nfilled_recall      %.4f\n", marking.marked / area,
+                marking.marked > 0 ? marking.marked_invented / marking.marked : 1.0,
+                marking.invented > 0 ? marking.marked_invented / marking.invented : 1.0);
   }
   if (!colour_error.empty()) {
     std::printf("colour_mean        %.2f\ncolour_median      %.0f\ncolour_p90         %.0f\n", colour_mean,

@@ -1,5 +1,6 @@
 #include "worker/extract/hole_filling.h"
 
+#include <Eigen/Geometry>
 #include <Eigen/SparseCore>
 #include <Eigen/SparseLU>
 #include <algorithm>
@@ -311,6 +312,17 @@ bool Fair(core::TriangleMesh& mesh, uint32_t first, const std::vector<Triangle>&
     if (solver.info() != Eigen::Success) return false;
     const Eigen::MatrixXd positions = solver.solve(rhs);
     if (solver.info() != Eigen::Success || !positions.allFinite()) return false;
+    // A nearly singular system (cotangents of a folded patch) solves to positions far off; a
+    // fairing stays within about the span of the faces it smooths.
+    Eigen::AlignedBox3d span;
+    for (const Triangle& t : faces) {
+      for (uint32_t v : t) span.extend(mesh.vertices[v].cast<double>());
+    }
+    const double margin = span.diagonal().norm();
+    const Eigen::AlignedBox3d allowed(span.min().array() - margin, span.max().array() + margin);
+    for (int row = 0; row < unknowns; ++row) {
+      if (!allowed.contains(positions.row(row).transpose())) return false;
+    }
     for (int row = 0; row < unknowns; ++row) mesh.vertices[first + row] = positions.row(row).transpose().cast<float>();
   }
   return true;
@@ -429,7 +441,9 @@ absl::StatusOr<HoleFillingStats> FillHoles(core::TriangleMesh& mesh, const HoleF
     for (uint32_t f : surface_faces) fairing_faces.push_back(mesh.faces[f]);
     // One solve: weights taken again from the faired positions drift the vertices along the
     // surface and diverge within a few rounds.
-    faired = faired && Fair(mesh, first, fairing_faces, params.thin_plate, Weights::kCotangent);
+    // Umbrella weights where the cotangents fail: they sag, but their system is never singular.
+    faired = faired && (Fair(mesh, first, fairing_faces, params.thin_plate, Weights::kCotangent) ||
+                        Fair(mesh, first, fairing_faces, params.thin_plate, Weights::kUniform));
     if (!faired) ++stats.unfaired;
     ExtendVertexData(mesh, first, loop, patch.faces());
     for (const Triangle& t : patch.faces()) {

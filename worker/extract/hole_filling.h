@@ -35,7 +35,9 @@ struct HoleFillingStats {
   int64_t holes_left = 0;  // Too long, through a non-manifold vertex, or not triangulable.
   int64_t vertices_added = 0;
   int64_t faces_added = 0;
-  int64_t unfaired = 0;  // Holes whose fairing system was singular: their vertices stay on the triangulation.
+  // Holes whose thin plate failed with both weights (a singular system, or positions far off): their
+  // vertices stay where the relaxation put them.
+  int64_t unfaired = 0;
 };
 
 // Closes the holes of `mesh` as above. The new vertices come after the old ones; normals (where

@@ -7,9 +7,11 @@
 # and a four-station terrestrial lidar (PTX with each sensor's position and 0.1 % registration
 # error), each reconstructed with PU and iaMLS; a clean sample of the same size with PU for the
 # time it costs on a clean cloud; the merged views and the lidar again with fill_holes=true, whose
-# rows add watertight and the marked area's precision and recall against the invented area
-# (filled_precision: the share of the marked area farther than 3 spacings from every point;
-# filled_recall: the share of that area marked). Prints one row per run: wall time, the report's measures
+# rows add watertight and the marked area's precision and recall against the unmeasured area
+# (filled_precision: the share of the marked area farther than 3 local spacings from every point;
+# filled_recall: the share of that area marked; the _global pair uses the scan's one median
+# spacing instead); the clean sample again with fill_holes=true, whose filled_marked is the share
+# a closed, evenly sampled cloud gets marked by chance. Prints one row per run: wall time, the report's measures
 # (bench/sensor_sim.cc: facing, components, fragments, boundary edges, invented and covered
 # shares, mean distance to the truth, colour error). Needs a release build with Embree
 # (lsqsurf-sensor-sim). Leaves its files in $WORK (default a temporary folder).
@@ -52,6 +54,7 @@ for mesh in "${meshes[@]}"; do
     awk '$1 == "scan_points" {print $2}')
   "$bin"/lsqsurf sample "$mesh" -o "$work/$base.clean.ply" --points "$points" >/dev/null
   run "$base.clean-$points" "$mesh" "$work/$base.clean.ply" pu
+  run "$base.clean-$points.filled" "$mesh" "$work/$base.clean.ply" pu fill_holes=true
   for scan in view.pcd views.ptx lidar.ptx; do
     for method in pu iamls; do run "$base.$scan" "$mesh" "$work/$base.$scan" $method; done
   done

@@ -34,6 +34,7 @@
 #include "worker/core/geometry.h"
 #include "worker/core/job_context.h"
 #include "worker/core/kd_tree.h"
+#include "worker/core/local_spacing.h"
 #include "worker/core/mesh_metrics.h"
 #include "worker/core/strings.h"
 #include "worker/core/surface_distance.h"
@@ -326,29 +327,59 @@ int RunLidar(const LidarOptions& o) {
   return status.ok() ? 0 : Fail(std::string(status.message()));
 }
 
-// The area a job marked as filled (vertex attribute `filled`; a face is marked where most of its
-// vertices are) against the area farther than 3 spacings from every scan point.
-struct FilledMarking {
-  bool present = false;
-  double marked = 0, invented = 0, marked_invented = 0;
+// Where a reconstruction is unmeasured: farther than 3 spacings from every scan point, by the
+// local spacing (the job's own rule for `filled`, core::LocalSpacing) and by the scan's one
+// median spacing (which calls a lidar's sparse far side unmeasured).
+struct Unmeasured {
+  const core::KdTree& points;
+  const core::LocalSpacing& local;
+  double global_spacing;
+
+  bool Local(const Vec3f& p, std::vector<core::Neighbor>& scratch) const { return local.At(p, scratch).Beyond(3); }
+  bool Global(const Vec3f& p) const { return std::sqrt(points.Nearest(p).distance2) > 3 * global_spacing; }
 };
 
-FilledMarking MeasureFilledMarking(const core::TriangleMesh& mesh, const core::KdTree& points, double spacing) {
+// The area a job marked as filled (vertex attribute `filled`; a face is marked where most of its
+// vertices are) against the unmeasured area, by either rule.
+struct FilledMarking {
+  bool present = false;
+  double marked = 0;
+  double invented = 0, marked_invented = 0;                // Local rule.
+  double invented_global = 0, marked_invented_global = 0;  // Global rule.
+};
+
+FilledMarking MeasureFilledMarking(const core::TriangleMesh& mesh, const Unmeasured& unmeasured) {
   FilledMarking m;
   const auto filled = std::ranges::find(mesh.vertex_attributes, std::string("filled"), &core::ScalarAttribute::name);
   if (filled == mesh.vertex_attributes.end()) return m;
   m.present = true;
+  std::vector<core::Neighbor> scratch;
   for (const core::Triangle& f : mesh.faces) {
     const Vec3d a = mesh.vertices[f[0]].cast<double>(), b = mesh.vertices[f[1]].cast<double>(),
                 c = mesh.vertices[f[2]].cast<double>();
     const double s = 0.5 * (b - a).cross(c - a).norm();
-    const bool far = std::sqrt(points.Nearest(((a + b + c) / 3).cast<float>()).distance2) > 3 * spacing;
+    const Vec3f centre = ((a + b + c) / 3).cast<float>();
+    const bool far = unmeasured.Local(centre, scratch), far_global = unmeasured.Global(centre);
     const bool mark = filled->values[f[0]] + filled->values[f[1]] + filled->values[f[2]] >= 1.5f;
-    m.invented += far ? s : 0;
     m.marked += mark ? s : 0;
+    m.invented += far ? s : 0;
     m.marked_invented += mark && far ? s : 0;
+    m.invented_global += far_global ? s : 0;
+    m.marked_invented_global += mark && far_global ? s : 0;
   }
   return m;
+}
+
+void PrintFilledMarking(const FilledMarking& m, double area) {
+  if (!m.present) return;
+  // Precision: the share of the marked area that is unmeasured; recall: of the unmeasured area, the
+  // share marked.
+  auto share = [](double part, double whole) { return whole > 0 ? part / whole : 1.0; };
+  std::printf(
+      "filled_marked      %.4f\nfilled_precision   %.4f\nfilled_recall      %.4f\n"
+      "filled_precision_global %.4f\nfilled_recall_global    %.4f\n",
+      m.marked / area, share(m.marked_invented, m.marked), share(m.marked_invented, m.invented),
+      share(m.marked_invented_global, m.marked), share(m.marked_invented_global, m.invented_global));
 }
 
 struct ReportOptions {
@@ -374,6 +405,7 @@ int RunReport(const ReportOptions& o) {
   }
   const double diagonal = core::Diagonal(core::BoundingBox(truth->vertices));
   const core::KdTree points(scan->positions);
+  const core::LocalSpacing local_spacing(points);
   // Mean spacing: the median distance to the nearest other scan point.
   std::vector<double> nearest;
   std::vector<core::Neighbor> nn;
@@ -383,12 +415,14 @@ int RunReport(const ReportOptions& o) {
   }
   std::nth_element(nearest.begin(), nearest.begin() + nearest.size() / 2, nearest.end());
   const double spacing = nearest.empty() ? 0 : nearest[nearest.size() / 2];
+  const Unmeasured unmeasured{points, local_spacing, spacing};
 
   const core::TriangleMesh welded = core::WeldByPosition(*result);
   const core::MeshTopology topology = core::AnalyzeTopology(welded);
   // Per face: area, facing, invented, distance to the truth at its centre, component.
   const core::TriangleTree truth_tree(*truth);
-  double area = 0, facing = 0, invented = 0, distance = 0;
+  double area = 0, facing = 0, invented = 0, invented_global = 0, distance = 0;
+  std::vector<core::Neighbor> scratch;
   std::vector<double> component_area;
   std::vector<int64_t> component(welded.faces.size(), -1);
   {
@@ -427,10 +461,11 @@ int RunReport(const ReportOptions& o) {
         break;
       }
     }
-    if (std::sqrt(points.Nearest(centre.cast<float>()).distance2) > 3 * spacing) invented += s;
+    invented += unmeasured.Local(centre.cast<float>(), scratch) ? s : 0;
+    invented_global += unmeasured.Global(centre.cast<float>()) ? s : 0;
     distance += s * std::sqrt(truth_tree.Closest(centre).distance2);
   }
-  const FilledMarking marking = MeasureFilledMarking(*result, points, spacing);
+  const FilledMarking marking = MeasureFilledMarking(*result, unmeasured);
   double fragments = 0;
   for (double c : component_area) {
     if (c < o.fragment * area) fragments += c;
@@ -460,17 +495,12 @@ int RunReport(const ReportOptions& o) {
   if (!eyes.empty()) std::printf("facing             %.4f\n", facing / area);
   std::printf(
       "components         %lld\nfragments          %.4f\nboundary_edges     %lld\ninvented           %.4f\n"
-      "covered            %.4f\nmesh_to_truth      %.4e\n",
+      "invented_global    %.4f\ncovered            %.4f\nmesh_to_truth      %.4e\n",
       static_cast<long long>(topology.components), fragments / area, static_cast<long long>(topology.boundary_edges),
-      invented / area, static_cast<double>(covered) / static_cast<double>(std::max<size_t>(checked, 1)),
-      distance / area / diagonal);
+      invented / area, invented_global / area,
+      static_cast<double>(covered) / static_cast<double>(std::max<size_t>(checked, 1)), distance / area / diagonal);
   std::printf("watertight         %d\n", topology.watertight() ? 1 : 0);
-  if (marking.present) {
-    // Precision: the share of the marked area that is invented; recall: of the invented area marked.
-    std::printf("filled_marked      %.4f\nfilled_precision   %.4f\nfilled_recall      %.4f\n", marking.marked / area,
-                marking.marked > 0 ? marking.marked_invented / marking.marked : 1.0,
-                marking.invented > 0 ? marking.marked_invented / marking.invented : 1.0);
-  }
+  PrintFilledMarking(marking, area);
   if (!colour_error.empty()) {
     std::printf("colour_mean        %.2f\ncolour_median      %.0f\ncolour_p90         %.0f\n", colour_mean,
                 colour_error[colour_error.size() / 2], colour_error[colour_error.size() * 9 / 10]);

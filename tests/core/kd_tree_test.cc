@@ -6,6 +6,8 @@
 #include <random>
 #include <thread>
 
+#include "worker/core/local_spacing.h"
+
 namespace lsqsurf::core {
 namespace {
 
@@ -85,6 +87,31 @@ TEST(KdTree, EmptySetAnswersNothing) {
   EXPECT_TRUE(nn.empty());
   tree.Radius(Vec3f::Zero(), 1.0f, nn);
   EXPECT_TRUE(nn.empty());
+}
+
+// A plane sampled on a grid of 0.01 for x < 0 and of 0.04 for x > 0 (a lidar's near and far side):
+// the local spacing follows the grid, so the same height above the plane is unmeasured over the
+// dense half and measured over the sparse one.
+TEST(LocalSpacing, FollowsTheCloudsDensityWhereItIs) {
+  std::vector<Vec3f> plane;
+  for (int i = -100; i < 0; ++i) {
+    for (int j = 0; j < 50; ++j) plane.emplace_back(0.01f * static_cast<float>(i), 0.01f * static_cast<float>(j), 0);
+  }
+  for (int i = 1; i <= 25; ++i) {
+    for (int j = 0; j < 13; ++j) plane.emplace_back(0.04f * static_cast<float>(i), 0.04f * static_cast<float>(j), 0);
+  }
+  const KdTree tree(plane);
+  const LocalSpacing spacing(tree);
+  std::vector<Neighbor> scratch;
+  const auto dense = spacing.At(Vec3f(-0.5f, 0.25f, 0.05f), scratch);
+  const auto sparse = spacing.At(Vec3f(0.5f, 0.24f, 0.05f), scratch);
+  EXPECT_NEAR(dense.spacing, 0.01, 1e-6);
+  EXPECT_NEAR(sparse.spacing, 0.04, 1e-6);
+  EXPECT_NEAR(dense.nearest, 0.05, 1e-6);
+  EXPECT_TRUE(dense.Beyond(3));
+  EXPECT_FALSE(sparse.Beyond(3));
+  // On the cloud itself nothing is beyond.
+  EXPECT_FALSE(spacing.At(plane[123], scratch).Beyond(0.5));
 }
 
 }  // namespace

@@ -252,6 +252,9 @@ class Laplacian {
       ring_[a].emplace_back(b, w / std::max(area[a], 1e-30));
       ring_[b].emplace_back(a, w / std::max(area[b], 1e-30));
     }
+    // In neighbour order, not the hash map's (seeded per process): the sums, and so the faired
+    // positions, are the same to the bit on every run.
+    for (auto& [v, ring] : ring_) std::ranges::sort(ring);
   }
   // v's neighbours with their weights; empty for a vertex of none of the faces.
   const std::vector<std::pair<uint32_t, double>>& Ring(uint32_t v) const {

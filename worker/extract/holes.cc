@@ -219,7 +219,13 @@ std::vector<std::vector<uint32_t>> HoleBorders::Loops(size_t max_edges) {
   std::vector<std::vector<uint32_t>> found;
   absl::flat_hash_set<uint32_t> visited;  // Ordinary vertices; a pinch vertex is on two loops.
   std::vector<uint32_t> loop;
-  for (const auto& [first, unused] : loops.next) {
+  // Walked from the lowest vertex up, not in the hash map's order (seeded per process): the same
+  // mesh gives the same loops, starts and so the same filled mesh on every run.
+  std::vector<uint32_t> starts;
+  starts.reserve(loops.next.size());
+  for (const auto& [v, unused] : loops.next) starts.push_back(v);
+  std::ranges::sort(starts);
+  for (uint32_t first : starts) {
     if (visited.contains(first)) continue;
     loop.clear();
     bool closed = false, usable = true;

@@ -7,6 +7,7 @@
 
 #include "worker/core/attribute_transfer.h"
 #include "worker/core/kd_tree.h"
+#include "worker/core/local_spacing.h"
 #include "worker/core/parallel.h"
 #include "worker/core/status.h"
 #include "worker/core/strings.h"
@@ -113,32 +114,14 @@ core::ScalarAttribute UnmeasuredVertices(const core::PointCloud& cloud, const co
   core::ScalarAttribute filled{kFilledAttribute, std::vector<float>(mesh.vertices.size(), 0.0f)};
   if (cloud.size() < 2) return filled;
   const core::KdTree tree(cloud.positions);
-  constexpr size_t kAround = 8;
-  std::vector<float> nearest(cloud.size());
+  const core::LocalSpacing spacing(tree, &ctx);
   // Errors are cancellation only, which the caller checks next.
-  (void)core::ParallelFor(
-      cloud.size(), 4096,
-      [&](size_t begin, size_t end) {
-        std::vector<core::Neighbor> found;
-        for (size_t i = begin; i < end; ++i) {
-          tree.Knn(cloud.positions[i], 2, found);
-          nearest[i] = found.size() > 1 ? std::sqrt(found[1].distance2) : 0.0f;
-        }
-      },
-      &ctx);
   (void)core::ParallelFor(
       mesh.vertices.size(), 4096,
       [&](size_t begin, size_t end) {
         std::vector<core::Neighbor> found;
-        std::vector<float> spacings;
         for (size_t v = begin; v < end; ++v) {
-          tree.Knn(mesh.vertices[v], kAround, found);
-          spacings.clear();
-          for (const core::Neighbor& n : found) spacings.push_back(nearest[n.index]);
-          std::nth_element(spacings.begin(), spacings.begin() + static_cast<std::ptrdiff_t>(spacings.size() / 2),
-                           spacings.end());
-          const double spacing = spacings[spacings.size() / 2];
-          if (std::sqrt(static_cast<double>(found[0].distance2)) > kUnmeasuredSpacings * spacing) filled.values[v] = 1;
+          if (spacing.At(mesh.vertices[v], found).Beyond(kUnmeasuredSpacings)) filled.values[v] = 1;
         }
       },
       &ctx);

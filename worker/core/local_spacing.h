@@ -1,0 +1,42 @@
+// worker/core/local_spacing.h — a cloud's sampling spacing where it is, not on average.
+//
+// A lidar's or a depth camera's spacing grows with range, so one global spacing calls the far
+// side of a scan unmeasured and the near side measured however far a surface strays. The local
+// spacing at a query is the median, over its `kAround` nearest points, of each one's distance to
+// its nearest other point: the median ignores a duplicate or an outlier among them, and 24 of
+// them keep the chance gaps of an even sampling from reading as unmeasured (with 8, the median
+// varies so much that 1.5 % of a clean sample's surface lay beyond 3 spacings; with 24, 0.6 %;
+// by the cloud's one median spacing, 0.2 %).
+#pragma once
+
+#include <vector>
+
+#include "worker/core/geometry.h"
+#include "worker/core/job_context.h"
+#include "worker/core/kd_tree.h"
+
+namespace lsqsurf::core {
+
+class LocalSpacing {
+ public:
+  static constexpr size_t kAround = 24;
+
+  // Measures every point's nearest distance in parallel (cancellation leaves the rest 0, which
+  // the caller sees in ctx). `tree` must outlive this object.
+  explicit LocalSpacing(const KdTree& tree, const JobContext* ctx = nullptr);
+
+  struct Reading {
+    double nearest = 0;  // Distance from the query to its nearest point.
+    double spacing = 0;  // The local spacing there.
+    // The query lies farther than `spacings` local spacings from every point.
+    bool Beyond(double spacings) const { return nearest > spacings * spacing; }
+  };
+  // Thread-safe with one `scratch` per thread.
+  Reading At(const Vec3f& query, std::vector<Neighbor>& scratch) const;
+
+ private:
+  const KdTree& tree_;
+  std::vector<float> nearest_;  // Per point: the distance to its nearest other point.
+};
+
+}  // namespace lsqsurf::core

@@ -5,8 +5,10 @@
 #include <algorithm>
 #include <numeric>
 #include <random>
+#include <tuple>
 
 #include "worker/core/sampling.h"
+#include "worker/core/sphere_mesh.h"
 #include "worker/core/surface_distance.h"
 
 namespace lsqsurf::core {
@@ -257,6 +259,45 @@ TEST(Sampling, IsUniformByArea) {
   double big = 0;
   for (const auto& s : samples) big += s.face == 1;
   EXPECT_NEAR(big / 40000.0, 0.75, 0.01);
+}
+
+// Two numberings of one sphere (vertices shuffled, faces shuffled and rotated) sort to the same
+// mesh, with each attribute value still on its vertex and the volume's sign (orientation) kept.
+TEST(SortMeshByPosition, GivesOneOrderForEveryNumberingOfASurface) {
+  TriangleMesh sphere = SphereMesh(12, 24);
+  ScalarAttribute height{"height", {}};
+  for (const Vec3f& v : sphere.vertices) height.values.push_back(v.z());
+  sphere.vertex_attributes.push_back(height);
+  auto shuffled = [&](uint32_t seed) {
+    std::mt19937 random(seed);
+    std::vector<uint32_t> to(sphere.vertices.size());
+    std::iota(to.begin(), to.end(), 0u);
+    std::shuffle(to.begin(), to.end(), random);
+    TriangleMesh m = sphere;
+    for (size_t v = 0; v < to.size(); ++v) {
+      m.vertices[to[v]] = sphere.vertices[v];
+      m.vertex_attributes[0].values[to[v]] = height.values[v];
+    }
+    for (Triangle& t : m.faces) {
+      t = {to[t[0]], to[t[1]], to[t[2]]};
+      std::rotate(t.begin(), t.begin() + random() % 3, t.end());
+    }
+    std::shuffle(m.faces.begin(), m.faces.end(), random);
+    return m;
+  };
+  TriangleMesh a = shuffled(1), b = shuffled(2);
+  ASSERT_NE(a.vertices, b.vertices);
+  SortMeshByPosition(a);
+  SortMeshByPosition(b);
+  EXPECT_EQ(a.vertices, b.vertices);
+  EXPECT_EQ(a.faces, b.faces);
+  EXPECT_EQ(a.vertex_attributes[0].values, b.vertex_attributes[0].values);
+  for (size_t v = 0; v < a.vertices.size(); ++v) EXPECT_EQ(a.vertex_attributes[0].values[v], a.vertices[v].z());
+  EXPECT_TRUE(std::is_sorted(a.vertices.begin(), a.vertices.end(), [](const Vec3f& p, const Vec3f& q) {
+    return std::tie(p.x(), p.y(), p.z()) < std::tie(q.x(), q.y(), q.z());
+  }));
+  EXPECT_NEAR(EnclosedVolume(a), EnclosedVolume(sphere), 1e-9 * std::abs(EnclosedVolume(sphere)));
+  EXPECT_GT(EnclosedVolume(sphere), 0);
 }
 
 }  // namespace

@@ -48,19 +48,45 @@ std::vector<uint32_t> MortonOrder(std::span<const Vec3f> points) {
   return order;
 }
 
-size_t RemoveDuplicatePoints(PointCloud& cloud) {
-  const size_t n = cloud.size();
-  if (n < 2) return 0;
-  // Sorted by position, ties by index: each run of equal positions starts at its first point.
-  std::vector<uint32_t> order(n);
+std::vector<uint32_t> PositionOrder(std::span<const Vec3f> p) {
+  std::vector<uint32_t> order(p.size());
   std::iota(order.begin(), order.end(), 0u);
-  const auto& p = cloud.positions;
   tbb::parallel_sort(order.begin(), order.end(), [&p](uint32_t a, uint32_t b) {
     if (p[a].x() != p[b].x()) return p[a].x() < p[b].x();
     if (p[a].y() != p[b].y()) return p[a].y() < p[b].y();
     if (p[a].z() != p[b].z()) return p[a].z() < p[b].z();
     return a < b;
   });
+  return order;
+}
+
+void SortMeshByPosition(TriangleMesh& mesh) {
+  const std::vector<uint32_t> order = PositionOrder(mesh.vertices);
+  std::vector<uint32_t> rank(order.size());
+  for (uint32_t r = 0; r < order.size(); ++r) rank[order[r]] = r;
+  auto gather = [&order](auto& values) {
+    if (values.size() != order.size()) return;
+    std::remove_reference_t<decltype(values)> sorted(values.size());
+    for (size_t r = 0; r < order.size(); ++r) sorted[r] = values[order[r]];
+    values = std::move(sorted);
+  };
+  gather(mesh.vertices);
+  gather(mesh.normals);
+  for (ScalarAttribute& a : mesh.vertex_attributes) gather(a.values);
+  for (Triangle& t : mesh.faces) {
+    t = {rank[t[0]], rank[t[1]], rank[t[2]]};
+    // Rotated to start at its lowest vertex; the orientation stays.
+    std::rotate(t.begin(), std::min_element(t.begin(), t.end()), t.end());
+  }
+  tbb::parallel_sort(mesh.faces.begin(), mesh.faces.end());
+}
+
+size_t RemoveDuplicatePoints(PointCloud& cloud) {
+  const size_t n = cloud.size();
+  if (n < 2) return 0;
+  // Sorted by position, ties by index: each run of equal positions starts at its first point.
+  const std::vector<uint32_t> order = PositionOrder(cloud.positions);
+  const auto& p = cloud.positions;
   std::vector<uint8_t> repeated(n, 0);
   size_t removed = 0;
   for (size_t t = 1; t < n; ++t) {

@@ -67,6 +67,15 @@ double Diagonal(const Box3& box);
 // points close in space end up close in the order (cache locality for neighbour sums).
 std::vector<uint32_t> MortonOrder(std::span<const Vec3f> points);
 
+// Indices of `points` in lexicographic order of their positions (x, then y, then z; ties by index).
+std::vector<uint32_t> PositionOrder(std::span<const Vec3f> points);
+
+// Renumbers `mesh`'s vertices in PositionOrder (normals and vertex attributes with them) and sorts
+// its faces, each rotated to start at its lowest vertex (orientation kept). Why: a parallel
+// extraction's vertex order varies from run to run, and whatever walks the mesh by index (hole
+// filling's loops, its tie breaks) then varies with it; after this it depends on the surface only.
+void SortMeshByPosition(TriangleMesh& mesh);
+
 // Removes every point whose position repeats an earlier point's exactly, with its normal and
 // attributes; the first of each position stays, and the rest keep their order. Returns how many
 // went. Why: exact repeats (a sensor's stuck pixel, a cloud merged twice, a hostile upload of

@@ -6,6 +6,7 @@
 #include <string_view>
 
 #include "worker/core/attribute_transfer.h"
+#include "worker/core/geometry.h"
 #include "worker/core/kd_tree.h"
 #include "worker/core/local_spacing.h"
 #include "worker/core/parallel.h"
@@ -132,6 +133,8 @@ absl::Status CloseHolesOnRequest(const PointParams& points, const core::PointClo
                                  core::TriangleMesh& mesh, Statistics& statistics) {
   if (!points.fill_holes) return absl::OkStatus();
   const auto start = std::chrono::steady_clock::now();
+  // In an order of the surface alone, so that the same cloud gets the same filling on every run.
+  core::SortMeshByPosition(mesh);
   auto filled = extract::FillHoles(mesh, {}, ctx);
   if (!filled.ok()) return filled.status();
   core::ScalarAttribute unmeasured = UnmeasuredVertices(cloud, mesh, ctx);

@@ -327,7 +327,8 @@ int RunLidar(const LidarOptions& o) {
   return status.ok() ? 0 : Fail(std::string(status.message()));
 }
 
-// Where a reconstruction is unmeasured: farther than 3 spacings from every scan point, by the
+// Where a reconstruction is unmeasured: farther than core::kUnmeasuredSpacings spacings from
+// every scan point, by the
 // local spacing (the job's own rule for `filled`, core::LocalSpacing) and by the scan's one
 // median spacing (which calls a lidar's sparse far side unmeasured).
 struct Unmeasured {
@@ -335,8 +336,10 @@ struct Unmeasured {
   const core::LocalSpacing& local;
   double global_spacing;
 
-  bool Local(const Vec3f& p, std::vector<core::Neighbor>& scratch) const { return local.At(p, scratch).Beyond(3); }
-  bool Global(const Vec3f& p) const { return std::sqrt(points.Nearest(p).distance2) > 3 * global_spacing; }
+  bool Local(const Vec3f& p, std::vector<core::Neighbor>& scratch) const { return local.At(p, scratch).Unmeasured(); }
+  bool Global(const Vec3f& p) const {
+    return std::sqrt(points.Nearest(p).distance2) > core::kUnmeasuredSpacings * global_spacing;
+  }
 };
 
 // The area a job marked as filled (vertex attribute `filled`; a face is marked where most of its
@@ -406,15 +409,7 @@ int RunReport(const ReportOptions& o) {
   const double diagonal = core::Diagonal(core::BoundingBox(truth->vertices));
   const core::KdTree points(scan->positions);
   const core::LocalSpacing local_spacing(points);
-  // Mean spacing: the median distance to the nearest other scan point.
-  std::vector<double> nearest;
-  std::vector<core::Neighbor> nn;
-  for (size_t i = 0; i < scan->size(); i += std::max<size_t>(1, scan->size() / 20000)) {
-    points.Knn(scan->positions[i], 2, nn);
-    if (nn.size() == 2) nearest.push_back(std::sqrt(nn[1].distance2));
-  }
-  std::nth_element(nearest.begin(), nearest.begin() + nearest.size() / 2, nearest.end());
-  const double spacing = nearest.empty() ? 0 : nearest[nearest.size() / 2];
+  const double spacing = local_spacing.MedianNearest();
   const Unmeasured unmeasured{points, local_spacing, spacing};
 
   const core::TriangleMesh welded = core::WeldByPosition(*result);

@@ -6,6 +6,7 @@
 #include <numeric>
 #include <random>
 #include <tuple>
+#include <utility>
 
 #include "worker/core/sampling.h"
 #include "worker/core/sphere_mesh.h"
@@ -261,6 +262,29 @@ TEST(Sampling, IsUniformByArea) {
   EXPECT_NEAR(big / 40000.0, 0.75, 0.01);
 }
 
+// `mesh` with its vertices renumbered at random (normals and attributes with them), its faces
+// shuffled and each rotated by a random turn.
+TriangleMesh Renumbered(const TriangleMesh& mesh, uint32_t seed) {
+  std::mt19937 random(seed);
+  std::vector<uint32_t> to(mesh.vertices.size());
+  std::iota(to.begin(), to.end(), 0u);
+  std::shuffle(to.begin(), to.end(), random);
+  TriangleMesh m = mesh;
+  for (size_t v = 0; v < to.size(); ++v) {
+    m.vertices[to[v]] = mesh.vertices[v];
+    if (!mesh.normals.empty()) m.normals[to[v]] = mesh.normals[v];
+    for (size_t a = 0; a < mesh.vertex_attributes.size(); ++a) {
+      m.vertex_attributes[a].values[to[v]] = mesh.vertex_attributes[a].values[v];
+    }
+  }
+  for (Triangle& t : m.faces) {
+    t = {to[t[0]], to[t[1]], to[t[2]]};
+    std::rotate(t.begin(), t.begin() + random() % 3, t.end());
+  }
+  std::shuffle(m.faces.begin(), m.faces.end(), random);
+  return m;
+}
+
 // Two numberings of one sphere (vertices shuffled, faces shuffled and rotated) sort to the same
 // mesh, with each attribute value still on its vertex and the volume's sign (orientation) kept.
 TEST(SortMeshByPosition, GivesOneOrderForEveryNumberingOfASurface) {
@@ -268,24 +292,7 @@ TEST(SortMeshByPosition, GivesOneOrderForEveryNumberingOfASurface) {
   ScalarAttribute height{"height", {}};
   for (const Vec3f& v : sphere.vertices) height.values.push_back(v.z());
   sphere.vertex_attributes.push_back(height);
-  auto shuffled = [&](uint32_t seed) {
-    std::mt19937 random(seed);
-    std::vector<uint32_t> to(sphere.vertices.size());
-    std::iota(to.begin(), to.end(), 0u);
-    std::shuffle(to.begin(), to.end(), random);
-    TriangleMesh m = sphere;
-    for (size_t v = 0; v < to.size(); ++v) {
-      m.vertices[to[v]] = sphere.vertices[v];
-      m.vertex_attributes[0].values[to[v]] = height.values[v];
-    }
-    for (Triangle& t : m.faces) {
-      t = {to[t[0]], to[t[1]], to[t[2]]};
-      std::rotate(t.begin(), t.begin() + random() % 3, t.end());
-    }
-    std::shuffle(m.faces.begin(), m.faces.end(), random);
-    return m;
-  };
-  TriangleMesh a = shuffled(1), b = shuffled(2);
+  TriangleMesh a = Renumbered(sphere, 1), b = Renumbered(sphere, 2);
   ASSERT_NE(a.vertices, b.vertices);
   SortMeshByPosition(a);
   SortMeshByPosition(b);
@@ -298,6 +305,48 @@ TEST(SortMeshByPosition, GivesOneOrderForEveryNumberingOfASurface) {
   }));
   EXPECT_NEAR(EnclosedVolume(a), EnclosedVolume(sphere), 1e-9 * std::abs(EnclosedVolume(sphere)));
   EXPECT_GT(EnclosedVolume(sphere), 0);
+}
+
+// A cube as sharp-feature extraction writes it: each face has its own four corners with the
+// face's normal, so every corner position holds three vertices. Their order comes from the
+// surface too: any numbering sorts to one mesh, and each copy keeps its own face's normal.
+TEST(SortMeshByPosition, OrdersCoincidentVerticesByTheSurfaceAroundThem) {
+  TriangleMesh cube;
+  for (int axis = 0; axis < 3; ++axis) {
+    for (int side : {-1, 1}) {
+      Vec3f normal = Vec3f::Zero();
+      normal[axis] = static_cast<float>(side);
+      const int u = (axis + 1) % 3, w = (axis + 2) % 3;
+      const auto base = static_cast<uint32_t>(cube.vertices.size());
+      for (auto [du, dw] : {std::pair{-1, -1}, {1, -1}, {1, 1}, {-1, 1}}) {
+        Vec3f p = normal;
+        p[u] = static_cast<float>(du);
+        p[w] = static_cast<float>(dw);
+        cube.vertices.push_back(p);
+        cube.normals.push_back(normal);
+      }
+      // Outward when u, w, axis are right-handed; flipped on the negative side.
+      if (side > 0) {
+        cube.faces.push_back({base, base + 1, base + 2});
+        cube.faces.push_back({base, base + 2, base + 3});
+      } else {
+        cube.faces.push_back({base, base + 2, base + 1});
+        cube.faces.push_back({base, base + 3, base + 2});
+      }
+    }
+  }
+  ASSERT_NEAR(EnclosedVolume(WeldByPosition(cube)), 8.0, 1e-9);
+  TriangleMesh a = Renumbered(cube, 3), b = Renumbered(cube, 4);
+  SortMeshByPosition(a);
+  SortMeshByPosition(b);
+  EXPECT_EQ(a.vertices, b.vertices);
+  EXPECT_EQ(a.normals, b.normals);
+  EXPECT_EQ(a.faces, b.faces);
+  for (const Triangle& t : a.faces) {
+    const Vec3f face_normal =
+        (a.vertices[t[1]] - a.vertices[t[0]]).cross(a.vertices[t[2]] - a.vertices[t[0]]).normalized();
+    for (uint32_t v : t) EXPECT_EQ(a.normals[v], face_normal);
+  }
 }
 
 }  // namespace

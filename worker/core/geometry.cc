@@ -5,6 +5,8 @@
 #include <algorithm>
 #include <cmath>
 #include <numeric>
+#include <unordered_map>
+#include <utility>
 
 namespace lsqsurf::core {
 
@@ -60,8 +62,57 @@ std::vector<uint32_t> PositionOrder(std::span<const Vec3f> p) {
   return order;
 }
 
+namespace {
+
+bool LexLess(const Vec3f& a, const Vec3f& b) {
+  return std::lexicographical_compare(a.data(), a.data() + 3, b.data(), b.data() + 3);
+}
+
+// Vertices at one position (a crease's split copies, a seam's twins) ordered by what lies around
+// them rather than by their old index: their normal, then the positions of their faces' other
+// corners (in orientation order, the faces sorted), so that the order is the surface's own.
+void OrderCoincidentVertices(const TriangleMesh& mesh, std::vector<uint32_t>& order) {
+  const auto& p = mesh.vertices;
+  std::vector<uint8_t> tied(p.size(), 0);
+  bool any = false;
+  for (size_t r = 1; r < order.size(); ++r) {
+    if (p[order[r]] == p[order[r - 1]]) tied[order[r]] = tied[order[r - 1]] = 1, any = true;
+  }
+  if (!any) return;
+  using Corner = std::pair<Vec3f, Vec3f>;
+  std::unordered_map<uint32_t, std::vector<Corner>> around;
+  for (const Triangle& t : mesh.faces) {
+    for (int c = 0; c < 3; ++c) {
+      if (tied[t[c]]) around[t[c]].emplace_back(p[t[(c + 1) % 3]], p[t[(c + 2) % 3]]);
+    }
+  }
+  auto corner_less = [](const Corner& a, const Corner& b) {
+    if (a.first != b.first) return LexLess(a.first, b.first);
+    return LexLess(a.second, b.second);
+  };
+  for (auto& [v, corners] : around) std::ranges::sort(corners, corner_less);
+  const bool has_normals = mesh.normals.size() == p.size();
+  auto less = [&](uint32_t a, uint32_t b) {
+    if (has_normals && mesh.normals[a] != mesh.normals[b]) return LexLess(mesh.normals[a], mesh.normals[b]);
+    const auto& ca = around[a];
+    const auto& cb = around[b];
+    if (std::ranges::lexicographical_compare(ca, cb, corner_less)) return true;
+    if (std::ranges::lexicographical_compare(cb, ca, corner_less)) return false;
+    return a < b;  // Indistinguishable: either order gives the same mesh.
+  };
+  for (size_t begin = 0; begin < order.size();) {
+    size_t end = begin + 1;
+    while (end < order.size() && p[order[end]] == p[order[begin]]) ++end;
+    if (end - begin > 1) std::sort(order.begin() + begin, order.begin() + end, less);
+    begin = end;
+  }
+}
+
+}  // namespace
+
 void SortMeshByPosition(TriangleMesh& mesh) {
-  const std::vector<uint32_t> order = PositionOrder(mesh.vertices);
+  std::vector<uint32_t> order = PositionOrder(mesh.vertices);
+  OrderCoincidentVertices(mesh, order);
   std::vector<uint32_t> rank(order.size());
   for (uint32_t r = 0; r < order.size(); ++r) rank[order[r]] = r;
   auto gather = [&order](auto& values) {

@@ -70,7 +70,8 @@ std::vector<uint32_t> MortonOrder(std::span<const Vec3f> points);
 // Indices of `points` in lexicographic order of their positions (x, then y, then z; ties by index).
 std::vector<uint32_t> PositionOrder(std::span<const Vec3f> points);
 
-// Renumbers `mesh`'s vertices in PositionOrder (normals and vertex attributes with them) and sorts
+// Renumbers `mesh`'s vertices in PositionOrder, coincident ones by their normal and their faces'
+// other corners (normals and vertex attributes with them), and sorts
 // its faces, each rotated to start at its lowest vertex (orientation kept). Why: a parallel
 // extraction's vertex order varies from run to run, and whatever walks the mesh by index (hole
 // filling's loops, its tie breaks) then varies with it; after this it depends on the surface only.

@@ -35,4 +35,11 @@ LocalSpacing::Reading LocalSpacing::At(const Vec3f& query, std::vector<Neighbor>
   return r;
 }
 
+double LocalSpacing::MedianNearest() const {
+  if (nearest_.size() < 2) return 0;
+  std::vector<float> sorted = nearest_;
+  std::nth_element(sorted.begin(), sorted.begin() + sorted.size() / 2, sorted.end());
+  return sorted[sorted.size() / 2];
+}
+
 }  // namespace lsqsurf::core

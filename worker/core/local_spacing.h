@@ -17,6 +17,10 @@
 
 namespace lsqsurf::core {
 
+// How many local spacings from every point a query must lie to count as unmeasured: the job's
+// `filled` marking and the sensor report share it.
+inline constexpr double kUnmeasuredSpacings = 3.0;
+
 class LocalSpacing {
  public:
   static constexpr size_t kAround = 24;
@@ -30,9 +34,14 @@ class LocalSpacing {
     double spacing = 0;  // The local spacing there.
     // The query lies farther than `spacings` local spacings from every point.
     bool Beyond(double spacings) const { return nearest > spacings * spacing; }
+    bool Unmeasured() const { return Beyond(kUnmeasuredSpacings); }
   };
   // Thread-safe with one `scratch` per thread.
   Reading At(const Vec3f& query, std::vector<Neighbor>& scratch) const;
+
+  // The cloud's one spacing: the median over all points of the distance to the nearest other
+  // point (0 for fewer than two points).
+  double MedianNearest() const;
 
  private:
   const KdTree& tree_;

@@ -122,7 +122,7 @@ core::ScalarAttribute UnmeasuredVertices(const core::PointCloud& cloud, const co
       [&](size_t begin, size_t end) {
         std::vector<core::Neighbor> found;
         for (size_t v = begin; v < end; ++v) {
-          if (spacing.At(mesh.vertices[v], found).Beyond(kUnmeasuredSpacings)) filled.values[v] = 1;
+          if (spacing.At(mesh.vertices[v], found).Unmeasured()) filled.values[v] = 1;
         }
       },
       &ctx);

@@ -34,11 +34,10 @@ absl::Status CloseHolesOnRequest(const PointParams& points, const core::PointClo
                                  core::TriangleMesh& mesh, Statistics& statistics);
 
 // The vertex attribute of a closed surface: 1 where a vertex lies farther than
-// kUnmeasuredSpacings local spacings from every point of the cloud (the surface there was not
+// core::kUnmeasuredSpacings local spacings from every point of the cloud (the surface there was not
 // measured: a filled hole, or the method's own extrapolation), 0 elsewhere; local spacings as
 // core::LocalSpacing measures them.
 inline constexpr char kFilledAttribute[] = "filled";
-inline constexpr double kUnmeasuredSpacings = 3.0;
 core::ScalarAttribute UnmeasuredVertices(const core::PointCloud& cloud, const core::TriangleMesh& mesh,
                                          core::JobContext& ctx);
 

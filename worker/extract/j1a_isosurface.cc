@@ -246,6 +246,12 @@ absl::StatusOr<IsosurfaceResult> TrackAndMarch(const ImplicitFunction& field, co
       frontier.push_back(*leaf);
     }
   }
+  // In key order: tracking numbers the vertices in the order it meets them, and callers gather
+  // their starts in hash sets, whose order changes from table to table (absl salts it with the
+  // table's address); the mesh's numbering, and what the order-dependent steps after marching
+  // (relaxation, flips, hole loops) make of it, would change from run to run.
+  std::sort(frontier.begin(), frontier.end(),
+            [](const OctreeCell& a, const OctreeCell& b) { return CellKey(a) < CellKey(b); });
   // Bounds the memory of a batch (the tetrahedra of every leaf in it) on large first frontiers.
   constexpr size_t kLeavesPerBatch = 16384;
   std::vector<LeafWork> work(std::min(kLeavesPerBatch, frontier.size()));

@@ -349,5 +349,32 @@ TEST(SortMeshByPosition, OrdersCoincidentVerticesByTheSurfaceAroundThem) {
   }
 }
 
+// The winding number of a closed sphere is 1 inside and 0 outside (the solid angles sum to 4π or
+// cancel); of its upper half alone, ½ at the centre. Components are counted by position, so a
+// sphere whose faces each have their own corners is still one.
+TEST(WindingNumber, IsOneInsideAClosedSurfaceAndZeroOutside) {
+  const TriangleMesh sphere = SphereMesh(24, 48);
+  const std::vector<char> all(sphere.faces.size(), 1);
+  EXPECT_NEAR(WindingNumber(sphere, all, Vec3d(0.3, -0.2, 0.1)), 1.0, 1e-9);
+  EXPECT_NEAR(WindingNumber(sphere, all, Vec3d(1.5, 0.2, 0)), 0.0, 1e-9);
+  std::vector<char> upper(sphere.faces.size(), 0);
+  for (size_t f = 0; f < sphere.faces.size(); ++f) {
+    const Triangle& t = sphere.faces[f];
+    upper[f] = sphere.vertices[t[0]].z() + sphere.vertices[t[1]].z() + sphere.vertices[t[2]].z() > 0;
+  }
+  EXPECT_NEAR(WindingNumber(sphere, upper, Vec3d::Zero()), 0.5, 1e-9);
+
+  TriangleMesh split;
+  for (const Triangle& t : sphere.faces) {
+    const auto base = static_cast<uint32_t>(split.vertices.size());
+    for (uint32_t v : t) split.vertices.push_back(sphere.vertices[v]);
+    split.faces.push_back({base, base + 1, base + 2});
+  }
+  uint32_t count = 0;
+  const std::vector<uint32_t> label = ComponentOfFaces(split, count);
+  EXPECT_EQ(count, 1u);
+  EXPECT_TRUE(std::ranges::all_of(label, [](uint32_t l) { return l == 0; }));
+}
+
 }  // namespace
 }  // namespace lsqsurf::core

@@ -10,6 +10,7 @@
 
 #include "tests/test_shapes.h"
 #include "worker/core/mesh_metrics.h"
+#include "worker/core/sphere_mesh.h"
 #include "worker/core/strings.h"
 #include "worker/csg/csg.h"
 #include "worker/io/draco_codec.h"
@@ -117,6 +118,45 @@ TEST(DeliveredMesh, AnOpenCloudClosesOnRequestAndTheFillingIsMarked) {
     EXPECT_EQ(cap_marked, cap);
     EXPECT_EQ(measured_marked, 0u) << "of " << measured;
   }
+}
+
+// A unit sphere with a sphere of radius 0.3 inside it and one of radius 0.3 beside it: the inner
+// one goes where it is mostly unmeasured (a sensor cannot see inside), and stays where it was
+// measured (a hollow part's inner wall); the one beside it stays even unmeasured (the far side
+// of an object a single view saw).
+TEST(DeliveredMesh, AnInventedShellInsideTheSurfaceIsRemoved) {
+  auto scene = [](float inner_mark, float beside_mark) {
+    core::TriangleMesh mesh = core::SphereMesh(24, 48);
+    mesh.normals.clear();
+    mesh.vertex_attributes.clear();
+    core::ScalarAttribute mark{"filled", std::vector<float>(mesh.vertices.size(), 0.0f)};
+    auto add = [&](const core::Vec3f& centre, float value) {
+      const core::TriangleMesh small = core::SphereMesh(12, 24, 0.3);
+      const auto base = static_cast<uint32_t>(mesh.vertices.size());
+      for (const core::Vec3f& v : small.vertices) mesh.vertices.push_back(v + centre);
+      for (const core::Triangle& t : small.faces) mesh.faces.push_back({t[0] + base, t[1] + base, t[2] + base});
+      mark.values.resize(mesh.vertices.size(), value);
+    };
+    add(core::Vec3f(0.2f, 0.1f, 0), inner_mark);
+    add(core::Vec3f(2.5f, 0, 0), beside_mark);
+    mesh.vertex_attributes.push_back(mark);
+    return mesh;
+  };
+  core::TriangleMesh invented = scene(1, 1);
+  const size_t sphere_faces = core::SphereMesh(24, 48).faces.size();
+  const size_t small_faces = core::SphereMesh(12, 24).faces.size();
+  EXPECT_EQ(RemoveInventedInnerShells(invented, invented.vertex_attributes[0].values), 1);
+  EXPECT_EQ(invented.faces.size(), sphere_faces + small_faces);
+  EXPECT_EQ(invented.vertex_attributes[0].values.size(), invented.vertices.size());
+  // What is left is the unit sphere and the one beside it (centroid x > 2).
+  uint32_t count = 0;
+  (void)core::ComponentOfFaces(invented, count);
+  EXPECT_EQ(count, 2u);
+  for (const core::Vec3f& v : invented.vertices) EXPECT_TRUE(std::abs(v.norm() - 1) < 1e-4 || v.x() > 2);
+
+  core::TriangleMesh measured = scene(0, 1);
+  EXPECT_EQ(RemoveInventedInnerShells(measured, measured.vertex_attributes[0].values), 0);
+  EXPECT_EQ(measured.faces.size(), sphere_faces + 2 * small_faces);
 }
 
 TEST(DeliveredMesh, ExplicitBitsAreKeptAsAsked) {

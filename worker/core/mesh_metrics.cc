@@ -9,6 +9,9 @@
 #include <numeric>
 #include <tuple>
 
+#include "worker/core/geometry.h"
+#include "worker/core/parallel.h"
+
 namespace lsqsurf::core {
 namespace {
 
@@ -345,17 +348,74 @@ std::vector<char> FacesOfComponents(const TriangleMesh& mesh, const std::functio
   return faces;
 }
 
+std::vector<uint32_t> ComponentOfFaces(const TriangleMesh& mesh, uint32_t& count) {
+  // One node per distinct position.
+  const std::vector<uint32_t> order = PositionOrder(mesh.vertices);
+  std::vector<uint32_t> node(mesh.vertices.size(), 0);
+  uint32_t nodes = 0;
+  for (size_t r = 0; r < order.size(); ++r) {
+    if (r > 0 && mesh.vertices[order[r]] != mesh.vertices[order[r - 1]]) ++nodes;
+    node[order[r]] = nodes;
+  }
+  std::vector<uint32_t> parent(order.empty() ? 0 : nodes + 1);
+  std::iota(parent.begin(), parent.end(), 0u);
+  for (const Triangle& t : mesh.faces) {
+    parent[FindRoot(parent, node[t[1]])] = FindRoot(parent, node[t[0]]);
+    parent[FindRoot(parent, node[t[2]])] = FindRoot(parent, node[t[0]]);
+  }
+  std::vector<uint32_t> label_of_root(parent.size(), UINT32_MAX);
+  std::vector<uint32_t> label(mesh.faces.size());
+  count = 0;
+  for (size_t f = 0; f < mesh.faces.size(); ++f) {
+    uint32_t& l = label_of_root[FindRoot(parent, node[mesh.faces[f][0]])];
+    if (l == UINT32_MAX) l = count++;
+    label[f] = l;
+  }
+  return label;
+}
+
+double WindingNumber(const TriangleMesh& mesh, std::span<const char> faces, const Vec3d& p) {
+  // Fixed blocks summed in order: a parallel reduction's own split would change the rounding.
+  constexpr size_t kBlock = 16384;
+  const size_t blocks = (mesh.faces.size() + kBlock - 1) / kBlock;
+  std::vector<double> partial(blocks, 0.0);
+  (void)ParallelFor(blocks, 1, [&](size_t begin, size_t end) {
+    for (size_t b = begin; b < end; ++b) {
+      double sum = 0;
+      for (size_t f = b * kBlock; f < std::min(mesh.faces.size(), (b + 1) * kBlock); ++f) {
+        if (!faces[f]) continue;
+        const Triangle& t = mesh.faces[f];
+        const Vec3d a = mesh.vertices[t[0]].cast<double>() - p, u = mesh.vertices[t[1]].cast<double>() - p,
+                    w = mesh.vertices[t[2]].cast<double>() - p;
+        // The triangle's solid angle (Van Oosterom and Strackee 1983).
+        const double la = a.norm(), lu = u.norm(), lw = w.norm();
+        const double det = a.dot(u.cross(w));
+        const double den = la * lu * lw + a.dot(u) * lw + a.dot(w) * lu + u.dot(w) * la;
+        sum += 2 * std::atan2(det, den);
+      }
+      partial[b] = sum;
+    }
+  });
+  double total = 0;
+  for (double s : partial) total += s;
+  return total / (4 * std::numbers::pi);
+}
+
+void RemoveFaces(TriangleMesh& mesh, std::span<const char> drop) {
+  size_t kept = 0;
+  for (size_t f = 0; f < mesh.faces.size(); ++f) {
+    if (!drop[f]) mesh.faces[kept++] = mesh.faces[f];
+  }
+  mesh.faces.resize(kept);
+  DropUnusedVertices(mesh);
+}
+
 int64_t RemoveSmallComponents(TriangleMesh& mesh, double min_diagonal) {
   int64_t removed = 0;
   const std::vector<char> small = FacesOfComponents(
       mesh, [&](const Box3& box) { return Diagonal(box) < min_diagonal; }, removed);
   if (removed == 0) return 0;
-  size_t kept = 0;
-  for (size_t f = 0; f < mesh.faces.size(); ++f) {
-    if (!small[f]) mesh.faces[kept++] = mesh.faces[f];
-  }
-  mesh.faces.resize(kept);
-  DropUnusedVertices(mesh);
+  RemoveFaces(mesh, small);
   return removed;
 }
 

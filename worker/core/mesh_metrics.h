@@ -4,6 +4,7 @@
 #include <array>
 #include <cstdint>
 #include <functional>
+#include <span>
 #include <vector>
 
 #include "absl/container/flat_hash_map.h"
@@ -85,6 +86,20 @@ int64_t MergeCoincidentVertices(TriangleMesh& mesh);
 // is below `min_diagonal`, and the vertices only they used; the others keep their order, normals
 // and attributes. Returns the components removed. O(V + F).
 int64_t RemoveSmallComponents(TriangleMesh& mesh, double min_diagonal);
+
+// Per face, the label (0 .. `count` − 1, in order of first face) of its component: faces
+// connected through vertices at one position, so that a crease's split copies do not cut a
+// surface in two. O(V log V + F).
+std::vector<uint32_t> ComponentOfFaces(const TriangleMesh& mesh, uint32_t& count);
+
+// The generalized winding number at `p` of the faces flagged in `faces` (the sum of their solid
+// angles over 4π): 1 inside a closed outward-facing surface, 0 outside, about ½ on a gap's
+// border. The same on every run (summed in fixed blocks, in order). O(F), in parallel.
+double WindingNumber(const TriangleMesh& mesh, std::span<const char> faces, const Vec3d& p);
+
+// Removes the faces flagged in `drop` and the vertices only they used; the others keep their
+// order, normals and attributes. O(V + F).
+void RemoveFaces(TriangleMesh& mesh, std::span<const char> drop);
 
 // One flag per face: 1 where the face's component (faces connected through shared vertices) has a
 // bounding box for which `pick` holds. Sets `picked` to the number of such components. O(V + F).

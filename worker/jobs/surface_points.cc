@@ -9,6 +9,7 @@
 #include "worker/core/geometry.h"
 #include "worker/core/kd_tree.h"
 #include "worker/core/local_spacing.h"
+#include "worker/core/mesh_metrics.h"
 #include "worker/core/parallel.h"
 #include "worker/core/status.h"
 #include "worker/core/strings.h"
@@ -129,6 +130,52 @@ core::ScalarAttribute UnmeasuredVertices(const core::PointCloud& cloud, const co
   return filled;
 }
 
+int64_t RemoveInventedInnerShells(core::TriangleMesh& mesh, std::span<const float> unmeasured) {
+  uint32_t count = 0;
+  const std::vector<uint32_t> component = core::ComponentOfFaces(mesh, count);
+  if (count < 2) return 0;
+  struct Part {
+    double area = 0, unmeasured = 0;
+    core::Box3 box;
+    uint32_t first_face = UINT32_MAX;
+  };
+  std::vector<Part> parts(count);
+  for (uint32_t f = 0; f < mesh.faces.size(); ++f) {
+    const core::Triangle& t = mesh.faces[f];
+    const core::Vec3d a = mesh.vertices[t[0]].cast<double>(), b = mesh.vertices[t[1]].cast<double>(),
+                      c = mesh.vertices[t[2]].cast<double>();
+    const double area = 0.5 * (b - a).cross(c - a).norm();
+    Part& part = parts[component[f]];
+    part.area += area;
+    // A face is unmeasured where most of its vertices are.
+    if (unmeasured[t[0]] + unmeasured[t[1]] + unmeasured[t[2]] >= 1.5f) part.unmeasured += area;
+    for (uint32_t v : t) part.box.extend(mesh.vertices[v].cast<double>());
+    if (part.first_face == UINT32_MAX) part.first_face = f;
+  }
+  std::vector<char> drop(mesh.faces.size(), 0), around(mesh.faces.size(), 0);
+  int64_t removed = 0;
+  for (uint32_t c = 0; c < count; ++c) {
+    const Part& shell = parts[c];
+    if (!(shell.unmeasured > kInventedShellShare * shell.area)) continue;
+    const core::Triangle& t = mesh.faces[shell.first_face];
+    const core::Vec3d probe =
+        (mesh.vertices[t[0]].cast<double>() + mesh.vertices[t[1]].cast<double>() + mesh.vertices[t[2]].cast<double>()) /
+        3;
+    // The larger components whose box holds the shell may enclose it.
+    bool any = false;
+    for (uint32_t f = 0; f < mesh.faces.size(); ++f) {
+      const Part& other = parts[component[f]];
+      around[f] = component[f] != c && other.area > shell.area && other.box.contains(shell.box);
+      any |= around[f] != 0;
+    }
+    if (!any || std::abs(core::WindingNumber(mesh, around, probe)) < 0.5) continue;
+    for (uint32_t f = 0; f < mesh.faces.size(); ++f) drop[f] |= component[f] == c;
+    ++removed;
+  }
+  if (removed > 0) core::RemoveFaces(mesh, drop);
+  return removed;
+}
+
 absl::Status CloseHolesOnRequest(const PointParams& points, const core::PointCloud& cloud, core::JobContext& ctx,
                                  core::TriangleMesh& mesh, Statistics& statistics) {
   if (!points.fill_holes) return absl::OkStatus();
@@ -137,16 +184,17 @@ absl::Status CloseHolesOnRequest(const PointParams& points, const core::PointClo
   core::SortMeshByPosition(mesh);
   auto filled = extract::FillHoles(mesh, {}, ctx);
   if (!filled.ok()) return filled.status();
-  core::ScalarAttribute unmeasured = UnmeasuredVertices(cloud, mesh, ctx);
+  mesh.vertex_attributes.push_back(UnmeasuredVertices(cloud, mesh, ctx));
   LSQSURF_RETURN_IF_ERROR(ctx.CheckCancelled());
+  const int64_t shells = RemoveInventedInnerShells(mesh, mesh.vertex_attributes.back().values);
   double marked = 0;
-  for (float f : unmeasured.values) marked += f;
-  mesh.vertex_attributes.push_back(std::move(unmeasured));
+  for (float f : mesh.vertex_attributes.back().values) marked += f;
   statistics.emplace_back("holes_filled", static_cast<double>(filled->holes_filled));
   statistics.emplace_back("holes_left", static_cast<double>(filled->holes_left));
   statistics.emplace_back("holes_unfaired", static_cast<double>(filled->unfaired));
   statistics.emplace_back("fill_vertices", static_cast<double>(filled->vertices_added));
   statistics.emplace_back("filled_vertices", marked);
+  statistics.emplace_back("inner_shells_removed", static_cast<double>(shells));
   statistics.emplace_back("fill_seconds", core::SecondsSince(start));
   return absl::OkStatus();
 }

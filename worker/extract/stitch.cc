@@ -2,8 +2,10 @@
 
 #include <algorithm>
 #include <string>
+#include <utility>
 
 #include "absl/container/flat_hash_map.h"
+#include "worker/core/status.h"
 
 namespace lsqsurf::extract {
 namespace {
@@ -46,6 +48,44 @@ BorderMap HoleBorder(const TriangleMesh& kept, const std::vector<char>& removed)
     }
   }
   return next;
+}
+
+// Kept crease vertices on seam edges split the patch face along the edge into a fan; in face
+// order, not the edge map's (seeded per table), so the fans' faces are numbered alike each run.
+// The new patch vertices are the kept ones (`kept_vertex`, `fixed` grow with them).
+absl::Status SplitSeamFaces(const TriangleMesh& kept, bool normals, std::vector<Insertion> insertions,
+                            IsosurfaceResult& patch, std::vector<uint32_t>& kept_vertex, std::vector<char>& fixed) {
+  TriangleMesh& pm = patch.mesh;
+  std::ranges::sort(insertions, {}, &Insertion::face);
+  absl::flat_hash_set<uint32_t> split_faces;
+  for (const Insertion& ins : insertions) {
+    if (!split_faces.insert(ins.face).second) return Refuse("a patch face with two split seam edges");
+    const Triangle t = pm.faces[ins.face];
+    const uint32_t apex = t[0] != ins.from && t[0] != ins.to ? t[0] : t[1] != ins.from && t[1] != ins.to ? t[1] : t[2];
+    const uint64_t cell = patch.trace.face_cells[ins.face];
+    uint32_t previous = ins.from;
+    bool first = true;
+    for (const uint32_t k : ins.inside) {
+      const auto v = static_cast<uint32_t>(pm.vertices.size());
+      pm.vertices.push_back(kept.vertices[k]);
+      if (!pm.normals.empty()) pm.normals.push_back(normals ? kept.normals[k] : pm.normals[ins.from]);
+      patch.trace.vertex_edges.push_back(0);
+      kept_vertex.push_back(k);
+      fixed.push_back(1);
+      const Triangle piece{previous, v, apex};
+      if (first) {
+        pm.faces[ins.face] = piece;
+        first = false;
+      } else {
+        pm.faces.push_back(piece);
+        patch.trace.face_cells.push_back(cell);
+      }
+      previous = v;
+    }
+    pm.faces.push_back({previous, ins.to, apex});
+    patch.trace.face_cells.push_back(cell);
+  }
+  return absl::OkStatus();
 }
 
 }  // namespace
@@ -139,35 +179,7 @@ absl::StatusOr<PatchJoin> PatchJoin::Prepare(const TriangleMesh& kept, const Sur
     pm.vertices[v] = kept.vertices[k];
     if (normals) pm.normals[v] = kept.normals[k];
   }
-  // Kept crease vertices on seam edges split the patch face along the edge into a fan.
-  absl::flat_hash_set<uint32_t> split_faces;
-  for (const Insertion& ins : insertions) {
-    if (!split_faces.insert(ins.face).second) return Refuse("a patch face with two split seam edges");
-    const Triangle t = pm.faces[ins.face];
-    const uint32_t apex = t[0] != ins.from && t[0] != ins.to ? t[0] : t[1] != ins.from && t[1] != ins.to ? t[1] : t[2];
-    const uint64_t cell = patch.trace.face_cells[ins.face];
-    uint32_t previous = ins.from;
-    bool first = true;
-    for (const uint32_t k : ins.inside) {
-      const auto v = static_cast<uint32_t>(pm.vertices.size());
-      pm.vertices.push_back(kept.vertices[k]);
-      if (!pm.normals.empty()) pm.normals.push_back(normals ? kept.normals[k] : pm.normals[ins.from]);
-      patch.trace.vertex_edges.push_back(0);
-      join.kept_vertex_.push_back(k);
-      join.fixed_.push_back(1);
-      const Triangle piece{previous, v, apex};
-      if (first) {
-        pm.faces[ins.face] = piece;
-        first = false;
-      } else {
-        pm.faces.push_back(piece);
-        patch.trace.face_cells.push_back(cell);
-      }
-      previous = v;
-    }
-    pm.faces.push_back({previous, ins.to, apex});
-    patch.trace.face_cells.push_back(cell);
-  }
+  LSQSURF_RETURN_IF_ERROR(SplitSeamFaces(kept, normals, std::move(insertions), patch, join.kept_vertex_, join.fixed_));
   return join;
 }
 

@@ -349,20 +349,26 @@ TEST(SortMeshByPosition, OrdersCoincidentVerticesByTheSurfaceAroundThem) {
   }
 }
 
-// The winding number of a closed sphere is 1 inside and 0 outside (the solid angles sum to 4π or
-// cancel); of its upper half alone, ½ at the centre. Components are counted by position, so a
+// The winding numbers of a closed sphere are 1 inside and 0 outside (the solid angles sum to 4π
+// or cancel), each probe its own; of its upper half alone, ½ at the centre. Components are counted by position, so a
 // sphere whose faces each have their own corners is still one.
-TEST(WindingNumber, IsOneInsideAClosedSurfaceAndZeroOutside) {
+TEST(WindingNumbers, AreOneInsideAClosedSurfaceAndZeroOutside) {
   const TriangleMesh sphere = SphereMesh(24, 48);
   const std::vector<char> all(sphere.faces.size(), 1);
-  EXPECT_NEAR(WindingNumber(sphere, all, Vec3d(0.3, -0.2, 0.1)), 1.0, 1e-9);
-  EXPECT_NEAR(WindingNumber(sphere, all, Vec3d(1.5, 0.2, 0)), 0.0, 1e-9);
+  const std::vector<Vec3d> probes = {Vec3d(0.3, -0.2, 0.1), Vec3d(1.5, 0.2, 0), Vec3d(0, 0, -0.9)};
+  const std::vector<double> whole = WindingNumbers(sphere, all, probes);
+  ASSERT_EQ(whole.size(), 3u);
+  EXPECT_NEAR(whole[0], 1.0, 1e-9);
+  EXPECT_NEAR(whole[1], 0.0, 1e-9);
+  EXPECT_NEAR(whole[2], 1.0, 1e-9);
   std::vector<char> upper(sphere.faces.size(), 0);
   for (size_t f = 0; f < sphere.faces.size(); ++f) {
     const Triangle& t = sphere.faces[f];
     upper[f] = sphere.vertices[t[0]].z() + sphere.vertices[t[1]].z() + sphere.vertices[t[2]].z() > 0;
   }
-  EXPECT_NEAR(WindingNumber(sphere, upper, Vec3d::Zero()), 0.5, 1e-9);
+  const std::vector<Vec3d> centre = {Vec3d::Zero()};
+  EXPECT_NEAR(WindingNumbers(sphere, upper, centre)[0], 0.5, 1e-9);
+  EXPECT_TRUE(WindingNumbers(sphere, upper, {}).empty());
 
   TriangleMesh split;
   for (const Triangle& t : sphere.faces) {

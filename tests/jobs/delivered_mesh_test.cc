@@ -123,9 +123,10 @@ TEST(DeliveredMesh, AnOpenCloudClosesOnRequestAndTheFillingIsMarked) {
 // A unit sphere with a sphere of radius 0.3 inside it and one of radius 0.3 beside it: the inner
 // one goes where it is mostly unmeasured (a sensor cannot see inside), and stays where it was
 // measured (a hollow part's inner wall); the one beside it stays even unmeasured (the far side
-// of an object a single view saw).
+// of an object a single view saw). One that pokes through the surface goes too, and so does
+// one that blisters out of it where only its contact with the surface was measured.
 TEST(DeliveredMesh, AnInventedShellInsideTheSurfaceIsRemoved) {
-  auto scene = [](float inner_mark, float beside_mark) {
+  auto scene = [](float inner_mark, float beside_mark, const core::Vec3f& inner = core::Vec3f(0.2f, 0.1f, 0)) {
     core::TriangleMesh mesh = core::SphereMesh(24, 48);
     mesh.normals.clear();
     mesh.vertex_attributes.clear();
@@ -137,7 +138,7 @@ TEST(DeliveredMesh, AnInventedShellInsideTheSurfaceIsRemoved) {
       for (const core::Triangle& t : small.faces) mesh.faces.push_back({t[0] + base, t[1] + base, t[2] + base});
       mark.values.resize(mesh.vertices.size(), value);
     };
-    add(core::Vec3f(0.2f, 0.1f, 0), inner_mark);
+    add(inner, inner_mark);
     add(core::Vec3f(2.5f, 0, 0), beside_mark);
     mesh.vertex_attributes.push_back(mark);
     return mesh;
@@ -157,6 +158,34 @@ TEST(DeliveredMesh, AnInventedShellInsideTheSurfaceIsRemoved) {
   core::TriangleMesh measured = scene(0, 1);
   EXPECT_EQ(RemoveInventedInnerShells(measured, measured.vertex_attributes[0].values), 0);
   EXPECT_EQ(measured.faces.size(), sphere_faces + 2 * small_faces);
+
+  // An inner shell that pokes through the surface around it (a quarter of its area outside,
+  // its first face among them, as where two fits of the same points cross) still goes.
+  core::TriangleMesh crossing = scene(1, 1, core::Vec3f(0.5f, 0.5f, 0.45f));
+  size_t outside = 0;
+  for (const core::Vec3f& v : crossing.vertices) outside += v.norm() > 1.0001f;
+  ASSERT_GT(outside, 0u);
+  EXPECT_GT(crossing.vertices[core::SphereMesh(24, 48).vertices.size()].norm(), 1.0f);
+  EXPECT_EQ(RemoveInventedInnerShells(crossing, crossing.vertex_attributes[0].values), 1);
+  EXPECT_EQ(crossing.faces.size(), sphere_faces + small_faces);
+
+  // A blister mostly outside, measured only where it runs along the skin (a second fit of the
+  // skin's points that closed outward), goes; the same blister measured on its far side (an
+  // object whose unseen back was closed into the surface behind it) stays.
+  auto blister = [&](bool measured_on_skin) {
+    core::TriangleMesh mesh = scene(1, 1, core::Vec3f(0, 0, 1.05f));
+    std::vector<float>& marks = mesh.vertex_attributes[0].values;
+    for (size_t v = core::SphereMesh(24, 48).vertices.size(); v < marks.size(); ++v) {
+      const float norm = mesh.vertices[v].norm();
+      if (measured_on_skin ? norm < 1.0f : mesh.vertices[v].z() > 1.2f && norm < 2) marks[v] = 0;
+    }
+    return mesh;
+  };
+  core::TriangleMesh on_skin = blister(true);
+  EXPECT_EQ(RemoveInventedInnerShells(on_skin, on_skin.vertex_attributes[0].values), 1);
+  EXPECT_EQ(on_skin.faces.size(), sphere_faces + small_faces);
+  core::TriangleMesh object = blister(false);
+  EXPECT_EQ(RemoveInventedInnerShells(object, object.vertex_attributes[0].values), 0);
 }
 
 TEST(DeliveredMesh, ExplicitBitsAreKeptAsAsked) {

@@ -9,6 +9,7 @@
 // by the cloud's one median spacing, 0.2 %).
 #pragma once
 
+#include <span>
 #include <vector>
 
 #include "worker/core/geometry.h"
@@ -20,6 +21,12 @@ namespace lsqsurf::core {
 // How many local spacings from every point a query must lie to count as unmeasured: the job's
 // `filled` marking and the sensor report share it.
 inline constexpr double kUnmeasuredSpacings = 3.0;
+
+// A face of a mesh whose vertices carry unmeasured marks (0 or 1) counts as unmeasured where
+// most of its corners are: the job's shell removal and the sensor report's precision share it.
+inline bool FaceUnmeasured(std::span<const float> marks, const Triangle& face) {
+  return marks[face[0]] + marks[face[1]] + marks[face[2]] >= 1.5f;
+}
 
 class LocalSpacing {
  public:

@@ -277,12 +277,14 @@ double EnclosedVolume(const TriangleMesh& mesh) {
   return six_v / 6.0;
 }
 
+double FaceArea(const TriangleMesh& mesh, const Triangle& face) {
+  const Vec3d a = mesh.vertices[face[0]].cast<double>();
+  return 0.5 * (mesh.vertices[face[1]].cast<double>() - a).cross(mesh.vertices[face[2]].cast<double>() - a).norm();
+}
+
 double SurfaceArea(const TriangleMesh& mesh) {
   double area = 0;
-  for (const Triangle& f : mesh.faces) {
-    const Vec3d a = mesh.vertices[f[0]].cast<double>();
-    area += 0.5 * (mesh.vertices[f[1]].cast<double>() - a).cross(mesh.vertices[f[2]].cast<double>() - a).norm();
-  }
+  for (const Triangle& f : mesh.faces) area += FaceArea(mesh, f);
   return area;
 }
 
@@ -374,13 +376,16 @@ std::vector<uint32_t> ComponentOfFaces(const TriangleMesh& mesh, uint32_t& count
   return label;
 }
 
-double WindingNumber(const TriangleMesh& mesh, std::span<const char> faces, const Vec3d& p) {
+std::vector<double> WindingNumbers(const TriangleMesh& mesh, std::span<const char> faces,
+                                   std::span<const Vec3d> probes) {
   // Fixed blocks summed in order: a parallel reduction's own split would change the rounding.
   constexpr size_t kBlock = 16384;
   const size_t blocks = (mesh.faces.size() + kBlock - 1) / kBlock;
-  std::vector<double> partial(blocks, 0.0);
-  (void)ParallelFor(blocks, 1, [&](size_t begin, size_t end) {
-    for (size_t b = begin; b < end; ++b) {
+  std::vector<double> partial(blocks * probes.size(), 0.0);
+  (void)ParallelFor(partial.size(), 1, [&](size_t begin, size_t end) {
+    for (size_t task = begin; task < end; ++task) {
+      const Vec3d& p = probes[task / blocks];
+      const size_t b = task % blocks;
       double sum = 0;
       for (size_t f = b * kBlock; f < std::min(mesh.faces.size(), (b + 1) * kBlock); ++f) {
         if (!faces[f]) continue;
@@ -393,12 +398,13 @@ double WindingNumber(const TriangleMesh& mesh, std::span<const char> faces, cons
         const double den = la * lu * lw + a.dot(u) * lw + a.dot(w) * lu + u.dot(w) * la;
         sum += 2 * std::atan2(det, den);
       }
-      partial[b] = sum;
+      partial[task] = sum;
     }
   });
-  double total = 0;
-  for (double s : partial) total += s;
-  return total / (4 * std::numbers::pi);
+  std::vector<double> winding(probes.size(), 0.0);
+  for (size_t task = 0; task < partial.size(); ++task) winding[task / blocks] += partial[task];
+  for (double& w : winding) w /= 4 * std::numbers::pi;
+  return winding;
 }
 
 void RemoveFaces(TriangleMesh& mesh, std::span<const char> drop) {

@@ -92,10 +92,12 @@ int64_t RemoveSmallComponents(TriangleMesh& mesh, double min_diagonal);
 // surface in two. O(V log V + F).
 std::vector<uint32_t> ComponentOfFaces(const TriangleMesh& mesh, uint32_t& count);
 
-// The generalized winding number at `p` of the faces flagged in `faces` (the sum of their solid
-// angles over 4π): 1 inside a closed outward-facing surface, 0 outside, about ½ on a gap's
-// border. The same on every run (summed in fixed blocks, in order). O(F), in parallel.
-double WindingNumber(const TriangleMesh& mesh, std::span<const char> faces, const Vec3d& p);
+// The generalized winding number at each of `probes` of the faces flagged in `faces` (the sum of
+// their solid angles over 4π): 1 inside a closed outward-facing surface, 0 outside, about ½ on a
+// gap's border. The same on every run (summed in fixed blocks, in order). O(F · probes), in
+// parallel.
+std::vector<double> WindingNumbers(const TriangleMesh& mesh, std::span<const char> faces,
+                                   std::span<const Vec3d> probes);
 
 // Removes the faces flagged in `drop` and the vertices only they used; the others keep their
 // order, normals and attributes. O(V + F).
@@ -120,6 +122,9 @@ double EnclosedVolume(const TriangleMesh& mesh);
 
 // Total surface area.
 double SurfaceArea(const TriangleMesh& mesh);
+
+// The area of one face of `mesh`, in double precision.
+double FaceArea(const TriangleMesh& mesh, const Triangle& face);
 
 // The shape of the triangles: their smallest angles and aspect ratios (longest edge × perimeter /
 // (4√3 × area): 1 for an equilateral triangle, infinite for a degenerate one).

@@ -623,42 +623,10 @@ absl::StatusOr<SurfaceResult> ReconstructSurface(const std::string& method, cons
   const PointParams& points = *(*m)->points(params);
   SurfaceResult result;
   result.statistics.emplace_back("input_points", static_cast<double>(cloud.size()));
-  if (const size_t repeats = core::RemoveDuplicatePoints(cloud); repeats > 0) {
-    result.statistics.emplace_back("duplicate_points", static_cast<double>(repeats));
-    if (cloud.size() < 4) {
-      return absl::InvalidArgumentError(core::StrCat("the cloud holds only ", cloud.size(), " distinct positions (",
-                                                     repeats,
-                                                     " points repeat another's exactly); a surface needs more"));
-    }
-  }
+  const auto normals_share = PrepareSurfaceCloud(points, cloud, ctx, result.statistics);
+  if (!normals_share.ok()) return normals_share.status();
 
-  if (points.remove_outliers) {
-    auto removed = core::RemoveIsolatedPoints(cloud, {}, ctx);
-    if (!removed.ok()) return removed.status();
-    if (*removed > 0) result.statistics.emplace_back("outliers_removed", static_cast<double>(*removed));
-  }
-
-  double normals_share = 0.0;
-  if (!cloud.has_normals()) {
-    if (!points.estimate_normals) {
-      return absl::InvalidArgumentError("the cloud has no normals and estimate_normals is false");
-    }
-    normals_share = 0.2;
-    const auto start = std::chrono::steady_clock::now();
-    core::SubContext sub(ctx, "estimating normals", 0.0, normals_share);
-    core::NormalEstimationParams np;
-    np.neighbors = points.normal_neighbors;
-    LSQSURF_RETURN_IF_ERROR(ChooseViewpoints(points, cloud, np));
-    if (!np.viewpoints.empty()) {
-      result.statistics.emplace_back("normals_toward_viewpoint", static_cast<double>(np.viewpoints.size()));
-    }
-    auto estimated = core::EstimateNormals(cloud.positions, np, sub);
-    if (!estimated.ok()) return estimated.status();
-    cloud.normals = *std::move(estimated);
-    result.statistics.emplace_back("normals_seconds", core::SecondsSince(start));
-  }
-
-  core::SubContext engine_ctx(ctx, method, normals_share, 0.98);
+  core::SubContext engine_ctx(ctx, method, *normals_share, 0.98);
   LSQSURF_RETURN_IF_ERROR(RunMethod(**m, params, cloud, nullptr, nullptr, engine_ctx, memory_bytes, tiled, result));
   if (result.mesh_parts == 0) {
     core::SubContext fill_ctx(ctx, "filling holes", 0.98, 0.99);

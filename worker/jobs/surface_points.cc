@@ -1,15 +1,19 @@
 #include "worker/jobs/surface_points.h"
 
+#include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <limits>
 #include <string_view>
+#include <vector>
 
 #include "worker/core/attribute_transfer.h"
 #include "worker/core/geometry.h"
 #include "worker/core/kd_tree.h"
 #include "worker/core/local_spacing.h"
 #include "worker/core/mesh_metrics.h"
+#include "worker/core/normals.h"
+#include "worker/core/outliers.h"
 #include "worker/core/parallel.h"
 #include "worker/core/status.h"
 #include "worker/core/strings.h"
@@ -19,6 +23,40 @@ namespace lsqsurf::jobs {
 namespace {
 
 constexpr int kMaxViewpoints = 4096;  // Scanner stations of one job.
+
+// Whether the measured vertices of `faces` lie on the faces marked in `around` (median distance
+// to their vertices within kShellOnSurfaceEdges median edges of `faces`), or there are none:
+// the data such a shell covers is covered already.
+bool MeasuredPartLiesOn(const core::TriangleMesh& mesh, std::span<const float> unmeasured,
+                        std::span<const uint32_t> faces, std::span<const char> around) {
+  std::vector<char> on_around(mesh.vertices.size(), 0), measured(mesh.vertices.size(), 0);
+  std::vector<double> edges;
+  edges.reserve(faces.size());
+  for (uint32_t f : faces) {
+    const core::Triangle& t = mesh.faces[f];
+    edges.push_back((mesh.vertices[t[1]] - mesh.vertices[t[0]]).norm());
+    for (uint32_t v : t) measured[v] = unmeasured[v] < 0.5f;
+  }
+  std::vector<core::Vec3f> targets;
+  for (uint32_t f = 0; f < mesh.faces.size(); ++f) {
+    if (!around[f]) continue;
+    for (uint32_t v : mesh.faces[f]) {
+      if (!on_around[v]) targets.push_back(mesh.vertices[v]);
+      on_around[v] = 1;
+    }
+  }
+  std::vector<double> distances;
+  const core::KdTree tree(targets);
+  for (uint32_t v = 0; v < mesh.vertices.size(); ++v) {
+    if (measured[v]) distances.push_back(std::sqrt(tree.Nearest(mesh.vertices[v]).distance2));
+  }
+  if (distances.empty()) return true;
+  auto median = [](std::vector<double>& values) {
+    std::ranges::nth_element(values, values.begin() + static_cast<std::ptrdiff_t>(values.size() / 2));
+    return values[values.size() / 2];
+  };
+  return median(distances) <= kShellOnSurfaceEdges * median(edges);
+}
 
 }  // namespace
 
@@ -88,6 +126,44 @@ absl::Status ChooseViewpoints(const PointParams& points, const core::PointCloud&
   return absl::OkStatus();
 }
 
+absl::StatusOr<double> PrepareSurfaceCloud(const PointParams& points, core::PointCloud& cloud, core::JobContext& ctx,
+                                           Statistics& statistics) {
+  if (const size_t repeats = core::RemoveDuplicatePoints(cloud); repeats > 0) {
+    statistics.emplace_back("duplicate_points", static_cast<double>(repeats));
+    if (cloud.size() < 4) {
+      return absl::InvalidArgumentError(core::StrCat("the cloud holds only ", cloud.size(), " distinct positions (",
+                                                     repeats,
+                                                     " points repeat another's exactly); a surface needs more"));
+    }
+  }
+
+  if (points.remove_outliers) {
+    auto removed = core::RemoveIsolatedPoints(cloud, {}, ctx);
+    if (!removed.ok()) return removed.status();
+    if (*removed > 0) statistics.emplace_back("outliers_removed", static_cast<double>(*removed));
+  }
+
+  if (!cloud.has_normals()) {
+    if (!points.estimate_normals) {
+      return absl::InvalidArgumentError("the cloud has no normals and estimate_normals is false");
+    }
+    const auto start = std::chrono::steady_clock::now();
+    core::SubContext sub(ctx, "estimating normals", 0.0, kNormalsShare);
+    core::NormalEstimationParams np;
+    np.neighbors = points.normal_neighbors;
+    LSQSURF_RETURN_IF_ERROR(ChooseViewpoints(points, cloud, np));
+    if (!np.viewpoints.empty()) {
+      statistics.emplace_back("normals_toward_viewpoint", static_cast<double>(np.viewpoints.size()));
+    }
+    auto estimated = core::EstimateNormals(cloud.positions, np, sub);
+    if (!estimated.ok()) return estimated.status();
+    cloud.normals = *std::move(estimated);
+    statistics.emplace_back("normals_seconds", core::SecondsSince(start));
+    return kNormalsShare;
+  }
+  return 0.0;
+}
+
 absl::Status CarryPointAttributes(const PointParams& points, const core::PointCloud& cloud, core::JobContext& ctx,
                                   core::TriangleMesh& mesh, Statistics& statistics) {
   std::vector<std::string> names;
@@ -137,39 +213,47 @@ int64_t RemoveInventedInnerShells(core::TriangleMesh& mesh, std::span<const floa
   struct Part {
     double area = 0, unmeasured = 0;
     core::Box3 box;
-    uint32_t first_face = UINT32_MAX;
+    std::vector<uint32_t> faces;
   };
   std::vector<Part> parts(count);
   for (uint32_t f = 0; f < mesh.faces.size(); ++f) {
     const core::Triangle& t = mesh.faces[f];
-    const core::Vec3d a = mesh.vertices[t[0]].cast<double>(), b = mesh.vertices[t[1]].cast<double>(),
-                      c = mesh.vertices[t[2]].cast<double>();
-    const double area = 0.5 * (b - a).cross(c - a).norm();
     Part& part = parts[component[f]];
+    const double area = core::FaceArea(mesh, t);
     part.area += area;
-    // A face is unmeasured where most of its vertices are.
-    if (unmeasured[t[0]] + unmeasured[t[1]] + unmeasured[t[2]] >= 1.5f) part.unmeasured += area;
+    if (core::FaceUnmeasured(unmeasured, t)) part.unmeasured += area;
     for (uint32_t v : t) part.box.extend(mesh.vertices[v].cast<double>());
-    if (part.first_face == UINT32_MAX) part.first_face = f;
+    part.faces.push_back(f);
   }
   std::vector<char> drop(mesh.faces.size(), 0), around(mesh.faces.size(), 0);
   int64_t removed = 0;
   for (uint32_t c = 0; c < count; ++c) {
     const Part& shell = parts[c];
     if (!(shell.unmeasured > kInventedShellShare * shell.area)) continue;
-    const core::Triangle& t = mesh.faces[shell.first_face];
-    const core::Vec3d probe =
-        (mesh.vertices[t[0]].cast<double>() + mesh.vertices[t[1]].cast<double>() + mesh.vertices[t[2]].cast<double>()) /
-        3;
-    // The larger components whose box holds the shell may enclose it.
+    // Probes at faces spread over the shell: an invented shell may cross the surface around it
+    // where the two were fitted to the same points, and one probe there reads 0.
+    std::vector<core::Vec3d> probes;
+    const size_t stride = std::max<size_t>(1, shell.faces.size() / kShellProbes);
+    for (size_t k = 0; k < shell.faces.size() && probes.size() < kShellProbes; k += stride) {
+      const core::Triangle& t = mesh.faces[shell.faces[k]];
+      probes.push_back((mesh.vertices[t[0]].cast<double>() + mesh.vertices[t[1]].cast<double>() +
+                        mesh.vertices[t[2]].cast<double>()) /
+                       3);
+    }
+    // The larger components whose box meets the shell's may enclose it.
     bool any = false;
     for (uint32_t f = 0; f < mesh.faces.size(); ++f) {
       const Part& other = parts[component[f]];
-      around[f] = component[f] != c && other.area > shell.area && other.box.contains(shell.box);
+      around[f] = component[f] != c && other.area > shell.area && other.box.intersects(shell.box);
       any |= around[f] != 0;
     }
-    if (!any || std::abs(core::WindingNumber(mesh, around, probe)) < 0.5) continue;
-    for (uint32_t f = 0; f < mesh.faces.size(); ++f) drop[f] |= component[f] == c;
+    if (!any) continue;
+    const std::vector<double> winding = core::WindingNumbers(mesh, around, probes);
+    const auto inside =
+        static_cast<size_t>(std::ranges::count_if(winding, [](double w) { return std::abs(w) >= 0.5; }));
+    const bool enclosed = 2 * inside > probes.size();
+    if (!enclosed && !(inside > 0 && MeasuredPartLiesOn(mesh, unmeasured, shell.faces, around))) continue;
+    for (uint32_t f : shell.faces) drop[f] = 1;
     ++removed;
   }
   if (removed > 0) core::RemoveFaces(mesh, drop);

@@ -6,6 +6,7 @@
 #include <span>
 
 #include "absl/status/status.h"
+#include "absl/status/statusor.h"
 #include "worker/core/geometry.h"
 #include "worker/core/job_context.h"
 #include "worker/core/normals.h"
@@ -24,19 +25,34 @@ const core::ParamTable<PointParams>& PointParamsTable();
 absl::Status ChooseViewpoints(const PointParams& points, const core::PointCloud& cloud,
                               core::NormalEstimationParams& normals);
 
+// What every surface method does to its cloud first: exact repeats dropped (statistic
+// duplicate_points), isolated points removed where `points.remove_outliers` asks
+// (outliers_removed), and normals estimated where the cloud has none, toward the sensors where
+// known (normals_toward_viewpoint, normals_seconds), with progress on `ctx` from 0 to the share it
+// returns (kNormalsShare when it estimates normals, else 0). Errors: kInvalidArgument (too few
+// distinct points, no normals and estimate_normals false, bad viewpoints), kCancelled.
+inline constexpr double kNormalsShare = 0.2;
+absl::StatusOr<double> PrepareSurfaceCloud(const PointParams& points, core::PointCloud& cloud, core::JobContext& ctx,
+                                           Statistics& statistics);
+
 // The cloud's per-point attributes `points` names (by default colour and intensity, those it
 // has) onto `mesh`'s vertices, with the statistics carried_attributes and carry_seconds.
 // Errors: kInvalidArgument naming an attribute the cloud lacks, kCancelled.
 absl::Status CarryPointAttributes(const PointParams& points, const core::PointCloud& cloud, core::JobContext& ctx,
                                   core::TriangleMesh& mesh, Statistics& statistics);
 
-// Removes the components that lie inside another (winding number of the larger ones around them
-// at least ½) and whose area is mostly (over kInventedShellShare) unmeasured by `unmeasured`
-// (per vertex, 1 = unmeasured; a face is where most of its vertices are). A sensor sees no
-// surface that another encloses, so such a shell is the method's own: PU on four depth views of
-// a cow closed two, of 0.5 % of the area each and 79 % unmeasured, inside its belly. A measured
-// inner shell (a hollow part's sampled inner wall) stays. Returns the shells removed.
+// Removes the components whose area is mostly (over kInventedShellShare) unmeasured by
+// `unmeasured` (per vertex, 1 = unmeasured; a face is where most of its vertices are) and that
+// either lie inside a larger one (its winding number at least ½ at most of kShellProbes faces
+// spread over the component) or cross it (inside at one of them at least) with their measured
+// part on its surface. A sensor sees no surface that another encloses, and
+// no two real objects overlap, so such a shell is the method's own: PU on four depth views of
+// a cow closed two of 0.5 % of the area each at its belly, 77-79 % unmeasured, one inside and
+// one blistering through the skin it was fitted beside. A measured inner shell (a hollow part's
+// sampled inner wall) and an object beside stay. Returns the shells removed.
 inline constexpr double kInventedShellShare = 0.5;
+inline constexpr size_t kShellProbes = 15;
+inline constexpr double kShellOnSurfaceEdges = 3;
 int64_t RemoveInventedInnerShells(core::TriangleMesh& mesh, std::span<const float> unmeasured);
 
 // Where `points.fill_holes` asks: the holes of `mesh` closed (extract::FillHoles) and the

@@ -13,11 +13,14 @@
 # spacing instead); the clean sample again with fill_holes=true, whose filled_marked is the share
 # a closed, evenly sampled cloud gets marked by chance. Prints one row per run: wall time, the report's measures
 # (bench/sensor_sim.cc: facing, components, fragments, boundary edges, invented and covered
-# shares, mean distance to the truth, colour error). Needs a release build with Embree
-# (lsqsurf-sensor-sim). Leaves its files in $WORK (default a temporary folder).
+# shares, mean distance to the truth, Chamfer distance to it, colour error). Where python3-open3d is installed
+# (install-deps.sh --with-poisson), screened Poisson rows follow each scan's (P0: watertight,
+# P0.1: trimmed below the 10 % density quantile; their wall is Poisson's own time), given the
+# normals a job gives the scan. Needs a release build with Embree (lsqsurf-sensor-sim). Leaves its files in $WORK (default a temporary folder).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bin=build/release/bin
+python=${PYTHON:-/usr/bin/python3}  # Debian's, where apt puts python3-open3d
 work=${WORK:-$(mktemp -d)}
 mkdir -p "$work"
 meshes=("$@")
@@ -41,8 +44,27 @@ run() {  # run NAME MESH SCAN METHOD [PARAM ...]
     echo "$name $method FAILED: $(tail -1 "$log")"; return; }
   end=$(date +%s.%N)
   printf '%-28s %-6s wall %6.1f s  ' "$name" "$method" "$(echo "$end - $start" | bc)"
-  "$bin"/lsqsurf-sensor-sim report --truth "$mesh" --scan "$scan" --mesh "$out" |
+  report "$mesh" "$scan" "$out"
+}
+
+report() {  # report MESH SCAN RECONSTRUCTION
+  "$bin"/lsqsurf-sensor-sim report --truth "$1" --scan "$2" --mesh "$3" |
     awk '{printf "%s %s  ", $1, $2} END {print ""}'
+}
+
+# Screened Poisson (depth 10) on the same scan with the normals a job gives it: watertight, and
+# trimmed below the 10 % density quantile. Only where python3-open3d is installed.
+poisson() {  # poisson NAME MESH SCAN
+  local name=$1 mesh=$2 scan=$3 points="$work/$1.oriented.ply" trim out
+  "$python" -c 'import open3d' 2>/dev/null || return 0
+  "$bin"/lsqsurf-sensor-sim prepare "$scan" -o "$points" >/dev/null || { echo "$name prepare FAILED"; return; }
+  for trim in 0 0.1; do
+    out="$work/$name.poisson-$trim.ply"
+    seconds=$("$python" bench/poisson_reference.py "$points" -o "$out" --trim $trim | awk '$1 == "poisson_seconds" {print $2}') ||
+      { echo "$name poisson FAILED"; continue; }
+    printf '%-28s %-6s wall %6.1f s  ' "$name" "P$trim" "$seconds"
+    report "$mesh" "$scan" "$out"
+  done
 }
 
 for mesh in "${meshes[@]}"; do
@@ -57,6 +79,7 @@ for mesh in "${meshes[@]}"; do
   run "$base.clean-$points.filled" "$mesh" "$work/$base.clean.ply" pu fill_holes=true
   for scan in view.pcd views.ptx lidar.ptx; do
     for method in pu iamls; do run "$base.$scan" "$mesh" "$work/$base.$scan" $method; done
+    poisson "$base.$scan" "$mesh" "$work/$base.$scan"
   done
   for scan in views.ptx lidar.ptx; do
     for method in pu iamls; do run "$base.$scan.filled" "$mesh" "$work/$base.$scan" $method fill_holes=true; done

@@ -41,6 +41,7 @@
 #include "worker/io/files.h"
 #include "worker/io/point_stream.h"
 #include "worker/io/pts_ptx.h"
+#include "worker/jobs/surface_points.h"
 
 namespace {
 
@@ -363,7 +364,7 @@ FilledMarking MeasureFilledMarking(const core::TriangleMesh& mesh, const Unmeasu
     const double s = 0.5 * (b - a).cross(c - a).norm();
     const Vec3f centre = ((a + b + c) / 3).cast<float>();
     const bool far = unmeasured.Local(centre, scratch), far_global = unmeasured.Global(centre);
-    const bool mark = filled->values[f[0]] + filled->values[f[1]] + filled->values[f[2]] >= 1.5f;
+    const bool mark = core::FaceUnmeasured(filled->values, f);
     m.marked += mark ? s : 0;
     m.invented += far ? s : 0;
     m.marked_invented += mark && far ? s : 0;
@@ -494,11 +495,44 @@ int RunReport(const ReportOptions& o) {
       static_cast<long long>(topology.components), fragments / area, static_cast<long long>(topology.boundary_edges),
       invented / area, invented_global / area,
       static_cast<double>(covered) / static_cast<double>(std::max<size_t>(checked, 1)), distance / area / diagonal);
+  // Symmetric: on a partial scan the truth's unseen side counts too, so it compares methods
+  // on one scan, and a closed reconstruction against the whole shape.
+  core::LocalJobContext ctx;
+  if (auto chamfer = core::CompareMeshes(*truth, welded, {.samples = 200'000}, ctx); chamfer.ok()) {
+    std::printf("chamfer            %.4e\n", chamfer->chamfer);
+  }
   std::printf("watertight         %d\n", topology.watertight() ? 1 : 0);
   PrintFilledMarking(marking, area);
   if (!colour_error.empty()) {
     std::printf("colour_mean        %.2f\ncolour_median      %.0f\ncolour_p90         %.0f\n", colour_mean,
                 colour_error[colour_error.size() / 2], colour_error[colour_error.size() * 9 / 10]);
+  }
+  return 0;
+}
+
+struct PrepareOptions {
+  std::string scan, output;
+};
+
+// The scan as every surface job sees it before its method runs (jobs::PrepareSurfaceCloud with
+// the defaults, normals turned toward the sensors the file names, as the client asks), written
+// with its normals: a reference method given these gets the same normals as lsqsurf's.
+int RunPrepare(const PrepareOptions& o) {
+  auto cloud = io::ReadPointCloudFile(o.scan);
+  if (!cloud.ok()) return Fail(std::string(cloud.status().message()));
+  lsqsurf::jobs::PointParams points;
+  if (auto stream = io::OpenPointStream(o.scan); stream.ok()) {
+    for (const Vec3d& sensor : (*stream)->sensor_positions())
+      points.viewpoint.insert(points.viewpoint.end(), sensor.data(), sensor.data() + 3);
+  }
+  core::LocalJobContext ctx;
+  lsqsurf::jobs::Statistics statistics;
+  if (auto prepared = lsqsurf::jobs::PrepareSurfaceCloud(points, *cloud, ctx, statistics); !prepared.ok()) {
+    return Fail(std::string(prepared.status().message()));
+  }
+  for (const auto& [name, value] : statistics) std::printf("%-18s %g\n", name.c_str(), value);
+  if (auto written = io::WritePointCloudFile(o.output, *cloud); !written.ok()) {
+    return Fail(std::string(written.message()));
   }
   return 0;
 }
@@ -547,8 +581,14 @@ int main(int argc, char** argv) {
   r->add_option("--eye", report.eyes, "a sensor's position x,y,z (repeat; default: those the scan file names)");
   r->add_option("--fragment", report.fragment, "components under this share of the area are fragments")
       ->capture_default_str();
+  PrepareOptions prepare;
+  auto* p =
+      app.add_subcommand("prepare", "the scan with the normals a surface job gives it (PLY), for a reference method");
+  p->add_option("scan", prepare.scan, "the scan")->required();
+  p->add_option("-o,--output", prepare.output, "the points with their normals (.ply)")->required();
   CLI11_PARSE(app, argc, argv);
   if (*d) return RunDepth(depth);
+  if (*p) return RunPrepare(prepare);
   if (*l) return RunLidar(lidar);
   return RunReport(report);
 }

@@ -10,8 +10,9 @@
 # libssl-dev hashes tokens and checks certificates; nginx-light is the gRPC balancer of the replica test; yamllint checks deploy/;
 # iproute2 and util-linux (ip, unshare, runuser) make the namespaces of scripts/netns-replicas.sh;
 # libembree-dev ray-casts the simulated sensors of bench/sensor_sim.cc.
-# --with-poisson also installs Open3D (libopen3d-dev, large), needed only by the benchmark
-# preset `bench-poisson` that runs screened Poisson side by side; --with-openvdb installs
+# --with-poisson also installs Open3D (libopen3d-dev, large, and python3-open3d), needed only by
+# the benchmark preset `bench-poisson` and bench/poisson_reference.py (the sensor bench's
+# screened Poisson rows), which run screened Poisson side by side; --with-openvdb installs
 # libopenvdb-dev, needed only by the preset `bench-openvdb` (the level-set reference of the
 # front-tracking benchmarks); --with-vtk the VTK reference of the volume benchmark; --with-scipy
 # SciPy and scikit-image, with which bench/exported_volume.py writes Delaunay meshes as other
@@ -38,7 +39,7 @@ packages=(
 if ! command -v npm >/dev/null || ! command -v node >/dev/null; then packages+=(nodejs npm); fi
 for option in "$@"; do
   case "$option" in
-    --with-poisson) packages+=(libopen3d-dev) ;;
+    --with-poisson) packages+=(libopen3d-dev python3-open3d) ;;  # bench-poisson preset; bench/poisson_reference.py
     --with-openvdb) packages+=(libopenvdb-dev libboost-dev) ;;  # OpenVDB's headers include Boost's.
     --with-vtk) packages+=(python3-vtk9 python3-numpy xvfb) ;;  # bench/vtk_volume_reference.py
     --with-containers) packages+=(podman runc debootstrap uidmap slirp4netns fuse-overlayfs podman-compose golang-github-containernetworking-plugin-dnsname) ;;  # scripts/container-*.sh, compose-test.sh

@@ -233,6 +233,51 @@ TEST(Pu, NoisySphereIsEstimatedAndSmoothedIntoOneClosedSurface) {
   EXPECT_GT(rms_deviation(ExtractMesh(*g)), 1.5 * smoothed);
 }
 
+// An open sheet (a single view's surface) ends at the rim of its points: past the rim the points
+// lie to one side, and F is defined only within a short reach of them. The full reach, kept where
+// points surround a gap, ran the sheet on by more than three sample spacings all along its rim.
+TEST(Pu, AnOpenSheetEndsAtTheRimOfItsPoints) {
+  const double polar = 0.6, spacing = 0.0075;  // A cap of the unit sphere; one point per spacing².
+  const size_t n = static_cast<size_t>(2 * std::numbers::pi * (1 - std::cos(polar)) / (spacing * spacing));
+  core::PointCloud cloud;
+  std::mt19937_64 rng(3);
+  std::uniform_real_distribution<double> unit(0, 1);
+  for (size_t i = 0; i < n; ++i) {
+    const double z = 1 - unit(rng) * (1 - std::cos(polar)), angle = 2 * std::numbers::pi * unit(rng);
+    const double r = std::sqrt(1 - z * z);
+    cloud.positions.push_back(Vec3d(r * std::cos(angle), r * std::sin(angle), z).cast<float>());
+    cloud.normals.push_back(cloud.positions.back());
+  }
+  auto f = Build(cloud);
+  ASSERT_TRUE(f);
+  auto overshoot_of = [&](const core::TriangleMesh& m) {
+    double most = -1;
+    for (const core::Vec3f& v : m.vertices) {
+      most = std::max(most, std::acos(std::clamp(v.cast<double>().normalized().z(), -1.0, 1.0)) - polar);
+    }
+    return most;
+  };
+  const core::TriangleMesh mesh = ExtractMesh(*f);
+  ASSERT_FALSE(mesh.vertices.empty());
+  EXPECT_LT(overshoot_of(mesh), 2 * spacing);  // 1.3 spacings here; 3.4 with the full reach.
+  // And it still reaches the rim: every point there has the mesh within a spacing.
+  const core::KdTree vertices(mesh.vertices);
+  size_t rim = 0, reached = 0;
+  for (const core::Vec3f& p : cloud.positions) {
+    if (std::acos(static_cast<double>(p.z())) < polar - spacing) continue;
+    ++rim;
+    reached += vertices.Nearest(p).distance2 < spacing * spacing;
+  }
+  EXPECT_GT(rim, 100u);
+  EXPECT_GT(static_cast<double>(reached), 0.98 * static_cast<double>(rim));
+  const core::MeshTopology topo = core::AnalyzeTopology(mesh);
+  EXPECT_EQ(topo.components, 1);
+  EXPECT_EQ(topo.non_manifold_edges, 0);
+  // A surface to be filled keeps the full reach.
+  f->KeepFullReachPastRims();
+  EXPECT_GT(overshoot_of(ExtractMesh(*f)), 3 * spacing);
+}
+
 TEST(Pu, ThinFingersStayClosed) {
   std::vector<testing::Capsule> fingers;
   const double spacing = 0.004;  // Fingers of radius 0.005 are 2.5 nearest-neighbour distances.

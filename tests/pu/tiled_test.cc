@@ -118,7 +118,7 @@ TEST(PuTiles, ASmallHoleAcrossASeamClosesAsUntiled) {
   core::PointCloud cloud = testing::SphereCloud(20'000);
   core::PointCloud holed;
   const core::Vec3d at = core::Vec3d(1, 0.02, -0.03).normalized();
-  const double radius = 0.18;  // 7 spacings: the fits no longer cover it.
+  const double radius = 0.13;  // 5 spacings: the fits no longer cover it.
   for (size_t i = 0; i < cloud.size(); ++i) {
     if ((cloud.positions[i].cast<double>() - at).norm() < radius) continue;
     holed.positions.push_back(cloud.positions[i]);

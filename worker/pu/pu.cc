@@ -1,3 +1,5 @@
+#include <algorithm>
+#include <array>
 #include <cmath>
 
 #include "worker/core/strings.h"
@@ -105,6 +107,47 @@ core::FieldGradient PuFunction::ValueOrDataSide(const Vec3d& x, bool with_gradie
   if (with_gradient && length > 0) g.gradient = side * d / length;
   return g;
 }
+
+bool PuFunction::Impl::Covered(const Vec3d& x) const {
+  const core::Neighbor nearest = cloud->kd_tree->Nearest(x.cast<float>());
+  const double reach = coverage_factor * cloud->local_spacing[nearest.index];
+  if (nearest.distance2 > reach * reach) return false;
+  const double rim_reach = rim_reach_share * reach;
+  return rim_reach_share >= 1 || nearest.distance2 <= rim_reach * rim_reach || !BeyondRim(x, kRimReadFactor * reach);
+}
+
+bool PuFunction::Impl::BeyondRim(const Vec3d& x, double radius) const {
+  thread_local std::vector<core::Neighbor> near;  // Reused: extraction asks this in its inner loops.
+  cloud->kd_tree->Knn(x.cast<float>(), kRimNeighbors, near);
+  const double radius2 = radius * radius;
+  Vec3d normal = Vec3d::Zero();
+  size_t count = 0;
+  for (const core::Neighbor& n : near) {
+    if (n.distance2 > radius2) break;
+    normal += cloud->normals[n.index].cast<double>();
+    ++count;
+  }
+  if (count < 3) return true;
+  // Normals that disagree (a thin part's tip, a crease, both sides of a thin wall) give no plane
+  // to look in: treated as surrounded, which is the full reach's behaviour.
+  if (normal.norm() < kRimNormalAgreement * static_cast<double>(count)) return false;
+  normal.normalize();
+  const Vec3d u = normal.unitOrthogonal(), v = normal.cross(u);
+  std::array<double, kRimNeighbors> angles{};
+  size_t m = 0;
+  for (size_t k = 0; k < count; ++k) {
+    const Vec3d d = cloud->positions[near[k].index].cast<double>() - x;
+    const double du = d.dot(u), dv = d.dot(v);
+    if (du * du + dv * dv > 1e-24 * radius2) angles[m++] = std::atan2(dv, du);
+  }
+  if (m < 3) return true;
+  std::sort(angles.begin(), angles.begin() + static_cast<std::ptrdiff_t>(m));
+  double gap = angles[0] + 2 * M_PI - angles[m - 1];
+  for (size_t k = 1; k < m; ++k) gap = std::max(gap, angles[k] - angles[k - 1]);
+  return gap > kRimGap;
+}
+
+void PuFunction::KeepFullReachPastRims() { impl_->rim_reach_share = 1; }
 
 bool PuFunction::NearCrease(const Vec3d& x) const {
   bool crease = false;

@@ -21,7 +21,9 @@
 //  * coverage at evaluation time: F is defined at x only if the nearest data point p lies
 //    within `coverage_factor` × h(p), h(p) the distance from p to its 8th neighbour; beyond
 //    that F keeps its sign but no surface is placed there, so holes stay holes and no sheets
-//    appear away from the data;
+//    appear away from the data; past the rim of the data (x's nearest points, seen about their
+//    mean normal, leave a gap of more than a half-turn) the reach is 0.4 of that, so an open
+//    sheet (a single view) ends at its last points instead of running on by a band;
 //  * orientation: a fit whose gradient opposes more than 10% of its points' normals is
 //    rejected (split, or the depth limit's fallback).
 #pragma once
@@ -121,6 +123,10 @@ class PuFunction final : public core::ImplicitFunction {
   // Whether a sharp fit's support holds x (there F makes a crease, which Extract places in its
   // finest cells).
   bool NearCrease(const core::Vec3d& x) const;
+  // The full coverage reach past the data's rim too (the reach before the rim test), for a
+  // surface whose holes are closed afterwards: a shorter rim only widens what filling invents.
+  // Not stored with the function.
+  void KeepFullReachPastRims();
 
   const PuStats& stats() const;
 

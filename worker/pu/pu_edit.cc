@@ -45,7 +45,8 @@ void PointsInCube(const PuFunction::Impl& m, const Node& n, std::vector<core::Ne
 }
 
 // A remove edit's points: those outside the ball, with a point index of their own. The fits
-// centred in the ball go; coverage changes where a removed point was the nearest.
+// centred in the ball go; coverage changes where a removed point was the nearest, or one the
+// rim test read.
 absl::Status RemovePoints(const PuFunction::Impl& b, PuFunction::Impl& m, const PuEdit& edit,
                           std::span<const int32_t> touched, PuEditStats& local) {
   m.cloud = std::make_shared<PointData>();
@@ -63,7 +64,8 @@ absl::Status RemovePoints(const PuFunction::Impl& b, PuFunction::Impl& m, const 
     if (!b.cloud->local_spacing.empty()) m.cloud->local_spacing.push_back(b.cloud->local_spacing[i]);
   }
   if (m.cloud->positions.size() < 4) return absl::FailedPreconditionError("the ball holds nearly every point");
-  if (m.coverage_check) local.changed.push_back({edit.centre, edit.radius + m.coverage_factor * removed_spacing});
+  if (m.coverage_check)
+    local.changed.push_back({edit.centre, edit.radius + kRimReadFactor * m.coverage_factor * removed_spacing});
   for (int32_t node : touched) {
     Node& n = m.nodes[static_cast<size_t>(node)];
     if ((m.fits[static_cast<size_t>(n.fit)].centre - edit.centre).norm() < edit.radius) n.fit = -1;

@@ -36,6 +36,21 @@ constexpr double kMaxInvertedShare = 0.1;
 // The local spacing of a point, for the coverage test: the distance to its 8th neighbour (about
 // two sample spacings on a surface, robust to pairs of nearly coincident points).
 constexpr size_t kSpacingNeighbors = 8;
+// Beyond the rim of the data (the points near x lie to one side of it, as past a single view's
+// silhouette) F is defined only within this share of `coverage_factor`'s reach: the full reach
+// closes chance gaps where points surround x, but past a rim it would run a band of invented
+// surface along every edge the sensor saw.
+constexpr double kRimReachShare = 0.4;
+// How many of x's nearest points the rim test reads, and the angular gap between them (seen
+// about their mean normal) above which they lie to one side of x.
+constexpr size_t kRimNeighbors = 20;
+// The test reads points within this multiple of the reach (what tile margins and a remove
+// edit's changed region must allow for).
+constexpr double kRimReadFactor = 1.5;
+constexpr double kRimGap = 3.14159265358979323846;
+// The least length of their mean normal (in units of one normal) for the test to apply: where
+// the normals turn more (about 25° from their mean on average), the data has no one tangent plane.
+constexpr double kRimNormalAgreement = 0.8;
 // Fits over larger balls (coarse cells) are made on an even subsample of this many points; the
 // error test still runs over every point, so an accepted fit meets the bound on all of them.
 // At worst a cell whose full fit would have passed is split.
@@ -124,6 +139,7 @@ struct PuFunction::Impl {
   std::vector<uint32_t> influence;
   bool coverage_check = true;
   double coverage_factor = 1.25;
+  double rim_reach_share = kRimReachShare;  // 1: no rim test (KeepFullReachPastRims).
   // The length ε0 and the chord error are shares of: the points' bounding-box diagonal, or, for a
   // tile's function, the whole cloud's (0 = the points' own).
   double frame_diagonal = 0;
@@ -199,13 +215,14 @@ struct PuFunction::Impl {
     if (with_gradient)
       out.gradient = (sum_grad_value * sum_theta - sum_value * sum_grad_theta) / (sum_theta * sum_theta);
     out.defined = true;
-    if (coverage_check && decide_defined) {
-      const core::Neighbor nearest = cloud->kd_tree->Nearest(x.cast<float>());
-      const double reach = coverage_factor * cloud->local_spacing[nearest.index];
-      out.defined = nearest.distance2 <= reach * reach;
-    }
+    if (coverage_check && decide_defined) out.defined = Covered(x);
     return out;
   }
+
+  // The evaluation-time coverage criterion (pu.h), with the tighter reach past the data's rim.
+  bool Covered(const Vec3d& x) const;
+  // Whether the points nearest x, within `radius`, lie to one side of it.
+  bool BeyondRim(const Vec3d& x, double radius) const;
 };
 
 struct BuildContext {

@@ -152,9 +152,10 @@ Margins MarginsFor(double spacing, const PuFrame& frame, const PuParams& fit, co
   m.max_support = std::max(tiles.support_cap * spacing, deepest_support * (1 + 1e-9));
   m.extraction = ExtractionReach(frame.root_edge, spacing, extract);
   // A point is covered within coverage_factor local spacings of its nearest point, and local
-  // spacings are capped at max_support: the nearest point must be in the tile when that decides.
+  // spacings are capped at max_support: the nearest point must be in the tile when that decides,
+  // and so must the points the rim test reads.
   const double covered = fit.coverage_factor * m.max_support;
-  m.data = m.extraction + std::max(2 * m.max_support, covered) * (1 + 1e-9);
+  m.data = m.extraction + std::max(2 * m.max_support, kRimReadFactor * covered) * (1 + 1e-9);
   m.near = m.extraction + covered;
   return m;
 }

@@ -33,6 +33,37 @@ inline core::PointCloud SphereCloud(size_t n, double radius = 1.0, core::Vec3d c
   return cloud;
 }
 
+// The cap of the unit sphere within `polar` radians of +z, sampled uniformly at random by area,
+// one point per spacing²: an open sheet with a rim, as a single view sees a ball. Exact normals.
+inline core::PointCloud CapCloud(double polar, double spacing, uint64_t seed = 3) {
+  const auto n = static_cast<size_t>(2 * std::numbers::pi * (1 - std::cos(polar)) / (spacing * spacing));
+  core::PointCloud cloud;
+  std::mt19937_64 rng(seed);
+  std::uniform_real_distribution<double> unit(0, 1);
+  for (size_t i = 0; i < n; ++i) {
+    const double z = 1 - unit(rng) * (1 - std::cos(polar)), angle = 2 * std::numbers::pi * unit(rng);
+    const double r = std::sqrt(1 - z * z);
+    cloud.positions.push_back(core::Vec3d(r * std::cos(angle), r * std::sin(angle), z).cast<float>());
+    cloud.normals.push_back(cloud.positions.back());
+  }
+  return cloud;
+}
+
+// A wavy strip z = amplitude·sin(3x) over [0, length] × [0, width], sampled uniformly at random
+// in x and y: a long open sheet with a rim all round, as a single view sees a wall. Exact normals.
+inline core::PointCloud WavyStripCloud(size_t n, double length, double width, double amplitude = 0.05,
+                                       uint64_t seed = 4) {
+  core::PointCloud cloud;
+  std::mt19937_64 rng(seed);
+  std::uniform_real_distribution<double> unit(0, 1);
+  for (size_t i = 0; i < n; ++i) {
+    const double x = length * unit(rng), y = width * unit(rng);
+    cloud.positions.push_back(core::Vec3d(x, y, amplitude * std::sin(3 * x)).cast<float>());
+    cloud.normals.push_back(core::Vec3d(-3 * amplitude * std::cos(3 * x), 0, 1).normalized().cast<float>());
+  }
+  return cloud;
+}
+
 // Torus around the z axis (tube radius r, centre-line radius R), sampled uniformly by area by
 // rejection; exact outward normals.
 inline core::PointCloud TorusCloud(size_t n, double R, double r, uint64_t seed = 5) {

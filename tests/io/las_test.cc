@@ -66,6 +66,14 @@ TEST_P(LasFiles, ReadTheIndependentWritersFiles) {
   ASSERT_NE(classification, nullptr);
   const auto channels = core::ColourChannels(cloud->attributes, cloud->size());
   EXPECT_EQ(channels[0] != nullptr, e.colour_bits != 0);
+  // The 1.4 file describes its extra bytes: two fields become attributes by their names (made
+  // safe), scale and offset applied; its undocumented bytes and the other files' stay unread.
+  const bool described = e.file.starts_with("extra");
+  const auto* amplitude = Find(*cloud, "Amplitude");
+  const auto* deviation = Find(*cloud, "Deviation__dB_");
+  ASSERT_EQ(amplitude != nullptr, described);
+  ASSERT_EQ(deviation != nullptr, described);
+  EXPECT_EQ(cloud->attributes.size(), (e.colour_bits != 0 ? 3u : 0u) + 2u + (described ? 2u : 0u));
   EXPECT_EQ(info.colour_8bit, e.colour_bits == 8);
   for (size_t k = 0; k < kept.size(); ++k) {
     const int i = kept[k];
@@ -77,6 +85,10 @@ TEST_P(LasFiles, ReadTheIndependentWritersFiles) {
     EXPECT_NEAR(cloud->positions[k].z(), z, 0.0006) << i;
     EXPECT_EQ(intensity->values[k], static_cast<float>(100 * i));
     EXPECT_EQ(classification->values[k], 2.0f);
+    if (described) {
+      EXPECT_EQ(amplitude->values[k], static_cast<float>(1.5 * i + 2)) << i;
+      EXPECT_EQ(deviation->values[k], static_cast<float>(-i)) << i;
+    }
     if (channels[0] != nullptr) {
       const float want[3] = {static_cast<float>((i * 2) % 256), static_cast<float>((255 - i) % 256),
                              static_cast<float>((i * 7) % 256)};
@@ -181,6 +193,13 @@ TEST(Las, HostileHeadersAreRefusedBeforeAPointIsRead) {
   ExpectRefused(good.substr(0, good.size() - 10), "holds only 49");
   ExpectRefused(With<double>(good, 131, 0.0), "X scale factor 0");
   ExpectRefused(With<double>(good, 163, std::nan("")), "Y offset");
+  // Extra bytes descriptions that do not fit the records, or name no known type.
+  auto extra = ReadFileBytes(kData + "extra_1_4_format8.las");
+  ASSERT_TRUE(extra.ok()) << extra.status();
+  const size_t fields = extra->find("LASF_Spec") - 2 + 54;  // The record's header starts 2 bytes before its user.
+  ExpectRefused(With<uint8_t>(*extra, fields + 2, 31), "extra bytes field 0 has data type 31");
+  ExpectRefused(With<uint8_t>(*extra, fields + 2 * 192 + 3, 3), "take more than the 6 bytes");
+  ExpectRefused(With<double>(*extra, fields + 112, std::nan("")), "Amplitude has a scale or offset");
   // A box that lies does not move the points by it, nor refuse them.
   auto lied = ParseLas(With<double>(good, 179, 1e300), "box.las");
   EXPECT_TRUE(lied.ok()) << lied.status();

@@ -86,6 +86,54 @@ class JobPartsTest : public ::testing::Test {
   const std::string runner_ = "parts-test/1";
 };
 
+TEST_F(JobPartsTest, ABuildsChildrenAreFoundByTheirParentAndGoWithTheirRecords) {
+  auto child = [](const std::string& id, const std::string& parent, JobState state) {
+    JobRecord r = Record(id, 2, state);
+    r.parent = parent;
+    return r;
+  };
+  table_->Locked([&](const JobEntries&) {
+    table_->AdoptLocked(Record("p", 1, JobState::kRunning));
+    table_->AdoptLocked(child("p-t1", "p", JobState::kSucceeded));
+    table_->AdoptLocked(child("p-t0", "p", JobState::kRunning));
+    table_->AdoptLocked(child("q-t0", "q", JobState::kQueued));
+    return 0;
+  });
+  auto any_queued = [&](const std::string& parent) {
+    return !table_
+                ->Children(
+                    parent, [](const JobRecord& r) { return r.state == JobState::kQueued; }, 1)
+                .empty();
+  };
+  auto ids = [&](const std::string& parent) {
+    std::vector<std::string> out;
+    for (const JobRecord& r : table_->Children(parent)) out.push_back(r.id + ":" + std::string(JobStateName(r.state)));
+    return out;
+  };
+  EXPECT_EQ(ids("p"), (std::vector<std::string>{"p-t0:running", "p-t1:succeeded"}));
+  ASSERT_EQ(table_->Children("p", nullptr, 1).size(), 1u);
+  EXPECT_EQ(table_->Children("p", nullptr, 1)[0].id, "p-t0");
+  EXPECT_EQ(ids("q"), (std::vector<std::string>{"q-t0:queued"}));
+  EXPECT_TRUE(ids("p-t0").empty());  // A child has no children; a top-level job is nobody's.
+  EXPECT_FALSE(any_queued("p"));
+  EXPECT_TRUE(any_queued("q"));
+  // A newer record of a child changes what its parent sees; an erased child is gone from it.
+  table_->Locked([&](const JobEntries&) {
+    JobRecord requeued = child("p-t0", "p", JobState::kQueued);
+    requeued.seq = 5;
+    table_->AdoptLocked(requeued);
+    table_->EraseLocked("p-t1");
+    table_->EraseLocked("q-t0");
+    table_->EraseLocked("never-known");
+    return 0;
+  });
+  EXPECT_EQ(ids("p"), (std::vector<std::string>{"p-t0:queued"}));
+  EXPECT_TRUE(any_queued("p"));
+  EXPECT_TRUE(ids("q").empty());
+  EXPECT_FALSE(any_queued("q"));
+  EXPECT_EQ(table_->List().size(), 1u);  // Children stay out of the listing.
+}
+
 TEST_F(JobPartsTest, AWatcherSeesAChangeOnlyOnceTheStoreHasIt) {
   const std::shared_ptr<JobEntry> entry = HeldJob("job-a");
   ASSERT_TRUE(entry->held);

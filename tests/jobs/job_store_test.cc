@@ -424,6 +424,11 @@ TileJobs StoreTileJobs(JobStore& store, BlobStore& blobs, const std::string& run
   TileJobs jobs;
   jobs.get = [&store](const std::string& id) { return store.Get(id); };
   jobs.children = [&store](const std::string& parent) { return ChildrenIn(store, parent); };
+  jobs.any_queued = [&store](const std::string& parent) {
+    const std::vector<JobRecord> children = ChildrenIn(store, parent);
+    return std::any_of(children.begin(), children.end(),
+                       [](const JobRecord& c) { return c.state == JobState::kQueued; });
+  };
   jobs.run_one = [&store, &blobs, runner](const std::string& parent) -> absl::StatusOr<bool> {
     auto claimed = store.Claim(runner, milliseconds(60'000), {kTiles, parent});
     if (!claimed.ok()) return claimed.status();

@@ -237,17 +237,8 @@ TEST(Pu, NoisySphereIsEstimatedAndSmoothedIntoOneClosedSurface) {
 // lie to one side, and F is defined only within a short reach of them. The full reach, kept where
 // points surround a gap, ran the sheet on by more than three sample spacings all along its rim.
 TEST(Pu, AnOpenSheetEndsAtTheRimOfItsPoints) {
-  const double polar = 0.6, spacing = 0.0075;  // A cap of the unit sphere; one point per spacing².
-  const size_t n = static_cast<size_t>(2 * std::numbers::pi * (1 - std::cos(polar)) / (spacing * spacing));
-  core::PointCloud cloud;
-  std::mt19937_64 rng(3);
-  std::uniform_real_distribution<double> unit(0, 1);
-  for (size_t i = 0; i < n; ++i) {
-    const double z = 1 - unit(rng) * (1 - std::cos(polar)), angle = 2 * std::numbers::pi * unit(rng);
-    const double r = std::sqrt(1 - z * z);
-    cloud.positions.push_back(Vec3d(r * std::cos(angle), r * std::sin(angle), z).cast<float>());
-    cloud.normals.push_back(cloud.positions.back());
-  }
+  const double polar = 0.6, spacing = 0.0075;
+  const core::PointCloud cloud = testing::CapCloud(polar, spacing);
   auto f = Build(cloud);
   ASSERT_TRUE(f);
   auto overshoot_of = [&](const core::TriangleMesh& m) {

@@ -112,6 +112,24 @@ TEST(PuTiles, ALongDrilledBlockInManyTilesIsTheUntiledBlock) {
               1e-4 * core::EnclosedVolume(finished.whole));
 }
 
+// A single view's open sheet, longer than the margins, forced into many tiles: its rim, where F's
+// reach is short (the points lie to one side there), crosses the tiles, and each tile reads
+// enough around its cube to judge it as the untiled build does, so the sheet ends where the
+// untiled one ends.
+TEST(PuTiles, AnOpenSheetInManyTilesEndsAtTheUntiledRim) {
+  const core::PointCloud cloud = testing::WavyStripCloud(30'000, 4.0, 0.6);
+  const PuTileParams tiles{.tile_points = 3'000, .support_cap = 16};
+  const Runs raw = RunBoth(cloud, RawMarching(), tiles);
+  EXPECT_GE(raw.stats.tiles, 6);
+  EXPECT_LT(raw.stats.largest_tile, static_cast<int64_t>(cloud.size()));
+  ExpectSameMesh(raw.whole, raw.tiled, 1e-9 * raw.diagonal);
+  const core::MeshTopology sheet = core::AnalyzeTopology(core::WeldByPosition(raw.tiled));
+  EXPECT_EQ(sheet.components, 1);
+  EXPECT_EQ(sheet.boundary_loops, 1);  // The rim, and no seam left open.
+  EXPECT_EQ(sheet.non_manifold_edges, 0);
+  ExpectSameSurface(RunBoth(cloud, PuExtractParams{}, tiles), 1e-5);
+}
+
 // A hole of a few edges across a seam (points taken away over a small cap where tiles meet) is
 // closed once the tiles are welded, as the untiled surface closes it.
 TEST(PuTiles, ASmallHoleAcrossASeamClosesAsUntiled) {

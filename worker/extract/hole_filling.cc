@@ -445,8 +445,10 @@ absl::StatusOr<HoleFillingStats> FillHoles(core::TriangleMesh& mesh, const HoleF
     // One solve: weights taken again from the faired positions drift the vertices along the
     // surface and diverge within a few rounds.
     // Umbrella weights where the cotangents fail: they sag, but their system is never singular.
-    faired = faired && (Fair(mesh, first, fairing_faces, params.thin_plate, Weights::kCotangent) ||
-                        Fair(mesh, first, fairing_faces, params.thin_plate, Weights::kUniform));
+    if (faired && !Fair(mesh, first, fairing_faces, params.thin_plate, Weights::kCotangent)) {
+      faired = Fair(mesh, first, fairing_faces, params.thin_plate, Weights::kUniform);
+      stats.umbrella_faired += faired ? 1 : 0;
+    }
     if (!faired) ++stats.unfaired;
     ExtendVertexData(mesh, first, loop, patch.faces());
     for (const Triangle& t : patch.faces()) {

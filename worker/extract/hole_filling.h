@@ -38,6 +38,9 @@ struct HoleFillingStats {
   // Holes whose thin plate failed with both weights (a singular system, or positions far off): their
   // vertices stay where the relaxation put them.
   int64_t unfaired = 0;
+  // Holes whose thin plate failed with cotangent weights and was solved with umbrella weights,
+  // which sag (about half a smooth bulge): where the filled surface is flatter than its border.
+  int64_t umbrella_faired = 0;
 };
 
 // Closes the holes of `mesh` as above. The new vertices come after the old ones; normals (where

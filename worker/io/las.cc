@@ -1,6 +1,7 @@
 #include "worker/io/las.h"
 
 #include <algorithm>
+#include <cctype>
 #include <cmath>
 #include <cstring>
 #include <limits>
@@ -15,6 +16,9 @@ constexpr size_t kHeader12 = 227;         // Versions 1.0 to 1.2.
 constexpr size_t kHeader13 = 235;         // 1.3 adds the waveform start.
 constexpr size_t kHeader14 = 375;         // 1.4 adds the extended counts.
 constexpr uint64_t kColourSample = 4096;  // Records at the start, and as many spread, to tell 8- from 16-bit colour.
+constexpr size_t kVlrHeader = 54, kEvlrHeader = 60;  // Variable-length records' headers (extended: 1.4's).
+constexpr size_t kExtraDescriptor = 192;             // One extra bytes field's description.
+constexpr size_t kMaxExtraAttributes = 64;           // Named extra fields kept; the others are skipped.
 
 // Where a point format keeps what is read, and how long its record is at least.
 struct PointLayout {
@@ -50,6 +54,44 @@ std::string Text(const char* p, size_t width) {
   return s;
 }
 
+// One field of the extra bytes after a format's own, as the Extra Bytes record describes it.
+struct ExtraField {
+  std::string name;  // The attribute's; empty: skipped.
+  int type = 0;      // 1..10: uchar, char, ushort, short, ulong, long, ulonglong, longlong, float, double.
+  uint32_t at = 0;   // Offset in the record.
+  double scale = 1, offset = 0;
+};
+
+constexpr uint8_t kExtraTypeBytes[11] = {0, 1, 1, 2, 2, 4, 4, 8, 8, 4, 8};
+
+double ExtraValue(const char* p, int type) {
+  switch (type) {
+    case 1: return Load<uint8_t>(p);
+    case 2: return Load<int8_t>(p);
+    case 3: return Load<uint16_t>(p);
+    case 4: return Load<int16_t>(p);
+    case 5: return Load<uint32_t>(p);
+    case 6: return Load<int32_t>(p);
+    case 7: return static_cast<double>(Load<uint64_t>(p));
+    case 8: return static_cast<double>(Load<int64_t>(p));
+    case 9: return Load<float>(p);
+    default: return Load<double>(p);
+  }
+}
+
+// An attribute name from a descriptor's: letters, digits and underscores (others become
+// underscores), "extra_N" when none is left, and numbered on where it repeats one taken.
+std::string ExtraName(std::string name, size_t field, const std::vector<std::string>& taken) {
+  for (char& c : name) {
+    if (!std::isalnum(static_cast<unsigned char>(c))) c = '_';
+  }
+  if (name.empty()) name = core::StrCat("extra_", field);
+  std::string unique = name;
+  for (int k = 2; std::find(taken.begin(), taken.end(), unique) != taken.end(); ++k)
+    unique = core::StrCat(name, "_", k);
+  return unique;
+}
+
 }  // namespace
 
 struct LasReader::State {
@@ -61,7 +103,13 @@ struct LasReader::State {
   uint64_t next = 0;
 
   absl::Status Error(std::string_view what) const { return absl::InvalidArgumentError(core::StrCat(name, ": ", what)); }
+  std::vector<ExtraField> extras;  // Named ones only.
+
   absl::Status ParseHeader();
+  // The Extra Bytes record (user LASF_Spec, id 4) among the variable-length records before the
+  // points and, in 1.4, the extended ones after them; none is no error.
+  absl::Status FindExtraBytes(size_t header_size, size_t data_offset);
+  absl::Status ParseExtraBytes(std::string_view descriptors);
   const char* Record(uint64_t point) const { return bytes.data() + data_begin + point * info.record_length; }
   void ChooseColourDepth();
 };
@@ -146,6 +194,71 @@ absl::Status LasReader::State::ParseHeader() {
   }
   info.has_colour = layout.rgb >= 0;
   if (info.has_colour) ChooseColourDepth();
+  return FindExtraBytes(header_size, data_offset);
+}
+
+absl::Status LasReader::State::FindExtraBytes(size_t header_size, size_t data_offset) {
+  const char* h = bytes.data();
+  auto is_extra_bytes = [](const char* record) {
+    return Text(record + 2, 16) == "LASF_Spec" && Load<uint16_t>(record + 18) == 4;
+  };
+  // A chain that runs past its room (writers are not all careful) ends the walk, as it ended
+  // before extra bytes were read: the points are still there.
+  size_t at = header_size;
+  for (uint32_t k = 0, count = Load<uint32_t>(h + 100); k < count && at + kVlrHeader <= data_offset; ++k) {
+    const size_t length = Load<uint16_t>(bytes.data() + at + 20);
+    if (at + kVlrHeader + length > data_offset) break;
+    if (is_extra_bytes(bytes.data() + at)) return ParseExtraBytes(bytes.substr(at + kVlrHeader, length));
+    at += kVlrHeader + length;
+  }
+  if (info.version_minor < 4) return absl::OkStatus();
+  uint64_t evlr = Load<uint64_t>(h + 235);
+  const uint32_t count = Load<uint32_t>(h + 243);
+  for (uint32_t k = 0; k < count && evlr >= data_offset && evlr <= bytes.size() && bytes.size() - evlr >= kEvlrHeader;
+       ++k) {
+    const uint64_t length = Load<uint64_t>(bytes.data() + evlr + 20);
+    if (length > bytes.size() - evlr - kEvlrHeader) break;
+    if (is_extra_bytes(bytes.data() + evlr)) return ParseExtraBytes(bytes.substr(evlr + kEvlrHeader, length));
+    evlr += kEvlrHeader + length;
+  }
+  return absl::OkStatus();
+}
+
+absl::Status LasReader::State::ParseExtraBytes(std::string_view descriptors) {
+  const uint32_t room = info.record_length - layout.length;
+  uint32_t at = layout.length;
+  std::vector<std::string> taken = {"red", "green", "blue", "intensity", "classification"};
+  for (size_t field = 0; field < descriptors.size() / kExtraDescriptor; ++field) {
+    const char* d = descriptors.data() + field * kExtraDescriptor;
+    const int type = static_cast<uint8_t>(d[2]), options = static_cast<uint8_t>(d[3]);
+    uint32_t size = 0;
+    if (type == 0) {
+      size = static_cast<uint32_t>(options);  // Undocumented bytes: the options byte counts them.
+    } else if (type <= 10) {
+      size = kExtraTypeBytes[type];
+    } else if (type <= 30) {
+      size = kExtraTypeBytes[(type - 11) % 10 + 1] * static_cast<uint32_t>((type - 11) / 10 + 2);  // Old arrays.
+    } else {
+      return Error(core::StrCat("extra bytes field ", field, " has data type ", type, ", not 0 to 30"));
+    }
+    if (at - layout.length + size > room) {
+      return Error(core::StrCat("the extra bytes fields take more than the ", room,
+                                " bytes each record has after point format ", info.point_format, "'s fields"));
+    }
+    if (type >= 1 && type <= 10 && extras.size() < kMaxExtraAttributes) {
+      ExtraField& e = extras.emplace_back();
+      e.name = ExtraName(Text(d + 4, 32), field, taken);
+      taken.push_back(e.name);
+      e.type = type;
+      e.at = at;
+      if ((options & 0x08) != 0) e.scale = Load<double>(d + 112);
+      if ((options & 0x10) != 0) e.offset = Load<double>(d + 136);
+      if (!std::isfinite(e.scale) || !std::isfinite(e.offset)) {
+        return Error(core::StrCat("extra bytes field ", e.name, " has a scale or offset that is not a finite number"));
+      }
+    }
+    at += size;
+  }
   return absl::OkStatus();
 }
 
@@ -196,6 +309,7 @@ absl::Status LasReader::Read(size_t max_points, core::PointCloud& cloud) {
     }
     cloud.attributes.push_back({"intensity", {}});
     cloud.attributes.push_back({"classification", {}});
+    for (const ExtraField& e : s.extras) cloud.attributes.push_back({e.name, {}});
   }
   const size_t first_scalar = info.has_colour ? 3 : 0;
   const float colour_scale = info.colour_8bit ? 1.0f : 1.0f / 257.0f;
@@ -226,6 +340,11 @@ absl::Status LasReader::Read(size_t max_points, core::PointCloud& cloud) {
     }
     cloud.attributes[first_scalar].values.push_back(Load<uint16_t>(r + 12));
     cloud.attributes[first_scalar + 1].values.push_back(static_cast<float>(classification));
+    for (size_t k = 0; k < s.extras.size(); ++k) {
+      const ExtraField& e = s.extras[k];
+      cloud.attributes[first_scalar + 2 + k].values.push_back(
+          static_cast<float>(ExtraValue(r + e.at, e.type) * e.scale + e.offset));
+    }
   }
   return absl::OkStatus();
 }

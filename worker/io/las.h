@@ -7,7 +7,12 @@
 // LasInfo::shift, the centre of the header's box rounded to whole units, and the cloud is in
 // that moved frame. Attributes: red, green, blue (0..255: 16-bit colour as the standard
 // stores it is divided by 257; a file that stores 8-bit values in the 16-bit fields, as some
-// writers do, is recognised by its sample and kept as it is), intensity and classification.
+// writers do, is recognised by its sample and kept as it is), intensity, classification, and
+// the fields of the extra bytes that an Extra Bytes record (user LASF_Spec, id 4, before the
+// points or, in 1.4, after them) describes: each of the ten numeric types is an attribute named
+// as the record names it (characters other than letters, digits and '_' become '_'; a repeated
+// name is numbered on), its scale and offset applied, at most 64 of them; undocumented bytes and
+// the deprecated array types are skipped; no-data values are kept as they are.
 // Points flagged withheld and points classified as noise (7 low, 18 high) are left out and
 // counted. Every count and offset in the header is checked against the bytes present before
 // a point is read; a malformed file gives kInvalidArgument naming the header field. LAZ

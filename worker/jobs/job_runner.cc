@@ -202,14 +202,12 @@ void JobRunner::WorkerLoop() {
 TileJobs JobRunner::TileJobsOf() {
   TileJobs jobs;
   jobs.get = [this](const std::string& id) { return parts_.table.Get(id); };
-  jobs.children = [this](const std::string& parent) {
-    return parts_.table.Locked([&](const JobEntries& entries) {
-      std::vector<JobRecord> out;
-      for (const auto& [id, e] : entries) {
-        if (e->record.parent == parent) out.push_back(e->record);
-      }
-      return out;
-    });
+  jobs.children = [this](const std::string& parent) { return parts_.table.Children(parent); };
+  jobs.any_queued = [this](const std::string& parent) {
+    return !parts_.table
+                .Children(
+                    parent, [](const JobRecord& r) { return r.state == JobState::kQueued; }, 1)
+                .empty();
   };
   jobs.run_one = [this](const std::string& parent) -> absl::StatusOr<bool> {
     std::shared_ptr<DecodedInput> none;

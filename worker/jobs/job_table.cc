@@ -33,6 +33,7 @@ std::shared_ptr<JobEntry> JobTable::AdoptLocked(JobRecord record) const {
   if (entry->held || (entry->record.seq >= record.seq && !entry->record.id.empty())) return entry;
   record.version = entry->record.version + 1;
   entry->record = std::move(record);
+  if (IsChildJob(entry->record)) children_[entry->record.parent].insert(entry->record.id);
   // A job another service took (or that ended) no longer needs the input decoded here.
   if (entry->record.state != JobState::kQueued) decoded_.Take(entry->record.id);
   return entry;
@@ -40,7 +41,15 @@ std::shared_ptr<JobEntry> JobTable::AdoptLocked(JobRecord record) const {
 
 void JobTable::EraseLocked(const std::string& id) const {
   decoded_.Take(id);
-  jobs_.erase(id);
+  const auto it = jobs_.find(id);
+  if (it == jobs_.end()) return;
+  if (const std::string& parent = it->second->record.parent; !parent.empty()) {
+    if (auto siblings = children_.find(parent); siblings != children_.end()) {
+      siblings->second.erase(id);
+      if (siblings->second.empty()) children_.erase(siblings);
+    }
+  }
+  jobs_.erase(it);
 }
 
 std::shared_ptr<JobEntry> JobTable::Find(const std::string& id) const {
@@ -54,6 +63,20 @@ std::shared_ptr<JobEntry> JobTable::Find(const std::string& id) const {
   if (!stored.ok()) return nullptr;
   std::lock_guard lock(mutex_);
   return AdoptLocked(*std::move(stored));
+}
+
+std::vector<JobRecord> JobTable::Children(const std::string& parent, const std::function<bool(const JobRecord&)>& keep,
+                                          size_t at_most) const {
+  std::lock_guard lock(mutex_);
+  std::vector<JobRecord> out;
+  const auto ids = children_.find(parent);
+  if (ids == children_.end()) return out;
+  for (const std::string& id : ids->second) {
+    if (out.size() >= at_most) break;
+    const JobRecord& r = jobs_.at(id)->record;
+    if (keep == nullptr || keep(r)) out.push_back(r);
+  }
+  return out;
 }
 
 absl::StatusOr<JobRecord> JobTable::Get(const std::string& id) const {

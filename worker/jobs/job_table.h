@@ -12,6 +12,7 @@
 #include <map>
 #include <memory>
 #include <mutex>
+#include <set>
 #include <string>
 #include <vector>
 
@@ -72,6 +73,12 @@ class JobTable {
   absl::StatusOr<JobRecord> Get(const std::string& id) const;
   JobRecord Snapshot(const JobEntry& entry) const;
   std::vector<JobRecord> List() const;  // Newest first; no child jobs (JobRecord::parent).
+  // Copies of the records of `parent`'s child jobs this service knows of, by id, those `keep`
+  // accepts (all when null), at most `at_most`; looked up in an index, not by scanning every job
+  // (a tiled build asks at every look).
+  std::vector<JobRecord> Children(const std::string& parent,
+                                  const std::function<bool(const JobRecord&)>& keep = nullptr,
+                                  size_t at_most = SIZE_MAX) const;
   // Runs `f` with the entries under the table's lock (AdoptLocked and EraseLocked may be called
   // from it); returns what `f` returns. `f` must not call the store nor the table's other methods.
   template <typename F>
@@ -119,6 +126,8 @@ class JobTable {
   mutable std::mutex mutex_;
   mutable std::condition_variable changed_;
   mutable JobEntries jobs_;
+  // The ids of each parent's child jobs among jobs_ (a job's parent never changes); mutex_.
+  mutable std::map<std::string, std::set<std::string>> children_;
   uint64_t changes_ = 0;  // Bumped with every change watchers may see (mutex_).
   bool shutting_down_ = false;
 };

@@ -276,6 +276,7 @@ absl::Status CloseHolesOnRequest(const PointParams& points, const core::PointClo
   statistics.emplace_back("holes_filled", static_cast<double>(filled->holes_filled));
   statistics.emplace_back("holes_left", static_cast<double>(filled->holes_left));
   statistics.emplace_back("holes_unfaired", static_cast<double>(filled->unfaired));
+  statistics.emplace_back("holes_umbrella_faired", static_cast<double>(filled->umbrella_faired));
   statistics.emplace_back("fill_vertices", static_cast<double>(filled->vertices_added));
   statistics.emplace_back("filled_vertices", marked);
   statistics.emplace_back("inner_shells_removed", static_cast<double>(shells));

@@ -141,10 +141,7 @@ absl::StatusOr<std::string> StoreTileExchange::Part(int64_t tile, core::JobConte
     }
     // While a child of this build waits in the queue, this server makes it; otherwise it waits
     // for the next change, which the store's feed brings.
-    const std::vector<JobRecord> children = jobs_.children(parent_.id);
-    const bool any_queued =
-        std::any_of(children.begin(), children.end(), [](const JobRecord& c) { return c.state == JobState::kQueued; });
-    if (any_queued) {
+    if (jobs_.any_queued(parent_.id)) {
       auto ran = jobs_.run_one(parent_.id);
       if (!ran.ok()) return ran.status();
       if (*ran) continue;

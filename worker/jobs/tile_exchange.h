@@ -92,6 +92,8 @@ struct TileJobs {
   std::function<absl::StatusOr<JobRecord>(const std::string& id)> get;
   // The child jobs of `parent` this server knows of, in any state.
   std::function<std::vector<JobRecord>(const std::string& parent)> children;
+  // Whether one of them is queued (asked with every look, so without copying their records).
+  std::function<bool(const std::string& parent)> any_queued;
   // Claims one queued child of `parent` and runs it here to its end; false when none was queued.
   // Errors: kUnavailable.
   std::function<absl::StatusOr<bool>(const std::string& parent)> run_one;

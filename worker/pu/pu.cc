@@ -92,15 +92,17 @@ std::span<const Vec3f> PuFunction::points() const { return impl_->cloud->positio
 
 core::FieldGradient PuFunction::ValueOrDataSide(const Vec3d& x, bool with_gradient) const {
   const Impl& m = *impl_;
-  const core::Neighbor nearest = m.cloud->kd_tree->Nearest(x.cast<float>());
-  const double reach = m.coverage_check ? m.coverage_factor * m.cloud->local_spacing[nearest.index] : 0;
-  if (!m.coverage_check || nearest.distance2 <= reach * reach) {
+  auto fitted = [&] {
     core::FieldGradient g = m.Evaluate(x, with_gradient, false);
     g.defined = std::isfinite(g.value);
     return g;
-  }
-  const Vec3d d = x - m.cloud->positions[nearest.index].cast<double>();
-  const double side = d.dot(m.cloud->normals[nearest.index].cast<double>()) >= 0 ? 1.0 : -1.0;
+  };
+  if (!m.coverage_check) return fitted();
+  const Impl::Coverage coverage = m.CoverageAt(x);
+  if (coverage.covered) return fitted();
+  const uint32_t nearest = coverage.nearest.index;
+  const Vec3d d = x - m.cloud->positions[nearest].cast<double>();
+  const double side = d.dot(m.cloud->normals[nearest].cast<double>()) >= 0 ? 1.0 : -1.0;
   const double length = d.norm();
   core::FieldGradient g;
   g.value = side * length;
@@ -108,12 +110,14 @@ core::FieldGradient PuFunction::ValueOrDataSide(const Vec3d& x, bool with_gradie
   return g;
 }
 
-bool PuFunction::Impl::Covered(const Vec3d& x) const {
-  const core::Neighbor nearest = cloud->kd_tree->Nearest(x.cast<float>());
-  const double reach = coverage_factor * cloud->local_spacing[nearest.index];
-  if (nearest.distance2 > reach * reach) return false;
+PuFunction::Impl::Coverage PuFunction::Impl::CoverageAt(const Vec3d& x) const {
+  Coverage out{cloud->kd_tree->Nearest(x.cast<float>())};
+  const double reach = coverage_factor * cloud->local_spacing[out.nearest.index];
   const double rim_reach = rim_reach_share * reach;
-  return rim_reach_share >= 1 || nearest.distance2 <= rim_reach * rim_reach || !BeyondRim(x, kRimReadFactor * reach);
+  out.covered =
+      out.nearest.distance2 <= reach * reach &&
+      (rim_reach_share >= 1 || out.nearest.distance2 <= rim_reach * rim_reach || !BeyondRim(x, kRimReadFactor * reach));
+  return out;
 }
 
 bool PuFunction::Impl::BeyondRim(const Vec3d& x, double radius) const {

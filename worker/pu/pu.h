@@ -115,10 +115,11 @@ class PuFunction final : public core::ImplicitFunction {
   FitLabel DominantFit(const core::Vec3d& x) const;
   // The input points (where extraction starts and what coverage is measured against).
   std::span<const core::Vec3f> points() const;
-  // F where the data covers x (`defined`); elsewhere the distance to the nearest point, signed by
-  // the side of its normal, with `defined` false: a sign that holds far from the data, where a
-  // fit's extrapolation may not (what Boolean combinations need: there the other operand's
-  // surface decides). One nearest-point query per call.
+  // F where the data covers x (`defined`, by Value's rule, the shorter reach past a rim
+  // included); elsewhere the distance to the nearest point, signed by the side of its normal,
+  // with `defined` false: a sign that holds far from the data, where a fit's extrapolation may
+  // not (what Boolean combinations need: there the other operand's surface decides). One
+  // nearest-point query per call, and the rim test's where x is far enough from it.
   core::FieldGradient ValueOrDataSide(const core::Vec3d& x, bool with_gradient) const;
   // Whether a sharp fit's support holds x (there F makes a crease, which Extract places in its
   // finest cells).

@@ -219,8 +219,14 @@ struct PuFunction::Impl {
     return out;
   }
 
-  // The evaluation-time coverage criterion (pu.h), with the tighter reach past the data's rim.
-  bool Covered(const Vec3d& x) const;
+  // The evaluation-time coverage criterion (pu.h), with the tighter reach past the data's rim,
+  // and the point nearest x it was judged by.
+  struct Coverage {
+    core::Neighbor nearest;
+    bool covered = false;
+  };
+  Coverage CoverageAt(const Vec3d& x) const;
+  bool Covered(const Vec3d& x) const { return CoverageAt(x).covered; }
   // Whether the points nearest x, within `radius`, lie to one side of it.
   bool BeyondRim(const Vec3d& x, double radius) const;
 };

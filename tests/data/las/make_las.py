@@ -2,12 +2,15 @@
 """Writes the LAS files the reader's tests read, with the standard's byte layout spelled out
 here field by field (not with lsqsurf's writer), and with header choices lsqsurf's writer does
 not make: variable-length records before the points, padding after them, georeferenced
-coordinates, extra bytes per point, a 1.4 file whose legacy count is 0, 8-bit colour in the
-16-bit fields, withheld and noise points.
+coordinates, extra bytes per point (in the 1.4 file described by an Extra Bytes record: a
+scaled and offset unsigned short "Amplitude", a signed short "Deviation (dB)" and two
+undocumented bytes), a 1.4 file whose legacy count is 0, 8-bit colour in the 16-bit fields,
+withheld and noise points.
 
 Point i of every file: X = x0 + 0.25 i, Y = y0 + 0.5 (i mod 10), Z = 100 + 0.01 i (units of
 the file), intensity 100 i, classification 2 (ground) but 7 (noise) where i mod 10 == 3, and the
-withheld flag on point 42. The tests check these formulas.
+withheld flag on point 42; in the 1.4 file Amplitude 1.5 i + 2 (stored 3 i, scale 0.5, offset 2)
+and Deviation -i. The tests check these formulas.
 
     python3 tests/data/las/make_las.py tests/data/las
 """
@@ -30,7 +33,7 @@ def colour(i):
     return ((i * 2) % 256, (255 - i) % 256, (i * 7) % 256)
 
 
-def point_record(i, fmt, length, x0, y0, scale, offset, depth):
+def point_record(i, fmt, length, x0, y0, scale, offset, depth, described):
     x = x0 + 0.25 * i
     y = y0 + 0.5 * (i % 10)
     z = 100 + 0.01 * i
@@ -49,7 +52,9 @@ def point_record(i, fmt, length, x0, y0, scale, offset, depth):
         rec += struct.pack("<HHH", *[(v * 257 if depth == "16" else v) for v in c])
     if fmt in (8, 10):
         rec += struct.pack("<H", 4000 + i)  # NIR.
-    rec += b"\xab" * (length - len(rec))  # Extra bytes.
+    if described:
+        rec += struct.pack("<Hh", 3 * i, -i)
+    rec += b"\xab" * (length - len(rec))  # Extra bytes (undescribed).
     assert len(rec) == length
     return rec
 
@@ -58,14 +63,29 @@ def vlr(user, record_id, payload, description):
     return struct.pack("<H16sHH32s", 0, user.encode(), record_id, len(payload), description.encode()) + payload
 
 
+def extra_bytes_field(data_type, options, name, scale=0.0, offset=0.0):
+    """One 192-byte descriptor of the LAS 1.4 Extra Bytes record."""
+    d = struct.pack("<2xBB32s4x", data_type, options, name.encode())
+    d += bytes(24) + bytes(24) + bytes(24)  # No data, min, max (with their deprecated room).
+    d += struct.pack("<d16xd16x", scale, offset)
+    d += b"lsqsurf tests".ljust(32, b"\0")
+    assert len(d) == 192
+    return d
+
+
 def write(path, minor, fmt, length, x0, y0, depth):
     scale = (0.01, 0.01, 0.001)
     offset = (round(x0), round(y0), 0.0)
     vlrs = vlr("LASF_Projection", 34735, struct.pack("<8H", 1, 1, 0, 1, 3072, 0, 1, 32633), "GeoKeyDirectory")
+    described = minor >= 4
+    if described:
+        fields = extra_bytes_field(3, 0x18, "Amplitude", 0.5, 2.0) + extra_bytes_field(4, 0, "Deviation (dB)")
+        fields += extra_bytes_field(0, 2, "")
+        vlrs += vlr("LASF_Spec", 4, fields, "Extra Bytes Record")
     header_size = HEADER_SIZE[minor]
     padding = 2  # Some writers leave bytes between the records and the points.
     data_offset = header_size + len(vlrs) + padding
-    points = b"".join(point_record(i, fmt, length, x0, y0, scale, offset, depth) for i in range(N))
+    points = b"".join(point_record(i, fmt, length, x0, y0, scale, offset, depth, described) for i in range(N))
     xs = [x0 + 0.25 * i for i in range(N)]
     ys = [y0 + 0.5 * (i % 10) for i in range(N)]
     zs = [100 + 0.01 * i for i in range(N)]
@@ -77,7 +97,7 @@ def write(path, minor, fmt, length, x0, y0, depth):
     h += b"make_las.py".ljust(32, b"\0")
     h += b"lsqsurf tests independent writer".ljust(32, b"\0")
     h += struct.pack("<HH", 200, 2024)
-    h += struct.pack("<HIIBHI", header_size, data_offset, 1, fmt, length, legacy)
+    h += struct.pack("<HIIBHI", header_size, data_offset, 2 if described else 1, fmt, length, legacy)
     h += struct.pack("<5I", legacy, 0, 0, 0, 0)
     h += struct.pack("<3d", *scale) + struct.pack("<3d", *offset)
     h += struct.pack("<6d", max(xs), min(xs), max(ys), min(ys), max(zs), min(zs))

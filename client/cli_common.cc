@@ -232,9 +232,29 @@ int FetchToFile(const Globals& g, const std::string& id, const std::string& name
   return WriteResult(*bytes, name, path);
 }
 
+namespace {
+
+// Says so where the server set the sensor positions aside (they hid too many points).
+void PrintViewpointSetAside(const v1::Job& job) {
+  std::optional<double> hidden_share, toward_viewpoint;
+  for (const auto& s : job.statistics()) {
+    if (s.name() == "viewpoint_hidden_share") hidden_share = s.value();
+    if (s.name() == "normals_toward_viewpoint") toward_viewpoint = s.value();
+  }
+  if (hidden_share && toward_viewpoint == 0.0) {
+    std::fprintf(stderr,
+                 "  the sensor positions given hide %.0f%% of the points behind others, so they are not where "
+                 "these points were seen from: normals were oriented by propagation instead\n",
+                 100 * *hidden_share);
+  }
+}
+
+}  // namespace
+
 void PrintStatistics(const v1::Job& job, bool all) {
   if (all) {
     for (const auto& s : job.statistics()) std::fprintf(stderr, "  %s = %g\n", s.name().c_str(), s.value());
+    PrintViewpointSetAside(job);
     return;
   }
   // One line of what a user checks first, then what the server had to repair in the input.
@@ -264,6 +284,7 @@ void PrintStatistics(const v1::Job& job, bool all) {
   }
   if (!line.empty()) std::fprintf(stderr, "  %s\n", line.c_str());
   if (!repaired.empty()) std::fprintf(stderr, "  input repaired: %s\n", repaired.c_str());
+  PrintViewpointSetAside(job);
   std::fprintf(stderr, "  %d statistics: --stats, or lsqsurf status %s\n", job.statistics_size(), job.id().c_str());
 }
 

@@ -64,7 +64,9 @@ absl::Status SurfaceCommand::UseFileFacts(const CloudFileFacts& facts, bool quie
   }
   if (!quiet) {
     if (facts.sensors.size() == 1) {
-      std::fprintf(stderr, "the file's sensor stood at (%s): estimated normals face it (--param viewpoint= to not)\n",
+      std::fprintf(stderr,
+                   "the file's sensor stood at (%s): estimated normals face it where it sees the points "
+                   "(--param viewpoint= to not)\n",
                    value.c_str());
     } else {
       std::fprintf(stderr,

@@ -198,6 +198,33 @@ TEST_F(EndToEnd, APcdViewsViewpointTurnsItsSurfaceTowardTheCamera) {
   EXPECT_EQ(unset.output.find("normals_toward_viewpoint"), std::string::npos) << unset.output;
 }
 
+// A ball scanned all round, in a PCD that names one camera beside it, as a tool that knows no
+// better writes it: that position hides the far half behind the near one, so the server sets it
+// aside (the client says why) and orients by propagation; the ball comes back closed and
+// outward. Turned toward the camera, the far half would face inward.
+TEST_F(EndToEnd, APcdViewpointThatHidesItsPointsIsSetAside) {
+  Server server;
+  ASSERT_NO_FATAL_FAILURE(server.Start(dir_ / "data"));
+  core::PointCloud ball = testing::SphereCloud(20'000);
+  ball.normals.clear();
+  const std::string in = (dir_ / "ball.pcd").string();
+  ASSERT_TRUE(io::WriteFileAtomically(in, io::EncodePcd(ball, io::PcdEncoding::kBinary, {0, -3, 0, 1, 0, 0, 0})).ok());
+  const std::string out = (dir_ / "ball.ply").string();
+  const ClientRun r = Client(server.address(), "reconstruct " + in + " -o " + out + " --method pu --stats");
+  ASSERT_EQ(r.code, 0) << r.output;
+  EXPECT_NE(r.output.find("normals were oriented by propagation instead"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("normals_toward_viewpoint = 0"), std::string::npos) << r.output;
+  const size_t share = r.output.find("viewpoint_hidden_share = ");
+  ASSERT_NE(share, std::string::npos) << r.output;
+  EXPECT_GT(std::stod(r.output.substr(share + 25)), 0.4) << r.output;
+  auto mesh = io::ReadMeshFile(out);
+  ASSERT_TRUE(mesh.ok()) << mesh.status();
+  const core::MeshTopology topology = core::AnalyzeTopology(core::WeldByPosition(*mesh));
+  EXPECT_TRUE(topology.watertight());
+  EXPECT_EQ(topology.components, 1);
+  EXPECT_NEAR(core::EnclosedVolume(*mesh), 4 * std::numbers::pi / 3, 0.02);
+}
+
 // Two stations of a terrestrial scanner exported as PTX: the client passes both positions on,
 // each point's normal faces its own scanner, and the surface faces one of them everywhere.
 TEST_F(EndToEnd, APtxFilesStationsEachTurnTheirOwnPointsTowardThem) {

@@ -73,8 +73,9 @@ const core::ParamTable<PointParams>& PointParamsTable() {
             "viewpoint", 3 * kMaxViewpoints, -std::numeric_limits<double>::infinity(),
             std::numeric_limits<double>::infinity(), "model units",
             "where the sensor stood (x,y,z): estimated normals face it; several x,y,z: one per scan, each "
-            "point's attribute scan naming its own; empty = unknown (oriented by propagation); the client "
-            "sets it from a PCD file's VIEWPOINT and a PTX file's scanner positions")
+            "point's attribute scan naming its own; empty = unknown (oriented by propagation, as also where "
+            "over 25 % of the points are hidden from their sensor: statistic viewpoint_hidden_share); the "
+            "client sets it from a PCD file's VIEWPOINT and a PTX file's scanner positions")
         .Text<&PointParams::point_attributes>(
             "point_attributes",
             "per-point attributes of the cloud carried to the mesh vertices, by name, comma-separated; empty = "
@@ -152,11 +153,14 @@ absl::StatusOr<double> PrepareSurfaceCloud(const PointParams& points, core::Poin
     core::NormalEstimationParams np;
     np.neighbors = points.normal_neighbors;
     LSQSURF_RETURN_IF_ERROR(ChooseViewpoints(points, cloud, np));
-    if (!np.viewpoints.empty()) {
-      statistics.emplace_back("normals_toward_viewpoint", static_cast<double>(np.viewpoints.size()));
-    }
-    auto estimated = core::EstimateNormals(cloud.positions, np, sub);
+    core::NormalOrientation orientation;
+    auto estimated = core::EstimateNormals(cloud.positions, np, sub, &orientation);
     if (!estimated.ok()) return estimated.status();
+    if (!np.viewpoints.empty()) {
+      statistics.emplace_back("normals_toward_viewpoint",
+                              orientation.toward_viewpoints ? static_cast<double>(np.viewpoints.size()) : 0.0);
+      statistics.emplace_back("viewpoint_hidden_share", orientation.hidden_share);
+    }
     cloud.normals = *std::move(estimated);
     statistics.emplace_back("normals_seconds", core::SecondsSince(start));
     return kNormalsShare;

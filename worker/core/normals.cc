@@ -357,24 +357,15 @@ absl::StatusOr<double> HiddenShare(std::span<const Vec3f> points, const std::vec
   return static_cast<double>(std::count(hidden.begin(), hidden.end(), 1)) / static_cast<double>(samples);
 }
 
-}  // namespace
-
-absl::StatusOr<std::vector<Vec3f>> EstimateNormals(std::span<const Vec3f> points, const NormalEstimationParams& params,
-                                                   JobContext& ctx, NormalOrientation* orientation) {
-  NormalOrientation decided;
-  if (orientation == nullptr) orientation = &decided;
-  *orientation = {};
-  if (absl::Status s = Validate(params); !s.ok()) return s;
+// Each point's least-variance direction, of the flattest of its neighbourhoods (no sign yet),
+// and its k nearest other points (the graph orientation walks).
+absl::Status UnsignedNormals(std::span<const Vec3f> points, const NormalEstimationParams& params, size_t k,
+                             JobContext& ctx, std::vector<uint32_t>& knn, std::vector<Vec3f>& normals) {
   const size_t n = points.size();
-  if (n < 3) return absl::InvalidArgumentError("normal estimation needs at least 3 points");
-  const size_t k = std::min<size_t>(static_cast<size_t>(params.neighbors), n - 1);
   const size_t largest = std::min<size_t>(k << (params.scales - 1), n - 1);
-
   SubContext pca_ctx(ctx, "estimating normals", 0.0, 0.6);
   KdTree tree(points);
-  std::vector<uint32_t> knn(n * k);
-  std::vector<Vec3f> normals(n);
-  absl::Status status = ParallelFor(
+  return ParallelFor(
       n, 1024,
       [&](size_t begin, size_t end) {
         std::vector<Neighbor> nn;
@@ -397,7 +388,22 @@ absl::StatusOr<std::vector<Vec3f>> EstimateNormals(std::span<const Vec3f> points
         }
       },
       &ctx, [&](double f) { pca_ctx.Report(f); });
-  if (!status.ok()) return status;
+}
+
+}  // namespace
+
+absl::StatusOr<std::vector<Vec3f>> EstimateNormals(std::span<const Vec3f> points, const NormalEstimationParams& params,
+                                                   JobContext& ctx, NormalOrientation* orientation) {
+  NormalOrientation decided;
+  if (orientation == nullptr) orientation = &decided;
+  *orientation = {};
+  if (absl::Status s = Validate(params); !s.ok()) return s;
+  const size_t n = points.size();
+  if (n < 3) return absl::InvalidArgumentError("normal estimation needs at least 3 points");
+  const size_t k = std::min<size_t>(static_cast<size_t>(params.neighbors), n - 1);
+  std::vector<uint32_t> knn(n * k);
+  std::vector<Vec3f> normals(n);
+  LSQSURF_RETURN_IF_ERROR(UnsignedNormals(points, params, k, ctx, knn, normals));
   if (!params.viewpoints.empty()) {
     if (!params.station.empty() && params.station.size() != n) {
       return absl::InvalidArgumentError(StrCat(params.station.size(), " scan indices for ", n, " points"));
@@ -485,7 +491,7 @@ absl::StatusOr<std::vector<Vec3f>> EstimateNormals(std::span<const Vec3f> points
     }
   }
 
-  status = VoteSigns(offset, adjacency, adjacency_kind, bridge, ctx, normals);
+  const absl::Status status = VoteSigns(offset, adjacency, adjacency_kind, bridge, ctx, normals);
   if (!status.ok()) return status;
 
   const std::vector<char> voted = TurnTowardSensorsByVote(points, params, component, components, normals);

@@ -158,6 +158,16 @@ TEST_F(EndToEnd, PuMeshCarriesDepthAndDegreeToThePly) {
   EXPECT_LE(ranges["degree"].second, 5.0f);
 }
 
+// The mesh written to `path` is one closed piece, welded by position, enclosing `volume`.
+void ExpectOneClosedSolid(const std::string& path, double volume, double tolerance) {
+  auto mesh = io::ReadMeshFile(path);
+  ASSERT_TRUE(mesh.ok()) << mesh.status();
+  const core::MeshTopology topology = core::AnalyzeTopology(core::WeldByPosition(*mesh));
+  EXPECT_TRUE(topology.watertight());
+  EXPECT_EQ(topology.components, 1);
+  EXPECT_NEAR(core::EnclosedVolume(*mesh), volume, tolerance);
+}
+
 // The share of the mesh's area whose faces (by their winding) face at least one of `eyes`.
 double AreaFacing(const core::TriangleMesh& mesh, const std::vector<core::Vec3d>& eyes) {
   double facing = 0, total = 0;
@@ -217,12 +227,7 @@ TEST_F(EndToEnd, APcdViewpointThatHidesItsPointsIsSetAside) {
   const size_t share = r.output.find("viewpoint_hidden_share = ");
   ASSERT_NE(share, std::string::npos) << r.output;
   EXPECT_GT(std::stod(r.output.substr(share + 25)), 0.4) << r.output;
-  auto mesh = io::ReadMeshFile(out);
-  ASSERT_TRUE(mesh.ok()) << mesh.status();
-  const core::MeshTopology topology = core::AnalyzeTopology(core::WeldByPosition(*mesh));
-  EXPECT_TRUE(topology.watertight());
-  EXPECT_EQ(topology.components, 1);
-  EXPECT_NEAR(core::EnclosedVolume(*mesh), 4 * std::numbers::pi / 3, 0.02);
+  ExpectOneClosedSolid(out, 4 * std::numbers::pi / 3, 0.02);
 }
 
 // Two stations of a terrestrial scanner exported as PTX: the client passes both positions on,
@@ -366,12 +371,7 @@ TEST_F(EndToEnd, CsgAndEditOfAKeptPuResultThroughTheCli) {
   const std::string out = (dir_ / "half.ply").string();
   const ClientRun r = Client(server.address(), "csg 'intersection(job:" + id + ", plane(p=0,0,0 n=0,0,1))' -o " + out);
   ASSERT_EQ(r.code, 0) << r.output;
-  auto mesh = io::ReadMeshFile(out);
-  ASSERT_TRUE(mesh.ok()) << mesh.status();
-  const core::MeshTopology topology = core::AnalyzeTopology(core::WeldByPosition(*mesh));
-  EXPECT_TRUE(topology.watertight());
-  EXPECT_EQ(topology.components, 1);
-  EXPECT_NEAR(core::EnclosedVolume(*mesh), 2 * std::numbers::pi / 3, 0.02);
+  ExpectOneClosedSolid(out, 2 * std::numbers::pi / 3, 0.02);
   const ClientRun bad = Client(server.address(), "csg 'union(job:" + id + ")' -o " + out);
   EXPECT_EQ(bad.code, 1) << bad.output;
   EXPECT_NE(bad.output.find("at least 2 operands"), std::string::npos) << bad.output;

@@ -42,6 +42,11 @@ namespace {
 // keeps clean clouds at the cost of one small query per point.
 constexpr double kFlatEnough = 3e-3;
 
+// The position of the sensor that saw point `i`.
+const Vec3d& SensorOf(const NormalEstimationParams& params, size_t i) {
+  return params.viewpoints[params.station.empty() ? 0 : params.station[i]];
+}
+
 // A component's points vote for the sign that turns them toward their sensors (set aside for
 // hiding too many points, but still where most of them were seen from): where at least this
 // share more of them vote one way than the other, the component takes that sign.
@@ -55,7 +60,7 @@ std::vector<char> TurnTowardSensorsByVote(std::span<const Vec3f> points, const N
   if (params.viewpoints.empty()) return decided;
   std::vector<double> votes(components, 0.0), count(components, 0.0);
   for (size_t i = 0; i < points.size(); ++i) {
-    const Vec3d& eye = params.viewpoints[params.station.empty() ? 0 : params.station[i]];
+    const Vec3d& eye = SensorOf(params, i);
     votes[component[i]] += normals[i].cast<double>().dot(eye - points[i].cast<double>()) >= 0 ? 1.0 : -1.0;
     count[component[i]] += 1.0;
   }
@@ -259,7 +264,7 @@ absl::Status OrientTowardViewpoint(std::span<const Vec3f> points, const NormalEs
       n, 4096,
       [&](size_t begin, size_t end) {
         for (size_t i = begin; i < end; ++i) {
-          const Vec3d& viewpoint = params.viewpoints[params.station.empty() ? 0 : params.station[i]];
+          const Vec3d& viewpoint = SensorOf(params, i);
           const Vec3d sight = viewpoint - points[i].cast<double>();
           const double length = sight.norm();
           const double cosine = length > 0 ? normals[i].cast<double>().dot(sight) / length : 1.0;
@@ -334,7 +339,7 @@ absl::StatusOr<double> HiddenShare(std::span<const Vec3f> points, const std::vec
         for (size_t s = begin; s < end; ++s) {
           const size_t i = s * stride;
           const Vec3d p = points[i].cast<double>();
-          const Vec3d sight = params.viewpoints[params.station.empty() ? 0 : params.station[i]] - p;
+          const Vec3d sight = SensorOf(params, i) - p;
           const double distance = sight.norm();
           if (!(distance > 0)) continue;
           const Vec3d u = sight / distance;

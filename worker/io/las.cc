@@ -62,6 +62,10 @@ struct ExtraField {
   double scale = 1, offset = 0;
 };
 
+// The attributes every point format gives besides colour.
+constexpr const char* kIntensity = "intensity";
+constexpr const char* kClassification = "classification";
+
 constexpr uint8_t kExtraTypeBytes[11] = {0, 1, 1, 2, 2, 4, 4, 8, 8, 4, 8};
 
 double ExtraValue(const char* p, int type) {
@@ -227,7 +231,8 @@ absl::Status LasReader::State::FindExtraBytes(size_t header_size, size_t data_of
 absl::Status LasReader::State::ParseExtraBytes(std::string_view descriptors) {
   const uint32_t room = info.record_length - layout.length;
   uint32_t at = layout.length;
-  std::vector<std::string> taken = {"red", "green", "blue", "intensity", "classification"};
+  std::vector<std::string> taken(core::kColourChannels.begin(), core::kColourChannels.end());
+  taken.insert(taken.end(), {kIntensity, kClassification});
   for (size_t field = 0; field < descriptors.size() / kExtraDescriptor; ++field) {
     const char* d = descriptors.data() + field * kExtraDescriptor;
     const int type = static_cast<uint8_t>(d[2]), options = static_cast<uint8_t>(d[3]);
@@ -307,8 +312,8 @@ absl::Status LasReader::Read(size_t max_points, core::PointCloud& cloud) {
     if (info.has_colour) {
       for (const char* n : core::kColourChannels) cloud.attributes.push_back({n, {}});
     }
-    cloud.attributes.push_back({"intensity", {}});
-    cloud.attributes.push_back({"classification", {}});
+    cloud.attributes.push_back({kIntensity, {}});
+    cloud.attributes.push_back({kClassification, {}});
     for (const ExtraField& e : s.extras) cloud.attributes.push_back({e.name, {}});
   }
   const size_t first_scalar = info.has_colour ? 3 : 0;

@@ -72,10 +72,12 @@ const core::ParamTable<PointParams>& PointParamsTable() {
         .RealList<&PointParams::viewpoint>(
             "viewpoint", 3 * kMaxViewpoints, -std::numeric_limits<double>::infinity(),
             std::numeric_limits<double>::infinity(), "model units",
-            "where the sensor stood (x,y,z): estimated normals face it; several x,y,z: one per scan, each "
-            "point's attribute scan naming its own; empty = unknown (oriented by propagation, as also where "
-            "over 25 % of the points are hidden from their sensor: statistic viewpoint_hidden_share); the "
-            "client sets it from a PCD file's VIEWPOINT and a PTX file's scanner positions")
+            core::StrCat("where the sensor stood (x,y,z): estimated normals face it; several x,y,z: one per scan, "
+                         "each point's attribute scan naming its own; empty = unknown (oriented by propagation, as "
+                         "also where over ",
+                         100 * core::NormalEstimationParams{}.max_hidden_share,
+                         " % of the points are hidden from their sensor: statistic viewpoint_hidden_share); the "
+                         "client sets it from a PCD file's VIEWPOINT and a PTX file's scanner positions"))
         .Text<&PointParams::point_attributes>(
             "point_attributes",
             "per-point attributes of the cloud carried to the mesh vertices, by name, comma-separated; empty = "

@@ -280,18 +280,31 @@ inline core::PointCloud HandCloud(double spacing, std::vector<Capsule>& fingers)
   return cloud;
 }
 
-// A depth camera's view of a ball on a table: rays from `eye` through a 160 x 120 grid, each
+// How BallOnATableView's camera measures. Where `step` > 0, the depths come back quantized as a
+// sensor's do: along the view's axis to whole multiples of `step` in inverse depth (a stereo
+// rig's disparity steps) or, with `range_steps`, the distance from the eye to whole multiples of
+// `step` (a time-of-flight camera's).
+struct ViewOptions {
+  int scale = 1;  // Pixels: 160 × 120 times this in each direction.
+  double step = 0;
+  bool range_steps = false;
+};
+
+// A depth camera's view of a ball on a table: rays from `eye` through a 160 x 120 grid (ViewOptions), each
 // kept at its first hit, with the surface's normal there (toward the camera, as every surface a
 // camera sees is). Rays that hit nothing are missing pixels.
-inline core::PointCloud BallOnATableView(const core::Vec3d& eye) {
+// The normals stay the true surface's where the depths are quantized.
+inline core::PointCloud BallOnATableView(const core::Vec3d& eye, const ViewOptions& options = {}) {
   core::PointCloud cloud;
   const core::Vec3d centre(0, 0, 0.3), forward = (centre - eye).normalized();
   const core::Vec3d right = forward.cross(core::Vec3d::UnitZ()).normalized(), up = right.cross(forward);
   const double radius = 0.3;
-  for (int row = 0; row < 120; ++row) {
-    for (int column = 0; column < 160; ++column) {
-      const core::Vec3d ray =
-          (forward + 0.6 * ((column - 79.5) / 80.0) * right + 0.45 * ((row - 59.5) / 60.0) * up).normalized();
+  const int rows = 120 * options.scale, columns = 160 * options.scale;
+  for (int row = 0; row < rows; ++row) {
+    for (int column = 0; column < columns; ++column) {
+      const core::Vec3d ray = (forward + 0.6 * ((column + 0.5) / (columns / 2.0) - 1) * right +
+                               0.45 * ((row + 0.5) / (rows / 2.0) - 1) * up)
+                                  .normalized();
       double nearest = std::numeric_limits<double>::infinity();
       core::Vec3d normal = core::Vec3d::Zero();
       const core::Vec3d to_eye = eye - centre;  // The ball: |eye + t ray - centre| = radius.
@@ -309,6 +322,12 @@ inline core::PointCloud BallOnATableView(const core::Vec3d& eye) {
         }
       }
       if (!std::isfinite(nearest)) continue;
+      if (options.step > 0 && options.range_steps) {
+        nearest = std::round(nearest / options.step) * options.step;
+      } else if (options.step > 0) {
+        const double along = ray.dot(forward), z = nearest * along;
+        nearest = 1.0 / (std::round(1.0 / z / options.step) * options.step) / along;
+      }
       cloud.positions.push_back((eye + nearest * ray).cast<float>());
       cloud.normals.push_back(normal.cast<float>());
     }

@@ -208,6 +208,50 @@ TEST_F(EndToEnd, APcdViewsViewpointTurnsItsSurfaceTowardTheCamera) {
   EXPECT_EQ(unset.output.find("normals_toward_viewpoint"), std::string::npos) << unset.output;
 }
 
+// A stereo-like view whose depths lie on disparity steps, each terrace of the table many pixels
+// deep: undone by default, the surface faces the camera and comes back in one piece; left as
+// they are, the same points give terraces square to the optical axis, in pieces.
+TEST_F(EndToEnd, AViewsDepthStepsAreUndone) {
+  Server server;
+  ASSERT_NO_FATAL_FAILURE(server.Start(dir_ / "data"));
+  const core::Vec3d eye(0, -2.5, 1.6);
+  core::PointCloud view = testing::BallOnATableView(eye, {.scale = 2, .step = 0.024});
+  view.normals.clear();
+  const std::string in = (dir_ / "stepped.pcd").string();
+  ASSERT_TRUE(io::WriteFileAtomically(
+                  in, io::EncodePcd(view, io::PcdEncoding::kBinaryCompressed, {eye.x(), eye.y(), eye.z(), 1, 0, 0, 0}))
+                  .ok());
+  struct Surface {
+    double facing = 0, distance = 0;  // Mean of the vertices' to the ball or the table.
+    int64_t components = 0;
+  };
+  auto reconstruct = [&](const std::string& extra, bool undone) {
+    const std::string out = (dir_ / "stepped.ply").string();
+    const ClientRun r = Client(server.address(), "reconstruct " + in + " -o " + out + " --method pu --stats" + extra);
+    EXPECT_EQ(r.code, 0) << r.output;
+    EXPECT_EQ(r.output.find("depth_step = ") != std::string::npos, undone) << r.output;
+    auto mesh = io::ReadMeshFile(out);
+    EXPECT_TRUE(mesh.ok()) << mesh.status();
+    if (!mesh.ok()) return Surface{};
+    double distance = 0;
+    for (const core::Vec3f& v : mesh->vertices) {
+      const core::Vec3d p = v.cast<double>();
+      distance += std::min(std::abs((p - core::Vec3d(0, 0, 0.3)).norm() - 0.3), std::abs(p.z()));
+    }
+    return Surface{AreaFacing(*mesh, {eye}), distance / static_cast<double>(mesh->vertices.size()),
+                   core::AnalyzeTopology(core::WeldByPosition(*mesh)).components};
+  };
+  const Surface undone = reconstruct("", true), stepped = reconstruct(" --param undo_depth_steps=false", false);
+  std::printf(
+      "  facing the camera %.4f (steps left: %.4f), distance to the truth %.2e (%.2e), components %lld (%lld)\n",
+      undone.facing, stepped.facing, undone.distance, stepped.distance, static_cast<long long>(undone.components),
+      static_cast<long long>(stepped.components));
+  EXPECT_GT(undone.facing, 0.95);
+  EXPECT_LE(undone.components, 2);
+  EXPECT_GE(stepped.components, 5);
+  EXPECT_LT(undone.distance, 0.5 * stepped.distance);
+}
+
 // A ball scanned all round, in a PCD that names one camera beside it, as a tool that knows no
 // better writes it: that position hides the far half behind the near one, so the server sets it
 // aside (the client says why) and orients by propagation; the ball comes back closed and

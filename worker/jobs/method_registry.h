@@ -44,8 +44,12 @@ struct SpecFormat {
 // 2: PU's threshold_spacings.
 // 3: viewpoint, point_attributes and remove_outliers, for every surface method.
 // 4: fill_holes, for every surface method.
-inline constexpr SpecFormat kSpecFormats[] = {
-    {1, 0x8c12ce01196d0c16}, {2, 0x81bc4845708e1243}, {3, 0x3149fd7d771d4a39}, {4, 0x85c322b84911ba35}};
+// 5: undo_depth_steps, for every surface method.
+inline constexpr SpecFormat kSpecFormats[] = {{1, 0x8c12ce01196d0c16},
+                                              {2, 0x81bc4845708e1243},
+                                              {3, 0x3149fd7d771d4a39},
+                                              {4, 0x85c322b84911ba35},
+                                              {5, 0x6098595d2e8444f9}};
 // This build's spec format: what its stores write and claim up to (SpecTables::format).
 inline constexpr int kSpecFormat = kSpecFormats[std::size(kSpecFormats) - 1].format;
 

@@ -25,6 +25,10 @@ struct PointParams {
   // Isolated points (flying pixels, dust, stray returns; core::RemoveIsolatedPoints) are
   // removed before anything else reads the cloud.
   bool remove_outliers = true;
+  // Where one sensor position per scan is known and the points lie on quantized depth levels
+  // (stereo disparity, depth-camera steps), each point is moved along its ray, by at most half a
+  // step, onto a plane fitted across the steps around it (core::UndoDepthSteps).
+  bool undo_depth_steps = true;
   // The holes the data leave closed (extract::FillHoles), each vertex farther than three
   // spacings from the data marked in the vertex attribute "filled"; false: the surface stays
   // open where nothing was measured.

@@ -4,10 +4,12 @@
 #include <chrono>
 #include <cmath>
 #include <limits>
+#include <optional>
 #include <string_view>
 #include <vector>
 
 #include "worker/core/attribute_transfer.h"
+#include "worker/core/depth_steps.h"
 #include "worker/core/geometry.h"
 #include "worker/core/kd_tree.h"
 #include "worker/core/local_spacing.h"
@@ -58,6 +60,39 @@ bool MeasuredPartLiesOn(const core::TriangleMesh& mesh, std::span<const float> u
   return median(distances) <= kShellOnSurfaceEdges * median(edges);
 }
 
+// core::UndoDepthSteps on the points of each sensor position in turn, or on all of them where none
+// is given; returns whether the steps placed the sensor at the origin then.
+absl::StatusOr<bool> UndoDepthStepsPerScan(const PointParams& points, core::PointCloud& cloud, core::JobContext& ctx,
+                                           Statistics& statistics) {
+  core::NormalEstimationParams sensors;
+  LSQSURF_RETURN_IF_ERROR(ChooseViewpoints(points, cloud, sensors));
+  std::vector<std::vector<uint32_t>> scans(std::max<size_t>(1, sensors.viewpoints.size()));
+  for (uint32_t i = 0; i < cloud.size(); ++i) scans[sensors.station.empty() ? 0 : sensors.station[i]].push_back(i);
+  size_t moved = 0, stepped = 0;
+  double step = 0;
+  bool inferred = false;
+  std::vector<core::Vec3f> scan_points;
+  for (size_t s = 0; s < scans.size(); ++s) {
+    scan_points.clear();
+    for (uint32_t i : scans[s]) scan_points.push_back(cloud.positions[i]);
+    const std::optional<core::Vec3d> eye =
+        sensors.viewpoints.empty() ? std::nullopt : std::optional(sensors.viewpoints[s]);
+    auto undone = core::UndoDepthSteps(scan_points, eye, {}, ctx);
+    if (!undone.ok()) return undone.status();
+    if (!undone->found) continue;
+    for (size_t k = 0; k < scans[s].size(); ++k) cloud.positions[scans[s][k]] = scan_points[k];
+    moved += undone->moved;
+    step = std::max(step, undone->step);
+    inferred = undone->eye_inferred;
+    ++stepped;
+  }
+  if (stepped == 0) return false;
+  statistics.emplace_back("depth_step", step);
+  statistics.emplace_back("depth_steps_moved", static_cast<double>(moved) / static_cast<double>(cloud.size()));
+  if (inferred) statistics.emplace_back("viewpoint_inferred", 1);
+  return inferred;
+}
+
 }  // namespace
 
 const core::ParamTable<PointParams>& PointParamsTable() {
@@ -87,6 +122,14 @@ const core::ParamTable<PointParams>& PointParamsTable() {
             "close the holes the data leave (smooth patches spanning each border), so the mesh is closed; "
             "vertex attribute filled = 1 where a vertex lies farther than 3 spacings from every point "
             "(statistics holes_filled, holes_left)")
+        .Flag<&PointParams::undo_depth_steps>(
+            "undo_depth_steps",
+            "where the points lie on quantized depth levels (stereo disparity, depth-camera steps: many "
+            "neighbourhoods exactly flat, nearly all square to one direction or to the line of sight, on 8 "
+            "levels or more), move each point along its ray from the viewpoint, by at most half a step, onto a "
+            "plane fitted across the steps around it (statistics depth_step, depth_steps_moved); with no "
+            "viewpoint, where disparity steps place the sensor at the origin (a camera's own frame), it is "
+            "taken as the viewpoint (statistic viewpoint_inferred)")
         .Flag<&PointParams::remove_outliers>(
             "remove_outliers",
             "remove isolated points first (their 8th neighbour 4 times farther than their neighbours' is; "
@@ -146,6 +189,13 @@ absl::StatusOr<double> PrepareSurfaceCloud(const PointParams& points, core::Poin
     if (*removed > 0) statistics.emplace_back("outliers_removed", static_cast<double>(*removed));
   }
 
+  PointParams seen = points;  // With the sensor's position where the depth steps place it.
+  if (points.undo_depth_steps) {
+    auto inferred = UndoDepthStepsPerScan(points, cloud, ctx, statistics);
+    if (!inferred.ok()) return inferred.status();
+    if (*inferred) seen.viewpoint = {0, 0, 0};
+  }
+
   if (!cloud.has_normals()) {
     if (!points.estimate_normals) {
       return absl::InvalidArgumentError("the cloud has no normals and estimate_normals is false");
@@ -154,7 +204,7 @@ absl::StatusOr<double> PrepareSurfaceCloud(const PointParams& points, core::Poin
     core::SubContext sub(ctx, "estimating normals", 0.0, kNormalsShare);
     core::NormalEstimationParams np;
     np.neighbors = points.normal_neighbors;
-    LSQSURF_RETURN_IF_ERROR(ChooseViewpoints(points, cloud, np));
+    LSQSURF_RETURN_IF_ERROR(ChooseViewpoints(seen, cloud, np));
     core::NormalOrientation orientation;
     auto estimated = core::EstimateNormals(cloud.positions, np, sub, &orientation);
     if (!estimated.ok()) return estimated.status();

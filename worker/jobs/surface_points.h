@@ -27,11 +27,12 @@ absl::Status ChooseViewpoints(const PointParams& points, const core::PointCloud&
 
 // What every surface method does to its cloud first: exact repeats dropped (statistic
 // duplicate_points), isolated points removed where `points.remove_outliers` asks
-// (outliers_removed), and normals estimated where the cloud has none, toward the sensors where
-// known and where they see the points (normals_toward_viewpoint, 0 when the positions given hide
-// too many points: viewpoint_hidden_share; normals_seconds), with progress on `ctx` from 0 to the share it
-// returns (kNormalsShare when it estimates normals, else 0). Errors: kInvalidArgument (too few
-// distinct points, no normals and estimate_normals false, bad viewpoints), kCancelled.
+// (outliers_removed), depth steps undone where `points.undo_depth_steps` asks and they are found
+// (core::UndoDepthSteps per sensor; depth_step, depth_steps_moved, viewpoint_inferred), and normals estimated where the
+// cloud has none, toward the sensors where known and where they see the points (normals_toward_viewpoint, 0 when the
+// positions given hide too many points: viewpoint_hidden_share; normals_seconds), with progress on `ctx` from 0 to the
+// share it returns (kNormalsShare when it estimates normals, else 0). Errors: kInvalidArgument (too few distinct
+// points, no normals and estimate_normals false, bad viewpoints), kCancelled.
 inline constexpr double kNormalsShare = 0.2;
 absl::StatusOr<double> PrepareSurfaceCloud(const PointParams& points, core::PointCloud& cloud, core::JobContext& ctx,
                                            Statistics& statistics);

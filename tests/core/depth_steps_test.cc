@@ -58,8 +58,9 @@ Undone Undo(std::vector<Vec3f> points, const std::optional<Vec3d>& eye) {
 TEST(DepthSteps, DisparityStepsAreUndone) {
   const PointCloud view = testing::BallOnATableView(kEye, {.scale = 4, .step = 0.012});
   const Undone undone = Undo(view.positions, kEye);
-  std::printf("  exact %.3f, family %.3f, levels %zu, step %.4f, moved %zu of %zu\n", undone.result.exact_share,
-              undone.result.family_share, undone.result.levels, undone.result.step, undone.result.moved, view.size());
+  std::printf("  exact %.3f, family %.3f, levels %zu, step %.4f (agreement %.2f), moved %zu of %zu\n",
+              undone.result.exact_share, undone.result.family_share, undone.result.levels, undone.result.step,
+              undone.result.step_agreement, undone.result.moved, view.size());
   ASSERT_TRUE(undone.result.found);
   EXPECT_FALSE(undone.result.radial);
   EXPECT_GT(undone.result.moved, view.size() / 2);
@@ -81,8 +82,9 @@ TEST(DepthSteps, DisparityStepsAreUndone) {
 TEST(DepthSteps, RangeStepsAreUndone) {
   const PointCloud view = testing::BallOnATableView(kEye, {.scale = 4, .step = 0.05, .range_steps = true});
   const Undone undone = Undo(view.positions, kEye);
-  std::printf("  exact %.3f, family %.3f, levels %zu, step %.4f, moved %zu of %zu\n", undone.result.exact_share,
-              undone.result.family_share, undone.result.levels, undone.result.step, undone.result.moved, view.size());
+  std::printf("  exact %.3f, family %.3f, levels %zu, step %.4f (agreement %.2f), moved %zu of %zu\n",
+              undone.result.exact_share, undone.result.family_share, undone.result.levels, undone.result.step,
+              undone.result.step_agreement, undone.result.moved, view.size());
   ASSERT_TRUE(undone.result.found);
   EXPECT_TRUE(undone.result.radial);
   EXPECT_NEAR(undone.result.step, 0.05, 0.005);
@@ -123,6 +125,25 @@ TEST(DepthSteps, CloudsWithoutStepsStayAsTheyAre) {
     EXPECT_FALSE(undone.result.found);
     EXPECT_EQ(undone.points, cloud->positions);
   }
+}
+
+// Flat faces square to the view at depths a sensor's steps do not explain (a shelf seen head-on,
+// ten boards at unrelated depths): exactly flat, one family, ten levels, and still not steps.
+TEST(DepthSteps, FacesAtUnrelatedDepthsAreNotSteps) {
+  const double depths[] = {2.0, 2.13, 2.41, 2.47, 2.9, 3.05, 3.6, 3.71, 4.2, 4.55};
+  std::vector<Vec3f> points;
+  for (int row = 0; row < 240; ++row) {
+    for (int column = 0; column < 320; ++column) {
+      const Vec3d ray((column + 0.5) / 160.0 - 1, 0.75 * ((row + 0.5) / 120.0 - 1), 1.0);
+      points.push_back((ray * depths[column / 32]).cast<float>());
+    }
+  }
+  const Undone undone = Undo(points, Vec3d::Zero());
+  std::printf("  exact %.3f, family %.3f, levels %zu, agreement %.2f\n", undone.result.exact_share,
+              undone.result.family_share, undone.result.levels, undone.result.step_agreement);
+  EXPECT_GE(undone.result.levels, 8u);
+  EXPECT_FALSE(undone.result.found);
+  EXPECT_EQ(undone.points, points);
 }
 
 TEST(DepthSteps, BadParametersAreRefused) {

@@ -26,8 +26,11 @@ constexpr double kFloatRounding = 2e-7;
 // which takes at least kLevelSamples of them (a step of a depth camera is at least 1e-3 of the depth).
 constexpr double kSameLevel = 1e-4;
 constexpr size_t kLevelSamples = 2;
-// Gaps between adjacent levels within this share of the typical one agree with a step model.
+// Gaps between adjacent levels within this share of a whole multiple of the step agree with it,
+// and at least kStepAgreement of them do where the levels are a sensor's steps (the stepped
+// views: all), not faces that happen to be square to one direction at unrelated depths.
 constexpr double kGapTolerance = 0.15;
+constexpr double kStepAgreement = 0.6;
 // Points seen nearer than this cosine to square to the axis have no stable image position.
 constexpr double kLeastAxisCosine = 0.1;
 
@@ -176,7 +179,8 @@ std::vector<double> Depths(std::span<const Vec3f> points, const Vec3d& eye, cons
 // depth (range steps), whichever more gaps between adjacent levels agree with.
 struct StepModel {
   bool in_inverse = true;
-  double step = 0;  // Of 1 / depth, or of depth.
+  double step = 0;       // Of 1 / depth, or of depth.
+  double agreement = 0;  // Share of the gaps that whole multiples of `step` explain.
   // The step of 1 / depth at inverse depth `w`.
   double InverseStepAt(double w) const { return in_inverse ? step : step * w * w; }
 };
@@ -210,6 +214,7 @@ StepModel FitStepModel(const std::vector<double>& levels) {
   const double step = BaseStep(gaps, agreeing);
   model.in_inverse = inverse_agreeing >= agreeing;
   model.step = model.in_inverse ? inverse_step : step;
+  model.agreement = std::max(inverse_agreeing, agreeing) / static_cast<double>(gaps.size());
   return model;
 }
 
@@ -323,7 +328,8 @@ absl::StatusOr<DepthStepResult> UndoDepthSteps(std::span<Vec3f> points, const st
   }
   if (!known_eye && (signature.radial || !SensorAtOrigin(signature.levels))) return result;
   const StepModel model = FitStepModel(signature.levels);
-  if (!(model.step > 0)) return result;
+  result.step_agreement = model.agreement;
+  if (!(model.step > 0) || model.agreement < kStepAgreement) return result;
   result.found = true;
   result.eye_inferred = !known_eye;
   const double median_depth = signature.levels[signature.levels.size() / 2];

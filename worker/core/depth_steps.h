@@ -49,6 +49,7 @@ struct DepthStepResult {
   bool radial = false;        // Steps in range (square to the line of sight), not in depth along one axis.
   size_t levels = 0;          // Depth levels holding points.
   double step = 0;            // At the median depth, in model units.
+  double step_agreement = 0;  // Share of the gaps between levels that whole multiples of the step explain.
   size_t moved = 0;           // Points moved.
   bool eye_inferred = false;  // No position was given, and the steps place the sensor at the origin.
 };

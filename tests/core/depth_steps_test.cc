@@ -44,6 +44,11 @@ struct Undone {
   std::vector<Vec3f> points;
 };
 
+void Print(const DepthStepResult& r, size_t points) {
+  std::printf("  exact %.3f, family %.3f, levels %zu, step %.4f (agreement %.2f), moved %zu of %zu\n", r.exact_share,
+              r.family_share, r.levels, r.step, r.step_agreement, r.moved, points);
+}
+
 Undone Undo(std::vector<Vec3f> points, const std::optional<Vec3d>& eye) {
   LocalJobContext ctx;
   auto result = UndoDepthSteps(points, eye, {}, ctx);
@@ -58,9 +63,7 @@ Undone Undo(std::vector<Vec3f> points, const std::optional<Vec3d>& eye) {
 TEST(DepthSteps, DisparityStepsAreUndone) {
   const PointCloud view = testing::BallOnATableView(kEye, {.scale = 4, .step = 0.012});
   const Undone undone = Undo(view.positions, kEye);
-  std::printf("  exact %.3f, family %.3f, levels %zu, step %.4f (agreement %.2f), moved %zu of %zu\n",
-              undone.result.exact_share, undone.result.family_share, undone.result.levels, undone.result.step,
-              undone.result.step_agreement, undone.result.moved, view.size());
+  Print(undone.result, view.size());
   ASSERT_TRUE(undone.result.found);
   EXPECT_FALSE(undone.result.radial);
   EXPECT_GT(undone.result.moved, view.size() / 2);
@@ -82,9 +85,7 @@ TEST(DepthSteps, DisparityStepsAreUndone) {
 TEST(DepthSteps, RangeStepsAreUndone) {
   const PointCloud view = testing::BallOnATableView(kEye, {.scale = 4, .step = 0.05, .range_steps = true});
   const Undone undone = Undo(view.positions, kEye);
-  std::printf("  exact %.3f, family %.3f, levels %zu, step %.4f (agreement %.2f), moved %zu of %zu\n",
-              undone.result.exact_share, undone.result.family_share, undone.result.levels, undone.result.step,
-              undone.result.step_agreement, undone.result.moved, view.size());
+  Print(undone.result, view.size());
   ASSERT_TRUE(undone.result.found);
   EXPECT_TRUE(undone.result.radial);
   EXPECT_NEAR(undone.result.step, 0.05, 0.005);

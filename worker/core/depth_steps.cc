@@ -264,7 +264,9 @@ absl::StatusOr<size_t> MoveOffSteps(std::span<Vec3f> points, const Vec3d& eye, c
             const Eigen::LDLT<Eigen::Matrix3d> solver(normal_matrix);
             if (used < 6 || solver.info() != Eigen::Success || solver.rcond() < 1e-12) break;
             const double fitted = w + std::clamp(solver.solve(right_side)(0), -0.5 * step, 0.5 * step);
-            scale[i] = static_cast<float>(w / fitted);
+            // A range step larger than the point's own depth (a stray next to the sensor) would
+            // move it past the eye or far behind the cloud: such a point stays.
+            if (fitted > 0.5 * w) scale[i] = static_cast<float>(w / fitted);
             break;
           }
         }

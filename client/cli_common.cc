@@ -234,12 +234,24 @@ int FetchToFile(const Globals& g, const std::string& id, const std::string& name
 
 namespace {
 
-// Says so where the server set the sensor positions aside (they hid too many points).
-void PrintViewpointSetAside(const v1::Job& job) {
-  std::optional<double> hidden_share, toward_viewpoint;
+// Says what the server made of the sensor: positions set aside (they hid too many points), one
+// inferred, depth steps undone.
+void PrintSensorNotes(const v1::Job& job) {
+  std::optional<double> hidden_share, toward_viewpoint, depth_step, moved, inferred;
   for (const auto& s : job.statistics()) {
     if (s.name() == "viewpoint_hidden_share") hidden_share = s.value();
     if (s.name() == "normals_toward_viewpoint") toward_viewpoint = s.value();
+    if (s.name() == "depth_step") depth_step = s.value();
+    if (s.name() == "depth_steps_moved") moved = s.value();
+    if (s.name() == "viewpoint_inferred") inferred = s.value();
+  }
+  if (depth_step && moved) {
+    std::fprintf(stderr,
+                 "  the points lay on the depth steps of a stereo or depth camera (%g apart at the median depth): "
+                 "%.0f%% were moved along their rays onto the surface between the steps (undo_depth_steps=false "
+                 "keeps them)%s\n",
+                 *depth_step, 100 * *moved,
+                 inferred == 1.0 ? "; no sensor position was given, and the steps place it at the origin" : "");
   }
   if (hidden_share && toward_viewpoint == 0.0) {
     std::fprintf(stderr,
@@ -254,7 +266,7 @@ void PrintViewpointSetAside(const v1::Job& job) {
 void PrintStatistics(const v1::Job& job, bool all) {
   if (all) {
     for (const auto& s : job.statistics()) std::fprintf(stderr, "  %s = %g\n", s.name().c_str(), s.value());
-    PrintViewpointSetAside(job);
+    PrintSensorNotes(job);
     return;
   }
   // One line of what a user checks first, then what the server had to repair in the input.
@@ -284,7 +296,7 @@ void PrintStatistics(const v1::Job& job, bool all) {
   }
   if (!line.empty()) std::fprintf(stderr, "  %s\n", line.c_str());
   if (!repaired.empty()) std::fprintf(stderr, "  input repaired: %s\n", repaired.c_str());
-  PrintViewpointSetAside(job);
+  PrintSensorNotes(job);
   std::fprintf(stderr, "  %d statistics: --stats, or lsqsurf status %s\n", job.statistics_size(), job.id().c_str());
 }
 

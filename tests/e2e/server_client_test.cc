@@ -230,6 +230,7 @@ TEST_F(EndToEnd, AViewsDepthStepsAreUndone) {
     const ClientRun r = Client(server.address(), "reconstruct " + in + " -o " + out + " --method pu --stats" + extra);
     EXPECT_EQ(r.code, 0) << r.output;
     EXPECT_EQ(r.output.find("depth_step = ") != std::string::npos, undone) << r.output;
+    EXPECT_EQ(r.output.find("were moved along their rays") != std::string::npos, undone) << r.output;
     auto mesh = io::ReadMeshFile(out);
     EXPECT_TRUE(mesh.ok()) << mesh.status();
     if (!mesh.ok()) return Surface{};
